@@ -1,0 +1,38 @@
+# wiremap: every install step lives here and in pyproject.toml.
+PY ?= python3
+VENV := .venv
+BIN := $(VENV)/bin
+STAMP := $(VENV)/.installed
+
+.PHONY: demo test lint typecheck bench fuzz clean venv
+
+$(STAMP): pyproject.toml
+	test -x $(BIN)/python || $(PY) -m venv $(VENV)
+	$(BIN)/python -m pip install -q --upgrade pip
+	$(BIN)/python -m pip install -q -e '.[dev]'
+	touch $(STAMP)
+
+venv: $(STAMP)
+
+demo: $(STAMP)
+	$(BIN)/wiremap run --world paper-small --robots 3 --duration 60 --seed 1 --out out/demo
+
+test: $(STAMP)
+	$(BIN)/ruff check mapping wire_codec agents tests
+	$(BIN)/mypy
+	$(BIN)/python -m pytest -q
+
+lint: $(STAMP)
+	$(BIN)/ruff check mapping wire_codec agents tests
+
+bench: $(STAMP)
+	$(BIN)/wiremap bench codec --json
+	$(BIN)/wiremap bench accuracy --world paper-small --seeds 3 --json
+	$(BIN)/wiremap bench speed --json
+
+fuzz: $(STAMP)
+	$(BIN)/python -m pip install -q atheris || { echo "atheris does not install here"; exit 1; }
+	$(BIN)/python tests/fuzz_codec.py -atheris_runs=200000
+
+clean:
+	rm -rf out .pytest_cache .mypy_cache .ruff_cache

@@ -1,0 +1,428 @@
+"""The wireframe: a labelled, directed graph embedded in the plane (paper Sec. III-A).
+
+Vertices are wall corners, edges are walls. Conventions used everywhere in this project:
+
+* **Edge direction.** A directed edge ``(i, j)`` is a wall seen from its *left* side: walking
+  from ``p_i`` to ``p_j``, free space is on the left, the solid side on the right. A scan's
+  corners sorted counterclockwise around the robot and joined in that order (paper Sec. IV-A)
+  produce exactly this direction. The outer wall of a room therefore runs counterclockwise, an
+  obstacle inside it clockwise, and a thin interior wall seen from both sides is two edges of
+  opposite direction between the same corners. Edges of opposite direction are never merged.
+* **Labels** (:class:`Label`): ``NOMINAL`` corners are real corners, ``OCCLUSION`` vertices end a
+  visible wall that hides another one, ``FRONTIER`` vertices are where a wall leaves what has
+  been seen (behind an occlusion or beyond the sensing range).
+* **Likelihood.** Each edge carries the likelihood that it exists (paper Sec. IV-D/E), in [0, 1].
+* **Sources.** Each edge carries a ``uint64`` bit mask of contributors (bit k = contributor k);
+  the fusion service uses it for "which robots saw this wall"; a single robot leaves it 0.
+  Merging ORs the masks the way it combines likelihoods.
+
+The value type is immutable: its arrays are read-only, and every operation returns a new one.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass
+from enum import IntEnum
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from mapping.se2 import Pose
+
+FloatArray = NDArray[np.float64]
+IndexArray = NDArray[np.int32]
+LabelArray = NDArray[np.uint8]
+MaskArray = NDArray[np.uint64]
+
+
+class Label(IntEnum):
+    """Vertex labels of paper Sec. III-A."""
+
+    NOMINAL = 0
+    OCCLUSION = 1
+    FRONTIER = 2
+
+    @property
+    def text(self) -> str:
+        return self.name.lower()
+
+    @classmethod
+    def from_text(cls, text: str) -> Label:
+        try:
+            return cls[text.upper()]
+        except KeyError:
+            raise ValueError(f"unknown vertex label {text!r} (nominal, occlusion or frontier)") from None
+
+
+def _readonly(a: np.ndarray) -> np.ndarray:
+    a.setflags(write=False)
+    return a
+
+
+@dataclass(frozen=True, eq=False)
+class Wireframe:
+    """A labelled directed embedded graph ``W = {V, E, phi, lambda}``.
+
+    Parameters
+    ----------
+    points : (n, 2) float64
+        Vertex positions ``phi(i)`` in metres.
+    labels : (n,) uint8
+        Vertex labels ``lambda(i)``, values of :class:`Label`.
+    edges : (m, 2) int32
+        Directed edges ``(i, j)``: the wall from ``p_i`` to ``p_j`` with free space on its left.
+    likelihood : (m,) float64
+        Per-edge existence likelihood in [0, 1].
+    sources : (m,) uint64
+        Per-edge contributor bit mask.
+
+    Raises
+    ------
+    ValueError
+        When shapes disagree, an index is out of range, an edge is a self-loop, a coordinate is
+        not finite, a label is unknown or a likelihood is outside [0, 1]. Use :meth:`build`
+        for the forgiving constructor that accepts lists and fills defaults.
+    """
+
+    points: FloatArray
+    labels: LabelArray
+    edges: IndexArray
+    likelihood: FloatArray
+    sources: MaskArray
+
+    def __post_init__(self) -> None:
+        pts = np.array(self.points, dtype=np.float64, copy=True)
+        if pts.size == 0:
+            pts = pts.reshape(0, 2)
+        if pts.ndim != 2 or pts.shape[1] != 2:
+            raise ValueError(f"points must have shape (n, 2), got {pts.shape}")
+        n = pts.shape[0]
+        if not np.all(np.isfinite(pts)):
+            bad = int(np.argwhere(~np.isfinite(pts))[0, 0])
+            raise ValueError(f"vertex {bad} has a non-finite coordinate")
+        labels_in = np.asarray(self.labels)
+        if labels_in.shape != (n,):
+            raise ValueError(f"labels must have shape ({n},), got {labels_in.shape}")
+        if n and (np.any(labels_in < 0) or np.any(labels_in > max(Label))):
+            raise ValueError("labels must be 0 (nominal), 1 (occlusion) or 2 (frontier)")
+        labels = labels_in.astype(np.uint8, copy=True)
+        e_in = np.asarray(self.edges)
+        if e_in.size == 0:
+            e_in = e_in.reshape(0, 2)
+        if e_in.ndim != 2 or e_in.shape[1] != 2:
+            raise ValueError(f"edges must have shape (m, 2), got {e_in.shape}")
+        if e_in.size and not np.issubdtype(e_in.dtype, np.integer):
+            if not np.all(np.equal(np.mod(e_in, 1), 0)):
+                raise ValueError("edge indices must be integers")
+        m = e_in.shape[0]
+        if m and (e_in.min() < 0 or e_in.max() >= n):
+            bad = int(np.argwhere((e_in < 0) | (e_in >= n))[0, 0])
+            raise ValueError(f"edge {bad} {tuple(int(v) for v in e_in[bad])} has a vertex index outside 0..{n - 1}")
+        edges = e_in.astype(np.int32, copy=True)
+        if m and np.any(edges[:, 0] == edges[:, 1]):
+            bad = int(np.argwhere(edges[:, 0] == edges[:, 1])[0, 0])
+            raise ValueError(f"edge {bad} is a self-loop on vertex {int(edges[bad, 0])}")
+        lik = np.array(self.likelihood, dtype=np.float64, copy=True).reshape(-1)
+        if lik.shape != (m,):
+            raise ValueError(f"likelihood must have shape ({m},), got {lik.shape}")
+        if m and (not np.all(np.isfinite(lik)) or lik.min() < 0.0 or lik.max() > 1.0):
+            raise ValueError("edge likelihoods must be finite and within [0, 1]")
+        src = np.array(self.sources, dtype=np.uint64, copy=True).reshape(-1)
+        if src.shape != (m,):
+            raise ValueError(f"sources must have shape ({m},), got {src.shape}")
+        object.__setattr__(self, "points", _readonly(pts))
+        object.__setattr__(self, "labels", _readonly(labels))
+        object.__setattr__(self, "edges", _readonly(edges))
+        object.__setattr__(self, "likelihood", _readonly(lik))
+        object.__setattr__(self, "sources", _readonly(src))
+
+    # ------------------------------------------------------------------ construction
+    @classmethod
+    def build(
+        cls,
+        points: ArrayLike,
+        edges: ArrayLike = (),
+        labels: ArrayLike | None = None,
+        likelihood: ArrayLike | None = None,
+        sources: ArrayLike | None = None,
+    ) -> Wireframe:
+        """Forgiving constructor: lists welcome; labels default to nominal, likelihoods to 1."""
+        pts = np.asarray(points, dtype=np.float64)
+        if pts.size == 0:
+            pts = pts.reshape(0, 2)
+        e = np.asarray(edges, dtype=np.int64)
+        if e.size == 0:
+            e = e.reshape(0, 2)
+        n, m = pts.shape[0], e.shape[0]
+        lab = np.zeros(n, np.uint8) if labels is None else np.asarray(labels)
+        lik = np.ones(m) if likelihood is None else np.asarray(likelihood, dtype=np.float64)
+        src = np.zeros(m, np.uint64) if sources is None else np.asarray(sources, dtype=np.uint64)
+        return cls(pts, lab, e, lik, src)
+
+    @classmethod
+    def empty(cls) -> Wireframe:
+        return cls.build(np.zeros((0, 2)))
+
+    @classmethod
+    def from_polylines(
+        cls, rings: Iterable[ArrayLike], closed: bool = True, likelihood: float = 1.0
+    ) -> Wireframe:
+        """Chains of corners joined in order (closed rings by default), all nominal."""
+        pts: list[FloatArray] = []
+        edges: list[tuple[int, int]] = []
+        base = 0
+        for ring in rings:
+            r = np.asarray(ring, dtype=np.float64).reshape(-1, 2)
+            if closed and len(r) > 1 and np.allclose(r[0], r[-1]):
+                r = r[:-1]
+            k = len(r)
+            pts.append(r)
+            edges.extend((base + a, base + a + 1) for a in range(k - 1))
+            if closed and k > 2:
+                edges.append((base + k - 1, base))
+            base += k
+        allp = np.concatenate(pts) if pts else np.zeros((0, 2))
+        return cls.build(allp, edges, likelihood=np.full(len(edges), likelihood))
+
+    def replace(self, **changes: Any) -> Wireframe:
+        fields: dict[str, Any] = {
+            "points": self.points,
+            "labels": self.labels,
+            "edges": self.edges,
+            "likelihood": self.likelihood,
+            "sources": self.sources,
+        }
+        fields.update(changes)
+        return Wireframe(**fields)
+
+    # ------------------------------------------------------------------ queries
+    @property
+    def n_vertices(self) -> int:
+        return int(self.points.shape[0])
+
+    @property
+    def n_edges(self) -> int:
+        return int(self.edges.shape[0])
+
+    def __len__(self) -> int:
+        return self.n_vertices
+
+    def __repr__(self) -> str:
+        counts = np.bincount(self.labels, minlength=3) if self.n_vertices else np.zeros(3, int)
+        return (
+            f"Wireframe(vertices={self.n_vertices} [nominal={counts[0]} occlusion={counts[1]} "
+            f"frontier={counts[2]}], edges={self.n_edges})"
+        )
+
+    def segments(self) -> FloatArray:
+        """Edge geometry as ``(m, 2, 2)``: ``[k, 0]`` is the start, ``[k, 1]`` the end."""
+        if self.n_edges == 0:
+            return np.zeros((0, 2, 2))
+        return np.asarray(self.points[self.edges], dtype=np.float64)
+
+    def edge_lengths(self) -> FloatArray:
+        s = self.segments()
+        return np.asarray(np.hypot(*(s[:, 1] - s[:, 0]).T), dtype=np.float64)
+
+    def total_length(self) -> float:
+        return float(self.edge_lengths().sum())
+
+    def bounds(self) -> tuple[float, float, float, float]:
+        """``(xmin, ymin, xmax, ymax)``; raises ``ValueError`` on an empty wireframe."""
+        if self.n_vertices == 0:
+            raise ValueError("an empty wireframe has no bounds")
+        lo, hi = self.points.min(axis=0), self.points.max(axis=0)
+        return (float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1]))
+
+    def degree(self) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+        """``(in_degree, out_degree)`` per vertex."""
+        n = self.n_vertices
+        return (
+            np.bincount(self.edges[:, 1], minlength=n).astype(np.int64),
+            np.bincount(self.edges[:, 0], minlength=n).astype(np.int64),
+        )
+
+    # ------------------------------------------------------------------ transforms
+    def transformed(self, pose: Pose) -> Wireframe:
+        """This wireframe moved by ``pose`` (its points mapped from pose's frame to the parent)."""
+        return self.replace(points=pose.apply(self.points))
+
+    def subgraph_edges(self, keep: NDArray[np.bool_]) -> Wireframe:
+        """Keep the edges where ``keep`` is true; vertices left without an edge are dropped."""
+        keep = np.asarray(keep, dtype=bool)
+        if keep.shape != (self.n_edges,):
+            raise ValueError(f"edge mask must have shape ({self.n_edges},), got {keep.shape}")
+        return self.replace(
+            edges=self.edges[keep], likelihood=self.likelihood[keep], sources=self.sources[keep]
+        ).compacted()
+
+    def compacted(self) -> Wireframe:
+        """Drop vertices that no edge uses and renumber (order of the rest is kept)."""
+        n = self.n_vertices
+        used = np.zeros(n, dtype=bool)
+        used[self.edges.reshape(-1)] = True
+        if used.all():
+            return self
+        remap = np.cumsum(used) - 1
+        return Wireframe(
+            self.points[used], self.labels[used], remap[self.edges], self.likelihood, self.sources
+        )
+
+    # ------------------------------------------------------------------ comparison
+    def almost_equal(self, other: Wireframe, tol: float = 1e-9, likelihood_tol: float = 1e-9) -> bool:
+        """Same graph up to vertex and edge order: a one-to-one vertex matching within ``tol``
+        metres with equal labels, and the same directed edges with likelihoods within
+        ``likelihood_tol`` and equal sources."""
+        if self.n_vertices != other.n_vertices or self.n_edges != other.n_edges:
+            return False
+        if self.n_vertices == 0:
+            return True
+        perm = _match_vertices(self.points, other.points, tol)
+        if perm is None or np.any(self.labels != other.labels[perm]):
+            return False
+        mine = sorted(
+            (int(perm[a]), int(perm[b]), float(lk), int(s))
+            for (a, b), lk, s in zip(self.edges, self.likelihood, self.sources)
+        )
+        theirs = sorted(
+            (int(a), int(b), float(lk), int(s))
+            for (a, b), lk, s in zip(other.edges, other.likelihood, other.sources)
+        )
+        return all(
+            x[0] == y[0] and x[1] == y[1] and abs(x[2] - y[2]) <= likelihood_tol and x[3] == y[3]
+            for x, y in zip(mine, theirs)
+        )
+
+    # ------------------------------------------------------------------ storage
+    def paper_storage_bytes(self) -> int:
+        """Storage by the paper's accounting (Sec. IV-G): 10 bytes per vertex (two 4-byte
+        coordinates, a 2-byte label) plus 10 bytes per edge (two 5-byte indices).
+        42 vertices and 42 edges give 840 bytes; 293 and 298 give 5,910."""
+        return paper_storage_bytes(self.n_vertices, self.n_edges)
+
+    # ------------------------------------------------------------------ GeoJSON
+    def to_geojson(self, properties: Mapping[str, Any] | None = None) -> dict[str, Any]:
+        """A GeoJSON FeatureCollection: one ``Point`` per vertex, then one ``LineString`` per
+        edge (coordinates in edge direction). Vertices carry ``index``; walls carry ``from`` and
+        ``to`` vertex indices, so that :meth:`from_geojson` round-trips exactly even when two
+        vertices share a position. ``properties`` go on the collection's ``properties``."""
+        feats: list[dict[str, Any]] = []
+        for i, ((x, y), lab) in enumerate(zip(self.points.tolist(), self.labels.tolist())):
+            feats.append(
+                {
+                    "type": "Feature",
+                    "geometry": {"type": "Point", "coordinates": [x, y]},
+                    "properties": {"kind": "corner", "label": Label(lab).text, "index": i},
+                }
+            )
+        for (a, b), lk, src in zip(self.edges.tolist(), self.likelihood.tolist(), self.sources.tolist()):
+            props: dict[str, Any] = {"kind": "wall", "likelihood": lk, "from": a, "to": b}
+            if src:
+                props["sources"] = int(src)
+            feats.append(
+                {
+                    "type": "Feature",
+                    "geometry": {
+                        "type": "LineString",
+                        "coordinates": [self.points[a].tolist(), self.points[b].tolist()],
+                    },
+                    "properties": props,
+                }
+            )
+        fc: dict[str, Any] = {"type": "FeatureCollection", "features": feats}
+        if properties:
+            fc["properties"] = dict(properties)
+        return fc
+
+    @classmethod
+    def from_geojson(cls, doc: Mapping[str, Any] | str) -> Wireframe:
+        """Read what :meth:`to_geojson` writes. Walls without ``from``/``to`` are joined to the
+        corner at exactly their end coordinates (a new nominal corner where there is none).
+        Raises ``ValueError`` naming the feature that is wrong."""
+        if isinstance(doc, str):
+            doc = json.loads(doc)
+        if not isinstance(doc, Mapping) or doc.get("type") != "FeatureCollection":
+            raise ValueError("expected a GeoJSON FeatureCollection")
+        feats = doc.get("features")
+        if not isinstance(feats, list):
+            raise ValueError("FeatureCollection has no 'features' list")
+        pts: list[tuple[float, float]] = []
+        labels: list[int] = []
+        index_of: dict[tuple[float, float], int] = {}
+        walls: list[tuple[int, dict[str, Any]]] = []
+        for k, f in enumerate(feats):
+            geom = (f or {}).get("geometry") or {}
+            props = (f or {}).get("properties") or {}
+            gtype = geom.get("type")
+            if gtype == "Point" and props.get("kind", "corner") == "corner":
+                try:
+                    x, y = (float(c) for c in geom["coordinates"][:2])
+                    lab = Label.from_text(str(props.get("label", "nominal")))
+                except (KeyError, TypeError, ValueError) as exc:
+                    raise ValueError(f"feature {k}: bad corner: {exc}") from None
+                if "index" in props and props["index"] != len(pts):
+                    raise ValueError(f"feature {k}: corner index {props['index']} out of order")
+                index_of.setdefault((x, y), len(pts))
+                pts.append((x, y))
+                labels.append(int(lab))
+            elif gtype == "LineString" and props.get("kind", "wall") == "wall":
+                walls.append((k, f))
+            else:
+                raise ValueError(f"feature {k}: unsupported {gtype} of kind {props.get('kind')!r}")
+        edges: list[tuple[int, int]] = []
+        lik: list[float] = []
+        src: list[int] = []
+        for k, f in walls:
+            props = f.get("properties") or {}
+            coords = f["geometry"].get("coordinates")
+            if not isinstance(coords, list) or len(coords) != 2:
+                raise ValueError(f"feature {k}: a wall is a LineString of exactly two points")
+            if "from" in props and "to" in props:
+                a, b = int(props["from"]), int(props["to"])
+            else:
+                ends = []
+                for c in coords:
+                    key = (float(c[0]), float(c[1]))
+                    if key not in index_of:
+                        index_of[key] = len(pts)
+                        pts.append(key)
+                        labels.append(int(Label.NOMINAL))
+                    ends.append(index_of[key])
+                a, b = ends
+            edges.append((a, b))
+            try:
+                lik.append(float(props.get("likelihood", 1.0)))
+                src.append(int(props.get("sources", 0)))
+            except (TypeError, ValueError) as exc:
+                raise ValueError(f"feature {k}: bad wall property: {exc}") from None
+        try:
+            return cls.build(np.array(pts, dtype=np.float64).reshape(-1, 2), edges, labels, lik, src)
+        except ValueError as exc:
+            raise ValueError(f"invalid wireframe in GeoJSON: {exc}") from None
+
+
+def paper_storage_bytes(n_vertices: int, n_edges: int) -> int:
+    """The paper's storage accounting (Sec. IV-G): ``10 |V| + 10 |E|`` bytes per wireframe."""
+    return 10 * int(n_vertices) + 10 * int(n_edges)
+
+
+def _match_vertices(a: FloatArray, b: FloatArray, tol: float) -> NDArray[np.int64] | None:
+    """A permutation ``perm`` with ``|a[i] - b[perm[i]]| <= tol`` for all i, or None."""
+    from scipy.optimize import linear_sum_assignment
+    from scipy.spatial import cKDTree
+
+    tree = cKDTree(b)
+    d, j = tree.query(a, k=1)
+    if np.all(d <= tol) and len(np.unique(j)) == len(j):
+        return np.asarray(j, dtype=np.int64)
+    # Ambiguous (several vertices within tol): solve the assignment exactly.
+    cost = np.hypot(a[:, None, 0] - b[None, :, 0], a[:, None, 1] - b[None, :, 1])
+    rows, cols = linear_sum_assignment(cost)
+    if not np.all(cost[rows, cols] <= tol):
+        return None
+    perm = np.empty(len(a), dtype=np.int64)
+    perm[rows] = cols
+    return perm

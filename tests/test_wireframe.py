@@ -1,0 +1,148 @@
+import json
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from mapping import Label, Pose, Wireframe, paper_storage_bytes
+
+
+def square(size: float = 2.0) -> Wireframe:
+    return Wireframe.from_polylines([[(0, 0), (size, 0), (size, size), (0, size)]])
+
+
+def test_square_is_ccw_ring():
+    wf = square()
+    assert wf.n_vertices == 4 and wf.n_edges == 4
+    assert wf.edges.tolist() == [[0, 1], [1, 2], [2, 3], [3, 0]]
+    assert wf.total_length() == pytest.approx(8.0)
+
+
+@pytest.mark.parametrize(
+    "kwargs, reason",
+    [
+        ({"points": [[0, 0], [1, 0]], "edges": [[0, 2]]}, "outside"),
+        ({"points": [[0, 0], [1, 0]], "edges": [[1, 1]]}, "self-loop"),
+        ({"points": [[0, 0], [np.nan, 0]], "edges": []}, "non-finite"),
+        ({"points": [[0, 0], [1, 0]], "edges": [[0, 1]], "labels": [0]}, "labels"),
+        ({"points": [[0, 0], [1, 0]], "edges": [[0, 1]], "labels": [0, 7]}, "labels"),
+        ({"points": [[0, 0], [1, 0]], "edges": [[0, 1]], "likelihood": [1.5]}, "likelihood"),
+        ({"points": [[0, 0], [1, 0]], "edges": [[0, 1]], "likelihood": [1, 1]}, "likelihood"),
+        ({"points": [0, 0, 1], "edges": []}, "points"),
+    ],
+)
+def test_constructor_rejects_with_reason(kwargs, reason):
+    with pytest.raises(ValueError, match=reason):
+        Wireframe.build(**kwargs)
+
+
+def test_arrays_are_read_only():
+    wf = square()
+    with pytest.raises(ValueError):
+        wf.points[0, 0] = 5.0
+
+
+def test_paper_storage_accounting():
+    assert paper_storage_bytes(42, 42) == 840
+    assert paper_storage_bytes(293, 298) == 5910
+    assert 6 * paper_storage_bytes(293, 298) == 35460
+    assert square().paper_storage_bytes() == 80
+
+
+def test_transform_and_inverse():
+    wf = square()
+    pose = Pose(3.0, -1.0, 0.7)
+    back = wf.transformed(pose).transformed(pose.inverse())
+    assert back.almost_equal(wf, tol=1e-12)
+    assert not wf.transformed(Pose(0.01, 0, 0)).almost_equal(wf, tol=1e-3)
+
+
+def test_pose_algebra():
+    a, b = Pose(1, 2, 0.5), Pose(-3, 0.5, -2.0)
+    pts = np.array([[0.3, -0.2], [5, 5]])
+    assert np.allclose(a.compose(b).apply(pts), a.apply(b.apply(pts)))
+    assert a.compose(a.inverse()).almost_equal(Pose.identity(), tol=1e-12, angle_tol=1e-12)
+    assert np.allclose(a.apply_inverse(a.apply(pts)), pts)
+    assert a.between(a.compose(b)).almost_equal(b, tol=1e-12, angle_tol=1e-12)
+    assert Pose(0, 0, 3 * math.pi).theta == pytest.approx(-math.pi)
+    assert Pose.parse("1,2,0.5") == Pose(1, 2, 0.5)
+    with pytest.raises(ValueError):
+        Pose.parse("1,2")
+
+
+def test_almost_equal_ignores_order_but_not_direction():
+    wf = square()
+    perm = np.array([2, 0, 3, 1])
+    inv = np.argsort(perm)
+    shuffled = Wireframe.build(wf.points[perm], inv[wf.edges][::-1])
+    assert shuffled.almost_equal(wf)
+    reversed_edges = Wireframe.build(wf.points, wf.edges[:, ::-1])
+    assert not reversed_edges.almost_equal(wf)
+
+
+def test_subgraph_and_compaction():
+    wf = Wireframe.build([[0, 0], [1, 0], [2, 0], [5, 5]], [[0, 1], [1, 2]])
+    sub = wf.subgraph_edges(np.array([True, False]))
+    assert sub.n_vertices == 2 and sub.edges.tolist() == [[0, 1]]
+    assert wf.compacted().n_vertices == 3
+
+
+def test_geojson_shape():
+    wf = Wireframe.build(
+        [[0, 0], [1, 0], [1, 1]], [[0, 1], [1, 2]], labels=[0, 1, 2], likelihood=[0.5, 0.25]
+    )
+    doc = wf.to_geojson()
+    kinds = [(f["geometry"]["type"], f["properties"]["kind"]) for f in doc["features"]]
+    assert kinds.count(("Point", "corner")) == 3 and kinds.count(("LineString", "wall")) == 2
+    labels = [f["properties"]["label"] for f in doc["features"] if f["properties"]["kind"] == "corner"]
+    assert labels == ["nominal", "occlusion", "frontier"]
+    wall = next(f for f in doc["features"] if f["properties"]["kind"] == "wall")
+    assert wall["geometry"]["coordinates"] == [[0.0, 0.0], [1.0, 0.0]]
+    assert wall["properties"]["likelihood"] == 0.5
+
+
+def test_geojson_without_indices_joins_by_coordinates():
+    doc = {
+        "type": "FeatureCollection",
+        "features": [
+            {"type": "Feature", "geometry": {"type": "LineString", "coordinates": [[0, 0], [1, 0]]}, "properties": {}},
+            {"type": "Feature", "geometry": {"type": "LineString", "coordinates": [[1, 0], [1, 1]]}, "properties": {}},
+        ],
+    }
+    wf = Wireframe.from_geojson(doc)
+    assert wf.n_vertices == 3 and wf.n_edges == 2
+
+
+def test_geojson_errors_name_the_feature():
+    with pytest.raises(ValueError, match="feature 0"):
+        Wireframe.from_geojson({"type": "FeatureCollection", "features": [{"geometry": {"type": "Polygon"}}]})
+    with pytest.raises(ValueError, match="FeatureCollection"):
+        Wireframe.from_geojson({"type": "Feature"})
+
+
+finite = st.floats(min_value=-1e6, max_value=1e6, allow_nan=False, allow_infinity=False)
+
+
+@st.composite
+def wireframes(draw, max_vertices: int = 12):
+    n = draw(st.integers(0, max_vertices))
+    pts = draw(st.lists(st.tuples(finite, finite), min_size=n, max_size=n))
+    labels = draw(st.lists(st.sampled_from(list(Label)), min_size=n, max_size=n))
+    edges = []
+    if n >= 2:
+        pairs = draw(st.lists(st.tuples(st.integers(0, n - 1), st.integers(0, n - 1)), max_size=2 * n))
+        edges = [(a, b) for a, b in pairs if a != b]
+    lik = draw(st.lists(st.floats(0, 1), min_size=len(edges), max_size=len(edges)))
+    return Wireframe.build(np.array(pts, dtype=float).reshape(-1, 2), edges, [int(x) for x in labels], lik)
+
+
+@settings(max_examples=150, deadline=None)
+@given(wireframes())
+def test_geojson_round_trip_is_exact(wf):
+    back = Wireframe.from_geojson(json.loads(json.dumps(wf.to_geojson())))
+    assert np.array_equal(back.points, wf.points)
+    assert np.array_equal(back.labels, wf.labels)
+    assert np.array_equal(back.edges, wf.edges)
+    assert np.array_equal(back.likelihood, wf.likelihood)
