@@ -32,6 +32,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
 }
 
 
+# The arguments being parsed, for commands whose own subcommands import lazily (``bench``).
+ARGV: list[str] = []
+
+
 class _Parser(argparse.ArgumentParser):
     """argparse that reports bad flags as one line and exit status 2."""
 
@@ -54,6 +58,7 @@ def build_parser(command: str | None) -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     args_list = list(sys.argv[1:] if argv is None else argv)
+    ARGV[:] = args_list
     command = next((a for a in args_list if not a.startswith("-")), None)
     parser = build_parser(command if command in COMMANDS else None)
     args = parser.parse_args(args_list)

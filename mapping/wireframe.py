@@ -160,7 +160,7 @@ class Wireframe:
         lab = np.zeros(n, np.uint8) if labels is None else np.asarray(labels)
         lik = np.ones(m) if likelihood is None else np.asarray(likelihood, dtype=np.float64)
         src = np.zeros(m, np.uint64) if sources is None else np.asarray(sources, dtype=np.uint64)
-        return cls(pts, lab, e, lik, src)
+        return cls(pts, lab, e, lik, src)  # type: ignore[arg-type]  # validated and cast in __post_init__
 
     @classmethod
     def empty(cls) -> Wireframe:

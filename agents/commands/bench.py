@@ -1,0 +1,35 @@
+"""``wiremap bench {accuracy,speed,codec,fleet,soak}``: dispatches to :mod:`agents.bench`."""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+
+HELP = "benchmarks"
+BENCHES: dict[str, tuple[str, str]] = {
+    "accuracy": ("agents.bench.accuracy", "map quality over seeds, filter vs single-hypothesis baseline"),
+    "speed": ("agents.bench.speed", "scan updates per second, step time, peak RSS"),
+    "codec": ("agents.bench.codec", "wire codec size and speed against other encodings"),
+    "fleet": ("agents.bench.fleet", "fleet latency, bandwidth and fused-map quality by fleet size"),
+    "soak": ("agents.bench.soak", "long run with corrupt payloads and robot restarts"),
+}
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from agents.cli import ARGV
+
+    sub = parser.add_subparsers(dest="bench", metavar="BENCH", parser_class=type(parser))
+    chosen = next((a for a in ARGV[1:] if a in BENCHES), None)
+    for name, (module_name, help_text) in BENCHES.items():
+        p = sub.add_parser(name, help=help_text, description=help_text)
+        if name == chosen:
+            module = importlib.import_module(module_name)
+            module.add_arguments(p)
+            p.set_defaults(_bench=module)
+
+
+def run(args: argparse.Namespace) -> int:
+    module = getattr(args, "_bench", None)
+    if module is None:
+        raise SystemExit("wiremap bench: choose one of " + ", ".join(BENCHES))
+    return int(module.run(args) or 0)
