@@ -12,6 +12,15 @@ from agents.errors import UserError
 from mapping.wireframe import Wireframe
 
 
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+_FILE_MODE = 0o666 & ~_umask()
+
+
 def write_atomic(path: str | os.PathLike[str], data: bytes | str) -> None:
     """Write ``data`` to ``path`` atomically: a temporary file in the same directory, fsync,
     then ``os.replace``. A reader sees the old file or the new one, never half of either."""
@@ -24,6 +33,7 @@ def write_atomic(path: str | os.PathLike[str], data: bytes | str) -> None:
             fh.write(raw)
             fh.flush()
             os.fsync(fh.fileno())
+        os.chmod(tmp, _FILE_MODE)  # mkstemp creates 0600; give the file the usual mode
         os.replace(tmp, path)
     except BaseException:
         try:

@@ -1,0 +1,102 @@
+"""``wiremap export MAP --format geojson|svg|png|rosmap --out PATH``.
+
+``MAP`` is a ``.wfm`` file (exactly one :mod:`wire_codec` message, e.g. a saved fused map) or a
+``.geojson`` written by ``wiremap`` (or any FeatureCollection of corner points and wall lines).
+
+Formats:
+
+* ``geojson`` -- the wireframe as GeoJSON (corners and directed walls); a ``.wfm``'s metadata
+  (sender, version, robots, ...) goes on the collection's ``properties``;
+* ``svg`` / ``png`` -- pictures (:mod:`agents.render`): walls coloured by likelihood, corners
+  by label;
+* ``rosmap`` -- a ROS ``map_server`` map for Nav2: ``PATH.pgm`` + ``PATH.yaml`` at
+  ``--resolution`` metres per cell (see :mod:`agents.export` for the free / occupied / unknown
+  rules). ``--out maps/floor`` writes ``maps/floor.pgm`` and ``maps/floor.yaml``; an ``--out``
+  ending in ``.pgm`` or ``.yaml`` names one of the pair and the other gets the same stem.
+
+Without ``--format`` the format follows ``--out``'s suffix (``.geojson``/``.json``, ``.svg``,
+``.png``, ``.pgm``/``.yaml``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+
+from agents.errors import UserError
+
+HELP = "export a map as GeoJSON, SVG, PNG or a ROS map"
+
+
+def _positive_float(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not (math.isfinite(v) and v > 0.0):
+        raise argparse.ArgumentTypeError(f"must be a positive number, got {text!r}")
+    return v
+
+
+def _probability(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not 0.0 <= v <= 1.0:
+        raise argparse.ArgumentTypeError(f"must be within [0, 1], got {text!r}")
+    return v
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from agents.export import DEFAULT_RESOLUTION, FORMATS
+
+    parser.add_argument("map", metavar="MAP", help="a .wfm (wire message) or .geojson map file")
+    parser.add_argument(
+        "--format",
+        choices=FORMATS,
+        help="output format (default: from --out's suffix)",
+    )
+    parser.add_argument(
+        "--out",
+        metavar="PATH",
+        required=True,
+        help="output file; for rosmap a stem: PATH.pgm + PATH.yaml (PATH may end in .pgm or .yaml)",
+    )
+    parser.add_argument(
+        "--resolution",
+        type=_positive_float,
+        default=DEFAULT_RESOLUTION,
+        metavar="M",
+        help=f"rosmap cell size in metres (default {DEFAULT_RESOLUTION})",
+    )
+    parser.add_argument(
+        "--min-likelihood",
+        type=_probability,
+        default=0.0,
+        metavar="P",
+        help="drop walls whose likelihood is below P first (default 0: keep all)",
+    )
+
+
+def run(args: argparse.Namespace) -> int:
+    from agents.export import FORMATS, export_map, format_from_suffix, load_map
+
+    fmt = args.format or format_from_suffix(args.out)
+    if fmt is None:
+        raise UserError(f"cannot tell the format from {args.out!r}: give --format ({'|'.join(FORMATS)})")
+    loaded = load_map(args.map)
+    try:
+        written = export_map(
+            loaded, fmt, args.out, resolution=args.resolution, min_likelihood=args.min_likelihood
+        )
+    except ValueError as exc:
+        raise UserError(str(exc)) from None
+    except OSError as exc:
+        raise UserError(f"cannot write {args.out}: {exc.strerror or exc}") from None
+    wf = loaded.wireframe
+    print(
+        f"wrote {', '.join(str(p) for p in written)} ({fmt}; {wf.n_vertices} vertices, {wf.n_edges} edges)",
+        flush=True,
+    )
+    return 0

@@ -1,0 +1,234 @@
+"""``wiremap watch [--connect ...] [--save DIR] [--count N] [--timeout S]``.
+
+Subscribes to the fleet's fused map (``wiremap/<fleet>/fused/map``), asks the fusion service's
+queryable on the same key once at start for the current map, and prints one line per version::
+
+    fused v12: 148 vertices, 150 edges, 1,234 bytes; 3 robots alive (r1 r2 r3); from r1 r2 r3
+
+"robots alive" counts the liveliness tokens ``wiremap/<fleet>/alive/*`` (subscribed with
+history, declared before anything else, so the count is normally complete by the first map);
+"from" lists the robots that contributed to the map, with ``stale`` ones (alive no longer)
+marked when the fusion service says so.
+
+A version is shown once: the query's answer and the subscription may both deliver it, and
+copies with the same sender, version and stamp are dropped. A payload that does not decode (or
+is not a fused map) is counted, reported on stderr and skipped.
+
+``--save DIR`` writes, per version, ``DIR/fused-v<version>.geojson`` (the message's metadata in
+the collection's ``properties``) and ``DIR/fused-v<version>.png``, then ``DIR/latest.geojson``,
+each atomically.
+
+Stopping: after ``--count N`` versions (exit 0); at ``--timeout S`` seconds (exit 0, or 1 when
+fewer than ``--count`` versions came); on SIGINT/SIGTERM (exit 0). The session is always closed.
+While no router answers, the command waits for one (bounded by ``--timeout``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import queue
+import sys
+import threading
+import time
+from collections import deque
+from pathlib import Path
+from typing import Any
+
+from agents.bus import StopFlag, add_bus_arguments, config_from_args, fleet_keys, open_session
+from agents.errors import UserError
+
+HELP = "subscribe to the fused map and show each version"
+
+#: Seconds the start-up query waits for the fusion service's answer.
+QUERY_TIMEOUT = 5.0
+
+
+def _positive_int(text: str) -> int:
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
+    if v <= 0:
+        raise argparse.ArgumentTypeError(f"must be positive, got {text!r}")
+    return v
+
+
+def _positive_float(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not (math.isfinite(v) and v > 0.0):
+        raise argparse.ArgumentTypeError(f"must be a positive number of seconds, got {text!r}")
+    return v
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    add_bus_arguments(parser)
+    parser.add_argument("--save", metavar="DIR", help="write each version as GeoJSON and PNG into DIR")
+    parser.add_argument("--count", type=_positive_int, metavar="N", help="exit after N versions")
+    parser.add_argument(
+        "--timeout",
+        type=_positive_float,
+        metavar="S",
+        help="exit after S seconds (status 1 if --count is not reached)",
+    )
+
+
+def _eprint(text: str) -> None:
+    print(f"wiremap watch: {text}", file=sys.stderr, flush=True)
+
+
+class Watcher:
+    """The state of one watch: robots alive, versions seen, counters, and what each payload
+    becomes (a line, files). Thread-safe where zenoh callbacks touch it (:meth:`liveliness`)."""
+
+    def __init__(self, keys: Any, save_dir: Path | None) -> None:
+        self.keys = keys
+        self.save_dir = save_dir
+        self.alive: set[str] = set()
+        self._lock = threading.Lock()
+        self.shown = 0
+        self.malformed = 0
+        self._seen: deque[tuple[str, int, int]] = deque(maxlen=64)
+
+    # zenoh thread
+    def liveliness(self, sample: Any) -> None:
+        import zenoh
+
+        rid = self.keys.robot_of(str(sample.key_expr))
+        if rid is None:
+            return
+        with self._lock:
+            if sample.kind == zenoh.SampleKind.DELETE:
+                self.alive.discard(rid)
+            else:
+                self.alive.add(rid)
+
+    def alive_now(self) -> list[str]:
+        with self._lock:
+            return sorted(self.alive)
+
+    # main thread
+    def handle(self, data: bytes) -> str | None:
+        """Decode one payload; return the line shown, or None (duplicate or malformed)."""
+        from wire_codec import MessageKind, decode
+
+        try:
+            msg = decode(data)
+        except ValueError as exc:  # CodecError derives from ValueError
+            self.malformed += 1
+            _eprint(f"skipped a malformed payload ({len(data)} bytes): {exc}")
+            return None
+        if msg.kind != MessageKind.FUSED_MAP:
+            self.malformed += 1
+            _eprint(f"skipped a {msg.kind.name.lower()} message from {msg.sender!r} on the fused key")
+            return None
+        ident = (msg.sender, int(msg.seq), int(msg.stamp_ns))
+        if ident in self._seen:
+            return None
+        self._seen.append(ident)
+        self.shown += 1
+        line = self.describe(msg, len(data))
+        print(line, flush=True)
+        if self.save_dir is not None:
+            self.save(msg, len(data))
+        return line
+
+    def describe(self, msg: Any, nbytes: int) -> str:
+        wf = msg.wireframe
+        alive = self.alive_now()
+        stale = set(_stale(msg))
+        contributors = " ".join(f"{r}(stale)" if r in stale else r for r in msg.robots) or "-"
+        return (
+            f"fused v{msg.seq}: {wf.n_vertices} vertices, {wf.n_edges} edges, {nbytes:,} bytes; "
+            f"{len(alive)} robot{'' if len(alive) == 1 else 's'} alive"
+            f"{' (' + ' '.join(alive) + ')' if alive else ''}; from {contributors}"
+        )
+
+    def save(self, msg: Any, nbytes: int) -> None:
+        from agents.export import message_properties
+        from agents.io import save_wireframe_geojson, write_atomic
+        from agents.render import map_png
+
+        assert self.save_dir is not None
+        props = message_properties(msg)
+        props["bytes"] = int(nbytes)
+        props["robots_alive"] = self.alive_now()
+        stem = self.save_dir / f"fused-v{msg.seq}"
+        try:
+            save_wireframe_geojson(stem.with_suffix(".geojson"), msg.wireframe, props)
+            write_atomic(stem.with_suffix(".png"), map_png(msg.wireframe))
+            save_wireframe_geojson(self.save_dir / "latest.geojson", msg.wireframe, props)
+        except OSError as exc:
+            raise UserError(f"cannot save into {self.save_dir}: {exc.strerror or exc}") from None
+
+
+def _stale(msg: Any) -> list[str]:
+    stale = msg.meta.get("stale") if isinstance(msg.meta, dict) else None
+    return [str(s) for s in stale] if isinstance(stale, (list, tuple)) else []
+
+
+def run(args: argparse.Namespace) -> int:
+    keys = fleet_keys(args)
+    cfg = config_from_args(args, "client")
+    save_dir: Path | None = None
+    if args.save:
+        save_dir = Path(args.save)
+        try:
+            save_dir.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise UserError(f"cannot create {save_dir}: {exc.strerror or exc}") from None
+    t0 = time.monotonic()
+    deadline = None if args.timeout is None else t0 + args.timeout
+    watcher = Watcher(keys, save_dir)
+    inbox: queue.Queue[bytes] = queue.Queue()
+    timed_out = False
+
+    with StopFlag() as stop:
+        session = open_session(
+            cfg,
+            stop.event,
+            timeout=args.timeout,
+            on_wait=lambda text: _eprint(f"waiting for a router ({text})"),
+        )
+        if session is None:  # stopped while waiting for the router
+            return 0
+        try:
+            session.liveliness().declare_subscriber(keys.all_alive, watcher.liveliness, history=True)
+            session.declare_subscriber(keys.fused_map, lambda s: inbox.put(s.payload.to_bytes()))
+
+            def on_reply(reply: Any) -> None:
+                sample = reply.ok
+                if sample is not None:
+                    inbox.put(sample.payload.to_bytes())
+
+            session.get(keys.fused_map, on_reply, timeout=QUERY_TIMEOUT)
+            _eprint(f"watching {keys.fused_map}")
+            while not stop.is_set():
+                if args.count is not None and watcher.shown >= args.count:
+                    break
+                wait = 0.2
+                if deadline is not None:
+                    left = deadline - time.monotonic()
+                    if left <= 0:
+                        timed_out = True
+                        break
+                    wait = min(wait, left)
+                try:
+                    data = inbox.get(timeout=wait)
+                except queue.Empty:
+                    continue
+                watcher.handle(data)
+        finally:
+            session.close()
+
+    _eprint(
+        f"{watcher.shown} version{'' if watcher.shown == 1 else 's'} shown, "
+        f"{watcher.malformed} malformed payload{'' if watcher.malformed == 1 else 's'} skipped"
+    )
+    if timed_out and args.count is not None and watcher.shown < args.count:
+        _eprint(f"timed out after {args.timeout:g} s with {watcher.shown} of {args.count} versions")
+        return 1
+    return 0
