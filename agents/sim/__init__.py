@@ -1,0 +1,1 @@
+"""Simulation: worlds, routes, motion and sensors for wiremap."""

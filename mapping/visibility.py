@@ -1,0 +1,597 @@
+"""What a robot sees of a wireframe: the predicted scan (paper Sec. IV-B, Fig. 2, 4, 5).
+
+:func:`visible_view` takes a wireframe (a map particle or the ground-truth world) and a robot
+pose, and returns the visible pieces of its walls in the robot frame, labelled the way the corner
+sensor labels a scan (paper Sec. IV-A). The particle filter uses it as the predicted scan, the
+simulated corner sensor (``agents.sim.sensor``) as the noise-free measurement.
+
+Visibility model
+----------------
+* The sensor sees within the disc of radius ``max_range`` around the robot and within the field
+  of view ``fov`` centred on the heading (robot-frame bearings ``[-fov/2, fov/2]``).
+* Walls are opaque from both sides. A wall seen from its *back* (the robot on its right, the solid
+  side) blocks sight but is not reported: for a thin wall the front face is the opposite edge,
+  and for a single directed edge of a particle map we do not predict its unknown back face
+  (paper Fig. 5). A wall whose line passes within :data:`ON_LINE_TOL` of the robot is seen
+  edge-on: it neither shows nor blocks.
+* Reported pieces keep the direction convention: the robot is on their left, so in the robot frame
+  each piece runs counterclockwise around the robot.
+
+Labels
+------
+At every bearing where the nearest wall changes, the two sides are compared (this is paper
+Sec. IV-A's rule "the nearer of two vertices on one line of sight is an occlusion, the farther a
+frontier"):
+
+* both sides end at the same point (two walls meeting in a corner): one shared vertex, ``NOMINAL``;
+* the near side ends at a real corner of its wall and sight passes it: that corner is
+  ``OCCLUSION`` and the point on the farther wall straight behind it (a new vertex splitting that
+  wall, ``vertex_source == -1``) is ``FRONTIER``. This holds even when the farther point happens
+  to be a corner of its own wall;
+* nothing within range behind a silhouette corner (its background is beyond ``max_range``): the
+  corner is still ``OCCLUSION`` -- sight passes it -- and it has no frontier partner. (This
+  matches ``mapping.extract``, which labels such lidar corners the same way.)
+* a wall leaving the range disc or the field of view ends in a ``FRONTIER`` point on the range
+  circle or on the boundary ray of the field of view (so does a corner lying exactly on that
+  ray: what lies beyond it is not seen);
+* a wall hidden by a back-facing wall: its visible piece ends in a ``FRONTIER`` point; the
+  occluding back face is not reported, so that frontier has no occlusion partner.
+
+An input vertex labelled ``FRONTIER`` (the map knows no more beyond it) keeps that label wherever
+it ends a reported piece. Input ``NOMINAL`` and ``OCCLUSION`` labels are not used: the labels of
+the view depend on the viewpoint only.
+
+Algorithm
+---------
+1. Cull, vectorised: edges farther than ``max_range`` plus half their length from the robot
+   (measured to their midpoint) cannot meet the range disc and are dropped; the rest move to
+   the robot frame and are clipped exactly to the disc and to the field-of-view wedge (an edge straddling the back
+   of the wedge, or the seam at bearing ``-pi`` for a full turn, becomes two sub-edges).
+2. Sweep: the sub-edges' end bearings are sorted; a sweep over them keeps the sub-edges crossed
+   by the current ray in a list ordered by distance (inserted by bisection, comparing distances
+   along the middle ray of the next elementary angular interval; non-crossing segments keep
+   their relative order over their common bearings, so the list stays sorted). The front of the
+   list is the visible sub-edge of each interval. ``O(n log n)`` comparisons for ``n`` nearby
+   edges (insertion into a Python list is a C-level ``memmove``).
+3. Consecutive intervals with the same nearest sub-edge form a piece; pieces split at the seam
+   are joined again; labels are assigned at every boundary between pieces.
+
+Cost: about 0.25 ms for a 42-corner room seen whole, 0.4 ms with 68 walls in range, 0.2 ms
+in the 300-corner museum with an 8 m range (culling makes it independent of the map's size
+except for one vectorised pass over all edges).
+
+Crossing edges (noisy particle maps) do not break it: the list may then be out of order, which
+makes the answer inexact near the crossings, but every step is bounded and nothing raises.
+
+References
+----------
+Paper Sec. IV-B: "all known vertices within the robot's sensing range are sorted counterclockwise
+and points visible from the robot's position are identified ... An edge that is partially occluded
+will terminate in a frontier vertex, and its occluding vertex in the foreground is labeled
+appropriately as occlusion ... A single edge may be broken into multiple edges".
+"""
+
+from __future__ import annotations
+
+import math
+from bisect import insort
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from mapping.se2 import Pose
+from mapping.wireframe import Wireframe
+
+FloatArray = NDArray[np.float64]
+IndexArray = NDArray[np.int32]
+BoolArray = NDArray[np.bool_]
+
+TWO_PI = 2.0 * math.pi
+
+ON_LINE_TOL = 1e-9
+"""A wall whose supporting line passes closer than this (metres) to the robot is seen edge-on."""
+
+ANGLE_TOL = 1e-12
+"""End bearings closer than this (radians) are one event of the sweep (e.g. an occluding corner
+and the far corner exactly behind it)."""
+
+JOIN_TOL = 1e-9
+"""Two piece ends closer than this (relative to their distance, at least 1 m) are one vertex."""
+
+BACK_BIAS = 1e-9
+"""Along a ray, a back-facing wall counts this much farther (metres) than it is, so that of the
+two coincident edges of a thin wall the front-facing one is the one seen."""
+
+# Plain ints for speed (Label is an IntEnum with the same values).
+_NOMINAL, _OCCLUSION, _FRONTIER = 0, 1, 2
+
+# Where a piece end point comes from: an input vertex index (>= 0), or one of these.
+_RANGE = -1  # where the wall leaves the range disc
+_WINDOW = -2  # on a boundary ray of the field of view, or on the seam of a full turn
+_CUT = -3  # an inner point of the wall where a nearer wall starts or stops hiding it
+
+
+@dataclass(frozen=True, eq=False)
+class View:
+    """The visible part of a wireframe from one pose.
+
+    Attributes
+    ----------
+    scan : Wireframe
+        The predicted scan in the ROBOT frame: vertices in counterclockwise order of bearing
+        (starting at the right edge of the field of view, or just after bearing ``-pi`` for a full
+        turn), each visible wall piece one edge with the robot on its left, edges in the same
+        sweep order. Likelihoods and sources are copied from the source edges.
+    edge_source : (m_scan,) int32
+        Index of each scan edge's source edge in the input wireframe.
+    vertex_source : (n_scan,) int32
+        Index of the input vertex each scan vertex is, or -1 for a point created on a wall
+        (frontier points behind occlusions, on the range circle or on the field-of-view boundary).
+    edge_t : (m_scan, 2) float64
+        Where each scan edge starts and ends along its source edge ``(i, j)``, as the parameter
+        ``t`` of ``p_i + t (p_j - p_i)``; ``0 <= t_start < t_end <= 1``.
+    visible : (m,) bool
+        Input edges with at least one reported piece.
+    in_view : (m,) bool
+        Input edges with some part inside the range disc and the field of view, seen or hidden,
+        front- or back-facing, except walls seen edge-on: "within predicted sight" for the
+        resampling step (paper Sec. IV-F).
+    """
+
+    scan: Wireframe
+    edge_source: IndexArray
+    vertex_source: IndexArray
+    edge_t: FloatArray
+    visible: BoolArray
+    in_view: BoolArray
+
+
+def _empty_view(m: int, in_view: BoolArray | None = None) -> View:
+    return View(
+        scan=Wireframe.empty(),
+        edge_source=np.zeros(0, np.int32),
+        vertex_source=np.zeros(0, np.int32),
+        edge_t=np.zeros((0, 2)),
+        visible=np.zeros(m, bool),
+        in_view=np.zeros(m, bool) if in_view is None else in_view,
+    )
+
+
+def _cross(a: complex, b: complex) -> float:
+    """``a.x b.y - a.y b.x`` for points stored as complex numbers."""
+    return a.real * b.imag - a.imag * b.real
+
+
+def visible_view(
+    wf: Wireframe,
+    pose: Pose,
+    max_range: float,
+    fov: float = TWO_PI,
+    *,
+    min_piece: float = 1e-3,
+) -> View:
+    """The visible pieces of ``wf``'s walls from ``pose``: the predicted scan (paper Sec. IV-B).
+
+    Parameters
+    ----------
+    wf : Wireframe
+        The map (or world) in the map frame.
+    pose : Pose
+        The robot pose in the map frame.
+    max_range : float
+        Sensing range in metres, ``> 0``; ``math.inf`` for no limit.
+    fov : float
+        Field of view in radians, ``0 < fov <= 2 pi``, centred on the heading.
+    min_piece : float
+        Visible pieces shorter than this (metres) are not reported (their end vertices stay
+        only if a reported piece uses them). The labels of their neighbours are decided as if
+        they were there.
+
+    Returns
+    -------
+    View
+        The scan in the robot frame plus where each of its parts comes from. See the module
+        docstring for the visibility model and the labels.
+
+    Raises
+    ------
+    ValueError
+        For a non-positive or NaN range, a field of view outside ``(0, 2 pi]`` or a negative
+        ``min_piece``.
+    """
+    if not max_range > 0.0:
+        raise ValueError(f"max_range must be > 0, got {max_range}")
+    if not (0.0 < fov <= TWO_PI + 1e-12):
+        raise ValueError(f"fov must be in (0, 2*pi], got {fov}")
+    if not min_piece >= 0.0:
+        raise ValueError(f"min_piece must be >= 0, got {min_piece}")
+    full = fov >= TWO_PI - 1e-12
+    if full:
+        fov = TWO_PI
+    m = wf.n_edges
+    if m == 0:
+        return _empty_view(m)
+    with np.errstate(all="ignore"):  # NaN/inf from degenerate edges are masked out below
+        edge_data = _clip_edges(wf, pose, max_range, fov)
+    if edge_data is None:
+        return _empty_view(m)
+    return _sweep(wf, edge_data, fov, full, min_piece)
+
+
+@dataclass(frozen=True)
+class _Edges:
+    """Per nearby input edge, in the robot frame, oriented counterclockwise around the robot."""
+
+    idx: list[int]  # input edge index
+    p0: list[complex]  # the input edge's start, and its direction p1 - p0 (for rays)
+    d: list[complex]
+    pa: list[complex]  # first end in bearing (the visible part's, after range clipping)
+    pb: list[complex]
+    ta: list[float]  # its parameter t along the input edge
+    tb: list[float]
+    sa: list[int]  # its source: input vertex index, or _RANGE
+    sb: list[int]
+    phia: list[float]  # its bearing minus the sweep start, in [0, 2 pi)
+    phib: list[float]
+    back: list[bool]  # seen from behind
+    good: list[bool]  # neither edge-on nor out of range
+
+
+def _clip_edges(wf: Wireframe, pose: Pose, max_range: float, fov: float) -> _Edges | None:
+    """Step 1 (numpy): cull to the range disc, move to the robot frame, clip to the disc, orient."""
+    limited = math.isfinite(max_range)
+    # Points as complex numbers halve the number of numpy calls (the cost at this size).
+    zp = np.ascontiguousarray(wf.points).view(np.complex128)[:, 0]
+    ze = zp[wf.edges]
+    z0, z1 = ze[:, 0], ze[:, 1]
+    c = complex(pose.x, pose.y)
+    if limited:
+        # |midpoint - c| <= R + length / 2 keeps every edge that meets the disc (and a few more).
+        near = np.abs(z0 + z1 - 2.0 * c) <= 2.0 * max_range + np.abs(z1 - z0)
+        idx = np.flatnonzero(near)
+        if idx.size == 0:
+            return None
+        z0, z1 = z0[idx], z1[idx]
+        e = wf.edges[idx]
+    else:
+        idx = np.arange(wf.n_edges)
+        e = wf.edges
+    rot = complex(math.cos(pose.theta), -math.sin(pose.theta))
+    w0 = (z0 - c) * rot
+    w1 = (z1 - c) * rot
+    d = w1 - w0
+    cr = (w0.conjugate() * w1).imag  # > 0: the robot is on the left (front-facing)
+    l2 = d.real * d.real + d.imag * d.imag
+    h2 = cr * cr / l2  # squared distance robot -> supporting line
+    good = h2 > ON_LINE_TOL * ON_LINE_TOL  # False for NaN (zero-length edges)
+    if limited:
+        r2 = max_range * max_range
+        in0 = np.abs(w0) <= max_range
+        in1 = np.abs(w1) <= max_range
+        tc = (w0.conjugate() * d).real / -l2  # foot of the perpendicular from the robot
+        half = np.sqrt((r2 - h2) / l2)  # NaN when the line misses the disc
+        ta = np.where(in0, 0.0, tc - half)
+        tb = np.where(in1, 1.0, tc + half)
+        good &= (ta < tb) & (ta >= 0.0) & (tb <= 1.0)
+        pta = np.where(in0, w0, w0 + ta * d)  # exact vertex where not clipped
+        ptb = np.where(in1, w1, w0 + tb * d)
+        va = np.where(in0, e[:, 0], _RANGE)
+        vb = np.where(in1, e[:, 1], _RANGE)
+    else:
+        ta = np.zeros(len(idx))
+        tb = np.ones(len(idx))
+        pta, ptb = w0, w1
+        va, vb = e[:, 0], e[:, 1]
+    front = cr > 0.0
+    pa = np.where(front, pta, ptb)
+    pb = np.where(front, ptb, pta)
+    phi0 = -0.5 * fov  # bearing where the sweep starts
+    phia = np.mod(np.angle(pa) - phi0, TWO_PI)
+    phib = np.mod(np.angle(pb) - phi0, TWO_PI)
+    good &= np.angle(pa.conjugate() * pb) > ANGLE_TOL  # spans a positive angle
+    return _Edges(
+        idx=idx.tolist(),
+        p0=w0.tolist(),
+        d=d.tolist(),
+        pa=pa.tolist(),
+        pb=pb.tolist(),
+        ta=np.where(front, ta, tb).tolist(),
+        tb=np.where(front, tb, ta).tolist(),
+        sa=np.where(front, va, vb).tolist(),
+        sb=np.where(front, vb, va).tolist(),
+        phia=phia.tolist(),
+        phib=phib.tolist(),
+        back=(~front).tolist(),
+        good=good.tolist(),
+    )
+
+
+def _sweep(wf: Wireframe, ed: _Edges, fov: float, full: bool, min_piece: float) -> View:
+    """Steps 2 and 3 (plain Python on the few nearby edges): sub-edges, sweep, pieces, labels."""
+    m = wf.n_edges
+    phi0 = -0.5 * fov
+    u_lo = complex(math.cos(phi0), math.sin(phi0))
+    u_hi = complex(math.cos(phi0 + fov), math.sin(phi0 + fov))
+
+    # ---- sub-edges: each edge's part inside the window [0, fov] of sweep angle. An edge across
+    # the seam (sweep angle 2 pi == 0) is split in two; so is one across the back of a wide window.
+    s_e: list[int] = []  # which nearby edge
+    s_phia: list[float] = []
+    s_phib: list[float] = []
+    s_pa: list[complex] = []
+    s_pb: list[complex] = []
+    s_ta: list[float] = []
+    s_tb: list[float] = []
+    s_sa: list[int] = []
+    s_sb: list[int] = []
+
+    def clip(i: int, u: complex) -> tuple[complex, float]:
+        """Point and parameter where the ray ``u`` crosses nearby edge ``i`` (within its part)."""
+        den = _cross(ed.d[i], u)
+        t = _cross(u, ed.p0[i]) / den if den != 0.0 else ed.ta[i]
+        lo, hi = min(ed.ta[i], ed.tb[i]), max(ed.ta[i], ed.tb[i])
+        t = min(max(t, lo), hi)
+        return ed.p0[i] + t * ed.d[i], t
+
+    for i, ok in enumerate(ed.good):
+        if not ok:
+            continue
+        a, b = ed.phia[i], ed.phib[i]
+        if a >= TWO_PI:  # np.mod can round up to 2 pi
+            a = 0.0
+        if b >= TWO_PI:
+            b = 0.0
+        wrap = b < a  # the end lies past the seam
+        if a < fov:
+            s_e.append(i)
+            s_phia.append(a)
+            s_pa.append(ed.pa[i])
+            s_ta.append(ed.ta[i])
+            s_sa.append(ed.sa[i])
+            if wrap or b > fov:
+                q, t = clip(i, u_hi)
+                s_phib.append(fov)
+                s_pb.append(q)
+                s_tb.append(t)
+                s_sb.append(_WINDOW)
+            else:
+                s_phib.append(b)
+                s_pb.append(ed.pb[i])
+                s_tb.append(ed.tb[i])
+                s_sb.append(ed.sb[i])
+        if wrap and b > 0.0:
+            q, t = clip(i, u_lo)
+            s_e.append(i)
+            s_phia.append(0.0)
+            s_pa.append(q)
+            s_ta.append(t)
+            s_sa.append(_WINDOW)
+            if b > fov:
+                q, t = clip(i, u_hi)
+                s_phib.append(fov)
+                s_pb.append(q)
+                s_tb.append(t)
+                s_sb.append(_WINDOW)
+            else:
+                s_phib.append(b)
+                s_pb.append(ed.pb[i])
+                s_tb.append(ed.tb[i])
+                s_sb.append(ed.sb[i])
+    ns = len(s_e)
+    if ns == 0:
+        return _empty_view(m)
+
+    # ---- events: end bearings sorted, those within ANGLE_TOL grouped; window ends are events.
+    vals = [*s_phia, *s_phib, 0.0, fov]
+    order = sorted(range(len(vals)), key=vals.__getitem__)
+    gid = [0] * len(vals)
+    ev: list[float] = []
+    last = -math.inf
+    for j in order:
+        v = vals[j]
+        if v - last > ANGLE_TOL:
+            ev.append(v)
+            last = v
+        gid[j] = len(ev) - 1
+    n_ev = len(ev)
+    ka = gid[:ns]
+    kb = gid[ns : 2 * ns]
+    live = [s for s in range(ns) if ka[s] < kb[s]]
+    in_view = np.zeros(m, bool)
+    if live:
+        in_view[[ed.idx[s_e[s]] for s in live]] = True
+
+    # ---- the sweep: `active` holds the sub-edges crossed by the current ray, nearest first.
+    s_back = [ed.back[i] for i in s_e]
+    s_dx = [(q - p).real for p, q in zip(s_pa, s_pb)]
+    s_dy = [(q - p).imag for p, q in zip(s_pa, s_pb)]
+    s_cab = [_cross(p, q) for p, q in zip(s_pa, s_pb)]
+    s_bias = [BACK_BIAS if bk else 0.0 for bk in s_back]
+    by_start = sorted(live, key=ka.__getitem__)
+    by_end = sorted(live, key=kb.__getitem__)
+    n_live = len(live)
+    nearest = [-1] * (n_ev - 1)
+    active: list[int] = []
+    si = ei = 0
+    for k in range(n_ev - 1):
+        while ei < n_live and kb[by_end[ei]] == k:
+            active.remove(by_end[ei])
+            ei += 1
+        if si < n_live and ka[by_start[si]] == k:
+            mid = phi0 + 0.5 * (ev[k] + ev[k + 1])
+            key = _distance_key(s_cab, s_dx, s_dy, s_bias, math.cos(mid), math.sin(mid))
+            while si < n_live and ka[by_start[si]] == k:
+                insort(active, by_start[si], key=key)
+                si += 1
+        if active:
+            nearest[k] = active[0]
+
+    # ---- pieces: runs of intervals with the same nearest sub-edge (or -1 for nothing).
+    # A piece is [start sub-edge, start event, end event, end sub-edge].
+    pieces: list[list[int]] = []
+    for k, s in enumerate(nearest):
+        if pieces and pieces[-1][0] == s:
+            pieces[-1][2] = k + 1
+        else:
+            pieces.append([s, k, k + 1, s])
+    if full and len(pieces) > 1:
+        # A wall across the seam is one piece, from its part before to its part after it.
+        fs, ls = pieces[0][0], pieces[-1][0]
+        if (
+            fs >= 0
+            and ls >= 0
+            and s_e[fs] == s_e[ls]
+            and s_sa[fs] == _WINDOW
+            and pieces[0][1] == ka[fs]
+            and s_sb[ls] == _WINDOW
+            and pieces[-1][2] == kb[ls]
+        ):
+            pieces = [[ls, pieces[-1][1], pieces[0][2], fs], *pieces[1:-1]]
+    n_p = len(pieces)
+    if n_p == 0:
+        return _empty_view(m, in_view)
+
+    def point_at(s: int, k: int, start: bool) -> tuple[complex, float, int]:
+        """(point, t, source) of sub-edge ``s`` at event ``k``."""
+        if start and k == ka[s]:
+            return s_pa[s], s_ta[s], s_sa[s]
+        if not start and k == kb[s]:
+            return s_pb[s], s_tb[s], s_sb[s]
+        bearing = phi0 + ev[k]
+        u = complex(math.cos(bearing), math.sin(bearing))
+        i = s_e[s]
+        den = _cross(ed.d[i], u)
+        t = _cross(u, ed.p0[i]) / den if den != 0.0 else s_ta[s]
+        t = min(max(t, min(s_ta[s], s_tb[s])), max(s_ta[s], s_tb[s]))
+        return ed.p0[i] + t * ed.d[i], t, _CUT
+
+    in_labels = wf.labels
+
+    def input_label(v: int) -> int:
+        return int(in_labels[v])
+
+    def pass_label(src: int) -> int:
+        """Label of a piece end that sight passes (nothing, or something farther, behind it)."""
+        if src >= 0:
+            return _FRONTIER if input_label(src) == _FRONTIER else _OCCLUSION
+        return _FRONTIER
+
+    out_xy: list[complex] = []
+    out_lab: list[int] = []
+    out_src: list[int] = []
+    start_vid = [-1] * n_p
+    end_vid = [-1] * n_p
+    start_t = [0.0] * n_p
+    end_t = [0.0] * n_p
+    is_front = [p[0] >= 0 and not s_back[p[0]] for p in pieces]
+
+    # Boundaries in sweep order: (left piece, right piece); -1 is outside the window.
+    if full:
+        # Cyclic. With a merged seam piece first, its end boundary comes first and its start
+        # boundary last, so vertices still come out in increasing bearing.
+        bounds = [(i, (i + 1) % n_p) for i in range(n_p)]
+    else:
+        bounds = [(-1, 0), *((i, i + 1) for i in range(n_p - 1)), (n_p - 1, -1)]
+    for li, ri in bounds:
+        left = pieces[li] if li >= 0 and pieces[li][3] >= 0 else None
+        right = pieces[ri] if ri >= 0 and pieces[ri][0] >= 0 else None
+        x = point_at(left[3], left[2], False) if left is not None else None
+        y = point_at(right[0], right[1], True) if right is not None else None
+        if x is not None and y is not None:
+            dist_x, dist_y = abs(x[0]), abs(y[0])
+            if abs(x[0] - y[0]) <= JOIN_TOL * max(1.0, dist_x):
+                # Two walls meet: one corner.
+                q, src = (x[0], x[2]) if x[2] >= 0 else (y[0], y[2])
+                if src >= 0:
+                    lab = _FRONTIER if input_label(src) == _FRONTIER else _NOMINAL
+                else:
+                    lab = _FRONTIER
+                vid = -1
+                if is_front[li] or is_front[ri]:
+                    out_xy.append(q)
+                    out_lab.append(lab)
+                    out_src.append(max(src, -1))
+                    vid = len(out_xy) - 1
+                end_vid[li], start_vid[ri] = vid, vid
+                end_t[li], start_t[ri] = x[1], y[1]
+                continue
+            x_near = dist_x < dist_y
+            lab_x = pass_label(x[2]) if x_near else _FRONTIER
+            lab_y = _FRONTIER if x_near else pass_label(y[2])
+        else:
+            window = li < 0 or ri < 0  # a vertex right on the window edge is a frontier too
+            lab_x = _FRONTIER if (window or x is None) else pass_label(x[2])
+            lab_y = _FRONTIER if (window or y is None) else pass_label(y[2])
+        if x is not None:
+            end_t[li] = x[1]
+            if is_front[li]:
+                out_xy.append(x[0])
+                out_lab.append(lab_x)
+                out_src.append(max(x[2], -1))
+                end_vid[li] = len(out_xy) - 1
+        if y is not None:
+            start_t[ri] = y[1]
+            if is_front[ri]:
+                out_xy.append(y[0])
+                out_lab.append(lab_y)
+                out_src.append(max(y[2], -1))
+                start_vid[ri] = len(out_xy) - 1
+
+    # ---- assemble the scan.
+    edges: list[tuple[int, int]] = []
+    e_src: list[int] = []
+    e_t: list[tuple[float, float]] = []
+    for i in range(n_p):
+        a_v, b_v = start_vid[i], end_vid[i]
+        if not is_front[i] or a_v < 0 or b_v < 0 or a_v == b_v:
+            continue
+        if abs(out_xy[b_v] - out_xy[a_v]) < min_piece:
+            continue
+        edges.append((a_v, b_v))
+        e_src.append(ed.idx[s_e[pieces[i][0]]])
+        e_t.append((start_t[i], end_t[i]))
+    if not edges:
+        return _empty_view(m, in_view)
+    ed_arr = np.array(edges, dtype=np.int32)
+    used = np.zeros(len(out_xy), bool)
+    used[ed_arr.ravel()] = True
+    xy = np.array(out_xy, dtype=np.complex128)[used]
+    remap = np.cumsum(used, dtype=np.int32) - 1
+    src_edges = np.array(e_src, dtype=np.int32)
+    scan = Wireframe(
+        np.stack([xy.real, xy.imag], axis=1),
+        np.array(out_lab, dtype=np.uint8)[used],
+        remap[ed_arr],
+        wf.likelihood[src_edges],
+        wf.sources[src_edges],
+    )
+    visible = np.zeros(m, bool)
+    visible[src_edges] = True
+    return View(
+        scan=scan,
+        edge_source=src_edges,
+        vertex_source=np.array(out_src, dtype=np.int32)[used],
+        edge_t=np.array(e_t, dtype=np.float64),
+        visible=visible,
+        in_view=in_view,
+    )
+
+
+def _distance_key(
+    cab: list[float], dxs: list[float], dys: list[float], bias: list[float], ux: float, uy: float
+) -> Callable[[int], float]:
+    """Distance along the ray ``u`` to the line of sub-edge ``i`` (plus the back-face bias).
+
+    The ray ``rho u`` meets the line through ``A`` and ``B`` where
+    ``rho cross(u, B - A) = cross(A, B)``.
+    """
+
+    def key(i: int) -> float:
+        den = ux * dys[i] - uy * dxs[i]
+        if den <= 0.0:  # only for degenerate or crossing input: treat as very far
+            return math.inf
+        return cab[i] / den + bias[i]
+
+    return key
