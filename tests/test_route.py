@@ -160,7 +160,11 @@ def test_plan_routes_share_the_coverage():
 
 @settings(max_examples=40, deadline=None)
 @given(
-    st.lists(st.tuples(st.floats(-50, 50), st.floats(-50, 50)), min_size=2, max_size=12),
+    st.lists(
+        st.tuples(st.floats(-50, 50, allow_subnormal=False), st.floats(-50, 50, allow_subnormal=False)),
+        min_size=2,
+        max_size=12,
+    ),
     st.integers(1, 6),
     st.floats(0.0, 0.5),
 )
@@ -169,7 +173,7 @@ def test_split_route_pieces(points, n, overlap):
     total = route_length(r)
     parts = split_route(r, n, overlap)
     assert len(parts) == n
-    if total == 0:
+    if total < 1e-6:  # degenerate route: nothing to cut
         return
     lengths = [route_length(p) for p in parts]
     for i, length in enumerate(lengths):
