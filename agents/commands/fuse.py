@@ -1,0 +1,79 @@
+"""``wiremap fuse [--store DIR] [--rrd FILE] [--serve-viewer PORT] [--connect ...]``: the fusion
+service. Keeps each robot's latest map, fuses them in the fleet frame, publishes the fused map
+on ``wiremap/<fleet>/fused/map`` (and answers queries for it), stores its state, records to
+Rerun. Stops cleanly on SIGINT/SIGTERM. See :mod:`agents.fusion`."""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+
+from agents.bus import StopFlag, add_bus_arguments, config_from_args, fleet_keys, open_session, watch_parent
+from agents.errors import UserError
+
+HELP = "the fusion service"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--store", metavar="DIR", help="state directory: resume from it and keep it up to date")
+    parser.add_argument("--rrd", metavar="FILE", help="write a Rerun recording to FILE")
+    parser.add_argument(
+        "--serve-viewer", metavar="PORT", type=int, help="also serve the recording to a live viewer on PORT"
+    )
+    parser.add_argument("--world", metavar="NAME|FILE", help="draw this world's true walls in the recording")
+    parser.add_argument("--recording-id", help="Rerun recording id (default: a new one)")
+    parser.add_argument(
+        "--threshold", type=float, help="merge threshold in metres (default: the robots' map resolution)"
+    )
+    parser.add_argument("--no-refine", action="store_true", help="trust the start poses, no ICP refinement")
+    parser.add_argument(
+        "--heartbeat", type=float, default=3.0, metavar="S", help="re-publish the fused map every S s (default 3)"
+    )
+    parser.add_argument(
+        "--min-interval", type=float, default=0.0, metavar="S", help="fuse at most every S seconds (default 0)"
+    )
+    add_bus_arguments(parser)
+
+
+def run(args: argparse.Namespace) -> int:
+    from agents.fusion import FusionConfig, ServeOptions, serve
+
+    if args.serve_viewer is not None and not args.rrd:
+        raise UserError("--serve-viewer needs --rrd FILE (the recording always goes to a file)")
+    if args.threshold is not None and not (math.isfinite(args.threshold) and args.threshold > 0):
+        raise UserError(f"--threshold must be a positive number of metres, got {args.threshold}")
+    opts = ServeOptions(
+        store=args.store,
+        rrd=args.rrd,
+        serve_viewer=args.serve_viewer,
+        world=args.world,
+        recording_id=args.recording_id,
+        heartbeat_s=max(0.1, args.heartbeat),
+        min_interval_s=max(0.0, args.min_interval),
+        config=FusionConfig(threshold=args.threshold, refine=not args.no_refine),
+    )
+    keys = fleet_keys(args)
+    cfg = config_from_args(args, "client")
+
+    def say(text: str) -> None:
+        print(f"wiremap fuse: {text}", flush=True)
+
+    with StopFlag() as stop:
+        watch_parent(args.parent_pid, stop)
+        session = open_session(cfg, stop, on_wait=lambda t: say(f"waiting for a router ({t})"))
+        if session is None:
+            return 0
+        try:
+            state = serve(session, keys, opts, stop.event, say)
+        finally:
+            session.close()
+    s = state.stats.as_dict()
+    lat = s["latency_ms"]
+    say(
+        f"stopped at v{state.version}: {state.fused.n_vertices} vertices, {state.fused.n_edges} edges from "
+        f"{len(state.robots)} robots; {s['accepted']} maps accepted, {s['malformed']} malformed, "
+        f"{s['rejected']} rejected; latency p50 {lat['p50']} ms p99 {lat['p99']} ms"
+    )
+    sys.stdout.flush()
+    return 0

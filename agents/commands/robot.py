@@ -1,0 +1,143 @@
+"""``wiremap robot --id ID --world NAME|FILE --start X,Y,THETA [--route ...] [--rate HZ] [--seed S]
+[--connect ...]``: one simulated robot with its own particle filter, publishing its map, pose
+and liveliness on the bus until SIGINT/SIGTERM. See :mod:`agents.robot`."""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import math
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from agents.bus import (
+    StopFlag,
+    add_bus_arguments,
+    check_name,
+    config_from_args,
+    fleet_keys,
+    open_session,
+    watch_parent,
+)
+from agents.errors import UserError
+from mapping.se2 import Pose
+
+if TYPE_CHECKING:
+    from agents.robot import RobotOptions
+
+HELP = "one robot agent process"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--id", required=True, help="robot id (letters, digits, '_', '.', '-')")
+    parser.add_argument("--world", required=True, metavar="NAME|FILE", help="built-in world name or world file")
+    parser.add_argument(
+        "--start", metavar="X,Y,THETA", help="start pose in the fleet frame (default: the route's start)"
+    )
+    parser.add_argument(
+        "--route",
+        metavar="X,Y;X,Y;...|FILE",
+        help="waypoints, or a JSON file of [[x, y], ...] (default: a coverage route from --start)",
+    )
+    parser.add_argument("--rate", type=float, default=5.0, metavar="HZ", help="scans per second (default 5)")
+    parser.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    parser.add_argument("--particles", type=int, default=5, help="particles of the filter (default 5)")
+    parser.add_argument(
+        "--resolution", type=float, default=0.2, metavar="M", help="merge threshold / map resolution (default 0.2)"
+    )
+    parser.add_argument(
+        "--heartbeat", type=float, default=2.0, metavar="S", help="re-send the map at least every S s (default 2)"
+    )
+    parser.add_argument("--viz-rate", type=float, default=2.0, metavar="HZ", help="scan+particles for the recorder, Hz (0: off)")
+    parser.add_argument("--duration", type=float, metavar="S", help="stop mapping after S simulated seconds")
+    parser.add_argument("--status-file", metavar="FILE", help="write the final status as JSON to FILE on exit")
+    add_bus_arguments(parser)
+
+
+def options_from_args(args: argparse.Namespace) -> RobotOptions:
+    from agents.robot import RobotOptions, parse_route, start_pose_of
+
+    rid = check_name(args.id)
+    route = None
+    if args.route:
+        try:
+            route = parse_route(args.route)
+        except ValueError as exc:
+            raise UserError(str(exc)) from None
+    if args.start:
+        try:
+            start = Pose.parse(args.start)
+        except ValueError as exc:
+            raise UserError(str(exc)) from None
+    elif route is not None:
+        start = start_pose_of(route)
+    else:
+        raise UserError("give --start X,Y,THETA or --route")
+    for name, v, lo in (("--rate", args.rate, 0.0), ("--resolution", args.resolution, 0.0), ("--heartbeat", args.heartbeat, 0.0)):
+        if not (math.isfinite(v) and v > lo):
+            raise UserError(f"{name} must be a positive number, got {v}")
+    if args.particles < 1:
+        raise UserError(f"--particles must be >= 1, got {args.particles}")
+    if route is not None:
+        gap = float(np.hypot(*(route[0] - np.array([start.x, start.y]))))
+        if gap <= 0.05:  # the same point (rounding): start exactly at --start
+            route = route.copy()
+            route[0] = (start.x, start.y)
+        else:  # drive from --start to the route first
+            route = np.vstack([[start.x, start.y], route])
+    return RobotOptions(
+        robot=rid,
+        world=args.world,
+        start=start,
+        route=route,
+        rate=args.rate,
+        seed=args.seed,
+        particles=args.particles,
+        resolution=args.resolution,
+        heartbeat_s=args.heartbeat,
+        viz_hz=max(0.0, args.viz_rate),
+        duration=args.duration,
+    )
+
+
+def run(args: argparse.Namespace) -> int:
+    from agents.robot import RobotAgent, default_steps
+
+    opts = options_from_args(args)
+    keys = fleet_keys(args)
+    cfg = config_from_args(args, "client")
+    rid = opts.robot
+
+    def say(text: str) -> None:
+        print(f"wiremap robot {rid}: {text}", flush=True)
+
+    # load the world and take the first scan before going on the bus, so that a bad world,
+    # start or route is a one-line error, not a traceback in the middle of the run
+    steps = default_steps(opts)
+    try:
+        first = next(steps)
+    except StopIteration:
+        first = None
+    except ValueError as exc:
+        raise UserError(f"cannot simulate {rid} in {args.world}: {exc}") from None
+    steps = itertools.chain([first], steps) if first is not None else iter(())
+    with StopFlag() as stop:
+        watch_parent(args.parent_pid, stop)
+        session = open_session(cfg, stop, on_wait=lambda t: say(f"waiting for a router ({t})"))
+        if session is None:
+            return 0
+        agent = RobotAgent(session, keys, opts, steps, say)
+        try:
+            agent.start()
+            say(f"on the bus as {keys.robot_map(rid)}")
+            st = agent.run(stop)
+        finally:
+            agent.close()
+            session.close()
+    say(f"stopped after {st.step} steps (t={st.t:.1f} s): {st.maps_sent} maps, {st.bytes_sent} bytes")
+    if args.status_file:
+        from agents.io import write_json
+
+        write_json(args.status_file, {"robot": rid, **st.as_dict()})
+    return 0

@@ -1,0 +1,442 @@
+"""``wiremap run --world NAME|FILE --robots N [--duration S] [--seed S] --out DIR``: the main job.
+
+Starts an embedded Zenoh router (in this process, on a free loopback port unless ``--listen``
+says otherwise), the fusion service and N robot processes whose routes share the world's
+coverage (:func:`agents.sim.route.plan_routes`: one coverage tour cut into N consecutive pieces,
+``--overlap`` of a piece shared with the next so that neighbours see common walls; each robot
+starts at its piece's first point facing along it). Shows one live line per robot; after
+``--duration`` seconds of mapping (or on Ctrl-C/SIGTERM, or with ``--stop-when-done`` once every
+robot has finished its route) stops the robots, then the fusion
+service (which saves its state and closes the recording), and writes to DIR:
+
+* ``fused.geojson``: the fused map (the foundation GeoJSON; each wall also lists its
+  contributing ``robots``);
+* ``fused.wfm``: the same map in the wire codec (the fusion service's last message);
+* ``fused.png``: the fused map over the ground truth;
+* ``recording.rrd``: the Rerun recording (``wiremap replay DIR/recording.rrd``);
+* ``report.json``: metrics of the fused map and of each robot's map against the truth, bytes
+  sent per robot, publish-to-fused latency p50/p99, CPU time per process;
+* ``routes/``, ``logs/``, ``store/``: the routes given to the robots, every process's output,
+  the fusion service's state.
+
+The mapping clock starts when every robot has reported its first pose (process start-up is not
+counted), bounded by ``--startup-timeout``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import signal
+import subprocess
+import sys
+import time
+import uuid
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from agents.bus import (
+    StopFlag,
+    add_bus_arguments,
+    build_config,
+    decode_pose,
+    fleet_keys,
+    free_port,
+    open_session,
+    tcp_endpoint,
+)
+from agents.errors import UserError
+from agents.io import write_atomic, write_json
+
+HELP = "the main job: router, N robots and the fusion service"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--world", required=True, metavar="NAME|FILE", help="built-in world name or world file")
+    parser.add_argument("--robots", required=True, type=int, metavar="N", help="number of robots (1-64)")
+    parser.add_argument("--duration", type=float, default=60.0, metavar="S", help="seconds of mapping (default 60)")
+    parser.add_argument("--seed", type=int, default=0, help="random seed (routes; robot k gets seed + k)")
+    parser.add_argument("--out", required=True, metavar="DIR", help="output directory")
+    parser.add_argument("--rate", type=float, default=5.0, metavar="HZ", help="scans per second per robot (default 5)")
+    parser.add_argument("--particles", type=int, default=5, help="particles per robot (default 5)")
+    parser.add_argument(
+        "--overlap", type=float, default=0.15, help="fraction of a route piece shared with the next (default 0.15)"
+    )
+    parser.add_argument("--serve-viewer", type=int, metavar="PORT", help="serve the recording live on PORT")
+    parser.add_argument("--startup-timeout", type=float, default=60.0, metavar="S", help=argparse.SUPPRESS)
+    parser.add_argument("--no-progress", action="store_true", help="no live progress lines")
+    parser.add_argument(
+        "--stop-when-done", action="store_true", help="end as soon as every robot has finished its route"
+    )
+    add_bus_arguments(parser, router=True)
+
+
+# ---------------------------------------------------------------------- processes
+def _spawn(name: str, argv: list[str], logs: Path) -> subprocess.Popen[bytes]:
+    logs.mkdir(parents=True, exist_ok=True)
+    fh = open(logs / f"{name}.log", "wb")
+    try:
+        env = dict(os.environ, PYTHONUNBUFFERED="1")
+        # own session: a terminal's Ctrl-C reaches only `run`, which stops the fleet in order
+        return subprocess.Popen(
+            [sys.executable, "-m", "agents", *argv],
+            stdout=fh,
+            stderr=subprocess.STDOUT,
+            env=env,
+            start_new_session=True,
+        )
+    finally:
+        fh.close()  # the child has its own descriptor
+
+
+def _cpu_seconds(pid: int) -> float | None:
+    """User + system CPU time of a live process, from /proc (None where unavailable)."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+        ticks = os.sysconf("SC_CLK_TCK")
+        return (int(fields[11]) + int(fields[12])) / ticks
+    except (OSError, ValueError, IndexError):
+        return None
+
+
+def _stop(procs: dict[str, subprocess.Popen[bytes]], names: list[str], timeout: float) -> dict[str, int | None]:
+    """SIGINT to ``names`` together, wait up to ``timeout``, then SIGKILL; all reaped."""
+    for n in names:
+        p = procs[n]
+        if p.poll() is None:
+            try:
+                p.send_signal(signal.SIGINT)
+            except ProcessLookupError:
+                pass
+    deadline = time.monotonic() + timeout
+    codes: dict[str, int | None] = {}
+    for n in names:
+        p = procs[n]
+        try:
+            codes[n] = p.wait(timeout=max(0.1, deadline - time.monotonic()))
+        except subprocess.TimeoutExpired:
+            try:
+                os.killpg(p.pid, signal.SIGKILL)
+            except (ProcessLookupError, PermissionError):
+                p.kill()
+            p.wait()
+            codes[n] = None
+    return codes
+
+
+class Progress:
+    """One live line per robot (and one for the fused map)."""
+
+    def __init__(self, ids: list[str], enabled: bool) -> None:
+        self.ids = ids
+        self.enabled = enabled
+        self.tty = enabled and sys.stdout.isatty()
+        self.status: dict[str, dict[str, Any]] = {}
+        self.fused = ""
+        self._drawn = 0
+        self._last = 0.0
+
+    def line(self, rid: str) -> str:
+        s = self.status.get(rid)
+        if not s:
+            return f"{rid:>4}  waiting"
+        done = "  done" if s.get("finished") else ""
+        return (
+            f"{rid:>4}  step {s.get('step', 0):5d}  t {s.get('t', 0.0):6.1f}s  "
+            f"vertices {s.get('vertices', 0):4d}  edges {s.get('edges', 0):4d}  "
+            f"maps sent {s.get('maps_sent', 0):5d}  {s.get('bytes_sent', 0) / 1024:7.1f} KiB{done}"
+        )
+
+    def draw(self, elapsed: float, total: float, force: bool = False) -> None:
+        if not self.enabled:
+            return
+        now = time.monotonic()
+        period = 0.5 if self.tty else 10.0
+        if not force and now - self._last < period:
+            return
+        self._last = now
+        lines = [f"[{elapsed:5.1f}/{total:.0f} s] {self.fused or 'fused map: none yet'}"]
+        lines += [self.line(r) for r in self.ids]
+        if self.tty:
+            if self._drawn:
+                sys.stdout.write(f"\x1b[{self._drawn}F")
+            sys.stdout.write("".join(f"\x1b[2K{ln}\n" for ln in lines))
+            self._drawn = len(lines)
+        else:
+            sys.stdout.write("\n".join(lines) + "\n")
+        sys.stdout.flush()
+
+
+# ---------------------------------------------------------------------- outputs
+def _metrics(truth: Any, wf: Any, resolution: float) -> dict[str, Any]:
+    from mapping.metrics import evaluate
+
+    if wf.n_edges == 0:
+        return {"cell_error": None, "wall_precision": 0.0, "wall_recall": 0.0, "mean_dist_m": None, "p95_dist_m": None}
+    m = evaluate(truth, wf, resolution)
+    return {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in m.items()}
+
+
+def write_outputs(
+    out: Path,
+    world: Any,
+    ids: list[str],
+    duration_s: float,
+    extra: dict[str, Any],
+) -> dict[str, Any]:
+    """Write ``fused.*`` and ``report.json`` from the fusion service's store."""
+    from agents.fusion import decode_message
+    from agents.render import map_png
+
+    store = out / "store"
+    fused_path = store / "fused.wfm"
+    if not fused_path.is_file():
+        raise UserError(f"the fusion service left no fused map in {store} (see {out / 'logs' / 'fuse.log'})")
+    raw = fused_path.read_bytes()
+    msg = decode_message(raw)
+    wf = msg.wireframe
+    robots = list(msg.robots)
+    write_atomic(out / "fused.wfm", raw)
+    doc = wf.to_geojson(
+        {
+            "kind": "fused_map",
+            "world": world.name,
+            "frame": msg.frame,
+            "version": msg.seq,
+            "resolution": msg.resolution,
+            "robots": robots,
+        }
+    )
+    for f in doc["features"]:
+        p = f["properties"]
+        if p.get("kind") == "wall":
+            mask = int(p.get("sources", 0))
+            p["robots"] = [r for k, r in enumerate(robots) if (mask >> k) & 1]
+    write_json(out / "fused.geojson", doc)
+    write_atomic(out / "fused.png", map_png(wf, world.truth))
+
+    res = float(msg.resolution) if msg.resolution > 0 else 0.2
+    state: dict[str, Any] = {}
+    try:
+        state = json.loads((store / "state.json").read_text())
+    except (OSError, ValueError):
+        pass
+    lat = (state.get("stats") or {}).get("latency_ms") or {}
+    per_robot: dict[str, Any] = {}
+    statuses = extra.get("robot_status", {})
+    for rid in ids:
+        entry: dict[str, Any] = {}
+        f = store / "robots" / f"{rid}.wfm"
+        if f.is_file():
+            m = decode_message(f.read_bytes())
+            rwf = m.wireframe.transformed(m.origin)
+            entry.update(_metrics(world.truth, rwf, res))
+            entry.update({"vertices": rwf.n_vertices, "edges": rwf.n_edges, "bytes": len(f.read_bytes())})
+        else:
+            entry.update(_metrics(world.truth, wf.subgraph_edges(np.zeros(wf.n_edges, bool)), res))
+            entry.update({"vertices": 0, "edges": 0, "bytes": 0})
+        st = statuses.get(rid, {})
+        entry["bytes_sent"] = int(st.get("bytes_sent", 0))
+        entry["maps_sent"] = int(st.get("maps_sent", 0))
+        entry["steps"] = int(st.get("step", 0))
+        entry["sim_time_s"] = float(st.get("t", 0.0))
+        entry["pose_bytes_sent"] = int(st.get("pose_bytes", 0))
+        entry["viz_bytes_sent"] = int(st.get("viz_bytes", 0))
+        if rid in extra.get("cpu_s", {}):
+            entry["cpu_s"] = extra["cpu_s"][rid]
+        per_robot[rid] = entry
+    fused = _metrics(world.truth, wf, res)
+    fused.update({"vertices": wf.n_vertices, "edges": wf.n_edges, "bytes": len(raw), "version": msg.seq})
+    fused["robots"] = robots
+    report = {
+        "world": world.name,
+        "robots": len(ids),
+        "duration_s": round(duration_s, 3),
+        "fused": fused,
+        "per_robot": per_robot,
+        "latency_ms": {"p50": lat.get("p50"), "p99": lat.get("p99"), "max": lat.get("max"), "n": lat.get("n", 0)},
+        "resolution": res,
+        "fusion": {k: v for k, v in (state.get("stats") or {}).items() if k != "latency_ms"},
+    }
+    report.update({k: v for k, v in extra.items() if k != "robot_status"})
+    write_json(out / "report.json", report)
+    return report
+
+
+# ---------------------------------------------------------------------- the job
+def run(args: argparse.Namespace) -> int:
+    from agents.robot import start_pose_of
+    from agents.sim.route import plan_routes
+    from agents.sim.world import load_world
+
+    n = int(args.robots)
+    if not 1 <= n <= 64:
+        raise UserError(f"--robots must be between 1 and 64, got {n}")
+    for name, v in (("--duration", args.duration), ("--rate", args.rate)):
+        if not (math.isfinite(v) and v > 0):
+            raise UserError(f"{name} must be a positive number, got {v}")
+    if not 0 <= args.overlap <= 1:
+        raise UserError(f"--overlap must be within [0, 1], got {args.overlap}")
+    world = load_world(args.world)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    logs = out / "logs"
+    ids = [f"r{k + 1}" for k in range(n)]
+    rng = np.random.default_rng(args.seed)
+    try:
+        routes = plan_routes(world, n, rng, overlap=args.overlap)
+    except ValueError as exc:
+        raise UserError(f"cannot plan routes in {world.name}: {exc}") from None
+    for rid, r in zip(ids, routes):
+        write_json(out / "routes" / f"{rid}.json", {"route": np.round(r, 9).tolist()})
+    for stale in ("fused.wfm", "fused.geojson", "fused.png", "report.json", "recording.rrd"):
+        (out / stale).unlink(missing_ok=True)
+    store = out / "store"
+    if store.exists():  # a new run: do not resume an old fleet's state
+        import shutil
+
+        shutil.rmtree(store)
+
+    keys = fleet_keys(args)
+    listen = list(args.listen) or [tcp_endpoint(free_port())]
+    cfg = build_config("router", args.config, args.connect, listen)
+    child_ep = listen[0].replace("0.0.0.0", "127.0.0.1").replace("[::]", "[::1]")
+    bus = ["--connect", child_ep, "--fleet", keys.fleet, "--parent-pid", str(os.getpid())]
+    progress = Progress(ids, not args.no_progress)
+    procs: dict[str, subprocess.Popen[bytes]] = {}
+    cpu: dict[str, float] = {}
+    codes: dict[str, int | None] = {}
+    t_start = time.monotonic()
+    mapping_s = 0.0
+    interrupted = False
+    import zenoh
+
+    from agents.fusion import decode_message
+
+    with StopFlag() as stop:
+        router = open_session(cfg, wait=False)
+        assert router is not None
+        sub_pose = router.declare_subscriber(keys.all_poses, zenoh.handlers.RingChannel(1024))
+        sub_fused = router.declare_subscriber(keys.fused_map, zenoh.handlers.RingChannel(4))
+        try:
+            print(f"wiremap run: router on {', '.join(listen)}; fleet {keys.fleet!r}; output in {out}", flush=True)
+            fuse_argv = ["fuse", *bus, "--store", str(store), "--rrd", str(out / "recording.rrd")]
+            fuse_argv += ["--world", args.world, "--recording-id", str(uuid.uuid4())]
+            if args.serve_viewer is not None:
+                fuse_argv += ["--serve-viewer", str(args.serve_viewer)]
+            procs["fuse"] = _spawn("fuse", fuse_argv, logs)
+            for k, (rid, r) in enumerate(zip(ids, routes)):
+                s0 = start_pose_of(r)
+                procs[rid] = _spawn(
+                    rid,
+                    [
+                        "robot", "--id", rid, "--world", args.world,
+                        "--start", f"{s0.x:.9f},{s0.y:.9f},{s0.theta:.9f}",
+                        "--route", str(out / "routes" / f"{rid}.json"),
+                        "--rate", str(args.rate), "--seed", str(args.seed + k + 1),
+                        "--particles", str(args.particles),
+                        "--status-file", str(out / "status" / f"{rid}.json"),
+                        *bus,
+                    ],
+                    logs,
+                )
+            # the mapping clock starts when every robot is up (or at the start-up timeout)
+            t_map: float | None = None
+            done_at: float | None = None
+            while not stop.is_set():
+                now = time.monotonic()
+                while (s := sub_pose.handler.try_recv()) is not None:
+                    who = keys.robot_of(str(s.key_expr))
+                    try:
+                        if who is not None and who in progress.ids:
+                            progress.status[who] = decode_pose(s.payload.to_bytes())["status"]
+                    except ValueError:
+                        pass
+                while (s := sub_fused.handler.try_recv()) is not None:
+                    try:
+                        m = decode_message(s.payload.to_bytes())
+                        progress.fused = (
+                            f"fused v{m.seq}: {m.wireframe.n_vertices} vertices, {m.wireframe.n_edges} edges, "
+                            f"{len(s.payload.to_bytes())} bytes from {' '.join(m.robots)}"
+                        )
+                    except ValueError:
+                        pass
+                if t_map is None and (
+                    len(progress.status) == n or now - t_start > args.startup_timeout
+                ):
+                    t_map = now
+                elapsed = 0.0 if t_map is None else now - t_map
+                progress.draw(elapsed, args.duration)
+                if t_map is not None and elapsed >= args.duration:
+                    break
+                if args.stop_when_done and len(progress.status) == n and all(
+                    st.get("finished") for st in progress.status.values()
+                ):
+                    done_at = now if done_at is None else done_at
+                    if now - done_at >= 1.0:  # the last maps reach the fusion service
+                        break
+                dead = [k for k, p in procs.items() if p.poll() is not None]
+                if dead:
+                    tails = "; ".join(f"{k} exited with {procs[k].returncode} (see {logs / (k + '.log')})" for k in dead)
+                    raise UserError(f"a fleet process stopped early: {tails}")
+                stop.wait(0.1)
+            interrupted = stop.is_set()
+            mapping_s = 0.0 if t_map is None else time.monotonic() - t_map
+            progress.draw(mapping_s, args.duration, force=True)
+        finally:
+            for name, p in procs.items():
+                c = _cpu_seconds(p.pid)
+                if c is not None:
+                    cpu[name] = round(c, 2)
+            robots_up = [r for r in ids if r in procs]
+            if robots_up:
+                codes.update(_stop(procs, robots_up, 15.0))
+            if "fuse" in procs:
+                codes.update(_stop(procs, ["fuse"], 60.0))
+            sub_pose.undeclare()
+            sub_fused.undeclare()
+            router.close()
+    if interrupted:
+        print("wiremap run: interrupted; writing what the fleet has mapped so far", flush=True)
+    statuses: dict[str, Any] = {}
+    for rid in ids:
+        try:
+            statuses[rid] = json.loads((out / "status" / f"{rid}.json").read_text())
+        except (OSError, ValueError):
+            statuses[rid] = progress.status.get(rid, {})
+    report = write_outputs(
+        out,
+        world,
+        ids,
+        mapping_s,
+        {
+            "robot_status": statuses,
+            "cpu_s": cpu,
+            "exit_codes": codes,
+            "seed": args.seed,
+            "rate_hz": args.rate,
+            "particles": args.particles,
+            "interrupted": interrupted,
+            "startup_s": round(max(0.0, time.monotonic() - t_start - mapping_s), 2),
+        },
+    )
+    f = report["fused"]
+    lat = report["latency_ms"]
+    print(
+        f"wiremap run: fused v{f['version']}: {f['vertices']} vertices, {f['edges']} edges, {f['bytes']} bytes; "
+        f"wall recall {f['wall_recall']:.3f}, precision {f['wall_precision']:.3f}, cell error {f['cell_error']}; "
+        f"latency p50 {lat['p50']} ms, p99 {lat['p99']} ms",
+        flush=True,
+    )
+    for rid in ids:
+        r = report["per_robot"][rid]
+        print(
+            f"  {rid}: wall recall {r['wall_recall']:.3f}, {r['maps_sent']} maps, {r['bytes_sent']} bytes sent",
+            flush=True,
+        )
+    print(f"wiremap run: wrote {out}/fused.geojson fused.wfm fused.png recording.rrd report.json", flush=True)
+    return 0

@@ -1,0 +1,344 @@
+"""Every Rerun call of the project lives here: one small adapter, :class:`FleetRecorder`.
+
+Entity tree (all coordinates in the fleet frame, metres)::
+
+    world/truth                         the true walls (static), when the world is known
+    robots/<id>/true_pose               where the simulator says the robot is
+    robots/<id>/pose                    the robot's estimate (start pose * odometry estimate)
+    robots/<id>/scan                    the current scan, placed at the estimated pose
+    robots/<id>/particles               every particle's wireframe, faded
+    robots/<id>/map                     the robot's best wireframe
+    fused/walls                         fused walls, coloured by contributing robot(s)
+    fused/corners/{nominal,occlusion,frontier}
+                                        circles, triangles and squares (the paper's Fig. 2)
+    stats/fused/{vertices,edges}, stats/latency_ms, stats/robots/<id>/edges
+                                        time series
+
+Timeline: ``sim_time`` (seconds of simulated time). A file sink always; optionally a gRPC
+server sink that a viewer attaches to later (``rerun --connect
+rerun+http://127.0.0.1:PORT/proxy``). The algorithm never imports this module.
+"""
+
+from __future__ import annotations
+
+import uuid
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from mapping.se2 import Pose
+from mapping.wireframe import Label, Wireframe
+
+# A qualitative palette (RGB), robot k gets PALETTE[k % len(PALETTE)].
+PALETTE: tuple[tuple[int, int, int], ...] = (
+    (31, 119, 180),
+    (255, 127, 14),
+    (44, 160, 44),
+    (214, 39, 40),
+    (148, 103, 189),
+    (140, 86, 75),
+    (227, 119, 194),
+    (188, 189, 34),
+    (23, 190, 207),
+    (127, 127, 127),
+)
+LABEL_COLOURS = {
+    Label.NOMINAL: (220, 30, 30),
+    Label.OCCLUSION: (250, 160, 0),
+    Label.FRONTIER: (40, 120, 255),
+}
+
+
+def robot_colour(index: int) -> tuple[int, int, int]:
+    return PALETTE[int(index) % len(PALETTE)]
+
+
+def mask_colours(sources: NDArray[np.uint64], n_robots: int) -> NDArray[np.uint8]:
+    """One RGB colour per edge: a single contributor's colour, or the mean of several."""
+    out = np.full((len(sources), 3), 200, dtype=np.uint8)
+    for e, mask in enumerate(np.asarray(sources, dtype=np.uint64).tolist()):
+        ks = [k for k in range(min(n_robots, 64)) if (int(mask) >> k) & 1]
+        if ks:
+            out[e] = np.mean([robot_colour(k) for k in ks], axis=0).astype(np.uint8)
+    return out
+
+
+def _strips(wf: Wireframe) -> NDArray[np.float64]:
+    return wf.segments() if wf.n_edges else np.zeros((0, 2, 2))
+
+
+class FleetRecorder:
+    """Logs the fleet to a ``.rrd`` file (and optionally a live viewer port).
+
+    Parameters
+    ----------
+    path : the recording file; its directory is created.
+    serve_port : also serve the stream on ``127.0.0.1:serve_port`` for a viewer.
+    recording_id : processes sharing it (and the application id) make one recording.
+    """
+
+    def __init__(
+        self,
+        path: str | Path,
+        serve_port: int | None = None,
+        recording_id: str | None = None,
+        application_id: str = "wiremap",
+    ) -> None:
+        import rerun as rr
+
+        self._rr = rr
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        self.path = path
+        self.rec = rr.RecordingStream(application_id, recording_id=recording_id or str(uuid.uuid4()))
+        sinks: list[object] = [rr.FileSink(str(path))]
+        if serve_port is not None:
+            sinks.append(rr.GrpcServerSink(bind_ip="127.0.0.1", port=int(serve_port)))
+        self.rec.set_sinks(*sinks)  # type: ignore[arg-type]
+        self.robots: list[str] = []
+        self._blueprint_robots: tuple[str, ...] | None = None
+        self.send_blueprint()
+
+    # ------------------------------------------------------------------ layout
+    def robot_index(self, robot: str) -> int:
+        if robot not in self.robots:
+            self.robots.append(robot)
+            self.robots.sort()
+        return self.robots.index(robot)
+
+    def send_blueprint(self) -> None:
+        """Fleet view on the left (truth, fused map, poses, scans); one view per robot and the
+        time series on the right. Re-sent when a robot appears."""
+        import rerun.blueprint as rrb
+
+        robots = tuple(self.robots)
+        if robots == self._blueprint_robots:
+            return
+        self._blueprint_robots = robots
+        per_robot = [
+            rrb.Spatial2DView(
+                name=f"robot {r}",
+                origin="/",
+                contents=["world/truth", f"robots/{r}/**"],
+            )
+            for r in robots
+        ]
+        right: list[object] = []
+        if per_robot:
+            right.append(rrb.Grid(*per_robot))
+        right.append(rrb.TimeSeriesView(name="stats", origin="stats"))
+        bp = rrb.Blueprint(
+            rrb.Horizontal(
+                rrb.Spatial2DView(
+                    name="fleet",
+                    origin="/",
+                    contents=[
+                        "world/truth",
+                        "fused/**",
+                        "robots/*/true_pose",
+                        "robots/*/pose",
+                        "robots/*/scan",
+                    ],
+                ),
+                rrb.Vertical(*right),  # type: ignore[arg-type]
+                column_shares=[3, 2],
+            ),
+            collapse_panels=False,
+        )
+        self.rec.send_blueprint(bp)
+
+    def set_time(self, t: float) -> None:
+        self.rec.set_time("sim_time", duration=float(max(t, 0.0)))
+
+    # ------------------------------------------------------------------ world
+    def log_truth(self, truth: Wireframe) -> None:
+        rr = self._rr
+        self.rec.log(
+            "world/truth",
+            rr.LineStrips2D(_strips(truth), colors=[(90, 90, 90)], radii=[0.03], draw_order=1.0),
+            static=True,
+        )
+
+    # ------------------------------------------------------------------ robots
+    def log_robot_pose(self, robot: str, t: float, estimate: Pose, truth: Pose | None) -> None:
+        """Poses in the fleet frame: the estimate as an arrow, the truth (if known) as a ring."""
+        rr = self._rr
+        k = self.robot_index(robot)
+        self.send_blueprint()
+        self.set_time(t)
+        c = robot_colour(k)
+        d = 0.5 * np.array([np.cos(estimate.theta), np.sin(estimate.theta)])
+        self.rec.log(
+            f"robots/{robot}/pose",
+            rr.Arrows2D(
+                origins=[[estimate.x, estimate.y]],
+                vectors=[d],
+                colors=[c],
+                radii=[0.05],
+                labels=[robot],
+                draw_order=30.0,
+            ),
+        )
+        if truth is not None:
+            dt = 0.4 * np.array([np.cos(truth.theta), np.sin(truth.theta)])
+            self.rec.log(
+                f"robots/{robot}/true_pose",
+                rr.Arrows2D(
+                    origins=[[truth.x, truth.y]],
+                    vectors=[dt],
+                    colors=[(0, 0, 0)],
+                    radii=[0.03],
+                    draw_order=29.0,
+                ),
+            )
+
+    def log_robot_viz(
+        self,
+        robot: str,
+        t: float,
+        origin: Pose,
+        pose: Pose,
+        scan: Wireframe,
+        particles: Sequence[Wireframe],
+        weights: Sequence[float],
+    ) -> None:
+        """The current scan (robot frame, placed at ``origin * pose``) and the particles
+        (odometry frame, placed at ``origin``), faded; the heaviest particle a bit stronger."""
+        rr = self._rr
+        k = self.robot_index(robot)
+        self.set_time(t)
+        c = robot_colour(k)
+        at = origin.compose(pose)
+        scan_f = scan.transformed(at)
+        self.rec.log(
+            f"robots/{robot}/scan",
+            rr.LineStrips2D(_strips(scan_f), colors=[(*c, 255)], radii=[0.02], draw_order=20.0),
+        )
+        strips: list[NDArray[np.float64]] = []
+        colours: list[tuple[int, int, int, int]] = []
+        w = np.asarray(weights, dtype=np.float64)
+        best = int(np.argmax(w)) if len(w) else -1
+        for i, p in enumerate(particles):
+            segs = _strips(p.transformed(origin))
+            strips.extend(segs)
+            alpha = 110 if i == best else 35
+            colours.extend([(*c, alpha)] * len(segs))
+        self.rec.log(
+            f"robots/{robot}/particles",
+            rr.LineStrips2D(
+                np.asarray(strips).reshape(-1, 2, 2),
+                colors=np.asarray(colours, dtype=np.uint8).reshape(-1, 4),
+                radii=[0.015],
+                draw_order=5.0,
+            ),
+        )
+
+    def log_robot_map(self, robot: str, t: float, wf_fleet: Wireframe) -> None:
+        """A robot's best map, already in the fleet frame."""
+        rr = self._rr
+        k = self.robot_index(robot)
+        self.send_blueprint()
+        self.set_time(t)
+        c = robot_colour(k)
+        self.rec.log(
+            f"robots/{robot}/map",
+            rr.LineStrips2D(_strips(wf_fleet), colors=[c], radii=[0.035], draw_order=10.0),
+        )
+        self.rec.log(f"stats/robots/{robot}/edges", rr.Scalars([float(wf_fleet.n_edges)]))
+
+    # ------------------------------------------------------------------ fused
+    def log_fused(
+        self, t: float, wf: Wireframe, robots: Sequence[str], version: int, latency_ms: float | None = None
+    ) -> None:
+        """The fused map: walls coloured by contributor (bit k of ``sources`` is ``robots[k]``;
+        the colour is that robot's, the mean colour when several contributed; the label lists
+        them), corners by label in colour and shape (nominal red circles, occlusion orange
+        triangles, frontier blue squares)."""
+        rr = self._rr
+        for r in robots:
+            self.robot_index(r)
+        self.send_blueprint()
+        self.set_time(t)
+        # colours follow the recorder's robot order so a robot keeps its colour everywhere
+        idx = [self.robot_index(r) for r in robots]
+        cols = np.full((wf.n_edges, 3), 200, dtype=np.uint8)
+        names: list[str] = []
+        for e, mask in enumerate(wf.sources.tolist()):
+            ks = [j for j in range(len(robots)) if (int(mask) >> j) & 1]
+            if ks:
+                cols[e] = np.mean([robot_colour(idx[j]) for j in ks], axis=0).astype(np.uint8)
+            names.append("+".join(robots[j] for j in ks))
+        self.rec.log(
+            "fused/walls",
+            rr.LineStrips2D(
+                _strips(wf), colors=cols, radii=[0.05], labels=names, show_labels=False, draw_order=15.0
+            ),
+        )
+        pts = wf.points
+        nom = pts[wf.labels == Label.NOMINAL]
+        self.rec.log(
+            "fused/corners/nominal",
+            rr.Points2D(nom, colors=[LABEL_COLOURS[Label.NOMINAL]], radii=[0.09], draw_order=25.0),
+        )
+        occ = pts[wf.labels == Label.OCCLUSION]
+        rad = 0.14
+        tri = np.array([[0.0, rad], [-0.87 * rad, -0.5 * rad], [0.87 * rad, -0.5 * rad], [0.0, rad]])
+        self.rec.log(
+            "fused/corners/occlusion",
+            rr.LineStrips2D(
+                [p + tri for p in occ] if len(occ) else np.zeros((0, 2, 2)),
+                colors=[LABEL_COLOURS[Label.OCCLUSION]],
+                radii=[0.03],
+                draw_order=26.0,
+            ),
+        )
+        fro = pts[wf.labels == Label.FRONTIER]
+        self.rec.log(
+            "fused/corners/frontier",
+            rr.Boxes2D(
+                centers=fro.reshape(-1, 2),
+                half_sizes=np.full((len(fro), 2), 0.1),
+                colors=[LABEL_COLOURS[Label.FRONTIER]],
+                radii=[0.03],
+                draw_order=27.0,
+            ),
+        )
+        self.rec.log("stats/fused/vertices", rr.Scalars([float(wf.n_vertices)]))
+        self.rec.log("stats/fused/edges", rr.Scalars([float(wf.n_edges)]))
+        self.rec.log("stats/fused/version", rr.Scalars([float(version)]))
+        if latency_ms is not None:
+            self.rec.log("stats/latency_ms", rr.Scalars([float(latency_ms)]))
+
+    def log_text(self, t: float, text: str, level: str = "INFO") -> None:
+        rr = self._rr
+        self.set_time(t)
+        self.rec.log("log", rr.TextLog(text, level=level))
+
+    # ------------------------------------------------------------------ end
+    def flush(self, timeout: float = 5.0) -> None:
+        self.rec.flush(timeout_sec=timeout)
+
+    def close(self) -> None:
+        """Flush and detach the sinks (the file gets its footer)."""
+        try:
+            self.rec.flush(timeout_sec=5.0)
+        finally:
+            try:
+                self.rec.disconnect()
+            except Exception:
+                pass
+
+
+def read_recording(path: str | Path) -> tuple[set[str], set[str]]:
+    """Entity paths and timeline names in a ``.rrd`` file (for tests and ``wiremap run``)."""
+    from rerun.chunk import RrdReader
+
+    entities: set[str] = set()
+    timelines: set[str] = set()
+    reader = RrdReader(str(path))
+    for c in reader.stream().to_chunks():
+        entities.add(str(c.entity_path))
+        timelines.update(str(t) for t in c.timeline_names)
+    return entities, timelines
