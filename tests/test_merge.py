@@ -1,0 +1,563 @@
+import math
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, assume, given, settings
+from hypothesis import strategies as st
+
+from mapping.merge import MergeConfig, merge, merge_all, normalize
+from mapping.wireframe import Label, Wireframe
+
+N, OC, F = int(Label.NOMINAL), int(Label.OCCLUSION), int(Label.FRONTIER)
+CFG = MergeConfig(threshold=0.2)
+
+
+def seg(p, q, lik=1.0, labels=(N, N), src=0):
+    return Wireframe.build([p, q], [(0, 1)], labels=list(labels), likelihood=[lik], sources=[src])
+
+
+def walls(wf: Wireframe) -> list[tuple[tuple[float, float], tuple[float, float]]]:
+    """Edges as sorted ((x0, y0), (x1, y1)) tuples rounded to 1 mm."""
+    out = []
+    for i, j in wf.edges.tolist():
+        p, q = wf.points[i], wf.points[j]
+        out.append(((round(p[0], 3), round(p[1], 3)), (round(q[0], 3), round(q[1], 3))))
+    return sorted(out)
+
+
+def wall_likelihoods(wf: Wireframe) -> dict[tuple[tuple[float, float], tuple[float, float]], float]:
+    out = {}
+    for (i, j), lk in zip(wf.edges.tolist(), wf.likelihood.tolist()):
+        p, q = wf.points[i], wf.points[j]
+        out[((round(p[0], 3), round(p[1], 3)), (round(q[0], 3), round(q[1], 3)))] = lk
+    return out
+
+
+# ------------------------------------------------------------------------------------ config
+
+
+@pytest.mark.parametrize(
+    "kwargs, reason",
+    [
+        ({"threshold": 0.0}, "threshold"),
+        ({"threshold": -1.0}, "threshold"),
+        ({"threshold": math.nan}, "threshold"),
+        ({"angle_tol": 0.0}, "angle_tol"),
+        ({"angle_tol": 1.0}, "angle_tol"),
+    ],
+)
+def test_config_rejects_with_reason(kwargs, reason):
+    with pytest.raises(ValueError, match=reason):
+        MergeConfig(**kwargs)
+
+
+# ------------------------------------------------------------------------------ hand-made cases
+
+
+def test_overlapping_collinear_edges_become_one_spanning_edge():
+    m = merge(seg((0, 0), (3, 0), 0.5), seg((2, 0.05), (5, 0.05), 0.4), CFG)
+    assert m.n_vertices == 2 and m.n_edges == 1
+    # the new far end lies beyond the base wall: it keeps its measured position
+    assert walls(m) == [((0.0, 0.0), (5.0, 0.05))]
+    assert m.likelihood[0] == pytest.approx(1 - 0.5 * 0.6)
+
+
+def test_opposite_directions_are_never_merged():
+    m = merge(seg((0, 0), (3, 0), 0.5), seg((5, 0.05), (2, 0.05), 0.5), CFG)
+    assert m.n_edges == 2 and m.n_vertices == 4
+    np.testing.assert_allclose(sorted(m.likelihood), [0.5, 0.5])
+    # and a thin wall (two opposite faces between the same corners) stays two edges
+    thin = Wireframe.build([(0, 0), (4, 0)], [(0, 1), (1, 0)])
+    assert merge(thin, thin, CFG).n_edges == 2
+
+
+def test_frontier_ended_wall_extended_by_later_scan():
+    base = seg((0, 0), (3, 0), 0.6, labels=(N, F))
+    new = seg((0.05, 0.02), (6, 0.02), 0.5, labels=(N, N))  # the wall continues to a real corner
+    m = merge(base, new, CFG)
+    assert m.n_edges == 1 and m.n_vertices == 2
+    assert walls(m) == [((0.0, 0.0), (6.0, 0.02))]
+    assert F not in m.labels.tolist()
+    assert m.likelihood[0] == pytest.approx(1 - 0.4 * 0.5)
+
+
+def test_frontier_moving_less_than_threshold_still_grows_the_wall():
+    """A robot walking along a wall sees its frontier advance by less than the threshold each scan."""
+    m = seg((0, 0), (3, 0), labels=(N, F))
+    for end in (3.1, 3.2, 3.3, 3.4):
+        m = merge(m, seg((0, 0), (end, 0), labels=(N, F)), CFG)
+    assert walls(m) == [((0.0, 0.0), (3.4, 0.0))]
+    assert m.labels.tolist() == [N, F]
+
+
+def test_frontier_becomes_the_corner_that_ends_its_wall():
+    base = Wireframe.build([(0, 0), (3, 0)], [(0, 1)], labels=[N, F])
+    new = Wireframe.build([(3.1, 0.05), (3.1, 2)], [(0, 1)], labels=[N, N])  # the corner at x=3.1
+    m = merge(base, new, CFG)
+    assert m.n_vertices == 3 and m.n_edges == 2
+    assert m.labels.tolist() == [N, N, N]
+    assert walls(m) == [((0.0, 0.0), (3.1, 0.05)), ((3.1, 0.05), (3.1, 2.0))]
+
+
+def test_occlusion_frontier_pair_closed_by_whole_wall_gives_nominal_corners_only():
+    # scan 1 from (5, 1): the far wall y=6 (running -x, free side below) is hidden behind a box
+    # between frontiers (6.25, 6) and (3.75, 6); the box's near face ends in two occlusions.
+    base = Wireframe.build(
+        [(10, 6), (6.25, 6), (5.5, 3), (4.5, 3), (3.75, 6), (0, 6)],
+        [(0, 1), (2, 3), (4, 5)],
+        labels=[N, F, OC, OC, F, N],
+    )
+    rng = np.random.default_rng(3)
+    # later: the whole far wall, and the box (clockwise: an obstacle) all around
+    pts = np.array([(10, 6), (0, 6), (4.5, 3), (4.5, 4), (5.5, 4), (5.5, 3)], float)
+    pts += rng.uniform(-0.03, 0.03, pts.shape)
+    new = Wireframe.build(pts, [(0, 1), (2, 3), (3, 4), (4, 5), (5, 2)])
+    m = merge(base, new, CFG)
+    assert m.labels.tolist() == [N] * 6
+    assert m.n_vertices == 6 and m.n_edges == 5
+    far = [w for w in walls(m) if w[0][1] > 5.5]
+    assert far == [((10.0, 6.0), (0.0, 6.0))]
+
+
+def test_vertex_within_threshold_combined_just_beyond_not():
+    base = Wireframe.from_polylines([[(0, 0), (2, 0), (2, 2)]], closed=False)
+    near = Wireframe.from_polylines([[(2.5, 1.0), (2.19, 0.0), (4.0, -1.0)]], closed=False)
+    far = Wireframe.from_polylines([[(2.5, 1.0), (2.21, 0.0), (4.0, -1.0)]], closed=False)
+    m = merge(base, near, CFG)
+    assert m.n_vertices == 5  # (2.19, 0) became (2, 0)
+    assert [2.0, 0.0] in m.points.tolist() and [2.19, 0.0] not in m.points.tolist()
+    m = merge(base, far, CFG)
+    assert m.n_vertices == 6
+
+
+def test_one_to_one_correspondence():
+    """Two new corners near one base corner: only the closer one is combined with it."""
+    base = Wireframe.build([(0, 0), (0, 2)], [(0, 1)])
+    new = Wireframe.build([(0.1, 0.0), (-0.15, 0.0), (2, -2), (-2, -2)], [(2, 0), (1, 3)])
+    m = merge(base, new, CFG)
+    assert m.n_vertices == 5
+    assert [0.0, 0.0] in m.points.tolist() and [-0.15, 0.0] in m.points.tolist()
+
+
+def test_likelihood_propagation_exact_and_sources_or():
+    a = seg((0, 0), (4, 0), 0.3, src=0b001)
+    b = seg((0.1, 0.0), (4.1, 0.0), 0.6, src=0b010)
+    c = seg((1.0, 0.05), (3.0, 0.05), 0.9, src=0b100)
+    m = merge(merge(a, b, CFG), c, CFG)
+    assert m.n_edges == 1
+    assert m.likelihood[0] == pytest.approx(1 - 0.7 * 0.4 * 0.1, abs=1e-12)
+    assert int(m.sources[0]) == 0b111
+    w = Wireframe.from_polylines([[(0, 0), (3, 0), (3, 3)]], closed=False, likelihood=0.25)
+    m = merge(w, w, CFG)
+    np.testing.assert_allclose(m.likelihood, 1 - 0.75**2)
+
+
+def test_t_junction_splits_the_wall_and_keeps_the_stem():
+    base = seg((0, 0), (10, 0), 0.5)
+    new = Wireframe.build([(3, 0.02), (5, 0.03), (5, 2)], [(0, 1), (1, 2)], likelihood=[0.5, 0.5])
+    m = merge(base, new, CFG)
+    assert m.n_vertices == 4 and m.n_edges == 3
+    assert m.labels.tolist() == [N] * 4
+    lik = wall_likelihoods(m)
+    assert ((0.0, 0.0), (5.0, 0.0)) in lik  # the junction was moved onto the base wall
+    assert lik[((0.0, 0.0), (5.0, 0.0))] == pytest.approx(0.75)  # seen twice
+    assert lik[((5.0, 0.0), (10.0, 0.0))] == pytest.approx(0.5)  # seen once
+    assert lik[((5.0, 0.0), (5.0, 2.0))] == pytest.approx(0.5)
+    # merging again changes nothing but likelihoods
+    assert merge(m, m, CFG).almost_equal(m, likelihood_tol=1.0)
+    # without snap_to_lines the junction keeps its measured position (the wall bends slightly)
+    raw = merge(base, new, MergeConfig(threshold=0.2, snap_to_lines=False))
+    assert ((0.0, 0.0), (5.0, 0.03)) in wall_likelihoods(raw)
+
+
+def test_wall_behind_a_wall_does_not_split_it():
+    """A corner near a wall whose other wall leaves into the solid side is not a T-junction."""
+    base = seg((0, 0), (10, 0))
+    new = seg((5, -0.05), (5, -2))  # belongs to the room behind the wall
+    m = merge(base, new, CFG)
+    assert m.n_edges == 2 and m.n_vertices == 4
+    assert ((0.0, 0.0), (10.0, 0.0)) in walls(m)
+
+
+def test_vertex_on_edge_three_cases():
+    base = seg((0, 0), (6, 0))
+    # no neighbour off the line: the new corner is removed, collinear edges joined
+    m = merge(base, Wireframe.build([(4, 0.05), (8, 0.05)], [(0, 1)]), CFG)
+    assert walls(m) == [((0.0, 0.0), (8.0, 0.05))]
+    # neighbour on the same edge: the shorter edge is absorbed
+    m = merge(base, Wireframe.build([(2, 0.1), (4, 0.1)], [(0, 1)]), CFG)
+    assert walls(m) == [((0.0, 0.0), (6.0, 0.0))]
+    # neighbour beyond both ends: one edge spanning the most distant ends
+    m = merge(base, Wireframe.build([(-2, -0.1), (9, -0.1)], [(0, 1)]), CFG)
+    assert m.n_edges == 1 and m.n_vertices == 2
+    assert walls(m) == [((-2.0, -0.1), (9.0, -0.1))]
+
+
+def test_chain_through_frontier_and_straight_nominal_joined():
+    w = Wireframe.build([(0, 0), (2, 0), (4, 0.05), (6, 0)], [(0, 1), (1, 2), (2, 3)], labels=[N, F, N, N])
+    m = normalize(w, CFG)
+    assert m.n_edges == 1 and m.n_vertices == 2
+    # a real corner (90 degrees) is kept
+    sq = Wireframe.from_polylines([[(0, 0), (3, 0), (3, 3), (0, 3)]])
+    assert normalize(sq, CFG).almost_equal(sq)
+
+
+def test_degenerate_and_lone_vertices_removed():
+    base = Wireframe.build([(0, 0), (3, 0), (7, 7)], [(0, 1)])  # (7, 7) is far away: untouched
+    new = Wireframe.build([(1, 1), (1, 1), (2, 2)], [(0, 1), (1, 2)])  # a zero-length edge
+    m = merge(base, new, CFG)
+    assert m.n_edges == 2 and m.n_vertices == 5
+    assert [7.0, 7.0] in m.points.tolist()
+    assert m.points.tolist().count([1.0, 1.0]) == 1
+    lone_near = Wireframe.build([(1, 0.1), (1.5, 0.1), (2.5, 0.5)], [(0, 1)])
+    m = merge(Wireframe.build([(0, 0), (3, 0), (1.2, 0.3)], [(0, 1)]), lone_near, CFG)
+    assert m.points.tolist() == [[0.0, 0.0], [3.0, 0.0]]  # a lone corner near new data carries no wall
+
+
+def test_empty_inputs():
+    sq = Wireframe.from_polylines([[(0, 0), (1, 0), (1, 1), (0, 1)]])
+    assert merge(sq, Wireframe.empty(), CFG) is sq
+    assert merge(Wireframe.empty(), sq, CFG).almost_equal(sq)
+    assert merge(Wireframe.empty(), Wireframe.empty(), CFG).n_vertices == 0
+    assert merge_all([], CFG).n_vertices == 0
+
+
+def test_far_parts_of_base_untouched_and_order_kept():
+    rooms = [[(x, 0), (x + 3, 0), (x + 3, 3), (x, 3)] for x in (0, 10, 20, 30)]
+    base = Wireframe.from_polylines(rooms, likelihood=0.5)
+    scan = Wireframe.from_polylines([rooms[2]], likelihood=0.5)
+    m = merge(base, scan, CFG)
+    assert m.n_vertices == base.n_vertices and m.n_edges == base.n_edges
+    np.testing.assert_array_equal(m.points, base.points)
+    untouched = m.likelihood == 0.5
+    assert untouched.sum() == 12
+    np.testing.assert_array_equal(m.edges[:12], base.edges[[0, 1, 2, 3, 4, 5, 6, 7, 12, 13, 14, 15]])
+
+
+def test_thin_wall_u_turn_keeps_both_faces():
+    """Paper Fig. 5: the two faces of a thin wall are seen from each side in turn."""
+    above = Wireframe.build([(0, 0), (5, 0)], [(0, 1)], labels=[OC, OC], likelihood=[0.5])  # free above
+    below = Wireframe.build([(5.03, -0.02), (0.02, 0.01)], [(0, 1)], labels=[OC, OC], likelihood=[0.5])
+    m = merge(above, below, CFG)
+    assert m.n_vertices == 2 and m.n_edges == 2
+    assert sorted(map(tuple, m.edges.tolist())) == [(0, 1), (1, 0)]
+    again = merge(m, below, CFG)
+    assert again.almost_equal(m, likelihood_tol=1.0)
+    np.testing.assert_allclose(sorted(again.likelihood), [0.5, 0.75])
+
+
+def test_glimpse_shorter_than_threshold_ending_in_frontier_is_dropped():
+    base = seg((0, 0), (4, 0))
+    glimpse = Wireframe.build([(6, 1), (6.05, 1.1)], [(0, 1)], labels=[N, F])  # 0.11 m, any direction
+    m = merge(base, glimpse, CFG)
+    assert m.almost_equal(base)
+    real = Wireframe.build([(6, 1), (6.05, 1.1)], [(0, 1)], labels=[N, N])  # a short real wall stays
+    assert merge(base, real, CFG).n_edges == 2
+
+
+def test_short_noisy_piece_joins_its_wall_despite_its_angle():
+    """A 0.4 m piece at 20 degrees (noise on its ends) lies on the wall: it is absorbed."""
+    base = seg((0, 0), (6, 0), labels=(N, N))
+    d = 0.4 * np.array([math.cos(math.radians(20)), math.sin(math.radians(20))])
+    p0 = np.array([2.0, -0.05])
+    piece = Wireframe.build([p0, p0 + d], [(0, 1)], labels=[F, F], likelihood=[0.5])
+    m = merge(base, piece, CFG)
+    assert walls(m) == [((0.0, 0.0), (6.0, 0.0))]
+    assert m.likelihood[0] == 1.0
+    # a perpendicular short wall at the end (e.g. the cap of a thin wall) is not absorbed
+    cap = Wireframe.build([(6, 0), (6, 0.15)], [(0, 1)])
+    assert merge(base, cap, CFG).n_edges == 2
+
+
+def test_merge_all_and_sources_for_fusion():
+    room = [(0, 0), (6, 0), (6, 4), (0, 4)]
+    r1 = Wireframe.from_polylines([room[:3]], closed=False).replace(sources=np.array([1, 1], np.uint64))
+    r2 = Wireframe.from_polylines([room[1:]], closed=False).replace(sources=np.array([2, 2], np.uint64))
+    m = merge_all([r1, r2], CFG)
+    assert m.n_vertices == 4 and m.n_edges == 3
+    by_wall = {w: int(sv) for w, sv in zip([tuple(e) for e in m.edges.tolist()], m.sources)}
+    assert sorted(by_wall.values()) == [1, 2, 3]  # the wall both saw has both bits
+    assert merge_all([r2, r1], CFG).almost_equal(m)
+
+
+# ------------------------------------------------------------------------------ properties
+
+
+def corners(wf: Wireframe) -> list[tuple[float, float]]:
+    """Positions of the non-frontier corners, sorted (exact)."""
+    return sorted(map(tuple, wf.points[wf.labels != F].tolist()))
+
+
+thr_st = st.sampled_from([0.2, 0.4])
+
+
+@st.composite
+def rectilinear_world(draw, thr=0.2):
+    """Rooms (CCW), boxes (CW) and staircase polylines in separate 10 m cells; random
+    likelihoods and sources. Normalised by construction (no collinear overlaps, no T)."""
+    n_parts = draw(st.integers(1, 4))
+    pts: list[tuple[float, float]] = []
+    labels: list[int] = []
+    edges: list[tuple[int, int]] = []
+    size = st.floats(1.0, 6.0)
+    for cell in range(n_parts):
+        cx, cy = (cell % 2) * 10.0, (cell // 2) * 10.0
+        x0 = cx + draw(st.floats(0.0, 1.0))
+        y0 = cy + draw(st.floats(0.0, 1.0))
+        kind = draw(st.sampled_from(["room", "box", "stairs"]))
+        base = len(pts)
+        if kind in ("room", "box"):
+            w, h = draw(size), draw(size)
+            ring = [(x0, y0), (x0 + w, y0), (x0 + w, y0 + h), (x0, y0 + h)]
+            if kind == "box":
+                ring = ring[::-1]
+            pts += ring
+            labels += [N] * 4
+            edges += [(base + i, base + (i + 1) % 4) for i in range(4)]
+        else:
+            steps = draw(st.integers(1, 3))
+            x, y = x0, y0
+            pts.append((x, y))
+            for _ in range(steps):
+                x += draw(st.floats(1.0, 2.0))
+                pts.append((x, y))
+                y += draw(st.floats(1.0, 2.0))
+                pts.append((x, y))
+            k = len(pts) - base
+            ends = draw(st.lists(st.sampled_from([N, OC, F]), min_size=2, max_size=2))
+            labels += [ends[0]] + [N] * (k - 2) + [ends[1]]
+            edges += [(base + i, base + i + 1) for i in range(k - 1)]
+    m = len(edges)
+    lik = draw(st.lists(st.floats(0.05, 1.0), min_size=m, max_size=m))
+    src = draw(st.lists(st.integers(0, 7), min_size=m, max_size=m))
+    return Wireframe.build(pts, edges, labels, lik, src)
+
+
+@st.composite
+def blocky_world(draw):
+    """Rectilinear rooms with holes: the union of random 1.5 m grid cells (outlines
+    counterclockwise, holes clockwise), without pinch points. Normalised by construction."""
+    from shapely.geometry import Polygon, box
+    from shapely.geometry.polygon import orient
+    from shapely.ops import unary_union
+
+    cells = draw(
+        st.lists(st.tuples(st.integers(0, 5), st.integers(0, 5)), min_size=1, max_size=16, unique=True)
+    )
+    shape = unary_union([box(1.5 * x, 1.5 * y, 1.5 * (x + 1), 1.5 * (y + 1)) for x, y in cells])
+    polys = [shape] if isinstance(shape, Polygon) else list(shape.geoms)
+    rings = []
+    for poly in polys:
+        poly = orient(poly.simplify(0.0), 1.0)
+        rings.append(np.array(poly.exterior.coords)[:-1])
+        rings += [np.array(h.coords)[:-1] for h in poly.interiors]
+    pts = np.concatenate(rings)
+    assume(len(np.unique(pts.round(6), axis=0)) == len(pts))  # no corner shared by two rings
+    w = Wireframe.from_polylines(rings)
+    lik = draw(st.lists(st.floats(0.05, 1.0), min_size=w.n_edges, max_size=w.n_edges))
+    return w.replace(likelihood=np.array(lik))
+
+
+any_world = st.one_of(rectilinear_world(), blocky_world())
+
+
+def noisy_subset(wf: Wireframe, rng: np.random.Generator, thr: float, keep_p: float = 0.7) -> Wireframe:
+    """A scan-like partial copy: a random subset of edges, corner noise below thr/4."""
+    keep = rng.random(wf.n_edges) < keep_p
+    if not keep.any():
+        keep[rng.integers(wf.n_edges)] = True
+    sub = wf.subgraph_edges(keep)
+    noise = rng.uniform(-thr / 6, thr / 6, sub.points.shape)
+    return sub.replace(points=sub.points + noise)
+
+
+SETTINGS = settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+
+
+@SETTINGS
+@given(any_world, thr_st)
+def test_merge_with_itself_keeps_the_graph(w, thr):
+    cfg = MergeConfig(threshold=thr)
+    assert normalize(w, cfg).almost_equal(w)
+    m = merge(w, w, cfg)
+    expected = w.replace(likelihood=1.0 - (1.0 - w.likelihood) ** 2)
+    assert m.almost_equal(expected, tol=1e-12, likelihood_tol=1e-12)
+
+
+@SETTINGS
+@given(any_world, thr_st, st.integers(0, 2**32 - 1))
+def test_merging_the_same_scan_again_changes_no_geometry(w, thr, seed):
+    cfg = MergeConfig(threshold=thr)
+    rng = np.random.default_rng(seed)
+    a = w.replace(points=w.points + rng.uniform(-thr / 6, thr / 6, w.points.shape))
+    b = noisy_subset(w, rng, thr)
+    m1 = merge(a, b, cfg)
+    m2 = merge(m1, b, cfg)
+    assert m2.almost_equal(m1, tol=1e-9, likelihood_tol=1.0)
+    assert np.all(m2.likelihood >= m1.likelihood - 1e-12)
+    # and the other way round (a partial map, then more of the world)
+    m3 = merge(b, a, cfg)
+    assert merge(m3, a, cfg).almost_equal(m3, tol=1e-9, likelihood_tol=1.0)
+    # the graph of the merge is that of the world (all of it was seen, noise below thr/4)
+    assert m1.n_vertices == w.n_vertices and m1.n_edges == w.n_edges
+    assert m3.n_vertices == w.n_vertices and m3.n_edges == w.n_edges
+
+
+@SETTINGS
+@given(any_world, thr_st, st.integers(0, 2**32 - 1))
+def test_repeated_scans_do_not_grow_the_graph(w, thr, seed):
+    cfg = MergeConfig(threshold=thr)
+    rng = np.random.default_rng(seed)
+    m = w
+    for _ in range(4):
+        m = merge(m, noisy_subset(w, rng, thr), cfg)
+        assert m.n_vertices == w.n_vertices and m.n_edges == w.n_edges
+        # base corners never move; frontiers may only advance along their wall (by < thr/4 here)
+        assert m.almost_equal(w, tol=thr / 4, likelihood_tol=1.0)
+        assert corners(m) == corners(w)
+
+
+@SETTINGS
+@given(any_world, thr_st, st.integers(0, 2**32 - 1))
+def test_culling_changes_nothing_and_merge_is_deterministic(w, thr, seed):
+    rng = np.random.default_rng(seed)
+    s = noisy_subset(w, rng, thr, keep_p=0.3)
+    a = merge(w, s, MergeConfig(threshold=thr))
+    b = merge(w, s, MergeConfig(threshold=thr, cull=False))
+    assert a.almost_equal(b, tol=1e-12, likelihood_tol=1e-12)
+    c = merge(w, s, MergeConfig(threshold=thr))
+    for f in ("points", "labels", "edges", "likelihood", "sources"):
+        np.testing.assert_array_equal(getattr(a, f), getattr(c, f))
+
+
+@SETTINGS
+@given(rectilinear_world(), thr_st, st.integers(0, 2**32 - 1))
+def test_merge_order_gives_the_same_graph(w, thr, seed):
+    cfg = MergeConfig(threshold=thr)
+    rng = np.random.default_rng(seed)
+    a = w.replace(points=w.points + rng.uniform(-thr / 6, thr / 6, w.points.shape))
+    b = w.replace(points=w.points + rng.uniform(-thr / 6, thr / 6, w.points.shape))
+    ab, ba = merge(a, b, cfg), merge(b, a, cfg)
+    assert ab.almost_equal(a, tol=thr / 2, likelihood_tol=1.0) and corners(ab) == corners(a)
+    assert ba.almost_equal(b, tol=thr / 2, likelihood_tol=1.0) and corners(ba) == corners(b)
+    assert ab.almost_equal(ba, tol=thr / 2, likelihood_tol=1e-12)
+
+
+def wall_pieces(wf: Wireframe, rng: np.random.Generator, thr: float) -> Wireframe:
+    """What a scan sees: for a random subset of walls, a random stretch of each (at least 3 thr
+    long), cut ends labelled frontier, corner noise below thr/4."""
+    pts: list[np.ndarray] = []
+    labels: list[int] = []
+    edges: list[tuple[int, int]] = []
+    lik: list[float] = []
+    for (i, j), lk in zip(wf.edges.tolist(), wf.likelihood.tolist()):
+        if rng.random() < 0.4:
+            continue
+        p, q = wf.points[i], wf.points[j]
+        length = float(np.hypot(*(q - p)))
+        lo = 0.0 if rng.random() < 0.4 else rng.uniform(0.0, 0.5)
+        hi = 1.0 if rng.random() < 0.4 else rng.uniform(0.5, 1.0)
+        if (hi - lo) * length < 3 * thr:
+            lo, hi = 0.0, 1.0
+        k = len(pts)
+        pts += [p + lo * (q - p), p + hi * (q - p)]
+        labels += [int(wf.labels[i]) if lo == 0.0 else F, int(wf.labels[j]) if hi == 1.0 else F]
+        edges.append((k, k + 1))
+        lik.append(lk)
+    if not edges:
+        return Wireframe.empty()
+    p = np.array(pts) + rng.uniform(-thr / 6, thr / 6, (len(pts), 2))
+    return Wireframe.build(p, edges, labels, lik)
+
+
+@SETTINGS
+@given(any_world, thr_st, st.integers(0, 2**32 - 1))
+def test_partial_scans_add_nothing_to_a_complete_map(w, thr, seed):
+    """Pieces of known walls (frontier ends inside them) vanish into the walls."""
+    cfg = MergeConfig(threshold=thr)
+    rng = np.random.default_rng(seed)
+    m = w
+    for _ in range(3):
+        m = merge(m, wall_pieces(w, rng, thr), cfg)
+    assert m.n_vertices == w.n_vertices and m.n_edges == w.n_edges
+    assert corners(m) == corners(w)
+    assert m.almost_equal(w, tol=thr / 4, likelihood_tol=1.0)
+
+
+@SETTINGS
+@given(any_world, thr_st, st.integers(0, 2**32 - 1))
+def test_frontiers_closed_when_the_whole_map_is_seen(w, thr, seed):
+    """A map built from partial scans, then the whole world seen: the world's graph, its labels."""
+    cfg = MergeConfig(threshold=thr)
+    rng = np.random.default_rng(seed)
+    m = Wireframe.empty()
+    for _ in range(3):
+        m = merge(m, wall_pieces(w, rng, thr), cfg)
+    noisy = w.replace(points=w.points + rng.uniform(-thr / 6, thr / 6, w.points.shape))
+    m = merge(m, noisy, cfg)
+    assert m.n_vertices == w.n_vertices and m.n_edges == w.n_edges
+    assert m.almost_equal(w, tol=thr / 2, likelihood_tol=1.0)  # labels included
+
+
+@SETTINGS
+@given(rectilinear_world(), thr_st, st.integers(0, 2**32 - 1))
+def test_large_input_paths_agree_with_small_input_paths(w, thr, seed):
+    """The grid / k-d tree candidate searches used for big maps find the same pairs."""
+    import mapping.merge as mm
+
+    cfg = MergeConfig(threshold=thr)
+    rng = np.random.default_rng(seed)
+    s = noisy_subset(w, rng, thr)
+    a = merge(w.replace(points=w.points + rng.uniform(-thr / 6, thr / 6, w.points.shape)), s, cfg)
+    saved = (mm._DENSE_SNAP_MAX, mm._DENSE_PAIRS_MAX, mm._DENSE_NEAR_MAX)
+    try:
+        mm._DENSE_SNAP_MAX, mm._DENSE_PAIRS_MAX, mm._DENSE_NEAR_MAX = 0, 0, 0
+        rng = np.random.default_rng(seed)
+        s = noisy_subset(w, rng, thr)
+        b = merge(w.replace(points=w.points + rng.uniform(-thr / 6, thr / 6, w.points.shape)), s, cfg)
+    finally:
+        mm._DENSE_SNAP_MAX, mm._DENSE_PAIRS_MAX, mm._DENSE_NEAR_MAX = saved
+    assert a.almost_equal(b, tol=1e-12, likelihood_tol=1e-12)
+
+
+@st.composite
+def garbage_wireframe(draw):
+    """Anything valid: random corners in a small square (many coincidences), random edges
+    (crossing, duplicated, both directions), labels, likelihoods and sources."""
+    n = draw(st.integers(0, 14))
+    grid = draw(st.sampled_from([0.05, 0.1, 0.5]))
+    pts = [(draw(st.integers(0, 30)) * grid, draw(st.integers(0, 30)) * grid) for _ in range(n)]
+    edges = []
+    if n >= 2:
+        pairs = st.tuples(st.integers(0, n - 1), st.integers(0, n - 1)).filter(lambda e: e[0] != e[1])
+        edges = draw(st.lists(pairs, max_size=2 * n))
+    m = len(edges)
+    return Wireframe.build(
+        np.array(pts, dtype=float).reshape(-1, 2),
+        edges,
+        draw(st.lists(st.sampled_from([N, OC, F]), min_size=n, max_size=n)),
+        draw(st.lists(st.floats(0.0, 1.0), min_size=m, max_size=m)),
+        draw(st.lists(st.integers(0, 2**64 - 1), min_size=m, max_size=m)),
+    )
+
+
+@settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(garbage_wireframe(), garbage_wireframe(), st.sampled_from([0.05, 0.2, 1.0]), st.booleans())
+def test_any_input_gives_a_valid_bounded_deterministic_result(a, b, thr, cull):
+    cfg = MergeConfig(threshold=thr, cull=cull)
+    m = merge(a, b, cfg)
+    m.replace()  # re-validates every invariant of the Wireframe type
+    assert m.n_vertices <= a.n_vertices + b.n_vertices  # corners are never invented
+    # walls only multiply where a T-junction splits one (once per junction corner and wall)
+    assert m.n_edges <= (a.n_edges + b.n_edges) * (1 + a.n_vertices + b.n_vertices)
+    if b.n_edges == 0:
+        assert m is a  # nothing to merge: base returned as it is
+    elif m.n_edges and not cull:  # the whole base was processed: no degenerate or duplicate walls
+        assert np.all(m.edge_lengths() > 0.0)
+        key = m.edges[:, 0].astype(np.int64) * max(1, m.n_vertices) + m.edges[:, 1]
+        assert len(np.unique(key)) == len(key)  # no duplicate directed edges
+    all_src = np.bitwise_or.reduce(np.concatenate([a.sources, b.sources, np.zeros(1, np.uint64)]))
+    assert np.all(m.sources & ~all_src == 0)  # sources only ever OR-ed
+    again = merge(a, b, cfg)
+    for f in ("points", "labels", "edges", "likelihood", "sources"):
+        np.testing.assert_array_equal(getattr(m, f), getattr(again, f))
