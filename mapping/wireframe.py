@@ -418,10 +418,12 @@ def _match_vertices(a: FloatArray, b: FloatArray, tol: float) -> NDArray[np.int6
     d, j = tree.query(a, k=1)
     if np.all(d <= tol) and len(np.unique(j)) == len(j):
         return np.asarray(j, dtype=np.int64)
-    # Ambiguous (several vertices within tol): solve the assignment exactly.
-    cost = np.hypot(a[:, None, 0] - b[None, :, 0], a[:, None, 1] - b[None, :, 1])
-    rows, cols = linear_sum_assignment(cost)
-    if not np.all(cost[rows, cols] <= tol):
+    # Ambiguous (several vertices within tol): a perfect matching of within-tol pairs exists iff
+    # the assignment minimising the number of pairs farther than tol has none (minimising the
+    # summed distance instead could pick a pair beyond tol when a feasible matching exists).
+    dist = np.hypot(a[:, None, 0] - b[None, :, 0], a[:, None, 1] - b[None, :, 1])
+    rows, cols = linear_sum_assignment((dist > tol).astype(np.float64) + dist * 1e-12)
+    if not np.all(dist[rows, cols] <= tol):
         return None
     perm = np.empty(len(a), dtype=np.int64)
     perm[rows] = cols

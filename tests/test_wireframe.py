@@ -146,3 +146,14 @@ def test_geojson_round_trip_is_exact(wf):
     assert np.array_equal(back.labels, wf.labels)
     assert np.array_equal(back.edges, wf.edges)
     assert np.array_equal(back.likelihood, wf.likelihood)
+
+
+def test_almost_equal_finds_a_matching_within_tolerance_when_one_exists():
+    # a0 = b0; a1 and b1 lie 0.2 m from the origin, 0.3 m apart. Both a0 and a1 have b0 as their
+    # nearest neighbour, and the matching of least summed distance (a0-b0, a1-b1: 0 + 0.3) breaks
+    # tol = 0.25 while a0-b1, a1-b0 (0.2 + 0.2) keeps every pair within it.
+    ang = 2 * math.asin(0.15 / 0.2)
+    a = Wireframe.build([[0.0, 0.0], [0.2, 0.0]])
+    b = Wireframe.build([[0.0, 0.0], [0.2 * math.cos(ang), 0.2 * math.sin(ang)]])
+    assert a.almost_equal(b, tol=0.25)
+    assert not a.almost_equal(b, tol=0.15)

@@ -1,5 +1,36 @@
-"""Bytes <-> wireframe messages. See FORMAT.md."""
+"""Bytes <-> wireframe messages. See FORMAT.md.
 
+``encode(MapMessage) -> bytes`` and ``decode(bytes, *, limits=Limits()) -> MapMessage``; every
+decoding failure is a :class:`CodecError`. No I/O, no zenoh, no rerun.
+"""
+
+from wire_codec.codec import VERSION, decode, encode
+from wire_codec.errors import (
+    ChecksumError,
+    CodecError,
+    EncodeError,
+    ExtraDataError,
+    FormatError,
+    LimitError,
+    Limits,
+    TruncatedError,
+    VersionError,
+)
 from wire_codec.message import MapMessage, MessageKind
 
-__all__ = ["MapMessage", "MessageKind"]
+__all__ = [
+    "VERSION",
+    "ChecksumError",
+    "CodecError",
+    "EncodeError",
+    "ExtraDataError",
+    "FormatError",
+    "LimitError",
+    "Limits",
+    "MapMessage",
+    "MessageKind",
+    "TruncatedError",
+    "VersionError",
+    "decode",
+    "encode",
+]

@@ -1,0 +1,489 @@
+"""The bit-packed body: a wireframe as a few hundred bits (FORMAT.md, section 3).
+
+Layout of the bit stream, in order (everything after ``n`` is absent when ``n == 0``):
+
+1. ``n``, the vertex count (Exp-Golomb order 0);
+2. vertex positions on the integer grid ``q = round(p / resolution)``, each coded as its move
+   from the previous vertex (the first from the grid origin). Every move has a *major* axis,
+   coded relative to the previous move's (a *turn* toggles it); on a rectilinear wall chain
+   consecutive corners alternate axes and share the other coordinate, so a corner is a TURN:
+   one class bit, one sign bit and an Exp-Golomb magnitude. STRAIGHT moves keep the axis;
+   GENERAL moves (both coordinates change, or neither) add a turn bit, a minor sign and a minor
+   magnitude;
+3. vertex labels (constant, dominant value with exceptions as flags or as gaps, or plain);
+4. edges against the vertex order: one bit per consecutive pair ``(k, k+1)``, one bit per chain
+   that closes into a ring, optionally one bit per reverse pair ``(k+1, k)``, then the other
+   edges sorted, as Exp-Golomb gaps between their first vertices and offsets to the second;
+5. edge likelihoods quantised to 4 bits (``round(15 l)``), with the same modes as labels;
+6. fused maps only: per-edge contributor masks, as a sorted dictionary of distinct masks of
+   ``len(robots)`` bits and a ``ceil(log2 U)``-bit index per edge.
+
+The encoder chooses the vertex order (edges followed as chains, so that most edges cost one bit)
+and therefore the decoded vertex and edge order differ from the input's; the graph is the same.
+:func:`encode_body` returns the permutations it used. Where the format offers a choice (Exp-Golomb
+orders, label and likelihood modes, the reverse section) the encoder takes the cheapest.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from mapping.wireframe import Wireframe
+from wire_codec.bits import I64, BitReader, BitWriter, best_eg_orders, ceil_log2
+from wire_codec.errors import EncodeError, ExtraDataError, FormatError, LimitError, Limits, TruncatedError
+
+MAX_GRID = 1 << 50
+"""Largest ``|q|`` of a grid coordinate (keeps every coded value below ``2**53``)."""
+
+LIKELIHOOD_LEVELS = 15
+"""Likelihood ``l`` travels as ``round(15 l)`` in 4 bits and comes back as ``v / 15``."""
+
+MAX_ROBOTS = 64
+"""A fused map's contributor masks are ``uint64``: at most 64 robots."""
+
+MODE_CONSTANT, MODE_FLAGS, MODE_PLAIN, MODE_GAPS = 0, 1, 2, 3
+"""Value-section modes (labels, likelihoods): one value; a dominant value with one exception
+flag per item; every value; a dominant value with the exceptions' positions as gaps."""
+
+LABEL_BITS, LIKELIHOOD_BITS = 2, 4
+
+
+@dataclass(frozen=True)
+class EncodedBody:
+    """An encoded body and the order the encoder put the graph in.
+
+    Attributes
+    ----------
+    data : the body bytes.
+    vertex_order : decoded vertex ``k`` is input vertex ``vertex_order[k]``.
+    edge_order : decoded edge ``e`` is input edge ``edge_order[e]``.
+    n_bits : the stream's length before padding.
+    """
+
+    data: bytes
+    vertex_order: NDArray[np.int64]
+    edge_order: NDArray[np.int64]
+    n_bits: int
+
+
+# ---------------------------------------------------------------------------------------- helpers
+def zigzag(v: I64) -> I64:
+    """Signed to unsigned: 0, -1, 1, -2, ... -> 0, 1, 2, 3, ..."""
+    return np.asarray((v << 1) ^ (v >> 63), dtype=np.int64)
+
+
+def unzigzag(u: I64) -> I64:
+    return np.asarray((u >> 1) ^ -(u & 1), dtype=np.int64)
+
+
+def quantise(points: NDArray[np.float64], resolution: float) -> I64:
+    """Grid coordinates ``round(p / resolution)`` (``numpy.rint``: ties to even); raises
+    :class:`EncodeError` beyond ``MAX_GRID`` steps."""
+    g = points / resolution
+    if g.size and float(np.abs(g).max()) > MAX_GRID:
+        raise EncodeError(
+            f"a vertex is {float(np.abs(points).max()):.6g} m from the origin: beyond "
+            f"{MAX_GRID} steps of {resolution} m"
+        )
+    return np.rint(g).astype(np.int64)
+
+
+def chain_order(n: int, edges: NDArray[np.int32]) -> NDArray[np.int64]:
+    """A vertex order that follows edges: ``order[k]`` is the input index of position ``k``.
+
+    Each vertex gets at most one chosen outgoing and one chosen incoming edge (three greedy
+    rounds, lowest edge index first); the chosen edges form paths and cycles. Paths are emitted
+    from their first vertex in increasing index order, then cycles from their lowest vertex.
+    Unconnected vertices are one-vertex paths.
+    """
+    succ = np.full(n, -1, dtype=np.int64)
+    pred = np.full(n, -1, dtype=np.int64)
+    if len(edges):
+        a = edges[:, 0].astype(np.int64)
+        b = edges[:, 1].astype(np.int64)
+        first = np.empty(n, dtype=np.int64)
+        for _ in range(3):
+            cand = np.flatnonzero((succ[a] < 0) & (pred[b] < 0))
+            if cand.size == 0:
+                break
+            for end in (a, b):  # keep the lowest candidate edge per source, then per target
+                first.fill(len(edges))
+                np.minimum.at(first, end[cand], cand)
+                cand = cand[first[end[cand]] == cand]
+            succ[a[cand]] = b[cand]
+            pred[b[cand]] = a[cand]
+    nxt = succ.tolist()
+    seen = [False] * n
+    order: list[int] = []
+    heads = np.flatnonzero(pred < 0).tolist()
+    for v in heads + list(range(n)):
+        while v >= 0 and not seen[v]:
+            seen[v] = True
+            order.append(v)
+            v = nxt[v]
+    return np.asarray(order, dtype=np.int64)
+
+
+def chains(next_bits: NDArray[np.uint8], n: int) -> tuple[I64, I64]:
+    """Start and end positions of the maximal runs joined by ``next_bits`` (length ``n - 1``)."""
+    breaks = np.flatnonzero(next_bits == 0)
+    starts = np.concatenate(([0], breaks + 1)).astype(np.int64)
+    ends = np.concatenate((breaks, [n - 1])).astype(np.int64)
+    return starts, ends
+
+
+def _orders(*runs: tuple[int, int]) -> I64:
+    """Per-value Exp-Golomb orders of a block made of runs ``(count, order)``."""
+    return np.repeat(np.array([k for _, k in runs], dtype=np.int64), [c for c, _ in runs])
+
+
+def _gaps(positions: I64) -> I64:
+    """Gaps between increasing positions: ``p_0``, ``p_1 - p_0 - 1``, ..."""
+    return np.asarray(np.diff(positions, prepend=-1) - 1, dtype=np.int64)
+
+
+def _explicit_cost(a: I64, b: I64) -> tuple[int, int, int]:
+    """``(bits, ke, kd)`` of explicit edges ``a -> b`` sorted by ``(a, b)``."""
+    (ke, kd), (cost_e, cost_d) = best_eg_orders(np.concatenate((np.diff(a, prepend=0), zigzag(b - a))), [a.size] * 2)
+    return 8 + cost_e + cost_d, ke, kd
+
+
+# ---------------------------------------------------------------------------------------- encode
+def _write_values(w: BitWriter, values: I64, width: int, exc_width: int) -> None:
+    """A value section (labels: ``width`` 2, exception 1 bit; likelihoods: 4 and 4 bits) in the
+    cheapest of its four modes (ties: constant, flags, plain, gaps)."""
+    counts = np.bincount(values)
+    dom = int(np.argmax(counts))
+    count = int(values.size)
+    exc = values != dom
+    n_exc = count - int(counts[dom])
+    if n_exc == 0:
+        w.scalar(MODE_CONSTANT, 2)
+        w.scalar(dom, width)
+        return
+    gaps = _gaps(np.flatnonzero(exc))
+    (kg,), (gap_bits,) = best_eg_orders(gaps, [n_exc])
+    costs = {
+        MODE_FLAGS: width + count + n_exc * exc_width,
+        MODE_PLAIN: count * width,
+        MODE_GAPS: width + 2 * (n_exc + 1).bit_length() - 1 + 4 + gap_bits + n_exc * exc_width,
+    }
+    mode = min(costs, key=lambda k: costs[k])
+    w.scalar(mode, 2)
+    if mode == MODE_PLAIN:
+        w.fixed(values, width)
+        return
+    w.scalar(dom, width)
+    if mode == MODE_FLAGS:
+        w.flags(exc)
+    else:
+        w.eg(n_exc)
+        w.scalar(kg, 4)
+        w.eg_block(gaps, kg)
+    if exc_width == 1:  # labels: which of the two other values
+        w.flags(values[exc] == max(x for x in (0, 1, 2) if x != dom))
+    else:
+        w.fixed(values[exc], exc_width)
+
+
+def encode_body(wf: Wireframe, resolution: float, n_robots: int | None) -> EncodedBody:
+    """Bit-pack ``wf`` on a grid of ``resolution`` metres.
+
+    Parameters
+    ----------
+    wf : the map.
+    resolution : grid step in metres (the envelope's, already rounded to whole millimetres).
+    n_robots : ``None`` for a robot map (no sources section; sources must be all zero, which
+        the caller checks); for a fused map the number of robots, so masks are that many bits.
+
+    Raises
+    ------
+    EncodeError
+        A vertex too far from the origin, or a contributor bit at or above ``n_robots``.
+    """
+    w = BitWriter()
+    n, m = wf.n_vertices, wf.n_edges
+    w.eg(n)
+    if n == 0:
+        return EncodedBody(w.to_bytes(), np.zeros(0, np.int64), np.zeros(0, np.int64), w.n_bits)
+
+    # -- vertices: the major axis of every move is coded relative to the previous one
+    q = quantise(wf.points, resolution)
+    order = chain_order(n, wf.edges)
+    inv = np.empty(n, dtype=np.int64)
+    inv[order] = np.arange(n, dtype=np.int64)
+    d = np.diff(q[order], axis=0, prepend=np.zeros((1, 2), dtype=np.int64))
+    ad = np.abs(d)
+    axis = (ad[:, 1] > ad[:, 0]).astype(np.int64)  # major axis; ties (and zero moves): x
+    toggle = axis != np.concatenate(([1], axis[:-1]))  # the axis before the first move is y
+    idx = np.arange(n)
+    major = d[idx, axis]
+    minor = d[idx, 1 - axis]
+    single = (minor == 0) & (major != 0)
+    general = ~single
+    turn = single & toggle
+    values = np.concatenate((np.abs(major[single]) - 1, np.abs(major[general]), np.abs(minor[general])))
+    n_single, n_general = int(single.sum()), int(general.sum())
+    (k1, k2, k3), _ = best_eg_orders(values, [n_single, n_general, n_general])
+    w.scalar(k1, 4)
+    w.scalar(k2, 4)
+    w.scalar(k3, 4)
+    w.flags(turn)
+    w.flags(single[~turn])  # among non-turns: 1 = straight, 0 = general
+    w.flags(toggle[general])
+    w.flags(major < 0)
+    w.flags(minor[general] < 0)
+    w.eg_block(values, _orders((n_single, k1), (n_general, k2), (n_general, k3)))
+
+    # -- labels
+    _write_values(w, wf.labels[order].astype(np.int64), LABEL_BITS, 1)
+
+    # -- edges
+    ea = inv[wf.edges[:, 0]]
+    eb = inv[wf.edges[:, 1]]
+    keys = ea * n + eb
+    by_key = np.argsort(keys, kind="stable")
+    sorted_keys = keys[by_key]
+    is_first = np.empty(m, dtype=bool)  # first occurrence of each (i, j); repeats are explicit
+    is_first[by_key] = np.concatenate(([True], sorted_keys[1:] != sorted_keys[:-1]))
+    is_next = is_first & (eb == ea + 1)
+    next_bits = np.zeros(n - 1, dtype=np.uint8)
+    next_bits[ea[is_next]] = 1
+    starts, ends = chains(next_bits, n)
+    chain_of = np.concatenate(([0], np.cumsum(next_bits == 0))).astype(np.int64)
+    ca = chain_of[ea]
+    is_close = is_first & (ea == ends[ca]) & (eb == starts[ca]) & (ea - eb >= 2)
+    closed = np.zeros(starts.size, dtype=bool)
+    closed[ca[is_close]] = True
+    is_rev = is_first & (eb == ea - 1)
+    rest = by_key[~(is_next | is_close)[by_key]]  # sorted by (i, j), repeats in input order
+    plan = _explicit_cost(ea[rest], eb[rest]) if rest.size else (0, 0, 0)
+    use_rev = False
+    if is_rev.any():  # a reverse bit per vertex, if cheaper than those edges as explicit ones
+        rest_norev = by_key[~(is_next | is_close | is_rev)[by_key]]
+        plan_norev = _explicit_cost(ea[rest_norev], eb[rest_norev]) if rest_norev.size else (0, 0, 0)
+        use_rev = (n - 1) + plan_norev[0] < plan[0]
+        if use_rev:
+            rest, plan = rest_norev, plan_norev
+    if not use_rev:
+        is_rev = np.zeros(m, dtype=bool)
+    w.flags(next_bits)
+    w.flags(closed[ends - starts >= 2])
+    w.scalar(int(use_rev), 1)
+    if use_rev:
+        rev_bits = np.zeros(n - 1, dtype=np.uint8)
+        rev_bits[eb[is_rev]] = 1
+        w.flags(rev_bits)
+    w.eg(int(rest.size))
+    if rest.size:
+        ra, rb = ea[rest], eb[rest]
+        _, ke, kd = plan
+        w.scalar(ke, 4)
+        w.scalar(kd, 4)
+        w.eg_block(np.concatenate((np.diff(ra, prepend=0), zigzag(rb - ra))), _orders((rest.size, ke), (rest.size, kd)))
+
+    def by(mask: NDArray[np.bool_], key: I64) -> I64:  # the edges in mask, by distinct key
+        sel = np.flatnonzero(mask)
+        slot = np.full(n, -1, dtype=np.int64)
+        slot[key[sel]] = sel
+        return slot[slot >= 0]
+
+    edge_order = np.concatenate((by(is_next, ea), by(is_rev, eb), by(is_close, ca), rest)).astype(np.int64)
+
+    # -- likelihood
+    if m:
+        lq = np.rint(wf.likelihood[edge_order] * LIKELIHOOD_LEVELS).astype(np.int64)
+        _write_values(w, lq, LIKELIHOOD_BITS, LIKELIHOOD_BITS)
+
+    # -- sources (fused maps)
+    if n_robots is not None and m:
+        src = wf.sources[edge_order]
+        if n_robots < MAX_ROBOTS and np.any(src >> np.uint64(n_robots)):
+            raise EncodeError(f"an edge has a contributor bit >= the number of robots ({n_robots})")
+        uniq, index = np.unique(src, return_inverse=True)
+        w.eg(int(uniq.size))
+        w.fixed(uniq, n_robots)
+        w.fixed(index.astype(np.int64), ceil_log2(int(uniq.size)))
+
+    return EncodedBody(w.to_bytes(), order, edge_order, w.n_bits)
+
+
+# ---------------------------------------------------------------------------------------- decode
+def _read_values(r: BitReader, count: int, width: int, exc_width: int, what: str) -> I64:
+    """Read a value section written by :func:`_write_values`."""
+    mode = r.scalar(2, f"the {what} mode")
+    if mode == MODE_PLAIN:
+        return r.fixed(count, width, f"the {what}").astype(np.int64)
+    dom = r.scalar(width, f"the {what} value")
+    if width == LABEL_BITS and dom == 3:
+        raise FormatError("body: a vertex label is 3 (only 0, 1, 2 exist)")
+    out = np.full(count, dom, dtype=np.int64)
+    if mode == MODE_CONSTANT:
+        return out
+    if mode == MODE_FLAGS:
+        exc = np.flatnonzero(r.flags(count, f"the {what} exception flags"))
+    else:
+        n_exc = r.eg(0, f"the {what} exception count")
+        if n_exc > count:
+            raise FormatError(f"body: {n_exc} {what} exceptions among {count} items")
+        kg = r.scalar(4, f"the {what} gap order")
+        exc = np.cumsum(r.eg_block(n_exc, kg, f"the {what} gaps") + 1) - 1
+        if exc.size and int(exc[-1]) >= count:
+            raise FormatError(f"body: a {what} exception lies beyond the last item")
+    if exc_width == 1:
+        lo, hi = (x for x in (0, 1, 2) if x != dom)
+        out[exc] = np.where(r.flags(exc.size, f"the {what} exceptions") == 1, hi, lo)
+    else:
+        vals = r.fixed(exc.size, exc_width, f"the {what} exceptions").astype(np.int64)
+        if np.any(vals == dom):
+            raise FormatError(f"body: a {what} exception equals the dominant value")
+        out[exc] = vals
+    return out
+
+
+def decode_body(data: bytes, resolution_mm: int, n_robots: int | None, limits: Limits) -> Wireframe:
+    """Parse a body written by :func:`encode_body`.
+
+    Parameters
+    ----------
+    data : the body bytes (already bounded by ``limits.max_bytes``).
+    resolution_mm : grid step in millimetres.
+    n_robots : ``None`` for a robot map, else the fused map's robot count.
+    limits : vertex, edge and coordinate bounds, checked before anything proportional to them
+        is allocated.
+
+    Raises
+    ------
+    TruncatedError, ExtraDataError, LimitError, FormatError
+        As their names say; nothing else.
+    """
+    r = BitReader(data, "body")
+    n = r.eg(0, "the vertex count")
+    if n > limits.max_vertices:
+        raise LimitError(f"body declares {n} vertices, the limit is {limits.max_vertices}")
+    if n == 0:
+        _finish(r)
+        return Wireframe.empty()
+    if n > r.remaining:  # every vertex costs at least its class bit
+        raise TruncatedError(f"body declares {n} vertices but has only {r.remaining} bits left")
+
+    # -- vertices
+    k1 = r.scalar(4, "the move code orders")
+    k2 = r.scalar(4, "the move code orders")
+    k3 = r.scalar(4, "the move code orders")
+    turn = r.flags(n, "the turn bits").astype(bool)
+    single = turn.copy()
+    single[~turn] = r.flags(int(n - turn.sum()), "the straight bits").astype(bool)
+    general = ~single
+    n_single = int(single.sum())
+    n_general = n - n_single
+    toggle = turn.copy()
+    toggle[general] = r.flags(n_general, "the general turn bits").astype(bool)
+    negative = r.flags(n, "the sign bits").astype(bool)
+    minor_negative = r.flags(n_general, "the minor sign bits").astype(bool)
+    moves = r.eg_block(n + n_general, _orders((n_single, k1), (n_general, k2), (n_general, k3)), "the moves")
+    major = np.empty(n, dtype=np.int64)
+    major[single] = moves[:n_single] + 1
+    major[general] = moves[n_single:n]
+    minor = np.zeros(n, dtype=np.int64)
+    minor[general] = np.where(minor_negative, -moves[n:], moves[n:])
+    major = np.where(negative, -major, major)
+    axis = (1 + np.cumsum(toggle, dtype=np.int64)) % 2  # the axis before the first move is y
+    d = np.empty((n, 2), dtype=np.int64)
+    idx = np.arange(n)
+    d[idx, axis] = major
+    d[idx, 1 - axis] = minor
+    if float(np.abs(d).sum(dtype=np.float64)) > 2.0**60:
+        raise FormatError("body: vertex moves add up beyond the grid")
+    q = np.cumsum(d, axis=0)
+    far = float(np.abs(q).max())
+    if far > MAX_GRID or far * resolution_mm / 1e3 > limits.max_coordinate:
+        raise LimitError(
+            f"body: a vertex lies {far * resolution_mm / 1e3:.6g} m from the origin, "
+            f"the limit is {limits.max_coordinate:g} m"
+        )
+    points = q.astype(np.float64) * resolution_mm / 1e3
+
+    # -- labels
+    labels = _read_values(r, n, LABEL_BITS, 1, "label")
+    if np.any(labels == 3):
+        raise FormatError("body: a vertex label is 3 (only 0, 1, 2 exist)")
+
+    # -- edges
+    next_bits = r.flags(n - 1, "the chain bits")
+    starts, ends = chains(next_bits, n)
+    ring = ends - starts >= 2
+    close_bits = r.flags(int(ring.sum()), "the ring bits").astype(bool)
+    rev_bits = r.flags(n - 1, "the reverse bits") if r.scalar(1, "the reverse flag") else np.zeros(0, np.uint8)
+    n_rest = r.eg(0, "the explicit edge count")
+    nk = np.flatnonzero(next_bits)
+    rk = np.flatnonzero(rev_bits)
+    m = int(nk.size + rk.size + int(close_bits.sum()) + n_rest)
+    if m > limits.max_edges:
+        raise LimitError(f"body declares {m} edges, the limit is {limits.max_edges}")
+    if 2 * n_rest > r.remaining:  # every explicit edge costs at least two bits
+        raise TruncatedError(f"body declares {n_rest} explicit edges but has only {r.remaining} bits left")
+    pairs = np.zeros((0, 2), dtype=np.int64)
+    if n_rest:
+        ke = r.scalar(4, "the explicit edge orders")
+        kd = r.scalar(4, "the explicit edge orders")
+        vals = r.eg_block(2 * n_rest, _orders((n_rest, ke), (n_rest, kd)), "the explicit edges")
+        if int(vals[:n_rest].max()) >= n:
+            raise FormatError("body: an explicit edge names a vertex that does not exist")
+        first = np.cumsum(vals[:n_rest])
+        second = first + unzigzag(vals[n_rest:])
+        if int(first[-1]) >= n or int(second.min()) < 0 or int(second.max()) >= n or np.any(first == second):
+            raise FormatError("body: an explicit edge is a self-loop or names a vertex that does not exist")
+        pairs = np.stack((first, second), axis=1)
+    edges = np.concatenate(
+        (
+            np.stack((nk, nk + 1), axis=1),
+            np.stack((rk + 1, rk), axis=1),
+            np.stack((ends[ring][close_bits], starts[ring][close_bits]), axis=1),
+            pairs,
+        )
+    )
+
+    # -- likelihood
+    lq = np.zeros(0, dtype=np.int64)
+    if m:
+        lq = _read_values(r, m, LIKELIHOOD_BITS, LIKELIHOOD_BITS, "likelihood")
+        if np.any(lq > LIKELIHOOD_LEVELS):
+            raise FormatError("body: a likelihood code is above 15")
+
+    # -- sources
+    sources = np.zeros(m, dtype=np.uint64)
+    if n_robots is not None and m:
+        n_masks = r.eg(0, "the contributor mask count")
+        if not 1 <= n_masks <= m:
+            raise FormatError(f"body: {n_masks} distinct contributor masks for {m} edges")
+        masks = r.fixed(n_masks, n_robots, "the contributor masks")
+        if np.any(masks[1:] <= masks[:-1]):
+            raise FormatError("body: contributor masks are not strictly increasing")
+        index = r.fixed(m, ceil_log2(n_masks), "the contributor indices").astype(np.int64)
+        if np.any(index >= n_masks):
+            raise FormatError("body: a contributor index is out of range")
+        sources = masks[index]
+
+    _finish(r)
+    try:
+        return Wireframe(
+            points,  # type: ignore[arg-type]  # validated and cast in __post_init__
+            labels.astype(np.uint8),
+            edges.astype(np.int32),
+            lq.astype(np.float64) / LIKELIHOOD_LEVELS,
+            sources,
+        )
+    except ValueError as exc:  # pragma: no cover - every case above is checked first
+        raise FormatError(f"body: {exc}") from None
+
+
+def _finish(r: BitReader) -> None:
+    """The stream must end within the last byte, and the padding must be zero."""
+    if r.remaining >= 8:
+        raise ExtraDataError(f"body: {r.remaining // 8} bytes follow the end of the map")
+    if np.any(r.bits[r.pos :]):
+        raise ExtraDataError("body: non-zero padding bits after the end of the map")
