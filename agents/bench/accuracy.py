@@ -1,0 +1,177 @@
+"""``wiremap bench accuracy``: map quality over seeds, the filter against a single-hypothesis baseline.
+
+For each seed a robot drives its coverage route through the world; the scans are simulated once
+and fed to the particle filter (and, with ``--baseline``, to a single-hypothesis mapper: one
+particle, no mutation, on the identical scans). The best particle's map is scored against the
+truth (:func:`mapping.metrics.evaluate` at the merge threshold as resolution, as the paper
+does). Prints an aligned table and, with ``--json``, one JSON object on the last line with the
+medians over seeds::
+
+    {"world", "sensor", "seeds", "particles", "cell_error", "wall_precision", "wall_recall",
+     "mean_dist_m", "p95_dist_m", "particle_bytes", "steps", "updates_per_s"[, "baseline": {...}]}
+
+Each seed's map is written as a PNG (map over truth) to ``--out``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from agents.errors import UserError
+
+HELP = "map quality over seeds, filter vs single-hypothesis baseline"
+
+METRICS = ("cell_error", "wall_precision", "wall_recall", "mean_dist_m", "p95_dist_m")
+KEYS = (*METRICS, "particle_bytes", "steps", "updates_per_s")
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--world", required=True, metavar="NAME|FILE", help="built-in world or world file")
+    parser.add_argument("--seeds", type=int, default=3, metavar="K", help="number of seeds (default 3)")
+    parser.add_argument("--first-seed", type=int, default=0, metavar="S", help="seeds S..S+K-1 (default 0)")
+    parser.add_argument("--sensor", choices=("corners", "lidar"), default="corners")
+    parser.add_argument("--particles", type=int, default=None,
+                        help="particles (default 10; 6 for worlds over 100 m, as the paper)")
+    parser.add_argument("--merge-threshold", type=float, default=None, metavar="M",
+                        help="merge threshold and metric resolution (default 0.2, 0.4 for worlds over 100 m)")
+    parser.add_argument("--steps", type=int, default=None, metavar="N", help="stop each run after N scans")
+    parser.add_argument("--baseline", action="store_true", help="also run the single-hypothesis baseline")
+    parser.add_argument("--json", action="store_true", help="print the JSON summary as the last line")
+    parser.add_argument("--out", default="out/bench-accuracy", metavar="DIR", help="where the PNGs go")
+    parser.add_argument("--quiet", action="store_true", help="no progress on stderr")
+
+
+def run_one(
+    world: Any, inputs: list[Any], particles: int, thr: float, max_range: float, seed: int
+) -> tuple[dict[str, Any], Any, list[tuple[float, float]]]:
+    """Run one filter over ``inputs``; returns (result row, best map, trajectory xy)."""
+    from agents.mapping_run import filter_config_for, run_filter, seeds_for
+    from mapping.filter import WireframeFilter
+    from mapping.metrics import evaluate
+
+    cfg = filter_config_for(particles, thr, max_range)
+    filt = WireframeFilter(cfg, seeds_for(seed)["filter"], initial_pose=inputs[0].true_pose)
+    busy = 0.0
+    traj: list[tuple[float, float]] = []
+    for st in run_filter(inputs, filt):
+        busy += st.step_s
+        traj.append((st.pose.x, st.pose.y))
+    best = filt.best
+    metrics = evaluate(world.truth, best, thr) if best.n_edges else dict.fromkeys(METRICS, math.nan)
+    row = {
+        **{k: float(v) for k, v in metrics.items()},
+        "particle_bytes": filt.memory_bytes(),
+        "steps": len(inputs),
+        "updates_per_s": len(inputs) / busy if busy > 0 else math.nan,
+    }
+    return row, best, traj
+
+
+def _median(rows: list[dict[str, Any]]) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for k in KEYS:
+        vals = np.array([r[k] for r in rows], dtype=np.float64)
+        vals = vals[np.isfinite(vals)]
+        m = float(np.median(vals)) if len(vals) else math.nan
+        out[k] = round(m) if k in ("particle_bytes", "steps") and math.isfinite(m) else _round(m)
+    return out
+
+
+def _round(v: float) -> float | None:
+    return None if not math.isfinite(v) else round(v, 6)
+
+
+def format_table(rows: list[tuple[str, str, dict[str, Any]]]) -> str:
+    """An aligned text table: one line per (seed, method) row."""
+    head = ["seed", "method", "cell_err", "precision", "recall", "mean_d_m", "p95_d_m", "bytes", "steps", "ups"]
+    lines = [head]
+    for seed, method, r in rows:
+        lines.append([
+            seed,
+            method,
+            _fmt(r["cell_error"], "{:.2%}"),
+            _fmt(r["wall_precision"], "{:.3f}"),
+            _fmt(r["wall_recall"], "{:.3f}"),
+            _fmt(r["mean_dist_m"], "{:.3f}"),
+            _fmt(r["p95_dist_m"], "{:.3f}"),
+            str(r["particle_bytes"]),
+            str(r["steps"]),
+            _fmt(r["updates_per_s"], "{:.1f}"),
+        ])
+    widths = [max(len(row[i]) for row in lines) for i in range(len(head))]
+    return "\n".join(
+        "  ".join(c.ljust(w) if i < 2 else c.rjust(w) for i, (c, w) in enumerate(zip(row, widths))) for row in lines
+    )
+
+
+def _fmt(v: Any, f: str) -> str:
+    if v is None or (isinstance(v, float) and not math.isfinite(v)):
+        return "-"
+    return f.format(v)
+
+
+def run(args: argparse.Namespace) -> int:
+    from agents import mapping_run as mr
+    from agents.io import write_atomic
+    from agents.render import map_png
+    from agents.sim.world import load_world
+
+    if args.seeds < 1:
+        raise UserError(f"--seeds must be >= 1, got {args.seeds}")
+    world = load_world(args.world)
+    large = max(world.size) > 100.0
+    particles = args.particles if args.particles is not None else (6 if large else 10)
+    if particles < 1:
+        raise UserError(f"--particles must be >= 1, got {particles}")
+    thr = args.merge_threshold if args.merge_threshold is not None else mr.default_merge_threshold(world)
+    options = mr.SimOptions(sensor=args.sensor, steps=args.steps)
+    out = Path(args.out)
+    table: list[tuple[str, str, dict[str, Any]]] = []
+    filt_rows: list[dict[str, Any]] = []
+    base_rows: list[dict[str, Any]] = []
+    for seed in range(args.first_seed, args.first_seed + args.seeds):
+        t0 = time.perf_counter()
+        try:
+            inputs = list(mr.simulate(world, options, seed))
+        except ValueError as exc:
+            raise UserError(f"{args.world}: {exc}") from None
+        runs = [("filter", particles)] + ([("baseline", 1)] if args.baseline else [])
+        for method, p in runs:
+            row, best, traj = run_one(world, inputs, p, thr, options.max_range, seed)
+            png = out / f"{world.name}-{args.sensor}-seed{seed}-{method}.png"
+            write_atomic(png, map_png(best, truth=world.truth, trajectory=np.asarray(traj)))
+            table.append((str(seed), method, row))
+            (filt_rows if method == "filter" else base_rows).append(row)
+            if not args.quiet:
+                sys.stderr.write(
+                    f"seed {seed} {method}: cell error {row['cell_error']:.2%}, "
+                    f"precision {row['wall_precision']:.3f}, recall {row['wall_recall']:.3f}, "
+                    f"{row['particle_bytes']} B, {row['updates_per_s']:.1f} ups "
+                    f"({time.perf_counter() - t0:.0f} s)\n"
+                )
+    med = _median(filt_rows)
+    table.append(("median", "filter", med))
+    if base_rows:
+        table.append(("median", "baseline", _median(base_rows)))
+    print(format_table(table))
+    print(f"PNGs in {out}/")
+    summary: dict[str, Any] = {
+        "world": world.name,
+        "sensor": args.sensor,
+        "seeds": args.seeds,
+        "particles": particles,
+        **med,
+    }
+    if base_rows:
+        summary["baseline"] = {"particles": 1, **_median(base_rows)}
+    if args.json:
+        print(json.dumps(summary))
+    return 0

@@ -1,0 +1,125 @@
+"""``wiremap bench speed``: scan updates per second, time per step and peak memory.
+
+Runs the particle filter (10 particles by default) on ``paper-small`` and on ``museum``, each in
+its own child process pinned to one core (``os.sched_setaffinity``) with single-threaded BLAS,
+so that peak RSS is per world and the rate is a one-core rate. The scans are simulated before
+the clock starts; only :meth:`mapping.filter.WireframeFilter.step` is timed. Prints a table and,
+with ``--json``, one JSON object on the last line::
+
+    {"paper_small": {"updates_per_s", "step_ms_p50", "step_ms_p95", "peak_rss_mb"},
+     "museum": {...}, "museum_to_small_step_ratio"}
+
+``museum_to_small_step_ratio`` is museum's median step time over paper-small's: the time per
+step should not grow with the size of the map.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import subprocess
+import sys
+import time
+from typing import Any
+
+import numpy as np
+
+from agents.errors import UserError
+
+HELP = "scan updates per second, step time, peak RSS"
+
+WORLDS = (("paper_small", "paper-small"), ("museum", "museum"))
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--particles", type=int, default=10, help="particles (default 10)")
+    parser.add_argument("--steps", type=int, default=400, metavar="N", help="timed scans per world (default 400)")
+    parser.add_argument("--warmup", type=int, default=0, metavar="W",
+                        help="scans run before the timed ones, to grow the map first (default 0)")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--json", action="store_true", help="print the JSON summary as the last line")
+    parser.add_argument("--child", metavar="WORLD", help=argparse.SUPPRESS)
+
+
+def measure(world_spec: str, particles: int, steps: int, warmup: int, seed: int) -> dict[str, Any]:
+    """Time the filter on one world in this process."""
+    from agents import mapping_run as mr
+    from agents.sim.world import load_world
+    from mapping.filter import WireframeFilter
+
+    world = load_world(world_spec)
+    thr = mr.default_merge_threshold(world)
+    options = mr.SimOptions(steps=steps + warmup)
+    inputs = list(mr.simulate(world, options, seed))
+    cfg = mr.filter_config_for(particles, thr, options.max_range)
+    filt = WireframeFilter(cfg, mr.seeds_for(seed)["filter"], initial_pose=inputs[0].true_pose)
+    times = []
+    cpu0 = 0.0
+    for k, inp in enumerate(inputs):
+        if k == warmup:
+            cpu0 = time.process_time()
+        t0 = time.perf_counter()
+        filt.step(inp.odometry, inp.scan)
+        if k >= warmup:
+            times.append(time.perf_counter() - t0)
+    cpu = time.process_time() - cpu0
+    t = np.asarray(times)
+    rss_kb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return {
+        "updates_per_s": round(len(t) / float(t.sum()), 2),
+        "step_ms_p50": round(float(np.median(t)) * 1e3, 3),
+        "step_ms_p95": round(float(np.percentile(t, 95)) * 1e3, 3),
+        "peak_rss_mb": round(rss_kb / 1024.0, 1),
+        "cpu_updates_per_s": round(len(t) / cpu, 2) if cpu > 0 else None,
+        "steps": len(t),
+        "map_vertices": filt.best.n_vertices,
+        "particle_bytes": filt.memory_bytes(),
+    }
+
+
+def _child(args: argparse.Namespace) -> int:
+    try:
+        os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})
+    except (AttributeError, OSError):
+        pass
+    print(json.dumps(measure(args.child, args.particles, args.steps, args.warmup, args.seed)))
+    return 0
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.child:
+        return _child(args)
+    if args.particles < 1 or args.steps < 1 or args.warmup < 0:
+        raise UserError("--particles and --steps must be >= 1 and --warmup >= 0")
+    env = dict(os.environ)
+    for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+        env[var] = "1"
+    results: dict[str, Any] = {}
+    for key, spec in WORLDS:
+        cmd = [sys.executable, "-m", "agents", "bench", "speed", "--child", spec, "--particles", str(args.particles),
+               "--steps", str(args.steps), "--warmup", str(args.warmup), "--seed", str(args.seed)]
+        proc = subprocess.run(cmd, env=env, capture_output=True, text=True, check=False)
+        if proc.returncode != 0:
+            raise UserError(f"speed run on {spec} failed: {proc.stderr.strip().splitlines()[-1:]}")
+        results[key] = json.loads(proc.stdout.strip().splitlines()[-1])
+    ratio = results["museum"]["step_ms_p50"] / results["paper_small"]["step_ms_p50"]
+    head = ["world", "ups", "p50_ms", "p95_ms", "rss_mb", "cpu_ups", "steps", "vertices"]
+    rows = [head] + [
+        [spec, f"{r['updates_per_s']:.1f}", f"{r['step_ms_p50']:.2f}", f"{r['step_ms_p95']:.2f}",
+         f"{r['peak_rss_mb']:.1f}", f"{r['cpu_updates_per_s']}", str(r["steps"]), str(r["map_vertices"])]
+        for (key, spec), r in ((w, results[w[0]]) for w in WORLDS)
+    ]
+    widths = [max(len(r[i]) for r in rows) for i in range(len(head))]
+    for r in rows:
+        print("  ".join(c.ljust(w) if i == 0 else c.rjust(w) for i, (c, w) in enumerate(zip(r, widths))))
+    print(f"museum / paper-small median step time: {ratio:.2f}")
+    summary = {
+        "paper_small": {k: results["paper_small"][k] for k in ("updates_per_s", "step_ms_p50", "step_ms_p95", "peak_rss_mb")},
+        "museum": {k: results["museum"][k] for k in ("updates_per_s", "step_ms_p50", "step_ms_p95", "peak_rss_mb")},
+        "museum_to_small_step_ratio": round(ratio, 3),
+    }
+    if args.json:
+        print(json.dumps(summary))
+    return 0

@@ -1,0 +1,368 @@
+"""Drive one robot over a world (or replay a log) and feed its scans to the particle filter.
+
+This is the loop behind ``wiremap map``, ``wiremap bench accuracy/speed`` and the fleet's robot
+agent (:func:`robot_steps`). It is split in two so that the same scans can be fed to several
+filters (the accuracy benchmark runs the filter and the single-hypothesis baseline on identical
+scans):
+
+* **scan sources** yield :class:`ScanInput` (time, odometry increment, robot-frame scan and the
+  true pose when there is one): :func:`simulate` (a world, its coverage route, the motion model
+  and the corner sensor or a simulated lidar plus split-and-merge) and :func:`carmen_inputs`
+  (a CARMEN log's ``FLASER`` lines through split-and-merge);
+* :func:`run_filter` feeds them to a :class:`~mapping.filter.WireframeFilter` and yields a
+  :class:`RunStep` per scan: step index, time, true pose, estimated pose, scan, the filter.
+
+Randomness: one integer seed is split (``numpy.random.SeedSequence.spawn``) into independent
+generators for the route, the odometry noise, the sensor and the filter, so the scans of a seed
+do not depend on the filter's settings.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Iterable, Iterator, Sequence
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from mapping.filter import FilterConfig, StepInfo, WireframeFilter
+from mapping.se2 import Pose
+from mapping.wireframe import Wireframe
+
+__all__ = [
+    "SENSORS",
+    "RunStep",
+    "ScanInput",
+    "SimOptions",
+    "carmen_inputs",
+    "default_merge_threshold",
+    "filter_config_for",
+    "robot_steps",
+    "run_filter",
+    "scan_fov",
+    "simulate",
+]
+
+SENSORS = ("corners", "lidar")
+
+
+@dataclass(frozen=True)
+class ScanInput:
+    """One scan to feed the filter.
+
+    Attributes
+    ----------
+    t : float
+        Time of the scan (simulation seconds, or the log's timestamp).
+    odometry : Pose
+        Motion since the previous scan in the previous robot frame (identity for the first).
+    scan : Wireframe
+        The corner scan in the robot frame.
+    true_pose : Pose or None
+        The true pose in the world frame, when known (simulation).
+    """
+
+    t: float
+    odometry: Pose
+    scan: Wireframe
+    true_pose: Pose | None = None
+
+
+@dataclass(frozen=True)
+class SimOptions:
+    """How to simulate a robot.
+
+    Attributes
+    ----------
+    sensor : str
+        ``"corners"`` (the simulated corner sensor, paper Sec. IV-A) or ``"lidar"`` (ray-cast
+        ranges turned into corners by split-and-merge, :mod:`mapping.extract`).
+    max_range : float
+        Sensing range (metres) of either sensor; the filter predicts scans with the same range.
+    speed, dt : float
+        Driving speed (m/s) and scan period (s): one scan every ``speed * dt`` metres (0.25 m).
+    steps : int, optional
+        Stop after this many scans.
+    duration : float, optional
+        Stop after this many simulated seconds.
+    corner_sigma, corner_p_fp, corner_p_fn : float
+        Corner sensor noise (see :class:`agents.sim.sensor.CornerSensorConfig`).
+    lidar_beams, lidar_sigma : int, float
+        The simulated lidar: a full turn of ``lidar_beams`` beams with ``lidar_sigma`` range
+        noise (a 360-degree scanner, so both sensors see the same field of view).
+    """
+
+    sensor: str = "corners"
+    max_range: float = 8.0
+    speed: float = 0.5
+    dt: float = 0.5
+    steps: int | None = None
+    duration: float | None = None
+    corner_sigma: float = 0.02
+    corner_p_fp: float = 0.02
+    corner_p_fn: float = 0.02
+    lidar_beams: int = 720
+    lidar_sigma: float = 0.01
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if self.sensor not in SENSORS:
+            raise ValueError(f"sensor must be one of {', '.join(SENSORS)}, got {self.sensor!r}")
+        if not (math.isfinite(self.max_range) and self.max_range > 0):
+            raise ValueError(f"max_range must be a positive number of metres, got {self.max_range}")
+        if self.steps is not None and self.steps < 1:
+            raise ValueError(f"steps must be >= 1, got {self.steps}")
+        if self.duration is not None and not self.duration > 0:
+            raise ValueError(f"duration must be > 0, got {self.duration}")
+
+
+@dataclass(frozen=True)
+class RunStep:
+    """The state after one filter step.
+
+    Attributes
+    ----------
+    index : int
+        0-based index of the scan.
+    total : int or None
+        Number of scans in the run when known.
+    t : float
+        Time of the scan.
+    true_pose : Pose or None
+        True pose (world frame) when known.
+    pose : Pose
+        The filter's pose estimate (map frame).
+    scan : Wireframe
+        The scan (robot frame).
+    filter : WireframeFilter
+        The filter, after the step.
+    info : StepInfo
+        What the step did.
+    step_s : float
+        Wall-clock seconds of :meth:`WireframeFilter.step` alone.
+    """
+
+    index: int
+    total: int | None
+    t: float
+    true_pose: Pose | None
+    pose: Pose
+    scan: Wireframe
+    filter: WireframeFilter
+    info: StepInfo
+    step_s: float
+
+
+def default_merge_threshold(world: Any) -> float:
+    """The paper's merge thresholds: 0.4 m for a large world (a side over 100 m), else 0.2 m."""
+    w, h = world.size
+    return 0.4 if max(w, h) > 100.0 else 0.2
+
+
+def filter_config_for(
+    particles: int, merge_threshold: float, max_range: float, fov: float = 2.0 * math.pi, **overrides: Any
+) -> FilterConfig:
+    """The filter configuration used by the commands; ``particles == 1`` gives the baseline
+    (single hypothesis, no mutation)."""
+    cfg = FilterConfig(
+        particles=particles,
+        merge_threshold=merge_threshold,
+        max_range=max_range,
+        fov=fov,
+        mutate=particles > 1,
+    )
+    return replace(cfg, **overrides) if overrides else cfg
+
+
+def seeds_for(seed: int) -> dict[str, np.random.Generator]:
+    """Independent generators for the route, the odometry, the sensor and the filter."""
+    names = ("route", "drive", "sensor", "filter")
+    kids = np.random.SeedSequence(int(seed)).spawn(len(names))
+    return {n: np.random.default_rng(k) for n, k in zip(names, kids)}
+
+
+def simulate(
+    world: Any,
+    options: SimOptions,
+    seed: int,
+    *,
+    route: NDArray[np.float64] | None = None,
+    start: tuple[float, float] | None = None,
+) -> Iterator[ScanInput]:
+    """Scans of a robot driving a coverage route through ``world``.
+
+    Parameters
+    ----------
+    world : agents.sim.world.World
+    options : SimOptions
+    seed : int
+    route : (k, 2) array, optional
+        Drive this route instead of planning one (:func:`agents.sim.route.plan_route`).
+    start : (x, y), optional
+        Start of the planned route.
+
+    Yields
+    ------
+    ScanInput
+    """
+    from agents.sim.motion import drive
+    from agents.sim.route import plan_route
+
+    rngs = seeds_for(seed)
+    if route is None:
+        route = plan_route(world, rngs["route"], start=start)
+    steps = drive(route, speed=options.speed, dt=options.dt, rng=rngs["drive"])
+    if options.steps is not None:
+        steps = steps[: options.steps]
+    if options.duration is not None:
+        steps = [s for s in steps if s.t <= options.duration + 1e-9]
+    scan_fn = _scanner(world, options)
+    srng = rngs["sensor"]
+    for s in steps:
+        yield ScanInput(s.t, s.odometry, scan_fn(s.true_pose, srng), s.true_pose)
+
+
+def count_sim_steps(world: Any, options: SimOptions, seed: int, route: NDArray[np.float64] | None = None) -> int:
+    """How many scans :func:`simulate` yields (without simulating the sensor)."""
+    from agents.sim.motion import drive
+    from agents.sim.route import plan_route
+
+    rngs = seeds_for(seed)
+    if route is None:
+        route = plan_route(world, rngs["route"])
+    steps = drive(route, speed=options.speed, dt=options.dt, rng=rngs["drive"])
+    n = len(steps)
+    if options.steps is not None:
+        n = min(n, options.steps)
+    if options.duration is not None:
+        n = sum(1 for s in steps[:n] if s.t <= options.duration + 1e-9)
+    return n
+
+
+def _scanner(world: Any, options: SimOptions) -> Any:
+    if options.sensor == "corners":
+        from agents.sim.sensor import CornerSensor, CornerSensorConfig
+
+        sensor = CornerSensor(
+            world.truth,
+            CornerSensorConfig(
+                max_range=options.max_range,
+                sigma=options.corner_sigma,
+                p_fp=options.corner_p_fp,
+                p_fn=options.corner_p_fn,
+            ),
+        )
+        return sensor.scan
+    from agents.sim.lidar import LidarConfig, raycast
+    from mapping.extract import extract_corners
+
+    lcfg = LidarConfig(beams=options.lidar_beams, fov=2.0 * math.pi, max_range=options.max_range, sigma=options.lidar_sigma)
+    segments = world.truth.segments()
+    angles = lcfg.angles()
+
+    def lidar_scan(pose: Pose, rng: np.random.Generator) -> Wireframe:
+        ranges = raycast(segments, pose, lcfg, rng)
+        return extract_corners(ranges, angles, lcfg.max_range)
+
+    return lidar_scan
+
+
+def carmen_inputs(
+    log: str | Sequence[Any], max_range: float | None = None, steps: int | None = None
+) -> Iterator[ScanInput]:
+    """Scans of a CARMEN log: each laser line's ranges through split-and-merge
+    (:func:`mapping.extract.extract_corners`), odometry from consecutive odometry poses.
+
+    Parameters
+    ----------
+    log : str or sequence of agents.carmen.LaserScan
+        The log's path, or its scans already read by :func:`agents.carmen.read_carmen`.
+    max_range : float, optional
+        Cap on the scanner's range (metres): longer returns count as no return. Real scanners
+        report up to 50-80 m; far, grazing returns make poor corners.
+    steps : int, optional
+        Stop after this many scans.
+    """
+    from mapping.extract import extract_corners
+
+    if isinstance(log, str):
+        from agents.carmen import read_carmen
+
+        scans: Sequence[Any] = read_carmen(log)
+    else:
+        scans = log
+    prev: Pose | None = None
+    for k, ls in enumerate(scans):
+        if steps is not None and k >= steps:
+            return
+        rmax = float(ls.max_range) if max_range is None else min(float(ls.max_range), max_range)
+        ranges = np.asarray(ls.ranges, dtype=np.float64)
+        ranges = np.where(ranges >= rmax, np.inf, ranges)
+        scan = extract_corners(ranges, np.asarray(ls.angles, dtype=np.float64), rmax)
+        odo = Pose.identity() if prev is None else prev.between(ls.odom)
+        prev = ls.odom
+        yield ScanInput(float(ls.t), odo, scan, None)
+
+
+def scan_fov(angles: Any) -> float:
+    """Field of view (radians) covered by evenly spaced beam bearings."""
+    a = np.asarray(angles, dtype=np.float64).reshape(-1)
+    if len(a) < 2:
+        return 2.0 * math.pi
+    step = (a[-1] - a[0]) / (len(a) - 1)
+    return float(min(2.0 * math.pi, a[-1] - a[0] + step))
+
+
+def run_filter(
+    inputs: Iterable[ScanInput], filt: WireframeFilter, total: int | None = None
+) -> Iterator[RunStep]:
+    """Feed ``inputs`` to ``filt`` one by one and yield the state after each step."""
+    for k, inp in enumerate(inputs):
+        t0 = time.perf_counter()
+        info = filt.step(inp.odometry, inp.scan)
+        dt = time.perf_counter() - t0
+        yield RunStep(k, total, inp.t, inp.true_pose, filt.pose, inp.scan, filt, info, dt)
+
+
+def robot_steps(opts: Any) -> Iterator[RunStep]:
+    """The fleet robot's loop (:class:`agents.robot.RobotAgent`): simulate ``opts.world`` from
+    ``opts.start`` along ``opts.route`` (planned from the start when None) and run a filter of
+    ``opts.particles`` particles whose map frame is the robot's odometry frame (its first pose is
+    the identity). ``opts.resolution`` is the merge threshold. ``opts.extra`` may set
+    ``sensor`` and ``max_range``. ``RunStep.true_pose`` is in the world frame."""
+    from agents.sim.world import load_world
+
+    world = load_world(opts.world)
+    extra = dict(getattr(opts, "extra", {}) or {})
+    options = SimOptions(
+        sensor=str(extra.get("sensor", "corners")),
+        max_range=float(extra.get("max_range", 8.0)),
+        duration=getattr(opts, "duration", None),
+    )
+    start = getattr(opts, "start", None)
+    route = getattr(opts, "route", None)
+    start_xy = None if start is None else (start.x, start.y)
+    inputs = simulate(world, options, int(opts.seed), route=route, start=start_xy)
+    cfg = filter_config_for(int(opts.particles), float(opts.resolution), options.max_range)
+    filt = WireframeFilter(cfg, seeds_for(int(opts.seed))["filter"], initial_pose=Pose.identity())
+    return run_filter(inputs, filt)
+
+
+def sim_filter(
+    world: Any, options: SimOptions, seed: int, particles: int, merge_threshold: float
+) -> tuple[WireframeFilter, Iterator[ScanInput]]:
+    """A filter whose map frame is the world frame (it starts at the first true pose) and the
+    scans to feed it."""
+    inputs = simulate(world, options, seed)
+    first = next(inputs)
+    cfg = filter_config_for(particles, merge_threshold, options.max_range)
+    filt = WireframeFilter(cfg, seeds_for(seed)["filter"], initial_pose=first.true_pose)
+
+    def chain() -> Iterator[ScanInput]:
+        yield first
+        yield from inputs
+
+    return filt, chain()

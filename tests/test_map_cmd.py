@@ -1,0 +1,149 @@
+"""``wiremap map`` end to end, the mapping loop, and the accuracy/speed benchmarks (short runs)."""
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from agents.cli import main
+from mapping import Wireframe
+
+WORLDS = Path(__file__).parent / "worlds"
+
+
+def read_outputs(out: Path):
+    wf = Wireframe.from_geojson(json.loads((out / "map.geojson").read_text()))
+    rows = [line.split("\t") for line in (out / "trajectory.tsv").read_text().splitlines()]
+    report = json.loads((out / "report.json").read_text())
+    png = (out / "map.png").read_bytes()
+    return wf, rows, report, png
+
+
+def test_map_paper_small_short_route(tmp_path, capsys):
+    out = tmp_path / "run"
+    assert main(["map", "--world", "paper-small", "--steps", "25", "--seed", "1", "--out", str(out)]) == 0
+    wf, rows, report, png = read_outputs(out)
+    assert wf.n_edges > 0
+    assert len(rows) == 25 and all(len(r) == 4 for r in rows)
+    t = np.array([[float(v) for v in r] for r in rows])
+    assert np.all(np.diff(t[:, 0]) > 0)  # simulation time, one line per scan
+    assert t[0, 0] == 0.0
+    assert png[:8] == b"\x89PNG\r\n\x1a\n"
+    assert report["world"] == "paper-small" and report["steps"] == 25 and report["particles"] == 10
+    assert report["particle_bytes"] >= report["best_bytes"] == wf.paper_storage_bytes()
+    assert set(report["metrics"]) == {"cell_error", "wall_precision", "wall_recall", "mean_dist_m", "p95_dist_m"}
+    assert report["metrics"]["wall_precision"] > 0.9
+    assert report["pose_error_max_m"] < 0.15
+    captured = capsys.readouterr()
+    assert "wrote" in captured.out
+    assert "step 25/25" in captured.err  # the live progress line
+
+
+def test_map_world_file_with_lidar(tmp_path):
+    out = tmp_path / "lidar"
+    args = ["map", "--world", str(WORLDS / "angled.geojson"), "--sensor", "lidar", "--steps", "12",
+            "--particles", "4", "--out", str(out), "--quiet"]
+    assert main(args) == 0
+    wf, rows, report, _ = read_outputs(out)
+    assert report["sensor"] == "lidar" and report["world"] == "angled"
+    assert len(rows) == 12 and wf.n_edges > 0
+    assert report["metrics"]["wall_precision"] > 0.8
+
+
+def _write_log(path: Path, steps: int, clutter: bool) -> list:
+    """A CARMEN log of a lidar driving through the hall world, with people-like clutter."""
+    from agents.carmen import LaserScan, write_carmen
+    from agents.mapping_run import seeds_for
+    from agents.sim.lidar import LidarConfig, raycast
+    from agents.sim.motion import drive
+    from agents.sim.route import plan_route
+    from agents.sim.world import load_world
+
+    world = load_world(WORLDS / "hall.geojson")
+    rngs = seeds_for(5)
+    route = plan_route(world, rngs["route"])
+    cfg = LidarConfig(beams=181, fov=math.pi, max_range=10.0, sigma=0.01)
+    scans, odom = [], None
+    rng = np.random.default_rng(9)
+    for st in drive(route, rng=rngs["drive"])[:steps]:
+        odom = st.true_pose if odom is None else odom.compose(st.odometry)
+        r = raycast(world.truth.segments(), st.true_pose, cfg, rngs["sensor"])
+        if clutter:  # a few legs and glass dropouts: short returns and missing returns
+            for _ in range(3):
+                k = int(rng.integers(0, cfg.beams - 4))
+                r[k : k + 3] = np.minimum(r[k : k + 3], rng.uniform(0.5, 3.0))
+            r[rng.random(cfg.beams) < 0.03] = np.inf
+        scans.append(LaserScan(100.0 + st.t, r, cfg.angles(), cfg.max_range, odom))
+    write_carmen(path, scans, fov=cfg.fov, max_range=cfg.max_range)
+    return scans
+
+
+def test_map_carmen_log_with_clutter(tmp_path):
+    log = tmp_path / "hall.log"
+    scans = _write_log(log, 30, clutter=True)
+    out = tmp_path / "carmen"
+    assert main(["map", "--carmen", str(log), "--out", str(out), "--quiet"]) == 0
+    wf, rows, report, _ = read_outputs(out)
+    assert len(rows) == 30
+    # t is the log's timestamp of each scan
+    assert [float(r[0]) for r in rows] == pytest.approx([s.t for s in scans], abs=1e-6)
+    assert report["metrics"] is None and report["sensor"] == "lidar"
+    assert 0 < wf.n_vertices <= 5000  # the particle's vertex budget
+    assert all(np.isfinite(float(v)) for r in rows for v in r)
+
+
+@pytest.mark.parametrize(
+    "args, needle",
+    [
+        (["--world", "no-such-world"], "no-such-world"),
+        (["--carmen", "/nonexistent/log.txt"], "no such file"),
+        (["--world", "paper-small", "--particles", "0"], "particles"),
+        (["--world", "paper-small", "--steps", "0"], "steps"),
+    ],
+)
+def test_map_user_errors_exit_2(tmp_path, capsys, args, needle):
+    assert main(["map", *args, "--out", str(tmp_path / "x"), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert needle in err and "Traceback" not in err
+
+
+def test_bench_accuracy_json_and_table(tmp_path, capsys):
+    args = ["bench", "accuracy", "--world", str(WORLDS / "tiny.geojson"), "--seeds", "1", "--steps", "12",
+            "--baseline", "--json", "--quiet", "--out", str(tmp_path)]
+    assert main(args) == 0
+    lines = capsys.readouterr().out.strip().splitlines()
+    summary = json.loads(lines[-1])
+    keys = {"world", "sensor", "seeds", "particles", "cell_error", "wall_precision", "wall_recall",
+            "mean_dist_m", "p95_dist_m", "particle_bytes", "steps", "updates_per_s"}
+    assert keys <= set(summary)
+    assert summary["steps"] == 12 and summary["particles"] == 10 and summary["world"] == "tiny"
+    assert set(summary["baseline"]) >= keys - {"world", "sensor", "seeds"}
+    assert any(line.startswith("median") for line in lines)
+    assert len(list(tmp_path.glob("*.png"))) == 2
+
+
+def test_speed_measure_keys():
+    from agents.bench.speed import measure
+
+    r = measure(str(WORLDS / "tiny.geojson"), particles=3, steps=8, warmup=2, seed=0)
+    assert r["steps"] == 8
+    assert r["updates_per_s"] > 0 and r["step_ms_p95"] >= r["step_ms_p50"] > 0 and r["peak_rss_mb"] > 0
+
+
+def test_robot_steps_yield_the_robot_state():
+    from agents.mapping_run import robot_steps
+    from agents.robot import RobotOptions, start_pose_of
+
+    route = np.array([[1.0, 1.0], [4.0, 1.0], [4.0, 3.0]])
+    opts = RobotOptions(robot="r1", world=str(WORLDS / "tiny.geojson"), start=start_pose_of(route), route=route,
+                        particles=3, seed=4, duration=3.0)
+    steps = list(robot_steps(opts))
+    assert len(steps) == 7  # t = 0, 0.5, ..., 3.0
+    first, last = steps[0], steps[-1]
+    assert first.pose.almost_equal(first.pose.identity())  # the map frame is the odometry frame
+    assert first.true_pose.distance(opts.start) < 1e-9
+    # the estimate (odometry frame) composed with the start matches the truth
+    assert opts.start.compose(last.pose).distance(last.true_pose) < 0.1
+    assert last.filter.best.n_edges > 0 and last.scan.n_vertices > 0
