@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test lint typecheck bench fuzz clean venv
+.PHONY: demo test lint typecheck bench fuzz certs clean venv
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PY) -m venv $(VENV)
@@ -33,6 +33,11 @@ bench: $(STAMP)
 fuzz: $(STAMP)
 	$(BIN)/python -m pip install -q atheris || { echo "atheris does not install here"; exit 1; }
 	$(BIN)/python tests/fuzz_codec.py -atheris_runs=200000
+
+# Test certificates, passwords and credentials for a secure fleet (never committed; see
+# broker_config/secure/README.md).
+certs: $(STAMP)
+	$(BIN)/python -m agents.secure init broker_config/secure --fleet default --robots r1,r2,r3 --force
 
 clean:
 	rm -rf out .pytest_cache .mypy_cache .ruff_cache
