@@ -1,0 +1,327 @@
+"""``wiremap bench fleet --robots 1,2,4,8,16 [--duration S] [--rate HZ] [--world W] [--json]``:
+latency, bandwidth and fused-map quality by fleet size.
+
+For each fleet size N, a fresh fleet on loopback: a router process (``wiremap router``), the
+fusion service (``wiremap fuse --store``) and N robot processes, plus a bus observer inside this
+process (:class:`agents.bench.common.BusObserver`). Sizes up to ``--filter-upto`` (default 2) run
+real robot agents (``wiremap robot``: simulation + particle filter, ``robots_mode: "filter"``);
+larger sizes run replay robots (:mod:`agents.bench.replay_robot`, ``robots_mode: "replay"``)
+that publish maps recorded from real filter runs along the same routes ``wiremap run`` would give
+N robots (recorded once, cached under ``--cache``), because two cores cannot run 16 filters at
+10 Hz; what those sizes measure is transport and fusion.
+
+Measured, per size, over a window of ``--duration`` seconds that starts ``--warmup`` seconds
+after every robot's first map has reached the bus:
+
+* ``latency_ms_p50`` / ``latency_ms_p99``: from a robot's publish (``stamp_ns`` of its map) to
+  the fused publish that includes it, as the fusion service measures and stores them in
+  ``store/state.json`` (the same figures ``wiremap run`` puts in ``report.json``); the samples
+  recorded before the window are left out (first-use imports and start-up);
+* ``fusion_cpu_share``: the fusion process's CPU seconds over the window's wall seconds
+  (``router_cpu_share`` likewise for the router);
+* ``bytes_per_s_per_robot``: map payload bytes that reached the bus in the window, per second
+  and robot (poses separately: ``pose_bytes_per_s_per_robot``);
+* ``grid_bytes_per_s_per_robot``: what the same publishes would weigh as occupancy grids: each
+  map as a raw int8 grid of its bounding box at the map's resolution
+  (:func:`agents.bench.common.grid_bytes`), per publish; ``grid_ratio`` = grid / wireframe bytes;
+* ``fused_recall``, ``fused_precision``, ``fused_mean_dist_m``: :func:`mapping.metrics.evaluate`
+  of the final fused map against the world's truth at the map resolution. Replay robots loop
+  their recording during the window and jump to its last frame when the window ends (SIGUSR1),
+  so the evaluated fused map holds their complete recorded maps; filter robots' maps are
+  whatever they mapped by then (at ``--rate`` scans per second);
+* ``maps_published``: valid map payloads that reached the bus during the whole run (seen by the
+  observer), ``maps_sent``: what the robots report they put, ``maps_merged``: what the fusion
+  service took in (:func:`agents.bench.common.merge_counts`).
+
+Filter robots run with their visualisation stream off (``--viz-rate 0``), like replay robots.
+The fusion service runs without a Rerun recording unless ``--record``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import shutil
+import signal
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+from agents.bench.common import (
+    DEFAULT_CACHE,
+    DEFAULT_OVERLAP,
+    DEFAULT_PARTICLES,
+    BusObserver,
+    LatencyHarvest,
+    Procs,
+    cpu_seconds,
+    fleet_routes,
+    grid_bytes,
+    merge_counts,
+    percentile,
+    print_table,
+    read_state,
+    recordings_for,
+    rounded,
+    sleep_checked,
+    wait_for,
+)
+from agents.errors import UserError
+
+HELP = "fleet latency, bandwidth and fused-map quality by fleet size"
+FLEET = "bench"
+LATENCY_TARGET_MS = 50.0
+GRID_RATIO_TARGET = 100.0
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--robots", default="1,2,4,8,16", metavar="N,N,...", help="fleet sizes (default 1,2,4,8,16)")
+    parser.add_argument("--duration", type=float, default=20.0, metavar="S", help="measured seconds per size (default 20)")
+    parser.add_argument("--rate", type=float, default=10.0, metavar="HZ", help="maps (scans) per second per robot (default 10)")
+    parser.add_argument("--world", default="paper-small", metavar="NAME|FILE", help="world (default paper-small)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the routes and filters (default 0)")
+    parser.add_argument(
+        "--filter-upto", type=int, default=2, metavar="N", help="sizes up to N run real filter robots (default 2)"
+    )
+    parser.add_argument("--particles", type=int, default=DEFAULT_PARTICLES, help="particles per filter (default 5)")
+    parser.add_argument("--warmup", type=float, default=2.0, metavar="S", help="seconds before the window (default 2)")
+    parser.add_argument("--cache", default=str(DEFAULT_CACHE), metavar="DIR", help="recordings cache (default out/bench-cache)")
+    parser.add_argument("--out", metavar="DIR", help="keep logs and stores here (default: a temporary directory)")
+    parser.add_argument("--record", action="store_true", help="the fusion service also writes a Rerun recording")
+    parser.add_argument("--json", action="store_true", help="print the JSON summary as the last line")
+
+
+def parse_sizes(text: str) -> list[int]:
+    try:
+        sizes = [int(s) for s in str(text).split(",") if s.strip()]
+    except ValueError:
+        raise UserError(f"--robots must be a comma-separated list of fleet sizes, got {text!r}") from None
+    if not sizes or any(not 1 <= n <= 64 for n in sizes):
+        raise UserError(f"--robots: every size must be between 1 and 64, got {text!r}")
+    return sizes
+
+
+def _grid_total(kept: list[tuple[str, bytes]]) -> int:
+    from wire_codec import decode
+
+    total = 0
+    for _rid, data in kept:
+        m = decode(data)
+        total += grid_bytes(m.wireframe, m.resolution)
+    return total
+
+
+def _fused_quality(store: Path, world: Any) -> dict[str, Any]:
+    from mapping.metrics import evaluate
+    from wire_codec import decode
+
+    out: dict[str, Any] = {"fused_recall": 0.0, "fused_precision": 0.0, "fused_mean_dist_m": None,
+                           "fused_vertices": 0, "fused_edges": 0, "fused_version": 0}
+    try:
+        m = decode((store / "fused.wfm").read_bytes())
+    except (OSError, ValueError):
+        return out
+    wf = m.wireframe
+    out.update({"fused_vertices": wf.n_vertices, "fused_edges": wf.n_edges, "fused_version": int(m.seq)})
+    if wf.n_edges:
+        res = float(m.resolution) if m.resolution > 0 else 0.2
+        q = evaluate(world.truth, wf, res)
+        out.update({
+            "fused_recall": rounded(q["wall_recall"], 4),
+            "fused_precision": rounded(q["wall_precision"], 4),
+            "fused_mean_dist_m": rounded(q["mean_dist_m"], 4),
+        })
+    return out
+
+
+def _sent_counts(d: Path, ids: list[str], mode: str) -> int:
+    """Maps the robots say they put: replay logs (``M`` lines) or the agents' status files."""
+    total = 0
+    for rid in ids:
+        if mode == "replay":
+            try:
+                total += sum(1 for ln in (d / "sent" / f"{rid}.log").read_text().splitlines() if ln.startswith("M "))
+            except OSError:
+                pass
+        else:
+            try:
+                total += int(json.loads((d / "status" / f"{rid}.json").read_text()).get("maps_sent", 0))
+            except (OSError, ValueError, TypeError):
+                pass
+    return total
+
+
+def run_size(n: int, args: argparse.Namespace, world: Any, workdir: Path, say: Any) -> dict[str, Any]:
+    """One fleet of ``n`` robots: start, measure, stop; returns the size's JSON entry."""
+    from agents.bus import free_port, tcp_endpoint
+    from agents.io import write_json
+    from agents.robot import start_pose_of
+
+    d = workdir / f"n{n}"
+    if d.exists():
+        shutil.rmtree(d)
+    d.mkdir(parents=True)
+    mode = "filter" if n <= args.filter_upto else "replay"
+    ids = [f"r{k + 1}" for k in range(n)]
+    if mode == "replay":
+        recs = recordings_for(args.world, n, args.seed, args.cache, args.particles, DEFAULT_OVERLAP, say=say)
+    else:
+        routes = fleet_routes(world, n, args.seed, DEFAULT_OVERLAP)
+        for rid, r in zip(ids, routes):
+            write_json(d / "routes" / f"{rid}.json", {"route": r.tolist()})
+    ep = tcp_endpoint(free_port())
+    bus = ["--connect", ep, "--fleet", FLEET, "--parent-pid", str(os.getpid())]
+    store = d / "store"
+    result: dict[str, Any] = {"robots_mode": mode}
+    with Procs(d / "logs") as procs:
+        procs.start("router", ["-m", "agents", "router", "--listen", ep])
+        with BusObserver(ep, FLEET, timeout=60.0) as obs:
+            fuse = ["-m", "agents", "fuse", *bus, "--store", str(store)]
+            if args.record:
+                fuse += ["--rrd", str(d / "recording.rrd"), "--world", args.world]
+            procs.start("fuse", fuse)
+            procs.wait_log("fuse", "fusion service ready", 90.0)
+            for k, rid in enumerate(ids):
+                if mode == "replay":
+                    argv = ["-m", "agents.bench.replay_robot", "--id", rid, "--recording", str(recs[k]),
+                            "--rate", str(args.rate), "--log", str(d / "sent" / f"{rid}.log"), *bus]
+                else:
+                    s0 = start_pose_of(routes[k])
+                    argv = ["-m", "agents", "robot", "--id", rid, "--world", args.world,
+                            "--start", f"{s0.x:.9f},{s0.y:.9f},{s0.theta:.9f}",
+                            "--route", str(d / "routes" / f"{rid}.json"), "--rate", str(args.rate),
+                            "--seed", str(args.seed + k + 1), "--particles", str(args.particles),
+                            "--viz-rate", "0", "--status-file", str(d / "status" / f"{rid}.json"), *bus]
+                procs.start(rid, argv)
+            wait_for(procs, lambda: set(ids) <= obs.seen(), 60.0 + 2.0 * n, "every robot's first map")
+            sleep_checked(procs, args.warmup)
+            harvest = LatencyHarvest(store)
+            pid_f, pid_r = procs.pid("fuse"), procs.pid("router")
+            c0, r0 = cpu_seconds(pid_f), cpu_seconds(pid_r)
+            t0 = time.monotonic()
+            obs.start_window(keep=True)
+            while (left := t0 + args.duration - time.monotonic()) > 0:
+                sleep_checked(procs, min(1.0, left))
+                harvest.poll()  # state.json lists only the most recent samples
+            win = obs.end_window()
+            t1 = time.monotonic()
+            c1, r1 = cpu_seconds(pid_f), cpu_seconds(pid_r)
+            kept = obs.kept
+            if mode == "replay":
+                t_sig = time.monotonic()
+                procs.signal(ids, signal.SIGUSR1)
+
+                def finals() -> bool:
+                    snap = obs.snapshot()
+                    return all((c := snap.get(r)) is not None and (c.last_map or 0) > t_sig for r in ids)
+
+                wait_for(procs, finals, 15.0, "the robots' final maps")
+            procs.stop(ids, 15.0)
+            time.sleep(0.5)  # the robots' last maps reach the fusion service's queue
+            procs.stop(["fuse"], 60.0)
+            total = obs.snapshot()
+        procs.stop(["router"], 10.0)
+    harvest.poll()
+    state = read_state(store)
+    stats = state.get("stats") or {}
+    lat = harvest.samples
+    wall = max(t1 - t0, 1e-9)
+    map_bytes = sum(c.map_bytes for c in win.values())
+    pose_bytes = sum(c.pose_bytes for c in win.values())
+    maps_in_window = sum(c.valid for c in win.values())
+    grid = _grid_total(kept)
+    counts = merge_counts(stats)
+    result.update({
+        "latency_ms_p50": rounded(percentile(lat, 50)),
+        "latency_ms_p99": rounded(percentile(lat, 99)),
+        "latency_ms_max": rounded(max(lat) if lat else None),
+        "latency_samples": len(lat),
+        "fusion_cpu_share": rounded((c1 - c0) / wall if c0 is not None and c1 is not None else None, 4),
+        "router_cpu_share": rounded((r1 - r0) / wall if r0 is not None and r1 is not None else None, 4),
+        "bytes_per_s_per_robot": rounded(map_bytes / wall / n, 1),
+        "pose_bytes_per_s_per_robot": rounded(pose_bytes / wall / n, 1),
+        "grid_bytes_per_s_per_robot": rounded(grid / wall / n, 1),
+        "grid_ratio": rounded(grid / map_bytes if map_bytes else None, 2),
+        "maps_per_s_per_robot": rounded(maps_in_window / wall / n, 2),
+        "mean_map_bytes": rounded(map_bytes / max(1, sum(c.maps for c in win.values())), 1),
+    })
+    result.update(_fused_quality(store, world))
+    result.update({
+        "maps_sent": _sent_counts(d, ids, mode),
+        "maps_published": sum(c.valid for c in total.values()),
+        "maps_merged": counts["merged"],
+        "maps_arrived": counts["arrived"],
+        "maps_dropped": counts["dropped"],
+        "window_s": round(wall, 3),
+    })
+    return result
+
+
+def run(args: argparse.Namespace) -> int:
+    from agents.sim.world import load_world
+
+    sizes = parse_sizes(args.robots)
+    for name, v in (("--duration", args.duration), ("--rate", args.rate)):
+        if not (math.isfinite(v) and v > 0):
+            raise UserError(f"{name} must be a positive number, got {v}")
+    if not (math.isfinite(args.warmup) and args.warmup >= 0):
+        raise UserError(f"--warmup must be >= 0, got {args.warmup}")
+    if args.particles < 1:
+        raise UserError(f"--particles must be >= 1, got {args.particles}")
+    world = load_world(args.world)
+
+    def say(text: str) -> None:
+        print(f"bench fleet: {text}", flush=True)
+
+    tmp = None
+    if args.out:
+        workdir = Path(args.out)
+        workdir.mkdir(parents=True, exist_ok=True)
+    else:
+        tmp = tempfile.mkdtemp(prefix="wiremap-bench-fleet-")
+        workdir = Path(tmp)
+    results: dict[str, Any] = {}
+    try:
+        for n in sizes:
+            say(f"{n} robot(s) for {args.duration:g} s at {args.rate:g} Hz in {world.name} ...")
+            results[str(n)] = run_size(n, args, world, workdir, say)
+    finally:
+        if tmp is not None:
+            shutil.rmtree(tmp, ignore_errors=True)
+    head = ["robots", "mode", "p50_ms", "p99_ms", "fuse_cpu", "B/s/robot", "grid_B/s", "ratio",
+            "recall", "mean_m", "published", "merged"]
+    rows = [
+        [n, r["robots_mode"], r["latency_ms_p50"], r["latency_ms_p99"], r["fusion_cpu_share"],
+         r["bytes_per_s_per_robot"], r["grid_bytes_per_s_per_robot"], r["grid_ratio"], r["fused_recall"],
+         r["fused_mean_dist_m"], r["maps_published"], r["maps_merged"]]
+        for n, r in results.items()
+    ]
+    print_table(head, rows)
+    largest = results[str(max(sizes))]
+    p99 = largest["latency_ms_p99"]
+    ratios = [r["grid_ratio"] for r in results.values() if r["grid_ratio"] is not None]
+    summary = {
+        "world": world.name,
+        "rate_hz": args.rate,
+        "duration_s": args.duration,
+        "seed": args.seed,
+        "sizes": results,
+        "targets": {
+            "latency_ms_p99_max": LATENCY_TARGET_MS,
+            "latency_at_robots": max(sizes),
+            "latency_met": None if p99 is None else bool(p99 <= LATENCY_TARGET_MS),
+            "grid_ratio_min": GRID_RATIO_TARGET,
+            "grid_ratio_met": bool(ratios) and bool(min(ratios) >= GRID_RATIO_TARGET),
+        },
+    }
+    print(
+        f"p99 latency at {max(sizes)} robots: {p99} ms (target <= {LATENCY_TARGET_MS:g}); "
+        f"grid / wireframe bytes: {min(ratios) if ratios else None} (target >= {GRID_RATIO_TARGET:g})",
+        flush=True,
+    )
+    if args.json:
+        print(json.dumps(summary))
+    return 0

@@ -1,0 +1,343 @@
+"""A lightweight robot process that replays recorded maps on the bus (for the fleet benchmarks).
+
+``python -m agents.bench.replay_robot --id r3 --recording FILE [--rate HZ] [--corrupt P]
+[--seed S] [--log FILE] [--connect ...]``
+
+It behaves on the bus exactly like the robot agent (:mod:`agents.robot`), without running a
+particle filter, so that two cores can carry 16 robots at 10 Hz and what a benchmark measures is
+transport and fusion:
+
+* ``robots/<id>/map``: a ``ROBOT_MAP`` (wire codec) built like the agent's: sender ``<id>``,
+  frame ``odom/<id>``, ``origin`` the recorded start pose, the recording's resolution,
+  contributor bits cleared, ``seq`` counting maps sent, ``stamp_ns`` the wall clock at the send,
+  ``meta = {"boot": <process start ns>, "t": <sim s>, "step": <frame>}``; put with
+  ``CongestionControl.BLOCK`` like the agent;
+* ``robots/<id>/pose`` at ``--pose-rate`` (10 Hz): :func:`agents.bus.encode_pose` with the
+  recorded pose, ``fleet = origin * pose``, the recorded true pose and a status map
+  (``step``, ``vertices``, ``edges``, ``maps_sent``, ``bytes_sent``, ``finished``, ``replay``);
+* ``alive/<id>``: a liveliness token while the process runs.
+
+Replay (choices):
+
+* One recorded frame per tick at ``--rate``. A recording keeps only the frames whose travelling
+  map changed (:func:`agents.bench.common.record_robot`), so every tick sends a changed map: the
+  worst case for the fusion service (a real robot sends only on change).
+* At the end of the recording it starts again from the first frame (``--no-loop``: it stops
+  and only re-sends the last map every ``--heartbeat`` seconds, as the agent does when its route
+  ends). The restart makes the robot's map shrink back, a change like any other.
+* SIGUSR1 jumps to the last frame, sends it and stops looping: the benchmark does this at the
+  end of its window so that the fused map it evaluates holds every robot's complete map.
+* ``--corrupt P``: each map payload is, with probability ``P`` (``--seed``), damaged before it
+  is put: half of the time one byte is XOR-ed with a random non-zero value, otherwise the
+  payload is cut to a random shorter length (possibly empty). The codec's CRC-32 rejects both.
+  The map's ``seq`` is used up by the damaged payload.
+* ``--log FILE``: one line appended per event, written with ``os.write`` right after ``put``
+  returns (so it survives SIGKILL except for the very put in flight):
+  ``B <boot> <pid>`` at start, ``M <boot> <seq> <valid 0|1> <bytes>`` per map payload.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import signal
+import sys
+import threading
+import time
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+
+from agents.bench.common import Recording, load_recording
+from agents.bus import (
+    StopFlag,
+    add_bus_arguments,
+    check_name,
+    config_from_args,
+    fleet_keys,
+    open_session,
+    watch_parent,
+)
+from agents.errors import UserError
+
+HELP = "replay recorded robot maps on the bus (benchmark robot)"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--id", required=True, help="robot id (letters, digits, '_', '.', '-')")
+    parser.add_argument("--recording", required=True, metavar="FILE", help="a recording (agents.bench.common)")
+    parser.add_argument("--rate", type=float, default=10.0, metavar="HZ", help="maps per second (default 10)")
+    parser.add_argument("--pose-rate", type=float, default=10.0, metavar="HZ", help="poses per second (default 10)")
+    parser.add_argument(
+        "--heartbeat", type=float, default=2.0, metavar="S", help="re-send the map at least every S s (default 2)"
+    )
+    parser.add_argument("--corrupt", type=float, default=0.0, metavar="P", help="damage each map with probability P")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the corruption (default 0)")
+    parser.add_argument("--no-loop", action="store_true", help="play the recording once, then heartbeats only")
+    parser.add_argument("--log", metavar="FILE", help="append one line per map payload to FILE")
+    parser.add_argument("--status-file", metavar="FILE", help="write the final status as JSON to FILE on exit")
+    add_bus_arguments(parser)
+
+
+def corrupt(data: bytes, rng: np.random.Generator) -> bytes:
+    """A damaged copy of ``data``: one byte XOR-ed with a non-zero value, or a truncation."""
+    if len(data) == 0:
+        return data
+    if rng.random() < 0.5:
+        b = bytearray(data)
+        pos = int(rng.integers(len(b)))
+        b[pos] ^= int(rng.integers(1, 256))
+        return bytes(b)
+    return data[: int(rng.integers(len(data)))]
+
+
+class ReplayRobot:
+    """The replay loop (see the module docstring). ``session`` is an open Zenoh session."""
+
+    def __init__(
+        self,
+        session: Any,
+        keys: Any,
+        robot: str,
+        rec: Recording,
+        *,
+        rate: float = 10.0,
+        pose_rate: float = 10.0,
+        heartbeat: float = 2.0,
+        corrupt_p: float = 0.0,
+        seed: int = 0,
+        loop: bool = True,
+        log_fd: int | None = None,
+    ) -> None:
+        import zenoh
+
+        from wire_codec import encode
+
+        self._zenoh = zenoh
+        self._encode = encode
+        self.session = session
+        self.keys = keys
+        self.robot = robot
+        self.rec = rec
+        self.rate = rate
+        self.pose_rate = pose_rate
+        self.heartbeat = heartbeat
+        self.corrupt_p = corrupt_p
+        self.rng = np.random.default_rng(seed)
+        self.loop = loop
+        self.log_fd = log_fd
+        self.boot = time.time_ns()
+        self.final = threading.Event()
+        self.seq = 0
+        self.ticks = 0
+        self.loops = 0
+        self.current: int | None = None
+        self.bytes_sent = 0
+        self.valid_sent = 0
+        self.corrupt_sent = 0
+        self.pose_bytes = 0
+        self.playing = True
+        self._last_put = -math.inf
+        self._token: Any = None
+        self._pubs: dict[str, Any] = {}
+        # sim time keeps increasing across loops (the fusion service shows the newest)
+        ts = [f.t for f in rec.frames]
+        self._loop_t = (ts[-1] - ts[0]) + (ts[1] - ts[0] if len(ts) > 1 else 0.5)
+
+    def _write(self, line: str) -> None:
+        if self.log_fd is not None:
+            os.write(self.log_fd, line.encode())
+
+    def start(self) -> None:
+        z = self._zenoh
+        self._token = self.session.liveliness().declare_token(self.keys.alive(self.robot))
+        self._pubs["map"] = self.session.declare_publisher(
+            self.keys.robot_map(self.robot), congestion_control=z.CongestionControl.BLOCK
+        )
+        self._pubs["pose"] = self.session.declare_publisher(self.keys.robot_pose(self.robot), express=True)
+        self._write(f"B {self.boot} {os.getpid()}\n")
+
+    def close(self) -> None:
+        for p in self._pubs.values():
+            try:
+                p.undeclare()
+            except Exception:  # session already closed
+                pass
+        self._pubs.clear()
+        if self._token is not None:
+            try:
+                self._token.undeclare()
+            except Exception:
+                pass
+            self._token = None
+
+    def publish_map(self, k: int) -> None:
+        from wire_codec import MapMessage, MessageKind
+
+        f = self.rec.frames[k]
+        self.seq += 1
+        msg = MapMessage(
+            kind=MessageKind.ROBOT_MAP,
+            sender=self.robot,
+            seq=self.seq,
+            stamp_ns=time.time_ns(),
+            pose=f.pose,
+            frame=f"odom/{self.robot}",
+            origin=self.rec.start,
+            resolution=self.rec.resolution,
+            wireframe=f.wireframe,
+            meta={"boot": self.boot, "t": round(f.t + self.loops * self._loop_t, 6), "step": k},
+        )
+        data = self._encode(msg)
+        valid = True
+        if self.corrupt_p > 0 and self.rng.random() < self.corrupt_p:
+            data = corrupt(data, self.rng)
+            valid = False
+        self._pubs["map"].put(data)
+        self._last_put = time.monotonic()
+        self.current = k
+        self.bytes_sent += len(data)
+        if valid:
+            self.valid_sent += 1
+        else:
+            self.corrupt_sent += 1
+        self._write(f"M {self.boot} {self.seq} {int(valid)} {len(data)}\n")
+
+    def status(self) -> dict[str, Any]:
+        wf = self.rec.frames[self.current].wireframe if self.current is not None else None
+        return {
+            "step": self.ticks,
+            "t": 0.0 if self.current is None else self.rec.frames[self.current].t,
+            "vertices": 0 if wf is None else wf.n_vertices,
+            "edges": 0 if wf is None else wf.n_edges,
+            "maps_sent": self.seq,
+            "valid_sent": self.valid_sent,
+            "corrupt_sent": self.corrupt_sent,
+            "bytes_sent": self.bytes_sent,
+            "pose_bytes": self.pose_bytes,
+            "finished": not self.playing,
+            "replay": True,
+        }
+
+    def publish_pose(self) -> None:
+        from agents.bus import encode_pose
+        from mapping.se2 import Pose
+
+        f = self.rec.frames[self.current] if self.current is not None else None
+        odom = Pose.identity() if f is None else f.pose
+        data = encode_pose(
+            seq=self.ticks,
+            t=0.0 if f is None else f.t,
+            stamp_ns=time.time_ns(),
+            odom=odom,
+            fleet=self.rec.start.compose(odom),
+            truth=None if f is None else f.truth,
+            status=self.status(),
+        )
+        self._pubs["pose"].put(data)
+        self.pose_bytes += len(data)
+
+    def run(self, stop: Any) -> dict[str, Any]:
+        """Replay until ``stop`` (a ``threading.Event`` or :class:`agents.bus.StopFlag`) is set."""
+        n = len(self.rec.frames)
+        period = 1.0 / self.rate
+        pose_period = 1.0 / self.pose_rate
+        now = time.monotonic()
+        next_tick, next_pose = now, now
+        k = 0
+        final_done = False
+        while not stop.is_set():
+            now = time.monotonic()
+            if self.final.is_set() and not final_done:
+                final_done = True
+                self.playing = False
+                self.publish_map(n - 1)
+            elif self.playing and now >= next_tick:
+                self.publish_map(k)
+                self.ticks += 1
+                k += 1
+                if k == n:
+                    if self.loop:
+                        k = 0
+                        self.loops += 1
+                    else:
+                        self.playing = False
+                next_tick += period
+                if next_tick < time.monotonic() - period:
+                    next_tick = time.monotonic()  # fell behind: no burst to catch up
+            now = time.monotonic()
+            if not self.playing and self.current is not None and now - self._last_put >= self.heartbeat:
+                self.publish_map(self.current)  # maps are whole states: re-sending is idempotent
+            if now >= next_pose:
+                self.publish_pose()
+                next_pose = max(next_pose + pose_period, now)
+            wake = min(next_pose, self._last_put + self.heartbeat)
+            if self.playing:
+                wake = min(wake, next_tick)
+            stop.wait(max(0.0, min(wake - time.monotonic(), 0.1)))
+        return self.status()
+
+
+def run(args: argparse.Namespace) -> int:
+    rid = check_name(args.id)
+    for name, v in (("--rate", args.rate), ("--pose-rate", args.pose_rate), ("--heartbeat", args.heartbeat)):
+        if not (math.isfinite(v) and v > 0):
+            raise UserError(f"{name} must be a positive number, got {v}")
+    if not 0.0 <= args.corrupt <= 1.0:
+        raise UserError(f"--corrupt must be within [0, 1], got {args.corrupt}")
+    rec = load_recording(args.recording)
+    keys = fleet_keys(args)
+    cfg = config_from_args(args, "client")
+
+    def say(text: str) -> None:
+        print(f"replay robot {rid}: {text}", flush=True)
+
+    log_fd = None
+    if args.log:
+        os.makedirs(os.path.dirname(os.path.abspath(args.log)), exist_ok=True)
+        log_fd = os.open(args.log, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
+    try:
+        with StopFlag() as stop:
+            watch_parent(args.parent_pid, stop)
+            session = open_session(cfg, stop, on_wait=lambda t: say(f"waiting for a router ({t})"))
+            if session is None:
+                return 0
+            bot = ReplayRobot(
+                session, keys, rid, rec, rate=args.rate, pose_rate=args.pose_rate, heartbeat=args.heartbeat,
+                corrupt_p=args.corrupt, seed=args.seed, loop=not args.no_loop, log_fd=log_fd,
+            )
+            old = signal.signal(signal.SIGUSR1, lambda *_a: bot.final.set())
+            try:
+                bot.start()
+                say(f"on the bus as {keys.robot_map(rid)}: {len(rec.frames)} frames at {args.rate:g} Hz")
+                st = bot.run(stop)
+            finally:
+                signal.signal(signal.SIGUSR1, old)
+                bot.close()
+                session.close()
+    finally:
+        if log_fd is not None:
+            os.close(log_fd)
+    say(f"stopped: {st['maps_sent']} maps ({st['corrupt_sent']} damaged), {st['bytes_sent']} bytes")
+    if args.status_file:
+        from agents.io import write_json
+
+        write_json(args.status_file, {"robot": rid, **st})
+    return 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m agents.bench.replay_robot", description=HELP)
+    add_arguments(parser)
+    args = parser.parse_args(argv)
+    try:
+        return run(args)
+    except UserError as exc:
+        sys.stderr.write(f"replay robot: {exc}\n")
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,236 @@
+"""The fleet benchmarks: their pure helpers, the replay robot's damage, and short real runs of
+``wiremap bench fleet`` and ``wiremap bench soak`` (real router, fusion service and robot
+processes on loopback) whose JSON is checked for keys and sanity."""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from agents.bench.common import (
+    Frame,
+    LatencyHarvest,
+    Recording,
+    crc_ok,
+    grid_bytes,
+    latencies_since,
+    load_recording,
+    merge_counts,
+    save_recording,
+)
+from agents.bench.fleet import parse_sizes
+from agents.bench.replay_robot import corrupt
+from agents.bench.soak import read_sent_log, rss_slope_mb_per_min
+from agents.errors import UserError
+from mapping.se2 import Pose
+from mapping.wireframe import Label, Wireframe
+from wire_codec import CodecError, MapMessage, MessageKind, decode, encode
+
+REPO = Path(__file__).resolve().parent.parent
+TINY = str(REPO / "tests" / "worlds" / "tiny.geojson")
+
+
+def square(side: float = 2.0) -> Wireframe:
+    pts = [(0.0, 0.0), (side, 0.0), (side, side), (0.0, side)]
+    return Wireframe.build(pts, [(0, 1), (1, 2), (2, 3), (3, 0)], [Label.NOMINAL] * 4)
+
+
+def message(wf: Wireframe, seq: int = 1) -> bytes:
+    return encode(
+        MapMessage(
+            kind=MessageKind.ROBOT_MAP, sender="r1", seq=seq, stamp_ns=123, pose=Pose.identity(), frame="odom/r1",
+            origin=Pose(1.0, 2.0, 0.5), resolution=0.2, wireframe=wf, meta={"boot": 7, "t": 1.5},
+        )
+    )
+
+
+# ---------------------------------------------------------------------- pure helpers
+def test_grid_bytes_of_a_known_box() -> None:
+    # a 2 m x 2 m square at 0.2 m: 10 x 10 cells
+    assert grid_bytes(square(2.0), 0.2) == 100
+    # 3.1 m x 2 m at 0.5 m: ceil(6.2) x 4 = 7 x 4
+    wf = Wireframe.build([(0.0, 0.0), (3.1, 0.0), (3.1, 2.0)], [(0, 1), (1, 2)], [Label.NOMINAL] * 3)
+    assert grid_bytes(wf, 0.5) == 28
+    assert grid_bytes(Wireframe.empty(), 0.2) == 0
+    # a single wall along x still needs one row
+    wall = Wireframe.build([(0.0, 0.0), (1.0, 0.0)], [(0, 1)], [Label.NOMINAL] * 2)
+    assert grid_bytes(wall, 0.2) == 5
+
+
+def test_crc_ok_accepts_codec_messages_and_rejects_damage() -> None:
+    data = message(square())
+    assert crc_ok(data)
+    assert not crc_ok(data[:-1])
+    assert not crc_ok(b"")
+    flipped = bytearray(data)
+    flipped[10] ^= 0x01
+    assert not crc_ok(bytes(flipped))
+
+
+@settings(max_examples=60, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), side=st.floats(0.5, 20.0), seq=st.integers(1, 10**6))
+def test_damaged_payloads_never_decode(seed: int, side: float, seq: int) -> None:
+    data = message(square(side), seq)
+    bad = corrupt(data, np.random.default_rng(seed))
+    assert bad != data
+    assert not crc_ok(bad)
+    with pytest.raises(CodecError):
+        decode(bad)
+
+
+def test_corrupt_is_seeded_and_does_both_kinds() -> None:
+    data = message(square())
+    a = [corrupt(data, np.random.default_rng(s)) for s in range(40)]
+    b = [corrupt(data, np.random.default_rng(s)) for s in range(40)]
+    assert a == b
+    assert any(len(x) == len(data) for x in a)  # flips
+    assert any(len(x) < len(data) for x in a)  # truncations
+
+
+def test_merge_counts_definition() -> None:
+    stats = {"received": 20, "accepted": 12, "outdated": 3, "duplicates": 1, "malformed": 3, "rejected": 1,
+             "overflow": 2, "rate_limited": 1, "oversized": 1, "dropped": 8}
+    c = merge_counts(stats)
+    assert (c["arrived"], c["received"], c["merged"], c["dropped"]) == (24, 20, 16, 8)
+    assert (c["overflow"], c["rate_limited"]) == (2, 1)
+    assert merge_counts({})["dropped"] == 0
+    assert merge_counts({"received": "x"})["received"] == 0
+
+
+def test_latency_harvest_collects_across_polls(tmp_path: Path) -> None:
+    def write(n: int, kept: list[float]) -> None:
+        (tmp_path / "state.json").write_text(json.dumps({"stats": {"latency_ms": {"n": n}}, "latencies_ms": kept}))
+
+    write(3, [1.0, 2.0, 3.0])
+    h = LatencyHarvest(tmp_path)  # the first 3 are before the window
+    write(5, [2.0, 3.0, 4.0, 5.0])
+    h.poll()
+    h.poll()  # nothing new: nothing added
+    write(9, [7.0, 8.0, 9.0])  # 6 was gone before this poll
+    h.poll()
+    assert h.samples == [4.0, 5.0, 7.0, 8.0, 9.0]
+    assert h.missed == 1
+
+
+def test_latencies_since_takes_the_tail() -> None:
+    state = {"stats": {"latency_ms": {"n": 5}}, "latencies_ms": [1.0, 2.0, 3.0, 4.0, 5.0]}
+    assert latencies_since(state, 2) == [3.0, 4.0, 5.0]
+    assert latencies_since(state, 5) == []
+    # the file keeps only the last entries: 8 recorded, 5 kept, 4 after the first 4
+    state = {"stats": {"latency_ms": {"n": 8}}, "latencies_ms": [4.0, 5.0, 6.0, 7.0, 8.0]}
+    assert latencies_since(state, 4) == [5.0, 6.0, 7.0, 8.0]
+    assert latencies_since({}, 0) == []
+
+
+def test_recording_round_trip(tmp_path: Path) -> None:
+    frames = (
+        Frame(0.0, Pose.identity(), Pose(1.0, 2.0, 0.5), square(1.0)),
+        Frame(0.5, Pose(0.25, 0.0, 0.01), None, square(2.0)),
+    )
+    rec = Recording("r1", "tiny", Pose(1.0, 2.0, 0.5), 0.2, frames, steps=3)
+    save_recording(tmp_path / "r1.wrp", rec)
+    back = load_recording(tmp_path / "r1.wrp")
+    assert (back.robot, back.world, back.steps, len(back.frames)) == ("r1", "tiny", 3, 2)
+    assert back.start.almost_equal(rec.start, 1e-3, 1e-6)
+    assert back.frames[1].truth is None
+    assert back.frames[0].truth is not None and back.frames[0].truth.almost_equal(Pose(1.0, 2.0, 0.5), 1e-9, 1e-9)
+    assert back.frames[1].wireframe.almost_equal(square(2.0), tol=1e-9)
+    (tmp_path / "bad.wrp").write_bytes(b"\x01\x02")
+    with pytest.raises(UserError):
+        load_recording(tmp_path / "bad.wrp")
+
+
+def test_sent_log_and_rss_slope(tmp_path: Path) -> None:
+    p = tmp_path / "r1.log"
+    p.write_text("B 100 1\nM 100 1 1 50\nM 100 2 0 10\nB 200 2\nM 200 1 1 60\nM 200 2")  # last line cut by a kill
+    assert read_sent_log(p) == {"boots": [100, 200], "valid": 2, "corrupt": 1}
+    assert read_sent_log(tmp_path / "absent.log") == {"boots": [], "valid": 0, "corrupt": 0}
+    samples = [(60.0 * k, int((100 + 2 * k) * 1024 * 1024)) for k in range(5)]
+    slope = rss_slope_mb_per_min(samples)
+    assert slope is not None and math.isclose(slope, 2.0, rel_tol=1e-9)
+
+
+def test_parse_sizes() -> None:
+    assert parse_sizes("1,2, 4") == [1, 2, 4]
+    for bad in ("", "a", "0", "65", "1,,x"):
+        with pytest.raises(UserError):
+            parse_sizes(bad)
+
+
+# ---------------------------------------------------------------------- real runs
+def _bench(args: list[str], timeout: float) -> dict:
+    proc = subprocess.run(
+        [sys.executable, "-m", "agents", "bench", *args, "--json"],
+        cwd=REPO, capture_output=True, text=True, timeout=timeout, check=False,
+    )
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    lines = proc.stdout.strip().splitlines()
+    assert len(lines) > 2, proc.stdout  # a table before the JSON
+    return json.loads(lines[-1])
+
+
+SIZE_KEYS = {
+    "robots_mode", "latency_ms_p50", "latency_ms_p99", "fusion_cpu_share", "bytes_per_s_per_robot",
+    "grid_bytes_per_s_per_robot", "grid_ratio", "fused_recall", "fused_mean_dist_m", "maps_published",
+    "maps_merged",
+}
+
+
+@pytest.mark.fleet
+def test_bench_fleet_short(tmp_path: Path) -> None:
+    out = _bench(
+        ["fleet", "--robots", "1,2", "--duration", "5", "--filter-upto", "1", "--warmup", "1", "--world", TINY,
+         "--cache", str(tmp_path / "cache"), "--out", str(tmp_path / "out")],
+        timeout=120,
+    )
+    assert set(out) >= {"world", "rate_hz", "sizes"}
+    assert out["world"] == "tiny" and out["rate_hz"] == 10.0
+    assert set(out["sizes"]) == {"1", "2"}
+    assert out["sizes"]["1"]["robots_mode"] == "filter"
+    assert out["sizes"]["2"]["robots_mode"] == "replay"
+    assert list((tmp_path / "cache").glob("tiny-n2-*/r2.wrp"))  # the recordings were cached
+    for n, r in out["sizes"].items():
+        assert SIZE_KEYS <= set(r), n
+        assert 0 < r["latency_ms_p50"] <= r["latency_ms_p99"] < 5000, r
+        assert 0 < r["fusion_cpu_share"] < 2.0, r
+        assert r["bytes_per_s_per_robot"] > 0
+        assert r["grid_bytes_per_s_per_robot"] > r["bytes_per_s_per_robot"]
+        assert r["grid_ratio"] > 1.0
+        assert r["maps_published"] > 0
+        assert r["maps_merged"] == r["maps_published"] == r["maps_sent"], r
+        # the tiny world is fully seen: the fused map must be good
+        assert r["fused_recall"] >= 0.9 and r["fused_mean_dist_m"] < 0.1, r
+    # replay robots publish one changed map per tick, close to --rate
+    assert 5.0 <= out["sizes"]["2"]["maps_per_s_per_robot"] <= 10.5
+
+
+@pytest.mark.fleet
+def test_bench_soak_short(tmp_path: Path) -> None:
+    out = _bench(
+        ["soak", "--robots", "3", "--minutes", "0.3", "--corrupt", "0.05", "--kill-every", "6", "--warmup", "1",
+         "--world", TINY, "--cache", str(tmp_path / "cache"), "--out", str(tmp_path / "out")],
+        timeout=120,
+    )
+    for k in ("valid_published", "maps_merged", "corrupt_dropped", "fusion_rss_mb_start", "fusion_rss_mb_end",
+              "latency_ms_p99", "restarts", "restarts_survived"):
+        assert k in out, k
+    assert out["valid_published"] > 100
+    assert out["maps_merged"] == out["valid_published"], out
+    assert out["maps_lost"] == 0
+    assert out["corrupt_dropped"] > 0
+    assert out["corrupt_dropped"] == out["corrupt_published"], out
+    # what the robots logged matches the bus up to the put in flight at each SIGKILL
+    assert abs(out["valid_sent"] - out["valid_published"]) <= out["restarts"]
+    assert out["latency_ms_p99"] > 0 and out["latency_ms_p50"] > 0
+    assert out["restarts"] == 2  # at 6 and 12 s (18 s is the end)
+    assert out["restarts_survived"] == out["restarts"]
+    assert out["fusion_alive"] is True
+    assert out["fusion_rss_mb_end"] > 0
