@@ -9,11 +9,18 @@ expressions (documented in ``ARCHITECTURE.md``)::
     wiremap/<fleet>/robots/<id>/viz    scan + particles for the recorder (msgpack, a few Hz)
     wiremap/<fleet>/alive/<id>         liveliness token of a robot process
     wiremap/<fleet>/fused/map          the fused map (wire_codec bytes); also a queryable
+    wiremap/<fleet>/fused/stats        the fusion service's counters (JSON), a queryable only
 
 Waiting for the router: a Zenoh client with ``connect/timeout_ms: -1`` blocks inside Rust and
 cannot be interrupted by SIGTERM, so :func:`open_session` instead retries a fail-fast
 ``zenoh.open`` from Python every few hundred milliseconds until it connects or the stop flag
 is set. After the first connection Zenoh reconnects by itself when the router restarts.
+
+Credentials (``--credentials FILE``, :mod:`agents.secure`): a refused login (wrong password, no
+or a foreign certificate, ``tcp/`` to a ``tls/`` router) fails ``zenoh.open`` with the same
+"Unable to connect" as an absent router. :func:`open_session` tells them apart by trying a plain
+TCP connection to the endpoint: when something listens there twice in a row while Zenoh cannot
+connect, the router is there and refused us, and waiting would be forever.
 """
 
 from __future__ import annotations
@@ -102,6 +109,13 @@ class FleetKeys:
         return f"{self.prefix}/fused/map"
 
     @property
+    def fusion_stats(self) -> str:
+        """The fusion service's counters (JSON), answered by a queryable. Under ``fused/`` so
+        that the fleet ACL (:func:`agents.secure.acl_config`) lets the fusion identity answer
+        and any authenticated client ask."""
+        return f"{self.prefix}/fused/stats"
+
+    @property
     def all_maps(self) -> str:
         return f"{self.prefix}/robots/*/map"
 
@@ -136,8 +150,9 @@ class FleetKeys:
 
 # ---------------------------------------------------------------------- command-line flags
 def add_bus_arguments(parser: argparse.ArgumentParser, *, router: bool = False) -> None:
-    """The bus flags every fleet process takes: ``--connect``, ``--config``, ``--fleet`` and, for
-    routers, ``--listen``. Flags given on the command line override the config file."""
+    """The bus flags every fleet process takes: ``--connect``, ``--config``, ``--credentials``,
+    ``--fleet`` and, for routers, ``--listen``. Flags given on the command line override the
+    config file; the credentials file (:mod:`agents.secure`) is applied last."""
     g = parser.add_argument_group("bus (Zenoh)")
     g.add_argument(
         "--connect",
@@ -148,6 +163,11 @@ def add_bus_arguments(parser: argparse.ArgumentParser, *, router: bool = False) 
         + (" for clients; none for a router)" if router else ")"),
     )
     g.add_argument("--config", metavar="FILE", help="Zenoh JSON5 configuration file (see broker_config/)")
+    g.add_argument(
+        "--credentials",
+        metavar="FILE",
+        help="credentials file (user/password and/or TLS certificates; see broker_config/secure/)",
+    )
     g.add_argument(
         "--fleet", default=DEFAULT_FLEET, help=f"fleet name, the second key chunk (default {DEFAULT_FLEET})"
     )
@@ -164,6 +184,13 @@ def add_bus_arguments(parser: argparse.ArgumentParser, *, router: bool = False) 
 
 def fleet_keys(args: argparse.Namespace) -> FleetKeys:
     return FleetKeys(check_name(getattr(args, "fleet", DEFAULT_FLEET) or DEFAULT_FLEET, "fleet name"))
+
+
+def one_line(exc: BaseException | str) -> str:
+    """An error text on one line, without Zenoh's ``at <file>.rs:<line>`` source locations."""
+    text = re.sub(r"\s+at \S+\.rs:\d+\.?", "", str(exc))
+    text = " ".join(text.split())
+    return text[:300] + ("..." if len(text) > 300 else "")
 
 
 def _insert(cfg: zenoh.Config, key: str, value: Any) -> None:
@@ -206,7 +233,7 @@ def build_config(
         try:
             cfg = zenoh.Config.from_file(config_file)
         except Exception as exc:
-            raise UserError(f"{config_file}: not a valid Zenoh configuration: {exc}") from None
+            raise UserError(f"{config_file}: not a valid Zenoh configuration: {one_line(exc)}") from None
         if _get(cfg, "mode") is None:
             _insert(cfg, "mode", mode)
     else:
@@ -222,17 +249,54 @@ def build_config(
         if listen:
             _insert(cfg, "listen/endpoints", list(listen))
     except Exception as exc:
-        raise UserError(f"bad endpoint in {list(connect) + list(listen)}: {exc}") from None
+        raise UserError(f"bad endpoint in {list(connect) + list(listen)}: {one_line(exc)}") from None
     return cfg
 
 
 def config_from_args(args: argparse.Namespace, mode: str = "client") -> zenoh.Config:
-    return build_config(
+    """:func:`build_config` from the flags of :func:`add_bus_arguments`, then the
+    ``--credentials`` file applied (:func:`agents.secure.apply_credentials`).
+
+    Raises
+    ------
+    UserError
+        A bad config file or endpoint, a missing or bad credentials file.
+    """
+    cfg = build_config(
         mode,
         getattr(args, "config", None),
         getattr(args, "connect", None) or (),
         getattr(args, "listen", None) or (),
     )
+    cred_file = getattr(args, "credentials", None)
+    if cred_file:
+        from agents.secure import apply_credentials, load_credentials
+
+        apply_credentials(cfg, load_credentials(cred_file))
+    return cfg
+
+
+def connect_endpoints(cfg: zenoh.Config) -> list[str]:
+    """The ``connect/endpoints`` of a configuration as a flat list (a per-mode map is flattened)."""
+    v = _get(cfg, "connect/endpoints")
+    if isinstance(v, dict):
+        return [str(e) for eps in v.values() if isinstance(eps, list) for e in eps]
+    if isinstance(v, list):
+        return [str(e) for e in v]
+    return []
+
+
+def refused_endpoint(cfg: zenoh.Config) -> str | None:
+    """A connect endpoint of ``cfg`` where something accepts TCP connections, or None.
+
+    Called after ``zenoh.open`` failed with "Unable to connect": a listening endpoint means the
+    router is there and refused the login (see the module docstring)."""
+    from agents.secure import endpoint_reachable
+
+    for ep in connect_endpoints(cfg):
+        if endpoint_reachable(ep, timeout=0.5):
+            return ep
+    return None
 
 
 def open_session(
@@ -257,18 +321,29 @@ def open_session(
     ------
     UserError
         When the session cannot be opened for another reason than an absent router (a port in
-        use, a bad certificate), or ``wait`` is False, or ``timeout`` passes.
+        use, a bad certificate), or ``wait`` is False, or ``timeout`` passes, or the router is
+        listening but refused us twice in a row (``router at EP refused us: ...``; a wrong
+        password or certificate, or ``tcp/`` vs ``tls/``).
     """
     import zenoh
 
     t0 = time.monotonic()
     delay = 0.05
     told = False
+    refusals = 0
     while True:
         try:
             return zenoh.open(cfg)
         except zenoh.ZError as exc:
-            text = str(exc).split(" at ")[0]
+            text = one_line(exc)
+            if "Unable to connect" in text:
+                ep = refused_endpoint(cfg)
+                refusals = refusals + 1 if ep is not None else 0
+                # twice in a row: a router that was just starting up is not mistaken for a refusal
+                if ep is not None and (refusals >= 2 or not wait):
+                    raise UserError(
+                        f"router at {ep} refused us: check --credentials and tls/ vs tcp/"
+                    ) from None
             if not wait or "Unable to connect" not in text:
                 raise UserError(f"cannot open Zenoh session: {text}") from None
             if timeout is not None and time.monotonic() - t0 > timeout:

@@ -7,12 +7,14 @@ Entity tree (all coordinates in the fleet frame, metres)::
     robots/<id>/pose                    the robot's estimate (start pose * odometry estimate)
     robots/<id>/scan                    the current scan, placed at the estimated pose
     robots/<id>/particles               every particle's wireframe, faded
-    robots/<id>/map                     the robot's best wireframe
+    robots/<id>/map                     the robot's best wireframe (grey while it is stale)
+    robots/<id>/status                  "stale" / "alive" text entries when that changes
     fused/walls                         fused walls, coloured by contributing robot(s)
     fused/corners/{nominal,occlusion,frontier}
                                         circles, triangles and squares (the paper's Fig. 2)
-    stats/fused/{vertices,edges}, stats/latency_ms, stats/robots/<id>/edges
-                                        time series
+    stats/fused/{vertices,edges}, stats/latency_ms, stats/robots/<id>/edges,
+    stats/robots/<id>/alive             time series (alive: 1 while the robot's token lives, 0 stale)
+    log                                 text: dropped payloads, stale robots
 
 Timeline: ``sim_time`` (seconds of simulated time). A file sink always; optionally a gRPC
 server sink that a viewer attaches to later (``rerun --connect
@@ -44,6 +46,7 @@ PALETTE: tuple[tuple[int, int, int], ...] = (
     (23, 190, 207),
     (127, 127, 127),
 )
+STALE_COLOUR = (150, 150, 150)
 LABEL_COLOURS = {
     Label.NOMINAL: (220, 30, 30),
     Label.OCCLUSION: (250, 160, 0),
@@ -247,6 +250,25 @@ class FleetRecorder:
             rr.LineStrips2D(_strips(wf_fleet), colors=[c], radii=[0.035], draw_order=10.0),
         )
         self.rec.log(f"stats/robots/{robot}/edges", rr.Scalars([float(wf_fleet.n_edges)]))
+
+    def log_robot_status(self, robot: str, t: float, stale: bool, wf_fleet: Wireframe | None = None) -> None:
+        """A robot became stale (its liveliness token went; its last map is kept) or came back:
+        a text entry under ``robots/<id>/status`` and in ``log``, the ``alive`` series, and its
+        map re-drawn grey while stale (in its colour again when back)."""
+        rr = self._rr
+        k = self.robot_index(robot)
+        self.set_time(t)
+        text = f"{robot} stale: liveliness token gone, last map kept" if stale else f"{robot} alive again"
+        level = "WARN" if stale else "INFO"
+        self.rec.log(f"robots/{robot}/status", rr.TextLog(text, level=level))
+        self.rec.log("log", rr.TextLog(text, level=level))
+        self.rec.log(f"stats/robots/{robot}/alive", rr.Scalars([0.0 if stale else 1.0]))
+        if wf_fleet is not None:
+            c = STALE_COLOUR if stale else robot_colour(k)
+            self.rec.log(
+                f"robots/{robot}/map",
+                rr.LineStrips2D(_strips(wf_fleet), colors=[c], radii=[0.035], draw_order=10.0),
+            )
 
     # ------------------------------------------------------------------ fused
     def log_fused(

@@ -118,6 +118,21 @@ def map_message(opts: RobotOptions, wf: Wireframe, pose: Pose, seq: int, stamp_n
     )
 
 
+class _KeyPut:
+    """``session.put`` on one key with fixed options (the part of a publisher the robot uses)."""
+
+    def __init__(self, session: Any, key: str, **options: Any) -> None:
+        self.session = session
+        self.key = key
+        self.options = options
+
+    def put(self, data: bytes) -> None:
+        self.session.put(self.key, data, **self.options)
+
+    def undeclare(self) -> None:
+        pass
+
+
 def default_steps(opts: RobotOptions) -> Iterator[StepLike]:
     """The simulation + filter loop of :mod:`agents.mapping_run` for this robot."""
     from agents import mapping_run  # written by another helper
@@ -168,11 +183,13 @@ class RobotAgent:
         z = self._zenoh
         s = self.session
         self._token = s.liveliness().declare_token(self.keys.alive(self.opts.robot))
-        self._pubs["map"] = s.declare_publisher(
-            self.keys.robot_map(self.opts.robot), congestion_control=z.CongestionControl.BLOCK
-        )
-        self._pubs["pose"] = s.declare_publisher(self.keys.robot_pose(self.opts.robot), express=True)
-        self._pubs["viz"] = s.declare_publisher(self.keys.robot_viz(self.opts.robot))
+        # Plain session puts, not declared publishers: a declared publisher filters on the
+        # writer side and so needs to see the subscribers' declarations, which the fleet ACL
+        # (agents.secure.acl_config) does not forward to robots -- on a secure router it
+        # delivered only its first sample.
+        self._pubs["map"] = _KeyPut(s, self.keys.robot_map(self.opts.robot), congestion_control=z.CongestionControl.BLOCK)
+        self._pubs["pose"] = _KeyPut(s, self.keys.robot_pose(self.opts.robot), express=True)
+        self._pubs["viz"] = _KeyPut(s, self.keys.robot_viz(self.opts.robot))
         self._last_map_put = time.monotonic()  # the first map goes out with the first step
 
     def close(self) -> None:

@@ -307,7 +307,7 @@ def apply_credentials(cfg: zenoh.Config, creds: Credentials) -> zenoh.Config:
         try:
             cfg.insert_json5(key, json.dumps(value))
         except Exception as exc:
-            raise UserError(f"cannot apply credentials ({key}): {exc}") from None
+            raise UserError(f"cannot apply credentials ({key}): {' '.join(str(exc).split())[:300]}") from None
     return cfg
 
 
@@ -516,7 +516,7 @@ def to_zenoh_config(doc: Mapping[str, Any]) -> zenoh.Config:
     try:
         return zenoh.Config.from_json5(json.dumps(doc))
     except Exception as exc:
-        raise UserError(f"invalid Zenoh configuration: {exc}") from None
+        raise UserError(f"invalid Zenoh configuration: {' '.join(str(exc).split())[:300]}") from None
 
 
 # ---------------------------------------------------------------------- certificates

@@ -8,6 +8,7 @@ deadline only where no event exists, e.g. a file appearing).
 
 from __future__ import annotations
 
+import json
 import os
 import signal
 import subprocess
@@ -21,15 +22,20 @@ from typing import Any
 
 import zenoh
 
-from agents.bus import build_config, free_port, open_session, tcp_endpoint
+from agents.bus import FleetKeys, build_config, free_port, open_session, tcp_endpoint
 
 REPO = Path(__file__).resolve().parent.parent
 __all__ = [
     "REPO",
     "Fleet",
+    "FusedWatcher",
     "client",
     "free_port",
     "in_process_router",
+    "query_fused",
+    "query_stats",
+    "record",
+    "rss_kb",
     "spawn",
     "stop_process",
     "tcp_endpoint",
@@ -131,14 +137,101 @@ def in_process_router(port: int | None = None) -> Iterator[str]:
 
 
 @contextmanager
-def client(endpoint: str, timeout: float = 10.0) -> Iterator[zenoh.Session]:
-    """A client session connected to ``endpoint``; closed on exit."""
-    s = open_session(build_config("client", None, [endpoint]), timeout=timeout)
+def client(endpoint: str, timeout: float = 10.0, credentials: str | Path | None = None) -> Iterator[zenoh.Session]:
+    """A client session connected to ``endpoint`` (with a credentials file, if given); closed
+    on exit."""
+    cfg = build_config("client", None, [endpoint])
+    if credentials is not None:
+        from agents.secure import apply_credentials, load_credentials
+
+        apply_credentials(cfg, load_credentials(credentials))
+    s = open_session(cfg, timeout=timeout)
     assert s is not None
     try:
         yield s
     finally:
         s.close()
+
+
+class FusedWatcher:
+    """Subscribes to the fused map and keeps every decoded message with its arrival time
+    (``monotonic``); waits on a condition variable, never on fixed sleeps."""
+
+    def __init__(self, session: zenoh.Session, keys: FleetKeys) -> None:
+        from agents.fusion import decode_message
+
+        self._decode = decode_message
+        self.msgs: list[Any] = []
+        self.times: list[float] = []
+        self.cond = threading.Condition()
+        self.sub = session.declare_subscriber(keys.fused_map, self._cb)
+
+    def _cb(self, sample: zenoh.Sample) -> None:
+        m = self._decode(sample.payload.to_bytes())
+        with self.cond:
+            self.msgs.append(m)
+            self.times.append(time.monotonic())
+            self.cond.notify_all()
+
+    def count(self) -> int:
+        with self.cond:
+            return len(self.msgs)
+
+    def wait_for(self, pred: Callable[[Any], bool], timeout: float, what: str, since: int = 0) -> Any:
+        """The newest message (from index ``since`` on) that satisfies ``pred``."""
+        return self.wait_for_timed(pred, timeout, what, since)[0]
+
+    def wait_for_timed(self, pred: Callable[[Any], bool], timeout: float, what: str, since: int = 0) -> tuple[Any, float]:
+        """Like :meth:`wait_for`, also returning the arrival time of the *first* message (from
+        ``since``) that satisfies ``pred``."""
+        deadline = time.monotonic() + timeout
+        with self.cond:
+            while True:
+                for i in range(since, len(self.msgs)):
+                    if pred(self.msgs[i]):
+                        return self.msgs[i], self.times[i]
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    raise TimeoutError(f"no fused map with {what} in {timeout} s (got {len(self.msgs)})")
+                self.cond.wait(left)
+
+    def close(self) -> None:
+        self.sub.undeclare()
+
+
+def query_fused(session: zenoh.Session, keys: FleetKeys, timeout: float = 1.0) -> Any:
+    """The fused map the fusion service's queryable answers with, or None."""
+    from agents.fusion import decode_message
+
+    for reply in session.get(keys.fused_map, timeout=timeout):
+        if reply.ok is not None:
+            return decode_message(reply.ok.payload.to_bytes())
+    return None
+
+
+def query_stats(session: zenoh.Session, keys: FleetKeys, timeout: float = 1.0) -> dict[str, Any] | None:
+    """The fusion service's counters document (``wiremap/<fleet>/fused/stats``), or None."""
+    for reply in session.get(keys.fusion_stats, timeout=timeout):
+        if reply.ok is not None:
+            doc: dict[str, Any] = json.loads(reply.ok.payload.to_bytes())
+            return doc
+    return None
+
+
+def rss_kb(pid: int) -> int:
+    """Resident set size of ``pid`` in KiB (from /proc)."""
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1])
+    raise RuntimeError(f"no VmRSS for {pid}")
+
+
+def record(record_property: Callable[[str, Any], None] | None, name: str, value: Any) -> None:
+    """Report a measured figure: a junit property and a line on stdout (``pytest -s`` or the
+    captured output of a failing test shows it)."""
+    if record_property is not None:
+        record_property(name, value)
+    print(f"FIGURE {name} = {value}", flush=True)
 
 
 class Fleet:
@@ -176,6 +269,22 @@ class Fleet:
         p = spawn(args, self.log_path(name))
         self.procs[name] = p
         return p
+
+    def kill9(self, name: str) -> float:
+        """SIGKILL the process group of ``name`` at once and reap it; returns the monotonic time
+        just before the signal."""
+        p = self.procs.pop(name)
+        t = time.monotonic()
+        try:
+            os.killpg(p.pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
+        p.wait(timeout=10)
+        fh = getattr(p, "_wiremap_log", None)
+        if fh is not None:
+            fh.close()
+        self.exit_codes[name] = p.returncode
+        return t
 
     def stop(self, name: str, sig: int = signal.SIGTERM, timeout: float = 10.0) -> int | None:
         p = self.procs.pop(name, None)

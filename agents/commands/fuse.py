@@ -8,9 +8,11 @@ from __future__ import annotations
 import argparse
 import math
 import sys
+from pathlib import Path
 
 from agents.bus import StopFlag, add_bus_arguments, config_from_args, fleet_keys, open_session, watch_parent
 from agents.errors import UserError
+from agents.fusion import InputLimits
 
 HELP = "the fusion service"
 
@@ -33,16 +35,78 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--min-interval", type=float, default=0.0, metavar="S", help="fuse at most every S seconds (default 0)"
     )
+    parser.add_argument(
+        "--save-interval",
+        type=float,
+        default=1.0,
+        metavar="S",
+        help="write the store at most every S seconds; 0: on every change (default 1)",
+    )
+    d = InputLimits()
+    parser.add_argument(
+        "--max-map-bytes",
+        type=int,
+        default=d.max_bytes,
+        metavar="N",
+        help=f"drop robot maps larger than N bytes (default {d.max_bytes})",
+    )
+    parser.add_argument(
+        "--rate-limit",
+        type=float,
+        default=d.rate_hz,
+        metavar="HZ",
+        help=f"maps per second accepted per robot key, bursts of {d.burst} (default {d.rate_hz:g})",
+    )
+    parser.add_argument(
+        "--max-extent",
+        type=float,
+        default=d.max_extent_m,
+        metavar="M",
+        help=f"drop maps with a vertex further than M metres from the fleet origin (default {d.max_extent_m:g})",
+    )
     add_bus_arguments(parser)
 
 
 def run(args: argparse.Namespace) -> int:
+    import dataclasses
+
     from agents.fusion import FusionConfig, ServeOptions, serve
 
     if args.serve_viewer is not None and not args.rrd:
         raise UserError("--serve-viewer needs --rrd FILE (the recording always goes to a file)")
     if args.threshold is not None and not (math.isfinite(args.threshold) and args.threshold > 0):
         raise UserError(f"--threshold must be a positive number of metres, got {args.threshold}")
+    for name, v in (("--rate-limit", args.rate_limit), ("--max-extent", args.max_extent), ("--heartbeat", args.heartbeat)):
+        if not (math.isfinite(v) and v > 0):
+            raise UserError(f"{name} must be a positive number, got {v}")
+    for name, v in (("--save-interval", args.save_interval), ("--min-interval", args.min_interval)):
+        if not (math.isfinite(v) and v >= 0):
+            raise UserError(f"{name} must be a number >= 0, got {v}")
+    if args.max_map_bytes < 64:
+        raise UserError(f"--max-map-bytes must be at least 64, got {args.max_map_bytes}")
+    # files and the world are checked before waiting for a router: a typo is one line at once
+    if args.store:
+        if Path(args.store).exists() and not Path(args.store).is_dir():
+            raise UserError(f"--store {args.store}: not a directory")
+        try:
+            Path(args.store).mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise UserError(f"--store {args.store}: cannot create it: {exc.strerror or exc}") from None
+    if args.rrd:
+        rrd = Path(args.rrd)
+        if rrd.is_dir():
+            raise UserError(f"--rrd {rrd}: is a directory")
+        try:
+            rrd.parent.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise UserError(f"--rrd {rrd}: cannot create its directory: {exc.strerror or exc}") from None
+    if args.world:
+        from agents.sim.world import load_world
+
+        load_world(args.world)
+    limits = dataclasses.replace(
+        InputLimits(), max_bytes=args.max_map_bytes, rate_hz=args.rate_limit, max_extent_m=args.max_extent
+    )
     opts = ServeOptions(
         store=args.store,
         rrd=args.rrd,
@@ -50,8 +114,10 @@ def run(args: argparse.Namespace) -> int:
         world=args.world,
         recording_id=args.recording_id,
         heartbeat_s=max(0.1, args.heartbeat),
-        min_interval_s=max(0.0, args.min_interval),
+        min_interval_s=args.min_interval,
+        save_interval_s=args.save_interval,
         config=FusionConfig(threshold=args.threshold, refine=not args.no_refine),
+        limits=limits,
     )
     keys = fleet_keys(args)
     cfg = config_from_args(args, "client")
@@ -73,7 +139,13 @@ def run(args: argparse.Namespace) -> int:
     say(
         f"stopped at v{state.version}: {state.fused.n_vertices} vertices, {state.fused.n_edges} edges from "
         f"{len(state.robots)} robots; {s['accepted']} maps accepted, {s['malformed']} malformed, "
-        f"{s['rejected']} rejected; latency p50 {lat['p50']} ms p99 {lat['p99']} ms"
+        f"{s['rejected']} rejected, {s['absurd']} absurd, {s['oversized']} oversized, "
+        f"{s['rate_limited']} rate-limited, {s['overflow']} overflowed; "
+        f"latency p50 {_ms(lat['p50'])} ms p99 {_ms(lat['p99'])} ms"
     )
     sys.stdout.flush()
     return 0
+
+
+def _ms(v: float | None) -> str:
+    return "-" if v is None else f"{v:.1f}"

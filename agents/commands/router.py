@@ -10,7 +10,7 @@ import argparse
 import json
 import sys
 
-from agents.bus import StopFlag, add_bus_arguments, build_config, open_session
+from agents.bus import StopFlag, add_bus_arguments, config_from_args, open_session
 
 HELP = "a Zenoh router"
 
@@ -20,7 +20,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    cfg = build_config("router", args.config, args.connect, args.listen)
+    cfg = config_from_args(args, "router")
     with StopFlag() as stop:
         session = open_session(cfg, stop, wait=False)
         assert session is not None  # wait=False never returns None

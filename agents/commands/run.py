@@ -21,6 +21,14 @@ service (which saves its state and closes the recording), and writes to DIR:
 
 The mapping clock starts when every robot has reported its first pose (process start-up is not
 counted), bounded by ``--startup-timeout``.
+
+``--secure`` runs the whole fleet authenticated and access-controlled
+(:func:`agents.secure.make_secure_fleet`): fresh test certificates and passwords under
+``DIR/secure/`` (private files mode 600), the router on ``tls/localhost:<free port>`` with
+user/password *and* mutual TLS and the fleet ACL, and every child process given its own
+``--credentials`` file (robot ``rK`` as ``rK``, the fusion service as ``fusion``). It makes its
+own router configuration, so it refuses ``--config``, ``--listen`` and ``--connect``. It needs
+the ``openssl`` command.
 """
 
 from __future__ import annotations
@@ -42,7 +50,7 @@ import numpy as np
 from agents.bus import (
     StopFlag,
     add_bus_arguments,
-    build_config,
+    config_from_args,
     decode_pose,
     fleet_keys,
     free_port,
@@ -71,6 +79,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-progress", action="store_true", help="no live progress lines")
     parser.add_argument(
         "--stop-when-done", action="store_true", help="end as soon as every robot has finished its route"
+    )
+    parser.add_argument(
+        "--secure",
+        action="store_true",
+        help="authenticated fleet: TLS + passwords + access control, credentials generated in DIR/secure",
     )
     add_bus_arguments(parser, router=True)
 
@@ -283,7 +296,10 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"--overlap must be within [0, 1], got {args.overlap}")
     world = load_world(args.world)
     out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise UserError(f"--out {out}: cannot create the directory: {exc.strerror or exc}") from None
     logs = out / "logs"
     ids = [f"r{k + 1}" for k in range(n)]
     rng = np.random.default_rng(args.seed)
@@ -302,10 +318,28 @@ def run(args: argparse.Namespace) -> int:
         shutil.rmtree(store)
 
     keys = fleet_keys(args)
-    listen = list(args.listen) or [tcp_endpoint(free_port())]
-    cfg = build_config("router", args.config, args.connect, listen)
+    creds: dict[str, Path] = {}
+    if args.secure:
+        from agents.secure import make_secure_fleet, to_zenoh_config
+
+        given = [f for f, v in (("--config", args.config), ("--listen", args.listen), ("--connect", args.connect)) if v]
+        if given:
+            raise UserError(f"--secure makes its own router configuration: drop {', '.join(given)}")
+        if args.credentials:
+            raise UserError("--secure writes the credentials itself: drop --credentials")
+        listen = [f"tls/localhost:{free_port()}"]  # the generated server certificate is for localhost
+        fl = make_secure_fleet(out / "secure", keys.fleet, ids, listen=listen[0])
+        cfg = to_zenoh_config(fl.router)
+        creds = dict(fl.credentials)
+    else:
+        listen = list(args.listen) or [tcp_endpoint(free_port())]
+        cfg = config_from_args(argparse.Namespace(**{**vars(args), "listen": listen}), "router")
     child_ep = listen[0].replace("0.0.0.0", "127.0.0.1").replace("[::]", "[::1]")
     bus = ["--connect", child_ep, "--fleet", keys.fleet, "--parent-pid", str(os.getpid())]
+
+    def cred_args(who: str) -> list[str]:
+        return ["--credentials", str(creds[who])] if who in creds else []
+
     progress = Progress(ids, not args.no_progress)
     procs: dict[str, subprocess.Popen[bytes]] = {}
     cpu: dict[str, float] = {}
@@ -323,8 +357,11 @@ def run(args: argparse.Namespace) -> int:
         sub_pose = router.declare_subscriber(keys.all_poses, zenoh.handlers.RingChannel(1024))
         sub_fused = router.declare_subscriber(keys.fused_map, zenoh.handlers.RingChannel(4))
         try:
-            print(f"wiremap run: router on {', '.join(listen)}; fleet {keys.fleet!r}; output in {out}", flush=True)
-            fuse_argv = ["fuse", *bus, "--store", str(store), "--rrd", str(out / "recording.rrd")]
+            secure = f"; secure (credentials in {out / 'secure'})" if args.secure else ""
+            print(
+                f"wiremap run: router on {', '.join(listen)}; fleet {keys.fleet!r}; output in {out}{secure}", flush=True
+            )
+            fuse_argv = ["fuse", *bus, *cred_args("fusion"), "--store", str(store), "--rrd", str(out / "recording.rrd")]
             fuse_argv += ["--world", args.world, "--recording-id", str(uuid.uuid4())]
             if args.serve_viewer is not None:
                 fuse_argv += ["--serve-viewer", str(args.serve_viewer)]
@@ -340,7 +377,7 @@ def run(args: argparse.Namespace) -> int:
                         "--rate", str(args.rate), "--seed", str(args.seed + k + 1),
                         "--particles", str(args.particles),
                         "--status-file", str(out / "status" / f"{rid}.json"),
-                        *bus,
+                        *bus, *cred_args(rid),
                     ],
                     logs,
                 )
@@ -421,6 +458,7 @@ def run(args: argparse.Namespace) -> int:
             "rate_hz": args.rate,
             "particles": args.particles,
             "interrupted": interrupted,
+            "secure": bool(args.secure),
             "startup_s": round(max(0.0, time.monotonic() - t_start - mapping_s), 2),
         },
     )

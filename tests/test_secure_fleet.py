@@ -1,0 +1,170 @@
+"""The fleet with security on: ``wiremap run --secure`` end to end, the fusion service's payload
+check over an authenticated, access-controlled bus, and refused logins reported in one line.
+
+Certificates and passwords are generated at test time (``openssl``); nothing secret is
+committed. Every process is stopped in a ``finally`` (``Fleet``), every session closed.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import shutil
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+import pytest
+import zenoh
+
+from agents.bus import FleetKeys
+from agents.fusion import decode_message, encode_message
+from agents.secure import SecureFleet, load_credentials, make_secure_fleet, to_zenoh_config, write_credentials
+from mapping.se2 import Pose
+from mapping.wireframe import Wireframe
+from tests.fleet_util import REPO, Fleet, client, free_port, query_fused, query_stats, record, wait_until
+from wire_codec.message import MapMessage, MessageKind
+
+pytestmark = [
+    pytest.mark.fleet,
+    pytest.mark.skipif(shutil.which("openssl") is None, reason="the openssl command generates the test certificates"),
+]
+
+
+def robot_map(rid: str, sender: str | None = None, seq: int = 1) -> bytes:
+    wf = Wireframe.build([(0, 0), (3, 0), (3, 2)], [(0, 1), (1, 2)])
+    return encode_message(
+        MapMessage(
+            kind=MessageKind.ROBOT_MAP, sender=sender or rid, seq=seq, stamp_ns=time.time_ns(),
+            pose=Pose.identity(), frame=f"odom/{rid}", origin=Pose(1.0 if rid == "r1" else 6.0, 1.0, 0.0),
+            resolution=0.1, wireframe=wf, meta={"boot": 1, "t": float(seq)},
+        )
+    )  # fmt: skip
+
+
+@contextmanager
+def secure_router(tmp: Path, fleet: str, robots: list[str]) -> Iterator[SecureFleet]:
+    fl = make_secure_fleet(tmp / "sec", fleet, robots, listen=f"tls/localhost:{free_port()}")
+    with zenoh.open(to_zenoh_config(fl.router)):
+        yield fl
+
+
+def test_run_secure_fleet_two_robots(tmp_path: Path, record_property) -> None:
+    """`wiremap run --secure`: generated credentials (private), a TLS router with passwords and
+    the ACL, both robots in the fused map; while it runs an observer with its credentials
+    gets the fused map and the counters, and a client without credentials is refused."""
+    out = tmp_path / "out"
+    keys = FleetKeys()
+    t0 = time.monotonic()
+    with Fleet(tmp_path) as fleet:
+        p = fleet.start(
+            "run",
+            ["run", "--secure", "--world", "paper-small", "--robots", "2", "--duration", "6", "--rate", "10",
+             "--particles", "3", "--out", out, "--no-progress"],
+        )  # fmt: skip
+        text = fleet.wait_log("run", "router on", 60)
+        m = re.search(r"router on (tls/localhost:\d+)", text)
+        assert m, text
+        ep = m.group(1)
+        assert "secure" in text
+        monitor = out / "secure" / "credentials" / "monitor.json"
+        with client(ep, timeout=30, credentials=monitor) as s:
+            q = wait_until(lambda: (f := query_fused(s, keys)) is not None and len(f.robots) == 2 and f, 90,
+                           "a fused map of both robots")  # fmt: skip
+            assert q.robots == ("r1", "r2")
+            doc = wait_until(lambda: (d := query_stats(s, keys)) and sorted(d["robots"]) == ["r1", "r2"] and d, 10,
+                             "the fusion counters")  # fmt: skip
+            assert doc["stats"]["dropped"] == 0 and doc["stale"] == []
+        # no credentials: refused at connect (the bus reports it in one line, without waiting)
+        from agents.bus import build_config, open_session
+        from agents.errors import UserError
+
+        with pytest.raises(UserError, match="refused us"):
+            open_session(build_config("client", None, [ep]), timeout=20)
+        assert p.wait(timeout=120) == 0, fleet.log("run")
+    record(record_property, "secure_run_wall_s", round(time.monotonic() - t0, 1))
+    log = (tmp_path / "run.log").read_text()
+    assert "Traceback" not in log, log
+    rep = json.loads((out / "report.json").read_text())
+    assert rep["fused"]["robots"] == ["r1", "r2"]
+    msg = decode_message((out / "fused.wfm").read_bytes())
+    bits = 0
+    for v in msg.wireframe.sources.tolist():
+        bits |= int(v)
+    assert msg.robots == ("r1", "r2") and bits == 0b11  # both robots' walls are in it
+    for f in [*(out / "secure" / "credentials").glob("*.json"), *(out / "secure" / "certs").glob("*.key")]:
+        assert f.stat().st_mode & 0o077 == 0, f
+    assert (out / "logs" / "fuse.log").read_text().count("Traceback") == 0
+
+
+def test_run_secure_refuses_its_own_router_flags(tmp_path: Path) -> None:
+    for extra in (["--listen", "tcp/127.0.0.1:7447"], ["--config", "broker_config/router.json5"]):
+        r = subprocess.run(
+            [sys.executable, "-m", "agents", "run", "--secure", "--world", "paper-small", "--robots", "1",
+             "--out", str(tmp_path / "o"), *extra],
+            capture_output=True, text=True, cwd=REPO, timeout=60,
+        )  # fmt: skip
+        assert r.returncode == 2 and r.stderr.count("\n") == 1 and "--secure" in r.stderr, r.stderr
+        assert "Traceback" not in r.stderr
+
+
+def test_fusion_checks_sender_against_key_over_the_secure_bus(tmp_path: Path) -> None:
+    """On the secure bus r1 may only put under robots/r1/**: its put on r2's key never reaches
+    the fusion service (the ACL drops it silently), and a map on its own key whose envelope
+    claims to be r2 is counted as rejected (sender_mismatch) and dropped."""
+    keys = FleetKeys("sec")
+    with secure_router(tmp_path, keys.fleet, ["r1", "r2"]) as fl, Fleet(tmp_path) as fleet:
+        ep = fl.endpoint
+        fleet.start("fuse", ["fuse", "--connect", ep, "--fleet", keys.fleet, "--credentials", fl.credentials["fusion"]])
+        fleet.wait_log("fuse", "fusion service ready", 30)
+        with client(ep, credentials=fl.credentials["r1"]) as r1, client(ep, credentials=fl.credentials["monitor"]) as mon:
+
+            def r1_seq() -> int:
+                d = query_stats(mon, keys)
+                return -1 if not d or "r1" not in d["robots"] else int(d["robots"]["r1"]["seq"])
+
+            first = robot_map("r1")  # the same bytes each time: repeats are duplicates
+            wait_until(lambda: (r1.put(keys.robot_map("r1"), first), r1_seq() == 1)[1], 20, "r1's map")
+            r1.put(keys.robot_map("r2"), robot_map("r2"))  # denied by the ACL
+            r1.put(keys.robot_map("r1"), robot_map("r2"))  # allowed key, lying envelope
+            r1.put(keys.robot_map("r1"), robot_map("r1", seq=2))  # after both, on the same link
+            wait_until(lambda: r1_seq() == 2, 20, "r1's second map")
+            doc = query_stats(mon, keys)
+            assert doc is not None
+            assert doc["stats"]["rejected_by"] == {"sender_mismatch": 1}, doc["stats"]
+            st = doc["stats"]
+            # r1's first map (perhaps repeated until it arrived), the lie, the second map: the put
+            # on r2's key never arrived (it would have made r2 a robot of the fused map)
+            assert st["accepted"] == 2 and st["received"] == 2 + st["duplicates"] + 1, st
+            assert sorted(doc["robots"]) == ["r1"]
+            fused = query_fused(mon, keys)
+            assert fused is not None and fused.robots == ("r1",)
+        assert fleet.stop("fuse", timeout=20) == 0, fleet.log("fuse")
+    assert "sender_mismatch" in fleet.log("fuse")
+
+
+def test_refused_login_is_a_one_line_error(tmp_path: Path, record_property) -> None:
+    """A robot with a wrong password, or dialling tcp/ where the router speaks tls/, stops at
+    once with one line instead of waiting forever for a router that is there."""
+    with secure_router(tmp_path, "sec", ["r1"]) as fl:
+        good = load_credentials(fl.credentials["r1"])
+        wrong = tmp_path / "wrong.json"
+        write_credentials(wrong, type(good)(good.user, "not-the-password", good.ca, good.cert, good.key))
+        cases = {
+            "wrong password": (fl.endpoint, wrong),
+            "tcp to a tls router": (fl.endpoint.replace("tls/", "tcp/"), fl.credentials["r1"]),
+        }
+        for name, (ep, cred) in cases.items():
+            t0 = time.monotonic()
+            r = subprocess.run(
+                [sys.executable, "-m", "agents", "robot", "--id", "r1", "--world", "paper-small", "--start", "2,2,0",
+                 "--fleet", "sec", "--connect", ep, "--credentials", str(cred)],
+                capture_output=True, text=True, cwd=REPO, timeout=60,
+            )  # fmt: skip
+            took = time.monotonic() - t0
+            record(record_property, f"refused_{name.replace(' ', '_')}_s", round(took, 2))
+            assert r.returncode == 2, (name, r.stderr)
+            assert r.stderr.count("\n") == 1 and "refused us" in r.stderr and "Traceback" not in r.stderr, r.stderr
