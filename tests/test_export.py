@@ -208,7 +208,7 @@ def test_wall_cells_diagonal_is_4_connected() -> None:
 
 @settings(max_examples=60, deadline=None)
 @given(
-    st.lists(st.floats(-3.0, 3.0, allow_nan=False), min_size=4, max_size=4),
+    st.lists(st.floats(-3.0, 3.0, allow_nan=False, allow_subnormal=False), min_size=4, max_size=4),
     st.floats(0.05, 1.0),
 )
 def test_wall_cells_cover_the_segment(coords: list[float], res: float) -> None:
