@@ -331,6 +331,11 @@ def wall_cells(
     idx = np.repeat(np.arange(len(cols)), nrow)
     rows = r0[idx] + (np.arange(int(nrow.sum())) - np.repeat(np.cumsum(nrow) - nrow, nrow))
     out[rows, cols[idx]] = True
+    # The interpolated y at a column edge can round below an endpoint that lies exactly on a cell
+    # boundary; the endpoints' own cells are marked outright.
+    ends = np.floor(p.reshape(-1, 2)).astype(np.int64)
+    inside = (ends[:, 0] >= 0) & (ends[:, 0] < width) & (ends[:, 1] >= 0) & (ends[:, 1] < height)
+    out[ends[inside, 1], ends[inside, 0]] = True
     return out
 
 
