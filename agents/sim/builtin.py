@@ -82,21 +82,22 @@ def _strip_with_doors(
 
 # ---------------------------------------------------------------------- paper-small
 def paper_small() -> Doc:
-    """15 x 15 m: four rooms (0.2 m thick walls, 1.2 m doorways in a cycle A-B-D-C-A), a 2 x 2 m
+    """15 x 15 m: four rooms (0.4 m thick walls, 1.2 m doorways in a cycle A-B-D-C-A), a 2 x 2 m
     box in the top-left room and an L-shaped counter in the bottom-right room. The free space is
     one polygon whose exterior has 20 corners, with a 12-corner wall island (the walls that no
     longer touch the outside once all four doors are open) and the two obstacles: 42 corners.
 
     Every wall lies on a multiple of 0.2 m, the resolution at which the paper scores this world
     (Sec. V-A): cell centres then never fall on a true wall, so the cell error measures the map
-    and not the rounding of an ambiguous cell."""
+    and not the rounding of an ambiguous cell. Walls are 0.4 m thick, twice the merge threshold,
+    so that the corners of a wall's two faces are never within merging distance of each other."""
     solid = [
         # horizontal wall y in [7, 7.3], doors A-C and B-D
-        *_strip_with_doors(0, 7, 15, 7.2, [(2.0, 3.2), (11.0, 12.2)], vertical=False),
+        *_strip_with_doors(0, 7, 15, 7.4, [(2.0, 3.2), (11.0, 12.2)], vertical=False),
         # vertical wall between A and B, door at y 3..4.2
-        *_strip_with_doors(7, 0, 7.2, 7, [(3.0, 4.2)], vertical=True),
+        *_strip_with_doors(7, 0, 7.4, 7, [(3.0, 4.2)], vertical=True),
         # vertical wall between C and D, door at y 10..11.2
-        *_strip_with_doors(9, 7.2, 9.2, 15, [(10.0, 11.2)], vertical=True),
+        *_strip_with_doors(9, 7.4, 9.4, 15, [(10.0, 11.2)], vertical=True),
         # obstacles
         box(3.6, 11.0, 5.6, 13.0),
         _union(box(10.0, 1.6, 13.0, 2.6), box(12.0, 2.6, 13.0, 4.6)),
