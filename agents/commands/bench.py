@@ -1,4 +1,4 @@
-"""``wiremap bench {accuracy,speed,codec,fleet,soak}``: dispatches to :mod:`agents.bench`."""
+"""``wiremap bench {accuracy,speed,codec,fleet,soak,sensor}``: dispatches to :mod:`agents.bench`."""
 
 from __future__ import annotations
 
@@ -12,6 +12,7 @@ BENCHES: dict[str, tuple[str, str]] = {
     "codec": ("agents.bench.codec", "wire codec size and speed against other encodings"),
     "fleet": ("agents.bench.fleet", "fleet latency, bandwidth and fused-map quality by fleet size"),
     "soak": ("agents.bench.soak", "long run with corrupt payloads and robot restarts"),
+    "sensor": ("agents.bench.sensor", "corner-sensor label accuracy and split-and-merge corner error"),
 }
 
 
