@@ -21,9 +21,12 @@ def _umask() -> int:
 _FILE_MODE = 0o666 & ~_umask()
 
 
-def write_atomic(path: str | os.PathLike[str], data: bytes | str) -> None:
+def write_atomic(path: str | os.PathLike[str], data: bytes | str, mode: int | None = None) -> None:
     """Write ``data`` to ``path`` atomically: a temporary file in the same directory, fsync,
-    then ``os.replace``. A reader sees the old file or the new one, never half of either."""
+    then ``os.replace``. A reader sees the old file or the new one, never half of either.
+
+    The file gets ``mode`` (default: 0666 less the umask). The temporary file is created 0600,
+    so a secret written with ``mode=0o600`` is never readable by others, not even for a moment."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     raw = data.encode() if isinstance(data, str) else data
@@ -33,7 +36,7 @@ def write_atomic(path: str | os.PathLike[str], data: bytes | str) -> None:
             fh.write(raw)
             fh.flush()
             os.fsync(fh.fileno())
-        os.chmod(tmp, _FILE_MODE)  # mkstemp creates 0600; give the file the usual mode
+        os.chmod(tmp, _FILE_MODE if mode is None else mode)
         os.replace(tmp, path)
     except BaseException:
         try:
