@@ -10,24 +10,44 @@ Two layers:
   and ``alive/*``; publishes the fused map on every change and answers queries for it and for
   its counters (``fused/stats``); logs to Rerun.
 
-Order independence, by construction: the fused map is a function of the *set* of latest robot
-maps only. A robot's latest map is the one with the greatest ``(meta["boot"], seq, sha256 of its
-bytes)``, whatever the order of arrival, and duplicates are no-ops; the fused map is then
-recomputed from scratch, visiting robots in sorted-id order. Robot ``k`` of the sorted ids owns
-bit ``k`` of ``Wireframe.sources`` (``MapMessage.robots`` lists them), so at most 64 robots.
+Order independence: a robot's latest map is the one with the greatest ``(meta["boot"], seq,
+sha256 of its bytes)``, whatever the order of arrival, and duplicates are no-ops. Robot ``k`` of
+the sorted ids owns bit ``k`` of ``Wireframe.sources`` (``MapMessage.robots`` lists them), so at
+most 64 robots.
 
-Fleet frame, in three steps per robot (choices where the paper and the issue are silent):
+Fleet frame and merge, per robot in sorted-id order (choices where the paper and the issue are
+silent):
 
 1. the map (in the robot's odometry frame) is moved by its start pose (``MapMessage.origin``);
 2. if ``mapping.icp`` is available and ``FusionConfig.refine`` is on, a wireframe ICP aligns it
-   to the fused map of the robots before it (sorted order; the first robot is the anchor).
-   The correction is kept only when it is small (``max_refine_m`` / ``max_refine_rad``): the
-   start poses are known, ICP only removes residual odometry drift;
+   to the fused map of the robots before it (the first robot is the anchor). The correction is
+   kept only when it is small (``max_refine_m`` / ``max_refine_rad``): the start poses are
+   known, ICP only removes residual odometry drift;
 3. :func:`mapping.merge.merge` adds it to the fused map with the merge threshold
    ``FusionConfig.threshold`` (default: the largest ``resolution`` among the robot maps).
 
 Finally :func:`close_frontiers` removes frontiers of one robot that another robot's walls
 close (see there).
+
+Two paths (:meth:`FusionState.compute`), because step 2 is the expensive one (an ICP is 4-7 ms
+of CPU on paper-small, a merge ~1 ms):
+
+* the **full path** runs step 2 for every robot whose alignment is not current and is a
+  deterministic function of the set of latest maps (property tests over permutations and
+  duplicates). It runs when the service has had no new map for ``full_after_s`` (0.5 s) and
+  before the final store write at exit;
+* the **fast path**, on every batch of arrivals, reuses each robot's cached alignment and
+  re-merges, from the first robot whose map or correction changed, every robot's aligned map
+  in sorted-id order (partial folds are cached by prefix). It equals the full path's map once
+  the alignments are current (:attr:`FusionState.converged`). The service runs no ICP inside
+  a fast fuse: after publishing it re-aligns one robot the fuse found wanting it
+  (:meth:`FusionState.realign`: its map grew or shrank by ``max(realign_vertices,
+  realign_fraction * n)`` vertices, its start pose or boot changed, or its stale alignment is
+  ``realign_s`` old), and the next fuse applies the new correction.
+
+The service drains the whole inbox, fuses once and publishes once per loop iteration, so a
+burst of maps costs one fold. The store is written by a background thread
+(:class:`StoreWriter`); publish latencies go to an append-only ``latency.log``.
 
 Hostile or broken input (choices; the counters are in :class:`FusionStats`, served on
 ``wiremap/<fleet>/fused/stats`` and written to the store's ``state.json``):
@@ -62,7 +82,7 @@ import sys
 import threading
 import time
 from collections import deque
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -81,6 +101,8 @@ DEFAULT_THRESHOLD = 0.2
 FUSION_ID = "fusion"
 SNAPSHOT = "snapshot.msgpack"
 MAX_LATENCIES = 100_000
+LATENCY_LOG = "latency.log"
+LATENCY_LOG_MAX_BYTES = 16 * 1024 * 1024
 _NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,62}$")  # = agents.bus.check_name
 
 
@@ -293,6 +315,13 @@ class FusionConfig:
     refine : align each robot's map to the rest with ``mapping.icp`` when that module exists.
     max_refine_m, max_refine_rad : largest accepted ICP correction.
     close_frontiers : apply :func:`close_frontiers` to the result.
+    realign_vertices, realign_fraction : a fast fuse re-runs a robot's ICP alignment when its
+        map's vertex count moved by more than ``max(realign_vertices, realign_fraction * n)``
+        since the alignment (``n`` the count then), or its start pose or boot changed.
+    realign_s : ... or when the alignment is this old (caller's clock, ``fuse(now=...)``) and
+        no longer the one the full path would compute (own map or reference changed).
+    max_realign_per_fuse : ICP runs at most per fast fuse (the robots earliest in sorted order
+        first; the others keep their cached correction until a later fuse).
     """
 
     threshold: float | None = None
@@ -300,15 +329,108 @@ class FusionConfig:
     max_refine_m: float = 0.6
     max_refine_rad: float = math.radians(6.0)
     close_frontiers: bool = True
+    realign_vertices: int = 8
+    realign_fraction: float = 0.25
+    realign_s: float = 10.0
+    max_realign_per_fuse: int = 1
 
 
 @dataclass(frozen=True)
 class RobotEntry:
-    """A robot's latest map as received: the message, its exact bytes, its order key."""
+    """A robot's latest map as received: the message, its exact bytes, its order key and its
+    content revision ``rev`` (a number that changes exactly when the map's content -- origin,
+    resolution, wireframe arrays -- changes; a re-sent map with a new ``seq`` keeps it)."""
 
     message: MapMessage
     raw: bytes
     key: tuple[int, int, str]
+    rev: int = 0
+
+
+@dataclass(frozen=True)
+class Alignment:
+    """A robot's cached fleet-frame alignment (the slow path of :meth:`FusionState.compute`).
+
+    correction : the ICP correction applied after the start pose (None: start pose only).
+    rev : the :attr:`RobotEntry.rev` of the map it was computed for.
+    n_vertices : that map's vertex count (the growth criterion of :class:`FusionConfig`).
+    origin : that map's start pose and boot ``(x, y, theta, boot)``.
+    at : the caller's clock when computed (None: unknown).
+    reference : the fold prefix it was aligned against, ``(threshold, (robot, rev, correction),
+        ...)`` of the robots before it; None when unknown (restored from a store).
+    """
+
+    correction: Pose | None
+    rev: int
+    n_vertices: int
+    origin: tuple[float, float, float, int]
+    at: float | None = None
+    reference: tuple[Any, ...] | None = None
+
+
+class LatencyWindow:
+    """Publish latencies (ms): the last ``capacity`` in a ring buffer plus an all-time count.
+
+    ``total`` counts every sample ever added (also across a restart when restored), so a reader
+    can tell how many were recorded between two looks even when the window is full; the
+    summary (:meth:`summary`) is over the window and cached until asked for a fresh one.
+    """
+
+    def __init__(self, capacity: int = MAX_LATENCIES) -> None:
+        self.capacity = int(capacity)
+        self._buf = np.zeros(self.capacity, dtype=np.float64)
+        self._at = np.zeros(self.capacity, dtype=np.int64)  # when each was recorded (ns, 0: unknown)
+        self._n = 0  # samples in the window
+        self._head = 0  # next write position
+        self.total = 0
+        self._summary: dict[str, float | int | None] | None = None
+
+    def extend(self, values: Iterable[float], at_ns: int = 0) -> None:
+        """Add samples recorded at ``at_ns`` (wall clock, ns; 0: unknown)."""
+        for v in values:
+            self._buf[self._head] = float(v)
+            self._at[self._head] = int(at_ns)
+            self._head = (self._head + 1) % self.capacity
+            self._n = min(self._n + 1, self.capacity)
+            self.total += 1
+
+    def _ordered(self, a: np.ndarray) -> np.ndarray:
+        if self._n < self.capacity:
+            return a[: self._n].copy()
+        return np.concatenate([a[self._head :], a[: self._head]])
+
+    def values(self) -> np.ndarray:
+        """The window, oldest first (a copy)."""
+        return self._ordered(self._buf)
+
+    def tail(self, k: int) -> tuple[np.ndarray, np.ndarray]:
+        """The last ``min(k, len)`` samples and their record times (ns), oldest first."""
+        v, t = self.values(), self._ordered(self._at)
+        k = min(max(0, k), len(v))
+        return v[len(v) - k :], t[len(t) - k :]
+
+    def __len__(self) -> int:
+        return self._n
+
+    def __iter__(self) -> Iterator[float]:
+        return iter(self.values().tolist())
+
+    def __eq__(self, other: object) -> bool:
+        if isinstance(other, LatencyWindow):
+            return self.total == other.total and np.array_equal(self.values(), other.values())
+        return NotImplemented
+
+    __hash__ = None  # type: ignore[assignment]
+
+    def summary(self, fresh: bool = True) -> dict[str, float | int | None]:
+        """``{n, total, p50, p99, max}`` over the window; ``fresh=False`` returns the summary
+        computed last time (with the current ``n`` and ``total``) unless there is none."""
+        if fresh or self._summary is None:
+            self._summary = latency_summary(self.values())
+        out = dict(self._summary)
+        out["n"] = self._n
+        out["total"] = self.total
+        return out
 
 
 @dataclass
@@ -323,6 +445,9 @@ class FusionStats:
     oversized / rate_limited / overflow : dropped by :class:`Intake` before decoding.
     side_dropped : pose and visualisation payloads dropped (too big, bad key, undecodable).
     published : fused versions published.
+    fuses / full_fuses : fused maps computed (fast path) / of them, full recomputes.
+    alignments : ICP alignments run (the slow path).
+    latencies_ms : the publish latencies (:class:`LatencyWindow`; ``latency_total`` counts all).
     """
 
     received: int = 0
@@ -337,17 +462,26 @@ class FusionStats:
     overflow: int = 0
     side_dropped: int = 0
     published: int = 0
+    fuses: int = 0
+    full_fuses: int = 0
+    alignments: int = 0
     malformed_by: dict[str, int] = field(default_factory=dict)
     rejected_by: dict[str, int] = field(default_factory=dict)
     absurd_by: dict[str, int] = field(default_factory=dict)
-    latencies_ms: list[float] = field(default_factory=list)
+    latencies_ms: LatencyWindow = field(default_factory=LatencyWindow)
 
     @property
     def dropped(self) -> int:
         """Every map payload that was dropped, for whatever reason."""
         return self.malformed + self.rejected + self.absurd + self.oversized + self.rate_limited + self.overflow
 
-    def as_dict(self) -> dict[str, Any]:
+    @property
+    def latency_total(self) -> int:
+        return self.latencies_ms.total
+
+    def as_dict(self, fresh_latency: bool = True) -> dict[str, Any]:
+        """The counters as JSON-ready values. ``fresh_latency=False`` reuses the last latency
+        percentiles (computing them over 100,000 samples takes milliseconds)."""
         return {
             "received": self.received,
             "accepted": self.accepted,
@@ -362,23 +496,22 @@ class FusionStats:
             "dropped": self.dropped,
             "side_dropped": self.side_dropped,
             "published": self.published,
+            "fuses": self.fuses,
+            "full_fuses": self.full_fuses,
+            "alignments": self.alignments,
             "malformed_by": dict(sorted(self.malformed_by.items())),
             "rejected_by": dict(sorted(self.rejected_by.items())),
             "absurd_by": dict(sorted(self.absurd_by.items())),
-            "latency_ms": latency_summary(self.latencies_ms),
+            "latency_ms": self.latencies_ms.summary(fresh_latency),
         }
 
 
 def latency_summary(lat_ms: Iterable[float]) -> dict[str, float | int | None]:
-    a = np.asarray(list(lat_ms), dtype=np.float64)
+    a = lat_ms if isinstance(lat_ms, np.ndarray) else np.asarray(list(lat_ms), dtype=np.float64)
     if len(a) == 0:
         return {"n": 0, "p50": None, "p99": None, "max": None}
-    return {
-        "n": len(a),
-        "p50": float(np.percentile(a, 50)),
-        "p99": float(np.percentile(a, 99)),
-        "max": float(a.max()),
-    }
+    p50, p99 = np.percentile(a, [50, 99])
+    return {"n": len(a), "p50": float(p50), "p99": float(p99), "max": float(a.max())}
 
 
 def order_key(msg: MapMessage, raw: bytes) -> tuple[int, int, str]:
@@ -403,6 +536,25 @@ class FusionState:
     merge_fn : ``merge_fn(base, new, threshold) -> Wireframe``; default
         :func:`mapping.merge.merge` (tests may pass another).
     limits : :class:`InputLimits` for :meth:`offer`.
+
+    Notes
+    -----
+    Two paths compute the fused map (:meth:`compute`), both a left fold of
+    :func:`mapping.merge.merge` over the robots' fleet-frame maps in sorted-id order:
+
+    * the **full path** (``full=True``) aligns every robot afresh -- start pose, then ICP onto
+      the fold of the robots before it -- and is a deterministic function of the set of
+      latest maps (and the config): the fused map does not depend on the order or repetition
+      of arrivals;
+    * the **fast path** (default) reuses each robot's cached :class:`Alignment` and re-runs
+      ICP only for robots whose map changed substantially (:class:`FusionConfig`), at most
+      ``max_realign_per_fuse`` per fuse; its result is the same fold with the cached
+      corrections, so it equals the full path's exactly once every alignment is current
+      (:attr:`converged`). An alignment is current when it was computed for the robot's present
+      map against the present prefix of the fold, whose robots' alignments are all current.
+
+    The partial folds are cached under the prefix ``(threshold, (robot, rev, correction),
+    ...)``, so a fuse recomputes only from the first robot whose map or correction changed.
     """
 
     def __init__(
@@ -422,10 +574,18 @@ class FusionState:
         self.fused: Wireframe = Wireframe.empty()
         self.fused_robots: tuple[str, ...] = ()
         self.corrections: dict[str, Pose] = {}
+        self.alignments: dict[str, Alignment] = {}
+        self.converged = True  # the fused map is the full path's
+        self.wanted: list[str] = []  # robots the last fast fuse wanted to re-align but had no budget for
         self.version = 0
         self.stats = FusionStats()
+        self._rev = 0
         self._pending: dict[str, int] = {}  # robot -> stamp_ns of an accepted map not yet fused
-        self._chain: list[tuple[Any, Wireframe, Pose | None]] = []  # compute()'s prefix cache
+        self._chain: list[tuple[tuple[Any, ...], Wireframe]] = []  # partial folds by prefix
+        self._closed: tuple[tuple[Any, ...], Wireframe] | None = None  # the folded map after close_frontiers
+        self._in_fleet: dict[str, tuple[int, Wireframe]] = {}  # robot -> (rev, map moved by its start pose)
+        self._prepared: dict[str, tuple[tuple[Any, ...], Wireframe]] = {}  # robot -> (key, map ready to merge)
+        self._lat_saved = 0  # latency_total already handed to a store job
 
     # ------------------------------------------------------------------ input
     def offer(self, data: bytes, key_robot: str | None = None, now_ns: int | None = None) -> bool:
@@ -486,9 +646,15 @@ class FusionState:
                 return False
         elif len(self.robots) >= MAX_ROBOTS:
             return self._drop("rejected", "too_many_robots", f"{rid!r} would be robot {MAX_ROBOTS + 1}")
-        self.robots[rid] = RobotEntry(msg, raw, key)
+        same = old is not None and _same_content(old.message, msg)
+        if same:
+            assert old is not None
+            rev = old.rev
+        else:
+            self._rev += 1
+            rev = self._rev
+        self.robots[rid] = RobotEntry(msg, raw, key, rev)
         self.stats.accepted += 1
-        same = old is not None and _same_map(old.message, msg)
         if not same:
             self._pending.setdefault(rid, int(msg.stamp_ns))
         return not same
@@ -503,57 +669,167 @@ class FusionState:
 
     def robot_in_fleet(self, robot: str) -> Wireframe:
         """A robot's latest map in the fleet frame (start pose, then the ICP correction)."""
-        m = self.robots[robot].message
-        wf = m.wireframe.transformed(m.origin)
+        wf = self._fleet_map(robot)
         corr = self.corrections.get(robot)
         return wf.transformed(corr) if corr is not None else wf
 
-    def compute(self) -> tuple[Wireframe, tuple[str, ...], dict[str, Pose]]:
-        """The fused map of the current latest maps.
+    def _fleet_map(self, rid: str) -> Wireframe:
+        """The robot's map moved by its start pose (cached per content revision)."""
+        e = self.robots[rid]
+        hit = self._in_fleet.get(rid)
+        if hit is not None and hit[0] == e.rev:
+            return hit[1]
+        m = e.message
+        wf = m.wireframe.transformed(m.origin)
+        self._in_fleet[rid] = (e.rev, wf)
+        return wf
 
-        A pure function of the set of latest maps (and the config). The partial results after
-        each robot are cached under the keys of the robots so far (a prefix of the sorted ids),
-        so when only a late robot's map changed, the prefix before it is reused; this changes
-        the cost, never the result.
+    def _ready(self, rid: str, corr: Pose | None, k: int) -> Wireframe:
+        """The robot's map in the fleet frame with its correction, contributor bit ``k`` set."""
+        e = self.robots[rid]
+        key = (e.rev, corr, k)
+        hit = self._prepared.get(rid)
+        if hit is not None and hit[0] == key:
+            return hit[1]
+        m = e.message
+        src = m.wireframe
+        pose = m.origin if corr is None else corr.compose(m.origin)
+        # one Wireframe (one validation) for origin, correction and contributor bit together
+        wf = Wireframe(
+            pose.apply(src.points), src.labels, src.edges, src.likelihood,
+            np.full(src.n_edges, np.uint64(1) << np.uint64(k), dtype=np.uint64),
+        )
+        self._prepared[rid] = (key, wf)
+        return wf
+
+    def _wants_realign(self, al: Alignment | None, e: RobotEntry, current: bool, now: float | None) -> bool:
+        """The fast path's test: re-run this robot's ICP now? (see :class:`FusionConfig`)."""
+        if al is None:
+            return True
+        if current:
+            return False
+        cfg = self.config
+        if al.rev != e.rev:
+            if _origin_of(e.message) != al.origin:
+                return True
+            n = e.message.wireframe.n_vertices
+            if abs(n - al.n_vertices) > max(cfg.realign_vertices, cfg.realign_fraction * al.n_vertices):
+                return True
+        return now is not None and (al.at is None or now - al.at >= cfg.realign_s)
+
+    def compute(
+        self, full: bool = False, now: float | None = None, max_realign: int | None = None
+    ) -> tuple[Wireframe, tuple[str, ...], dict[str, Pose]]:
+        """The fused map of the current latest maps: ``(map, robot ids, corrections)``.
+
+        ``full=True``: the full path, every alignment made current (a deterministic function
+        of the set of latest maps); otherwise the fast path, which re-aligns at most
+        ``max_realign`` robots (default ``config.max_realign_per_fuse``) chosen by
+        :class:`FusionConfig`'s criteria, earliest in sorted order first. ``now`` is the
+        caller's clock in seconds (for ``realign_s``). Updates :attr:`alignments` and
+        :attr:`converged`; the cached partial folds change the cost, never the result.
         """
+        cfg = self.config
         ids = tuple(sorted(self.robots))
         thr = self.threshold
+        budget = len(ids) if full else (cfg.max_realign_per_fuse if max_realign is None else max_realign)
         acc = Wireframe.empty()
-        corrections: dict[str, Pose] = {}
-        chain: list[tuple[Any, Wireframe, Pose | None]] = []
-        prefix: tuple[Any, ...] = (thr, self.config)
+        prefix: tuple[Any, ...] = (thr,)
+        chain: list[tuple[tuple[Any, ...], Wireframe]] = []
         cached = self._chain
+        reuse = True
+        exact = True
+        corrections: dict[str, Pose] = {}
+        alignments: dict[str, Alignment] = {}
+        wanted: list[str] = []
         for k, rid in enumerate(ids):
-            prefix = (*prefix, rid, self.robots[rid].key)
-            if k < len(cached) and cached[k][0] == prefix:
-                _, acc, corr = cached[k]
-                if corr is not None:
-                    corrections[rid] = corr
-                chain.append(cached[k])
-                continue
-            cached = []  # the prefix differs from here on
-            m = self.robots[rid].message
-            wf = m.wireframe.transformed(m.origin)
-            wf = wf.replace(sources=np.full(wf.n_edges, np.uint64(1) << np.uint64(k), dtype=np.uint64))
-            corr = None
-            if self.config.refine and acc.n_edges and wf.n_edges:
-                corr = _refine(wf, acc, thr, self.config)
-                if corr is not None:
-                    corrections[rid] = corr
-                    wf = wf.transformed(corr)
-            if wf.n_vertices:
-                acc = wf if acc.n_vertices == 0 else self.merge_fn(acc, wf, thr)
-            chain.append((prefix, acc, corr))
+            e = self.robots[rid]
+            al = self.alignments.get(rid)
+            n = e.message.wireframe.n_vertices
+            if k == 0 or not cfg.refine:
+                # the anchor (and everyone without refinement): the start pose alone, by definition current
+                if al is None or al.rev != e.rev or al.reference != prefix or al.correction is not None:
+                    al = Alignment(None, e.rev, n, _origin_of(e.message), now, prefix)
+            else:
+                current = exact and al is not None and al.rev == e.rev and al.reference == prefix
+                want = (not current) if full else self._wants_realign(al, e, current, now)
+                if want and budget <= 0:
+                    wanted.append(rid)
+                elif want:
+                    budget -= 1
+                    wf0 = self._fleet_map(rid)
+                    corr_new = _refine(wf0, acc, thr, cfg) if acc.n_edges and wf0.n_edges else None
+                    al = Alignment(corr_new, e.rev, n, _origin_of(e.message), now, prefix)
+                    self.stats.alignments += 1
+                    current = exact
+                exact = current
+            if al is not None:
+                alignments[rid] = al
+            corr = al.correction if al is not None else None
+            if corr is not None:
+                corrections[rid] = corr
+            prefix = (*prefix, (rid, e.rev, corr))
+            if reuse and k < len(cached) and cached[k][0] == prefix:
+                acc = cached[k][1]
+            else:
+                reuse = False
+                wf = self._ready(rid, corr, k)
+                if wf.n_vertices:
+                    acc = wf if acc.n_vertices == 0 else self.merge_fn(acc, wf, thr)
+            chain.append((prefix, acc))
         self._chain = chain
-        if self.config.close_frontiers:
+        self.alignments = alignments
+        self.wanted = wanted
+        self.converged = exact
+        for cache in (self._in_fleet, self._prepared):
+            for rid in [r for r in cache if r not in self.robots]:
+                del cache[rid]
+        closed = (*prefix, self.config.close_frontiers)
+        if self._closed is not None and self._closed[0] == closed:
+            acc = self._closed[1]
+        elif self.config.close_frontiers:
             acc = close_frontiers(acc, thr)
+        self._closed = (closed, acc)
         return acc, ids, corrections
 
-    def fuse(self) -> bool:
-        """Recompute the fused map; bump ``version`` and return True when it changed."""
-        wf, ids, corr = self.compute()
+    def realign(self, now: float | None = None, limit: int = 1) -> list[str]:
+        """The slow path on its own: re-run the ICP alignment of up to ``limit`` robots that the
+        last fuse found wanting one (:attr:`wanted`, in fold order), each against the prefix of
+        that fuse's fold. The fused map does not change; the next :meth:`fuse` uses the new
+        alignments (and recomputes the fold from the first robot whose correction changed).
+        Lets a service publish first and align afterwards. Returns the robots aligned."""
+        done: list[str] = []
+        if not self.config.refine:
+            return done
+        position = {link[0][-1][0]: k for k, link in enumerate(self._chain)}
+        thr = self.threshold
+        for rid in list(self.wanted):
+            if len(done) >= limit:
+                break
+            self.wanted.remove(rid)
+            k = position.get(rid, 0)
+            e = self.robots.get(rid)
+            if e is None or k == 0:
+                continue
+            reference, acc = self._chain[k - 1]
+            if reference[0] != thr:
+                continue  # the threshold changed since that fold: the next fuse decides
+            wf0 = self._fleet_map(rid)
+            corr = _refine(wf0, acc, thr, self.config) if acc.n_edges and wf0.n_edges else None
+            n = e.message.wireframe.n_vertices
+            self.alignments[rid] = Alignment(corr, e.rev, n, _origin_of(e.message), now, reference)
+            self.stats.alignments += 1
+            done.append(rid)
+        return done
+
+    def fuse(self, full: bool = False, now: float | None = None, max_realign: int | None = None) -> bool:
+        """Recompute the fused map (:meth:`compute`); bump ``version`` and return True when it
+        changed."""
+        wf, ids, corr = self.compute(full, now, max_realign)
+        self.stats.fuses += 1
+        self.stats.full_fuses += int(full)
         self.corrections = corr
-        changed = ids != self.fused_robots or not wf.almost_equal(self.fused, tol=1e-9)
+        changed = ids != self.fused_robots or not _same_wireframe(wf, self.fused)
         if changed:
             self.fused, self.fused_robots = wf, ids
             self.version += 1
@@ -563,13 +839,11 @@ class FusionState:
 
     def take_latencies(self, published_ns: int) -> list[float]:
         """Latency (ms) from each robot map that changed since the last fused publish to this
-        publish at ``published_ns`` (same machine clock); recorded in ``stats`` (the last
-        ``MAX_LATENCIES`` only)."""
+        publish at ``published_ns`` (same machine clock); recorded in ``stats.latencies_ms``
+        (the last ``MAX_LATENCIES`` in the window, all in its ``total``)."""
         out = [max(0.0, (published_ns - s) / 1e6) for s in self._pending.values()]
         self._pending.clear()
-        self.stats.latencies_ms.extend(out)
-        if len(self.stats.latencies_ms) > MAX_LATENCIES:  # bounded memory: a sliding window
-            del self.stats.latencies_ms[: len(self.stats.latencies_ms) - MAX_LATENCIES]
+        self.stats.latencies_ms.extend(out, published_ns)
         self.stats.published += 1
         return out
 
@@ -596,43 +870,49 @@ class FusionState:
         return max(ts, default=0.0)
 
     # ------------------------------------------------------------------ store
-    def save(self, store: str | os.PathLike[str], robots: Iterable[str] | None = None, stamp_ns: int = 0) -> None:
-        """Write the state under ``store``.
-
-        First ``snapshot.msgpack``, the authoritative copy, in one atomic write (temporary
-        file, fsync, rename): ``{"format": 1, "version", "stamp_ns", "robots": {id: bytes as
-        received}, "fused": fused map bytes}``, so a crash at any moment leaves either the old
-        or the new snapshot, never robot maps from one save and a fused map from another.
-        Then views for people and tools, each atomic too: ``robots/<id>.wfm`` (only
-        ``robots`` when given), ``fused.wfm`` and ``state.json`` (version, per-robot
-        seq/boot/sha256, counters, the last 10,000 latencies).
-        """
-        d = Path(store)
-        fused_raw = encode_message(self.fused_message(stamp_ns))
-        snap = {
-            "format": 1,
-            "version": self.version,
-            "stamp_ns": int(stamp_ns),
-            "robots": {r: e.raw for r, e in sorted(self.robots.items())},
-            "fused": fused_raw,
-        }
-        write_atomic(d / SNAPSHOT, bytes(msgpack.packb(snap, use_bin_type=True)))
-        for rid in sorted(self.robots if robots is None else robots):
-            if rid in self.robots:
-                write_atomic(d / "robots" / f"{rid}.wfm", self.robots[rid].raw)
-        write_atomic(d / "fused.wfm", fused_raw)
-        write_json(
-            d / "state.json",
-            {
+    def store_job(
+        self,
+        store: str | os.PathLike[str],
+        robots: Iterable[str] | None = None,
+        stamp_ns: int = 0,
+        fresh_latency: bool = True,
+    ) -> StoreJob:
+        """What :meth:`save` writes, gathered now (cheap: references to bytes, the counters,
+        the new latencies) and written later by :meth:`StoreJob.write`, possibly in another
+        thread (:class:`StoreWriter`)."""
+        ids = sorted(self.robots if robots is None else robots)
+        lat = self.stats.latencies_ms
+        new = min(lat.total - self._lat_saved, len(lat))
+        first = lat.total - new + 1  # index of the first new sample (1-based, all-time)
+        job = StoreJob(
+            store=Path(store),
+            version=self.version,
+            stamp_ns=int(stamp_ns),
+            robots={r: e.raw for r, e in sorted(self.robots.items())},
+            views={r for r in ids if r in self.robots},
+            fused_raw=encode_message(self.fused_message(stamp_ns)),
+            alignments={
+                r: (None if (c := self.corrections.get(r)) is None else [c.x, c.y, c.theta]) for r in self.fused_robots
+            },
+            state={
                 "version": self.version,
                 "robots": {
                     r: {"seq": e.key[1], "boot": e.key[0], "sha256": e.key[2]} for r, e in sorted(self.robots.items())
                 },
                 "fused": {"vertices": self.fused.n_vertices, "edges": self.fused.n_edges},
-                "stats": self.stats.as_dict(),
-                "latencies_ms": [round(x, 3) for x in self.stats.latencies_ms[-10_000:]],
+                "converged": self.converged,
+                "stats": self.stats.as_dict(fresh_latency),
+                "latency_total": lat.total,
+                "latency_log": LATENCY_LOG,
             },
+            latencies=[(first + i, v, t) for i, (v, t) in enumerate(zip(*(a.tolist() for a in lat.tail(new))))],
         )
+        self._lat_saved = lat.total
+        return job
+
+    def save(self, store: str | os.PathLike[str], robots: Iterable[str] | None = None, stamp_ns: int = 0) -> None:
+        """Write the state under ``store`` now (see :class:`StoreJob` for the files)."""
+        self.store_job(store, robots, stamp_ns).write()
 
     @classmethod
     def load(
@@ -647,9 +927,12 @@ class FusionState:
 
         The robot maps come from ``snapshot.msgpack`` (or, in a store without one, from
         ``robots/*.wfm``) and pass the same checks as maps from the bus. The fused map is
-        recomputed from them (so it is the same map) and keeps the stored version when it
-        equals the stored fused map; otherwise the version goes up. Unreadable files are
-        skipped with a warning on stderr.
+        recomputed from them: with the snapshot's stored alignments when it has them for every
+        robot (so a map the fast path published comes back exactly), otherwise by the full
+        path. It keeps the stored version when it equals the stored fused map; otherwise the
+        version goes up. Unreadable files are skipped with a warning on stderr. The latency
+        window is refilled from the tail of ``latency.log`` and its all-time count from
+        ``state.json``.
         """
         st = cls(config, sender, merge_fn, limits)
         d = Path(store)
@@ -657,6 +940,7 @@ class FusionState:
             return st
         if not d.is_dir():
             raise UserError(f"{d}: not a directory")
+
         def warn(text: str) -> None:
             sys.stderr.write(f"wiremap fuse: {text}\n")
 
@@ -665,69 +949,149 @@ class FusionState:
             if not st.offer(raw, rid) and st.last_drop is not None:
                 sys.stderr.write(f"wiremap fuse: skipping stored map of {rid}: {st.last_drop[2]}\n")
         st.stats = FusionStats()
+        total = 0
         try:
             state = json.loads((d / "state.json").read_text())
-            st.stats.latencies_ms = [float(x) for x in state.get("latencies_ms", [])]
+            total = int(state.get("latency_total", 0) or 0)
         except (OSError, ValueError, TypeError, AttributeError):
             pass
+        tail = read_latency_log(d, MAX_LATENCIES)
+        st.stats.latencies_ms.extend(v for _, v in tail)
+        st.stats.latencies_ms.total = max(total, tail[-1][0] if tail else 0, len(tail))
+        st._lat_saved = st.stats.latencies_ms.total
         if st.robots:
-            st.fuse()
+            al = contents.alignments
+            if al is not None and set(al) == set(st.robots):
+                for rid, corr in al.items():
+                    e = st.robots[rid]
+                    st.alignments[rid] = Alignment(corr, e.rev, e.message.wireframe.n_vertices, _origin_of(e.message))
+                st.fuse(max_realign=0)
+            else:
+                st.fuse(full=True)
         st._pending.clear()
         same = False
         if contents.fused is not None and st.robots:
             # compare as stored: through the codec
             again = decode_message(encode_message(st.fused_message(0))).wireframe
             same = again.almost_equal(contents.fused.wireframe, tol=1e-9, likelihood_tol=1e-9)
-        version = contents.version
-        st.version = version if (same or not st.robots) else version + 1
-        return st
-        if not d.is_dir():
-            raise UserError(f"{d}: not a directory")
-        for f in sorted((d / "robots").glob("*.wfm")):
-            try:
-                raw = f.read_bytes()
-                msg = decode_message(raw)
-            except (OSError, ValueError) as exc:
-                sys.stderr.write(f"wiremap fuse: skipping {f}: {exc}\n")
-                continue
-            st._add(msg, raw)
-        st.stats = FusionStats()
-        version = 0
-        old_fused: Wireframe | None = None
-        try:
-            state = json.loads((d / "state.json").read_text())
-            version = int(state.get("version", 0))
-            st.stats.latencies_ms = [float(x) for x in state.get("latencies_ms", [])]
-        except (OSError, ValueError, TypeError, AttributeError):
-            pass
-        try:
-            fm = decode_message((d / "fused.wfm").read_bytes())
-            old_fused = fm.wireframe
-            version = max(version, int(fm.seq))
-        except (OSError, ValueError):
-            pass
-        if st.robots:
-            st.fuse()
-        st._pending.clear()
-        same = False
-        if old_fused is not None and st.robots:
-            # compare as stored: through the codec
-            again = decode_message(encode_message(st.fused_message(0))).wireframe
-            same = again.almost_equal(old_fused, tol=1e-9, likelihood_tol=1e-9)
-        st.version = version if (same or not st.robots) else version + 1
+        st.version = contents.version if (same or not st.robots) else contents.version + 1
         return st
 
+
+@dataclass
+class StoreJob:
+    """One write of the fusion store, gathered by :meth:`FusionState.store_job`.
+
+    :meth:`write` writes, in this order: the new latencies appended to ``latency.log``
+    (:func:`append_latency_log`); then ``snapshot.msgpack``, the authoritative copy, in one
+    atomic write (temporary file, fsync, rename): ``{"format": 2, "version", "stamp_ns",
+    "robots": {id: bytes as received}, "fused": fused map bytes, "alignments": {id: [x, y,
+    theta] or None}}``, so a crash at any moment leaves either the old or the new snapshot;
+    then views for people and tools, each atomic too: ``robots/<id>.wfm`` (those in
+    :attr:`views`), ``fused.wfm`` and ``state.json`` (version, per-robot seq/boot/sha256,
+    counters with the latency summary, ``latency_total``). ``state.json`` comes last, so a
+    reader that sees its ``latency_total`` finds that many lines in the log.
+    """
+
+    store: Path
+    version: int
+    stamp_ns: int
+    robots: dict[str, bytes]
+    views: set[str]
+    fused_raw: bytes
+    alignments: dict[str, list[float] | None]
+    state: dict[str, Any]
+    latencies: list[tuple[int, float, int]]
+
+    def then(self, newer: StoreJob) -> StoreJob:
+        """This job followed by ``newer`` as one: newer contents, the views and latencies of both."""
+        return StoreJob(
+            newer.store, newer.version, newer.stamp_ns, newer.robots, self.views | newer.views, newer.fused_raw,
+            newer.alignments, newer.state, self.latencies + newer.latencies,
+        )
+
+    def write(self) -> None:
+        d = self.store
+        if self.latencies:
+            append_latency_log(d, self.latencies)
+        snap = {
+            "format": 2,
+            "version": self.version,
+            "stamp_ns": self.stamp_ns,
+            "robots": self.robots,
+            "fused": self.fused_raw,
+            "alignments": self.alignments,
+        }
+        write_atomic(d / SNAPSHOT, bytes(msgpack.packb(snap, use_bin_type=True)))
+        for rid in sorted(self.views):
+            if rid in self.robots:
+                write_atomic(d / "robots" / f"{rid}.wfm", self.robots[rid])
+        write_atomic(d / "fused.wfm", self.fused_raw)
+        write_json(d / "state.json", self.state)
+
+
+def append_latency_log(store: str | os.PathLike[str], samples: list[tuple[int, float, int]]) -> None:
+    """Append ``<index> <ms> <published_ns>`` lines to ``<store>/latency.log`` (no fsync:
+    statistics, not state); rotate it to ``latency.log.1`` first when it is over
+    ``LATENCY_LOG_MAX_BYTES``. ``index`` counts every sample ever recorded (1, 2, ...),
+    ``published_ns`` is the wall clock of the fused publish the sample ended at."""
+    d = Path(store)
+    d.mkdir(parents=True, exist_ok=True)
+    path = d / LATENCY_LOG
+    try:
+        if path.stat().st_size > LATENCY_LOG_MAX_BYTES:
+            os.replace(path, d / (LATENCY_LOG + ".1"))
+    except FileNotFoundError:
+        pass
+    text = "".join(f"{i} {v:.3f} {t}\n" for i, v, t in samples)
+    with open(path, "a", encoding="ascii") as fh:
+        fh.write(text)
+
+
+def read_latency_log(store: str | os.PathLike[str], last: int) -> list[tuple[int, float]]:
+    """The last ``last`` ``(index, ms)`` samples of ``<store>/latency.log`` (and of
+    ``latency.log.1`` when the current file holds fewer); unreadable lines are skipped."""
+    d = Path(store)
+    out: list[tuple[int, float]] = []
+    for name in (LATENCY_LOG, LATENCY_LOG + ".1"):
+        need = last - len(out)
+        if need <= 0:
+            break
+        try:
+            with open(d / name, "rb") as fh:
+                size = fh.seek(0, os.SEEK_END)
+                start = max(0, size - need * 24)
+                fh.seek(start)
+                data = fh.read()
+        except OSError:
+            continue
+        lines = data.split(b"\n")
+        if start > 0:
+            lines = lines[1:]  # probably cut
+        got: list[tuple[int, float]] = []
+        for ln in lines:
+            parts = ln.split()
+            if len(parts) not in (2, 3):
+                continue
+            try:
+                got.append((int(parts[0]), float(parts[1])))
+            except ValueError:
+                continue
+        out = got[max(0, len(got) - need) :] + out
+    return out
 
 
 @dataclass(frozen=True)
 class StoreContents:
     """What :func:`read_store` found: the stored version, the stored fused map (None if
-    unreadable) and each robot's stored bytes."""
+    unreadable), each robot's stored bytes, and the alignments the stored map was fused with
+    (None when not stored: a format-1 snapshot or the views)."""
 
     version: int
     fused: MapMessage | None
     raw_robots: dict[str, bytes]
     from_snapshot: bool
+    alignments: dict[str, Pose | None] | None = None
 
     def robots(self) -> dict[str, MapMessage]:
         """The stored robot maps, decoded (undecodable ones left out)."""
@@ -738,6 +1102,25 @@ class StoreContents:
             except ValueError:
                 continue
         return out
+
+
+def _read_alignments(doc: Any) -> dict[str, Pose | None] | None:
+    if not isinstance(doc, dict):
+        return None
+    out: dict[str, Pose | None] = {}
+    for rid, v in doc.items():
+        if not isinstance(rid, str):
+            return None
+        if v is None:
+            out[rid] = None
+            continue
+        if not (isinstance(v, list) and len(v) == 3 and all(isinstance(x, (int, float)) for x in v)):
+            return None
+        try:
+            out[rid] = Pose(float(v[0]), float(v[1]), float(v[2]))
+        except ValueError:
+            return None
+    return out
 
 
 def read_store(store: str | os.PathLike[str], warn: Callable[[str], None] | None = None) -> StoreContents:
@@ -775,7 +1158,8 @@ def read_store(store: str | os.PathLike[str], warn: Callable[[str], None] | None
                 say(f"{snap_path}: the fused map in it is unreadable")
             hand_edited = _views_disagree(robots, views)
             if hand_edited is None:
-                return StoreContents(version, fused, dict(sorted(robots.items())), True)
+                al = _read_alignments(snap.get("alignments"))
+                return StoreContents(version, fused, dict(sorted(robots.items())), True, al)
             say(f"{hand_edited}: using robots/*.wfm rather than {SNAPSHOT}")
         except (OSError, ValueError, TypeError, KeyError, msgpack.UnpackException) as exc:
             say(f"{snap_path} is unreadable ({type(exc).__name__}: {exc}); using robots/*.wfm")
@@ -819,8 +1203,40 @@ def _views_disagree(snapshot: dict[str, bytes], views: dict[str, bytes]) -> str 
     return None
 
 
-def _same_map(a: MapMessage, b: MapMessage) -> bool:
-    return a.origin.almost_equal(b.origin, 1e-12, 1e-12) and a.wireframe.almost_equal(b.wireframe, tol=1e-12)
+def _origin_of(msg: MapMessage) -> tuple[float, float, float, int]:
+    boot = msg.meta.get("boot", 0) if isinstance(msg.meta, dict) else 0
+    return (msg.origin.x, msg.origin.y, msg.origin.theta, boot if isinstance(boot, int) else 0)
+
+
+def _same_content(a: MapMessage, b: MapMessage) -> bool:
+    """Exactly the same map for fusion: start pose, resolution and wireframe arrays (the codec
+    decodes the same content to the same arrays)."""
+    return (
+        a.origin.as_tuple() == b.origin.as_tuple()
+        and float(a.resolution) == float(b.resolution)
+        and _same_arrays(a.wireframe, b.wireframe)
+    )
+
+
+def _same_arrays(a: Wireframe, b: Wireframe) -> bool:
+    return (
+        a.points.shape == b.points.shape
+        and a.edges.shape == b.edges.shape
+        and np.array_equal(a.points, b.points)
+        and np.array_equal(a.labels, b.labels)
+        and np.array_equal(a.edges, b.edges)
+        and np.array_equal(a.likelihood, b.likelihood)
+        and np.array_equal(a.sources, b.sources)
+    )
+
+
+def _same_wireframe(a: Wireframe, b: Wireframe) -> bool:
+    """Identical arrays, or the same graph up to vertex and edge order (1e-9)."""
+    if a is b or _same_arrays(a, b):
+        return True
+    if a.n_vertices != b.n_vertices or a.n_edges != b.n_edges:
+        return False
+    return a.almost_equal(b, tol=1e-9)
 
 
 def _refine(source: Wireframe, target: Wireframe, threshold: float, cfg: FusionConfig) -> Pose | None:
@@ -873,7 +1289,7 @@ class Intake:
         self.limits = limits
         self.clock = clock
         self._cond = threading.Condition()
-        self._queues: dict[str, deque[tuple[int, bytes]]] = {}
+        self._queues: dict[str, deque[tuple[int, bytes, int]]] = {}  # (arrival number, bytes, wall ns)
         self._buckets: dict[str, list[float]] = {}  # key -> [tokens, last refill]
         self._bytes = 0
         self._arrival = 0
@@ -924,27 +1340,31 @@ class Intake:
             q = self._queues.setdefault(key, deque())
             dropped = None
             if len(q) >= lim.queue_depth:
-                _, old = q.popleft()
+                _, old, _ = q.popleft()
                 self._bytes -= len(old)
                 self.overflow += 1
                 dropped = "overflow"
             data = payload if isinstance(payload, bytes) else bytes(payload.to_bytes())
             self._arrival += 1
-            q.append((self._arrival, data))
+            q.append((self._arrival, data, time.time_ns()))
             self._bytes += len(data)
             self._cond.notify()
             return dropped
 
     def drain(self, timeout: float = 0.0) -> list[tuple[str, bytes]]:
         """Everything waiting, oldest first; waits up to ``timeout`` for the first payload."""
+        return [(k, d) for k, d, _ in self.drain_timed(timeout)]
+
+    def drain_timed(self, timeout: float = 0.0) -> list[tuple[str, bytes, int]]:
+        """:meth:`drain` with each payload's arrival time (wall clock, ns)."""
         with self._cond:
             if not self._queues and timeout > 0:
                 self._cond.wait(timeout)
-            items = [(n, k, d) for k, q in self._queues.items() for n, d in q]
+            items = [(n, k, d, t) for k, q in self._queues.items() for n, d, t in q]
             self._queues.clear()
             self._bytes = 0
         items.sort(key=lambda x: x[0])
-        return [(k, d) for _, k, d in items]
+        return [(k, d, t) for _, k, d, t in items]
 
     @property
     def queued_bytes(self) -> int:
@@ -1001,6 +1421,69 @@ def rss_kb(pid: int | str = "self") -> int | None:
     return None
 
 
+class StoreWriter:
+    """Writes :class:`StoreJob` s in a background thread, so that the fusion loop never waits
+    for a disk (each store write fsyncs several files).
+
+    :meth:`submit` hands over a job; a job still waiting when the next arrives is combined
+    with it (:meth:`StoreJob.then`: the newest contents, every view and latency of both), so
+    at most one write is ever queued and the files are written in order. :meth:`close` writes
+    what is waiting and stops the thread. A failed write is reported through ``say`` (once per
+    error message) and counted in :attr:`errors`; the next job writes everything again.
+    """
+
+    def __init__(self, say: Callable[[str], None] | None = None) -> None:
+        self.say = say or (lambda _s: None)
+        self._cond = threading.Condition()
+        self._job: StoreJob | None = None
+        self._busy = False
+        self._stop = False
+        self.errors = 0
+        self.written = 0
+        self._last_error = ""
+        self._thread = threading.Thread(target=self._run, name="fusion-store", daemon=True)
+        self._thread.start()
+
+    def submit(self, job: StoreJob) -> None:
+        with self._cond:
+            self._job = job if self._job is None else self._job.then(job)
+            self._cond.notify_all()
+
+    def _run(self) -> None:
+        while True:
+            with self._cond:
+                while self._job is None and not self._stop:
+                    self._cond.wait()
+                job, self._job = self._job, None
+                if job is None:
+                    return
+                self._busy = True
+            try:
+                job.write()
+                self.written += 1
+            except OSError as exc:
+                self.errors += 1
+                text = f"cannot write the store {job.store}: {exc}"
+                if text != self._last_error:
+                    self._last_error = text
+                    self.say(text)
+            finally:
+                with self._cond:
+                    self._busy = False
+                    self._cond.notify_all()
+
+    def flush(self, timeout: float | None = None) -> bool:
+        """Wait until nothing is queued or being written; returns whether that happened."""
+        with self._cond:
+            return self._cond.wait_for(lambda: self._job is None and not self._busy, timeout)
+
+    def close(self, timeout: float = 30.0) -> None:
+        with self._cond:
+            self._stop = True
+            self._cond.notify_all()
+        self._thread.join(timeout)
+
+
 @dataclass
 class ServeOptions:
     """Options of the fusion service process (``wiremap fuse``).
@@ -1014,7 +1497,12 @@ class ServeOptions:
     min_interval_s : fuse at most this often (maps arriving meanwhile are batched).
     save_interval_s : write the store at most this often (each write fsyncs; the last state
         is always written at exit, so a crash (kill -9) loses at most this much, which the
-        robots' next heartbeat maps restore). 0: on every change.
+        robots' next heartbeat maps restore). 0: on every change. The writes happen in a
+        background thread (:class:`StoreWriter`).
+    full_after_s : when no robot map has changed for this long and the fused map is not the
+        full path's (:attr:`FusionState.converged`), recompute it by the full path.
+    latency_summary_s : recompute the latency percentiles of ``fused/stats`` at most this often
+        (the counters themselves are always current).
     limits : :class:`InputLimits` (what is accepted from the bus).
     drop_log_s : at most one "dropped ..." line per this many seconds (:class:`DropLog`).
     config : :class:`FusionConfig`.
@@ -1031,6 +1519,8 @@ class ServeOptions:
     config: FusionConfig = field(default_factory=FusionConfig)
     limits: InputLimits = field(default_factory=InputLimits)
     drop_log_s: float = 5.0
+    full_after_s: float = 0.5
+    latency_summary_s: float = 1.0
 
 
 class FusionService:
@@ -1077,8 +1567,18 @@ class FusionService:
         self.last_fuse = 0.0
         self.last_say = 0.0
         self.dirty: set[str] = set()
+        self.refuse = False  # fuse at the next iteration even without new maps (a new alignment)
         self.unsaved: set[str] = set()
         self.last_save = 0.0
+        self.save_due = False  # the store is behind for another reason than robot maps
+        self.last_change = time.monotonic()  # when a robot map last changed
+        self._lat_at = -math.inf
+        self.timing: dict[str, float] = dict.fromkeys(
+            ("wait", "decode", "fuse", "publish", "align", "other", "iterations"), 0.0
+        )
+        self._timed = 0.0  # of this iteration's time, spent in _fuse
+        self.transport_ms = LatencyWindow(10_000)  # robot publish -> inbox, of maps that changed
+        self.writer = StoreWriter(self.say) if opts.store else None
         self.started = time.monotonic()
         self._stats_doc = b"{}"
         self._stats_at = -math.inf
@@ -1190,6 +1690,7 @@ class FusionService:
         data = encode_message(st.fused_message(self.version_stamp_ns, self._meta()))
         with self.lock:
             self.current = data
+        self._update_stats(force=True)  # before the put: whoever sees the map sees its counters
         self._put(data)
         lat = st.take_latencies(time.time_ns())
         if self.recorder is not None:
@@ -1202,15 +1703,18 @@ class FusionService:
                 f"{len(data)} bytes, robots {' '.join(st.fused_robots)}"
             )
 
-    def _take(self, items: list[tuple[str, bytes]]) -> None:
+    def _take(self, items: list[tuple[str, bytes, int]]) -> None:
         st = self.state
         now_ns = time.time_ns()
-        for key, data in items:
+        for key, data, arrived_ns in items:
             rid = self.keys.robot_of(key)
             if rid is None:
                 st.reject_key(key)
             elif st.offer(data, rid, now_ns):
                 self.dirty.add(rid)
+                self.last_change = time.monotonic()
+                # robot publish -> in the fusion service's inbox (transport and the robot's own put)
+                self.transport_ms.extend([max(0.0, (arrived_ns - st.robots[rid].message.stamp_ns) / 1e6)])
             if st.last_drop is not None:
                 counter, reason, detail = st.last_drop
                 self.drops.note(counter, key, f"{reason}: {detail}")
@@ -1241,12 +1745,14 @@ class FusionService:
             data = encode_message(st.fused_message(self.version_stamp_ns, self._meta()))
             with self.lock:
                 self.current = data
+            self._update_stats(force=True)
             self._put(data)
 
     def stats_doc(self) -> dict[str, Any]:
         """The counters document served on ``fused/stats`` (JSON)."""
         st = self.state
         self._sync_counters()
+        fresh = self._fresh_latency()
         with self.lock:
             alive = sorted(self.alive)
         return {
@@ -1258,13 +1764,23 @@ class FusionService:
                 r: {"seq": e.key[1], "boot": e.key[0], "stamp_ns": int(e.message.stamp_ns)}
                 for r, e in sorted(st.robots.items())
             },
-            "stats": st.stats.as_dict(),
+            "stats": st.stats.as_dict(fresh),
+            "converged": st.converged,
+            "transport_ms": self.transport_ms.summary(fresh),
             "queued_bytes": self.intake.queued_bytes,
             "drop_log_lines": self.drops.lines,
             "rss_kb": rss_kb(),
             "pid": os.getpid(),
             "uptime_s": round(time.monotonic() - self.started, 3),
         }
+
+    def _fresh_latency(self) -> bool:
+        """Whether the latency percentiles are due for a recomputation."""
+        now = time.monotonic()
+        if now - self._lat_at >= self.opts.latency_summary_s:
+            self._lat_at = now
+            return True
+        return False
 
     def _sync_counters(self) -> None:
         s = self.state.stats
@@ -1283,28 +1799,55 @@ class FusionService:
             self._stats_doc = data
 
     def poll(self, timeout: float = 0.05) -> None:
-        """One iteration: take the maps that arrived, fuse, publish, store, log."""
+        """One iteration: take every map that arrived (the whole queue), fuse once (the fast
+        path), publish once, hand the store to the writer thread, log. When no map has
+        changed for ``full_after_s`` and the fused map is not the full path's, the full path
+        runs instead (at most once per quiet period: afterwards it is converged)."""
         st = self.state
-        self._take(self.intake.drain(timeout))
+        clock = time.perf_counter
+        t0 = clock()
+        items = self.intake.drain_timed(timeout)
+        t1 = clock()
+        self._take(items)
+        t2 = clock()
+        self.timing["wait"] += t1 - t0
+        self.timing["decode"] += t2 - t1
         now = time.monotonic()
-        if self.dirty and now - self.last_fuse >= self.opts.min_interval_s:
+        if (self.dirty or self.refuse) and now - self.last_fuse >= self.opts.min_interval_s:
             self.last_fuse = now
             changed = sorted(self.dirty)
             self.dirty.clear()
-            if st.fuse():
-                self._update_stale(publish=False)  # the new version carries the right stale list
-                self._publish_new_version()
+            self.refuse = False
+            self._fuse(full=False, now=now, max_realign=0)
             self.unsaved.update(changed)
             if self.recorder is not None:
                 for rid in changed:
                     if rid in st.robots:
                         t = float(st.robots[rid].message.meta.get("t", 0.0))
                         self.recorder.log_robot_map(rid, t, st.robot_in_fleet(rid))
-        if self.opts.store and self.unsaved and time.monotonic() - self.last_save >= self.opts.save_interval_s:
-            self._sync_counters()
-            st.save(self.opts.store, sorted(self.unsaved), self.version_stamp_ns)
-            self.unsaved.clear()
-            self.last_save = time.monotonic()
+        elif (
+            not self.dirty
+            and not self.refuse
+            and st.robots
+            and not st.converged
+            and now - self.last_change >= self.opts.full_after_s
+        ):
+            self._fuse(full=True, now=now)
+            self.save_due = True  # the alignments (and maybe the map) changed
+        if st.wanted:
+            # the slow path after the publish: the maps just fused did not wait for ICP; the
+            # next fuse applies the new alignment
+            t = time.perf_counter()
+            if st.realign(now=now, limit=1):
+                self.refuse = True  # fuse again even if no map arrives
+            self.timing["align"] += time.perf_counter() - t
+            self._timed += time.perf_counter() - t
+        if (
+            self.opts.store
+            and (self.unsaved or self.save_due)
+            and time.monotonic() - self.last_save >= self.opts.save_interval_s
+        ):
+            self._save_async()
         self._poll_side_channels()
         self._update_stale()
         if self.current is not None and time.monotonic() - self.last_put > self.opts.heartbeat_s:
@@ -1313,6 +1856,45 @@ class FusionService:
         # at once when the published map changed (a querier that saw it sees its counters),
         # otherwise at most every 0.2 s
         self._update_stats(force=self._stats_version != (self.state.version, tuple(self.stale)))
+        self.timing["other"] += clock() - t2 - self._timed
+        self._timed = 0.0
+        self.timing["iterations"] += 1
+
+    def _fuse(self, full: bool, now: float, max_realign: int | None = None) -> None:
+        t0 = time.perf_counter()
+        changed = self.state.fuse(full=full, now=now, max_realign=max_realign)
+        t1 = time.perf_counter()
+        if changed:
+            self._update_stale(publish=False)  # the new version carries the right stale list
+            self._publish_new_version()
+        t2 = time.perf_counter()
+        self.timing["fuse"] += t1 - t0
+        self.timing["publish"] += t2 - t1
+        self._timed += t2 - t0
+
+    def timing_line(self) -> str:
+        """Where the main loop's time went (seconds in total): waiting for maps, decoding,
+        fusing, publishing, the rest."""
+        t = self.timing
+        parts = " ".join(f"{k} {t[k]:.2f}" for k in ("wait", "decode", "fuse", "publish", "align", "other"))
+        tr = self.transport_ms.summary()
+        transport = "" if tr["p50"] is None else f"; robot publish -> inbox ms: p50 {tr['p50']:.1f} p99 {tr['p99']:.1f}"
+        return (
+            f"main loop: {int(t['iterations'])} iterations, {self.state.stats.fuses} fuses; seconds: {parts}"
+            f"{transport}"
+        )
+
+    def _save_async(self) -> None:
+        assert self.opts.store is not None
+        self._sync_counters()
+        job = self.state.store_job(self.opts.store, sorted(self.unsaved), self.version_stamp_ns, self._fresh_latency())
+        if self.writer is not None:
+            self.writer.submit(job)
+        else:  # pragma: no cover - a store always has a writer
+            job.write()
+        self.unsaved.clear()
+        self.save_due = False
+        self.last_save = time.monotonic()
 
     def _poll_side_channels(self) -> None:
         from agents.bus import decode_pose, decode_viz
@@ -1349,15 +1931,15 @@ class FusionService:
                 self.recorder.log_robot_viz(rid, v["t"], m.origin, v["pose"], v["scan"], v["particles"], v["weights"])
 
     def close(self) -> None:
-        """Fuse and publish the maps still queued, undeclare everything, save, close the
-        recording."""
+        """Fuse and publish the maps still queued by the full path (the final map is the
+        deterministic one), undeclare everything, write the store (after whatever the writer
+        thread still had), close the recording."""
         st = self.state
         try:
-            self._take(self.intake.drain(0.0))
-            if self.dirty:
+            self._take(self.intake.drain_timed(0.0))
+            if st.robots and (self.dirty or self.refuse or not st.converged):
                 self.dirty.clear()
-                if st.fuse():
-                    self._publish_new_version()
+                self._fuse(full=True, now=time.monotonic())
         finally:
             for ent in reversed(self._entities):
                 try:
@@ -1367,6 +1949,9 @@ class FusionService:
             self._entities.clear()
             self._sync_counters()
             self.drops.flush(force=True)
+            self.say(self.timing_line())
+            if self.writer is not None:
+                self.writer.close()
             if self.opts.store:
                 st.save(self.opts.store, None, self.version_stamp_ns)
             if self.recorder is not None:

@@ -21,7 +21,7 @@ from agents.bench.common import (
     Recording,
     crc_ok,
     grid_bytes,
-    latencies_since,
+    latency_total,
     load_recording,
     merge_counts,
     save_recording,
@@ -105,29 +105,32 @@ def test_merge_counts_definition() -> None:
     assert merge_counts({"received": "x"})["received"] == 0
 
 
-def test_latency_harvest_collects_across_polls(tmp_path: Path) -> None:
-    def write(n: int, kept: list[float]) -> None:
-        (tmp_path / "state.json").write_text(json.dumps({"stats": {"latency_ms": {"n": n}}, "latencies_ms": kept}))
+def test_latency_harvest_collects_across_polls_and_a_rotation(tmp_path: Path) -> None:
+    from agents.fusion import append_latency_log
 
-    write(3, [1.0, 2.0, 3.0])
-    h = LatencyHarvest(tmp_path)  # the first 3 are before the window
-    write(5, [2.0, 3.0, 4.0, 5.0])
+    (tmp_path / "state.json").write_text(json.dumps({"latency_total": 2}))
+    append_latency_log(tmp_path, [(1, 1.0, 100), (2, 2.0, 100)])
+    h = LatencyHarvest(tmp_path)  # the first 2 are before the window
+    append_latency_log(tmp_path, [(3, 3.0, 200)])
+    with open(tmp_path / "latency.log", "a") as fh:
+        fh.write("4 4.0")  # a line being written: not taken yet
     h.poll()
     h.poll()  # nothing new: nothing added
-    write(9, [7.0, 8.0, 9.0])  # 6 was gone before this poll
+    assert h.samples == [3.0]
+    with open(tmp_path / "latency.log", "a") as fh:
+        fh.write("00 400\n")
+    (tmp_path / "latency.log").rename(tmp_path / "latency.log.1")  # rotated
+    append_latency_log(tmp_path, [(6, 6.0, 600)])  # 5 never written: missed
     h.poll()
-    assert h.samples == [4.0, 5.0, 7.0, 8.0, 9.0]
-    assert h.missed == 1
+    assert h.samples == [3.0, 4.0, 6.0] and h.missed == 1
+    assert h.between(150, 450) == [3.0, 4.0]
 
 
-def test_latencies_since_takes_the_tail() -> None:
-    state = {"stats": {"latency_ms": {"n": 5}}, "latencies_ms": [1.0, 2.0, 3.0, 4.0, 5.0]}
-    assert latencies_since(state, 2) == [3.0, 4.0, 5.0]
-    assert latencies_since(state, 5) == []
-    # the file keeps only the last entries: 8 recorded, 5 kept, 4 after the first 4
-    state = {"stats": {"latency_ms": {"n": 8}}, "latencies_ms": [4.0, 5.0, 6.0, 7.0, 8.0]}
-    assert latencies_since(state, 4) == [5.0, 6.0, 7.0, 8.0]
-    assert latencies_since({}, 0) == []
+def test_latency_total_reads_new_and_old_state_files() -> None:
+    assert latency_total({"latency_total": 7, "stats": {"latency_ms": {"n": 3}}}) == 7
+    assert latency_total({"stats": {"latency_ms": {"n": 3, "total": 5}}}) == 5
+    assert latency_total({"stats": {"latency_ms": {"n": 3}}}) == 3
+    assert latency_total({}) == 0
 
 
 def test_recording_round_trip(tmp_path: Path) -> None:
@@ -180,7 +183,7 @@ def _bench(args: list[str], timeout: float) -> dict:
 SIZE_KEYS = {
     "robots_mode", "latency_ms_p50", "latency_ms_p99", "fusion_cpu_share", "bytes_per_s_per_robot",
     "grid_bytes_per_s_per_robot", "grid_ratio", "fused_recall", "fused_mean_dist_m", "maps_published",
-    "maps_merged",
+    "maps_merged", "grid_ratio_msg", "grid_ratio_body", "mean_map_body_bytes", "transport_ms_p50", "transport_ms_p99",
 }
 
 
@@ -204,6 +207,10 @@ def test_bench_fleet_short(tmp_path: Path) -> None:
         assert r["bytes_per_s_per_robot"] > 0
         assert r["grid_bytes_per_s_per_robot"] > r["bytes_per_s_per_robot"]
         assert r["grid_ratio"] > 1.0
+        # the same maps compared message to message, and cells to the wireframe part alone
+        assert r["grid_ratio"] < r["grid_ratio_msg"] < r["grid_ratio_body"], r
+        assert 0 < r["mean_map_body_bytes"] < r["mean_map_bytes"]
+        assert r["transport_ms_p50"] is not None and 0 <= r["transport_ms_p50"] <= r["transport_ms_p99"]
         assert r["maps_published"] > 0
         assert r["maps_merged"] == r["maps_published"] == r["maps_sent"], r
         # the tiny world is fully seen: the fused map must be good

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import json
 import math
+from unittest.mock import patch
 
 import numpy as np
 import pytest
@@ -12,11 +14,16 @@ from hypothesis import strategies as st
 from agents.fusion import (
     FusionConfig,
     FusionState,
+    LatencyWindow,
+    StoreWriter,
+    append_latency_log,
     close_frontiers,
     decode_message,
     encode_message,
     latency_summary,
     order_key,
+    read_latency_log,
+    read_store,
 )
 from mapping.se2 import Pose
 from mapping.wireframe import Label, Wireframe
@@ -218,7 +225,7 @@ def _reference() -> FusionState:
     ref = FusionState(FusionConfig())
     for m, raw in zip(_ALL, _RAW):
         ref.offer(raw, m.sender)
-    ref.fuse()
+    ref.fuse(full=True)
     return ref
 
 
@@ -242,8 +249,9 @@ def test_fused_map_independent_of_order_and_duplicates(order, dups, fuse_between
     for i, k in enumerate(seq):
         st_.offer(_RAW[k], _ALL[k].sender)
         if fuse_between[i % len(fuse_between)]:
-            st_.fuse()
-    st_.fuse()
+            st_.fuse()  # the fast path, with whatever alignments it has cached by then
+    st_.fuse(full=True)
+    assert st_.converged
     assert st_.fused_robots == ref.fused_robots
     assert {r: e.key for r, e in st_.robots.items()} == {r: e.key for r, e in ref.robots.items()}
     assert st_.fused.almost_equal(ref.fused, tol=1e-9)
@@ -319,3 +327,255 @@ def test_store_tolerates_a_corrupt_robot_file_and_missing_store(tmp_path, capsys
     assert set(back.robots) == {"r1"}
     assert back.version == 2  # the map changed (r2 is gone): a new version
     assert "skipping" in capsys.readouterr().err
+
+
+# ---------------------------------------------------------------------- fast path and full path
+def _fake_refine(source: Wireframe, target: Wireframe, threshold: float, cfg: FusionConfig) -> Pose:
+    """A stand-in for ICP whose correction depends on the reference (its edge count and extent)
+    and on the map aligned (its extent), so that a stale alignment shows in the result."""
+    return Pose(0.001 * target.n_edges, 0.0005 * float(np.ptp(target.points[:, 0]) + np.ptp(source.points[:, 0])), 0.0)
+
+
+class _Counting:
+    def __init__(self) -> None:
+        self.calls: list[int] = []
+
+    def __call__(self, source, target, threshold, cfg):
+        self.calls.append(source.n_vertices)
+        return _fake_refine(source, target, threshold, cfg)
+
+
+def _arrays(wf: Wireframe) -> tuple:
+    return tuple(getattr(wf, n).tobytes() for n in ("points", "labels", "edges", "likelihood", "sources"))
+
+
+def _full_of(raws: dict[str, bytes], config: FusionConfig | None = None) -> FusionState:
+    ref = FusionState(config or FusionConfig())
+    for rid, raw in sorted(raws.items()):
+        ref.offer(raw, rid)
+    ref.fuse(full=True)
+    return ref
+
+
+def _staggered() -> list[MapMessage]:
+    """r3 sees an obstacle nobody else sees (its correction moves it in the fused map) and
+    arrives before r2, whose map grows later: r3's alignment (onto the fold of r1 and r2)
+    goes stale twice."""
+    obstacle = Wireframe.from_polylines([[(6, 2), (6, 3), (7, 3), (7, 2)]])
+    r2_pts, r2_lab = VIEWS["r2"]
+    return [
+        robot_msg("r1", 1),
+        robot_msg("r3", 1, obstacle),
+        robot_msg("r2", 1, chain(r2_pts[:3], [*r2_lab[:2], F])),
+        robot_msg("r2", 2),
+    ]
+
+
+_MIXED = [*_ALL[:3], *_staggered()[1:]]  # r1 twice, r2 three times, r3 once
+_MIXED_RAW = [encode_message(m) for m in _MIXED]
+
+
+@given(
+    st.permutations(range(len(_MIXED))),
+    st.lists(st.integers(0, len(_MIXED) - 1), max_size=6),
+    st.lists(st.booleans(), min_size=11, max_size=11),
+)
+@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+def test_full_path_is_a_function_of_the_set_with_reference_dependent_alignments(order, dups, fuse_between):
+    """With an alignment that depends on the fold before it, the fast path's result depends on
+    history (alignments go stale), the full path's never does."""
+    with patch("agents.fusion._refine", _fake_refine):
+        latest: dict[str, bytes] = {}
+        st_ = FusionState(FusionConfig())
+        for i, k in enumerate(list(order) + list(dups)):
+            st_.offer(_MIXED_RAW[k], _MIXED[k].sender)
+            if fuse_between[i % len(fuse_between)]:
+                st_.fuse()
+        for m, raw in zip(_MIXED, _MIXED_RAW):  # the latest of each robot: the greatest order key
+            if m.sender not in latest or order_key(m, raw) > order_key(decode_message(latest[m.sender]), latest[m.sender]):
+                latest[m.sender] = raw
+        ref = _full_of(latest)
+        st_.fuse(full=True)
+        assert st_.converged and st_.fused_robots == ref.fused_robots
+        assert _arrays(st_.fused) == _arrays(ref.fused)
+        assert {r: c.as_tuple() for r, c in st_.corrections.items()} == {r: c.as_tuple() for r, c in ref.corrections.items()}
+
+
+def test_fast_path_reuses_alignments_and_realigns_on_growth_and_age():
+    counting = _Counting()
+    cfg = FusionConfig(realign_vertices=2, realign_fraction=0.0, realign_s=5.0)
+    with patch("agents.fusion._refine", counting):
+        st_ = FusionState(cfg)
+        st_.add(robot_msg("r1"))
+        st_.add(robot_msg("r2"))
+        assert st_.fuse(now=0.0)
+        assert len(counting.calls) == 1  # r2 aligned onto r1; r1 is the anchor
+        assert st_.converged and "r2" in st_.corrections
+        # r2's map changes by one vertex: the cached correction is kept (no ICP)
+        r2_pts, r2_lab = VIEWS["r2"]
+        grown1 = chain([*r2_pts, (4, 6)], [*r2_lab, F])
+        st_.add(robot_msg("r2", seq=2, wf_fleet=grown1))
+        st_.fuse(now=1.0)
+        assert len(counting.calls) == 1 and not st_.converged
+        assert st_.alignments["r2"].rev != st_.robots["r2"].rev
+        # ... until it grows by more than realign_vertices
+        grown3 = chain([*r2_pts, (4, 6), (3, 6), (3, 7)], [*r2_lab, N, N, F])
+        st_.add(robot_msg("r2", seq=3, wf_fleet=grown3))
+        st_.fuse(now=2.0)
+        assert len(counting.calls) == 2 and st_.converged
+        # r1 changes: r2's reference moved, its own map did not; realigned only once old enough
+        st_.add(robot_msg("r1", seq=2, wf_fleet=chain([(5, 5), (0, 5), (0, 0), (6, 0)], [F, N, N, F])))
+        st_.fuse(now=3.0)
+        assert len(counting.calls) == 2 and not st_.converged
+        st_.fuse(now=7.5)  # nothing new, but r2's alignment is 5.5 s old and stale
+        assert len(counting.calls) == 3 and st_.converged
+        st_.fuse(now=20.0)  # current alignments are never redone
+        assert len(counting.calls) == 3
+
+
+def test_fast_path_realigns_at_most_the_budget_per_fuse_then_converges():
+    counting = _Counting()
+    with patch("agents.fusion._refine", counting):
+        st_ = FusionState(FusionConfig(max_realign_per_fuse=1))
+        for rid in ("r1", "r2", "r3"):
+            st_.add(robot_msg(rid))
+        st_.fuse()
+        assert len(counting.calls) == 1 and set(st_.alignments) == {"r1", "r2"}  # r3 waits
+        assert not st_.converged and "r3" not in st_.corrections
+        st_.fuse()
+        assert len(counting.calls) == 2 and st_.converged
+        ref = _full_of({r: e.raw for r, e in st_.robots.items()})
+        assert _arrays(st_.fused) == _arrays(ref.fused)
+
+
+def test_fast_path_converges_to_the_full_path_once_alignments_are_refreshed():
+    """Maps arrive one by one with fast fuses in between: alignments go stale (the fused map is
+    not the full path's); fast fuses with the clock moving on refresh them one per fuse, after
+    which the fast path's map is exactly the full path's, and the full path changes nothing."""
+    with patch("agents.fusion._refine", _fake_refine):
+        st_ = FusionState(FusionConfig(realign_s=1.0))
+        for k, m in enumerate(_staggered()):
+            st_.add(m)
+            st_.fuse(now=0.1 * k)
+        ref = _full_of({r: e.raw for r, e in st_.robots.items()})
+        assert not st_.converged
+        assert _arrays(st_.fused) != _arrays(ref.fused)
+        now = 10.0
+        for _ in range(len(st_.robots)):
+            st_.fuse(now=now)
+            now += 1.0
+        assert st_.converged
+        assert _arrays(st_.fused) == _arrays(ref.fused)
+        version = st_.version
+        assert not st_.fuse(full=True) and st_.version == version
+
+
+def test_resent_map_with_new_seq_keeps_the_cache():
+    counting = _Counting()
+    with patch("agents.fusion._refine", counting):
+        st_ = FusionState()
+        st_.add(robot_msg("r1"))
+        st_.add(robot_msg("r2"))
+        st_.fuse(full=True)
+        chain_before = list(st_._chain)
+        assert not st_.add(robot_msg("r1", seq=5))  # the same content again (a heartbeat)
+        assert not st_.fuse(full=True)
+        assert len(counting.calls) == 1
+        assert [c[1] for c in st_._chain] == [c[1] for c in chain_before]  # the very same objects
+
+
+# ---------------------------------------------------------------------- latencies and the store writer
+def test_latency_window_ring_total_and_cached_summary():
+    w = LatencyWindow(capacity=4)
+    w.extend([1.0, 2.0, 3.0], at_ns=10)
+    assert list(w) == [1.0, 2.0, 3.0] and w.total == 3
+    w.extend([4.0, 5.0, 6.0], at_ns=20)
+    assert list(w) == [3.0, 4.0, 5.0, 6.0] and len(w) == 4 and w.total == 6
+    v, t = w.tail(2)
+    assert v.tolist() == [5.0, 6.0] and t.tolist() == [20, 20]
+    s = w.summary()
+    assert s["n"] == 4 and s["total"] == 6 and s["max"] == 6.0 and s["p50"] == pytest.approx(4.5)
+    w.extend([100.0])
+    stale = w.summary(fresh=False)
+    assert stale["total"] == 7 and stale["max"] == 6.0  # the percentiles of last time
+    assert w.summary()["max"] == 100.0
+
+
+def test_latency_log_appends_rotates_and_reads_the_tail(tmp_path, monkeypatch):
+    monkeypatch.setattr("agents.fusion.LATENCY_LOG_MAX_BYTES", 25)
+    append_latency_log(tmp_path, [(1, 1.5, 7), (2, 2.25, 7)])
+    append_latency_log(tmp_path, [(3, 3.0, 8)])
+    append_latency_log(tmp_path, [(4, 4.0, 9), (5, 5.0, 9)])  # over 25 bytes: rotated first
+    assert (tmp_path / "latency.log.1").read_text().splitlines() == ["1 1.500 7", "2 2.250 7", "3 3.000 8"]
+    assert read_latency_log(tmp_path, 2) == [(4, 4.0), (5, 5.0)]
+    assert read_latency_log(tmp_path, 4) == [(2, 2.25), (3, 3.0), (4, 4.0), (5, 5.0)]
+    assert read_latency_log(tmp_path / "none", 3) == []
+
+
+def test_store_writer_writes_in_the_background_and_combines_waiting_jobs(tmp_path):
+    st_ = FusionState(FusionConfig(refine=False))
+    st_.add(robot_msg("r1"))
+    st_.fuse()
+    st_.take_latencies(9_000_000)
+    first = st_.store_job(tmp_path / "s", ["r1"], 5)
+    st_.add(robot_msg("r2"))
+    st_.fuse()
+    st_.take_latencies(10_000_000)
+    second = st_.store_job(tmp_path / "s", ["r2"], 6)
+    both = first.then(second)
+    assert both.views == {"r1", "r2"} and both.version == 2
+    assert [i for i, _, _ in both.latencies] == [1, 2]
+    writer = StoreWriter()
+    try:
+        writer.submit(first)
+        writer.submit(second)
+        assert writer.flush(10.0)
+    finally:
+        writer.close()
+    assert writer.errors == 0 and 1 <= writer.written <= 2
+    d = tmp_path / "s"
+    assert sorted(p.name for p in (d / "robots").iterdir()) == ["r1.wfm", "r2.wfm"]
+    state = json.loads((d / "state.json").read_text())
+    assert state["version"] == 2 and state["latency_total"] == 2 and "latencies_ms" not in state
+    assert state["stats"]["latency_ms"]["total"] == 2
+    assert [ln.split()[0] for ln in (d / "latency.log").read_text().splitlines()] == ["1", "2"]
+    assert read_store(d).fused.robots == ("r1", "r2")
+
+
+def test_store_keeps_a_fast_path_map_and_its_version(tmp_path):
+    """A fused map computed with stale alignments (not the full path's) comes back from the store
+    exactly, with its version: the snapshot stores the corrections it was fused with."""
+    with patch("agents.fusion._refine", _fake_refine):
+        st_ = FusionState(FusionConfig(realign_s=1e9))
+        for m in _staggered():
+            st_.add(m)
+            st_.fuse()
+        assert not st_.converged
+        st_.save(tmp_path / "s")
+        back = FusionState.load(tmp_path / "s", FusionConfig())
+        assert back.version == st_.version
+        assert _arrays(back.fused) == _arrays(st_.fused)
+        assert not back.converged
+        assert back.fuse(full=True) and back.version == st_.version + 1 and back.converged
+
+
+def test_realign_after_publishing_then_the_next_fuse_applies_it():
+    """The service's order: fuse without ICP (publish), then align the robots the fuse wanted,
+    then fuse again: the same map the full path gives."""
+    counting = _Counting()
+    with patch("agents.fusion._refine", counting):
+        st_ = FusionState()
+        for m in _staggered():
+            st_.add(m)
+        assert st_.fuse(max_realign=0)
+        assert counting.calls == [] and st_.wanted == ["r2", "r3"] and not st_.converged
+        assert st_.realign(now=0.0, limit=1) == ["r2"] and st_.wanted == ["r3"]
+        assert st_.realign(now=0.0, limit=5) == ["r3"] and len(counting.calls) == 2
+        st_.fuse(now=1.0, max_realign=0)
+        assert st_.wanted == [] and not st_.converged  # r3's alignment is stale but young
+        st_.fuse(now=10.0, max_realign=0)
+        assert st_.wanted == ["r3"]  # r3 was aligned onto a fold without r2's correction
+        st_.realign(now=10.0)
+        assert st_.fuse(now=10.5, max_realign=0) and st_.converged and st_.wanted == []
+        ref = _full_of({r: e.raw for r, e in st_.robots.items()})
+        assert _arrays(st_.fused) == _arrays(ref.fused)

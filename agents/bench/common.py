@@ -10,9 +10,9 @@
   then SIGKILL, always reaped; ``/proc`` readers for CPU time and RSS.
 * **Bus observer** (:class:`BusObserver`): a Zenoh client of the benchmark itself that counts
   what the robots put on the bus (map and pose bytes, valid and corrupt map payloads).
-* **Fusion store** readers: the fusion service records its publish latencies and counters in
-  ``<store>/state.json`` (:meth:`agents.fusion.FusionState.save`); the benchmarks read them there,
-  as ``wiremap run`` does for ``report.json``.
+* **Fusion store** readers: the fusion service records its counters in ``<store>/state.json``
+  and every publish latency in ``<store>/latency.log`` (:class:`agents.fusion.StoreJob`); the
+  benchmarks read them there, as ``wiremap run`` does for ``report.json``.
 
 Nothing here imports zenoh at module level (the CLI must stay light).
 """
@@ -489,6 +489,20 @@ class BusObserver:
                 c.poses += 1
                 c.pose_bytes += n
 
+    def fusion_stats(self, timeout: float = 2.0) -> dict[str, Any]:
+        """The fusion service's counters document (``fused/stats``), or {} without an answer."""
+        if self.session is None:
+            return {}
+        try:
+            for reply in self.session.get(self.keys.fusion_stats, timeout=timeout):
+                ok = reply.ok
+                if ok is not None:
+                    doc = json.loads(ok.payload.to_bytes())
+                    return doc if isinstance(doc, dict) else {}
+        except Exception:  # no answer in time, or the session is closing
+            return {}
+        return {}
+
     def start_window(self, keep: bool = False) -> None:
         with self.lock:
             self.window = {}
@@ -534,45 +548,81 @@ def read_state(store: str | os.PathLike[str]) -> dict[str, Any]:
 
 
 def latency_total(state: dict[str, Any]) -> int:
-    """How many publish latencies the fusion service holds (``stats.latency_ms.n``; the service
-    keeps a sliding window of the last 100 000, so this stops growing there)."""
+    """How many publish latencies the fusion service has recorded, all-time
+    (``state.json``'s ``latency_total``; older stores: ``stats.latency_ms.total`` or ``n``)."""
     lat = (state.get("stats") or {}).get("latency_ms") or {}
-    try:
-        return int(lat.get("n", 0))
-    except (TypeError, ValueError):
-        return 0
-
-
-def latencies_since(state: dict[str, Any], n0: int) -> list[float]:
-    """The latencies recorded after the first ``n0``, as far as ``state.json`` still lists them
-    (it keeps only the most recent ones: 10 000 at the time of writing)."""
-    total = latency_total(state)
-    saved = [float(x) for x in state.get("latencies_ms") or []]
-    k = max(0, total - n0)
-    return saved[len(saved) - min(k, len(saved)):] if k else []
+    for v in (state.get("latency_total"), lat.get("total"), lat.get("n")):
+        if v is not None:
+            try:
+                return int(v)
+            except (TypeError, ValueError):
+                continue
+    return 0
 
 
 class LatencyHarvest:
-    """Collects the fusion service's publish latencies from ``<store>/state.json`` over a long
-    run: :meth:`poll` (call it every few seconds: the file lists only the most recent samples)
-    appends the samples recorded since the previous poll. Starts counting at construction
-    (samples recorded before are left out)."""
+    """Collects the fusion service's publish latencies over a run from ``<store>/latency.log``
+    (:func:`agents.fusion.append_latency_log`: one line ``<index> <ms> <published_ns>`` per
+    sample, ``index`` counting every sample ever recorded; the file is rotated to
+    ``latency.log.1``; the service appends at its store interval, about once a second).
+
+    Samples with an index up to ``latency_total`` at construction are left out (recorded
+    before). :meth:`poll` reads what was appended since the last poll (call it now and then:
+    after a rotation it reads the rest of the old file, but a second rotation before the next
+    poll would lose samples); a gap in the indices counts as :attr:`missed`.
+    :meth:`between` selects the samples by the wall-clock time of their fused publish.
+    """
 
     def __init__(self, store: str | os.PathLike[str]) -> None:
         self.store = Path(store)
-        self.seen = latency_total(read_state(self.store))
-        self.samples: list[float] = []
-        self.missed = 0  # recorded but already gone from the file when polled
+        self.last_index = latency_total(read_state(self.store))
+        self.records: list[tuple[int, float]] = []  # (published_ns or 0, ms)
+        self.missed = 0  # recorded but gone (rotated away twice) before a poll
+        self._offsets: dict[int, int] = {}  # inode -> bytes consumed
+
+    @property
+    def samples(self) -> list[float]:
+        return [ms for _, ms in self.records]
+
+    def between(self, t0_ns: int, t1_ns: int) -> list[float]:
+        """The samples whose fused publish was within ``[t0_ns, t1_ns]`` (wall clock; samples
+        without a time are kept)."""
+        return [ms for t, ms in self.records if t == 0 or t0_ns <= t <= t1_ns]
 
     def poll(self) -> None:
-        state = read_state(self.store)
-        total = latency_total(state)
-        if total <= self.seen:
-            return
-        new = latencies_since(state, self.seen)
-        self.missed += (total - self.seen) - len(new)
-        self.samples.extend(new)
-        self.seen = total
+        from agents.fusion import LATENCY_LOG
+
+        seen: dict[int, int] = {}
+        for name in (LATENCY_LOG + ".1", LATENCY_LOG):  # the rotated (older) file first
+            path = self.store / name
+            try:
+                with open(path, "rb") as fh:
+                    ino = os.fstat(fh.fileno()).st_ino
+                    off = self._offsets.get(ino, 0)
+                    fh.seek(off)
+                    data = fh.read()
+            except OSError:
+                continue
+            end = data.rfind(b"\n") + 1  # complete lines only
+            self._take(data[:end])
+            seen[ino] = off + end
+        self._offsets = seen
+
+    def _take(self, data: bytes) -> None:
+        for ln in data.split(b"\n"):
+            parts = ln.split()
+            if len(parts) not in (2, 3):
+                continue
+            try:
+                idx, ms = int(parts[0]), float(parts[1])
+                t = int(parts[2]) if len(parts) == 3 else 0
+            except ValueError:
+                continue
+            if idx <= self.last_index:
+                continue
+            self.missed += idx - self.last_index - 1
+            self.last_index = idx
+            self.records.append((t, ms))
 
 
 def merge_counts(stats: dict[str, Any]) -> dict[str, int]:

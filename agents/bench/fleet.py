@@ -14,16 +14,27 @@ Measured, per size, over a window of ``--duration`` seconds that starts ``--warm
 after every robot's first map has reached the bus:
 
 * ``latency_ms_p50`` / ``latency_ms_p99``: from a robot's publish (``stamp_ns`` of its map) to
-  the fused publish that includes it, as the fusion service measures and stores them in
-  ``store/state.json`` (the same figures ``wiremap run`` puts in ``report.json``); the samples
-  recorded before the window are left out (first-use imports and start-up);
+  the fused publish that includes it, as the fusion service measures them and appends them to
+  ``store/latency.log`` (:class:`agents.bench.common.LatencyHarvest`; ``wiremap run`` reports
+  the service's own summary of the same samples); only fused publishes within the window
+  count (not start-up, not the final maps sent after it);
+* ``transport_ms_p50`` / ``transport_ms_p99``: the part of that latency before the fusion
+  service: from the robot's publish to the map's arrival in its inbox (the service's
+  ``fused/stats``, over the last 10,000 maps that changed, asked at the window's end);
 * ``fusion_cpu_share``: the fusion process's CPU seconds over the window's wall seconds
   (``router_cpu_share`` likewise for the router);
 * ``bytes_per_s_per_robot``: map payload bytes that reached the bus in the window, per second
   and robot (poses separately: ``pose_bytes_per_s_per_robot``);
 * ``grid_bytes_per_s_per_robot``: what the same publishes would weigh as occupancy grids: each
-  map as a raw int8 grid of its bounding box at the map's resolution
-  (:func:`agents.bench.common.grid_bytes`), per publish; ``grid_ratio`` = grid / wireframe bytes;
+  map as a raw int8 grid of its bounding box (in the robot's own frame, as the robot would
+  publish it) at the map's resolution (:func:`agents.bench.common.grid_bytes`), one grid per
+  map publish, cells only; ``grid_ratio`` = those grid bytes / the map payload bytes on the bus
+  (the headline figure: cells alone against whole messages, the codec's envelope of ~95 bytes
+  included). Two more views of the same maps: ``grid_ratio_msg`` adds to each grid the fixed
+  fields of a ROS 1 ``nav_msgs/OccupancyGrid`` (:data:`ROS_GRID_OVERHEAD` bytes): message
+  against message; ``grid_ratio_body`` compares the cells with the wireframe part of each
+  payload only (``mean_map_body_bytes``; ``mean_grid_bytes`` per publish). Poses are not map
+  traffic and are counted apart (``pose_bytes_per_s_per_robot``);
 * ``fused_recall``, ``fused_precision``, ``fused_mean_dist_m``: :func:`mapping.metrics.evaluate`
   of the final fused map against the world's truth at the map resolution. Replay robots loop
   their recording during the window and jump to its last frame when the window ends (SIGUSR1),
@@ -40,6 +51,7 @@ The fusion service runs without a Rerun recording unless ``--record``.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import os
@@ -75,6 +87,10 @@ HELP = "fleet latency, bandwidth and fused-map quality by fleet size"
 FLEET = "bench"
 LATENCY_TARGET_MS = 50.0
 GRID_RATIO_TARGET = 100.0
+# A ROS 1 nav_msgs/OccupancyGrid message besides its cells: Header (seq 4, stamp 8, frame_id
+# 4 + 3 for "map"), MapMetaData (map_load_time 8, resolution 4, width 4, height 4, origin pose
+# 7 x 8) and the data array's length prefix (4).
+ROS_GRID_OVERHEAD = 4 + 8 + 4 + 3 + 8 + 4 + 4 + 4 + 7 * 8 + 4
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -104,14 +120,25 @@ def parse_sizes(text: str) -> list[int]:
     return sizes
 
 
-def _grid_total(kept: list[tuple[str, bytes]]) -> int:
-    from wire_codec import decode
+def _grid_totals(kept: list[tuple[str, bytes]]) -> dict[str, int]:
+    """Over the window's valid map payloads: ``grid`` (occupancy-grid cells, one byte each, of
+    each map's bounding box at its resolution), ``grid_msg`` (the same plus a ROS 1
+    ``nav_msgs/OccupancyGrid`` message's fixed fields, :data:`ROS_GRID_OVERHEAD`), ``body``
+    (the wireframe part of each payload: its bytes minus those of the same message with an
+    empty map, i.e. without the codec's envelope) and ``maps``."""
+    from mapping.wireframe import Wireframe
+    from wire_codec import decode, encode
 
-    total = 0
+    out = {"grid": 0, "grid_msg": 0, "body": 0, "maps": 0}
+    empty = Wireframe.empty()
     for _rid, data in kept:
         m = decode(data)
-        total += grid_bytes(m.wireframe, m.resolution)
-    return total
+        g = grid_bytes(m.wireframe, m.resolution)
+        out["grid"] += g
+        out["grid_msg"] += g + ROS_GRID_OVERHEAD
+        out["body"] += len(data) - len(encode(dataclasses.replace(m, wireframe=empty)))
+        out["maps"] += 1
+    return out
 
 
 def _fused_quality(store: Path, world: Any) -> dict[str, Any]:
@@ -201,13 +228,14 @@ def run_size(n: int, args: argparse.Namespace, world: Any, workdir: Path, say: A
             harvest = LatencyHarvest(store)
             pid_f, pid_r = procs.pid("fuse"), procs.pid("router")
             c0, r0 = cpu_seconds(pid_f), cpu_seconds(pid_r)
-            t0 = time.monotonic()
+            t0, w0 = time.monotonic(), time.time_ns()
             obs.start_window(keep=True)
             while (left := t0 + args.duration - time.monotonic()) > 0:
                 sleep_checked(procs, min(1.0, left))
-                harvest.poll()  # state.json lists only the most recent samples
+                harvest.poll()
             win = obs.end_window()
-            t1 = time.monotonic()
+            t1, w1 = time.monotonic(), time.time_ns()
+            transport = obs.fusion_stats().get("transport_ms") or {}
             c1, r1 = cpu_seconds(pid_f), cpu_seconds(pid_r)
             kept = obs.kept
             if mode == "replay":
@@ -227,24 +255,32 @@ def run_size(n: int, args: argparse.Namespace, world: Any, workdir: Path, say: A
     harvest.poll()
     state = read_state(store)
     stats = state.get("stats") or {}
-    lat = harvest.samples
+    lat = harvest.between(w0, w1)  # fused publishes within the window
     wall = max(t1 - t0, 1e-9)
     map_bytes = sum(c.map_bytes for c in win.values())
     pose_bytes = sum(c.pose_bytes for c in win.values())
     maps_in_window = sum(c.valid for c in win.values())
-    grid = _grid_total(kept)
+    grids = _grid_totals(kept)
+    grid = grids["grid"]
+    kept_bytes = sum(len(d) for _r, d in kept)
     counts = merge_counts(stats)
     result.update({
         "latency_ms_p50": rounded(percentile(lat, 50)),
         "latency_ms_p99": rounded(percentile(lat, 99)),
         "latency_ms_max": rounded(max(lat) if lat else None),
         "latency_samples": len(lat),
+        "transport_ms_p50": rounded(transport.get("p50")),
+        "transport_ms_p99": rounded(transport.get("p99")),
         "fusion_cpu_share": rounded((c1 - c0) / wall if c0 is not None and c1 is not None else None, 4),
         "router_cpu_share": rounded((r1 - r0) / wall if r0 is not None and r1 is not None else None, 4),
         "bytes_per_s_per_robot": rounded(map_bytes / wall / n, 1),
         "pose_bytes_per_s_per_robot": rounded(pose_bytes / wall / n, 1),
         "grid_bytes_per_s_per_robot": rounded(grid / wall / n, 1),
         "grid_ratio": rounded(grid / map_bytes if map_bytes else None, 2),
+        "grid_ratio_msg": rounded(grids["grid_msg"] / kept_bytes if kept_bytes else None, 2),
+        "grid_ratio_body": rounded(grid / grids["body"] if grids["body"] else None, 2),
+        "mean_map_body_bytes": rounded(grids["body"] / grids["maps"] if grids["maps"] else None, 1),
+        "mean_grid_bytes": rounded(grid / grids["maps"] if grids["maps"] else None, 1),
         "maps_per_s_per_robot": rounded(maps_in_window / wall / n, 2),
         "mean_map_bytes": rounded(map_bytes / max(1, sum(c.maps for c in win.values())), 1),
     })
@@ -291,12 +327,12 @@ def run(args: argparse.Namespace) -> int:
     finally:
         if tmp is not None:
             shutil.rmtree(tmp, ignore_errors=True)
-    head = ["robots", "mode", "p50_ms", "p99_ms", "fuse_cpu", "B/s/robot", "grid_B/s", "ratio",
-            "recall", "mean_m", "published", "merged"]
+    head = ["robots", "mode", "p50_ms", "p99_ms", "in_p99", "fuse_cpu", "B/s/robot", "grid_B/s", "ratio", "r_msg",
+            "r_body", "recall", "mean_m", "published", "merged"]
     rows = [
-        [n, r["robots_mode"], r["latency_ms_p50"], r["latency_ms_p99"], r["fusion_cpu_share"],
-         r["bytes_per_s_per_robot"], r["grid_bytes_per_s_per_robot"], r["grid_ratio"], r["fused_recall"],
-         r["fused_mean_dist_m"], r["maps_published"], r["maps_merged"]]
+        [n, r["robots_mode"], r["latency_ms_p50"], r["latency_ms_p99"], r["transport_ms_p99"], r["fusion_cpu_share"],
+         r["bytes_per_s_per_robot"], r["grid_bytes_per_s_per_robot"], r["grid_ratio"], r["grid_ratio_msg"],
+         r["grid_ratio_body"], r["fused_recall"], r["fused_mean_dist_m"], r["maps_published"], r["maps_merged"]]
         for n, r in results.items()
     ]
     print_table(head, rows)
@@ -315,6 +351,8 @@ def run(args: argparse.Namespace) -> int:
             "latency_met": None if p99 is None else bool(p99 <= LATENCY_TARGET_MS),
             "grid_ratio_min": GRID_RATIO_TARGET,
             "grid_ratio_met": bool(ratios) and bool(min(ratios) >= GRID_RATIO_TARGET),
+            "grid_ratio_msg_min": min((r["grid_ratio_msg"] for r in results.values() if r["grid_ratio_msg"]), default=None),
+            "grid_ratio_body_min": min((r["grid_ratio_body"] for r in results.values() if r["grid_ratio_body"]), default=None),
         },
     }
     print(

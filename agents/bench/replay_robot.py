@@ -11,7 +11,8 @@ transport and fusion:
   frame ``odom/<id>``, ``origin`` the recorded start pose, the recording's resolution,
   contributor bits cleared, ``seq`` counting maps sent, ``stamp_ns`` the wall clock at the send,
   ``meta = {"boot": <process start ns>, "t": <sim s>, "step": <frame>}``; put with
-  ``CongestionControl.BLOCK`` like the agent;
+  ``CongestionControl.BLOCK`` and, like the agent, with plain ``session.put`` (no declared
+  publisher: those deliver only the first sample under the secure fleet's ACL);
 * ``robots/<id>/pose`` at ``--pose-rate`` (10 Hz): :func:`agents.bus.encode_pose` with the
   recorded pose, ``fleet = origin * pose``, the recorded true pose and a status map
   (``step``, ``vertices``, ``edges``, ``maps_sent``, ``bytes_sent``, ``finished``, ``replay``);
@@ -93,6 +94,18 @@ def corrupt(data: bytes, rng: np.random.Generator) -> bytes:
     return data[: int(rng.integers(len(data)))]
 
 
+class _KeyPut:
+    """``session.put`` on one key with fixed options (what the replay loop needs of a publisher)."""
+
+    def __init__(self, session: Any, key: str, **options: Any) -> None:
+        self.session = session
+        self.key = key
+        self.options = options
+
+    def put(self, data: bytes) -> None:
+        self.session.put(self.key, data, **self.options)
+
+
 class ReplayRobot:
     """The replay loop (see the module docstring). ``session`` is an open Zenoh session."""
 
@@ -153,18 +166,16 @@ class ReplayRobot:
     def start(self) -> None:
         z = self._zenoh
         self._token = self.session.liveliness().declare_token(self.keys.alive(self.robot))
-        self._pubs["map"] = self.session.declare_publisher(
-            self.keys.robot_map(self.robot), congestion_control=z.CongestionControl.BLOCK
+        # Plain session puts, like the robot agent: a declared publisher filters on the writer
+        # side and needs the subscribers' declarations, which the secure fleet's ACL does not
+        # forward to robots (it delivered only the first sample there).
+        self._pubs["map"] = _KeyPut(
+            self.session, self.keys.robot_map(self.robot), congestion_control=z.CongestionControl.BLOCK
         )
-        self._pubs["pose"] = self.session.declare_publisher(self.keys.robot_pose(self.robot), express=True)
+        self._pubs["pose"] = _KeyPut(self.session, self.keys.robot_pose(self.robot), express=True)
         self._write(f"B {self.boot} {os.getpid()}\n")
 
     def close(self) -> None:
-        for p in self._pubs.values():
-            try:
-                p.undeclare()
-            except Exception:  # session already closed
-                pass
         self._pubs.clear()
         if self._token is not None:
             try:

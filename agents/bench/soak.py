@@ -25,9 +25,9 @@ Reported (the JSON keys):
 * ``fusion_rss_mb_start`` / ``_end`` / ``_max`` / ``_per_min``: the fusion process's RSS
   sampled every second from ``--warmup`` s after every robot's first map to the end, and the
   least-squares slope; ``rss_flat`` means ``end <= start + max(5 MB, 10 % of start)``;
-* ``latency_ms_p50`` / ``p99``: publish-to-fused latency over the run (after the warm-up), from
-  the fusion service's ``state.json``, read every second because the file lists only the most
-  recent samples (``latency_samples_missed`` counts those gone before a read);
+* ``latency_ms_p50`` / ``p99``: publish-to-fused latency over the run (fused publishes after the
+  warm-up and before the end), from the fusion service's ``latency.log``, read every second
+  (``latency_samples_missed`` counts samples rotated away before a read);
 * ``restarts`` / ``restarts_survived``: a restart survives when the fusion service is alive and
   its store holds a map of the robot's new boot (checked until the end of the run).
 """
@@ -148,7 +148,7 @@ def soak(args: argparse.Namespace, world: Any, d: Path, say: Any) -> dict[str, A
             harvest = LatencyHarvest(store)
             pid_f = procs.pid("fuse")
             c0 = cpu_seconds(pid_f)
-            t0 = time.monotonic()
+            t0, w0 = time.monotonic(), time.time_ns()
             length = args.minutes * 60.0
             next_kill = t0 + args.kill_every
             next_rss = t0
@@ -195,7 +195,7 @@ def soak(args: argparse.Namespace, world: Any, d: Path, say: Any) -> dict[str, A
                     restarts.append({"robot": rid, "t": time.monotonic(), "boots_before": before, "survived": False})
                     say(f"t={now - t0:.0f} s: killed {rid} (SIGKILL) and started it again")
                 time.sleep(max(0.0, min(next_rss, next_kill, t0 + length) - time.monotonic()))
-            t1 = time.monotonic()
+            t1, w1 = time.monotonic(), time.time_ns()
             c1 = cpu_seconds(pid_f)
             b = rss_bytes(pid_f)
             if b is not None:
@@ -216,7 +216,7 @@ def soak(args: argparse.Namespace, world: Any, d: Path, say: Any) -> dict[str, A
     state = read_state(store)
     stats = state.get("stats") or {}
     counts = merge_counts(stats)
-    lat = harvest.samples
+    lat = harvest.between(w0, w1)
     sent = [read_sent_log(d / "sent" / f"{rid}.log") for rid in ids]
     valid_published = sum(c.valid for c in total.values())
     corrupt_published = sum(c.corrupt for c in total.values())
