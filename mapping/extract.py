@@ -31,6 +31,25 @@ Pipeline
    its line (within ``split_tol``) and further along it are absorbed into it -- a beam crosses
    a line only once, so such a point is where the continued wall was hit -- and chains of
    leftover points on one line become pieces of their own when they pass the tests above.
+5b. **Walls between two beams.** Two neighbouring kept pieces (stubs of 5c included, which run
+   first) hit by *consecutive* beams and lying on one line (all their returns, and a stub's
+   corner, within ``split_tol`` of one line) are one wall: no ray passed between them, and a
+   wall seen almost in its own plane (the robot in a doorway, in line with the face) returns
+   one beam near each end and none in between.
+5c. **Stubs.** A short wall seen end-on -- the end face of a thick wall or a door jamb seen from
+   the room -- returns one to ``min_points - 1`` beams next to the end of the wall it meets:
+   too few to fit. The corner sensor (and the filter's predicted scan) report it, and a map's
+   jamb would look seen-through without it. So the unowned returns just beyond a free end of
+   a kept wall, in the same run and off its line, followed by a break (range jump, no-return
+   gap, end of the run or another kept piece), become a *stub* wall from the corner (the
+   wall's line on the boundary ray) through the farthest of them; the wall ends in a
+   ``NOMINAL`` corner there. The chain may cross a range jump only as a wall at a grazing angle
+   does: the next return on one line (``split_tol``) with the chain and the corner, further
+   along, at most ``5 jump`` from the previous return (a 4 m jump onto a wall behind, along a
+   line of sight, is not a grazing wall). With two or more returns the corner is where the
+   stub's fitted line meets the wall's. A stub's corner is known to half a beam along its wall
+   (like a silhouette corner); its far end gets a label by the rules of step 6. Two collinear
+   stubs from two walls hit by consecutive beams become one wall by 5b.
 6. **Corners.** Two consecutive kept pieces meet in a ``NOMINAL`` corner at the intersection
    of their lines when fewer than ``min_points`` points and no long no-return gap lie between
    them, the intersection's bearing lies between the two pieces' boundary beams (one beam of
@@ -58,10 +77,14 @@ Pipeline
    the piece and the first beam off it; an ``OCCLUSION`` and the ``FRONTIER`` on the wall behind
    it therefore lie on one ray from the robot, as paper Sec. III-A describes (the frontier is
    the occlusion point projected onto the farther wall along the line of sight). The bisector
-   halves the worst-case error of a silhouette corner compared with taking the last point;
-   the extrapolation beyond the last point is capped at 0.75 of the piece's point spacing at
-   that end. A wall leaving the range ends where its line meets the range circle; a wall ending
-   against clutter ends at its last point.
+   halves the worst-case error of a silhouette corner compared with taking the last point,
+   but the extrapolation beyond the last point is capped at the smaller of 0.75 of the piece's
+   point spacing at that end and ``max_extrapolation`` (0.1 m): at a grazing angle the bisector
+   lies far beyond the last return, and a wall run past its corner stays so in the map (a
+   merge is a union), while one that stops short is completed by the next scan. A wall leaving
+   the range ends at most ``max_extrapolation`` past its last return towards the range circle
+   (on the circle with ``exit_on_circle``); a wall ending against clutter ends at its last
+   point.
 7. **Budget.** At most ``max_vertices`` vertices are returned: whole walls are kept longest
    first while the vertex count stays within the budget.
 
@@ -72,8 +95,18 @@ Accuracy
 --------
 Noise-free, a corner between two walls is exact to the fit (sub-millimetre); a silhouette
 corner (``OCCLUSION``) is known only to within half a beam, ``r dθ / 2`` across the line of
-sight, which grows as ``1 / sin(incidence)`` along a wall seen obliquely. Walls seen at a
-grazing angle (a few degrees) may be missed: the scanner cannot tell where they end.
+sight, which grows as ``1 / sin(incidence)`` along a wall seen obliquely (and ends are placed
+conservatively, at most ``max_extrapolation`` past the last return); so is the corner at the
+foot of a stub. Walls seen at a grazing angle (a few degrees) may be missed: the scanner cannot
+tell where they end. A wall whose whole length falls between two beams (a degree or less of
+incidence) returns one beam or none: a single return between two walls is not joined to them
+(from one scan it cannot be told from a short wall seen along a line of sight).
+
+Measured along three ``paper-small`` routes (811 true poses, 720 beams, 1 cm noise, against
+the corner sensor's true scans, 10 cm matching): true corners detected 94.4 % (92.4 % before
+stubs, grazing chains, walls between two beams and the extrapolation cap), labels right for
+97.6 % of them (94.8 %), true nominal corners labelled nominal 96.0 % (89.7 %), occlusions
+detected 92.3 % (87.7 %); 99.99 % of the extracted wall length lies on true walls.
 """
 
 from __future__ import annotations
@@ -126,6 +159,17 @@ class ExtractConfig:
         A piece shorter than ``min_length`` (but with ``min_points``) is kept after all when it
         is at least this long (metres) and meets a kept wall in a corner: a door jamb or the end
         face of a thick wall, not clutter.
+    stubs : bool
+        Report short walls seen end-on next to a wall's end (fewer than ``min_points`` returns,
+        step 5c of the module notes) as walls from a nominal corner.
+    max_extrapolation : float
+        The furthest (metres) a free end (occlusion or frontier) is placed beyond the wall's
+        last return (step 6). Keep it small: a merge is a union and keeps any overshoot.
+    exit_on_circle : bool
+        A wall taken to leave the range ends exactly on the range circle (up to ``corner_tol``
+        plus twice the end's extrapolation past its last return) instead of at most
+        ``max_extrapolation`` past it. Off by default: from one scan a wall ending just short
+        of the range limit looks the same, and extending it puts it past its corner for good.
 
     Raises
     ------
@@ -144,13 +188,16 @@ class ExtractConfig:
     min_range: float = 0.02
     range_tol: float = 0.1
     min_corner_length: float = 0.1
+    stubs: bool = True
+    max_extrapolation: float = 0.1
+    exit_on_circle: bool = False
 
     def __post_init__(self) -> None:
         for name in ("split_tol", "jump", "corner_tol"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0.0):
                 raise ValueError(f"{name} must be a positive number of metres, got {v}")
-        for name in ("min_length", "min_range", "range_tol", "min_corner_length"):
+        for name in ("min_length", "min_range", "range_tol", "min_corner_length", "max_extrapolation"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0.0):
                 raise ValueError(f"{name} must be a non-negative number of metres, got {v}")
@@ -174,6 +221,7 @@ class _Piece:
     t0: float = 0.0  # first point's coordinate along u (relative to c)
     t1: float = 0.0  # last point's coordinate along u
     kept: bool = True
+    stub: bool = False  # a short wall of 1..min_points-1 returns hanging off a kept wall's end
 
     @property
     def count(self) -> int:
@@ -296,6 +344,47 @@ def _intersect(p: _Piece, q: _Piece) -> FloatArray | None:
     w = q.c - p.c
     s = (w[0] * q.u[1] - w[1] * q.u[0]) / den
     return np.asarray(p.c + s * p.u, dtype=np.float64)
+
+
+def _tls(xy: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Centroid and unit direction (first -> last point) of the total-least-squares line."""
+    mean = xy.mean(axis=0)
+    d = xy - mean
+    cxx, cyy, cxy = float(d[:, 0] @ d[:, 0]), float(d[:, 1] @ d[:, 1]), float(d[:, 0] @ d[:, 1])
+    phi = 0.5 * math.atan2(2.0 * cxy, cxx - cyy)  # principal axis of the 2 x 2 scatter
+    u = np.array([math.cos(phi), math.sin(phi)])
+    if float(np.dot(xy[-1] - xy[0], u)) < 0.0:
+        u = -u
+    return np.asarray(mean, dtype=np.float64), u
+
+
+def _line_cross(c1: FloatArray, u1: FloatArray, c2: FloatArray, u2: FloatArray) -> FloatArray | None:
+    """Intersection of two lines (point, unit direction), or None when nearly parallel."""
+    den = float(u1[0] * u2[1] - u1[1] * u2[0])
+    if abs(den) < math.sin(math.radians(5.0)):
+        return None
+    w = c2 - c1
+    s = float(w[0] * u2[1] - w[1] * u2[0]) / den
+    return np.asarray(c1 + s * u1, dtype=np.float64)
+
+
+def _grazing_next(
+    pts: FloatArray, chain: list[int], cn: int, corner: FloatArray, wall_end: FloatArray, tol: float
+) -> bool:
+    """Whether return ``cn``, across a range jump, continues the stub ``chain`` (returns beyond
+    a wall's end) as a wall seen at a grazing angle: the chain and ``cn`` fit one line within
+    ``tol``, ``cn`` lies further along it, and the line passes the estimated ``corner`` within
+    ``tol`` plus the corner's own uncertainty (its distance from the wall's last return)."""
+    if not chain:
+        return False
+    xy = pts[[*chain, cn]]
+    c, u = _tls(xy)
+    if float(_line_dist(xy, c, u).max()) > tol:
+        return False
+    if float(np.dot(pts[cn] - pts[chain[-1]], u)) <= 0.0 or float(np.dot(pts[chain[0]] - corner, u)) <= 0.0:
+        return False
+    slack = tol + float(np.hypot(*(corner - wall_end)))
+    return float(_line_dist(corner[None, :], c, u)[0]) <= slack
 
 
 def _foot(p: _Piece, point: FloatArray) -> FloatArray:
@@ -533,11 +622,26 @@ def extract_corners(
         # ... and near both pieces' ends: within corner_tol plus the larger of the piece's own
         # point spacing at that end (sparse at a grazing angle) and half its length, so that a
         # short wall seen end-on is not stretched across the room.
-        reach_p = cfg.corner_tol + max(float(np.hypot(*(pts[p.hi] - pts[p.hi - 1]))), 0.5 * p.length)
-        reach_q = cfg.corner_tol + max(float(np.hypot(*(pts[q.lo + 1] - pts[q.lo]))), 0.5 * q.length)
-        if np.hypot(*(x - pts[p.hi])) <= reach_p and np.hypot(*(x - pts[q.lo])) <= reach_q:
+        sp_p = float(np.hypot(*(pts[p.hi] - pts[p.hi - 1]))) if p.count >= 2 else 0.0
+        sp_q = float(np.hypot(*(pts[q.lo + 1] - pts[q.lo]))) if q.count >= 2 else 0.0
+        reach_p = cfg.corner_tol + max(sp_p, 0.5 * p.length)
+        reach_q = cfg.corner_tol + max(sp_q, 0.5 * q.length)
+        near_p = within_extent(p, x) if p.stub else np.hypot(*(x - pts[p.hi])) <= reach_p
+        near_q = within_extent(q, x) if q.stub else np.hypot(*(x - pts[q.lo])) <= reach_q
+        if near_p and near_q:
             return x
         return None
+
+    def within_extent(p: _Piece, x: FloatArray) -> bool:
+        """A stub's extent runs from its corner through its returns: another corner must lie
+        on its line within corner_tol plus its point spacing at that end beyond it."""
+        t = float(np.dot(x - p.c, p.u))
+        sp_lo = float(np.hypot(*(pts[p.lo + 1] - pts[p.lo]))) if p.count >= 2 else 0.0
+        sp_hi = float(np.hypot(*(pts[p.hi] - pts[p.hi - 1]))) if p.count >= 2 else 0.0
+        return (
+            p.t0 - cfg.corner_tol - sp_lo <= t <= p.t1 + cfg.corner_tol + sp_hi
+            and float(_line_dist(x[None, :], p.c, p.u)[0]) <= cfg.corner_tol
+        )
 
     # A short wall that meets a kept wall in a corner is structure (a door jamb, the end face of
     # a thick wall), not clutter: keep it when it is at least min_corner_length long.
@@ -560,6 +664,121 @@ def extract_corners(
         kept.sort(key=lambda piece: piece.lo)
         for i, p in enumerate(kept):
             owner[p.lo : p.hi + 1] = i
+
+    # ---------------------------------------------------------------- stubs
+    # A short wall seen end-on -- the end face of a thick wall or a door jamb, viewed from the
+    # room at a grazing angle -- returns only one to min_points - 1 beams next to the end of
+    # the wall it meets, too few to fit or keep. The corner sensor (and the predicted scan of
+    # the filter) report it: the wall ends in a NOMINAL corner and the short wall runs on to
+    # its own end. Without it the wall would end in a FRONTIER or OCCLUSION on the boundary ray
+    # and a map's jamb would look seen-through. So: the unowned returns just beyond a free end
+    # of a kept wall, in the same run, off its line, followed by a break (a range jump, a
+    # no-return gap or the end of the run), become a stub wall from the corner (the wall's line
+    # on the boundary ray between the wall's last beam and the stub's first) through the
+    # stub's farthest return.
+    if cfg.stubs:
+        stubs: list[_Piece] = []
+        for p in kept:
+            if p.stub:
+                continue
+            for side in (1, -1):
+                ci = p.hi if side > 0 else p.lo
+                cn = ci + side
+                if not (0 <= cn < m and owner[cn] == -1):
+                    continue  # (most ends: a corner with the next kept wall, or nothing)
+                k = int(beam_idx[ci])
+                ext = min(0.75 * float(np.hypot(*(pts[ci] - pts[ci - side]))), cfg.max_extrapolation) if p.count >= 2 else 0.0
+                cpt = _on_ray(bearing(k + 0.5 * side), p, pts[ci], side, ext, cfg)
+                chain: list[int] = []
+                while 0 <= cn < m and owner[cn] == -1 and len(chain) < cfg.min_points:
+                    if abs(int(beam_idx[cn]) - int(beam_idx[cn - side])) - 1 > cfg.max_gap:
+                        break
+                    if brk[min(cn, cn - side)] and not (
+                        float(np.hypot(*(pts[cn] - pts[cn - side]))) <= 5.0 * cfg.jump
+                        and _grazing_next(pts, chain, cn, cpt, pts[ci], cfg.split_tol)
+                    ):
+                        break
+                    chain.append(cn)
+                    cn += side
+                if not chain or len(chain) >= cfg.min_points:
+                    continue
+                # followed by a break: a jump, a no-return gap, the run's end, or a kept wall
+                after = chain[-1] + side
+                if 0 <= after < m and owner[after] == -1 and not brk[min(after, after - side)] and (
+                    abs(int(beam_idx[after]) - int(beam_idx[after - side])) - 1 <= cfg.max_gap
+                ):
+                    continue
+                if (_line_dist(pts[chain], p.c, p.u) <= cfg.split_tol).any():
+                    continue  # (the wall itself going on: left to the sparse continuation)
+                if len(chain) >= 2:  # the corner: where the stub's line meets the wall's
+                    sc, su = _tls(pts[chain])
+                    x = _line_cross(p.c, p.u, sc, su)
+                    if x is not None and float(np.hypot(*(x - cpt))) <= cfg.corner_tol:
+                        cpt = x
+                far_pt = pts[chain[-1]]
+                d = far_pt - cpt
+                dn = float(np.hypot(d[0], d[1]))
+                if dn <= 1e-6:
+                    continue
+                lo, hi = (chain[0], chain[-1]) if side > 0 else (chain[-1], chain[0])
+                u = d / dn if side > 0 else -d / dn  # oriented from the first point to the last
+                q = _Piece(-1, lo, hi, np.asarray(cpt, dtype=np.float64), np.asarray(u, dtype=np.float64), stub=True)
+                fitter.extent(q)
+                if side > 0:  # its extent starts at its corner
+                    q.t0 = min(q.t0, 0.0)
+                else:
+                    q.t1 = max(q.t1, 0.0)
+                if (corner(p, q) if side > 0 else corner(q, p)) is None:
+                    continue
+                owner[lo : hi + 1] = -3  # taken (renumbered below)
+                stubs.append(q)
+        if stubs:
+            kept.extend(stubs)
+            kept.sort(key=lambda piece: piece.lo)
+            owner[owner == -3] = -1
+            for i, p in enumerate(kept):
+                owner[p.lo : p.hi + 1] = i
+
+    # ---------------------------------------------------------------- walls between two beams
+    # Two neighbouring kept pieces hit by *consecutive* beams (no ray passed between them) that
+    # lie on one line are one wall seen at a grazing angle: the range jumps between the two
+    # beams, but nothing was seen through the wall (a ray between them would have crossed it).
+    # Seen from a doorway almost in the plane of a wall, that wall returns a beam at each end
+    # and none in between; reporting it as two walls with a gap would tell the filter that the
+    # scan saw through it.
+    j = 0
+    while j + 1 < len(kept):
+        p, q = kept[j], kept[j + 1]
+        if q.lo != p.hi + 1 or int(beam_idx[q.lo]) - int(beam_idx[p.hi]) != 1:
+            j += 1
+            continue
+        if abs(float(np.dot(p.u, q.u))) < math.cos(
+            max(cfg.merge_angle, math.atan(cfg.split_tol / max(min(p.length, q.length), 1e-9)))
+        ):
+            j += 1
+            continue
+        cloud = [pts[p.lo : p.hi + 1], pts[q.lo : q.hi + 1]]
+        cloud += [p.c[None, :]] if p.stub else []
+        cloud += [q.c[None, :]] if q.stub else []
+        xy = np.concatenate(cloud)
+        mean, u = _tls(xy)
+        if float(_line_dist(xy, mean, u).max()) > cfg.split_tol:
+            j += 1
+            continue
+        if float(np.dot(pts[q.hi] - pts[p.lo], u)) < 0.0 or (p.lo == q.hi and float(np.dot(p.u, u)) < 0.0):
+            u = -u
+        joined = _Piece(p.run, p.lo, q.hi, mean, u)
+        fitter.extent(joined)
+        # the extent includes a stub's corner
+        for r_ in (p, q):
+            if r_.stub:
+                tc = float(np.dot(r_.c - mean, u))
+                joined.t0, joined.t1 = min(joined.t0, tc), max(joined.t1, tc)
+        kept[j : j + 2] = [joined]
+        owner[joined.lo : joined.hi + 1] = j
+        owner[owner > j] -= 0  # (renumbered below)
+        for i, piece in enumerate(kept):
+            owner[piece.lo : piece.hi + 1] = i
 
     nk = len(kept)
     corner_at: list[FloatArray | None] = [None] * nk  # corner between kept[i] and kept[i + 1]
@@ -598,8 +817,8 @@ def extract_corners(
         # The boundary ray is half a beam beyond the last point: on the line that is about half
         # the piece's own point spacing at this end. Cap the extrapolation there (a grazing
         # line would otherwise run far past a corner hidden between the beams).
-        if p.count >= 2:
-            cap = 0.75 * float(np.hypot(*(pts[ci] - pts[ci - side])))
+        if p.count >= 2 or (p.stub and 0 <= ci - side < m):
+            cap = min(0.75 * float(np.hypot(*(pts[ci] - pts[ci - side]))), cfg.max_extrapolation)
         else:
             cap = 0.0
         cn = ci + side
@@ -647,7 +866,14 @@ def extract_corners(
                 exit_pt = _circle_exit(p, last, side, max_range)
                 if exit_pt is not None:
                     # The exit lies between the last beam and the next: about one spacing on.
-                    return _checked(exit_pt, p, last, cfg.corner_tol + 2.0 * cap), int(Label.FRONTIER)
+                    if cfg.exit_on_circle:
+                        return _checked(exit_pt, p, last, cfg.corner_tol + 2.0 * cap), int(Label.FRONTIER)
+                    # ... or the wall ends just short of the range limit: no further than
+                    # max_extrapolation beyond the last return
+                    foot = _foot(p, last)
+                    along = float(np.dot(exit_pt - foot, side * p.u))
+                    along = min(max(along, 0.0), cfg.max_extrapolation, cfg.corner_tol + 2.0 * cap)
+                    return np.asarray(foot + along * side * p.u, dtype=np.float64), int(Label.FRONTIER)
                 return _on_ray(beta, p, last, side, cap, cfg), int(Label.FRONTIER)
         return _on_ray(beta, p, last, side, cap, cfg), int(Label.OCCLUSION)
 

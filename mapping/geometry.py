@@ -13,6 +13,7 @@ positive (counterclockwise). In a wireframe the left of an edge is free space.
 from __future__ import annotations
 
 import math
+from fractions import Fraction
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -23,6 +24,7 @@ BoolArray = NDArray[np.bool_]
 __all__ = [
     "cross2",
     "dot2",
+    "orient2d",
     "pairwise_distances",
     "parallel",
     "point_segment_distance",
@@ -105,6 +107,35 @@ def parallel(u: ArrayLike, v: ArrayLike, angle_tol: float, same_direction: bool 
     return np.asarray(ok & (np.abs(c) >= lim), dtype=np.bool_)
 
 
+# Shewchuk's error bound for the floating-point orientation determinant ("ccwerrboundA",
+# (3 + 16 eps) eps): when |det| exceeds it times the magnitude of its two products, its sign is right.
+_ORIENT_BOUND = (3.0 + 16.0 * np.finfo(np.float64).eps) * np.finfo(np.float64).eps
+
+
+def orient2d(a: ArrayLike, b: ArrayLike, c: ArrayLike) -> FloatArray:
+    """Twice the signed area of the triangle ``(a, b, c)``: positive when ``c`` lies to the
+    left of the directed line ``a -> b`` (counterclockwise), zero when collinear.
+
+    The *sign* is exact (adaptive: the floating-point value is used when Shewchuk's error bound
+    proves its sign, the rest are recomputed in exact rational arithmetic), so the answer does
+    not depend on which of the three points the determinant is taken relative to. Values that
+    needed the exact path are returned rounded from the exact result.
+    """
+    a, b, c = np.broadcast_arrays(_f(a), _f(b), _f(c))
+    left = (a[..., 0] - c[..., 0]) * (b[..., 1] - c[..., 1])
+    right = (a[..., 1] - c[..., 1]) * (b[..., 0] - c[..., 0])
+    det = np.asarray(left - right, dtype=np.float64)
+    unsure = np.abs(det) <= _ORIENT_BOUND * (np.abs(left) + np.abs(right))
+    if np.any(unsure):
+        det = det.copy() if det.ndim else np.array(det)
+        for idx in zip(*np.nonzero(unsure)) if det.ndim else [()]:
+            ax, ay = (Fraction(float(v)) for v in a[idx])
+            bx, by = (Fraction(float(v)) for v in b[idx])
+            cx, cy = (Fraction(float(v)) for v in c[idx])
+            det[idx] = float((ax - cx) * (by - cy) - (ay - cy) * (bx - cx))
+    return np.asarray(det, dtype=np.float64)
+
+
 def segments_intersect(
     a1: ArrayLike, b1: ArrayLike, a2: ArrayLike, b2: ArrayLike, proper: bool = False
 ) -> BoolArray:
@@ -112,14 +143,15 @@ def segments_intersect(
 
     With ``proper=True`` only crossings in both interiors count (touching at an end point or
     overlapping collinearly does not). Otherwise any common point counts, collinear overlaps and
-    shared end points included. Exact orientation tests, no tolerance.
+    shared end points included. Exact orientation tests (:func:`orient2d`), no tolerance, so
+    the answer is the same whichever way round the segments and their ends are given.
     """
     a1, b1, a2, b2 = _f(a1), _f(b1), _f(a2), _f(b2)
-    d1 = cross2(b2 - a2, a1 - a2)
-    d2 = cross2(b2 - a2, b1 - a2)
-    d3 = cross2(b1 - a1, a2 - a1)
-    d4 = cross2(b1 - a1, b2 - a1)
-    crossing = (d1 * d2 < 0.0) & (d3 * d4 < 0.0)
+    d1 = orient2d(a2, b2, a1)
+    d2 = orient2d(a2, b2, b1)
+    d3 = orient2d(a1, b1, a2)
+    d4 = orient2d(a1, b1, b2)
+    crossing = (np.sign(d1) * np.sign(d2) < 0.0) & (np.sign(d3) * np.sign(d4) < 0.0)  # (no underflow)
     if proper:
         return np.asarray(crossing, dtype=np.bool_)
 

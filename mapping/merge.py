@@ -10,19 +10,24 @@ Overview of one merge (details and the choices made where the paper is silent ar
    ``2 * threshold`` (and the vertices they use) take part; everything else of ``base`` is
    re-appended untouched, so the cost follows the size of ``new``, not of the map.
 2. **Vertex correspondence.** Base and new corners closer than ``threshold`` are paired
-   one-to-one (cKDTree candidates, ``linear_sum_assignment`` when ambiguous) and combined.
+   one-to-one (cKDTree candidates, ``linear_sum_assignment`` when ambiguous) and combined --
+   never the corners of the two faces of a wall about as thick as the threshold.
 3. **Collinear groups.** Edges of the same direction, on the same line (within ``threshold``)
-   and overlapping or touching in projection are grouped (transitively). Small inputs test all
-   pairs; large ones (whole-map fusion) take candidate pairs from a uniform grid first.
+   and overlapping or touching in projection are grouped (transitively); a short noisy piece
+   further off in direction only when it lies along the other edge's segment. Small inputs
+   test all pairs; large ones (whole-map fusion) take candidate pairs from a uniform grid.
 4. **Group resolution.** Each group becomes one wall from its farthest start to its farthest
    end; corners inside it vanish unless a wall leaves them into free space (a T-junction),
    where the wall is split. Likelihoods combine as ``1 - prod(1 - L)``, sources are OR-ed.
-5. **Clean-up.** Degenerate and duplicate edges are combined or removed, unused corners dropped.
+5. **Clean-up.** Every resolved wall must point like an edge it came from (else the split or
+   the group is undone); degenerate, reversed and duplicate edges are combined or removed,
+   unused corners dropped. :func:`merge_traced` also returns where each wall came from.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from functools import reduce
 
@@ -33,7 +38,7 @@ from scipy.spatial import cKDTree
 
 from mapping.wireframe import Label, Wireframe
 
-__all__ = ["MergeConfig", "merge", "merge_all", "normalize"]
+__all__ = ["MergeConfig", "merge", "merge_all", "merge_traced", "normalize"]
 
 _NOMINAL = int(Label.NOMINAL)
 _FRONTIER = int(Label.FRONTIER)
@@ -124,8 +129,11 @@ def _snap_pairs(
     lab_b: NDArray[np.int64],
     lab_n: NDArray[np.int64],
     thr: float,
+    allowed: Callable[[NDArray[np.intp], NDArray[np.intp]], NDArray[np.bool_]] | None = None,
 ) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
     """One-to-one pairs ``(rows into pb, cols into pn)`` within ``thr`` to combine.
+
+    ``allowed(rows, cols)`` may veto candidate pairs before the assignment.
 
     Two frontiers take part in the assignment (so a frontier is not paired with another corner
     when the other wireframe has a frontier right there: merging the same scan twice stays a
@@ -144,6 +152,9 @@ def _snap_pairs(
         r = sdm["i"][order].astype(np.intp)
         c = sdm["j"][order].astype(np.intp)
         dist = sdm["v"][order]
+    if len(r) and allowed is not None:
+        keep = allowed(r, c)
+        r, c, dist = r[keep], c[keep], dist[keep]
     if len(r) == 0:
         return empty, empty
     # r is sorted (nonzero / lexsort order): unique rows iff strictly increasing
@@ -171,28 +182,56 @@ def _related(
     j: NDArray[np.intp],
     thr: float,
     cos_tol: float,
+    a0: NDArray[np.float64],
+    b0: NDArray[np.float64],
 ) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
-    """Filter pairs ``(i, j)`` to the collinear, same-direction, overlapping-or-touching ones."""
+    """Filter pairs ``(i, j)`` to the collinear, same-direction, overlapping-or-touching ones.
+
+    ``a``, ``b`` are the edges' ends after corners were combined, ``a0``, ``b0`` as measured.
+
+    Two kinds of pair are related (see :func:`merge`, Notes, "Collinear groups"):
+
+    * *parallel* (directions within ``angle_tol``): both ends of the shorter edge within ``thr``
+      of the longer edge's line, and their extents along it overlapping or leaving a gap of at
+      most ``thr`` (a wall continued by the next scan) -- also as measured: combining corners
+      moves an end by up to ``thr``, and must not let a wall then bridge a wider gap;
+    * *noisy* (a short edge up to 45 degrees off, its extent across the longer one's direction
+      at most ``thr``): only when the short edge lies *along* the longer one -- both of its ends
+      within ``thr`` of the longer edge's segment, not merely of its infinite line. A short wall
+      bending away at the end of a long one (a door jamb next to a line-of-sight edge) is not a
+      noisy piece of it.
+    """
     cos = u[i, 0] * u[j, 0] + u[i, 1] * u[j, 1]
-    # Same direction within angle_tol; a short edge (whose direction is noisy) may deviate up to
-    # 45 degrees as long as its extent across the longer's direction is at most thr.
     shortest = np.minimum(length[i], length[j])
     sin = np.abs(u[i, 0] * u[j, 1] - u[i, 1] * u[j, 0])
-    same = (cos >= cos_tol) | ((cos >= _COS_45) & (shortest * sin <= thr))
-    i, j = i[same], j[same]
+    parallel = cos >= cos_tol
+    same = parallel | ((cos >= _COS_45) & (shortest * sin <= thr))
+    i, j, parallel = i[same], j[same], parallel[same]
     if len(i) == 0:
         return i, j
     swap = length[j] > length[i]
     lg = np.where(swap, j, i)  # the longer edge defines the line
     sh = np.where(swap, i, j)
-    ul, al = u[lg], a[lg]
+    ul, al, ll = u[lg], a[lg], length[lg]
     ds, de = a[sh] - al, b[sh] - al
     off_s = ul[:, 0] * ds[:, 1] - ul[:, 1] * ds[:, 0]
     off_e = ul[:, 0] * de[:, 1] - ul[:, 1] * de[:, 0]
     ts = ul[:, 0] * ds[:, 0] + ul[:, 1] * ds[:, 1]
     te = ul[:, 0] * de[:, 0] + ul[:, 1] * de[:, 1]
-    gap = np.maximum(ts - length[lg], -te)
-    ok = (np.abs(off_s) <= thr) & (np.abs(off_e) <= thr) & (gap <= thr)
+    gap = np.maximum(ts - ll, -te)
+    # the same gap between the ends as measured, along the same line
+    def along_line(p: NDArray[np.float64]) -> NDArray[np.float64]:
+        return np.asarray(ul[:, 0] * (p[:, 0] - al[:, 0]) + ul[:, 1] * (p[:, 1] - al[:, 1]), dtype=np.float64)
+
+    l0, l1 = along_line(a0[lg]), along_line(b0[lg])
+    s0, s1 = along_line(a0[sh]), along_line(b0[sh])
+    gap0 = np.maximum(np.minimum(s0, s1) - np.maximum(l0, l1), np.minimum(l0, l1) - np.maximum(s0, s1))
+    on_line = (np.abs(off_s) <= thr) & (np.abs(off_e) <= thr)
+    # distance of each end of the short edge to the long edge's segment
+    out_s = np.maximum(np.maximum(-ts, ts - ll), 0.0)
+    out_e = np.maximum(np.maximum(-te, te - ll), 0.0)
+    along = (np.hypot(off_s, out_s) <= thr) & (np.hypot(off_e, out_e) <= thr)
+    ok = on_line & np.where(parallel, gap <= thr, along) & (gap0 <= thr)
     return i[ok], j[ok]
 
 
@@ -266,6 +305,126 @@ def _upper_pairs(k: int) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
     return got
 
 
+def _not_other_face(
+    pos: NDArray[np.float64], edges: NDArray[np.int64], nlb: int, thr: float, cos_tol: float
+) -> Callable[[NDArray[np.intp], NDArray[np.intp]], NDArray[np.bool_]]:
+    """Veto for :func:`_snap_pairs`: a base corner and a new corner (local ids ``r`` and
+    ``nlb + c``) are not combined when a wall at one and a wall at the other point in opposite
+    directions (within ``angle_tol``) along lines more than ``thr / 4`` apart: they are the two
+    faces of a thick wall (or the two sides of a narrow gap), whose corners may lie within the
+    threshold of each other, not two sightings of one corner. Two faces of a *thin* wall lie on
+    one line and still share their corners."""
+
+    def allowed(r: NDArray[np.intp], c: NDArray[np.intp]) -> NDArray[np.bool_]:
+        out = np.ones(len(r), dtype=bool)
+        if len(edges) == 0:
+            return out
+        a = pos[edges[:, 0]]
+        d = pos[edges[:, 1]] - a
+        n = np.hypot(d[:, 0], d[:, 1])
+        u = d / np.where(n > 0.0, n, 1.0)[:, None]
+        # vertex -> its edges, as slices of one sorted incidence list
+        inc_v = np.concatenate([edges[:, 0], edges[:, 1]])
+        inc_e = np.concatenate([np.arange(len(edges)), np.arange(len(edges))])
+        order = np.argsort(inc_v, kind="stable")
+        inc_v, inc_e = inc_v[order], inc_e[order]
+        lo_r, hi_r = np.searchsorted(inc_v, r, "left"), np.searchsorted(inc_v, r, "right")
+        lo_c, hi_c = np.searchsorted(inc_v, c + nlb, "left"), np.searchsorted(inc_v, c + nlb, "right")
+        # every (candidate, base edge at its base corner, new edge at its new corner) triple
+        nr, nc = hi_r - lo_r, hi_c - lo_c
+        per = nr * nc
+        k = np.repeat(np.arange(len(r)), per)
+        if len(k) == 0:
+            return out
+        local = np.arange(len(k)) - np.repeat(np.cumsum(per) - per, per)
+        fb = inc_e[lo_r[k] + local // nc[k]]
+        fn = inc_e[lo_c[k] + local % nc[k]]
+        ub, un = u[fb], u[fn]
+        anti = ub[:, 0] * un[:, 0] + ub[:, 1] * un[:, 1] <= -cos_tol  # pointing opposite ways
+        rel = a[fn] - a[fb]
+        off = np.abs(ub[:, 0] * rel[:, 1] - ub[:, 1] * rel[:, 0])  # apart across the base wall
+        veto = anti & (off > 0.25 * thr)
+        if veto.any():
+            out[np.unique(k[veto])] = False
+        return out
+
+    return allowed
+
+
+def _pick_ends(
+    starts: list[int],
+    ends: list[int],
+    pos: list[list[float]],
+    dirs: list[list[float]],
+    cos_tol: float,
+) -> tuple[int, int] | None:
+    """The first ``(s, e)`` (starts outer, ends inner, in the given preference order) whose
+    wall ``pos[s] -> pos[e]`` lies within the angle of ``cos_tol`` of one of ``dirs``."""
+    units = [(d[0] / n, d[1] / n) for d in dirs if (n := math.hypot(d[0], d[1])) > 0.0]
+    for s in starts:
+        sx, sy = pos[s]
+        for e in ends:
+            if e == s:
+                continue
+            dx, dy = pos[e][0] - sx, pos[e][1] - sy
+            lim = cos_tol * math.hypot(dx, dy)
+            if lim > 0.0 and any(ux * dx + uy * dy >= lim for ux, uy in units):
+                return s, e
+    return None
+
+
+def _may_absorb(
+    rv: int,
+    rt: int,
+    eds: list[int],
+    vclass: dict[int, list[int]],
+    inc_of: dict[int, list[int]],
+    edges: list[list[int]],
+    pos: list[list[float]],
+    raw: list[list[float]],
+    parent: list[int],
+    cos_tol: float,
+    pos0: list[list[float]],
+    mate: list[int],
+    thr: float,
+) -> bool:
+    """Whether the corners of class ``rv`` may join class ``rt`` (and move to ``pos[rt]``):
+
+    * all the measured positions of the corners of both classes (``pos0[x]``, and ``pos0`` of
+      the corner ``mate[x]`` combined with it) lie within ``thr`` of each other, so that
+      no chain of combinations moves a corner farther than the threshold;
+    * every wall of the moved corners other than ``eds`` (the group being resolved) still
+      points within the angle of ``cos_tol`` of its measured direction ``raw`` (or collapses
+      to nothing and is removed).
+    """
+    ids = [*vclass.get(rv, [rv]), *vclass.get(rt, [rt])]
+    pts = [pos0[x] for x in ids] + [pos0[mate[x]] for x in ids if mate[x] >= 0]
+    for i in range(len(pts)):
+        for j in range(i):
+            if math.hypot(pts[i][0] - pts[j][0], pts[i][1] - pts[j][1]) > thr:
+                return False
+    tx, ty = pos[rt]
+    skip = set(eds)
+    for v in vclass.get(rv, [rv]):
+        for f in inc_of.get(v, ()):
+            if f in skip:
+                continue
+            x, y = edges[f]
+            if x == v:
+                w = _find(parent, y)
+                if w in (rv, rt):
+                    continue
+                dx, dy = pos[w][0] - tx, pos[w][1] - ty
+            else:
+                w = _find(parent, x)
+                if w in (rv, rt):
+                    continue
+                dx, dy = tx - pos[w][0], ty - pos[w][1]
+            if raw[f][0] * dx + raw[f][1] * dy < cos_tol * math.hypot(dx, dy) * math.hypot(*raw[f]):
+                return False
+    return True
+
+
 def _find(parent: list[int], x: int) -> int:
     root = x
     while parent[root] != root:
@@ -334,20 +493,37 @@ def merge(base: Wireframe, new: Wireframe, config: MergeConfig | None = None) ->
       No per-corner weights or averaging.
     * **Glimpses.** An edge shorter than ``threshold`` with a frontier end (a wall seen for
       less than the map's resolution: no reliable direction, no corner) is dropped.
-    * **Collinear groups.** Two edges are related when they point the same way (directions
-      within ``angle_tol``; or, for a short edge whose direction is noisy, within 45 degrees
-      as long as its extent across the other's direction is at most ``threshold``), both ends
-      of the shorter lie within ``threshold`` of the longer's line, and their projections on
-      that line overlap or leave a gap of at most ``threshold``. Groups are the transitive
-      closure over *all* local edges (base, new, and both mixed), so a chain of collinear edges
-      through a corner with nothing else attached is a group too and is joined.
+    * **Opposite faces.** A base corner and a new corner are not combined when a wall at one
+      and a wall at the other point in opposite directions (within ``angle_tol``) along lines
+      more than ``threshold / 4`` apart: they are the two faces of a wall about as thick as
+      the threshold (or the two sides of a narrow gap), not one corner seen twice; combining
+      them would fold the wall into one line. The faces of a *thin* wall, on one line, still
+      share their corners.
+    * **Collinear groups.** Two edges are related when they point the same way and lie on one
+      line (both ends of the shorter within ``threshold`` of the longer's line), either
+      *parallel* (directions within ``angle_tol``) with projections on that line that overlap
+      or leave a gap of at most ``threshold`` -- the gap also measured between the ends as
+      measured, before corners were combined (combining moves an end by up to ``threshold``
+      and must not let a wall then bridge a wider gap) -- or, for a short edge whose direction
+      is noisy, up to 45 degrees off with its extent across the other's direction at most
+      ``threshold``, but only when it lies *along* the longer edge: both of its ends within
+      ``threshold`` of the longer edge's *segment*. (A 0.26 m door jamb 18 degrees off a 2.6 m
+      line-of-sight edge that ends at its foot lies near that edge's line, not along it: it is
+      not absorbed.) Groups are the transitive closure over *all* local edges (base, new, and
+      both mixed), so a chain of collinear edges through a corner with nothing else attached is
+      a group too and is joined.
     * **Group resolution.** Positions along the group are measured on the line of its
       reference edge (the longest base edge, else the longest edge). ``t0``/``t1`` are the
       smallest and largest positions of the group's corners. The start is chosen among the
       group's corners within ``threshold`` of ``t0``: best label; then, for real corners, base
       before new (a stable map) and for frontiers the farthest out (the wall grows); then
-      farthest out, base first, lowest index. The end likewise near ``t1``. The other corners
-      near either end are absorbed into that end (their other walls are re-attached to it).
+      farthest out, base first, lowest index. The end likewise near ``t1``. The first (start,
+      end) in that order whose wall points within ``angle_tol`` of one of the group's edges as
+      measured is taken; when none does (a short group of noisy pieces) the group's edges are
+      left as they are. The other corners near either end are absorbed into that end (their
+      other walls are re-attached to it) unless that would move a corner more than
+      ``threshold`` from where any corner combined with it was measured (chains of
+      combinations) or turn one of its other walls by more than ``angle_tol``.
       Corners strictly inside ``(t0 + threshold, t1 - threshold)`` leave the wall --
       frontiers always (the wall was seen to continue: the frontier disappears), others unless
       they are a T-junction. The resolved wall runs from the start corner to the end corner
@@ -359,29 +535,64 @@ def merge(base: Wireframe, new: Wireframe, config: MergeConfig | None = None) ->
       face of a thin wall stays one edge where an office wall meets its back). Each piece of a
       split wall combines the likelihoods of the edges that cover it (more than half of the
       piece or more than ``threshold`` of it; an edge covering no piece that much counts for
-      the piece it overlaps most).
+      the piece it overlaps most). With the final corner positions, a piece that does not point
+      within ``angle_tol`` of one of the edges covering it (a split corner off the line, not
+      snapped) undoes the split at the corner farther off the line; a wall that still does not
+      point like its edges leaves them as they are. ``snap_to_lines`` never moves a corner
+      more than ``threshold`` from where it (or the corner combined with it) was measured, nor
+      when that would turn a wall ending there by more than ``angle_tol``.
     * **Clean-up.** Edges that end where they start (or have zero length) after combining
-      corners are removed; duplicate directed edges are combined like any merge.
+      corners are removed, and so are edges turned around by it (their ends were within the
+      threshold of each other and moved past each other); duplicate directed edges are
+      combined like any merge.
     * **Not handled here.** A false-positive wall (e.g. joining an occlusion to its frontier) is
       kept like any wall (the union); the filter's mutation step (Sec. IV-F) removes it. A
       frontier that leaves a wall but still has such an edge stays as that edge's end.
 
     Properties (tested): ``merge(W, W)`` has the corners and walls of ``W`` with likelihoods
     ``1 - (1 - L)^2`` when ``W`` is normalised (see :func:`normalize`); ``merge(merge(A, B), B)``
-    has the geometry of ``merge(A, B)``; the result is deterministic.
+    has the geometry of ``merge(A, B)``; the result is deterministic. With the provenance of
+    :func:`merge_traced`: a wall built from several input walls points within ``angle_tol`` of
+    one of them (up to the turn ``asin(2 threshold / length)`` that combining corners may give
+    an input wall), never the other way round, and leaves no gap longer than the threshold
+    that none of them covered.
 
     References
     ----------
     Wireframe Mapping for Resource-Constrained Robots, Sec. III-A (labels, directions),
     IV-C (correspondences), IV-E (merging).
     """
-    cfg = config if config is not None else MergeConfig()
+    return _merge(base, new, config if config is not None else MergeConfig(), False)[0]
+
+
+def merge_traced(
+    base: Wireframe, new: Wireframe, config: MergeConfig | None = None
+) -> tuple[Wireframe, list[list[int]]]:
+    """:func:`merge`, and where each resulting wall came from.
+
+    Returns
+    -------
+    merged : Wireframe
+        Exactly ``merge(base, new, config)``.
+    provenance : list of list of int
+        For each edge of ``merged``, the input edges combined into it, sorted: ``k < m`` is
+        ``base`` edge ``k`` and ``m + k`` is ``new`` edge ``k`` (``m = base.n_edges``). A wall
+        split at a T-junction lists, for each piece, the edges that overlap that piece.
+        Used to test what the merge may create (tests/test_merge.py) and to debug maps.
+    """
+    return _merge(base, new, config if config is not None else MergeConfig(), True)
+
+
+def _merge(
+    base: Wireframe, new: Wireframe, cfg: MergeConfig, trace: bool
+) -> tuple[Wireframe, list[list[int]]]:
+    """The body of :func:`merge`; with ``trace`` also the provenance of :func:`merge_traced`."""
     thr = cfg.threshold
     cos_tol = math.cos(cfg.angle_tol)
     sin_tol = math.sin(cfg.angle_tol)
 
     if new.n_edges == 0:
-        return base
+        return base, [[k] for k in range(base.n_edges)] if trace else []
     new = new.compacted()
     nb, nn = base.n_vertices, new.n_vertices
     mb = base.n_edges
@@ -424,8 +635,12 @@ def merge(base: Wireframe, new: Wireframe, config: MergeConfig | None = None) ->
         np.hypot(eb[:, 0] - ea[:, 0], eb[:, 1] - ea[:, 1]) < thr
     )
 
+    pos0 = pos.copy()  # positions as measured, before corners are combined
+    raw_a = pos0[edges[:, 0]]  # edge starts and directions as measured
+    raw_d = pos0[edges[:, 1]] - raw_a
     snap = np.arange(nl)
-    r, c = _snap_pairs(pos[:nlb], pos[nlb:], lab[:nlb], lab[nlb:], thr)
+    mate = np.full(nl, -1, dtype=np.int64)  # the new corner each base corner was combined with
+    r, c = _snap_pairs(pos[:nlb], pos[nlb:], lab[:nlb], lab[nlb:], thr, _not_other_face(pos, edges, nlb, thr, cos_tol))
     if len(r):
         cn = c + nlb
         better = lab[cn] < lab[r]
@@ -433,12 +648,14 @@ def merge(base: Wireframe, new: Wireframe, config: MergeConfig | None = None) ->
         fixed[r[better]] = False
         lab[r] = np.minimum(lab[r], lab[cn])
         snap[cn] = r
+        mate[r] = cn
 
     edges = snap[edges]
     lik = np.concatenate([base.likelihood[local_e], new.likelihood])
     src = np.concatenate([base.sources[local_e], new.sources])
     e_new = np.zeros(len(edges), dtype=bool)
     e_new[int(local_e.sum()) :] = True
+    orig = np.concatenate([np.flatnonzero(local_e), mb + np.arange(new.n_edges)])  # input edge ids
 
     a = pos[edges[:, 0]]
     b = pos[edges[:, 1]]
@@ -446,7 +663,8 @@ def merge(base: Wireframe, new: Wireframe, config: MergeConfig | None = None) ->
     length = np.hypot(d[:, 0], d[:, 1])
     ok = (edges[:, 0] != edges[:, 1]) & (length > 0.0) & ~glimpse
     if not ok.all():
-        edges, lik, src, e_new = edges[ok], lik[ok], src[ok], e_new[ok]
+        edges, lik, src, e_new, orig = edges[ok], lik[ok], src[ok], e_new[ok], orig[ok]
+        raw_a, raw_d = raw_a[ok], raw_d[ok]
         a, b, d, length = a[ok], b[ok], d[ok], length[ok]
     k = len(edges)
     u = d / np.where(length > 0.0, length, 1.0)[:, None]
@@ -462,7 +680,7 @@ def merge(base: Wireframe, new: Wireframe, config: MergeConfig | None = None) ->
         pi_, pj_ = _box_pairs(np.minimum(a, b) - half, np.maximum(a, b) + half, None, None, cell)
         same_dir = u[pi_, 0] * u[pj_, 0] + u[pi_, 1] * u[pj_, 1] >= _COS_45
         pi_, pj_ = pi_[same_dir], pj_[same_dir]
-    pi_, pj_ = _related(a, b, u, length, pi_, pj_, thr, cos_tol)
+    pi_, pj_ = _related(a, b, u, length, pi_, pj_, thr, cos_tol, raw_a, raw_a + raw_d)
     eparent = list(range(k))
     for x, y in zip(pi_.tolist(), pj_.tolist()):
         rx, ry = _find(eparent, x), _find(eparent, y)
@@ -498,6 +716,15 @@ def merge(base: Wireframe, new: Wireframe, config: MergeConfig | None = None) ->
     g_o: list[list[float]] = []
     g_t0: list[float] = []
     g_t1: list[float] = []
+    raw_l = raw_d.tolist()
+    mate_l = mate.tolist()
+    pos0_l = pos0.tolist()
+    vclass: dict[int, list[int]] = {}  # absorbed corners per root (roots absorbing nothing: absent)
+    inc_of: dict[int, list[int]] = {}  # local corner -> its edges (only filled for groups' corners)
+    if members:
+        for f, (x, y) in enumerate(edges_l):
+            inc_of.setdefault(x, []).append(f)
+            inc_of.setdefault(y, []).append(f)
     for cid, eds in members.items():
         ref = min(eds, key=lambda e: (e_new_l[e], -len_l[e], e))
         ux, uy = u_l[ref]
@@ -506,17 +733,22 @@ def merge(base: Wireframe, new: Wireframe, config: MergeConfig | None = None) ->
         tv = {v: ux * (pos_l[v][0] - ox) + uy * (pos_l[v][1] - oy) for v in verts}
         t0 = min(tv.values())
         t1 = max(tv.values())
-        starts = [v for v in verts if tv[v] <= t0 + thr]
         # best label; real corners: base before new (a stable map), frontiers: farthest out
-        s = min(
-            starts, key=lambda v: (lab_l[v], lab_l[v] != _FRONTIER and is_new_l[v], tv[v], is_new_l[v], v)
+        starts = sorted(
+            (v for v in verts if tv[v] <= t0 + thr),
+            key=lambda v: (lab_l[v], lab_l[v] != _FRONTIER and is_new_l[v], tv[v], is_new_l[v], v),
         )
-        ends = [v for v in verts if tv[v] >= t1 - thr and v != s]
-        if not ends:  # everything within threshold of one point: leave the edges as they are
+        ends = sorted(
+            (v for v in verts if tv[v] >= t1 - thr),
+            key=lambda v: (lab_l[v], lab_l[v] != _FRONTIER and is_new_l[v], -tv[v], is_new_l[v], v),
+        )
+        # the first (start, end) in that order whose wall points like one of its edges as
+        # measured; none (a short group of noisy pieces): leave the edges as they are
+        dirs = [raw_l[e] for e in eds]
+        chosen = _pick_ends(starts, ends, pos_l, dirs, cos_tol)
+        if chosen is None:
             continue
-        e_ = min(
-            ends, key=lambda v: (lab_l[v], lab_l[v] != _FRONTIER and is_new_l[v], -tv[v], is_new_l[v], v)
-        )
+        s, e_ = chosen
         for v in verts:  # corners near an end are absorbed into it; those inside leave the wall
             if v == s or v == e_:
                 continue
@@ -531,8 +763,11 @@ def merge(base: Wireframe, new: Wireframe, config: MergeConfig | None = None) ->
             else:
                 continue
             rv, rt = _find(vparent, v), _find(vparent, tgt)
-            if rv != rt:
+            if rv != rt and _may_absorb(
+                rv, rt, eds, vclass, inc_of, edges_l, pos_l, raw_l, vparent, cos_tol, pos0_l, mate_l, thr
+            ):
                 vparent[rv] = rt
+                vclass.setdefault(rt, [rt]).extend(vclass.pop(rv, [rv]))
         grp_info.append((cid, s, e_, not e_new_l[ref], len_l[ref], eds))
         g_u.append([ux, uy])
         g_o.append([ox, oy])
@@ -609,24 +844,29 @@ def merge(base: Wireframe, new: Wireframe, config: MergeConfig | None = None) ->
     single_list = singles.tolist()
     src_l = [int(x) for x in src.tolist()]
     lik_l = lik.tolist()
+    orig_l = orig.tolist()
+    out_p: list[list[int]] = []
+
+    todo: list[tuple[list[int], list[float], list[int], float, float, float, float]] = []
 
     def pieces(
         nodes: list[int], tn: list[float], eds: list[int], ux: float, uy: float, ox: float, oy: float
-    ) -> None:
+    ) -> list[tuple[int, int, list[int], list[int]]]:
+        """The walls between consecutive ``nodes``, each with the edges that cover it (that
+        count for its likelihood) and all the edges overlapping it (its provenance)."""
         npieces = len(nodes) - 1
         if npieces == 1:
-            out_u.append(nodes[0])
-            out_v.append(nodes[1])
-            out_l.append(_combine([lik_l[e] for e in eds]))
-            out_s.append(reduce(lambda x, y: x | y, (src_l[e] for e in eds), 0))
-            return
+            return [(nodes[0], nodes[1], eds, eds)]
         cover: list[list[int]] = [[] for _ in range(npieces)]
+        touch: list[list[int]] = [[] for _ in range(npieces)]
         for e in eds:
             ta = ux * (a_l[e][0] - ox) + uy * (a_l[e][1] - oy)
             tb = ux * (b_l[e][0] - ox) + uy * (b_l[e][1] - oy)
             best, best_ov, hit = 0, -math.inf, False
             for p in range(npieces):
                 ov = min(tb, tn[p + 1]) - max(ta, tn[p])
+                if ov > 0.0:
+                    touch[p].append(e)
                 if ov > min(thr, 0.5 * (tn[p + 1] - tn[p])):
                     cover[p].append(e)
                     hit = True
@@ -634,6 +874,7 @@ def merge(base: Wireframe, new: Wireframe, config: MergeConfig | None = None) ->
                     best, best_ov = p, ov
             if not hit:
                 cover[best].append(e)
+        out: list[tuple[int, int, list[int], list[int]]] = []
         for p in range(npieces):
             cov = cover[p]
             if not cov:  # no edge covers it well: the one overlapping it most
@@ -643,10 +884,8 @@ def merge(base: Wireframe, new: Wireframe, config: MergeConfig | None = None) ->
                     for e in eds
                 ]
                 cov = [eds[int(np.argmax(ovs))]]
-            out_u.append(nodes[p])
-            out_v.append(nodes[p + 1])
-            out_l.append(_combine([lik_l[e] for e in cov]))
-            out_s.append(reduce(lambda x, y: x | y, (src_l[e] for e in cov), 0))
+            out.append((nodes[p], nodes[p + 1], cov, sorted({*cov, *touch[p]})))
+        return out
 
     for g in range(ng):
         spl = splits.get(g, [])
@@ -664,7 +903,7 @@ def merge(base: Wireframe, new: Wireframe, config: MergeConfig | None = None) ->
         nodes = [s, *spl_sorted, e_]
         tn = [ux * (pos_l[v][0] - ox) + uy * (pos_l[v][1] - oy) for v in nodes]
         nominal.update(spl_sorted)
-        pieces(nodes, tn, eds, ux, uy, ox, oy)
+        todo.append((nodes, tn, eds, ux, uy, ox, oy))
         if cfg.snap_to_lines and base_ref:
             for v, tv_ in zip(nodes[1:-1], tn[1:-1]):
                 if 0.0 <= tv_ <= ref_len:  # inside the base wall: interpolation, never beyond
@@ -687,7 +926,28 @@ def merge(base: Wireframe, new: Wireframe, config: MergeConfig | None = None) ->
                 lab_out[rv] = lab_out[v]
         lab_out = best_lab
 
+    walls_at: dict[int, list[tuple[int, bool, list[int]]]] = {}  # root -> (other end, starts?, edges)
     if constraints:
+        root_l = root.tolist()
+        ends_l = [(x, y, cov) for item in todo for x, y, cov, _ in pieces(*item)]
+        ends_l += [(edges_l[e][0], edges_l[e][1], [e]) for e in np.flatnonzero(pass_mask).tolist()]
+        for x, y, cov in ends_l:
+            walls_at.setdefault(root_l[x], []).append((root_l[y], True, cov))
+            walls_at.setdefault(root_l[y], []).append((root_l[x], False, cov))
+        raw_c = raw_d.tolist()
+
+        def turns_a_wall(rv: int, qx: float, qy: float) -> bool:
+            for w, starts, cov in walls_at.get(rv, ()):
+                if w == rv:
+                    continue
+                dx, dy = float(pos[w, 0]) - qx, float(pos[w, 1]) - qy
+                if not starts:
+                    dx, dy = -dx, -dy
+                dd = math.hypot(dx, dy)
+                if not any(raw_c[e][0] * dx + raw_c[e][1] * dy >= cos_tol * dd * math.hypot(*raw_c[e]) for e in cov):
+                    return True
+            return False
+
         for v, lines in constraints.items():
             rv = int(root[v])
             if fixed[rv]:
@@ -710,8 +970,60 @@ def merge(base: Wireframe, new: Wireframe, config: MergeConfig | None = None) ->
                 ux, uy, ox, oy = lines[0]
                 tp = ux * (px - ox) + uy * (py - oy)
                 qx, qy = ox + tp * ux, oy + tp * uy
-            if math.hypot(qx - px, qy - py) <= thr:
+            # never farther than thr from where any corner combined into it was measured
+            # (combining and then snapping could otherwise move a corner twice)
+            near = [int(rv), int(v)] + [int(mate[x]) for x in (rv, v) if mate[x] >= 0]
+            # and never turning a wall that ends there away from the edges it comes from
+            if all(math.hypot(qx - pos0[x, 0], qy - pos0[x, 1]) <= thr for x in near) and not turns_a_wall(
+                rv, qx, qy
+            ):
                 pos[rv] = (qx, qy)
+
+    # ---- 5b. emit the resolved walls, each pointing like one of the edges it covers ---------
+    # (with the final corner positions: a split corner off the line, or a corner absorbed
+    # elsewhere, can turn a short piece; then the split is undone, and a wall that still does not
+    # point like its edges leaves them as they were)
+    rx_l = root.tolist()
+    fpos = pos.tolist()
+
+    def points_like(x: int, y: int, cov: list[int]) -> bool:
+        px, py = fpos[rx_l[x]]
+        dx, dy = fpos[rx_l[y]][0] - px, fpos[rx_l[y]][1] - py
+        dd = math.hypot(dx, dy)
+        return dd > 0.0 and any(
+            raw_l[e][0] * dx + raw_l[e][1] * dy >= cos_tol * dd * math.hypot(*raw_l[e]) for e in cov
+        )
+
+    for nodes, tn, eds, ux, uy, ox, oy in todo:
+        while True:
+            walls = pieces(nodes, tn, eds, ux, uy, ox, oy)
+            bad = [p for p, (x, y, cov, _) in enumerate(walls) if not points_like(x, y, cov)]
+            if not bad:
+                for x, y, cov, prov_xy in walls:
+                    out_u.append(x)
+                    out_v.append(y)
+                    out_l.append(_combine([lik_l[e] for e in cov]))
+                    out_s.append(reduce(lambda p_, q_: p_ | q_, (src_l[e] for e in cov), 0))
+                    if trace:
+                        out_p.append([orig_l[e] for e in prov_xy])
+                break
+            if len(nodes) == 2:
+                pass_mask[eds] = True
+                break
+            inner = [i for i in (bad[0], bad[0] + 1) if 0 < i < len(nodes) - 1]
+            offs = [abs(ux * (fpos[rx_l[nodes[i]]][1] - oy) - uy * (fpos[rx_l[nodes[i]]][0] - ox)) for i in inner]
+            drop = inner[int(np.argmax(offs))]  # the split corner farther off the line
+            del nodes[drop]
+            del tn[drop]
+
+    # An edge left as it was but turned around by combining corners (its ends were within the
+    # threshold of each other and moved past each other) is removed like a degenerate one.
+    for e in np.flatnonzero(pass_mask).tolist():
+        x, y = edges_l[e]
+        px, py = fpos[rx_l[x]]
+        qx, qy = fpos[rx_l[y]]
+        if raw_l[e][0] * (qx - px) + raw_l[e][1] * (qy - py) <= 0.0:
+            pass_mask[e] = False
 
     # ---- 6. assemble (global ids: base vertices, then new ones) --------------------------------
     total = nb + nn
@@ -739,10 +1051,15 @@ def merge(base: Wireframe, new: Wireframe, config: MergeConfig | None = None) ->
     )
     el = np.concatenate([base.likelihood[far], np.asarray(out_l, dtype=np.float64), lik[pass_mask]])
     es = np.concatenate([base.sources[far], np.asarray(out_s, dtype=np.uint64), src[pass_mask]])
+    prov: list[list[int]] = []
+    if trace:
+        prov = [[x] for x in np.flatnonzero(far).tolist()] + out_p + [[x] for x in orig[pass_mask].tolist()]
     pu, pv = all_pos[eu], all_pos[ev]
     ok = (eu != ev) & ((pu[:, 0] != pv[:, 0]) | (pu[:, 1] != pv[:, 1]))
     if not ok.all():
         eu, ev, el, es = eu[ok], ev[ok], el[ok], es[ok]
+        if trace:
+            prov = [x for x, o in zip(prov, ok.tolist()) if o]
     if len(eu) > 1:
         key = eu * total + ev
         uk, first, inv = np.unique(key, return_index=True, return_inverse=True)
@@ -753,6 +1070,11 @@ def merge(base: Wireframe, new: Wireframe, config: MergeConfig | None = None) ->
             s_acc = np.zeros(len(uk), dtype=np.uint64)
             np.bitwise_or.at(s_acc, inv, es)
             eu, ev = eu[first][order], ev[first][order]
+            if trace:
+                acc: list[list[int]] = [[] for _ in range(len(uk))]
+                for x, g in zip(prov, inv.tolist()):
+                    acc[g].extend(x)
+                prov = [acc[g] for g in order.tolist()]
             el = np.clip(1.0 - q, 0.0, 1.0)[order]
             es = s_acc[order]
     keep = np.zeros(total, dtype=bool)
@@ -761,4 +1083,5 @@ def merge(base: Wireframe, new: Wireframe, config: MergeConfig | None = None) ->
     keep[ev] = True
     remap = np.cumsum(keep) - 1
     out_edges = np.stack([remap[eu], remap[ev]], axis=1)
-    return Wireframe(all_pos[keep], all_lab[keep], out_edges, el, es)  # type: ignore[arg-type]
+    merged = Wireframe(all_pos[keep], all_lab[keep], out_edges, el, es)  # type: ignore[arg-type]
+    return merged, [sorted(set(x)) for x in prov]

@@ -8,6 +8,7 @@ from hypothesis import strategies as st
 from mapping.geometry import (
     cross2,
     dot2,
+    orient2d,
     pairwise_distances,
     parallel,
     point_segment_distance,
@@ -102,3 +103,24 @@ def test_intersection_symmetric_and_proper_implies_any(a1, b1, a2, b2):
     assert x == bool(segments_intersect(b2, a2, b1, a1))
     if segments_intersect(a1, b1, a2, b2, proper=True):
         assert x
+
+
+def test_orient2d_exact_sign_where_floating_point_cancels():
+    # regression (hypothesis): with a point 2e-88 from the origin, cross((1 + 2e-88, -1), (1, -1))
+    # rounds to 0 while the exact value is -2e-88; the sign must not depend on the base point
+    a, b, c = (-1.0, 1.0), (2.14630177107482e-88, 0.0), (0.0, 0.0)
+    signs = {float(np.sign(orient2d(*t))) for t in [(a, b, c), (b, c, a), (c, a, b)]}
+    assert signs == {-1.0}
+    assert {float(np.sign(orient2d(*t))) for t in [(b, a, c), (a, c, b), (c, b, a)]} == {1.0}
+    assert not segments_intersect(a, b, c, c) and not segments_intersect(b, a, c, c)
+    # nearly collinear points far from the origin: the float product loses the sign
+    p, q, r = (1e16, 1e16), (1e16 + 2, 1e16 + 2), (1e16 + 4, 1e16 + 4 + 2)
+    assert orient2d(p, q, r) > 0 and orient2d(q, r, p) > 0
+    np.testing.assert_array_equal(orient2d([[0, 0], [0, 0]], [1, 0], [[0, 1], [0, -1]]), [1.0, -1.0])
+
+
+@settings(max_examples=300, deadline=None)
+@given(point, point, point)
+def test_orient2d_sign_is_invariant_under_rotation_of_the_points(a, b, c):
+    s = np.sign(orient2d(a, b, c))
+    assert s == np.sign(orient2d(b, c, a)) == np.sign(orient2d(c, a, b)) == -np.sign(orient2d(b, a, c))

@@ -5,7 +5,7 @@ import pytest
 from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 
-from mapping.merge import MergeConfig, merge, merge_all, normalize
+from mapping.merge import MergeConfig, merge, merge_all, merge_traced, normalize
 from mapping.wireframe import Label, Wireframe
 
 N, OC, F = int(Label.NOMINAL), int(Label.OCCLUSION), int(Label.FRONTIER)
@@ -503,8 +503,9 @@ def test_frontiers_closed_when_the_whole_map_is_seen(w, thr, seed):
 @given(rectilinear_world(), thr_st, st.integers(0, 2**32 - 1))
 def test_large_input_paths_agree_with_small_input_paths(w, thr, seed):
     """The grid / k-d tree candidate searches used for big maps find the same pairs."""
-    import mapping.merge as mm
+    import importlib
 
+    mm = importlib.import_module("mapping.merge")  # (``mapping.merge`` the attribute is the function)
     cfg = MergeConfig(threshold=thr)
     rng = np.random.default_rng(seed)
     s = noisy_subset(w, rng, thr)
@@ -561,3 +562,202 @@ def test_any_input_gives_a_valid_bounded_deterministic_result(a, b, thr, cull):
     again = merge(a, b, cfg)
     for f in ("points", "labels", "edges", "likelihood", "sources"):
         np.testing.assert_array_equal(getattr(m, f), getattr(again, f))
+
+
+# ------------------------------------------------------------------ what a merge may create
+
+
+def test_regression_short_jamb_is_not_swallowed_by_a_line_of_sight_edge():
+    """Filter-helper report: a 0.26 m door jamb (likelihood 1) and a 2.6 m line-of-sight edge
+    18 degrees off (likelihood 0.09) ending at the jamb's foot were joined into one 2.7 m wall
+    with likelihood 1: the jamb is not *along* the long edge (its far end is 0.27 m beyond the
+    long edge's end), only near its infinite line."""
+    base = seg((12.21, 7.017), (12.212, 7.276), 1.0)
+    new = seg((13.006, 4.502), (12.188, 7.003), 0.09)
+    m, prov = merge_traced(base, new, CFG)
+    assert m.n_edges == 2 and m.n_vertices == 3
+    lik = wall_likelihoods(m)
+    assert lik[((12.21, 7.017), (12.212, 7.276))] == 1.0  # the jamb is kept as it was
+    assert lik[((13.006, 4.502), (12.21, 7.017))] == pytest.approx(0.09)  # ends on the jamb's foot
+    assert sorted(prov) == [[0], [1]]
+    # the same jamb lying along a long wall (both ends within the threshold of the segment) is
+    # still absorbed as a noisy piece
+    along = seg((12.2, 4.0), (12.2, 8.0), 0.5)
+    m = merge(along, base, CFG)
+    assert walls(m) == [((12.2, 4.0), (12.2, 8.0))] and m.likelihood[0] == 1.0
+
+
+def test_merge_traced_is_merge_with_provenance():
+    base = seg((0, 0), (4, 0), 0.5)
+    new = Wireframe.build(
+        [(3, 0.02), (6, 0.02), (9, 9), (9, 12)], [(0, 1), (2, 3)], likelihood=[0.5, 0.3]
+    )
+    m, prov = merge_traced(base, new, CFG)
+    assert m.almost_equal(merge(base, new, CFG), tol=0.0, likelihood_tol=0.0)
+    assert len(prov) == m.n_edges == 2
+    by_wall = {walls(m.subgraph_edges(np.arange(m.n_edges) == k))[0]: prov[k] for k in range(m.n_edges)}
+    assert by_wall == {((0.0, 0.0), (6.0, 0.02)): [0, 1], ((9.0, 9.0), (9.0, 12.0)): [2]}
+    # a T-junction: each piece lists the edges overlapping it
+    t_new = Wireframe.build([(3, 0.02), (5, 0.03), (5, 2)], [(0, 1), (1, 2)], likelihood=[0.5, 0.5])
+    m, prov = merge_traced(seg((0, 0), (10, 0), 0.5), t_new, CFG)
+    got = {walls(m.subgraph_edges(np.arange(m.n_edges) == k))[0]: prov[k] for k in range(m.n_edges)}
+    assert got == {((0.0, 0.0), (5.0, 0.0)): [0, 1], ((5.0, 0.0), (10.0, 0.0)): [0], ((5.0, 0.0), (5.0, 2.0)): [2]}
+    m, prov = merge_traced(base, Wireframe.empty(), CFG)
+    assert m is base and prov == [[0]]
+
+
+def _angle_between(d1: np.ndarray, d2: np.ndarray) -> float:
+    n = float(np.linalg.norm(d1) * np.linalg.norm(d2))
+    if n == 0.0:  # a zero-length input wall points nowhere
+        return math.pi
+    c = float(np.dot(d1, d2)) / n
+    return math.acos(max(-1.0, min(1.0, c)))
+
+
+def _uncovered(length: float, intervals: list[tuple[float, float]]) -> float:
+    """Longest stretch of [0, length] that no interval covers."""
+    worst, reach = 0.0, 0.0
+    for lo, hi in sorted(intervals):
+        worst = max(worst, min(lo, length) - reach)
+        reach = max(reach, hi)
+    return max(worst, length - reach)
+
+
+def check_created_walls(
+    base: Wireframe, new: Wireframe, cfg: MergeConfig, max_turn: float | None = None
+) -> Wireframe:
+    """Merge and assert what every resulting wall may be, from its provenance:
+
+    * a wall built from several input walls points within ``max_turn`` (default ``angle_tol``)
+      of one of them -- plus, by default, the turn ``asin(2 thr / length)`` that combining its
+      corners (each moves by at most ``thr``) may give an input wall: exact for long walls,
+      loose for walls not much longer than the threshold;
+    * it bridges no gap longer than the threshold that none of its input walls covered
+      (input walls projected on the result's line; its two ends included).
+    """
+    turn = cfg.angle_tol if max_turn is None else max_turn
+    m, prov = merge_traced(base, new, cfg)
+    src = np.concatenate([base.segments(), new.segments()])
+    seg_out = m.segments()
+    for k, ids in enumerate(prov):
+        assert ids, "every wall comes from some input wall"
+        p, q = seg_out[k]
+        d = q - p
+        length = float(np.hypot(*d))
+        if length == 0.0:  # only a degenerate base wall far from new, left untouched
+            assert ids[0] < base.n_edges and np.all(src[ids[0], 0] == src[ids[0], 1])
+            continue
+        u = d / length
+        if len(ids) > 1:
+            angles = [_angle_between(d, src[i][1] - src[i][0]) for i in ids]
+            if max_turn is None:
+                lengths = [float(np.hypot(*(src[i][1] - src[i][0]))) for i in ids]
+                angles = [a - math.asin(min(1.0, 2 * cfg.threshold / max(n, 1e-12))) for a, n in zip(angles, lengths)]
+            assert min(angles) <= turn + 1e-9, (k, (p, q), [src[i] for i in ids])
+        spans = [tuple(sorted(((src[i][0] - p) @ u, (src[i][1] - p) @ u))) for i in ids]
+        gap = _uncovered(length, spans)
+        # (a gap of thr between pieces up to thr off the line, seen from a line turned by the
+        # largest allowed turn, looks up to thr (cos + sin) long)
+        slack = 1.0 if len(ids) == 1 else math.cos(turn) + math.sin(turn)
+        assert gap <= cfg.threshold * max(1.0, slack) + 1e-9, (k, (p, q), gap, [src[i] for i in ids])
+    return m
+
+
+def clutter(wf: Wireframe, rng: np.random.Generator, thr: float) -> Wireframe:
+    """What fools a merge: short noisy pieces up to 40 degrees off a wall, short stubs at
+    corners in any direction (door jambs), and line-of-sight edges from a corner to a point of
+    another wall (an occlusion joined to its frontier)."""
+    pts: list[np.ndarray] = []
+    labels: list[int] = []
+    edges: list[tuple[int, int]] = []
+    segs = wf.segments()
+    for _ in range(int(rng.integers(1, 6))):
+        kind = rng.integers(3)
+        if kind == 0 and len(segs):  # a noisy piece on a wall
+            a, b = segs[rng.integers(len(segs))]
+            base_dir = math.atan2(*(b - a)[::-1])
+            ang = base_dir + math.radians(rng.uniform(-40, 40))
+            start = a + rng.uniform(0, 1) * (b - a) + rng.uniform(-thr / 2, thr / 2, 2)
+            end = start + rng.uniform(0.1, 2.5 * thr) * np.array([math.cos(ang), math.sin(ang)])
+            lab = [F, F]
+        elif kind == 1:  # a stub at a corner
+            start = wf.points[rng.integers(wf.n_vertices)] + rng.uniform(-thr / 4, thr / 4, 2)
+            ang = rng.uniform(-math.pi, math.pi)
+            end = start + rng.uniform(0.1, 2.5 * thr) * np.array([math.cos(ang), math.sin(ang)])
+            lab = [N, OC]
+        else:  # line of sight
+            start = wf.points[rng.integers(wf.n_vertices)] + rng.uniform(-thr / 4, thr / 4, 2)
+            a, b = segs[rng.integers(len(segs))]
+            end = a + rng.uniform(0, 1) * (b - a)
+            lab = [OC, F]
+        if np.hypot(*(end - start)) < 1e-6:
+            continue
+        k = len(pts)
+        pts += [start, end]
+        labels += lab
+        edges.append((k, k + 1))
+    if not edges:
+        return Wireframe.empty()
+    return Wireframe.build(np.array(pts), edges, labels, rng.uniform(0.05, 1.0, len(edges)))
+
+
+def rotated(wf: Wireframe, angle: float) -> Wireframe:
+    from mapping.se2 import Pose
+
+    return wf.transformed(Pose(0.0, 0.0, angle))
+
+
+def _union_scan(a: Wireframe, b: Wireframe) -> Wireframe:
+    if a.n_edges == 0:
+        return b
+    if b.n_edges == 0:
+        return a
+    n = a.n_vertices
+    return Wireframe.build(
+        np.concatenate([a.points, b.points]),
+        np.concatenate([a.edges, b.edges + n]),
+        np.concatenate([a.labels, b.labels]),
+        np.concatenate([a.likelihood, b.likelihood]),
+    )
+
+
+@SETTINGS
+@given(any_world, thr_st, st.integers(0, 2**32 - 1), st.floats(-math.pi, math.pi))
+def test_merging_never_turns_or_bridges_walls(w, thr, seed, angle):
+    """Scans of a (rotated) world with clutter, merged one after the other: every wall the merge
+    builds from several inputs points like one of them and bridges no gap they left open."""
+    cfg = MergeConfig(threshold=thr)
+    rng = np.random.default_rng(seed)
+    w = rotated(w, angle)
+    m = Wireframe.empty()
+    for _ in range(4):
+        scan = _union_scan(wall_pieces(w, rng, thr), clutter(w, rng, thr))
+        m = check_created_walls(m, scan, cfg)
+
+
+@settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(garbage_wireframe(), garbage_wireframe(), st.sampled_from([0.05, 0.2, 1.0]))
+def test_merging_garbage_never_reverses_or_bridges_walls(a, b, thr):
+    """Any input (corners a few centimetres apart, threshold up to 1 m): chains of combined
+    corners can turn a short wall, but never around, and no wall bridges an open gap."""
+    check_created_walls(a, b, MergeConfig(threshold=thr), max_turn=math.pi / 2)
+
+
+def test_faces_of_a_wall_as_thick_as_the_threshold_keep_their_corners():
+    """A 0.2 m thick wall mapped from one side, then seen from the other: the far face's corners
+    lie within the threshold of the near face's, but walls of opposite direction on lines 0.2 m
+    apart are two faces, not one wall seen twice (old behaviour: the faces collapsed into one
+    line, the wall lost its thickness and the room beyond its free space)."""
+    near = Wireframe.build([(0, 0), (0, 3)], [(0, 1)], labels=[N, OC])  # free at x < 0
+    far = Wireframe.build([(0.2, 3.0), (0.2, 0.0)], [(0, 1)], labels=[OC, N])  # free at x > 0.2
+    m = merge(near, far, CFG)
+    assert m.n_vertices == 4 and m.n_edges == 2
+    assert walls(m) == [((0.0, 0.0), (0.0, 3.0)), ((0.2, 3.0), (0.2, 0.0))]
+    # the end cap seen later joins the two faces' corners
+    cap = Wireframe.build([(-0.01, 2.99), (0.19, 3.01)], [(0, 1)])
+    m = merge(m, cap, CFG)
+    expected = Wireframe.from_polylines([[(0, 0), (0, 3), (0.2, 3), (0.2, 0)]], closed=False)
+    assert m.almost_equal(expected, tol=0.015, likelihood_tol=1.0)  # (nominal corners win)
+    # a thin wall's two faces (on one line) still share their corners
+    thin = merge(Wireframe.build([(0, 0), (0, 3)], [(0, 1)]), Wireframe.build([(0.02, 3), (0.01, 0)], [(0, 1)]), CFG)
+    assert thin.n_vertices == 2 and thin.n_edges == 2
