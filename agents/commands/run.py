@@ -257,6 +257,7 @@ def write_outputs(
         entry["maps_sent"] = int(st.get("maps_sent", 0))
         entry["steps"] = int(st.get("step", 0))
         entry["sim_time_s"] = float(st.get("t", 0.0))
+        entry["finished"] = bool(st.get("finished", False))  # drove its whole route
         entry["pose_bytes_sent"] = int(st.get("pose_bytes", 0))
         entry["viz_bytes_sent"] = int(st.get("viz_bytes", 0))
         if rid in extra.get("cpu_s", {}):
