@@ -213,7 +213,7 @@ def simulate(
 
     rngs = seeds_for(seed)
     if route is None:
-        route = plan_route(world, rngs["route"], start=start)
+        route = plan_route(world, rngs["route"], start=start, sensor_range=options.max_range)
     steps = drive(route, speed=options.speed, dt=options.dt, rng=rngs["drive"])
     if options.steps is not None:
         steps = steps[: options.steps]
@@ -232,7 +232,7 @@ def count_sim_steps(world: Any, options: SimOptions, seed: int, route: NDArray[n
 
     rngs = seeds_for(seed)
     if route is None:
-        route = plan_route(world, rngs["route"])
+        route = plan_route(world, rngs["route"], sensor_range=options.max_range)
     steps = drive(route, speed=options.speed, dt=options.dt, rng=rngs["drive"])
     n = len(steps)
     if options.steps is not None:

@@ -22,9 +22,37 @@ One :meth:`WireframeFilter.step` takes an odometry increment and a scan (robot f
 Choices where the paper is silent or that differ from it
 --------------------------------------------------------
 * **One pose estimate**, not one per particle: odometry predicts it and ICP against the best
-  particle corrects it. The scan is placed at that pose in every particle. A scalar pose
-  uncertainty (grown by an odometry noise model, reset by an accepted match) sets the ICP
-  prior and the largest correction accepted.
+  particle corrects it. The scan is placed at that pose in every particle. The pose carries a
+  full 3 x 3 covariance of its error in the robot frame (an extended Kalman filter on SE(2)
+  relative to the map): the odometry noise model grows it (:meth:`WireframeFilter.predict_covariance`),
+  it is the ICP's prior (:func:`mapping.icp.icp`: the scan corrects only the directions it
+  constrains better than the odometry, within a Mahalanobis gate), and an accepted match
+  replaces it by the ICP's posterior covariance, floored at :attr:`FilterConfig.pose_floor_xy`
+  and :attr:`FilterConfig.pose_floor_theta` (the map itself is not more accurate than that).
+  The ICP's first correspondence gate follows it too (three standard deviations, the rotation
+  taken at half the range, within the ICP config's ``gate_end``..``gate_start``).
+* **Re-anchoring.** That covariance is the pose's uncertainty relative to the map *around it*,
+  which the robot has just built. A part of the map built long ago can be off from it by the
+  drift accumulated in between, more than the gate allows; a rejected match is therefore tried
+  once more with the drift (:attr:`FilterConfig.drift_xy`, :attr:`FilterConfig.drift_theta`,
+  growing with the square root of the distance driven) added to the prior, and accepted only if
+  it constrains all three directions with half the usual residual. The pose then rejoins the
+  older map instead of building a second copy beside it (the map's own drift stays: no past
+  scan is moved).
+* **Gating the map.** A scan that cannot be placed does not touch the map: when a map is in
+  view and, after matching, the heading is uncertain by more than
+  :attr:`FilterConfig.max_map_sigma_theta` (a sharp turn the scan could not fix), or the match
+  failed while the position is uncertain by more than :attr:`FilterConfig.max_map_sigma_xy`
+  (lost track), the step only predicts (``StepInfo.mapped`` is False).
+* **Frontiers continue established walls** (:func:`snap_frontiers`): before the merge, a scan
+  frontier that extends a longer map wall is moved onto that wall's line; a wall growing at its
+  frontier would otherwise follow the pose's error and the pose would follow the wall.
+* **Carving** (:func:`seen_through_spans`, :func:`carve`): stretches of a map wall that a scan
+  saw through while it saw the rest of the wall are cut out (a false-positive edge that the
+  merge joined to a real collinear wall cannot be removed by mutation, whose unit is the edge).
+* **Evidence and merge scans.** Likelihoods and contradictions use the whole scan (short
+  frontier fragments included: a fragment is evidence that the wall is there, and dropping it
+  would make the wall look seen through); ICP and the merge use the scan without them.
 * **Edge likelihood bookkeeping.** A scan edge enters the map with its per-edge likelihood
   (Sec. IV-D: Gaussian factors of its two vertices times ``1 - p_fn`` when the particle
   predicted it, ``p_fp`` when it is new); merging combines it with the map edge as
@@ -55,9 +83,9 @@ Choices where the paper is silent or that differ from it
   (:func:`mapping.merge.merge`) both cull the map to the edges near the robot with one
   vectorised bounding-box test before any Python-level work, so the time per step does not
   grow with the map.
-* **Scan clean-up** before anything else: short frontier fragments and walls along a line of
-  sight are dropped (:attr:`FilterConfig.min_fragment_length`,
-  :attr:`FilterConfig.min_line_distance`).
+* **Scan clean-up** before anything else: walls along a line of sight are dropped
+  (:attr:`FilterConfig.min_line_distance`); short frontier fragments
+  (:attr:`FilterConfig.min_fragment_length`) are kept as evidence only (above).
 * **Budgets.** A scan keeps at most ``max_scan_vertices`` vertices (longest walls first); a
   particle at most ``max_vertices`` (lowest-likelihood edges are dropped first).
 * Distinct particles are found by object identity; unmutated copies share one object, and
@@ -83,6 +111,7 @@ from mapping.likelihood import (
     LikelihoodConfig,
     ScanLikelihood,
     in_known_free_space,
+    ray_ranges,
     scan_likelihood,
     seen_through,
 )
@@ -94,7 +123,7 @@ FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 BoolArray = NDArray[np.bool_]
 
-__all__ = ["FilterConfig", "StepInfo", "WireframeFilter", "budget_map", "budget_scan", "contradiction_update", "drop_fragments", "drop_line_of_sight", "edge_log_odds", "particle_bytes"]
+__all__ = ["FilterConfig", "StepInfo", "WireframeFilter", "budget_map", "budget_scan", "carve", "contradiction_update", "drop_fragments", "drop_line_of_sight", "edge_log_odds", "fragment_mask", "particle_bytes", "seen_through_spans"]
 
 
 class ViewLike(Protocol):
@@ -146,6 +175,50 @@ class FilterConfig:
         walls, see the merge's collinear grouping). Walls behind that are themselves doubtful
         do not count, so a wall misplaced behind the true one (a scan-matching failure) does
         not lock the true one out.
+    carve : bool
+        Cut out of a map wall the stretches that a scan saw through while it saw the rest of
+        the wall (:func:`seen_through_spans`, :func:`carve`): stretches at least 2.5 merge
+        thresholds long, more than one merge threshold from the observed parts, and seen
+        through by two consecutive scans (a single scan in which the sensor missed part of a
+        wall must not carve it). (Walls the
+        prediction does not report, seen from behind or hidden, are not carved: when the corner
+        sensor misses the wall in front, p_fn, the one behind looks seen through.) A wall extended
+        too far (a false-positive edge that the merge joined to a real collinear wall, across a
+        doorway or between aligned pillars) would otherwise stay forever: its likelihood is the
+        real wall's, so mutation never drops it. Only partly observed walls are carved; a wall
+        the scan misses entirely is a matter for its likelihood (``p_fn``).
+    anchored_evidence : bool
+        Lower no edge likelihood and carve nothing from a scan whose match against the map in
+        view was rejected: its pose is the odometry's, and a wall that looks seen through may
+        only be misplaced relative to it (its weight update, resampling and merge still run).
+    reanchor : bool
+        When a scan match is rejected, try it once more with the prior widened by the map's
+        drift (below) and accept it only if it constrains all three directions with half the
+        usual residual: a robot coming back to a part of the map built long ago finds it
+        where the map put it, which differs from where its recent, locally consistent pose says
+        by the drift accumulated in between. Without this the pose could never rejoin the older
+        map (its gate is the local uncertainty), and the map would grow a second copy of it.
+    drift_xy, drift_theta : float
+        Drift of the map relative to itself per square-root metre driven (metres, radians): the
+        covariance ``diag(drift_xy^2, drift_xy^2, drift_theta^2) * distance`` is added to the
+        prior of the second match; it only grows (defaults: 0.5 m and 1 degree after 500 m).
+    max_map_sigma_theta : float
+        A scan whose heading standard deviation after matching exceeds this (radians) does not
+        touch the map (no likelihood, carving, resampling or merge), when there was a map in view
+        to match it against: after a sharp turn (the odometry's heading error grows with the
+        angle turned) a scan that could not be matched would be written into the map rotated,
+        and the map would then agree with the wrong heading. Position errors are not gated:
+        they shift walls by a bounded amount, and a long featureless corridor leaves the
+        position along it uncertain for good reasons. Without a map in view (new territory)
+        the scan is always used.
+    max_map_sigma_xy : float
+        Likewise a scan that could not be matched (a map in view, the match rejected) while the
+        position's standard deviation exceeds this (metres) does not touch the map: the robot
+        has lost track, and what it writes would duplicate walls beside themselves.
+    snap_frontiers : bool
+        Before merging, move the scan's frontier vertices onto the line of the longer map wall
+        they continue (:func:`snap_frontiers`), so that a wall growing at its frontier keeps
+        its established line instead of following the pose's error.
     max_vertices : int
         Vertex budget of one particle.
     max_scan_vertices : int
@@ -162,11 +235,15 @@ class FilterConfig:
         occlusion joined to its frontier by a corner extractor lies exactly on a line of sight
         (paper Sec. IV-A: such a pair is "colinear along the same line of sight").
     odometry_trans_per_m, odometry_rot_per_rad, odometry_rot_per_m : float
-        Assumed odometry noise (std per metre driven, per radian turned, radians per metre).
-        The pose's standard deviation grows by these while no scan match is accepted and
-        shrinks back after one; the ICP prior and its largest accepted correction (three
-        standard deviations, within the ICP config's own limits) follow it, so a scan step
-        cannot "correct" the pose by more than the odometry can plausibly be off.
+        Assumed odometry noise (std per metre driven on each axis, per radian turned, radians
+        per metre driven). The pose covariance grows by these while no scan match is accepted
+        and shrinks after one; it is the ICP's prior, so a scan step cannot "correct" the pose by
+        more than the odometry can plausibly be off (defaults: 1.5 times the simulator's
+        :class:`agents.sim.motion.OdometryNoise`, a filter should not trust its odometry more
+        than it deserves).
+    pose_floor_xy, pose_floor_theta : float
+        Least standard deviation (metres, radians) of the pose after an accepted match: the
+        pose is relative to a map whose own corners are that uncertain.
     likelihood : LikelihoodConfig
     icp : ICPConfig
 
@@ -190,9 +267,19 @@ class FilterConfig:
     min_fragment_length: float = 0.4
     min_line_distance: float = 0.15
     reject_in_free_space: bool = True
-    odometry_trans_per_m: float = 0.05
-    odometry_rot_per_rad: float = 0.05
-    odometry_rot_per_m: float = 0.005
+    carve: bool = True
+    anchored_evidence: bool = True
+    reanchor: bool = True
+    drift_xy: float = 0.02
+    drift_theta: float = 0.0008
+    max_map_sigma_theta: float = math.radians(1.0)
+    max_map_sigma_xy: float = 0.5
+    snap_frontiers: bool = True
+    odometry_trans_per_m: float = 0.03
+    odometry_rot_per_rad: float = 0.03
+    odometry_rot_per_m: float = 0.003
+    pose_floor_xy: float = 0.01
+    pose_floor_theta: float = 0.002
     likelihood: LikelihoodConfig = field(default_factory=LikelihoodConfig)
     icp: ICPConfig = field(default_factory=ICPConfig)
 
@@ -203,7 +290,8 @@ class FilterConfig:
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
                 raise ValueError(f"{name} must be a positive number, got {v!r}")
-        for name in ("odometry_trans_per_m", "odometry_rot_per_rad", "odometry_rot_per_m"):
+        for name in ("odometry_trans_per_m", "odometry_rot_per_rad", "odometry_rot_per_m", "pose_floor_xy",
+                     "pose_floor_theta"):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
                 raise ValueError(f"{name} must be a number >= 0, got {v!r}")
@@ -215,6 +303,14 @@ class FilterConfig:
             raise ValueError(f"min_line_distance must be >= 0, got {self.min_line_distance!r}")
         if not (math.isfinite(self.min_fragment_length) and self.min_fragment_length >= 0):
             raise ValueError(f"min_fragment_length must be >= 0, got {self.min_fragment_length!r}")
+        for name in ("drift_xy", "drift_theta"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
+                raise ValueError(f"{name} must be a number >= 0, got {v!r}")
+        for name in ("max_map_sigma_theta", "max_map_sigma_xy"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+                raise ValueError(f"{name} must be a positive number, got {v!r}")
         if self.max_vertices < 3 or self.max_scan_vertices < 2:
             raise ValueError("max_vertices must be >= 3 and max_scan_vertices >= 2")
 
@@ -239,6 +335,9 @@ class StepInfo:
         Number of distinct particle objects after the step.
     mutated : int
         Number of mutated copies made at resampling.
+    mapped : bool
+        Whether the scan updated the particles (False when its pose was too uncertain, see
+        :attr:`FilterConfig.max_map_sigma_theta`).
     """
 
     step: int
@@ -249,17 +348,24 @@ class StepInfo:
     best: int
     distinct: int
     mutated: int
+    mapped: bool = True
 
 
 # ------------------------------------------------------------------------------ pure helpers
+def fragment_mask(scan: Wireframe, min_length: float) -> BoolArray:
+    """The scan edges to keep: all but those shorter than ``min_length`` with a frontier end
+    (see :attr:`FilterConfig.min_fragment_length`)."""
+    if scan.n_edges == 0 or min_length <= 0:
+        return np.ones(scan.n_edges, dtype=bool)
+    fr = scan.labels[scan.edges] == Label.FRONTIER
+    return np.asarray(~((scan.edge_lengths() < min_length) & fr.any(axis=1)))
+
+
 def drop_fragments(scan: Wireframe, min_length: float) -> Wireframe:
     """Drop scan edges shorter than ``min_length`` that have a frontier end (see
     :attr:`FilterConfig.min_fragment_length`)."""
-    if scan.n_edges == 0 or min_length <= 0:
-        return scan
-    fr = scan.labels[scan.edges] == Label.FRONTIER
-    bad = (scan.edge_lengths() < min_length) & fr.any(axis=1)
-    return scan.subgraph_edges(~bad) if bad.any() else scan
+    keep = fragment_mask(scan, min_length)
+    return scan if keep.all() else scan.subgraph_edges(keep)
 
 
 def drop_line_of_sight(scan: Wireframe, min_distance: float) -> Wireframe:
@@ -315,10 +421,6 @@ def edge_log_odds(wf: Wireframe, floor: float = 1e-3) -> float:
     return float(np.sum(np.log(L) - np.log1p(-L)))
 
 
-# Pose standard deviation right after an accepted scan match (metres, radians).
-_SIGMA_XY_MIN = 0.03
-_SIGMA_TH_MIN = 0.01
-
 #: Edge likelihoods are capped here before a contradiction update: merging combines them as
 #: ``1 - (1 - L1)(1 - L2)``, which rounds to exactly 1.0 after a few dozen sightings, and a
 #: likelihood of exactly 1 could never be lowered again. At 0.999, four contradicting scans
@@ -347,6 +449,233 @@ def _edge_states(n_edges: int, edge_source: IntArray, state: NDArray[np.int8]) -
     observed[src[ok & (state == OBSERVED)]] = True
     contra[src[ok & (state == CONTRADICTED)]] = True
     return in_sight, observed, contra & ~observed
+
+
+def seen_through_spans(
+    wf: Wireframe,
+    pose: Pose,
+    view: Wireframe,
+    edge_source: IntArray,
+    edge_pairs: IntArray,
+    evidence: Wireframe,
+    min_span: float,
+    cover_margin: float,
+    margin: float,
+    max_range: float,
+) -> dict[int, list[tuple[float, float]]]:
+    """Parts of map edges that this scan observed in part and saw through elsewhere.
+
+    For every predicted edge (a visible piece of map edge ``e``) that some scan edges match
+    (``edge_pairs``: ``(scan edge, predicted edge)``), the matched scan edges are projected on
+    ``e``'s line and their union, grown by ``cover_margin`` at both ends, is *covered*. Each
+    uncovered stretch of the visible piece at least ``min_span`` long whose three sample points
+    (a quarter, half and three quarters along) the scan saw through -- its ray at that bearing
+    meets no scan wall before the point plus ``margin``, and the point is within ``max_range``
+    minus ``margin`` (no wall within range is seen-through too: a corner sensor reports every
+    wall in range) -- is returned, as arc-length intervals along ``e`` from its start.
+
+    This is the evidence that carves a wall that was extended too far (a false-positive edge
+    joined to a real collinear wall by the merge, e.g. across a doorway or between aligned
+    pillars): the scan sees the real part and sees through the rest.
+
+    Parameters
+    ----------
+    wf : Wireframe
+        The particle's map (world frame).
+    pose : Pose
+        Where the scan was taken.
+    view : Wireframe
+        The predicted scan (robot frame) and ``edge_source``, the map edge of each of its edges.
+    edge_pairs : (k, 2) int
+        Edge correspondences between ``evidence`` and ``view``.
+    evidence : Wireframe
+        The scan (robot frame).
+
+    Returns
+    -------
+    dict
+        Map edge index -> list of ``(t0, t1)`` intervals (metres along the edge), disjoint.
+    """
+    out: dict[int, list[tuple[float, float]]] = {}
+    if len(edge_pairs) == 0 or view.n_edges == 0:
+        return out
+    src = np.asarray(edge_source, dtype=np.int64)
+    ends = pose.apply_inverse(wf.points[wf.edges].reshape(-1, 2)).reshape(-1, 2, 2)
+    vseg = view.segments()
+    sseg = evidence.segments()
+    by_pred: dict[int, list[int]] = {}
+    for si, pj in edge_pairs.tolist():
+        by_pred.setdefault(int(pj), []).append(int(si))
+    samples: list[FloatArray] = []
+    meta: list[tuple[int, float, float]] = []
+    for pj, scan_edges in by_pred.items():
+        e = int(src[pj])
+        if e < 0:
+            continue
+        a, b = ends[e]
+        d = b - a
+        length = float(math.hypot(d[0], d[1]))
+        if length < min_span:
+            continue
+        u = d / length
+        v0, v1 = sorted(float((q - a) @ u) for q in vseg[pj])
+        v0, v1 = max(v0, 0.0), min(v1, length)
+        if v1 - v0 < min_span:
+            continue
+        cov = sorted(
+            (min(t0, t1) - cover_margin, max(t0, t1) + cover_margin)
+            for t0, t1 in (((sseg[i, 0] - a) @ u, (sseg[i, 1] - a) @ u) for i in scan_edges)
+        )
+        gaps: list[tuple[float, float]] = []
+        cur = v0
+        for c0, c1 in cov:
+            if c0 > cur:
+                gaps.append((cur, min(c0, v1)))
+            cur = max(cur, c1)
+            if cur >= v1:
+                break
+        if cur < v1:
+            gaps.append((cur, v1))
+        for g0, g1 in gaps:
+            if g1 - g0 >= min_span:
+                t = g0 + (g1 - g0) * np.array([0.25, 0.5, 0.75])
+                samples.append(a + t[:, None] * u)
+                meta.append((e, float(g0), float(g1)))
+    if not samples:
+        return out
+    pts = np.concatenate(samples)
+    dist = np.hypot(pts[:, 0], pts[:, 1])
+    rng_scan = ray_ranges(evidence, np.arctan2(pts[:, 1], pts[:, 0]))
+    seen = np.asarray((rng_scan > dist + margin) & (dist <= max_range - margin), dtype=bool)
+    all_seen: list[bool] = np.asarray(seen.reshape(-1, 3).all(axis=1), dtype=bool).tolist()
+    for (e, g0, g1), good in zip(meta, all_seen):
+        if good:
+            out.setdefault(e, []).append((g0, g1))
+    for e in out:
+        out[e].sort()
+    return out
+
+
+def snap_frontiers(
+    scan_points: FloatArray,
+    scan: Wireframe,
+    ref: Wireframe,
+    edge_pairs: IntArray,
+    support: FloatArray,
+    max_offset: float,
+) -> FloatArray:
+    """Frontier vertices of the scan moved onto the line of the map wall they continue.
+
+    A frontier vertex is where sight of a wall ended, not a corner: its position *along* the
+    wall says how far the wall was seen, its position *across* it is only as good as the pose.
+    When the scan edge that ends in it corresponds (``edge_pairs``: ``(scan edge, ref edge)``)
+    to a reference edge whose map wall (``support``: length of the map wall behind each
+    reference edge) is longer than the scan edge, the established wall knows its line better:
+    the vertex is projected onto that line if that moves it by at most ``max_offset``.
+    Otherwise a wall growing scan by scan at its frontier would follow the pose's error (its
+    newest end is placed by the newest pose), and matching the next scan against it could not
+    see that error: the map and the pose would drift together.
+
+    Parameters
+    ----------
+    scan_points : (n, 2)
+        The scan's vertices, in the reference's frame (moved by the ICP correction).
+    scan, ref : Wireframe
+        The scan and the reference (predicted scan).
+    edge_pairs : (k, 2) int
+    support : (ref.n_edges,) float
+    max_offset : float
+
+    Returns
+    -------
+    (n, 2) float64
+        The vertices, frontiers snapped where the rule applies.
+    """
+    out = np.array(scan_points, dtype=np.float64, copy=True)
+    if len(edge_pairs) == 0:
+        return out
+    s_len = np.hypot(*(scan_points[scan.edges[:, 1]] - scan_points[scan.edges[:, 0]]).T)
+    best: dict[int, tuple[float, int]] = {}
+    for si, rj in edge_pairs.tolist():
+        sup = float(support[rj])
+        if sup <= s_len[si]:
+            continue
+        for v in scan.edges[si].tolist():
+            if scan.labels[v] == Label.FRONTIER and sup > best.get(v, (-1.0, -1))[0]:
+                best[v] = (sup, rj)
+    for v, (_, rj) in best.items():
+        a, b = ref.points[ref.edges[rj, 0]], ref.points[ref.edges[rj, 1]]
+        d = b - a
+        ln = float(math.hypot(d[0], d[1]))
+        if ln <= 0:
+            continue
+        n = np.array([-d[1], d[0]]) / ln
+        off = float((out[v] - a) @ n)
+        if abs(off) <= max_offset:
+            out[v] = out[v] - off * n
+    return out
+
+
+def carve(wf: Wireframe, spans: dict[int, list[tuple[float, float]]]) -> tuple[Wireframe, IntArray]:
+    """Remove the ``spans`` (arc-length intervals along edges, see :func:`seen_through_spans`)
+    from the edges of ``wf``. The remaining pieces keep the edge's direction, likelihood and
+    sources; a cut point is a new ``FRONTIER`` vertex (sight of the wall ends there).
+
+    Returns
+    -------
+    Wireframe
+        The kept edges of ``wf`` in order, then the new pieces.
+    origin : (m',) int64
+        For each edge of the result, the edge of ``wf`` it comes from.
+    """
+    if not spans:
+        return wf, np.arange(wf.n_edges, dtype=np.int64)
+    pts = [wf.points]
+    labels = [wf.labels]
+    n = wf.n_vertices
+    new_edges: list[tuple[int, int]] = []
+    origin_new: list[int] = []
+    for e, ivs in sorted(spans.items()):
+        i, j = (int(v) for v in wf.edges[e])
+        a, b = wf.points[i], wf.points[j]
+        d = b - a
+        length = float(math.hypot(d[0], d[1]))
+        u = d / length
+        cur_v, cur_t = i, 0.0
+        for t0, t1 in ivs:
+            if t0 > cur_t + 1e-9:
+                if t0 >= length - 1e-9:
+                    end_v = j
+                else:
+                    pts.append((a + t0 * u)[None, :])
+                    labels.append(np.array([Label.FRONTIER], dtype=np.uint8))
+                    end_v = n
+                    n += 1
+                new_edges.append((cur_v, end_v))
+                origin_new.append(e)
+            if t1 >= length - 1e-9:
+                cur_v, cur_t = -1, length
+                break
+            pts.append((a + t1 * u)[None, :])
+            labels.append(np.array([Label.FRONTIER], dtype=np.uint8))
+            cur_v, cur_t = n, t1
+            n += 1
+        if cur_v >= 0 and cur_t < length - 1e-9:
+            new_edges.append((cur_v, j))
+            origin_new.append(e)
+    keep = np.ones(wf.n_edges, dtype=bool)
+    keep[list(spans)] = False
+    kept = np.flatnonzero(keep)
+    org = np.asarray(origin_new, dtype=np.int64)
+    edges = np.concatenate([wf.edges[kept], np.asarray(new_edges, dtype=np.int64).reshape(-1, 2)])
+    out = Wireframe(
+        np.concatenate(pts),
+        np.concatenate(labels),
+        edges,  # type: ignore[arg-type]
+        np.concatenate([wf.likelihood[kept], wf.likelihood[org]]),
+        np.concatenate([wf.sources[kept], wf.sources[org]]),
+    ).compacted()
+    return out, np.concatenate([kept, org]).astype(np.int64)
 
 
 def _default_view(wf: Wireframe, pose: Pose, max_range: float, fov: float) -> ViewLike:
@@ -409,8 +738,9 @@ class WireframeFilter:
         self._weights = np.full(config.particles, 1.0 / config.particles)
         self._best = 0
         self._steps = 0
-        self._sigma_xy = _SIGMA_XY_MIN
-        self._sigma_th = _SIGMA_TH_MIN
+        self._cov = np.diag([config.pose_floor_xy**2, config.pose_floor_xy**2, config.pose_floor_theta**2])
+        self._drift = np.zeros((3, 3))
+        self._pending_spans = np.zeros((0, 2, 2))
         self._view_fn: ViewFn = view_fn or _default_view
         self._merge_fn: MergeFn = merge_fn or _default_merge
 
@@ -419,6 +749,13 @@ class WireframeFilter:
     def pose(self) -> Pose:
         """The current pose estimate (map frame)."""
         return self._pose
+
+    @property
+    def pose_covariance(self) -> FloatArray:
+        """Covariance (3 x 3) of the pose estimate's error ``(x, y, theta)`` in the robot frame."""
+        c = self._cov.copy()
+        c.setflags(write=False)
+        return c
 
     @property
     def particles(self) -> tuple[Wireframe, ...]:
@@ -469,6 +806,65 @@ class WireframeFilter:
             unreported = np.asarray(in_view, dtype=bool) & ~np.asarray(visible, dtype=bool)
         return view.scan, src, unreported
 
+    def predict_covariance(self, cov: FloatArray, odometry: Pose) -> FloatArray:
+        """The pose covariance after driving ``odometry`` (robot frame before and after).
+
+        The error ``e`` of the old pose (robot frame) becomes ``Ad(u^-1) e`` in the new robot
+        frame, ``Ad(u^-1) = [[R(-th_u), R(-th_u) (-u_y, u_x)^T], [0, 1]]``, and the odometry
+        noise adds ``diag(s_t^2, s_t^2, s_r^2)`` with ``s_t = trans_per_m d`` and
+        ``s_r = rot_per_rad |th_u| + rot_per_m d`` (``d`` the distance driven), the noise model
+        of :class:`agents.sim.motion.OdometryNoise` with the filter's own parameters.
+        """
+        cfg = self.config
+        c, s_ = math.cos(odometry.theta), math.sin(odometry.theta)
+        A = np.array(
+            [
+                [c, s_, c * -odometry.y + s_ * odometry.x],
+                [-s_, c, -s_ * -odometry.y + c * odometry.x],
+                [0.0, 0.0, 1.0],
+            ]
+        )
+        d = math.hypot(odometry.x, odometry.y)
+        st = cfg.odometry_trans_per_m * d
+        sr = cfg.odometry_rot_per_rad * abs(odometry.theta) + cfg.odometry_rot_per_m * d
+        out = A @ cov @ A.T + np.diag([st * st, st * st, sr * sr])
+        return np.asarray(0.5 * (out + out.T), dtype=np.float64)
+
+    def _confirmed(
+        self, wf: Wireframe, found: dict[int, list[tuple[float, float]]], seen: list[FloatArray]
+    ) -> dict[int, list[tuple[float, float]]]:
+        """The seen-through spans of ``found`` (on edges of ``wf``) that the previous step's scan
+        also saw through (a span of the previous step within :attr:`FilterConfig.merge_threshold`
+        of the span's middle); all of ``found`` is recorded in ``seen`` for the next step. One
+        scan in which the corner sensor missed a wall (``p_fn``) must not carve it."""
+        out: dict[int, list[tuple[float, float]]] = {}
+        prev = self._pending_spans
+        for e, ivs in found.items():
+            a, b = wf.points[wf.edges[e, 0]], wf.points[wf.edges[e, 1]]
+            u = (b - a) / max(float(np.hypot(*(b - a))), 1e-12)
+            for t0, t1 in ivs:
+                seg = np.stack([a + t0 * u, a + t1 * u])
+                seen.append(seg[None])
+                if len(prev) == 0:
+                    continue
+                mid = 0.5 * (seg[0] + seg[1])
+                d = prev[:, 1] - prev[:, 0]
+                dd = np.maximum(np.einsum("ij,ij->i", d, d), 1e-12)
+                tt = np.clip(np.einsum("ij,ij->i", mid - prev[:, 0], d) / dd, 0.0, 1.0)
+                gap = np.hypot(*(prev[:, 0] + tt[:, None] * d - mid).T)
+                if float(gap.min()) <= self.config.merge_threshold:
+                    out.setdefault(e, []).append((t0, t1))
+        return out
+
+    def _match(self, scan: Wireframe, ref: Wireframe, prior: FloatArray) -> ICPResult:
+        """ICP of ``scan`` on ``ref`` with ``prior`` as the correction's prior; the first
+        correspondence gate is three standard deviations (the rotation's taken at half the
+        range), within the ICP config's ``gate_end``..``gate_start``."""
+        cfg = self.config
+        reach = 3.0 * (math.sqrt(max(prior[0, 0], prior[1, 1])) + math.sqrt(prior[2, 2]) * 0.5 * cfg.max_range)
+        icfg = dataclasses.replace(cfg.icp, gate_start=min(cfg.icp.gate_start, max(cfg.icp.gate_end, reach)))
+        return icp(scan, ref, icfg, prior_covariance=prior)
+
     # ------------------------------------------------------------------ the step
     def step(self, odometry: Pose, scan: Wireframe, *, fault: Pose | None = None) -> StepInfo:
         """One filter iteration (paper Fig. 7).
@@ -490,50 +886,86 @@ class WireframeFilter:
         """
         cfg = self.config
         self._steps += 1
-        scan = drop_line_of_sight(drop_fragments(scan, cfg.min_fragment_length), cfg.min_line_distance)
-        scan = budget_scan(scan, cfg.max_scan_vertices)
+        # The evidence (likelihood, contradictions) is the whole scan but for its walls along a
+        # line of sight; the scan that is matched and merged also loses its short fragments.
+        evidence = budget_scan(drop_line_of_sight(scan, cfg.min_line_distance), cfg.max_scan_vertices)
+        kept = fragment_mask(evidence, cfg.min_fragment_length)
+        kept_idx = np.flatnonzero(kept)
+        scan = evidence if kept.all() else evidence.subgraph_edges(kept)
         predicted = self._pose.compose(odometry)
         pose = predicted
         icp_res: ICPResult | None = None
         best = self._particles[self._best]
+        self._cov = self.predict_covariance(self._cov, odometry)
         d = math.hypot(odometry.x, odometry.y)
-        self._sigma_xy = math.hypot(self._sigma_xy, cfg.odometry_trans_per_m * d)
-        self._sigma_th = math.hypot(
-            self._sigma_th, cfg.odometry_rot_per_rad * abs(odometry.theta) + cfg.odometry_rot_per_m * d
+        self._drift = self._drift + np.diag(
+            [cfg.drift_xy**2 * d, cfg.drift_xy**2 * d, cfg.drift_theta**2 * d]
         )
         if cfg.use_icp and best.n_edges and scan.n_edges:
-            ref, _, _ = self.predicted_view(best, predicted)
+            ref, ref_src, _ = self.predicted_view(best, predicted)
             if ref.n_vertices:
-                icfg = dataclasses.replace(
-                    cfg.icp,
-                    prior_sigma_xy=min(cfg.icp.prior_sigma_xy, max(self._sigma_xy, _SIGMA_XY_MIN)),
-                    prior_sigma_theta=min(cfg.icp.prior_sigma_theta, max(self._sigma_th, _SIGMA_TH_MIN)),
-                    max_translation=min(cfg.icp.max_translation, max(3.0 * self._sigma_xy, 0.15)),
-                    max_rotation=min(cfg.icp.max_rotation, max(3.0 * self._sigma_th, 0.05)),
-                )
-                icp_res = icp(scan, ref, icfg)
+                icp_res = self._match(scan, ref, self._cov)
+                if not icp_res.accepted and cfg.reanchor and scan.n_edges >= 2:
+                    # The map in view may be older than the pose's uncertainty says (module
+                    # docstring, "re-anchoring"): try again with the drift added to the prior.
+                    again = self._match(scan, ref, self._cov + self._drift)
+                    if again.accepted and again.constrained == 3 and again.rmse <= 0.5 * cfg.icp.max_rmse:
+                        icp_res = again
                 if icp_res.accepted:
                     pose = predicted.compose(icp_res.correction)
-                    self._sigma_xy = _SIGMA_XY_MIN
-                    self._sigma_th = _SIGMA_TH_MIN
+                    if cfg.snap_frontiers:
+                        corr = icp_res.correction
+                        sp = snap_frontiers(
+                            corr.apply(scan.points), scan, ref, icp_res.correspondences.edge_pairs,
+                            best.edge_lengths()[np.maximum(ref_src, 0)] * (ref_src >= 0), cfg.icp.gate_end,
+                        )
+                        scan = scan.replace(points=corr.inverse().apply(sp))
+                    C = np.array(icp_res.covariance, dtype=np.float64)
+                    floor = np.array([cfg.pose_floor_xy, cfg.pose_floor_xy, cfg.pose_floor_theta]) ** 2
+                    C[np.diag_indices(3)] = np.maximum(np.diag(C), floor)
+                    self._cov = C
         self._pose = pose
         place = pose if fault is None else pose.compose(fault)
+        lost = (
+            icp_res is not None
+            and not icp_res.accepted
+            and math.sqrt(max(self._cov[0, 0], self._cov[1, 1])) > cfg.max_map_sigma_xy
+        )
+        if lost or (icp_res is not None and math.sqrt(self._cov[2, 2]) > cfg.max_map_sigma_theta):
+            # The scan cannot be placed well enough to touch the map (module docstring).
+            return StepInfo(
+                step=self._steps,
+                pose=pose,
+                predicted_pose=predicted,
+                icp=icp_res,
+                log_likelihoods=np.zeros(len(self._particles)),
+                best=self._best,
+                distinct=self.distinct_particles(),
+                mutated=0,
+                mapped=False,
+            )
 
         lcfg = cfg.likelihood
+        # Negative evidence (contradictions, carving) needs the scan placed against the map: not
+        # from a scan whose match with a map in view was rejected.
+        anchored = icp_res is None or icp_res.accepted or not cfg.anchored_evidence
         evals: dict[int, _Eval] = {}
+        seen_spans: list[FloatArray] = []
         for p in self._particles:
             if id(p) in evals:
                 continue
             view, src, unreported = self.predicted_view(p, place)
-            lik = scan_likelihood(scan, view, lcfg)
+            lik = scan_likelihood(evidence, view, lcfg, max_range=cfg.max_range)
             in_sight, observed, contra = _edge_states(p.n_edges, src, lik.predicted_edge_state)
             # Edges in view that the prediction does not report (back-facing, or hidden behind
             # another map edge): contradicted when the scan saw through them.
             through = np.zeros(p.n_edges, dtype=bool)
             cand_hidden = np.flatnonzero(unreported & ~observed)
-            if len(cand_hidden) and scan.n_edges:
+            if len(cand_hidden) and evidence.n_edges:
                 segs = place.apply_inverse(p.points[p.edges[cand_hidden]].reshape(-1, 2)).reshape(-1, 2, 2)
-                through[cand_hidden] = seen_through(scan, segs, lcfg.occlusion_margin, cfg.max_range)
+                through[cand_hidden] = seen_through(
+                    evidence, segs, lcfg.occlusion_margin, cfg.max_range, min_incidence=lcfg.min_incidence
+                )
             if through.any():
                 contra |= through
                 in_sight |= through
@@ -543,10 +975,19 @@ class WireframeFilter:
                     edge_log=lik.edge_log + math.log(lcfg.p_fn) * int(through.sum()),
                 )
             updated = p
+            if not anchored:
+                contra = np.zeros_like(contra)
             if contra.any():
                 L = p.likelihood.copy()
                 L[contra] = contradiction_update(L[contra], lcfg.p_fp, lcfg.p_fn)
                 updated = p.replace(likelihood=L)
+            spans: dict[int, list[tuple[float, float]]] = {}
+            if cfg.carve and anchored:
+                found = seen_through_spans(
+                    p, place, view, src, lik.correspondences.edge_pairs, evidence,
+                    2.5 * cfg.merge_threshold, cfg.merge_threshold, lcfg.occlusion_margin, cfg.max_range,
+                )
+                spans = self._confirmed(p, found, seen_spans)
             group = b"".join(
                 (
                     np.round(view.points, 6).tobytes(),
@@ -560,7 +1001,7 @@ class WireframeFilter:
             # it (static world: a false positive or a passer-by).
             merge_mask = np.ones(scan.n_edges, dtype=bool)
             if cfg.reject_in_free_space and scan.n_edges and view.n_edges:
-                unm = np.flatnonzero(~lik.scan_edge_matched)
+                unm = np.flatnonzero(~lik.scan_edge_matched[kept_idx])
                 if len(unm):
                     free = in_known_free_space(
                         view, scan.segments()[unm], lcfg.occlusion_margin, cfg.keep_threshold
@@ -569,7 +1010,13 @@ class WireframeFilter:
             # Candidates for mutation (Sec. IV-F, "within sight (or predicted sight)"): every edge
             # in view, reported or not, that this scan does not observe.
             cands = (in_sight | unreported) & ~observed
-            evals[id(p)] = _Eval(lik, updated, in_sight, cands, lik.scan_edge_likelihood, group, merge_mask)
+            if spans:
+                group += repr(sorted(spans.items())).encode()
+                updated, origin = carve(updated, spans)
+                in_sight, cands = in_sight[origin], cands[origin]
+            evals[id(p)] = _Eval(
+                lik, updated, in_sight, cands, lik.scan_edge_likelihood[kept_idx], group, merge_mask
+            )
 
         loglik = np.array([evals[id(p)].lik.log_likelihood for p in self._particles])
         logw = np.log(np.maximum(self._weights, 1e-300)) + loglik / cfg.temperature
@@ -614,6 +1061,7 @@ class WireframeFilter:
             int(np.flatnonzero(res.indexes == best_parent)[0]) if np.any(res.indexes == best_parent) else 0,
         )
         self._particles = new
+        self._pending_spans = np.concatenate(seen_spans) if seen_spans else np.zeros((0, 2, 2))
         self._weights = np.full(len(new), 1.0 / len(new))
         return StepInfo(
             step=self._steps,

@@ -15,29 +15,53 @@ pose) do not line up because of odometry error and sensor noise. This module fin
   taken at the predicted pose ``x_pred``, the corrected robot pose is
   ``x_pred.compose(result.correction)``.
 
+The correction is a *maximum a posteriori* estimate: the odometry prediction is a Gaussian prior
+on it (``prior_covariance``, the filter's pose uncertainty), and the scan only corrects the
+directions it actually constrains.
+
 Choices where the paper is silent
 ---------------------------------
-* Frontier vertices are artefacts of the view, not corners: they never give a point-to-point
-  constraint. Point-to-point constraints come from vertex pairs where neither end is a frontier;
-  every edge correspondence adds two point-to-line constraints (the ends of the overlap of the
-  scan edge, onto the predicted edge's line). Frontier ends therefore only pin a wall sideways.
+* **What constrains what.** A wall only tells where its *line* is: every edge correspondence
+  gives two *point-to-line* constraints (the two ends of the overlap of the scan edge, residual
+  perpendicular to the predicted edge's line), never a constraint along the wall. A
+  *point-to-point* constraint comes only from a real corner matched to a real corner (labels in
+  :attr:`ICPConfig.corner_labels`, nominal and occlusion by default: an occlusion vertex is a
+  real corner seen as a silhouette). Frontier vertices are where sight of a wall ended, not
+  corners: they never pin a wall along its length.
+* **Degeneracy-aware update** (after Zhang, Kaess and Singh, "On degeneracy of optimization-based
+  state estimation problems", ICRA 2016). The Gauss-Newton information ``H = J^T W J /
+  sigma^2`` of the constraints is compared with the prior's information ``P^-1`` by the
+  generalised eigen-decomposition ``H v = lambda P^-1 v`` (the eigenvalues of ``L^T H L`` with
+  ``P = L L^T``). A direction whose ``lambda`` is below :attr:`ICPConfig.min_information_ratio`
+  is *degenerate*: the scan knows less about it than the odometry does (a corridor along its
+  axis, a single wall along itself, the rotation when only a few nearby points match). The
+  solution is confined to the well-constrained directions (the degenerate ones keep the
+  odometry prediction); along a constrained direction the MAP estimate weighs scan and prior.
+  The result carries the posterior covariance (the prior where degenerate).
+* **Gates** (each a reason for ``accepted = False``; the filter then keeps the prediction):
+  too few inlier constraints or too little of the scan matched; a large inlier RMS residual;
+  no well-constrained direction; constraints whose own optimum is too far from the prediction
+  (squared Mahalanobis distance with the innovation covariance ``P + H^-1``, over every
+  direction the constraints inform, degenerate ones included: a scan that insists on a rotation
+  the prior rules out is not matched) beyond :attr:`ICPConfig.max_mahalanobis`; a
+  rotation beyond :attr:`ICPConfig.max_rotation_sigmas` prior standard deviations; a robust
+  cost over the final correspondences that does not drop from the prediction to the correction
+  ("the residual does not drop": the correction is not supported by the constraints that chose
+  it); and the absolute limits ``max_translation``/``max_rotation``.
 * The vertex assignment prefers pairs of the same kind: a frontier paired with a corner costs
-  :attr:`ICPConfig.frontier_penalty` metres extra (it is still allowed, within the gate).
+  :attr:`ICPConfig.frontier_penalty` metres extra (it is still allowed, within the gate; such a
+  pair only serves to make edges correspond through their end points).
 * Robustness to outliers: a correspondence gate that shrinks from ``gate_start`` to
   ``gate_end`` over the first iterations, one-to-one vertex pairs, and Huber weights on the
   residuals (iteratively reweighted Gauss-Newton).
-* Degenerate geometry (a featureless corridor constrains only one direction): a weak Gaussian
-  prior on the correction (``prior_sigma_xy``, ``prior_sigma_theta``) keeps the unobservable
-  directions at the odometry prediction instead of letting them drift.
-* Acceptance: the correction is marked ``accepted`` only with at least ``min_constraints``
-  inlier constraints, at least ``min_matched_fraction`` of the scan's wall length matched, an
-  inlier RMS residual of at most ``max_rmse`` and a correction within
-  ``max_translation``/``max_rotation`` (a scan step's odometry error is far smaller; a larger
-  "correction" is a wrong match). The filter falls back to odometry otherwise.
+* The correction is parametrised as ``(x, y, theta)`` and increments are added: corrections are
+  small (centimetres, a degree or two), where this equals composition to second order.
 
 References
 ----------
 P. J. Besl and N. D. McKay, "A method for registration of 3-D shapes", PAMI 1992 (ICP).
+J. Zhang, M. Kaess and S. Singh, "On degeneracy of optimization-based state estimation
+problems", ICRA 2016 (degenerate directions, solution remapping).
 """
 
 from __future__ import annotations
@@ -46,7 +70,7 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 from scipy.optimize import linear_sum_assignment
 from scipy.spatial import cKDTree
 
@@ -63,9 +87,11 @@ __all__ = [
     "Correspondences",
     "ICPConfig",
     "ICPResult",
+    "constraints",
     "correspond",
     "edge_overlap",
     "icp",
+    "information_split",
     "match_edges",
     "match_vertices",
     "project_onto_segments",
@@ -81,7 +107,8 @@ class ICPConfig:
     max_iterations : int
         Gauss-Newton iterations at most.
     anneal_iterations : int
-        Iterations over which the gate shrinks linearly from ``gate_start`` to ``gate_end``.
+        Iterations over which the gate shrinks linearly from ``gate_start`` to ``gate_end``
+        (none when they are equal).
     gate_start, gate_end : float
         Correspondence gate in metres: vertices farther apart, and edges offset by more, do not
         correspond. Large at first to capture odometry error, small at the end to reject outliers.
@@ -92,13 +119,29 @@ class ICPConfig:
         half the shorter edge, whichever is less).
     frontier_penalty : float
         Extra assignment cost (metres) for pairing a frontier vertex with a non-frontier one.
+    corner_labels : tuple of int
+        Labels of *real corners*: only a scan vertex and a reference vertex both with one of
+        these labels give a point-to-point constraint (default nominal and occlusion).
     huber : float
         Huber threshold (metres) of the residual weights.
     sigma : float
-        Standard deviation (metres) of one constraint residual; scales against the prior.
+        Standard deviation (metres) of one constraint residual (scan noise plus map error).
+    information_scale : float
+        Factor on the constraints' information (< 1 when the residuals are correlated, e.g. a
+        corner and the two walls that end in it share its noise; the map's own error is shared by
+        every scan that matches it).
     prior_sigma_xy, prior_sigma_theta : float
-        Standard deviations of the Gaussian prior that keeps the correction near zero (the
-        odometry prediction), in metres and radians.
+        Standard deviations (metres, radians) of the prior on the correction when :func:`icp`
+        is given no ``prior_covariance``.
+    min_information_ratio : float
+        A direction is well constrained when the scan's information along it is at least this
+        times the prior's (generalised eigenvalue, see the module docstring).
+    max_mahalanobis : float
+        Largest accepted squared Mahalanobis distance between the prediction and the
+        constraints' own optimum (module docstring; default: the 99.9 % point of chi-square with
+        3 degrees of freedom).
+    max_rotation_sigmas : float
+        Largest accepted rotation, in prior standard deviations of the heading.
     tol : float
         Stop when an increment moves less than this (metres, and radians times 1 m).
     min_constraints : int
@@ -109,34 +152,45 @@ class ICPConfig:
     max_rmse : float
         Largest inlier RMS residual (metres) for an accepted correction.
     max_translation, max_rotation : float
-        Largest accepted correction (metres, radians).
+        Largest accepted correction (metres, radians), whatever the prior.
+
+    Raises
+    ------
+    ValueError
+        On a value out of range.
     """
 
     max_iterations: int = 20
     anneal_iterations: int = 4
-    gate_start: float = 1.0
+    gate_start: float = 2.0
     gate_end: float = 0.3
     max_angle: float = 0.35
     min_overlap: float = 0.1
     frontier_penalty: float = 0.25
+    corner_labels: tuple[int, ...] = (int(Label.NOMINAL), int(Label.OCCLUSION))
     huber: float = 0.08
     sigma: float = 0.05
+    information_scale: float = 1.0
     prior_sigma_xy: float = 0.5
     prior_sigma_theta: float = 0.25
+    min_information_ratio: float = 0.5
+    max_mahalanobis: float = 16.27
+    max_rotation_sigmas: float = 3.0
     tol: float = 5e-4
     min_constraints: int = 4
     min_matched_fraction: float = 0.3
     max_rmse: float = 0.1
-    max_translation: float = 0.5
+    max_translation: float = 2.0
     max_rotation: float = 0.35
 
     def __post_init__(self) -> None:
         if self.max_iterations < 1 or self.anneal_iterations < 0:
             raise ValueError("max_iterations must be >= 1 and anneal_iterations >= 0")
-        for name in ("gate_start", "gate_end", "max_angle", "huber", "sigma", "prior_sigma_xy",
-                     "prior_sigma_theta", "tol", "max_rmse", "max_translation", "max_rotation"):
+        for name in ("gate_start", "gate_end", "max_angle", "huber", "sigma", "information_scale",
+                     "prior_sigma_xy", "prior_sigma_theta", "tol", "max_rmse", "max_translation",
+                     "max_rotation", "max_mahalanobis", "max_rotation_sigmas"):
             v = getattr(self, name)
-            if not (math.isfinite(v) and v > 0):
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
                 raise ValueError(f"ICPConfig.{name} must be a positive number, got {v!r}")
         if self.gate_end > self.gate_start:
             raise ValueError("ICPConfig.gate_end must not exceed gate_start")
@@ -144,6 +198,10 @@ class ICPConfig:
             raise ValueError("min_overlap, frontier_penalty and min_constraints must be >= 0")
         if not 0.0 <= self.min_matched_fraction <= 1.0:
             raise ValueError("min_matched_fraction must be within [0, 1]")
+        if not (math.isfinite(self.min_information_ratio) and self.min_information_ratio >= 0):
+            raise ValueError("min_information_ratio must be >= 0")
+        if any(int(v) not in (int(x) for x in Label) for v in self.corner_labels):
+            raise ValueError(f"corner_labels must be vertex labels, got {self.corner_labels!r}")
 
 
 @dataclass(frozen=True)
@@ -202,7 +260,8 @@ class ICPResult:
     ----------
     correction : Pose
         The rigid motion that maps scan points onto the reference (scan frame to reference
-        frame). The corrected pose is ``predicted_pose.compose(correction)``.
+        frame). The corrected pose is ``predicted_pose.compose(correction)``. It is the MAP
+        estimate confined to the well-constrained directions, also when not accepted.
     accepted : bool
         Whether the correction passed the acceptance tests of :class:`ICPConfig`.
     correspondences : Correspondences
@@ -214,6 +273,16 @@ class ICPResult:
     iterations : int
     reason : str
         Why the correction was rejected ("" when accepted).
+    information : (3, 3) float64
+        Information of the final constraints about ``(x, y, theta)`` of the correction
+        (robust weights, ``information_scale`` applied; no prior).
+    covariance : (3, 3) float64
+        Posterior covariance of the corrected pose's error (robot frame of the prediction):
+        the prior's on the degenerate directions, prior and scan combined on the others.
+    constrained : int
+        Number of well-constrained directions (0 to 3).
+    mahalanobis : float
+        Squared Mahalanobis distance between the prediction and the constraints' optimum.
     """
 
     correction: Pose
@@ -223,6 +292,10 @@ class ICPResult:
     n_constraints: int
     iterations: int
     reason: str = ""
+    information: FloatArray = field(default_factory=lambda: np.zeros((3, 3)))
+    covariance: FloatArray = field(default_factory=lambda: np.zeros((3, 3)))
+    constrained: int = 0
+    mahalanobis: float = 0.0
 
 
 # ---------------------------------------------------------------------------------- geometry
@@ -432,19 +505,34 @@ def correspond(
 
 
 # ---------------------------------------------------------------------------------------- ICP
-def _constraints(
-    scan: Wireframe, ref: Wireframe, sp: FloatArray, corr: Correspondences
+def constraints(
+    scan: Wireframe,
+    ref: Wireframe,
+    scan_points: FloatArray,
+    corr: Correspondences,
+    corner_labels: tuple[int, ...] = (int(Label.NOMINAL), int(Label.OCCLUSION)),
 ) -> tuple[FloatArray, FloatArray]:
-    """Stack the linearised constraints at the current scan points ``sp``.
+    """Linearised constraints of a correction, at the current scan points ``scan_points``.
 
-    Returns ``(J, r)``: rows ``J @ delta + r`` ~ 0, ``delta = (dx, dy, dtheta)`` applied as
-    ``R(dtheta) p + (dx, dy)`` about the robot (the origin of the scan frame).
+    Point-to-point rows (two per pair) come from vertex pairs whose two labels are both in
+    ``corner_labels``; point-to-line rows (two per edge pair: the ends of the overlap along the
+    scan edge) measure the distance to the reference edge's line along its left normal.
+
+    Returns
+    -------
+    J : (k, 3) float64
+    r : (k,) float64
+        Rows ``J @ delta + r ~ 0`` for a small motion ``delta = (dx, dy, dtheta)`` applied to the
+        scan as ``R(dtheta) p + (dx, dy)`` about the origin (the robot).
     """
+    sp = scan_points
     rows_j: list[FloatArray] = []
     rows_r: list[FloatArray] = []
     vp = corr.vertex_pairs
     if len(vp):
-        keep = (scan.labels[vp[:, 0]] != Label.FRONTIER) & (ref.labels[vp[:, 1]] != Label.FRONTIER)
+        real = np.zeros(len(Label), dtype=bool)
+        real[list(corner_labels)] = True
+        keep = real[scan.labels[vp[:, 0]]] & real[ref.labels[vp[:, 1]]]
         vp = vp[keep]
     if len(vp):
         p = sp[vp[:, 0]]
@@ -484,14 +572,65 @@ def _constraints(
     return np.concatenate(rows_j), np.concatenate(rows_r)
 
 
-def icp(scan: Wireframe, ref: Wireframe, config: ICPConfig | None = None, initial: Pose | None = None) -> ICPResult:
-    """Align ``scan`` onto ``ref`` with a modified ICP over wireframes (paper Sec. IV-C).
+def information_split(
+    information: FloatArray, prior_covariance: FloatArray, min_ratio: float
+) -> tuple[FloatArray, FloatArray, FloatArray, BoolArray]:
+    """Generalised eigen-decomposition of a constraint information against a prior.
+
+    With ``P = L L^T`` (Cholesky), the eigenvalues ``lambda`` of ``L^T H L`` are the ratios of the
+    constraints' information to the prior's along the directions ``L v``.
+
+    Parameters
+    ----------
+    information : (3, 3)
+        ``H``, the constraints' information.
+    prior_covariance : (3, 3)
+        ``P``, symmetric positive definite.
+    min_ratio : float
+        Directions with ``lambda >= min_ratio`` are well constrained.
+
+    Returns
+    -------
+    L : (3, 3)
+        The Cholesky factor of ``P``.
+    lam : (3,)
+        The ratios, ascending.
+    V : (3, 3)
+        Orthonormal eigenvectors (columns), in whitened coordinates ``z = L^-1 delta``.
+    good : (3,) bool
+        Well-constrained directions.
+    """
+    L = np.linalg.cholesky(np.asarray(prior_covariance, dtype=np.float64))
+    M = L.T @ np.asarray(information, dtype=np.float64) @ L
+    lam, V = np.linalg.eigh(0.5 * (M + M.T))
+    lam = np.maximum(lam, 0.0)
+    return L, lam, V, lam >= min_ratio
+
+
+def _huber_weights(r: FloatArray, huber: float) -> FloatArray:
+    absr = np.abs(r)
+    return np.asarray(np.where(absr <= huber, 1.0, huber / np.maximum(absr, 1e-12)), dtype=np.float64)
+
+
+def _huber_cost(r: FloatArray, huber: float) -> float:
+    absr = np.abs(r)
+    return float(np.sum(np.where(absr <= huber, 0.5 * r * r, huber * (absr - 0.5 * huber))))
+
+
+def icp(
+    scan: Wireframe,
+    ref: Wireframe,
+    config: ICPConfig | None = None,
+    initial: Pose | None = None,
+    prior_covariance: ArrayLike | None = None,
+) -> ICPResult:
+    """Align ``scan`` onto ``ref`` with a modified, degeneracy-aware ICP (paper Sec. IV-C).
 
     Both wireframes are in the frame of the predicted robot pose (the robot at the origin).
-    Each iteration re-computes the vertex and edge correspondences at the current alignment
-    and the current gate, builds point-to-point and point-to-line constraints (see the module
-    docstring), and takes one iteratively reweighted (Huber) Gauss-Newton step with a weak
-    prior on the correction.
+    Each iteration re-computes the vertex and edge correspondences at the current alignment and
+    gate, builds point-to-point and point-to-line constraints (see the module docstring), weighs
+    them (Huber), splits the directions into well-constrained and degenerate ones against the
+    prior, and takes the MAP Gauss-Newton step on the well-constrained ones.
 
     Parameters
     ----------
@@ -500,41 +639,82 @@ def icp(scan: Wireframe, ref: Wireframe, config: ICPConfig | None = None, initia
     config : ICPConfig, optional
     initial : Pose, optional
         Starting correction (identity by default).
+    prior_covariance : (3, 3) array_like, optional
+        Covariance of the prediction's error ``(x, y, theta)`` in the robot frame (the
+        correction's prior, centred on zero). Default: diagonal from
+        ``config.prior_sigma_xy`` and ``config.prior_sigma_theta``.
 
     Returns
     -------
     ICPResult
         ``correction`` maps scan points onto the reference.
+
+    Raises
+    ------
+    ValueError
+        When ``prior_covariance`` is not a symmetric positive definite 3 x 3 matrix.
     """
     cfg = config or ICPConfig()
+    if prior_covariance is None:
+        P = np.diag([cfg.prior_sigma_xy**2, cfg.prior_sigma_xy**2, cfg.prior_sigma_theta**2])
+    else:
+        P = np.asarray(prior_covariance, dtype=np.float64)
+        if P.shape != (3, 3) or not np.all(np.isfinite(P)) or not np.allclose(P, P.T, atol=1e-12):
+            raise ValueError("prior_covariance must be a finite symmetric 3 x 3 matrix")
+        try:
+            np.linalg.cholesky(P)
+        except np.linalg.LinAlgError:
+            raise ValueError("prior_covariance must be positive definite") from None
     T = initial or Pose.identity()
+    t = np.array([T.x, T.y, T.theta])
     empty = Correspondences(np.zeros((0, 2), np.int64), np.zeros(0), np.zeros((0, 2), np.int64), np.zeros(0))
     if scan.n_vertices == 0 or ref.n_vertices == 0:
-        return ICPResult(T, False, empty, math.inf, 0, 0, "empty scan or reference")
-    w_prior = np.array([1.0 / cfg.prior_sigma_xy**2, 1.0 / cfg.prior_sigma_xy**2, 1.0 / cfg.prior_sigma_theta**2])
-    inv_s2 = 1.0 / cfg.sigma**2
+        return ICPResult(T, False, empty, math.inf, 0, 0, "empty scan or reference", covariance=P.copy())
+    scale = cfg.information_scale / cfg.sigma**2
     it = 0
+    anneal = cfg.anneal_iterations if cfg.gate_start > cfg.gate_end else 0
     for it in range(1, cfg.max_iterations + 1):
-        frac = min(1.0, (it - 1) / cfg.anneal_iterations) if cfg.anneal_iterations else 1.0
+        frac = min(1.0, (it - 1) / anneal) if anneal else 1.0
         gate = cfg.gate_start + (cfg.gate_end - cfg.gate_start) * frac
-        sp = T.apply(scan.points)
+        sp = Pose(*t).apply(scan.points)
         corr = correspond(scan, ref, gate, cfg.max_angle, cfg.min_overlap, cfg.frontier_penalty, scan_points=sp)
-        J, r = _constraints(scan, ref, sp, corr)
-        absr = np.abs(r)
-        w = np.where(absr <= cfg.huber, 1.0, cfg.huber / np.maximum(absr, 1e-12)) * inv_s2
-        H = (J * w[:, None]).T @ J + np.diag(w_prior)
-        tvec = np.array([T.x, T.y, T.theta])
-        g = (J * w[:, None]).T @ r + w_prior * tvec
-        try:
-            delta = -np.linalg.solve(H, g)
-        except np.linalg.LinAlgError:
+        J, r = constraints(scan, ref, sp, corr, cfg.corner_labels)
+        w = _huber_weights(r, cfg.huber) * scale
+        H = (J * w[:, None]).T @ J
+        g = (J * w[:, None]).T @ r
+        L, lam, V, good = information_split(H, P, cfg.min_information_ratio)
+        Vg = V[:, good]
+        z0 = np.linalg.solve(L, t)
+        a0 = Vg.T @ z0
+        # MAP step in whitened coordinates on the constrained directions (module docstring):
+        # (I + diag(lam)) a = diag(lam) a0 - Vg^T L^T g; degenerate directions go back to zero.
+        a = (lam[good] * a0 - Vg.T @ (L.T @ g)) / (1.0 + lam[good])
+        t_new = L @ (Vg @ a)
+        step = t_new - t
+        t = t_new
+        if frac >= 1.0 and math.hypot(step[0], step[1]) + abs(step[2]) < cfg.tol:
             break
-        T = Pose(float(delta[0]), float(delta[1]), float(delta[2])).compose(T)
-        if frac >= 1.0 and math.hypot(delta[0], delta[1]) + abs(delta[2]) < cfg.tol:
-            break
+    T = Pose(float(t[0]), float(t[1]), float(t[2]))
+    t = np.array([T.x, T.y, T.theta])
     sp = T.apply(scan.points)
     corr = correspond(scan, ref, cfg.gate_end, cfg.max_angle, cfg.min_overlap, cfg.frontier_penalty, scan_points=sp)
-    J, r = _constraints(scan, ref, sp, corr)
+    J, r = constraints(scan, ref, sp, corr, cfg.corner_labels)
+    w = _huber_weights(r, cfg.huber) * scale
+    H = (J * w[:, None]).T @ J
+    g = (J * w[:, None]).T @ r
+    L, lam, V, good = information_split(H, P, cfg.min_information_ratio)
+    Vg = V[:, good]
+    post = np.ones(3)
+    post[good] = 1.0 / (1.0 + lam[good])
+    cov = L @ (V * post[None, :]) @ V.T @ L.T
+    cov = 0.5 * (cov + cov.T)
+    # Consistency with the prior, every direction the constraints say anything about (also the
+    # degenerate ones, held at the prediction): the constraints-only optimum along direction i
+    # is m_i = a_i - v_i^T L^T g / lambda_i (whitened), its innovation variance 1 + 1/lambda_i.
+    informed = lam > 1e-6
+    a_all = V.T @ np.linalg.solve(L, t)
+    m = a_all[informed] - (V[:, informed].T @ (L.T @ g)) / lam[informed]
+    maha = float(np.sum(m**2 * lam[informed] / (1.0 + lam[informed])))
     inl = np.abs(r) <= cfg.gate_end
     n_c = int(inl.sum())
     rmse = float(np.sqrt(np.mean(r[inl] ** 2))) if n_c else math.inf
@@ -542,6 +722,11 @@ def icp(scan: Wireframe, ref: Wireframe, config: ICPConfig | None = None, initia
     total = float(lengths.sum())
     matched = float(lengths[corr.scan_edge_matched(scan.n_edges)].sum())
     frac_matched = matched / total if total > 0 else 0.0
+    # The same correspondences, evaluated at the prediction (no correction).
+    _, r0 = constraints(scan, ref, scan.points, corr, cfg.corner_labels)
+    cost0 = _huber_cost(r0, cfg.huber)
+    cost1 = _huber_cost(r, cfg.huber)
+    moved = math.hypot(T.x, T.y) > 1e-4 or abs(T.theta) > 1e-5
     reason = ""
     if n_c < cfg.min_constraints:
         reason = f"too few constraints ({n_c} < {cfg.min_constraints})"
@@ -549,6 +734,19 @@ def icp(scan: Wireframe, ref: Wireframe, config: ICPConfig | None = None, initia
         reason = f"too little of the scan matched ({frac_matched:.0%})"
     elif rmse > cfg.max_rmse:
         reason = f"residual too large ({rmse:.3f} m > {cfg.max_rmse} m)"
+    elif not good.any():
+        reason = "degenerate: no direction constrained better than the prior"
+    elif maha > cfg.max_mahalanobis:
+        reason = f"correction too unlikely (Mahalanobis^2 {maha:.1f} > {cfg.max_mahalanobis})"
+    elif abs(T.theta) > cfg.max_rotation_sigmas * math.sqrt(P[2, 2]):
+        reason = f"rotation beyond {cfg.max_rotation_sigmas:g} sigma of the prior"
+    elif moved and cost1 >= cost0:
+        reason = "residual does not drop"
     elif math.hypot(T.x, T.y) > cfg.max_translation or abs(T.theta) > cfg.max_rotation:
         reason = "correction too large"
-    return ICPResult(T, reason == "", corr, rmse, n_c, it, reason)
+    if reason:
+        cov = P.copy()
+    return ICPResult(
+        T, reason == "", corr, rmse, n_c, it, reason,
+        information=H, covariance=cov, constrained=int(good.sum()), mahalanobis=maha,
+    )

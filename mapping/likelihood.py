@@ -35,6 +35,9 @@ Choices where the paper is silent
   the particle does not know: no evidence, factor 1. Predicted edges shorter than
   ``min_edge_evidence`` carry no evidence either (slivers of the visibility split).
 * Per-edge likelihood of an occluded predicted edge: its Gaussian factors only.
+* A predicted edge that lies within ``occlusion_margin`` of the edge of the sensing range, or
+  that is seen at a grazing angle (``min_incidence``), carries no evidence either: a small error
+  decides whether it was in range, or in front of the robot, at all.
 """
 
 from __future__ import annotations
@@ -97,6 +100,11 @@ class LikelihoodConfig:
         A scan wall nearer than a predicted edge by more than this (metres) occludes it.
     min_edge_evidence : float
         Predicted edges shorter than this (metres) carry no Bernoulli evidence.
+    min_incidence : float
+        An unmatched predicted edge seen at a grazing angle, its line of sight meeting it at
+        less than this (radians, default 10 degrees), carries no evidence: the robot is close
+        to the wall's line, and a small map or pose error decides which side of it the robot
+        is on, so whether the wall shows at all.
     """
 
     sigma: float = 0.1
@@ -109,6 +117,7 @@ class LikelihoodConfig:
     gap_margin: float = 1e-3
     occlusion_margin: float = 0.2
     min_edge_evidence: float = 0.15
+    min_incidence: float = math.radians(10.0)
 
     def __post_init__(self) -> None:
         for name in ("sigma", "gate", "max_angle"):
@@ -119,7 +128,7 @@ class LikelihoodConfig:
             v = getattr(self, name)
             if not (0.0 < v < 1.0):
                 raise ValueError(f"LikelihoodConfig.{name} must be in (0, 1), got {v!r}")
-        for name in ("min_overlap", "gap_margin", "occlusion_margin", "min_edge_evidence"):
+        for name in ("min_overlap", "gap_margin", "occlusion_margin", "min_edge_evidence", "min_incidence"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0):
                 raise ValueError(f"LikelihoodConfig.{name} must be >= 0, got {v!r}")
@@ -218,14 +227,17 @@ def seen_through(
     margin: float = 0.2,
     max_range: float = math.inf,
     samples: tuple[float, ...] = (0.25, 0.5, 0.75),
+    min_incidence: float = math.radians(10.0),
 ) -> BoolArray:
     """Whether the scan saw *through* each segment (robot frame): at every sample point along
     it, the scan has a wall on the same bearing farther than the point by more than ``margin``.
 
     This is positive evidence that no wall is there, whichever way the segment is directed;
     the filter uses it for map edges that are in view but not reported by the predicted scan
-    (back-facing edges, paper Fig. 5). A sample point beyond ``max_range`` or on a bearing where
-    the scan has no wall gives no evidence, so the answer is then False.
+    (back-facing edges, paper Fig. 5). A sample point beyond ``max_range - margin`` or on a
+    bearing where the scan has no wall gives no evidence, so the answer is then False; so does a
+    segment seen at a grazing angle (its midpoint's line of sight meets it at less than
+    ``min_incidence``).
     """
     s = np.asarray(segments, dtype=np.float64).reshape(-1, 2, 2)
     if len(s) == 0 or scan.n_edges == 0:
@@ -235,8 +247,9 @@ def seen_through(
     flat = pts.reshape(-1, 2)
     dist = np.hypot(flat[:, 0], flat[:, 1])
     rng_scan = ray_ranges(scan, np.arctan2(flat[:, 1], flat[:, 0]))
-    ok = np.isfinite(rng_scan) & (rng_scan > dist + margin) & (dist <= max_range)
-    return np.asarray(ok.reshape(len(s), len(t)).all(axis=1))
+    ok = np.isfinite(rng_scan) & (rng_scan > dist + margin) & (dist <= max_range - margin)
+    facing = _sin_incidence(s) >= math.sin(min_incidence)
+    return np.asarray(ok.reshape(len(s), len(t)).all(axis=1) & facing)
 
 
 def in_known_free_space(
@@ -279,11 +292,32 @@ def _temporary_dist(points: FloatArray, other: Wireframe, margin: float) -> Floa
     return out
 
 
+def _sin_incidence(segments: FloatArray) -> FloatArray:
+    """Sine of the angle between each segment ``(m, 2, 2)`` and the line of sight from the
+    origin to its midpoint (0: seen edge-on)."""
+    d = segments[:, 1] - segments[:, 0]
+    mid = 0.5 * (segments[:, 0] + segments[:, 1])
+    cross = np.abs(d[:, 0] * mid[:, 1] - d[:, 1] * mid[:, 0])
+    den = np.hypot(d[:, 0], d[:, 1]) * np.hypot(mid[:, 0], mid[:, 1])
+    return np.asarray(np.where(den > 0, cross / np.where(den > 0, den, 1.0), 0.0), dtype=np.float64)
+
+
+def _distance_to_origin(segments: FloatArray) -> FloatArray:
+    """Distance from the origin (the robot) to each segment ``(m, 2, 2)``."""
+    a = segments[:, 0]
+    d = segments[:, 1] - a
+    dd = np.einsum("ij,ij->i", d, d)
+    t = np.clip(-np.einsum("ij,ij->i", a, d) / np.where(dd > 0, dd, 1.0), 0.0, 1.0)
+    c = a + t[:, None] * d
+    return np.asarray(np.hypot(c[:, 0], c[:, 1]), dtype=np.float64)
+
+
 def scan_likelihood(
     scan: Wireframe,
     predicted: Wireframe,
     config: LikelihoodConfig | None = None,
     correspondences: Correspondences | None = None,
+    max_range: float = math.inf,
 ) -> ScanLikelihood:
     """The likelihood ``p(S | W)`` of a scan given one particle's predicted scan (Sec. IV-D).
 
@@ -297,6 +331,10 @@ def scan_likelihood(
     correspondences : Correspondences, optional
         Reuse correspondences already computed (scan to predicted); computed with
         :func:`mapping.icp.correspond` at ``config.gate`` otherwise.
+    max_range : float, optional
+        The sensing range: an unmatched predicted edge no part of which is nearer than
+        ``max_range - occlusion_margin`` carries no evidence (whether it was in range at all
+        depends on small pose and map errors there).
 
     Returns
     -------
@@ -336,7 +374,11 @@ def scan_likelihood(
         rng_scan = ray_ranges(scan, np.arctan2(mid[:, 1], mid[:, 0]))
         occluded = rng_scan < rng_mid - cfg.occlusion_margin
         short = np.hypot(*(seg[:, 1] - seg[:, 0]).T) < cfg.min_edge_evidence
-        state[unm] = np.where(occluded | short, OCCLUDED, CONTRADICTED)
+        # Near the edge of the sensing range a small pose or map error decides whether the
+        # wall was in range at all: no evidence unless some of it is clearly within range.
+        edge_of_range = _distance_to_origin(seg) > max_range - cfg.occlusion_margin
+        grazing = _sin_incidence(seg) < math.sin(cfg.min_incidence)
+        state[unm] = np.where(occluded | short | edge_of_range | grazing, OCCLUDED, CONTRADICTED)
     b_s = np.where(s_edge, 1.0 - cfg.p_fn, cfg.p_fp)
     b_p = np.select([state == OBSERVED, state == CONTRADICTED], [1.0 - cfg.p_fn, cfg.p_fn], 1.0)
     edge_log = float(np.log(b_s).sum() + np.log(cfg.p_fn) * np.count_nonzero(state == CONTRADICTED))

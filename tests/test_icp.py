@@ -13,6 +13,7 @@ from mapping.icp import (
     correspond,
     edge_overlap,
     icp,
+    information_split,
     match_edges,
     match_vertices,
     project_onto_segments,
@@ -177,3 +178,65 @@ def test_project_onto_segments():
 def test_config_rejects_bad_values(kwargs):
     with pytest.raises(ValueError):
         ICPConfig(**kwargs)
+
+
+# ------------------------------------------------------------------ degeneracy-aware matching
+def test_frontier_ends_do_not_pin_a_wall_along_itself():
+    # One long wall seen with frontier ends, the scan shifted along it by 0.3 m and across by
+    # 0.1 m: only the offset across the wall is observable.
+    wall = Wireframe.build([(-4, 2), (4, 2)], [(0, 1)], labels=[Label.FRONTIER] * 2)
+    scan = wall.transformed(Pose(0.3, -0.1, 0.0))
+    res = icp(scan, wall)
+    assert res.constrained <= 2
+    assert abs(res.correction.y - 0.1) < 0.01
+    assert abs(res.correction.x) < 0.01
+    # the same wall with real corners at its ends pins it along itself too
+    corners = wall.replace(labels=np.zeros(2, np.uint8))
+    res = icp(corners.transformed(Pose(0.3, -0.1, 0.0)), corners)
+    assert res.accepted, res.reason
+    assert res.correction.distance(Pose(-0.3, 0.1, 0.0)) < 0.01
+
+
+def test_information_split_against_the_prior():
+    # Information only about x (a wall across x): one constrained direction, along x.
+    H = np.diag([1e4, 0.0, 0.0])
+    P = np.diag([0.1**2, 0.1**2, 0.05**2])
+    L, lam, V, good = information_split(H, P, 0.5)
+    assert np.allclose(L @ L.T, P)
+    assert good.sum() == 1
+    assert lam[good][0] == pytest.approx(1e4 * 0.01)
+    direction = L @ V[:, good][:, 0]
+    assert abs(direction[0]) > 0.99 * np.linalg.norm(direction)
+    # a weak constraint (less informative than the prior) is degenerate
+    _, _, _, good = information_split(np.diag([10.0, 0.0, 0.0]), P, 0.5)
+    assert not good.any()
+
+
+def test_tight_heading_prior_keeps_the_heading():
+    err = Pose(0.2, 0.1, 0.05)
+    scan = scan_off_by(err, noise=0.0)
+    free = icp(scan, reference(), prior_covariance=np.diag([0.3**2, 0.3**2, 0.2**2]))
+    assert free.accepted and abs(free.correction.theta - err.theta) < 1e-3
+    # A heading prior of 0.001 rad: the scan's rotation is 50 sigma away -- not accepted
+    tight = icp(scan, reference(), prior_covariance=np.diag([0.3**2, 0.3**2, 0.001**2]))
+    assert not tight.accepted
+    assert "unlikely" in tight.reason or "rotation" in tight.reason or "residual" in tight.reason
+
+
+def test_posterior_covariance_shrinks_only_where_constrained():
+    corridor = Wireframe.build(
+        [(-8, -1), (8, -1), (8, 1), (-8, 1)], [(0, 1), (2, 3)], labels=[Label.FRONTIER] * 4
+    )
+    P = np.diag([0.2**2, 0.2**2, 0.02**2])
+    res = icp(corridor.transformed(Pose(0.0, 0.05, 0.0).inverse()), corridor, prior_covariance=P)
+    assert res.accepted, res.reason
+    assert res.covariance[0, 0] == pytest.approx(P[0, 0], rel=1e-6)  # along the corridor: the prior
+    assert res.covariance[1, 1] < 0.05 * P[1, 1]  # across: the walls know better
+    assert res.information.shape == (3, 3) and res.information[0, 0] == pytest.approx(0.0, abs=1e-9)
+
+
+def test_rejects_bad_prior():
+    with pytest.raises(ValueError):
+        icp(reference(), reference(), prior_covariance=np.diag([1.0, -1.0, 1.0]))
+    with pytest.raises(ValueError):
+        icp(reference(), reference(), prior_covariance=np.eye(2))

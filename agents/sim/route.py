@@ -1,6 +1,9 @@
-"""Coverage routes through a world's free space.
+"""Coverage routes that keep the walls in sensing range.
 
-:func:`plan_route` makes one collision-free polyline that covers the world:
+:func:`plan_route` makes one collision-free polyline from which every wall is seen from nearby.
+What a mapping robot must cover is the *walls*, not the floor: a floor-covering route sends it
+through the middle of large halls where an 8 m sensor sees nothing, its pose drifts, and the
+walls it maps next are misplaced. So:
 
 1. **Navigable region.** Points at least ``clearance`` from every wall (the free space's
    boundary and the thin walls), computed with shapely buffers.
@@ -9,36 +12,45 @@
    neighbours (no corner cutting). The grid's region is shrunk by an extra ``h**2 / (4 c)``: a
    step of length ``L <= h*sqrt(2)`` whose two ends are ``c + L**2 / (8 c)`` from a convex
    obstacle cannot come nearer than ``c`` to it, so every grid step keeps the clearance; and
-   ``h < 1.4 c`` so that no step can jump a thin wall.
-3. **Waypoints.** The plane is cut into square cells of side ``spacing`` (origin jittered by the
-   rng); each cell with navigable nodes gets one waypoint, the node nearest to the centroid of
-   its nodes. Waypoints nearer than ``0.6 spacing`` to one of a fuller cell are dropped (a
-   corridor straddling two cells gets one row, not two). Then every node farther than
-   ``1.09 spacing / sqrt(2)`` (grid-path distance, one multi-source ``dijkstra``) from all
-   waypoints gets one too, greedily: rooms behind thin walls are not "covered" through the wall.
-4. **Tour.** A greedy nearest-neighbour tour over the waypoints by grid-path distance (bounded
-   ``scipy.sparse.csgraph.dijkstra`` from the current node, widened until an unvisited waypoint
-   is found) with a little momentum (see :func:`_tour`), the shortest grid paths joining them.
-   Waypoints not reachable from the start (e.g. behind a doorway narrower than
-   ``2 * clearance``) are left out.
-5. **Simplification.** Each leg between consecutive waypoints is string-pulled: from each kept
-   vertex, jump to the farthest later vertex of the leg (within 96) that the straight segment
-   reaches while staying in the navigable region (exact shapely test). Waypoints are kept, so
-   coverage is.
+   ``h < 1.4 c`` so that no step can jump a thin wall. For the tour, a step where no wall is
+   within ``0.75 sensor_range`` (blind) costs twice its length, so travel between waypoints
+   goes along walls rather than across empty halls when that is not much longer.
+3. **Waypoints: a wall cover.** Targets are points every ``min(1, spacing / 3)`` metres along
+   every wall face (the truth's directed edges), just inside the free space. Candidates are
+   grid nodes, one per cell of side ``max(spacing / 4, h)``. A candidate *sees* a target when
+   it is within ``spacing`` (the coverage radius), on the face's free side at 10 degrees or more
+   from grazing, and the straight segment between them crosses no wall. A greedy set cover
+   picks candidates until every target that some candidate sees is seen (the classic
+   ``ln n``-approximation); targets no candidate sees within ``spacing`` get a second pass with
+   the full ``sensor_range``.
+4. **Tour.** A greedy nearest-neighbour tour over the waypoints by (weighted) grid-path distance
+   (bounded ``scipy.sparse.csgraph.dijkstra`` from the current node, widened until an
+   unvisited waypoint is found) with a little momentum (see :func:`_tour`), the shortest grid
+   paths joining them. Waypoints not reachable from the start (e.g. behind a doorway narrower
+   than ``2 * clearance``) are left out.
+5. **Smoothing.** The whole tour is string-pulled: from each kept vertex, jump to the farthest
+   later vertex (within 96) that a straight segment reaches inside the navigable region and
+   within ``0.75 sensor_range`` of a wall, passing within ``spacing / 2`` of every waypoint it
+   skips. So the route passes within ``1.5 spacing`` of every wall point it covers, well inside
+   the sensing range, and zigzags between waypoints on both sides of a corridor straighten.
+6. **Rounded corners.** Each corner becomes a circular arc (radius up to 1.5 m, passing at most
+   0.5 m from the corner, inside the navigable region): odometry's heading error grows with the
+   angle turned in one step (:class:`agents.sim.motion.OdometryNoise`), so a 90-degree turn
+   spread over several steps costs a few times less heading error than one turned at once.
 
-``spacing`` is the distance between neighbouring waypoints (so neighbouring sweeps of a hall
-are ``spacing`` apart and every reachable navigable point is within about ``spacing / sqrt(2)``
-of a waypoint). The default ``clip(sqrt(free area) / 12, 2.5, 12)`` m gives 2.5 m in rooms and
-offices and 12 m in the 200 x 200 m museum, so that with an 8 m sensing range most walls are
-seen from nearby.
+``spacing`` is the coverage radius: ``clip(sqrt(free area) / 12, 2.5, sensor_range / 2)`` by
+default, i.e. half the 8 m sensing range in large worlds (walls are seen from 4 m, where a
+corner sensor or a lidar sees them well) and 2.5 m in small ones (so that a room is still seen
+from several places).
 
 A world with its own route (``World.route``) uses it instead unless ``use_world_route=False``.
-Randomness (grid and cell origins, the start node when none is given) comes only from the
-``rng`` argument: the same seed gives the same route.
+Randomness (grid origin, the start node when none is given) comes only from the ``rng``
+argument: the same seed gives the same route.
 """
 
 from __future__ import annotations
 
+import itertools
 import math
 from dataclasses import dataclass
 from typing import Any
@@ -59,6 +71,13 @@ FloatArray = NDArray[np.float64]
 # inside the true arc by at most c * (1 - cos(pi / 64)) = 0.0012 c, which the planner adds.
 _QUAD_SEGS = 16
 _MAX_GRID_CELLS = 150_000
+_TARGET_OFFSET = 0.05  # wall targets sit this far into the free space
+_ANCHOR_TOL = 0.5  # the smoothed route passes within this many coverage radii of each waypoint
+_BLIND_FRACTION = 0.75  # farther than this times the sensing range from every wall: blind
+_BLIND_COST = 1.0  # a blind metre costs this much more than a sighted one
+_ROUND_RADIUS = 1.5  # corners are rounded into arcs of at most this radius (metres)
+_ROUND_CUT = 0.5  # ... passing at most this far from the corner (metres)
+_MIN_SIN = math.sin(math.radians(10.0))  # a wall face is seen at 10 degrees or more
 
 
 def navigable_region(world: World, clearance: float) -> Any:
@@ -142,8 +161,35 @@ def _grid(world: World, clearance: float, h: float, rng: np.random.Generator) ->
     return _Grid(xy=np.column_stack([gx[inside], gy[inside]]), graph=graph)
 
 
-def _default_spacing(world: World) -> float:
-    return float(np.clip(math.sqrt(world.free_space.area) / 12.0, 2.5, 12.0))
+def _wall_distance(world: World, xy: FloatArray, step: float = 0.25) -> FloatArray:
+    """Distance (to within ``step / 2``) from each point to the nearest wall."""
+    from scipy.spatial import cKDTree
+
+    seg = world.truth.segments()
+    if len(seg) == 0 or len(xy) == 0:
+        return np.full(len(xy), math.inf)
+    d = seg[:, 1] - seg[:, 0]
+    count = np.maximum(1, np.ceil(np.hypot(d[:, 0], d[:, 1]) / step).astype(np.int64)) + 1
+    owner = np.repeat(np.arange(len(seg)), count)
+    k = np.arange(int(count.sum())) - np.repeat(np.cumsum(count) - count, count)
+    t = k / (count[owner] - 1)
+    pts = seg[owner, 0] + t[:, None] * d[owner]
+    dist, _ = cKDTree(pts).query(xy)
+    return np.asarray(dist, dtype=np.float64)
+
+
+def _penalise_blind(grid: _Grid, world: World, sensor_range: float) -> _Grid:
+    """The grid with the cost of travel where no wall is in sensing range raised (module
+    docstring, step 2): a step's cost is its length times ``1 + _BLIND_COST`` per blind end / 2,
+    blind meaning farther than ``_BLIND_FRACTION * sensor_range`` from every wall."""
+    blind = (_wall_distance(world, grid.xy) > _BLIND_FRACTION * sensor_range).astype(np.float64)
+    g = grid.graph.tocoo()
+    w = g.data * (1.0 + 0.5 * _BLIND_COST * (blind[g.row] + blind[g.col]))
+    return _Grid(xy=grid.xy, graph=csr_matrix((w, (g.row, g.col)), shape=g.shape))
+
+
+def _default_spacing(world: World, sensor_range: float) -> float:
+    return float(np.clip(math.sqrt(world.free_space.area) / 12.0, 2.5, 0.5 * sensor_range))
 
 
 def _default_resolution(world: World, clearance: float) -> float:
@@ -155,43 +201,113 @@ def _default_resolution(world: World, clearance: float) -> float:
     return h
 
 
-def _waypoints(grid: _Grid, spacing: float, rng_offset: FloatArray) -> NDArray[np.int64]:
-    """Node indices of the coverage waypoints (module docstring, step 3), sorted."""
+def _wall_targets(world: World, step: float) -> tuple[FloatArray, FloatArray]:
+    """Points every ``step`` metres along every wall face (the truth's directed edges), moved
+    :data:`_TARGET_OFFSET` into the free space on the face's left, and the faces' left normals."""
+    seg = world.truth.segments()
+    if len(seg) == 0:
+        return np.zeros((0, 2)), np.zeros((0, 2))
+    d = seg[:, 1] - seg[:, 0]
+    length = np.hypot(d[:, 0], d[:, 1])
+    ok = length > 1e-9
+    seg, d, length = seg[ok], d[ok], length[ok]
+    u = d / length[:, None]
+    normal = np.stack([-u[:, 1], u[:, 0]], axis=1)
+    count = np.maximum(1, np.ceil(length / step).astype(np.int64))
+    owner = np.repeat(np.arange(len(seg)), count)
+    k = np.arange(int(count.sum())) - np.repeat(np.cumsum(count) - count, count)
+    t = (k + 0.5) / count[owner] * length[owner]  # centres of equal pieces: corners are not targets
+    pts = seg[owner, 0] + t[:, None] * u[owner] + _TARGET_OFFSET * normal[owner]
+    free = world.is_free(pts)
+    return pts[free], normal[owner][free]
+
+
+def _candidates(grid: _Grid, cell: float) -> NDArray[np.int64]:
+    """One grid node per square cell of side ``cell`` (the node nearest to the cell's centre)."""
     xy = grid.xy
-    org = xy.min(axis=0) - rng_offset
-    cell = np.floor((xy - org) / spacing).astype(np.int64)
-    cid = cell[:, 0] * (int(cell[:, 1].max()) + 2) + cell[:, 1]
-    # the node nearest to the centroid of its cell's nodes (a cell cut by a wall gets its
-    # waypoint in the middle of its free part)
-    uniq, inv = np.unique(cid, return_inverse=True)
-    cnt = np.bincount(inv).astype(np.float64)
-    centre = np.column_stack([np.bincount(inv, xy[:, 0]) / cnt, np.bincount(inv, xy[:, 1]) / cnt])[inv]
+    org = xy.min(axis=0)
+    c = np.floor((xy - org) / cell).astype(np.int64)
+    cid = c[:, 0] * (int(c[:, 1].max()) + 2) + c[:, 1]
+    centre = org + (c + 0.5) * cell
     d = np.hypot(*(xy - centre).T)
     order = np.lexsort((np.arange(len(xy)), d, cid))
     _, first = np.unique(cid[order], return_index=True)
-    way = [int(i) for i in order[first]]
-    # thin out: a waypoint nearer than 0.6 spacing to one of a fuller cell goes (a corridor that
-    # straddles two cells would otherwise get two waypoints side by side)
-    fullness = np.bincount(inv)[np.searchsorted(uniq, cid[way])]
-    kept: list[int] = []
-    kept_xy = np.zeros((len(way), 2))
-    for k in np.argsort(-fullness, kind="stable"):
-        p = xy[way[k]]
-        if kept and np.min(np.hypot(*(kept_xy[: len(kept)] - p).T)) < 0.6 * spacing:
+    return np.sort(order[first]).astype(np.int64)
+
+
+def _sight_pairs(
+    world: World, targets: FloatArray, normals: FloatArray, cand_xy: FloatArray, radius: float, min_sin: float
+) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """``(target, candidate)`` pairs within ``radius`` where the candidate sees the target: the
+    straight segment between them crosses no wall and meets the wall face at an angle whose sine
+    is at least ``min_sin`` (a face seen at a grazing angle is barely seen)."""
+    from scipy.spatial import cKDTree
+
+    empty = (np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64))
+    if len(targets) == 0 or len(cand_xy) == 0:
+        return empty
+    pairs = cKDTree(targets).query_ball_tree(cKDTree(cand_xy), r=radius)
+    cnt = np.fromiter((len(p) for p in pairs), dtype=np.int64, count=len(pairs))
+    if cnt.sum() == 0:
+        return empty
+    ti = np.repeat(np.arange(len(targets), dtype=np.int64), cnt)
+    ci = np.fromiter(itertools.chain.from_iterable(pairs), dtype=np.int64, count=int(cnt.sum()))
+    v = cand_xy[ci] - targets[ti]
+    dist = np.maximum(np.hypot(v[:, 0], v[:, 1]), 1e-12)
+    facing = np.einsum("ij,ij->i", v, normals[ti]) >= min_sin * dist
+    ti, ci = ti[facing], ci[facing]
+    if len(ti) == 0:
+        return empty
+    walls = world.walls()
+    shapely.prepare(walls)
+    segs = shapely.linestrings(np.stack([targets[ti], cand_xy[ci]], axis=1))
+    clear = ~np.asarray(shapely.intersects(walls, segs), dtype=bool)
+    return ti[clear], ci[clear]
+
+
+def _greedy_cover(ti: NDArray[np.int64], ci: NDArray[np.int64], n_targets: int, n_cand: int) -> list[int]:
+    """Greedy set cover: candidates (indexes) that together see every target some candidate sees,
+    each chosen to see the most targets not yet seen (ties: the lowest index)."""
+    if len(ti) == 0:
+        return []
+    by_cand = csr_matrix((np.ones(len(ti), dtype=np.int8), (ci, ti)), shape=(n_cand, n_targets))
+    by_target = by_cand.T.tocsr()
+    gain = np.asarray(by_cand.sum(axis=1)).ravel().astype(np.int64)
+    covered = np.zeros(n_targets, dtype=bool)
+    chosen: list[int] = []
+    while True:
+        c = int(np.argmax(gain))
+        if gain[c] <= 0:
+            break
+        chosen.append(c)
+        new = by_cand.indices[by_cand.indptr[c] : by_cand.indptr[c + 1]]
+        new = new[~covered[new]]
+        covered[new] = True
+        # every candidate that also saw a newly covered target gains one less
+        hit = np.concatenate([by_target.indices[by_target.indptr[t] : by_target.indptr[t + 1]] for t in new.tolist()])
+        np.subtract.at(gain, hit, 1)
+    return chosen
+
+
+def _wall_waypoints(world: World, grid: _Grid, radius: float, sensor_range: float, h: float) -> NDArray[np.int64]:
+    """Node indices of the wall-coverage waypoints (module docstring, step 3), sorted."""
+    step = min(1.0, radius / 3.0)
+    targets, normals = _wall_targets(world, step)
+    cand = _candidates(grid, max(radius / 4.0, h))
+    cxy = grid.xy[cand]
+    chosen: list[int] = []
+    todo = np.ones(len(targets), dtype=bool)
+    for r in (radius, sensor_range):
+        if not todo.any() or r <= 0:
             continue
-        kept_xy[len(kept)] = p
-        kept.append(way[k])
-    way = kept
-    # 8-connected grid paths overestimate straight distances by up to 8.3 % (at 22.5 degrees)
-    radius = 1.09 * spacing / math.sqrt(2.0)
-    dist = dijkstra(grid.graph, indices=way, limit=radius, min_only=True)
-    uncovered = ~np.isfinite(dist)
-    while uncovered.any():
-        u = int(np.flatnonzero(uncovered)[0])
-        way.append(u)
-        du = dijkstra(grid.graph, indices=u, limit=radius)
-        uncovered &= ~np.isfinite(du)
-    return np.array(sorted(set(way)), dtype=np.int64)
+        idx = np.flatnonzero(todo)
+        ti, ci = _sight_pairs(world, targets[idx], normals[idx], cxy, r, _MIN_SIN)
+        pick = _greedy_cover(ti, ci, len(idx), len(cxy))
+        chosen += pick
+        seen = np.zeros(len(idx), dtype=bool)
+        seen[ti[np.isin(ci, pick)]] = True
+        todo[idx[seen]] = False
+    return np.array(sorted({int(cand[c]) for c in chosen}), dtype=np.int64)
 
 
 def _tour(grid: _Grid, start: int, way: NDArray[np.int64], spacing: float) -> list[NDArray[np.int64]]:
@@ -258,16 +374,36 @@ def _straight_runs(p: FloatArray) -> FloatArray:
     return p[keep]
 
 
-def _pull(p: FloatArray, region: Any, window: int = 96) -> FloatArray:
-    """String-pull a polyline inside ``region`` keeping its end points."""
+def _pull(
+    p: FloatArray,
+    region: Any,
+    window: int = 96,
+    anchors: NDArray[np.bool_] | None = None,
+    tol: float = 0.0,
+) -> FloatArray:
+    """String-pull a polyline inside ``region`` keeping its end points: from each kept vertex,
+    jump to the farthest vertex within ``window`` that a straight segment inside ``region``
+    reaches and that passes within ``tol`` of every ``anchors`` vertex it skips."""
     if len(p) <= 2:
         return p
     out = [p[0]]
     i = 0
+    anc = np.flatnonzero(anchors) if anchors is not None else np.zeros(0, dtype=np.int64)
     while i < len(p) - 1:
         js = np.arange(i + 1, min(len(p), i + 1 + window))
         segs = np.stack([np.broadcast_to(p[i], (len(js), 2)), p[js]], axis=1)
         ok = np.asarray(shapely.covers(region, shapely.linestrings(segs)), dtype=bool)
+        lo = np.searchsorted(anc, i, side="right")
+        hi = np.searchsorted(anc, js[-1], side="left")
+        for a in anc[lo:hi].tolist():  # segments that skip waypoint a must pass near it
+            later = js > a
+            if not later.any():
+                break
+            d = p[js[later]] - p[i]
+            w = p[a] - p[i]
+            t = np.clip((d @ w) / np.maximum(np.einsum("ij,ij->i", d, d), 1e-12), 0.0, 1.0)
+            near = np.hypot(*(p[i] + t[:, None] * d - p[a]).T) <= tol
+            ok[later] &= near
         ok[0] = True  # a grid step keeps the clearance by construction
         i = int(js[np.flatnonzero(ok)[-1]])
         out.append(p[i])
@@ -281,11 +417,14 @@ def _plan(
     clearance: float,
     spacing: float | None,
     resolution: float | None,
+    sensor_range: float,
 ) -> list[FloatArray]:
     """Simplified legs ``[(k_i, 2)]`` of the coverage route (consecutive legs share ends)."""
     if not (clearance > 0 and math.isfinite(clearance)):
         raise ValueError(f"clearance must be positive, got {clearance}")
-    sp = _default_spacing(world) if spacing is None else float(spacing)
+    if not (sensor_range > 0 and math.isfinite(sensor_range)):
+        raise ValueError(f"sensor_range must be positive, got {sensor_range}")
+    sp = _default_spacing(world, sensor_range) if spacing is None else float(spacing)
     if not (sp > 0 and math.isfinite(sp)):
         raise ValueError(f"spacing must be positive, got {spacing}")
     h = _default_resolution(world, clearance) if resolution is None else float(resolution)
@@ -301,12 +440,65 @@ def _plan(
         if not bool(world.is_free(np.array([sx, sy]))):
             raise ValueError(f"start ({sx:g}, {sy:g}) is not in the free space of {world.name!r}")
         s = _start_node(world, grid, sx, sy)
-    way = _waypoints(grid, sp, rng.uniform(0.0, sp, size=2))
-    node_legs = _tour(grid, s, way, sp)
+    way = _wall_waypoints(world, grid, sp, max(sp, sensor_range), h)
+    node_legs = _tour(_penalise_blind(grid, world, sensor_range), s, way, sp)
     if not node_legs:
         return [grid.xy[[s]]]
-    check = navigable_region(world, clearance)
-    return [_pull(_straight_runs(grid.xy[leg]), check) for leg in node_legs]
+    nav = navigable_region(world, clearance)
+    # smoothing must not cut through the blind areas that the grid path went around
+    check = shapely.intersection(nav, world.walls().buffer(_BLIND_FRACTION * sensor_range, quad_segs=4))
+    shapely.prepare(check)
+    pts = [grid.xy[node_legs[0][:1]]] + [_straight_runs(grid.xy[leg])[1:] for leg in node_legs]
+    anchor = [np.ones(1, dtype=bool)] + [np.arange(len(q)) == len(q) - 1 for q in pts[1:]]
+    path = np.concatenate(pts)
+    path = _pull(path, check, anchors=np.concatenate(anchor), tol=_ANCHOR_TOL * sp)
+    return [_round_corners(path, nav, _ROUND_RADIUS)]
+
+
+def _round_corners(p: FloatArray, region: Any, radius: float) -> FloatArray:
+    """Replace each corner of a polyline by a circular arc tangent to its two segments (module
+    docstring, step 6): radius ``radius`` or less, so that the arc's tangent points stay within
+    the middle of each segment, the arc passes within :data:`_ROUND_CUT` of the corner and stays
+    inside ``region`` (else the corner stays sharp)."""
+    if len(p) <= 2 or radius <= 0:
+        return p
+    seg = np.diff(p, axis=0)
+    length = np.hypot(seg[:, 0], seg[:, 1])
+    out = [p[0]]
+    for k in range(1, len(p) - 1):
+        u1, u2 = seg[k - 1] / length[k - 1], seg[k] / length[k]
+        cross = float(u1[0] * u2[1] - u1[1] * u2[0])
+        turn = math.atan2(cross, float(u1 @ u2))
+        if abs(turn) < math.radians(5.0) or abs(turn) > math.radians(175.0):
+            out.append(p[k])
+            continue
+        half = math.tan(abs(turn) / 2.0)
+        # the arc passes the corner at r (1 / cos(turn / 2) - 1): at most _ROUND_CUT from it
+        cut = 1.0 / math.cos(abs(turn) / 2.0) - 1.0
+        r = min(radius, 0.5 * min(length[k - 1], length[k]) / half, _ROUND_CUT / cut)
+        arc = None
+        while r >= 0.25:
+            d = r * half
+            t1 = p[k] - d * u1
+            normal = np.array([-u1[1], u1[0]]) * math.copysign(1.0, turn)
+            centre = t1 + r * normal
+            a0 = math.atan2(t1[1] - centre[1], t1[0] - centre[0])
+            n = max(2, math.ceil(abs(turn) * r / 0.2))  # a vertex every 0.2 m at most
+            ang = a0 + np.linspace(0.0, turn, n + 1)
+            cand = centre + r * np.stack([np.cos(ang), np.sin(ang)], axis=1)
+            if bool(shapely.covers(region, shapely.LineString(np.vstack([out[-1], cand])))):
+                arc = cand
+                break
+            r *= 0.5
+        if arc is None:
+            out.append(p[k])
+        else:
+            out.extend(arc)
+    out.append(p[-1])
+    q = np.asarray(out, dtype=np.float64)
+    keep = np.ones(len(q), dtype=bool)
+    keep[1:] = np.hypot(*np.diff(q, axis=0).T) > 1e-9
+    return q[keep]
 
 
 def _start_node(world: World, grid: _Grid, sx: float, sy: float) -> int:
@@ -336,6 +528,7 @@ def plan_route(
     spacing: float | None = None,
     resolution: float | None = None,
     use_world_route: bool = True,
+    sensor_range: float = 8.0,
 ) -> FloatArray:
     """A collision-free coverage route (module docstring) as a ``(k, 2)`` polyline.
 
@@ -350,12 +543,16 @@ def plan_route(
     clearance : float
         Least distance from the route to any wall, metres (> 0).
     spacing : float, optional
-        Coverage radius, metres (default from the free area, see the module docstring).
+        Coverage radius, metres: every wall point is seen from a waypoint at most this far
+        (default from the free area and the sensing range, see the module docstring).
     resolution : float, optional
         Grid cell size, metres (default: at most 300,000 cells over the bounds, >= 0.1 m,
         <= 1.4 * clearance).
     use_world_route : bool
         Return the world's own route when it has one.
+    sensor_range : float
+        The robot's sensing range, metres: bounds the default coverage radius, is the radius of
+        the second covering pass and defines blind travel (module docstring).
 
     Returns
     -------
@@ -369,7 +566,7 @@ def plan_route(
     """
     if use_world_route and world.route is not None:
         return np.asarray(world.route.coords, dtype=np.float64)[:, :2].copy()
-    return _join(_plan(world, rng, start, clearance, spacing, resolution))
+    return _join(_plan(world, rng, start, clearance, spacing, resolution, sensor_range))
 
 
 def split_route(route: FloatArray, n: int, overlap: float = 0.0) -> list[FloatArray]:
