@@ -118,8 +118,10 @@ def map_message(opts: RobotOptions, wf: Wireframe, pose: Pose, seq: int, stamp_n
     )
 
 
-class _KeyPut:
-    """``session.put`` on one key with fixed options (the part of a publisher the robot uses)."""
+class KeyPut:
+    """``session.put`` on one key with fixed options: the part of a publisher the robot and the
+    benchmarks' replay robots use. Plain puts, not declared publishers: under the fleet ACL a
+    declared publisher delivered only its first sample."""
 
     def __init__(self, session: Any, key: str, **options: Any) -> None:
         self.session = session
@@ -187,9 +189,9 @@ class RobotAgent:
         # writer side and so needs to see the subscribers' declarations, which the fleet ACL
         # (agents.secure.acl_config) does not forward to robots -- on a secure router it
         # delivered only its first sample.
-        self._pubs["map"] = _KeyPut(s, self.keys.robot_map(self.opts.robot), congestion_control=z.CongestionControl.BLOCK)
-        self._pubs["pose"] = _KeyPut(s, self.keys.robot_pose(self.opts.robot), express=True)
-        self._pubs["viz"] = _KeyPut(s, self.keys.robot_viz(self.opts.robot))
+        self._pubs["map"] = KeyPut(s, self.keys.robot_map(self.opts.robot), congestion_control=z.CongestionControl.BLOCK)
+        self._pubs["pose"] = KeyPut(s, self.keys.robot_pose(self.opts.robot), express=True)
+        self._pubs["viz"] = KeyPut(s, self.keys.robot_viz(self.opts.robot))
         self._last_map_put = time.monotonic()  # the first map goes out with the first step
 
     def close(self) -> None:

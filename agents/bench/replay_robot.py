@@ -62,6 +62,7 @@ from agents.bus import (
     watch_parent,
 )
 from agents.errors import UserError
+from agents.robot import KeyPut
 
 HELP = "replay recorded robot maps on the bus (benchmark robot)"
 
@@ -92,18 +93,6 @@ def corrupt(data: bytes, rng: np.random.Generator) -> bytes:
         b[pos] ^= int(rng.integers(1, 256))
         return bytes(b)
     return data[: int(rng.integers(len(data)))]
-
-
-class _KeyPut:
-    """``session.put`` on one key with fixed options (what the replay loop needs of a publisher)."""
-
-    def __init__(self, session: Any, key: str, **options: Any) -> None:
-        self.session = session
-        self.key = key
-        self.options = options
-
-    def put(self, data: bytes) -> None:
-        self.session.put(self.key, data, **self.options)
 
 
 class ReplayRobot:
@@ -169,10 +158,10 @@ class ReplayRobot:
         # Plain session puts, like the robot agent: a declared publisher filters on the writer
         # side and needs the subscribers' declarations, which the secure fleet's ACL does not
         # forward to robots (it delivered only the first sample there).
-        self._pubs["map"] = _KeyPut(
+        self._pubs["map"] = KeyPut(
             self.session, self.keys.robot_map(self.robot), congestion_control=z.CongestionControl.BLOCK
         )
-        self._pubs["pose"] = _KeyPut(self.session, self.keys.robot_pose(self.robot), express=True)
+        self._pubs["pose"] = KeyPut(self.session, self.keys.robot_pose(self.robot), express=True)
         self._write(f"B {self.boot} {os.getpid()}\n")
 
     def close(self) -> None:
