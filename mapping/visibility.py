@@ -335,6 +335,21 @@ def _sweep(wf: Wireframe, ed: _Edges, fov: float, full: bool, min_piece: float) 
         t = min(max(t, lo), hi)
         return ed.p0[i] + t * ed.d[i], t
 
+    def end_piece(i: int, b: float, cut: bool) -> None:
+        """Close the piece of nearby edge ``i`` just opened: at the fov's far boundary when
+        ``cut``, else at the edge's own end (bearing ``b``)."""
+        if cut:
+            q, t = clip(i, u_hi)
+            s_phib.append(fov)
+            s_pb.append(q)
+            s_tb.append(t)
+            s_sb.append(_WINDOW)
+        else:
+            s_phib.append(b)
+            s_pb.append(ed.pb[i])
+            s_tb.append(ed.tb[i])
+            s_sb.append(ed.sb[i])
+
     for i, ok in enumerate(ed.good):
         if not ok:
             continue
@@ -350,17 +365,7 @@ def _sweep(wf: Wireframe, ed: _Edges, fov: float, full: bool, min_piece: float) 
             s_pa.append(ed.pa[i])
             s_ta.append(ed.ta[i])
             s_sa.append(ed.sa[i])
-            if wrap or b > fov:
-                q, t = clip(i, u_hi)
-                s_phib.append(fov)
-                s_pb.append(q)
-                s_tb.append(t)
-                s_sb.append(_WINDOW)
-            else:
-                s_phib.append(b)
-                s_pb.append(ed.pb[i])
-                s_tb.append(ed.tb[i])
-                s_sb.append(ed.sb[i])
+            end_piece(i, b, cut=wrap or b > fov)
         if wrap and b > 0.0:
             q, t = clip(i, u_lo)
             s_e.append(i)
@@ -368,17 +373,7 @@ def _sweep(wf: Wireframe, ed: _Edges, fov: float, full: bool, min_piece: float) 
             s_pa.append(q)
             s_ta.append(t)
             s_sa.append(_WINDOW)
-            if b > fov:
-                q, t = clip(i, u_hi)
-                s_phib.append(fov)
-                s_pb.append(q)
-                s_tb.append(t)
-                s_sb.append(_WINDOW)
-            else:
-                s_phib.append(b)
-                s_pb.append(ed.pb[i])
-                s_tb.append(ed.tb[i])
-                s_sb.append(ed.sb[i])
+            end_piece(i, b, cut=b > fov)
     ns = len(s_e)
     if ns == 0:
         return _empty_view(m)

@@ -40,6 +40,7 @@ import numpy as np
 
 from agents.errors import UserError
 from agents.io import write_atomic
+from agents.proc import stop_processes
 from mapping.se2 import Pose
 from mapping.wireframe import Wireframe
 
@@ -346,20 +347,9 @@ class Procs:
         """SIGINT to ``names`` together, wait up to ``timeout`` s, then SIGKILL; all reaped.
         Returns the exit codes (None: had to be killed)."""
         names = [n for n in names if n in self.procs]
-        self.signal(names, signal.SIGINT)
-        deadline = time.monotonic() + timeout
-        out: dict[str, int | None] = {}
+        out = stop_processes(self.procs, names, timeout)
         for n in names:
-            p = self.procs.pop(n)
-            try:
-                out[n] = p.wait(timeout=max(0.1, deadline - time.monotonic()))
-            except subprocess.TimeoutExpired:
-                try:
-                    os.killpg(p.pid, signal.SIGKILL)
-                except (ProcessLookupError, PermissionError):
-                    p.kill()
-                p.wait()
-                out[n] = None
+            self.procs.pop(n)
         self.exit_codes.update(out)
         return out
 

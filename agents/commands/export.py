@@ -21,31 +21,11 @@ Without ``--format`` the format follows ``--out``'s suffix (``.geojson``/``.json
 from __future__ import annotations
 
 import argparse
-import math
 
+from agents import argtypes
 from agents.errors import UserError
 
 HELP = "export a map as GeoJSON, SVG, PNG or a ROS map"
-
-
-def _positive_float(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
-    if not (math.isfinite(v) and v > 0.0):
-        raise argparse.ArgumentTypeError(f"must be a positive number, got {text!r}")
-    return v
-
-
-def _probability(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
-    if not 0.0 <= v <= 1.0:
-        raise argparse.ArgumentTypeError(f"must be within [0, 1], got {text!r}")
-    return v
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -65,14 +45,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--resolution",
-        type=_positive_float,
+        type=argtypes.positive_float,
         default=DEFAULT_RESOLUTION,
         metavar="M",
         help=f"rosmap cell size in metres (default {DEFAULT_RESOLUTION})",
     )
     parser.add_argument(
         "--min-likelihood",
-        type=_probability,
+        type=argtypes.probability,
         default=0.0,
         metavar="P",
         help="drop walls whose likelihood is below P first (default 0: keep all)",

@@ -25,6 +25,7 @@ import sys
 from pathlib import Path
 from types import FrameType
 
+from agents import argtypes
 from agents.errors import UserError
 
 HELP = "open the Rerun viewer on a recording"
@@ -32,16 +33,6 @@ HELP = "open the Rerun viewer on a recording"
 #: Every .rrd/.rbl file starts with ``RRF`` and a format digit (``RRF2`` in rerun 0.41).
 RRD_MAGIC = b"RRF"
 DEFAULT_WEB_PORT = 9090
-
-
-def _port(text: str) -> int:
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a port number: {text!r}") from None
-    if not 0 <= v <= 65535:
-        raise argparse.ArgumentTypeError(f"port must be within 0..65535, got {text!r}")
-    return v
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -56,7 +47,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--port",
-        type=_port,
+        type=argtypes.port,
         default=DEFAULT_WEB_PORT,
         metavar="P",
         help=f"--web: web viewer HTTP port (default {DEFAULT_WEB_PORT}; 0 picks a free one)",

@@ -37,7 +37,6 @@ import argparse
 import json
 import math
 import os
-import signal
 import subprocess
 import sys
 import time
@@ -59,6 +58,7 @@ from agents.bus import (
 )
 from agents.errors import UserError
 from agents.io import write_atomic, write_json
+from agents.proc import stop_processes
 
 HELP = "the main job: router, N robots and the fusion service"
 
@@ -118,27 +118,7 @@ def _cpu_seconds(pid: int) -> float | None:
 
 def _stop(procs: dict[str, subprocess.Popen[bytes]], names: list[str], timeout: float) -> dict[str, int | None]:
     """SIGINT to ``names`` together, wait up to ``timeout``, then SIGKILL; all reaped."""
-    for n in names:
-        p = procs[n]
-        if p.poll() is None:
-            try:
-                p.send_signal(signal.SIGINT)
-            except ProcessLookupError:
-                pass
-    deadline = time.monotonic() + timeout
-    codes: dict[str, int | None] = {}
-    for n in names:
-        p = procs[n]
-        try:
-            codes[n] = p.wait(timeout=max(0.1, deadline - time.monotonic()))
-        except subprocess.TimeoutExpired:
-            try:
-                os.killpg(p.pid, signal.SIGKILL)
-            except (ProcessLookupError, PermissionError):
-                p.kill()
-            p.wait()
-            codes[n] = None
-    return codes
+    return stop_processes(procs, names, timeout)
 
 
 class Progress:

@@ -26,7 +26,6 @@ While no router answers, the command waits for one (bounded by ``--timeout``).
 from __future__ import annotations
 
 import argparse
-import math
 import queue
 import sys
 import threading
@@ -35,6 +34,7 @@ from collections import deque
 from pathlib import Path
 from typing import Any
 
+from agents import argtypes
 from agents.bus import StopFlag, add_bus_arguments, config_from_args, fleet_keys, open_session
 from agents.errors import UserError
 
@@ -44,33 +44,13 @@ HELP = "subscribe to the fused map and show each version"
 QUERY_TIMEOUT = 5.0
 
 
-def _positive_int(text: str) -> int:
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
-    if v <= 0:
-        raise argparse.ArgumentTypeError(f"must be positive, got {text!r}")
-    return v
-
-
-def _positive_float(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
-    if not (math.isfinite(v) and v > 0.0):
-        raise argparse.ArgumentTypeError(f"must be a positive number of seconds, got {text!r}")
-    return v
-
-
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_bus_arguments(parser)
     parser.add_argument("--save", metavar="DIR", help="write each version as GeoJSON and PNG into DIR")
-    parser.add_argument("--count", type=_positive_int, metavar="N", help="exit after N versions")
+    parser.add_argument("--count", type=argtypes.positive_int, metavar="N", help="exit after N versions")
     parser.add_argument(
         "--timeout",
-        type=_positive_float,
+        type=argtypes.positive_float,
         metavar="S",
         help="exit after S seconds (status 1 if --count is not reached)",
     )
