@@ -27,7 +27,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Protocol
 
 import numpy as np
@@ -53,9 +53,18 @@ class StepLike(Protocol):
     def filter(self) -> Any: ...
 
 
+DEFAULT_RESOLUTION = 0.05  # quantisation step of the published map (GMapping's default cell)
+DEFAULT_THRESHOLD = 0.2  # the filter's merge threshold (the paper's, for a small world)
+
+
 @dataclass
 class RobotOptions:
-    """A robot agent's settings (see ``wiremap robot --help``)."""
+    """A robot agent's settings (see ``wiremap robot --help``).
+
+    ``resolution`` is the quantisation step of the map's coordinates on the wire (the
+    codec's ``resolution``); ``threshold`` is the particle filter's merge threshold. They
+    are separate: a fine quantisation keeps the filter's centimetre accuracy while walls
+    still merge at the paper's threshold."""
 
     robot: str
     world: str
@@ -64,7 +73,8 @@ class RobotOptions:
     rate: float = 5.0
     seed: int = 0
     particles: int = 5
-    resolution: float = 0.2
+    resolution: float = DEFAULT_RESOLUTION
+    threshold: float = DEFAULT_THRESHOLD
     heartbeat_s: float = 2.0
     pose_hz: float = 10.0
     viz_hz: float = 2.0
@@ -135,11 +145,18 @@ class KeyPut:
         pass
 
 
+def filter_options(opts: RobotOptions) -> RobotOptions:
+    """The options as :func:`agents.mapping_run.robot_steps` reads them: it takes the filter's
+    merge threshold from ``opts.resolution``, so that field carries ``opts.threshold`` there."""
+    return replace(opts, resolution=float(opts.threshold))
+
+
 def default_steps(opts: RobotOptions) -> Iterator[StepLike]:
-    """The simulation + filter loop of :mod:`agents.mapping_run` for this robot."""
+    """The simulation + filter loop of :mod:`agents.mapping_run` for this robot (merge
+    threshold ``opts.threshold``)."""
     from agents import mapping_run  # written by another helper
 
-    return mapping_run.robot_steps(opts)
+    return mapping_run.robot_steps(filter_options(opts))
 
 
 class RobotAgent:
@@ -370,4 +387,7 @@ def start_pose_of(route: NDArray[np.float64]) -> Pose:
     return Pose(float(route[0, 0]), float(route[0, 1]), math.atan2(float(d[1]), float(d[0])))
 
 
-__all__ = ["RobotAgent", "RobotOptions", "RobotStatus", "map_message", "parse_route", "start_pose_of"]
+__all__ = [
+    "DEFAULT_RESOLUTION", "DEFAULT_THRESHOLD", "RobotAgent", "RobotOptions", "RobotStatus", "filter_options",
+    "map_message", "parse_route", "start_pose_of",
+]

@@ -184,6 +184,8 @@ SIZE_KEYS = {
     "robots_mode", "latency_ms_p50", "latency_ms_p99", "fusion_cpu_share", "bytes_per_s_per_robot",
     "grid_bytes_per_s_per_robot", "grid_ratio", "fused_recall", "fused_mean_dist_m", "maps_published",
     "maps_merged", "grid_ratio_msg", "grid_ratio_body", "mean_map_body_bytes", "transport_ms_p50", "transport_ms_p99",
+    "grid_ratio_at_merge_threshold", "replay_processes", "robot_processes", "robots_cpu_share", "map_resolution_m",
+    "merge_threshold_m",
 }
 
 
@@ -199,6 +201,10 @@ def test_bench_fleet_short(tmp_path: Path) -> None:
     assert set(out["sizes"]) == {"1", "2"}
     assert out["sizes"]["1"]["robots_mode"] == "filter"
     assert out["sizes"]["2"]["robots_mode"] == "replay"
+    # replay robots share one process (one session each); filter robots have their own
+    assert (out["sizes"]["2"]["replay_processes"], out["sizes"]["2"]["robot_processes"]) == (1, 1)
+    assert (out["sizes"]["1"]["replay_processes"], out["sizes"]["1"]["robot_processes"]) == (0, 1)
+    assert (out["map_resolution_m"], out["merge_threshold_m"]) == (0.05, 0.2)
     assert list((tmp_path / "cache").glob("tiny-n2-*/r2.wrp"))  # the recordings were cached
     for n, r in out["sizes"].items():
         assert SIZE_KEYS <= set(r), n
@@ -207,6 +213,9 @@ def test_bench_fleet_short(tmp_path: Path) -> None:
         assert r["bytes_per_s_per_robot"] > 0
         assert r["grid_bytes_per_s_per_robot"] > r["bytes_per_s_per_robot"]
         assert r["grid_ratio"] > 1.0
+        # the grid at the robots' 0.05 m quantisation has 16 times the cells of one at the 0.2 m
+        # merge threshold (up to the rounding of each bounding box)
+        assert 8 * r["grid_ratio_at_merge_threshold"] < r["grid_ratio"] < 20 * r["grid_ratio_at_merge_threshold"], r
         # the same maps compared message to message, and cells to the wireframe part alone
         assert r["grid_ratio"] < r["grid_ratio_msg"] < r["grid_ratio_body"], r
         assert 0 < r["mean_map_body_bytes"] < r["mean_map_bytes"]
@@ -241,3 +250,82 @@ def test_bench_soak_short(tmp_path: Path) -> None:
     assert out["restarts_survived"] == out["restarts"]
     assert out["fusion_alive"] is True
     assert out["fusion_rss_mb_end"] > 0
+
+
+# ---------------------------------------------------------------------- several replay robots in one process
+@pytest.mark.fleet
+def test_one_replay_process_publishes_for_each_robot_with_its_own_token(tmp_path: Path) -> None:
+    """``replay_robot --id a --recording A --id b --recording B``: each robot puts its maps on
+    its own key (sender = key), under its own liveliness token, from its own session; the
+    tokens go when the process goes; ``--log`` with ``{id}`` gives one log per robot."""
+    import signal
+    import threading
+
+    import zenoh
+
+    from agents.bus import FleetKeys
+    from tests.fleet_util import client, in_process_router, wait_until
+
+    ids = ["ra", "rb", "rc"]
+    for k, rid in enumerate(ids):
+        frames = tuple(Frame(0.5 * i, Pose.identity(), None, square(1.0 + 0.5 * i + k)) for i in range(4))
+        save_recording(tmp_path / f"{rid}.wrp", Recording(rid, "tiny", Pose(float(k), 0.0, 0.0), 0.05, frames, 4))
+    keys = FleetKeys("t")
+    maps: dict[str, list] = {r: [] for r in ids}
+    alive: set[str] = set()
+    lock = threading.Lock()
+
+    def on_map(sample) -> None:
+        rid = keys.robot_of(str(sample.key_expr))
+        m = decode(sample.payload.to_bytes())
+        with lock:
+            maps.setdefault(rid or "?", []).append(m)
+
+    def on_alive(sample) -> None:
+        rid = keys.robot_of(str(sample.key_expr))
+        with lock:
+            (alive.add if sample.kind == zenoh.SampleKind.PUT else alive.discard)(rid)
+
+    with in_process_router() as ep, client(ep) as s:
+        subs = [s.declare_subscriber(keys.all_maps, on_map),
+                s.liveliness().declare_subscriber(keys.all_alive, on_alive, history=True)]
+        argv = ["-m", "agents.bench.replay_robot"]
+        for rid in ids:
+            argv += ["--id", rid, "--recording", str(tmp_path / f"{rid}.wrp")]
+        argv += ["--rate", "20", "--log", str(tmp_path / "sent" / "{id}.log"), "--connect", ep, "--fleet", "t"]
+        fh = open(tmp_path / "replay.log", "wb")
+        proc = subprocess.Popen([sys.executable, *argv], stdout=fh, stderr=subprocess.STDOUT, cwd=str(REPO))
+        try:
+            wait_until(lambda: all(len(maps[r]) >= 5 for r in ids), 30, "maps of every robot")
+            with lock:
+                assert alive == set(ids)
+                for rid in ids:
+                    assert {m.sender for m in maps[rid]} == {rid}  # each on its own key
+                    assert {m.frame for m in maps[rid]} == {f"odom/{rid}"}
+                    assert all(m.resolution == 0.05 for m in maps[rid])
+                    seqs = [m.seq for m in maps[rid]]
+                    assert seqs == sorted(seqs) and len(set(seqs)) == len(seqs)
+            proc.send_signal(signal.SIGINT)
+            assert proc.wait(timeout=15) == 0
+            wait_until(lambda: not alive, 10, "the tokens to go")
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait()
+            fh.close()
+            for sub in subs:
+                sub.undeclare()
+    for rid in ids:
+        lines = (tmp_path / "sent" / f"{rid}.log").read_text().splitlines()
+        assert lines[0].startswith("B ") and sum(ln.startswith("M ") for ln in lines) >= 5
+
+
+def test_replay_robot_refuses_unpaired_or_untemplated_arguments(tmp_path: Path) -> None:
+    from agents.bench.replay_robot import main
+
+    rec = tmp_path / "r.wrp"
+    save_recording(rec, Recording("r1", "tiny", Pose.identity(), 0.05, (Frame(0.0, Pose.identity(), None, square()),), 1))
+    assert main(["--id", "a", "--id", "b", "--recording", str(rec)]) == 2
+    assert main(["--id", "a", "--id", "a", "--recording", str(rec), "--recording", str(rec)]) == 2
+    assert main(["--id", "a", "--id", "b", "--recording", str(rec), "--recording", str(rec),
+                 "--log", str(tmp_path / "one.log")]) == 2

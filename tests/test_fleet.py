@@ -379,3 +379,26 @@ def test_robot_and_fusion_exit_on_signal_even_without_router(tmp_path: Path, sig
             t0 = time.monotonic()
             assert fleet.stop(name, sig, timeout=10) == 0
             assert time.monotonic() - t0 < 5
+
+
+def test_robot_options_split_quantisation_from_the_filter_threshold():
+    """``wiremap robot``: ``--resolution`` (default 0.05) quantises the published map,
+    ``--threshold`` (default 0.2) is the filter's merge threshold, which is what
+    :func:`agents.mapping_run.robot_steps` gets as ``resolution``."""
+    import argparse
+
+    from agents.commands.robot import add_arguments, options_from_args
+    from agents.robot import filter_options, map_message
+
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
+    opts = options_from_args(parser.parse_args(["--id", "r1", "--world", "tiny", "--start", "1,1,0"]))
+    assert (opts.resolution, opts.threshold) == (0.05, 0.2)
+    assert filter_options(opts).resolution == 0.2 and opts.resolution == 0.05
+    wf = Wireframe.build([(0.0, 0.0), (1.03, 0.0)], [(0, 1)], [Label.NOMINAL] * 2)
+    msg = decode_message(encode_message(map_message(opts, wf, Pose.identity(), 1, 0, {})))
+    assert msg.resolution == 0.05 and np.isclose(msg.wireframe.points[:, 0].max(), 1.05)
+    opts = options_from_args(parser.parse_args(
+        ["--id", "r1", "--world", "museum", "--start", "1,1,0", "--resolution", "0.1", "--threshold", "0.4"]
+    ))
+    assert (opts.resolution, opts.threshold, filter_options(opts).resolution) == (0.1, 0.4, 0.4)

@@ -477,11 +477,13 @@ def test_resent_map_with_new_seq_keeps_the_cache():
         st_.add(robot_msg("r1"))
         st_.add(robot_msg("r2"))
         st_.fuse(full=True)
-        chain_before = list(st_._chain)
+        nodes_before = dict(st_._nodes)
+        merges = st_.merges
         assert not st_.add(robot_msg("r1", seq=5))  # the same content again (a heartbeat)
         assert not st_.fuse(full=True)
-        assert len(counting.calls) == 1
-        assert [c[1] for c in st_._chain] == [c[1] for c in chain_before]  # the very same objects
+        assert len(counting.calls) == 1 and st_.merges == merges
+        assert st_._nodes.keys() == nodes_before.keys()
+        assert all(st_._nodes[p][1] is nodes_before[p][1] for p in nodes_before)  # the very same objects
 
 
 # ---------------------------------------------------------------------- latencies and the store writer
@@ -579,3 +581,101 @@ def test_realign_after_publishing_then_the_next_fuse_applies_it():
         assert st_.fuse(now=10.5, max_realign=0) and st_.converged and st_.wanted == []
         ref = _full_of({r: e.raw for r, e in st_.robots.items()})
         assert _arrays(st_.fused) == _arrays(ref.fused)
+
+
+# ---------------------------------------------------------------------- the fold tree
+def _corridor_msg(k: int, pillar: bool = False, seq: int = 1) -> MapMessage:
+    """Robot k's view of a long corridor: its walls from x = 2k to 2k + 3 (overlapping its
+    neighbours'), frontiers at the ends, and maybe a pillar; start pose at its piece's origin."""
+    x0, length = 2.0 * k, 3.0
+    lines = [[(x0, 0.0), (x0 + length, 0.0)], [(x0 + length, 2.0), (x0, 2.0)]]
+    if pillar:
+        lines.append([(x0 + 1.0, 0.8), (x0 + 1.0, 1.2), (x0 + 1.4, 1.2), (x0 + 1.4, 0.8), (x0 + 1.0, 0.8)])
+    wf = Wireframe.from_polylines(lines)
+    wf = wf.replace(labels=np.full(wf.n_vertices, int(F), dtype=wf.labels.dtype))
+    origin = Pose(x0, 1.0, 0.0)
+    return MapMessage(
+        kind=MessageKind.ROBOT_MAP, sender=f"r{k:02d}", seq=seq, stamp_ns=seq, pose=Pose.identity(),
+        frame="", origin=origin, resolution=0.05, wireframe=wf.transformed(origin.inverse()),
+        meta={"boot": 1, "t": float(seq)},
+    )
+
+
+def test_fold_tree_remerges_only_the_changed_robots_path():
+    st_ = FusionState(FusionConfig(refine=False))
+    for k in range(16):
+        st_.add(_corridor_msg(k))
+    st_.fuse()
+    assert st_.merges == 15  # a binary tree over 16 leaves
+    before = st_.merges
+    st_.add(_corridor_msg(6, pillar=True, seq=2))
+    assert st_.fuse()
+    assert st_.merges - before <= 4  # its path to the root, not the 9 robots after it
+    fresh = FusionState(FusionConfig(refine=False))
+    for e in st_.robots.values():
+        fresh.offer(e.raw, e.message.sender)
+    fresh.fuse(full=True)
+    assert _arrays(fresh.fused) == _arrays(st_.fused)  # the cache changes the cost, not the map
+    # one corridor: every robot's walls are in it, each wall lists the robots that saw it
+    assert fresh.fused.n_edges >= 2 and int(np.bitwise_or.reduce(fresh.fused.sources)) == (1 << 16) - 1
+
+
+def test_fold_tree_is_the_left_fold_up_to_three_robots():
+    from agents.fusion import default_merge
+
+    st_ = FusionState(FusionConfig(refine=False, close_frontiers=False))
+    msgs = [_corridor_msg(k) for k in range(3)]
+    for m in msgs:
+        st_.add(m)
+    st_.fuse()
+    ready = []
+    for k, m in enumerate(msgs):
+        wf = decode_message(encode_message(m)).wireframe.transformed(m.origin)
+        ready.append(wf.replace(sources=np.full(wf.n_edges, 1 << k, dtype=np.uint64)))
+    left = default_merge(default_merge(ready[0], ready[1], 0.2), ready[2], 0.2)
+    assert left.almost_equal(st_.fused, tol=1e-9)
+
+
+# ---------------------------------------------------------------------- quantisation and merge threshold
+def test_robot_maps_quantised_at_5_cm_fuse_to_the_same_walls_at_a_20_cm_threshold():
+    """The robots' quantisation step and the merge threshold are separate settings: maps at
+    0.05 m fused at the default 0.2 m threshold give the walls that maps at 0.2 m gave, with
+    corners closer to where the robots measured them, and the fused map travels at 0.05 m
+    with its threshold in ``meta``."""
+    from dataclasses import replace
+
+    from agents.fusion import merge_threshold_of
+
+    coarse, fine = FusionState(FusionConfig(refine=False)), FusionState(FusionConfig(refine=False))
+    for rid in ("r1", "r2", "r3"):
+        coarse.add(robot_msg(rid))  # RES = 0.2: the former default, quantisation = threshold
+        fine.add(replace(robot_msg(rid), resolution=0.05))
+    coarse.fuse()
+    fine.fuse()
+    assert coarse.threshold == fine.threshold == 0.2
+    assert (fine.fused.n_vertices, fine.fused.n_edges) == (coarse.fused.n_vertices, coarse.fused.n_edges)
+    assert fine.fused.almost_equal(coarse.fused, tol=0.15, likelihood_tol=1e-9)  # the same walls
+    corners = np.array([(0, 0), (12, 0), (12, 5), (0, 5)], dtype=float)
+
+    def error(wf: Wireframe) -> float:
+        return float(max(np.min(np.hypot(*(wf.points - c).T)) for c in corners))
+
+    assert error(fine.fused) <= 0.05 < error(coarse.fused)
+    msg = decode_message(encode_message(fine.fused_message(1)))
+    assert msg.resolution == 0.05 and msg.meta["threshold"] == 0.2 and merge_threshold_of(msg) == 0.2
+    old = decode_message(encode_message(coarse.fused_message(1)))
+    assert old.resolution == 0.2 and merge_threshold_of(old) == 0.2
+    # a fused map from before the split (no threshold in meta) is scored at its resolution
+    assert merge_threshold_of(replace(msg, meta={"version": 1}, resolution=0.4)) == 0.4
+
+
+def test_merge_threshold_default_configured_and_raised_by_a_coarse_map():
+    from dataclasses import replace
+
+    st_ = FusionState()
+    assert st_.threshold == 0.2 and st_.resolution == 0.05  # no robots yet
+    st_.add(replace(robot_msg("r1"), resolution=0.05))
+    assert st_.threshold == 0.2 and st_.resolution == 0.05
+    st_.add(replace(robot_msg("r2"), resolution=0.5))
+    assert st_.threshold == 0.5 and st_.resolution == 0.05  # corners may be a whole step apart
+    assert FusionState(FusionConfig(threshold=0.4)).threshold == 0.4

@@ -47,10 +47,11 @@ from mapping.wireframe import Wireframe
 REPO = Path(__file__).resolve().parent.parent.parent
 DEFAULT_CACHE = Path("out") / "bench-cache"
 RECORDING_FORMAT = "wiremap-replay/1"
-RECORD_VERSION = 1  # bump when the recorder changes what it records (invalidates the cache)
+RECORD_VERSION = 2  # bump when the recorder changes what it records (invalidates the cache)
 DEFAULT_OVERLAP = 0.15  # as ``wiremap run``
 DEFAULT_PARTICLES = 5  # as ``wiremap run``
-DEFAULT_RESOLUTION = 0.2  # the robot agent's default map resolution
+DEFAULT_THRESHOLD = 0.2  # the robot agent's default merge threshold
+DEFAULT_RESOLUTION = 0.05  # the robot agent's default map resolution (quantisation step)
 
 
 # ---------------------------------------------------------------------- recordings
@@ -68,7 +69,9 @@ class Frame:
 @dataclass(frozen=True)
 class Recording:
     """A robot's recorded run: its id, world, start pose in the fleet frame (the map origin),
-    map resolution, and the frames whose travelling map differs from the previous frame's."""
+    map resolution (the quantisation step of its maps on the wire), and the frames whose
+    travelling map differs from the previous frame's; ``threshold`` is the filter's merge
+    threshold (None in recordings that did not say)."""
 
     robot: str
     world: str
@@ -76,6 +79,7 @@ class Recording:
     resolution: float
     frames: tuple[Frame, ...]
     steps: int  # filter steps run, including those whose map did not change
+    threshold: float | None = None
 
 
 def _pose_list(p: Pose | None) -> list[float] | None:
@@ -107,6 +111,7 @@ def save_recording(path: str | os.PathLike[str], rec: Recording) -> None:
         "world": rec.world,
         "start": _pose_list(rec.start),
         "resolution": float(rec.resolution),
+        "threshold": None if rec.threshold is None else float(rec.threshold),
         "steps": int(rec.steps),
         "frames": frames,
     }
@@ -135,6 +140,7 @@ def load_recording(path: str | os.PathLike[str]) -> Recording:
             resolution=float(doc["resolution"]),
             frames=tuple(frames),
             steps=int(doc.get("steps", len(frames))),
+            threshold=None if doc.get("threshold") is None else float(doc["threshold"]),
         )
     except OSError as exc:
         raise UserError(f"{path}: {exc.strerror or exc}") from None
@@ -159,26 +165,26 @@ def record_robot(
     seed: int,
     particles: int = DEFAULT_PARTICLES,
     resolution: float = DEFAULT_RESOLUTION,
+    threshold: float = DEFAULT_THRESHOLD,
 ) -> Recording:
-    """Run the robot agent's simulation + filter loop (:func:`agents.mapping_run.robot_steps`)
-    along ``route`` and keep the best map after every step whose travelling (codec) form
-    changed, as the robot agent would publish it.
+    """Run the robot agent's simulation + filter loop (:func:`agents.robot.default_steps`,
+    merge threshold ``threshold``) along ``route`` and keep the best map after every step
+    whose travelling (codec) form at ``resolution`` changed, as the robot agent would publish it.
 
     The origin is the first true pose (what :class:`agents.robot.RobotAgent` does when the
     simulator knows it)."""
-    from agents import mapping_run
-    from agents.robot import RobotOptions, start_pose_of
+    from agents.robot import RobotOptions, default_steps, start_pose_of
     from wire_codec import MapMessage, MessageKind, decode, encode
 
     opts = RobotOptions(
         robot=robot, world=world_spec, start=start_pose_of(route), route=route, seed=seed,
-        particles=particles, resolution=resolution,
+        particles=particles, resolution=resolution, threshold=threshold,
     )
     frames: list[Frame] = []
     last: bytes | None = None
     start: Pose | None = None
     steps = 0
-    for s in mapping_run.robot_steps(opts):
+    for s in default_steps(opts):
         steps += 1
         if start is None:
             start = s.true_pose if s.true_pose is not None else opts.start
@@ -195,7 +201,7 @@ def record_robot(
         frames.append(Frame(float(s.t), s.pose, s.true_pose, decode(data).wireframe))
     if start is None or not frames:
         raise UserError(f"recording {robot} in {world_spec}: the route gave no scans")
-    return Recording(robot, world_spec, start, resolution, tuple(frames), steps)
+    return Recording(robot, world_spec, start, resolution, tuple(frames), steps, threshold)
 
 
 def _world_fingerprint(world_spec: str) -> str:
@@ -214,16 +220,21 @@ def recordings_for(
     overlap: float = DEFAULT_OVERLAP,
     resolution: float = DEFAULT_RESOLUTION,
     say: Callable[[str], None] | None = None,
+    threshold: float | None = None,
 ) -> list[Path]:
     """Paths of the recordings of robots ``r1..rn`` of a fleet of ``n`` (recorded now unless
-    cached). The cache directory's name carries a hash of everything that affects them."""
+    cached). The cache directory's name carries a hash of everything that affects them.
+    ``threshold``: the filters' merge threshold (default: the world's,
+    :func:`agents.mapping_run.default_merge_threshold`)."""
+    from agents.mapping_run import default_merge_threshold
     from agents.sim.world import load_world
 
+    world = load_world(world_spec)
+    thr = float(threshold) if threshold is not None else default_merge_threshold(world)
     key = json.dumps(
-        [RECORD_VERSION, _world_fingerprint(world_spec), n, seed, particles, overlap, resolution], sort_keys=True
+        [RECORD_VERSION, _world_fingerprint(world_spec), n, seed, particles, overlap, resolution, thr], sort_keys=True
     )
     h = hashlib.sha256(key.encode()).hexdigest()[:12]
-    world = load_world(world_spec)
     d = Path(cache) / f"{world.name}-n{n}-s{seed}-{h}"
     paths = [d / f"r{k + 1}.wrp" for k in range(n)]
     if all(p.is_file() for p in paths):
@@ -233,7 +244,7 @@ def recordings_for(
     for k, (p, r) in enumerate(zip(paths, routes)):
         if p.is_file():
             continue
-        rec = record_robot(world_spec, f"r{k + 1}", r, seed + k + 1, particles, resolution)
+        rec = record_robot(world_spec, f"r{k + 1}", r, seed + k + 1, particles, resolution, thr)
         save_recording(p, rec)
     if say is not None:
         say(f"recorded {n} robots' maps in {world.name} ({time.monotonic() - t0:.1f} s) into {d}")

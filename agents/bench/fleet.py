@@ -22,7 +22,8 @@ after every robot's first map has reached the bus:
   service: from the robot's publish to the map's arrival in its inbox (the service's
   ``fused/stats``, over the last 10,000 maps that changed, asked at the window's end);
 * ``fusion_cpu_share``: the fusion process's CPU seconds over the window's wall seconds
-  (``router_cpu_share`` likewise for the router);
+  (``router_cpu_share`` likewise for the router, ``robots_cpu_share`` for the robots'
+  processes together);
 * ``bytes_per_s_per_robot``: map payload bytes that reached the bus in the window, per second
   and robot (poses separately: ``pose_bytes_per_s_per_robot``);
 * ``grid_bytes_per_s_per_robot``: what the same publishes would weigh as occupancy grids: each
@@ -66,6 +67,7 @@ from agents.bench.common import (
     DEFAULT_CACHE,
     DEFAULT_OVERLAP,
     DEFAULT_PARTICLES,
+    DEFAULT_RESOLUTION,
     BusObserver,
     LatencyHarvest,
     Procs,
@@ -107,6 +109,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--cache", default=str(DEFAULT_CACHE), metavar="DIR", help="recordings cache (default out/bench-cache)")
     parser.add_argument("--out", metavar="DIR", help="keep logs and stores here (default: a temporary directory)")
     parser.add_argument("--record", action="store_true", help="the fusion service also writes a Rerun recording")
+    parser.add_argument(
+        "--resolution", type=float, default=DEFAULT_RESOLUTION, metavar="M",
+        help=f"quantisation step of the robots' maps (default {DEFAULT_RESOLUTION:g})",
+    )
+    parser.add_argument(
+        "--threshold", type=float, metavar="M",
+        help="merge threshold of the filters and the fusion (default 0.2, 0.4 for worlds over 100 m)",
+    )
+    parser.add_argument(
+        "--separate-replay", action="store_true",
+        help="one process per replay robot (default: all replay robots in one process, one session each)",
+    )
     parser.add_argument("--json", action="store_true", help="print the JSON summary as the last line")
 
 
@@ -120,21 +134,23 @@ def parse_sizes(text: str) -> list[int]:
     return sizes
 
 
-def _grid_totals(kept: list[tuple[str, bytes]]) -> dict[str, int]:
+def _grid_totals(kept: list[tuple[str, bytes]], threshold: float) -> dict[str, int]:
     """Over the window's valid map payloads: ``grid`` (occupancy-grid cells, one byte each, of
-    each map's bounding box at its resolution), ``grid_msg`` (the same plus a ROS 1
-    ``nav_msgs/OccupancyGrid`` message's fixed fields, :data:`ROS_GRID_OVERHEAD`), ``body``
-    (the wireframe part of each payload: its bytes minus those of the same message with an
-    empty map, i.e. without the codec's envelope) and ``maps``."""
+    each map's bounding box at its resolution), ``grid_thr`` (the same at the merge
+    ``threshold``), ``grid_msg`` (``grid`` plus a ROS 1 ``nav_msgs/OccupancyGrid`` message's
+    fixed fields, :data:`ROS_GRID_OVERHEAD`), ``body`` (the wireframe part of each payload: its
+    bytes minus those of the same message with an empty map, i.e. without the codec's
+    envelope) and ``maps``."""
     from mapping.wireframe import Wireframe
     from wire_codec import decode, encode
 
-    out = {"grid": 0, "grid_msg": 0, "body": 0, "maps": 0}
+    out = {"grid": 0, "grid_thr": 0, "grid_msg": 0, "body": 0, "maps": 0}
     empty = Wireframe.empty()
     for _rid, data in kept:
         m = decode(data)
         g = grid_bytes(m.wireframe, m.resolution)
         out["grid"] += g
+        out["grid_thr"] += grid_bytes(m.wireframe, threshold)
         out["grid_msg"] += g + ROS_GRID_OVERHEAD
         out["body"] += len(data) - len(encode(dataclasses.replace(m, wireframe=empty)))
         out["maps"] += 1
@@ -142,6 +158,8 @@ def _grid_totals(kept: list[tuple[str, bytes]]) -> dict[str, int]:
 
 
 def _fused_quality(store: Path, world: Any) -> dict[str, Any]:
+    """The stored fused map against the truth, scored on a grid of the merge threshold."""
+    from agents.fusion import merge_threshold_of
     from mapping.metrics import evaluate
     from wire_codec import decode
 
@@ -154,8 +172,7 @@ def _fused_quality(store: Path, world: Any) -> dict[str, Any]:
     wf = m.wireframe
     out.update({"fused_vertices": wf.n_vertices, "fused_edges": wf.n_edges, "fused_version": int(m.seq)})
     if wf.n_edges:
-        res = float(m.resolution) if m.resolution > 0 else 0.2
-        q = evaluate(world.truth, wf, res)
+        q = evaluate(world.truth, wf, merge_threshold_of(m))
         out.update({
             "fused_recall": rounded(q["wall_recall"], 4),
             "fused_precision": rounded(q["wall_precision"], 4),
@@ -181,6 +198,17 @@ def _sent_counts(d: Path, ids: list[str], mode: str) -> int:
     return total
 
 
+def _cpu_total(procs: Procs, names: list[str]) -> float | None:
+    """CPU seconds of the processes ``names`` together (None when one is gone)."""
+    total = 0.0
+    for name in names:
+        c = cpu_seconds(procs.pid(name))
+        if c is None:
+            return None
+        total += c
+    return total
+
+
 def run_size(n: int, args: argparse.Namespace, world: Any, workdir: Path, say: Any) -> dict[str, Any]:
     """One fleet of ``n`` robots: start, measure, stop; returns the size's JSON entry."""
     from agents.bus import free_port, tcp_endpoint
@@ -193,8 +221,11 @@ def run_size(n: int, args: argparse.Namespace, world: Any, workdir: Path, say: A
     d.mkdir(parents=True)
     mode = "filter" if n <= args.filter_upto else "replay"
     ids = [f"r{k + 1}" for k in range(n)]
+    thr = args.merge_threshold
     if mode == "replay":
-        recs = recordings_for(args.world, n, args.seed, args.cache, args.particles, DEFAULT_OVERLAP, say=say)
+        recs = recordings_for(
+            args.world, n, args.seed, args.cache, args.particles, DEFAULT_OVERLAP, args.resolution, say, thr
+        )
     else:
         routes = fleet_routes(world, n, args.seed, DEFAULT_OVERLAP)
         for rid, r in zip(ids, routes):
@@ -202,32 +233,50 @@ def run_size(n: int, args: argparse.Namespace, world: Any, workdir: Path, say: A
     ep = tcp_endpoint(free_port())
     bus = ["--connect", ep, "--fleet", FLEET, "--parent-pid", str(os.getpid())]
     store = d / "store"
-    result: dict[str, Any] = {"robots_mode": mode}
+    # the robots' processes: filter robots one each; replay robots all in one process (one
+    # Zenoh session, token and key per robot) unless --separate-replay
+    groups = [[r] for r in ids] if mode == "filter" or args.separate_replay else [ids]
+    gname = {r: (r if len(g) == 1 else "replay") for g in groups for r in g}
+    names = sorted(set(gname.values()))
+    result: dict[str, Any] = {
+        "robots_mode": mode,
+        "robot_processes": len(groups),
+        "replay_processes": len(groups) if mode == "replay" else 0,
+        "map_resolution_m": args.resolution,
+        "merge_threshold_m": thr,
+    }
     with Procs(d / "logs") as procs:
         procs.start("router", ["-m", "agents", "router", "--listen", ep])
         with BusObserver(ep, FLEET, timeout=60.0) as obs:
-            fuse = ["-m", "agents", "fuse", *bus, "--store", str(store)]
+            fuse = ["-m", "agents", "fuse", *bus, "--store", str(store), "--threshold", repr(thr)]
             if args.record:
                 fuse += ["--rrd", str(d / "recording.rrd"), "--world", args.world]
             procs.start("fuse", fuse)
             procs.wait_log("fuse", "fusion service ready", 90.0)
-            for k, rid in enumerate(ids):
+            for group in groups:
                 if mode == "replay":
-                    argv = ["-m", "agents.bench.replay_robot", "--id", rid, "--recording", str(recs[k]),
-                            "--rate", str(args.rate), "--log", str(d / "sent" / f"{rid}.log"), *bus]
+                    argv = ["-m", "agents.bench.replay_robot"]
+                    for rid in group:
+                        argv += ["--id", rid, "--recording", str(recs[ids.index(rid)])]
+                    argv += ["--rate", str(args.rate), "--log", str(d / "sent" / "{id}.log"),
+                             "--seed", str(args.seed), *bus]
                 else:
+                    (rid,) = group
+                    k = ids.index(rid)
                     s0 = start_pose_of(routes[k])
                     argv = ["-m", "agents", "robot", "--id", rid, "--world", args.world,
                             "--start", f"{s0.x:.9f},{s0.y:.9f},{s0.theta:.9f}",
                             "--route", str(d / "routes" / f"{rid}.json"), "--rate", str(args.rate),
                             "--seed", str(args.seed + k + 1), "--particles", str(args.particles),
+                            "--resolution", repr(float(args.resolution)), "--threshold", repr(thr),
                             "--viz-rate", "0", "--status-file", str(d / "status" / f"{rid}.json"), *bus]
-                procs.start(rid, argv)
+                procs.start(gname[group[0]], argv)
             wait_for(procs, lambda: set(ids) <= obs.seen(), 60.0 + 2.0 * n, "every robot's first map")
             sleep_checked(procs, args.warmup)
             harvest = LatencyHarvest(store)
             pid_f, pid_r = procs.pid("fuse"), procs.pid("router")
             c0, r0 = cpu_seconds(pid_f), cpu_seconds(pid_r)
+            b0 = _cpu_total(procs, names)
             t0, w0 = time.monotonic(), time.time_ns()
             obs.start_window(keep=True)
             while (left := t0 + args.duration - time.monotonic()) > 0:
@@ -237,17 +286,18 @@ def run_size(n: int, args: argparse.Namespace, world: Any, workdir: Path, say: A
             t1, w1 = time.monotonic(), time.time_ns()
             transport = obs.fusion_stats().get("transport_ms") or {}
             c1, r1 = cpu_seconds(pid_f), cpu_seconds(pid_r)
+            b1 = _cpu_total(procs, names)
             kept = obs.kept
             if mode == "replay":
                 t_sig = time.monotonic()
-                procs.signal(ids, signal.SIGUSR1)
+                procs.signal(names, signal.SIGUSR1)
 
                 def finals() -> bool:
                     snap = obs.snapshot()
                     return all((c := snap.get(r)) is not None and (c.last_map or 0) > t_sig for r in ids)
 
                 wait_for(procs, finals, 15.0, "the robots' final maps")
-            procs.stop(ids, 15.0)
+            procs.stop(names, 15.0)
             time.sleep(0.5)  # the robots' last maps reach the fusion service's queue
             procs.stop(["fuse"], 60.0)
             total = obs.snapshot()
@@ -260,7 +310,7 @@ def run_size(n: int, args: argparse.Namespace, world: Any, workdir: Path, say: A
     map_bytes = sum(c.map_bytes for c in win.values())
     pose_bytes = sum(c.pose_bytes for c in win.values())
     maps_in_window = sum(c.valid for c in win.values())
-    grids = _grid_totals(kept)
+    grids = _grid_totals(kept, thr)
     grid = grids["grid"]
     kept_bytes = sum(len(d) for _r, d in kept)
     counts = merge_counts(stats)
@@ -273,10 +323,14 @@ def run_size(n: int, args: argparse.Namespace, world: Any, workdir: Path, say: A
         "transport_ms_p99": rounded(transport.get("p99")),
         "fusion_cpu_share": rounded((c1 - c0) / wall if c0 is not None and c1 is not None else None, 4),
         "router_cpu_share": rounded((r1 - r0) / wall if r0 is not None and r1 is not None else None, 4),
+        "robots_cpu_share": rounded((b1 - b0) / wall if b0 is not None and b1 is not None else None, 4),
         "bytes_per_s_per_robot": rounded(map_bytes / wall / n, 1),
         "pose_bytes_per_s_per_robot": rounded(pose_bytes / wall / n, 1),
         "grid_bytes_per_s_per_robot": rounded(grid / wall / n, 1),
         "grid_ratio": rounded(grid / map_bytes if map_bytes else None, 2),
+        # the same maps as grids of the merge threshold's cells (0.2 m: the comparison before
+        # robot maps were quantised at 0.05 m)
+        "grid_ratio_at_merge_threshold": rounded(grids["grid_thr"] / map_bytes if map_bytes else None, 2),
         "grid_ratio_msg": rounded(grids["grid_msg"] / kept_bytes if kept_bytes else None, 2),
         "grid_ratio_body": rounded(grid / grids["body"] if grids["body"] else None, 2),
         "mean_map_body_bytes": rounded(grids["body"] / grids["maps"] if grids["maps"] else None, 1),
@@ -307,7 +361,13 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"--warmup must be >= 0, got {args.warmup}")
     if args.particles < 1:
         raise UserError(f"--particles must be >= 1, got {args.particles}")
+    for name, v in (("--resolution", args.resolution), ("--threshold", args.threshold)):
+        if v is not None and not (math.isfinite(v) and v > 0):
+            raise UserError(f"{name} must be a positive number of metres, got {v}")
     world = load_world(args.world)
+    from agents.mapping_run import default_merge_threshold
+
+    args.merge_threshold = float(args.threshold) if args.threshold is not None else default_merge_threshold(world)
 
     def say(text: str) -> None:
         print(f"bench fleet: {text}", flush=True)
@@ -328,11 +388,12 @@ def run(args: argparse.Namespace) -> int:
         if tmp is not None:
             shutil.rmtree(tmp, ignore_errors=True)
     head = ["robots", "mode", "p50_ms", "p99_ms", "in_p99", "fuse_cpu", "B/s/robot", "grid_B/s", "ratio", "r_msg",
-            "r_body", "recall", "mean_m", "published", "merged"]
+            "r_body", "r_thr", "recall", "mean_m", "published", "merged"]
     rows = [
         [n, r["robots_mode"], r["latency_ms_p50"], r["latency_ms_p99"], r["transport_ms_p99"], r["fusion_cpu_share"],
          r["bytes_per_s_per_robot"], r["grid_bytes_per_s_per_robot"], r["grid_ratio"], r["grid_ratio_msg"],
-         r["grid_ratio_body"], r["fused_recall"], r["fused_mean_dist_m"], r["maps_published"], r["maps_merged"]]
+         r["grid_ratio_body"], r["grid_ratio_at_merge_threshold"], r["fused_recall"], r["fused_mean_dist_m"],
+         r["maps_published"], r["maps_merged"]]
         for n, r in results.items()
     ]
     print_table(head, rows)
@@ -344,6 +405,8 @@ def run(args: argparse.Namespace) -> int:
         "rate_hz": args.rate,
         "duration_s": args.duration,
         "seed": args.seed,
+        "map_resolution_m": args.resolution,
+        "merge_threshold_m": args.merge_threshold,
         "sizes": results,
         "targets": {
             "latency_ms_p99_max": LATENCY_TARGET_MS,
@@ -353,6 +416,10 @@ def run(args: argparse.Namespace) -> int:
             "grid_ratio_met": bool(ratios) and bool(min(ratios) >= GRID_RATIO_TARGET),
             "grid_ratio_msg_min": min((r["grid_ratio_msg"] for r in results.values() if r["grid_ratio_msg"]), default=None),
             "grid_ratio_body_min": min((r["grid_ratio_body"] for r in results.values() if r["grid_ratio_body"]), default=None),
+            "grid_ratio_at_merge_threshold_min": min(
+                (r["grid_ratio_at_merge_threshold"] for r in results.values() if r["grid_ratio_at_merge_threshold"]),
+                default=None,
+            ),
         },
     }
     print(

@@ -1,11 +1,24 @@
 """A lightweight robot process that replays recorded maps on the bus (for the fleet benchmarks).
 
-``python -m agents.bench.replay_robot --id r3 --recording FILE [--rate HZ] [--corrupt P]
-[--seed S] [--log FILE] [--connect ...]``
+``python -m agents.bench.replay_robot --id r3 --recording FILE [--id r4 --recording FILE ...]
+[--rate HZ] [--corrupt P] [--seed S] [--log FILE] [--connect ...]``
 
-It behaves on the bus exactly like the robot agent (:mod:`agents.robot`), without running a
-particle filter, so that two cores can carry 16 robots at 10 Hz and what a benchmark measures is
-transport and fusion:
+Each robot behaves on the bus exactly like the robot agent (:mod:`agents.robot`), without
+running a particle filter, so that two cores can carry 16 robots at 10 Hz and what a benchmark
+measures is transport and fusion.
+
+**Several robots in one process** (``--id``/``--recording`` repeated, in pairs): each robot
+has its own Zenoh session (its own connection to the router, as a separate computer would),
+its own liveliness token and keys, and its own thread running the loop below, with the same
+payloads and rates as a process of its own. Only the operating-system process is shared: on a
+two-core machine sixteen Python processes (plus the router and the fusion service) would
+measure CPU contention between simulated robots rather than transport and fusion. Robot ``k``
+(from 0) starts its first tick ``phase`` seconds late, drawn uniformly in ``[0, 1 / rate)``
+from ``--seed`` (independent robots are not in step; a single robot starts at once), and its
+corruption generator is seeded with ``seed + k``. ``--log`` and ``--status-file`` must then
+contain ``{id}``, replaced by each robot's id. SIGUSR1 acts on every robot.
+
+Per robot:
 
 * ``robots/<id>/map``: a ``ROBOT_MAP`` (wire codec) built like the agent's: sender ``<id>``,
   frame ``odom/<id>``, ``origin`` the recorded start pose, the recording's resolution,
@@ -62,14 +75,20 @@ from agents.bus import (
     watch_parent,
 )
 from agents.errors import UserError
+from agents.fusion import freeze_heap
 from agents.robot import KeyPut
 
 HELP = "replay recorded robot maps on the bus (benchmark robot)"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--id", required=True, help="robot id (letters, digits, '_', '.', '-')")
-    parser.add_argument("--recording", required=True, metavar="FILE", help="a recording (agents.bench.common)")
+    parser.add_argument(
+        "--id", required=True, action="append", help="robot id (letters, digits, '_', '.', '-'); repeat for several"
+    )
+    parser.add_argument(
+        "--recording", required=True, action="append", metavar="FILE",
+        help="a recording (agents.bench.common); one per --id, in the same order",
+    )
     parser.add_argument("--rate", type=float, default=10.0, metavar="HZ", help="maps per second (default 10)")
     parser.add_argument("--pose-rate", type=float, default=10.0, metavar="HZ", help="poses per second (default 10)")
     parser.add_argument(
@@ -78,8 +97,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--corrupt", type=float, default=0.0, metavar="P", help="damage each map with probability P")
     parser.add_argument("--seed", type=int, default=0, help="seed of the corruption (default 0)")
     parser.add_argument("--no-loop", action="store_true", help="play the recording once, then heartbeats only")
-    parser.add_argument("--log", metavar="FILE", help="append one line per map payload to FILE")
-    parser.add_argument("--status-file", metavar="FILE", help="write the final status as JSON to FILE on exit")
+    parser.add_argument("--log", metavar="FILE", help="append one line per map payload to FILE ({id}: the robot's id)")
+    parser.add_argument(
+        "--status-file", metavar="FILE", help="write the final status as JSON to FILE on exit ({id}: the robot's id)"
+    )
     add_bus_arguments(parser)
 
 
@@ -112,6 +133,7 @@ class ReplayRobot:
         seed: int = 0,
         loop: bool = True,
         log_fd: int | None = None,
+        phase: float = 0.0,
     ) -> None:
         import zenoh
 
@@ -130,6 +152,7 @@ class ReplayRobot:
         self.rng = np.random.default_rng(seed)
         self.loop = loop
         self.log_fd = log_fd
+        self.phase = max(0.0, float(phase))
         self.boot = time.time_ns()
         self.final = threading.Event()
         self.seq = 0
@@ -245,7 +268,7 @@ class ReplayRobot:
         period = 1.0 / self.rate
         pose_period = 1.0 / self.pose_rate
         now = time.monotonic()
-        next_tick, next_pose = now, now
+        next_tick, next_pose = now + self.phase, now + self.phase
         k = 0
         final_done = False
         while not stop.is_set():
@@ -280,51 +303,101 @@ class ReplayRobot:
         return self.status()
 
 
+def _per_robot(template: str | None, rid: str, several: bool, flag: str) -> str | None:
+    if template is None:
+        return None
+    if several and "{id}" not in template:
+        raise UserError(f"{flag} must contain {{id}} when several robots share the process, got {template!r}")
+    return template.replace("{id}", rid)
+
+
 def run(args: argparse.Namespace) -> int:
-    rid = check_name(args.id)
+    ids = [check_name(r) for r in args.id]
+    if len(ids) != len(args.recording):
+        raise UserError(f"give one --recording per --id ({len(ids)} ids, {len(args.recording)} recordings)")
+    if len(set(ids)) != len(ids):
+        raise UserError(f"robot ids must be distinct, got {' '.join(ids)}")
     for name, v in (("--rate", args.rate), ("--pose-rate", args.pose_rate), ("--heartbeat", args.heartbeat)):
         if not (math.isfinite(v) and v > 0):
             raise UserError(f"{name} must be a positive number, got {v}")
     if not 0.0 <= args.corrupt <= 1.0:
         raise UserError(f"--corrupt must be within [0, 1], got {args.corrupt}")
-    rec = load_recording(args.recording)
+    several = len(ids) > 1
+    recs = [load_recording(p) for p in args.recording]
+    logs = [_per_robot(args.log, r, several, "--log") for r in ids]
+    status_files = [_per_robot(args.status_file, r, several, "--status-file") for r in ids]
     keys = fleet_keys(args)
-    cfg = config_from_args(args, "client")
+    phases = np.random.default_rng(args.seed).uniform(0.0, 1.0 / args.rate, len(ids)) if several else np.zeros(1)
 
     def say(text: str) -> None:
-        print(f"replay robot {rid}: {text}", flush=True)
+        print(f"replay robot {' '.join(ids) if len(ids) <= 4 else f'{ids[0]}..{ids[-1]}'}: {text}", flush=True)
 
-    log_fd = None
-    if args.log:
-        os.makedirs(os.path.dirname(os.path.abspath(args.log)), exist_ok=True)
-        log_fd = os.open(args.log, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
+    fds: list[int | None] = []
+    sessions: list[Any] = []
+    bots: list[ReplayRobot] = []
+    results: dict[str, dict[str, Any]] = {}
     try:
+        for log in logs:
+            fd = None
+            if log:
+                os.makedirs(os.path.dirname(os.path.abspath(log)), exist_ok=True)
+                fd = os.open(log, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
+            fds.append(fd)
         with StopFlag() as stop:
             watch_parent(args.parent_pid, stop)
-            session = open_session(cfg, stop, on_wait=lambda t: say(f"waiting for a router ({t})"))
-            if session is None:
-                return 0
-            bot = ReplayRobot(
-                session, keys, rid, rec, rate=args.rate, pose_rate=args.pose_rate, heartbeat=args.heartbeat,
-                corrupt_p=args.corrupt, seed=args.seed, loop=not args.no_loop, log_fd=log_fd,
-            )
-            old = signal.signal(signal.SIGUSR1, lambda *_a: bot.final.set())
+            for k, (rid, rec) in enumerate(zip(ids, recs)):
+                # one session per robot: its own link to the router, as on its own computer
+                session = open_session(config_from_args(args, "client"), stop,
+                                       on_wait=lambda t: say(f"waiting for a router ({t})"))
+                if session is None:
+                    return 0
+                sessions.append(session)
+                bots.append(ReplayRobot(
+                    session, keys, rid, rec, rate=args.rate, pose_rate=args.pose_rate, heartbeat=args.heartbeat,
+                    corrupt_p=args.corrupt, seed=args.seed + k, loop=not args.no_loop, log_fd=fds[k],
+                    phase=float(phases[k]),
+                ))
+            freeze_heap()  # no full collection of the modules' objects between two puts
+            old = signal.signal(signal.SIGUSR1, lambda *_a: [b.final.set() for b in bots])
             try:
-                bot.start()
-                say(f"on the bus as {keys.robot_map(rid)}: {len(rec.frames)} frames at {args.rate:g} Hz")
-                st = bot.run(stop)
+                for bot in bots:
+                    bot.start()
+                for bot, rec in zip(bots, recs):
+                    say(f"on the bus as {keys.robot_map(bot.robot)}: {len(rec.frames)} frames at {args.rate:g} Hz")
+
+                def play(bot: ReplayRobot) -> None:
+                    try:
+                        results[bot.robot] = bot.run(stop)
+                    except BaseException:
+                        stop.set()  # one robot failing stops the process (with a traceback)
+                        raise
+
+                threads = [threading.Thread(target=play, args=(b,), name=f"replay-{b.robot}", daemon=True)
+                           for b in bots[1:]]
+                for t in threads:
+                    t.start()
+                play(bots[0])  # the main thread keeps handling signals between its waits
+                for t in threads:
+                    t.join()
             finally:
                 signal.signal(signal.SIGUSR1, old)
-                bot.close()
-                session.close()
+                for bot in bots:
+                    bot.close()
     finally:
-        if log_fd is not None:
-            os.close(log_fd)
-    say(f"stopped: {st['maps_sent']} maps ({st['corrupt_sent']} damaged), {st['bytes_sent']} bytes")
-    if args.status_file:
-        from agents.io import write_json
+        for s in sessions:
+            s.close()
+        for fd in fds:
+            if fd is not None:
+                os.close(fd)
+    for rid, sf in zip(ids, status_files):
+        st = results.get(rid)
+        if st is None:
+            continue
+        say(f"{rid} stopped: {st['maps_sent']} maps ({st['corrupt_sent']} damaged), {st['bytes_sent']} bytes")
+        if sf:
+            from agents.io import write_json
 
-        write_json(args.status_file, {"robot": rid, **st})
+            write_json(sf, {"robot": rid, **st})
     return 0
 
 

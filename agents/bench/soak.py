@@ -118,6 +118,7 @@ def rss_slope_mb_per_min(samples: list[tuple[float, int]]) -> float | None:
 
 def soak(args: argparse.Namespace, world: Any, d: Path, say: Any) -> dict[str, Any]:
     from agents.bus import free_port, tcp_endpoint
+    from agents.mapping_run import default_merge_threshold
 
     n = args.robots
     ids = [f"r{k + 1}" for k in range(n)]
@@ -139,7 +140,8 @@ def soak(args: argparse.Namespace, world: Any, d: Path, say: Any) -> dict[str, A
     with Procs(d / "logs") as procs:
         procs.start("router", ["-m", "agents", "router", "--listen", ep])
         with BusObserver(ep, FLEET, timeout=60.0) as obs:
-            procs.start("fuse", ["-m", "agents", "fuse", *bus, "--store", str(store)])
+            thr = default_merge_threshold(world)  # as the recordings' filters
+            procs.start("fuse", ["-m", "agents", "fuse", *bus, "--store", str(store), "--threshold", repr(thr)])
             procs.wait_log("fuse", "fusion service ready", 90.0)
             for k in range(n):
                 procs.start(ids[k], robot_argv(k))

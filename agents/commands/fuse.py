@@ -26,7 +26,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--world", metavar="NAME|FILE", help="draw this world's true walls in the recording")
     parser.add_argument("--recording-id", help="Rerun recording id (default: a new one)")
     parser.add_argument(
-        "--threshold", type=float, help="merge threshold in metres (default: the robots' map resolution)"
+        "--threshold", type=float, help="merge threshold in metres (default 0.2, or the coarsest robot-map resolution if larger)"
     )
     parser.add_argument("--no-refine", action="store_true", help="trust the start poses, no ICP refinement")
     parser.add_argument(

@@ -21,6 +21,7 @@ from agents.bus import (
     watch_parent,
 )
 from agents.errors import UserError
+from agents.robot import DEFAULT_RESOLUTION, DEFAULT_THRESHOLD
 from mapping.se2 import Pose
 
 if TYPE_CHECKING:
@@ -44,7 +45,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     parser.add_argument("--particles", type=int, default=5, help="particles of the filter (default 5)")
     parser.add_argument(
-        "--resolution", type=float, default=0.2, metavar="M", help="merge threshold / map resolution (default 0.2)"
+        "--resolution", type=float, default=DEFAULT_RESOLUTION, metavar="M",
+        help=f"quantisation step of the published map's coordinates (default {DEFAULT_RESOLUTION:g})",
+    )
+    parser.add_argument(
+        "--threshold", type=float, default=DEFAULT_THRESHOLD, metavar="M",
+        help=f"merge threshold of the particle filter (default {DEFAULT_THRESHOLD:g}; the paper: 0.4 in a large world)",
     )
     parser.add_argument(
         "--heartbeat", type=float, default=2.0, metavar="S", help="re-send the map at least every S s (default 2)"
@@ -74,7 +80,10 @@ def options_from_args(args: argparse.Namespace) -> RobotOptions:
         start = start_pose_of(route)
     else:
         raise UserError("give --start X,Y,THETA or --route")
-    for name, v, lo in (("--rate", args.rate, 0.0), ("--resolution", args.resolution, 0.0), ("--heartbeat", args.heartbeat, 0.0)):
+    for name, v, lo in (
+        ("--rate", args.rate, 0.0), ("--resolution", args.resolution, 0.0), ("--threshold", args.threshold, 0.0),
+        ("--heartbeat", args.heartbeat, 0.0),
+    ):
         if not (math.isfinite(v) and v > lo):
             raise UserError(f"{name} must be a positive number, got {v}")
     if args.particles < 1:
@@ -95,6 +104,7 @@ def options_from_args(args: argparse.Namespace) -> RobotOptions:
         seed=args.seed,
         particles=args.particles,
         resolution=args.resolution,
+        threshold=args.threshold,
         heartbeat_s=args.heartbeat,
         viz_hz=max(0.0, args.viz_rate),
         duration=args.duration,

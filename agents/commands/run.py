@@ -72,6 +72,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--rate", type=float, default=5.0, metavar="HZ", help="scans per second per robot (default 5)")
     parser.add_argument("--particles", type=int, default=5, help="particles per robot (default 5)")
     parser.add_argument(
+        "--resolution", type=float, default=0.05, metavar="M",
+        help="quantisation step of the robots' published maps (default 0.05)",
+    )
+    parser.add_argument(
+        "--threshold", type=float, metavar="M",
+        help="merge threshold of the robots' filters and of the fusion (default 0.2, 0.4 for worlds over 100 m)",
+    )
+    parser.add_argument(
         "--overlap", type=float, default=0.15, help="fraction of a route piece shared with the next (default 0.15)"
     )
     parser.add_argument("--serve-viewer", type=int, metavar="PORT", help="serve the recording live on PORT")
@@ -181,8 +189,10 @@ def write_outputs(
     duration_s: float,
     extra: dict[str, Any],
 ) -> dict[str, Any]:
-    """Write ``fused.*`` and ``report.json`` from the fusion service's store."""
-    from agents.fusion import decode_message
+    """Write ``fused.*`` and ``report.json`` from the fusion service's store. Maps are scored
+    on a grid of the merge threshold (``resolution`` in the report; ``map_resolution`` is the
+    fused map's quantisation step)."""
+    from agents.fusion import decode_message, merge_threshold_of
     from agents.render import map_png
 
     store = out / "store"
@@ -201,6 +211,7 @@ def write_outputs(
             "frame": msg.frame,
             "version": msg.seq,
             "resolution": msg.resolution,
+            "merge_threshold": merge_threshold_of(msg),
             "robots": robots,
         }
     )
@@ -212,7 +223,7 @@ def write_outputs(
     write_json(out / "fused.geojson", doc)
     write_atomic(out / "fused.png", map_png(wf, world.truth))
 
-    res = float(msg.resolution) if msg.resolution > 0 else 0.2
+    res = merge_threshold_of(msg)  # the scoring grid: the merge threshold, as the paper scores maps
     state: dict[str, Any] = {}
     try:
         state = json.loads((store / "state.json").read_text())
@@ -254,6 +265,8 @@ def write_outputs(
         "per_robot": per_robot,
         "latency_ms": {"p50": lat.get("p50"), "p99": lat.get("p99"), "max": lat.get("max"), "n": lat.get("n", 0)},
         "resolution": res,
+        "merge_threshold": res,
+        "map_resolution": float(msg.resolution),
         "fusion": {k: v for k, v in (state.get("stats") or {}).items() if k != "latency_ms"},
     }
     report.update({k: v for k, v in extra.items() if k != "robot_status"})
@@ -275,7 +288,13 @@ def run(args: argparse.Namespace) -> int:
             raise UserError(f"{name} must be a positive number, got {v}")
     if not 0 <= args.overlap <= 1:
         raise UserError(f"--overlap must be within [0, 1], got {args.overlap}")
+    for name, v in (("--resolution", args.resolution), ("--threshold", args.threshold)):
+        if v is not None and not (math.isfinite(v) and v > 0):
+            raise UserError(f"{name} must be a positive number of metres, got {v}")
     world = load_world(args.world)
+    from agents.mapping_run import default_merge_threshold
+
+    threshold = float(args.threshold) if args.threshold is not None else default_merge_threshold(world)
     out = Path(args.out)
     try:
         out.mkdir(parents=True, exist_ok=True)
@@ -343,6 +362,7 @@ def run(args: argparse.Namespace) -> int:
                 f"wiremap run: router on {', '.join(listen)}; fleet {keys.fleet!r}; output in {out}{secure}", flush=True
             )
             fuse_argv = ["fuse", *bus, *cred_args("fusion"), "--store", str(store), "--rrd", str(out / "recording.rrd")]
+            fuse_argv += ["--threshold", repr(threshold)]
             fuse_argv += ["--world", args.world, "--recording-id", str(uuid.uuid4())]
             if args.serve_viewer is not None:
                 fuse_argv += ["--serve-viewer", str(args.serve_viewer)]
@@ -357,6 +377,7 @@ def run(args: argparse.Namespace) -> int:
                         "--route", str(out / "routes" / f"{rid}.json"),
                         "--rate", str(args.rate), "--seed", str(args.seed + k + 1),
                         "--particles", str(args.particles),
+                        "--resolution", repr(float(args.resolution)), "--threshold", repr(threshold),
                         "--status-file", str(out / "status" / f"{rid}.json"),
                         *bus, *cred_args(rid),
                     ],
