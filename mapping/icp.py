@@ -145,7 +145,10 @@ class ICPConfig:
     tol : float
         Stop when an increment moves less than this (metres, and radians times 1 m).
     min_constraints : int
-        Fewest inlier constraints (rows) for an accepted correction.
+        Fewest inlier constraints (rows) for an accepted correction (default 2: one wall seen
+        frontier to frontier gives two point-to-line rows, which fix the heading and the offset
+        across it; the degeneracy test keeps the direction along it at the prior. With four, a
+        robot seeing one wall of a long hall ran on odometry and bent the wall it extended).
     min_matched_fraction : float
         Least fraction of the scan's edges (by length) that must correspond to a reference edge
         for an accepted correction.
@@ -177,7 +180,7 @@ class ICPConfig:
     max_mahalanobis: float = 16.27
     max_rotation_sigmas: float = 3.0
     tol: float = 5e-4
-    min_constraints: int = 4
+    min_constraints: int = 2
     min_matched_fraction: float = 0.3
     max_rmse: float = 0.1
     max_translation: float = 2.0
@@ -283,6 +286,11 @@ class ICPResult:
         Number of well-constrained directions (0 to 3).
     mahalanobis : float
         Squared Mahalanobis distance between the prediction and the constraints' optimum.
+    consistent : bool
+        The scan agrees with the prediction: accepted, or rejected only because no direction is
+        constrained better than the prior (a corridor scan right after an accepted match) while
+        the residual, the matched fraction and the Mahalanobis test pass. Such a scan confirms
+        the prediction (its correction is the identity) without sharpening it.
     """
 
     correction: Pose
@@ -296,6 +304,7 @@ class ICPResult:
     covariance: FloatArray = field(default_factory=lambda: np.zeros((3, 3)))
     constrained: int = 0
     mahalanobis: float = 0.0
+    consistent: bool = False
 
 
 # ---------------------------------------------------------------------------------- geometry
@@ -744,9 +753,11 @@ def icp(
         reason = "residual does not drop"
     elif math.hypot(T.x, T.y) > cfg.max_translation or abs(T.theta) > cfg.max_rotation:
         reason = "correction too large"
+    consistent = reason == "" or (reason.startswith("degenerate") and maha <= cfg.max_mahalanobis)
     if reason:
         cov = P.copy()
     return ICPResult(
         T, reason == "", corr, rmse, n_c, it, reason,
         information=H, covariance=cov, constrained=int(good.sum()), mahalanobis=maha,
+        consistent=consistent,
     )

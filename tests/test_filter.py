@@ -254,7 +254,7 @@ def test_frontiers_snap_onto_a_longer_established_wall():
 
 
 # ------------------------------------------------------------------ any world file
-@pytest.mark.parametrize("name", ["angled", "corridor", "hall", "lshape"])
+@pytest.mark.parametrize("name", ["angled", "corridor", "hall", "lshape", "longhall"])
 def test_maps_every_test_world(name):
     """Issue 3: any world given as a file is mapped with wall precision and recall >= 95 % at
     0.2 m (the whole coverage route, 10 particles)."""

@@ -240,3 +240,37 @@ def test_rejects_bad_prior():
         icp(reference(), reference(), prior_covariance=np.diag([1.0, -1.0, 1.0]))
     with pytest.raises(ValueError):
         icp(reference(), reference(), prior_covariance=np.eye(2))
+
+
+def test_one_long_wall_corrects_heading_and_offset_across_it():
+    # A corridor robot that sees a single wall (frontier to frontier, 16 m) has two constraint
+    # rows; they fix the heading and the offset across the wall, which is what keeps the map's
+    # walls straight along a long corridor (the along-wall position stays the odometry's).
+    wall = Wireframe.build([(-8, 2), (8, 2)], [(0, 1)], labels=[Label.FRONTIER] * 2)
+    err = Pose(0.0, 0.05, math.radians(0.6))
+    P = np.diag([0.1**2, 0.1**2, math.radians(1.0) ** 2])
+    res = icp(wall.transformed(err.inverse()), wall, prior_covariance=P)
+    assert res.n_constraints == 2
+    assert res.accepted, res.reason
+    assert abs(res.correction.theta - err.theta) < math.radians(0.05)
+    assert abs(res.correction.y - err.y) < 0.01
+    # with the older rule of four rows the same scan was rejected and the heading left drifting
+    assert not icp(wall.transformed(err.inverse()), wall, ICPConfig(min_constraints=4), prior_covariance=P).accepted
+
+
+def test_a_scan_that_only_confirms_the_prediction_is_consistent():
+    # Right after an accepted match the prior is tight: the next corridor scan knows no direction
+    # better than it ("degenerate"), yet agrees with it -- consistent, correction the identity.
+    corridor = Wireframe.build(
+        [(-8, -1), (8, -1), (8, 1), (-8, 1)], [(0, 1), (2, 3)], labels=[Label.FRONTIER] * 4
+    )
+    tight = np.diag([0.005**2, 0.005**2, 1e-4**2])
+    res = icp(corridor.transformed(Pose(0.0, 0.003, 0.0).inverse()), corridor, prior_covariance=tight)
+    assert not res.accepted and res.reason.startswith("degenerate")
+    assert res.consistent
+    assert res.correction.distance(Pose.identity()) < 1e-9
+    # a scan 0.3 m across the corridor from where the tight prior says is not consistent
+    off = icp(corridor.transformed(Pose(0.0, 0.3, 0.0).inverse()), corridor, prior_covariance=tight)
+    assert not off.accepted and not off.consistent
+    # an accepted match is consistent
+    assert icp(corridor.transformed(Pose(0.0, 0.05, 0.0).inverse()), corridor).consistent
