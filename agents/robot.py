@@ -6,7 +6,8 @@ it in real time and publishes, under ``wiremap/<fleet>/``:
 
 * ``robots/<id>/map``: the best particle's wireframe as a ``ROBOT_MAP`` (wire codec), in the
   robot's odometry frame (the frame of its first pose), with its start pose in the fleet frame
-  as ``origin`` (the known-start-pose case). Sent when it changes *as it travels* (the codec's
+  as ``origin`` (the known-start-pose case), quantised at ``resolution`` (0.05 m; the filter
+  merges at ``threshold``, 0.2 m). Sent when it changes *as it travels* (the codec's
   quantised form differs from the last one sent) and at least every ``heartbeat_s`` seconds
   (maps are whole states: re-sending is idempotent). ``seq`` counts maps sent;
   ``meta = {"boot": <process start ns>, "t": <sim s>, "step": k}``; ``stamp_ns`` is the wall

@@ -1,7 +1,8 @@
 """Shared pieces of the fleet benchmarks (``wiremap bench fleet`` and ``wiremap bench soak``).
 
 * **Recordings** (:class:`Recording`): the sequence of best maps of real filter runs, one per
-  robot, recorded once per (world, fleet size, seed, particles, overlap) and cached under
+  robot, recorded once per (world, fleet size, seed, particles, overlap, map resolution, merge
+  threshold) and cached under
   ``out/bench-cache/`` so that a replay robot (:mod:`agents.bench.replay_robot`) can publish
   them at 10 Hz without running a filter. The routes are exactly those of ``wiremap run``
   (:func:`agents.sim.route.plan_routes` with the same seed and overlap; robot ``k`` gets filter

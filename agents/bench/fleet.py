@@ -10,6 +10,17 @@ that publish maps recorded from real filter runs along the same routes ``wiremap
 N robots (recorded once, cached under ``--cache``), because two cores cannot run 16 filters at
 10 Hz; what those sizes measure is transport and fusion.
 
+**One process for the replay robots** (``replay_processes: 1``; ``--separate-replay`` gives
+each its own, the former setup): every replay robot keeps its own Zenoh session (its own link
+to the router), liveliness token, keys, payloads and rate (its ticks at a random phase, as
+independent robots would be), but they share one Python process. On a real fleet each robot is
+a computer of its own; sixteen Python processes beside the router and the fusion service on
+two cores measured their contention for the CPU (robot publish to fusion inbox p99 27-38 ms)
+more than transport and fusion. ``robots_cpu_share`` says what the robots' processes used.
+
+Robots quantise their maps at ``--resolution`` (0.05 m, ``map_resolution_m``); the filters and
+the fusion merge at ``--threshold`` (``merge_threshold_m``: 0.2 m, 0.4 m in worlds over 100 m).
+
 Measured, per size, over a window of ``--duration`` seconds that starts ``--warmup`` seconds
 after every robot's first map has reached the bus:
 
@@ -28,16 +39,20 @@ after every robot's first map has reached the bus:
   and robot (poses separately: ``pose_bytes_per_s_per_robot``);
 * ``grid_bytes_per_s_per_robot``: what the same publishes would weigh as occupancy grids: each
   map as a raw int8 grid of its bounding box (in the robot's own frame, as the robot would
-  publish it) at the map's resolution (:func:`agents.bench.common.grid_bytes`), one grid per
-  map publish, cells only; ``grid_ratio`` = those grid bytes / the map payload bytes on the bus
-  (the headline figure: cells alone against whole messages, the codec's envelope of ~95 bytes
-  included). Two more views of the same maps: ``grid_ratio_msg`` adds to each grid the fixed
+  publish it) at the map's resolution, the same resolution as the map's coordinates (0.05 m;
+  :func:`agents.bench.common.grid_bytes`), one grid per map publish, cells only;
+  ``grid_ratio`` = those grid bytes / the map payload bytes on the bus (the headline figure:
+  cells alone against whole messages, the codec's envelope of ~90 bytes included);
+  ``grid_ratio_at_merge_threshold``: the same with grids of the merge threshold's cells (0.2 m,
+  the comparison made while robot maps were quantised at the threshold, 16 times fewer cells).
+  Two more views of the same maps: ``grid_ratio_msg`` adds to each grid the fixed
   fields of a ROS 1 ``nav_msgs/OccupancyGrid`` (:data:`ROS_GRID_OVERHEAD` bytes): message
   against message; ``grid_ratio_body`` compares the cells with the wireframe part of each
   payload only (``mean_map_body_bytes``; ``mean_grid_bytes`` per publish). Poses are not map
   traffic and are counted apart (``pose_bytes_per_s_per_robot``);
 * ``fused_recall``, ``fused_precision``, ``fused_mean_dist_m``: :func:`mapping.metrics.evaluate`
-  of the final fused map against the world's truth at the map resolution. Replay robots loop
+  of the final fused map against the world's truth on a grid of the merge threshold (as the
+  paper scores maps; :func:`agents.fusion.merge_threshold_of`). Replay robots loop
   their recording during the window and jump to its last frame when the window ends (SIGUSR1),
   so the evaluated fused map holds their complete recorded maps; filter robots' maps are
   whatever they mapped by then (at ``--rate`` scans per second);
