@@ -234,3 +234,28 @@ def test_best_eg_orders_per_group_matches_one_by_one() -> None:
     for g, k, c in zip(groups, orders, costs):
         assert k == best_eg_order(g) and c == eg_cost(g, k)
         assert all(c <= eg_cost(g, j) for j in range(16))
+
+
+def test_encode_reuses_the_body_of_the_same_map_and_gives_the_same_bytes() -> None:
+    """A map sent again with a new envelope (heartbeat, change probe) reuses its encoded body
+    (wire_codec.codec keeps the last few by Wireframe object): the bytes are exactly those of
+    a fresh encoding."""
+    from dataclasses import replace
+
+    from wire_codec import MapMessage, MessageKind, codec, encode
+    from wire_codec.codec import encode_with_plan
+
+    wf = Wireframe.build([(0.0, 0.0), (4.0, 0.0), (4.0, 3.0)], [(0, 1), (1, 2)], [Label.NOMINAL] * 3)
+    msg = MapMessage(kind=MessageKind.ROBOT_MAP, sender="r1", seq=1, stamp_ns=5, pose=Pose.identity(), frame="",
+                     origin=Pose.identity(), resolution=0.05, wireframe=wf, meta={"boot": 1})
+    first = encode(msg)
+    assert any(entry[0] is wf for entry in codec._body_cache.values())
+    again = replace(msg, seq=2, stamp_ns=6)
+    assert encode(again) == encode_with_plan(again)[0]
+    assert encode(msg) == first
+    # another resolution is another body
+    coarse = replace(msg, resolution=0.2)
+    assert encode(coarse) == encode_with_plan(coarse)[0] != first
+    for k in range(2 * codec._BODY_CACHE_SIZE):  # bounded
+        encode(replace(msg, wireframe=wf.transformed(Pose(0.1 * k, 0.0, 0.0))))
+    assert len(codec._body_cache) <= codec._BODY_CACHE_SIZE

@@ -19,6 +19,7 @@ the same grid), vertices to half a resolution step, likelihoods to 1/30.
 from __future__ import annotations
 
 import math
+import threading
 import zlib
 from collections.abc import Callable, Mapping
 from typing import Any
@@ -66,12 +67,41 @@ def encode(message: MapMessage) -> bytes:
         with contributor masks or robots, a fused map with more than 64 robots or a mask bit
         beyond them, a vertex too far from the origin for the resolution, unpackable ``meta``.
     """
-    return encode_with_plan(message)[0]
+    return _encode(message, cached=True)[0]
+
+
+# The bodies of the last few maps encoded, by the Wireframe object (immutable: frozen, read-only
+# arrays) and what else the body depends on: the same map sent again with a new envelope (a
+# robot's heartbeat, its change probe, the fusion service's stored copy of what it published)
+# costs only the envelope. The entry holds the map, so its id cannot be reused meanwhile.
+_BODY_CACHE_SIZE = 64
+_body_cache: dict[tuple[int, int, int | None], tuple[Wireframe, bytes]] = {}
+_body_lock = threading.Lock()
+
+
+def _body_bytes(wf: Wireframe, res_mm: int, n_robots: int | None) -> bytes:
+    key = (id(wf), res_mm, n_robots)
+    with _body_lock:
+        hit = _body_cache.get(key)
+    if hit is not None and hit[0] is wf:
+        return hit[1]
+    data = encode_body(wf, res_mm / 1e3, n_robots).data
+    with _body_lock:
+        if len(_body_cache) >= _BODY_CACHE_SIZE:
+            _body_cache.pop(next(iter(_body_cache)))
+        _body_cache[key] = (wf, data)
+    return data
 
 
 def encode_with_plan(message: MapMessage) -> tuple[bytes, EncodedBody]:
     """:func:`encode`, also returning the encoded body (with the vertex and edge order the
     decoder will produce), for tests and benchmarks."""
+    out, body = _encode(message, cached=False)
+    assert body is not None
+    return out, body
+
+
+def _encode(message: MapMessage, cached: bool) -> tuple[bytes, EncodedBody | None]:
     if not isinstance(message, MapMessage):
         raise EncodeError(f"expected a MapMessage, got {type(message).__name__}")
     try:
@@ -112,8 +142,13 @@ def encode_with_plan(message: MapMessage) -> tuple[bytes, EncodedBody]:
         raise EncodeError(f"meta must be a dict, got {type(message.meta).__name__}")
     meta = dict(message.meta)
     _check_meta(meta, EncodeError)
-    body = encode_body(wf, res_mm / 1e3, n_robots)
-    fields = [VERSION, int(kind), sender, seq, stamp, pose, frame, origin, res_mm, list(robots), meta, body.data]
+    body: EncodedBody | None = None
+    if cached:
+        data = _body_bytes(wf, res_mm, n_robots)
+    else:
+        body = encode_body(wf, res_mm / 1e3, n_robots)
+        data = body.data
+    fields = [VERSION, int(kind), sender, seq, stamp, pose, frame, origin, res_mm, list(robots), meta, data]
     try:
         packed = msgpack.packb(fields, use_bin_type=True)
     except (TypeError, ValueError, OverflowError) as exc:
