@@ -9,8 +9,8 @@ measures is transport and fusion.
 
 **Several robots in one process** (``--id``/``--recording`` repeated, in pairs): each robot
 has its own Zenoh session (its own connection to the router, as a separate computer would),
-its own liveliness token and keys, and its own thread running the loop below, with the same
-payloads and rates as a process of its own. Only the operating-system process is shared: on a
+its own liveliness token and keys, and its own schedule (the loop below, all robots served
+from one thread, :func:`run_all`), with the same payloads and rates as a process of its own. Only the operating-system process is shared: on a
 two-core machine sixteen Python processes (plus the router and the fusion service) would
 measure CPU contention between simulated robots rather than transport and fusion. Robot ``k``
 (from 0) starts its first tick ``phase`` seconds late, drawn uniformly in ``[0, 1 / rate)``
@@ -153,6 +153,9 @@ class ReplayRobot:
         self.loop = loop
         self.log_fd = log_fd
         self.phase = max(0.0, float(phase))
+        self._next_tick = self._next_pose = 0.0  # set by begin()
+        self._k = 0
+        self._final_done = False
         self.boot = time.time_ns()
         self.final = threading.Event()
         self.seq = 0
@@ -262,45 +265,67 @@ class ReplayRobot:
         self._pubs["pose"].put(data)
         self.pose_bytes += len(data)
 
-    def run(self, stop: Any) -> dict[str, Any]:
-        """Replay until ``stop`` (a ``threading.Event`` or :class:`agents.bus.StopFlag`) is set."""
+    def begin(self, now: float | None = None) -> None:
+        """Start the replay clock (the first tick ``phase`` seconds from ``now``)."""
+        now = time.monotonic() if now is None else now
+        self._next_tick = self._next_pose = now + self.phase
+        self._k = 0
+        self._final_done = False
+
+    def step(self) -> float:
+        """Do what is due now (a map tick, the final map after SIGUSR1, a heartbeat, a pose);
+        returns when something is next due (monotonic clock)."""
         n = len(self.rec.frames)
         period = 1.0 / self.rate
-        pose_period = 1.0 / self.pose_rate
         now = time.monotonic()
-        next_tick, next_pose = now + self.phase, now + self.phase
-        k = 0
-        final_done = False
-        while not stop.is_set():
-            now = time.monotonic()
-            if self.final.is_set() and not final_done:
-                final_done = True
-                self.playing = False
-                self.publish_map(n - 1)
-            elif self.playing and now >= next_tick:
-                self.publish_map(k)
-                self.ticks += 1
-                k += 1
-                if k == n:
-                    if self.loop:
-                        k = 0
-                        self.loops += 1
-                    else:
-                        self.playing = False
-                next_tick += period
-                if next_tick < time.monotonic() - period:
-                    next_tick = time.monotonic()  # fell behind: no burst to catch up
-            now = time.monotonic()
-            if not self.playing and self.current is not None and now - self._last_put >= self.heartbeat:
-                self.publish_map(self.current)  # maps are whole states: re-sending is idempotent
-            if now >= next_pose:
-                self.publish_pose()
-                next_pose = max(next_pose + pose_period, now)
-            wake = min(next_pose, self._last_put + self.heartbeat)
-            if self.playing:
-                wake = min(wake, next_tick)
-            stop.wait(max(0.0, min(wake - time.monotonic(), 0.1)))
+        if self.final.is_set() and not self._final_done:
+            self._final_done = True
+            self.playing = False
+            self.publish_map(n - 1)
+        elif self.playing and now >= self._next_tick:
+            self.publish_map(self._k)
+            self.ticks += 1
+            self._k += 1
+            if self._k == n:
+                if self.loop:
+                    self._k = 0
+                    self.loops += 1
+                else:
+                    self.playing = False
+            self._next_tick += period
+            if self._next_tick < time.monotonic() - period:
+                self._next_tick = time.monotonic()  # fell behind: no burst to catch up
+        now = time.monotonic()
+        if not self.playing and self.current is not None and now - self._last_put >= self.heartbeat:
+            self.publish_map(self.current)  # maps are whole states: re-sending is idempotent
+        if now >= self._next_pose:
+            self.publish_pose()
+            self._next_pose = max(self._next_pose + 1.0 / self.pose_rate, now)
+        wake = min(self._next_pose, self._last_put + self.heartbeat)
+        if self.playing:
+            wake = min(wake, self._next_tick)
+        return wake
+
+    def run(self, stop: Any) -> dict[str, Any]:
+        """Replay until ``stop`` (a ``threading.Event`` or :class:`agents.bus.StopFlag`) is set."""
+        run_all([self], stop)
         return self.status()
+
+
+def run_all(bots: Sequence[ReplayRobot], stop: Any) -> None:
+    """Replay several robots from one thread until ``stop`` is set: each robot's
+    :meth:`ReplayRobot.step` when it is due (or its final map is asked for), then sleep until
+    the next one is due (at most 0.1 s, so that SIGUSR1 and ``stop`` are seen quickly)."""
+    now = time.monotonic()
+    for b in bots:
+        b.begin(now)
+    due = [now] * len(bots)
+    while not stop.is_set():
+        now = time.monotonic()
+        for i, b in enumerate(bots):
+            if due[i] <= now or (b.final.is_set() and not b._final_done):
+                due[i] = b.step()
+        stop.wait(max(0.0, min(min(due) - time.monotonic(), 0.1)))
 
 
 def _per_robot(template: str | None, rid: str, several: bool, flag: str) -> str | None:
@@ -365,20 +390,8 @@ def run(args: argparse.Namespace) -> int:
                 for bot, rec in zip(bots, recs):
                     say(f"on the bus as {keys.robot_map(bot.robot)}: {len(rec.frames)} frames at {args.rate:g} Hz")
 
-                def play(bot: ReplayRobot) -> None:
-                    try:
-                        results[bot.robot] = bot.run(stop)
-                    except BaseException:
-                        stop.set()  # one robot failing stops the process (with a traceback)
-                        raise
-
-                threads = [threading.Thread(target=play, args=(b,), name=f"replay-{b.robot}", daemon=True)
-                           for b in bots[1:]]
-                for t in threads:
-                    t.start()
-                play(bots[0])  # the main thread keeps handling signals between its waits
-                for t in threads:
-                    t.join()
+                run_all(bots, stop)  # one thread: the robots' puts need no interpreter-lock handoffs
+                results.update({b.robot: b.status() for b in bots})
             finally:
                 signal.signal(signal.SIGUSR1, old)
                 for bot in bots:
