@@ -13,10 +13,12 @@ N robots (recorded once, cached under ``--cache``), because two cores cannot run
 **One process for the replay robots** (``replay_processes: 1``; ``--separate-replay`` gives
 each its own, the former setup): every replay robot keeps its own Zenoh session (its own link
 to the router), liveliness token, keys, payloads and rate (its ticks at a random phase, as
-independent robots would be), but they share one Python process. On a real fleet each robot is
-a computer of its own; sixteen Python processes beside the router and the fusion service on
-two cores measured their contention for the CPU (robot publish to fusion inbox p99 27-38 ms)
-more than transport and fusion. ``robots_cpu_share`` says what the robots' processes used.
+independent robots would be), but they share one Python process, served from one thread. On a
+real fleet each robot is a computer of its own and none of them competes with the fusion
+service for a CPU; here they all do, whichever way they are grouped. ``robots_cpu_share`` says
+what the robots' processes used: at 16 robots 0.15-0.18 of a core in one process, 0.09-0.10
+as sixteen (measured on a machine loaded by other jobs, where the publish latency did not tell
+the two apart).
 
 Robots quantise their maps at ``--resolution`` (0.05 m, ``map_resolution_m``); the filters and
 the fusion merge at ``--threshold`` (``merge_threshold_m``: 0.2 m, 0.4 m in worlds over 100 m).
