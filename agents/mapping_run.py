@@ -331,7 +331,8 @@ def robot_steps(opts: Any) -> Iterator[RunStep]:
     """The fleet robot's loop (:class:`agents.robot.RobotAgent`): simulate ``opts.world`` from
     ``opts.start`` along ``opts.route`` (planned from the start when None) and run a filter of
     ``opts.particles`` particles whose map frame is the robot's odometry frame (its first pose is
-    the identity). ``opts.resolution`` is the merge threshold. ``opts.extra`` may set
+    the identity). ``opts.threshold`` is the merge threshold (``opts.resolution``, the wire
+    quantisation, for options without one). ``opts.extra`` may set
     ``sensor`` and ``max_range``. ``RunStep.true_pose`` is in the world frame."""
     from agents.sim.world import load_world
 
@@ -346,7 +347,8 @@ def robot_steps(opts: Any) -> Iterator[RunStep]:
     route = getattr(opts, "route", None)
     start_xy = None if start is None else (start.x, start.y)
     inputs = simulate(world, options, int(opts.seed), route=route, start=start_xy)
-    cfg = filter_config_for(int(opts.particles), float(opts.resolution), options.max_range)
+    threshold = float(getattr(opts, "threshold", opts.resolution))
+    cfg = filter_config_for(int(opts.particles), threshold, options.max_range)
     filt = WireframeFilter(cfg, seeds_for(int(opts.seed))["filter"], initial_pose=Pose.identity())
     return run_filter(inputs, filt)
 

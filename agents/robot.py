@@ -147,17 +147,18 @@ class KeyPut:
 
 
 def filter_options(opts: RobotOptions) -> RobotOptions:
-    """The options as :func:`agents.mapping_run.robot_steps` reads them: it takes the filter's
-    merge threshold from ``opts.resolution``, so that field carries ``opts.threshold`` there."""
+    """The options with ``resolution`` set to the merge threshold, for code that reads the
+    threshold from ``resolution`` (older recordings' keys; :func:`agents.mapping_run.robot_steps`
+    reads ``opts.threshold`` itself)."""
     return replace(opts, resolution=float(opts.threshold))
 
 
 def default_steps(opts: RobotOptions) -> Iterator[StepLike]:
     """The simulation + filter loop of :mod:`agents.mapping_run` for this robot (merge
     threshold ``opts.threshold``)."""
-    from agents import mapping_run  # written by another helper
+    from agents import mapping_run
 
-    return mapping_run.robot_steps(filter_options(opts))
+    return mapping_run.robot_steps(opts)
 
 
 class RobotAgent:

@@ -115,6 +115,7 @@ from mapping.likelihood import (
     scan_likelihood,
     seen_through,
 )
+from mapping.loops import Closure, LoopCloser, LoopConfig
 from mapping.resample import resample_with_mutation
 from mapping.se2 import Pose
 from mapping.wireframe import Label, Wireframe
@@ -251,6 +252,10 @@ class FilterConfig:
         pose is relative to a map whose own corners are that uncertain.
     likelihood : LikelihoodConfig
     icp : ICPConfig
+    loops : LoopConfig
+        Loop closure (:mod:`mapping.loops`): keyframes, birth stamps of the map corners, loop
+        detection against the old part of the map, pose-graph optimisation and deformation of
+        the particles. Not in the paper; ``LoopConfig(enabled=False)`` is the paper's filter.
 
     Raises
     ------
@@ -287,6 +292,7 @@ class FilterConfig:
     pose_floor_theta: float = 0.002
     likelihood: LikelihoodConfig = field(default_factory=LikelihoodConfig)
     icp: ICPConfig = field(default_factory=ICPConfig)
+    loops: LoopConfig = field(default_factory=LoopConfig)
 
     def __post_init__(self) -> None:
         if isinstance(self.particles, bool) or not isinstance(self.particles, (int, np.integer)) or self.particles < 1:
@@ -343,6 +349,8 @@ class StepInfo:
     mapped : bool
         Whether the scan updated the particles (False when its pose was too uncertain, see
         :attr:`FilterConfig.max_map_sigma_theta`).
+    loop : Closure or None
+        The loop closure this step made (:mod:`mapping.loops`; ``pose`` is then the pose after it).
     """
 
     step: int
@@ -354,6 +362,7 @@ class StepInfo:
     distinct: int
     mutated: int
     mapped: bool = True
+    loop: Closure | None = None
 
 
 # ------------------------------------------------------------------------------ pure helpers
@@ -748,6 +757,7 @@ class WireframeFilter:
         self._pending_spans = np.zeros((0, 2, 2))
         self._view_fn: ViewFn = view_fn or _default_view
         self._merge_fn: MergeFn = merge_fn or _default_merge
+        self._loops = LoopCloser(config.loops, self._pose)
 
     # ------------------------------------------------------------------ state
     @property
@@ -871,8 +881,13 @@ class WireframeFilter:
         return icp(scan, ref, icfg, prior_covariance=prior)
 
     # ------------------------------------------------------------------ the step
+    @property
+    def loops(self) -> LoopCloser:
+        """The loop-closure back end (keyframes, closures so far)."""
+        return self._loops
+
     def step(self, odometry: Pose, scan: Wireframe, *, fault: Pose | None = None) -> StepInfo:
-        """One filter iteration (paper Fig. 7).
+        """One filter iteration (paper Fig. 7), then the loop-closure check (:mod:`mapping.loops`).
 
         Parameters
         ----------
@@ -889,6 +904,69 @@ class WireframeFilter:
         -------
         StepInfo
         """
+        info, matched_scan = self._step(odometry, scan, fault)
+        if self.config.loops.enabled:
+            closed = self._close_loops(math.hypot(odometry.x, odometry.y) + 0.5 * abs(odometry.theta), matched_scan)
+            if closed is not None:
+                info = dataclasses.replace(info, pose=self._pose, loop=closed)
+        return info
+
+    def _close_loops(self, driven: float, scan: Wireframe) -> Closure | None:
+        """After a step: keyframes and birth stamps; every ``check_every`` metres, the scan
+        matched against the old part of the best map, and a closure when it is off."""
+        lc = self._loops
+        lcfg = lc.config
+        lc.advance(self._pose, driven)
+        lc.stamp(self._particles)
+        if self._steps % 500 == 0:
+            lc.prune(self._particles)
+        if not lc.due() or scan.n_edges < 2:
+            return None
+        old, young, _ = lc.split(self.best)
+        if old.n_edges < lcfg.min_old_edges:
+            return None
+        ref, ref_src, _ = self.predicted_view(old, self._pose)
+        if ref.n_edges < lcfg.min_old_edges:
+            return None
+        used = np.unique(old.edges[ref_src[ref_src >= 0]])
+        born = lc.births(old.points[used])
+        born = born[born >= 0]
+        if len(born) == 0:
+            return None
+        born_kf = int(np.median(born))
+        prior = lc.prior(born_kf)
+
+        def good(r: ICPResult) -> bool:
+            return bool(r.accepted and r.constrained >= lcfg.min_constrained
+                        and r.n_constraints >= lcfg.min_constraints and r.rmse <= lcfg.max_rmse)
+
+        res = self._match(scan, ref, prior)
+        if not good(res):
+            return None
+        here = self._pose  # where the young chain puts the robot
+        yref = self.predicted_view(young, self._pose)[0] if young.n_edges else Wireframe.empty()
+        if yref.n_edges >= lcfg.min_old_edges:
+            yres = self._match(scan, yref, prior)
+            if good(yres):
+                here = self._pose.compose(yres.correction)
+        corrected = self._pose.compose(res.correction)
+        c = here.inverse().compose(corrected)
+        if math.hypot(c.x, c.y) < lcfg.min_correction and abs(c.theta) < lcfg.min_rotation:
+            return None
+        merge_fn = self._merge_fn
+        thr = self.config.merge_threshold
+        pose, parts = lc.close(here, corrected, born_kf, res.covariance, self._particles,
+                               lambda a, b: merge_fn(a, b, thr))
+        # The young chain's pose was `here`; the estimate moves with it.
+        pose = pose.compose(here.inverse().compose(self._pose))
+        self._pose = pose
+        budgeted: dict[int, Wireframe] = {}
+        self._particles = [budgeted.setdefault(id(p), budget_map(p, self.config.max_vertices)) for p in parts]
+        self._drift = np.zeros((3, 3))
+        lc.stamp(self._particles)
+        return lc.closures[-1]
+
+    def _step(self, odometry: Pose, scan: Wireframe, fault: Pose | None) -> tuple[StepInfo, Wireframe]:
         cfg = self.config
         self._steps += 1
         # The evidence (likelihood, contradictions) is the whole scan but for its walls along a
@@ -899,6 +977,7 @@ class WireframeFilter:
         scan = evidence if kept.all() else evidence.subgraph_edges(kept)
         predicted = self._pose.compose(odometry)
         pose = predicted
+        raw_scan = scan
         icp_res: ICPResult | None = None
         best = self._particles[self._best]
         self._cov = self.predict_covariance(self._cov, odometry)
@@ -940,7 +1019,7 @@ class WireframeFilter:
         )
         if lost or (icp_res is not None and math.sqrt(self._cov[2, 2]) > cfg.max_map_sigma_theta):
             # The scan cannot be placed well enough to touch the map (module docstring).
-            return StepInfo(
+            return (StepInfo(
                 step=self._steps,
                 pose=pose,
                 predicted_pose=predicted,
@@ -950,7 +1029,7 @@ class WireframeFilter:
                 distinct=self.distinct_particles(),
                 mutated=0,
                 mapped=False,
-            )
+            ), raw_scan)
 
         lcfg = cfg.likelihood
         # Negative evidence (contradictions, carving) needs the scan placed against the map: not
@@ -1070,7 +1149,7 @@ class WireframeFilter:
         self._particles = new
         self._pending_spans = np.concatenate(seen_spans) if seen_spans else np.zeros((0, 2, 2))
         self._weights = np.full(len(new), 1.0 / len(new))
-        return StepInfo(
+        return (StepInfo(
             step=self._steps,
             pose=pose,
             predicted_pose=predicted,
@@ -1079,7 +1158,7 @@ class WireframeFilter:
             best=self._best,
             distinct=self.distinct_particles(),
             mutated=int(res.mutated.sum()),
-        )
+        ), raw_scan)
 
 
 def _content_key(wf: Wireframe) -> bytes:
