@@ -1936,6 +1936,10 @@ class FusionService:
         st = self.state
         clock = time.perf_counter
         t0 = clock()
+        if self.dirty or self.refuse:
+            # a fuse is due once min_interval_s has passed since the last: wait no longer
+            due = self.last_fuse + self.opts.min_interval_s - time.monotonic()
+            timeout = min(timeout, max(due, 0.0))
         items = self.intake.drain_timed(timeout)
         t1 = clock()
         self._take(items)
