@@ -469,7 +469,7 @@ def run(args: argparse.Namespace) -> int:
     print(
         f"wiremap run: fused v{f['version']}: {f['vertices']} vertices, {f['edges']} edges, {f['bytes']} bytes; "
         f"wall recall {f['wall_recall']:.3f}, precision {f['wall_precision']:.3f}, cell error {f['cell_error']}; "
-        f"latency p50 {lat['p50']} ms, p99 {lat['p99']} ms",
+        f"latency p50 {_ms(lat.get('p50'))}, p99 {_ms(lat.get('p99'))}",
         flush=True,
     )
     for rid in ids:
@@ -480,3 +480,8 @@ def run(args: argparse.Namespace) -> int:
         )
     print(f"wiremap run: wrote {out}/fused.geojson fused.wfm fused.png recording.rrd report.json", flush=True)
     return 0
+
+
+def _ms(v: object) -> str:
+    """A latency for the summary line: one decimal, or "n/a" when there was none."""
+    return f"{float(v):.1f} ms" if isinstance(v, (int, float)) else "n/a"
