@@ -46,6 +46,19 @@ def write_atomic(path: str | os.PathLike[str], data: bytes | str, mode: int | No
         raise
 
 
+def output_file(flag: str, path: str | os.PathLike[str]) -> Path:
+    """Check a command's output file option before anything runs: ``path`` is not a directory,
+    and its directory exists (made if needed). Else a one-line ``UserError`` naming ``flag``."""
+    p = Path(path)
+    if p.is_dir():
+        raise UserError(f"{flag} {p}: is a directory")
+    try:
+        p.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise UserError(f"{flag} {p}: cannot create its directory: {exc.strerror or exc}") from None
+    return p
+
+
 def write_json(path: str | os.PathLike[str], obj: Any) -> None:
     write_atomic(path, json.dumps(obj, indent=2, sort_keys=False) + "\n")
 

@@ -13,6 +13,7 @@ from pathlib import Path
 from agents.bus import StopFlag, add_bus_arguments, config_from_args, fleet_keys, open_session, watch_parent
 from agents.errors import UserError
 from agents.fusion import InputLimits
+from agents.io import output_file
 
 HELP = "the fusion service"
 
@@ -93,13 +94,7 @@ def run(args: argparse.Namespace) -> int:
         except OSError as exc:
             raise UserError(f"--store {args.store}: cannot create it: {exc.strerror or exc}") from None
     if args.rrd:
-        rrd = Path(args.rrd)
-        if rrd.is_dir():
-            raise UserError(f"--rrd {rrd}: is a directory")
-        try:
-            rrd.parent.mkdir(parents=True, exist_ok=True)
-        except OSError as exc:
-            raise UserError(f"--rrd {rrd}: cannot create its directory: {exc.strerror or exc}") from None
+        output_file("--rrd", args.rrd)
     if args.world:
         from agents.sim.world import load_world
 

@@ -119,15 +119,9 @@ def run(args: argparse.Namespace) -> int:
     cfg = config_from_args(args, "client")
     rid = opts.robot
     if args.status_file:
-        from pathlib import Path
+        from agents.io import output_file
 
-        sf = Path(args.status_file)
-        if sf.is_dir():
-            raise UserError(f"--status-file {sf}: is a directory")
-        try:
-            sf.parent.mkdir(parents=True, exist_ok=True)
-        except OSError as exc:
-            raise UserError(f"--status-file {sf}: cannot create its directory: {exc.strerror or exc}") from None
+        output_file("--status-file", args.status_file)
 
     def say(text: str) -> None:
         print(f"wiremap robot {rid}: {text}", flush=True)

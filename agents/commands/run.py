@@ -124,11 +124,6 @@ def _cpu_seconds(pid: int) -> float | None:
         return None
 
 
-def _stop(procs: dict[str, subprocess.Popen[bytes]], names: list[str], timeout: float) -> dict[str, int | None]:
-    """SIGINT to ``names`` together, wait up to ``timeout``, then SIGKILL; all reaped."""
-    return stop_processes(procs, names, timeout)
-
-
 class Progress:
     """One live line per robot (and one for the fused map)."""
 
@@ -433,9 +428,9 @@ def run(args: argparse.Namespace) -> int:
                     cpu[name] = round(c, 2)
             robots_up = [r for r in ids if r in procs]
             if robots_up:
-                codes.update(_stop(procs, robots_up, 15.0))
+                codes.update(stop_processes(procs, robots_up, 15.0))
             if "fuse" in procs:
-                codes.update(_stop(procs, ["fuse"], 60.0))
+                codes.update(stop_processes(procs, ["fuse"], 60.0))
             sub_pose.undeclare()
             sub_fused.undeclare()
             router.close()
