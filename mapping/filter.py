@@ -961,7 +961,10 @@ class WireframeFilter:
         pose = pose.compose(here.inverse().compose(self._pose))
         self._pose = pose
         budgeted: dict[int, Wireframe] = {}
-        self._particles = [budgeted.setdefault(id(p), budget_map(p, self.config.max_vertices)) for p in parts]
+        for p in parts:  # particles sharing one object share its budgeted map (computed once)
+            if id(p) not in budgeted:
+                budgeted[id(p)] = budget_map(p, self.config.max_vertices)
+        self._particles = [budgeted[id(p)] for p in parts]
         self._drift = np.zeros((3, 3))
         lc.stamp(self._particles)
         return lc.closures[-1]

@@ -680,18 +680,25 @@ def icp(
     if scan.n_vertices == 0 or ref.n_vertices == 0:
         return ICPResult(T, False, empty, math.inf, 0, 0, "empty scan or reference", covariance=P.copy())
     scale = cfg.information_scale / cfg.sigma**2
+
+    def linearise(at: Pose, gate: float) -> tuple[Correspondences, FloatArray, FloatArray, FloatArray,
+                                                    FloatArray, FloatArray, FloatArray, BoolArray]:
+        """Scan moved by ``at``: correspondences within ``gate``, residuals, Huber-weighted
+        information ``H`` and gradient ``g``, and the split against the prior."""
+        sp = at.apply(scan.points)
+        corr = correspond(scan, ref, gate, cfg.max_angle, cfg.min_overlap, cfg.frontier_penalty, scan_points=sp)
+        J, r = constraints(scan, ref, sp, corr, cfg.corner_labels)
+        Jw = J * (_huber_weights(r, cfg.huber) * scale)[:, None]
+        H, g = Jw.T @ J, Jw.T @ r
+        L, lam, V, good = information_split(H, P, cfg.min_information_ratio)
+        return corr, r, H, g, L, lam, V, good
+
     it = 0
     anneal = cfg.anneal_iterations if cfg.gate_start > cfg.gate_end else 0
     for it in range(1, cfg.max_iterations + 1):
         frac = min(1.0, (it - 1) / anneal) if anneal else 1.0
         gate = cfg.gate_start + (cfg.gate_end - cfg.gate_start) * frac
-        sp = Pose(*t).apply(scan.points)
-        corr = correspond(scan, ref, gate, cfg.max_angle, cfg.min_overlap, cfg.frontier_penalty, scan_points=sp)
-        J, r = constraints(scan, ref, sp, corr, cfg.corner_labels)
-        w = _huber_weights(r, cfg.huber) * scale
-        H = (J * w[:, None]).T @ J
-        g = (J * w[:, None]).T @ r
-        L, lam, V, good = information_split(H, P, cfg.min_information_ratio)
+        _, _, _, g, L, lam, V, good = linearise(Pose(*t), gate)
         Vg = V[:, good]
         z0 = np.linalg.solve(L, t)
         a0 = Vg.T @ z0
@@ -705,13 +712,7 @@ def icp(
             break
     T = Pose(float(t[0]), float(t[1]), float(t[2]))
     t = np.array([T.x, T.y, T.theta])
-    sp = T.apply(scan.points)
-    corr = correspond(scan, ref, cfg.gate_end, cfg.max_angle, cfg.min_overlap, cfg.frontier_penalty, scan_points=sp)
-    J, r = constraints(scan, ref, sp, corr, cfg.corner_labels)
-    w = _huber_weights(r, cfg.huber) * scale
-    H = (J * w[:, None]).T @ J
-    g = (J * w[:, None]).T @ r
-    L, lam, V, good = information_split(H, P, cfg.min_information_ratio)
+    corr, r, H, g, L, lam, V, good = linearise(T, cfg.gate_end)
     Vg = V[:, good]
     post = np.ones(3)
     post[good] = 1.0 / (1.0 + lam[good])
