@@ -94,6 +94,7 @@ import numpy as np
 
 from agents.errors import UserError
 from agents.io import write_atomic, write_json
+from agents.proc import freeze_heap
 from mapping.se2 import Pose
 from mapping.wireframe import Label, Wireframe
 from wire_codec.message import MapMessage, MessageKind
@@ -867,8 +868,8 @@ class FusionState:
             prefix = (*prefix, (rid, e.rev, corr))
             leaves.append(((rid, e.rev, corr, k), self._ready(rid, corr, k)))
         acc = self._node(0, len(leaves), leaves, thr)[0] if leaves else Wireframe.empty()
-        for pos in [p for p in self._nodes if p[1] > len(leaves)]:
-            del self._nodes[pos]
+        for span in [p for p in self._nodes if p[1] > len(leaves)]:
+            del self._nodes[span]
         for pos in [p for p in self._prefix_maps if p > len(leaves)]:
             del self._prefix_maps[pos]
         self._leaves = leaves
@@ -2092,17 +2093,6 @@ class FusionService:
                 st.save(self.opts.store, None, self.version_stamp_ns)
             if self.recorder is not None:
                 self.recorder.close()
-
-
-def freeze_heap() -> None:
-    """Move every object alive now (modules, the loaded state) out of the garbage collector's
-    reach (``gc.freeze``), after a full collection. A long-running loop then pays for its own
-    objects only: the full collections of a fusion service with numpy, scipy and zenoh loaded
-    took 26-35 ms each, a stall every few seconds in the publish latency."""
-    import gc
-
-    gc.collect()
-    gc.freeze()
 
 
 def serve(

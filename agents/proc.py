@@ -1,4 +1,4 @@
-"""Child processes: stopping a group of them together."""
+"""Processes: stopping a group of children together; freezing this one's heap."""
 
 from __future__ import annotations
 
@@ -36,3 +36,14 @@ def stop_processes(
             p.wait()
             codes[n] = None
     return codes
+
+
+def freeze_heap() -> None:
+    """Move every object alive now (modules, the loaded state) out of the garbage collector's
+    reach (``gc.freeze``), after a full collection. A long-running loop then pays for its own
+    objects only: the full collections of a fusion service with numpy, scipy and zenoh loaded
+    took 26-35 ms each, a stall every few seconds in the publish latency."""
+    import gc
+
+    gc.collect()
+    gc.freeze()

@@ -28,7 +28,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from typing import Any, Protocol
 
 import numpy as np
@@ -111,22 +111,31 @@ class RobotStatus:
         }
 
 
-def map_message(opts: RobotOptions, wf: Wireframe, pose: Pose, seq: int, stamp_ns: int, meta: dict[str, Any]) -> MapMessage:
-    """The ``ROBOT_MAP`` for ``wf`` (contributor bits cleared: a robot map has none)."""
+def robot_map_message(
+    robot: str, origin: Pose, resolution: float, wf: Wireframe, pose: Pose, seq: int, stamp_ns: int,
+    meta: dict[str, Any],
+) -> MapMessage:
+    """The ``ROBOT_MAP`` of robot ``robot`` for ``wf`` (frame ``odom/<robot>``, contributor bits
+    cleared: a robot map has none)."""
     if wf.n_edges and wf.sources.any():
         wf = wf.replace(sources=np.zeros(wf.n_edges, dtype=np.uint64))
     return MapMessage(
         kind=MessageKind.ROBOT_MAP,
-        sender=opts.robot,
+        sender=robot,
         seq=int(seq),
         stamp_ns=int(stamp_ns),
         pose=pose,
-        frame=f"odom/{opts.robot}",
-        origin=opts.start,
-        resolution=float(opts.resolution),
+        frame=f"odom/{robot}",
+        origin=origin,
+        resolution=float(resolution),
         wireframe=wf,
         meta=dict(meta),
     )
+
+
+def map_message(opts: RobotOptions, wf: Wireframe, pose: Pose, seq: int, stamp_ns: int, meta: dict[str, Any]) -> MapMessage:
+    """The ``ROBOT_MAP`` the agent with options ``opts`` sends for ``wf``."""
+    return robot_map_message(opts.robot, opts.start, opts.resolution, wf, pose, seq, stamp_ns, meta)
 
 
 class KeyPut:
@@ -146,11 +155,19 @@ class KeyPut:
         pass
 
 
-def filter_options(opts: RobotOptions) -> RobotOptions:
-    """The options with ``resolution`` set to the merge threshold, for code that reads the
-    threshold from ``resolution`` (older recordings' keys; :func:`agents.mapping_run.robot_steps`
-    reads ``opts.threshold`` itself)."""
-    return replace(opts, resolution=float(opts.threshold))
+def robot_puts(session: Any, keys: Any, robot: str) -> dict[str, KeyPut]:
+    """The puts of robot ``robot``: ``map`` (``CongestionControl.BLOCK``), ``pose`` (express)
+    and ``viz``. Plain session puts, not declared publishers: a declared publisher filters on
+    the writer side and so needs to see the subscribers' declarations, which the fleet ACL
+    (agents.secure.acl_config) does not forward to robots -- on a secure router it delivered
+    only its first sample."""
+    import zenoh
+
+    return {
+        "map": KeyPut(session, keys.robot_map(robot), congestion_control=zenoh.CongestionControl.BLOCK),
+        "pose": KeyPut(session, keys.robot_pose(robot), express=True),
+        "viz": KeyPut(session, keys.robot_viz(robot)),
+    }
 
 
 def default_steps(opts: RobotOptions) -> Iterator[StepLike]:
@@ -181,11 +198,8 @@ class RobotAgent:
         steps: Iterator[StepLike] | None = None,
         log: Callable[[str], None] | None = None,
     ) -> None:
-        import zenoh
-
         from wire_codec import encode
 
-        self._zenoh = zenoh
         self._encode = encode
         self.session = session
         self.keys = keys
@@ -201,16 +215,8 @@ class RobotAgent:
         self._pubs: dict[str, Any] = {}
 
     def start(self) -> None:
-        z = self._zenoh
-        s = self.session
-        self._token = s.liveliness().declare_token(self.keys.alive(self.opts.robot))
-        # Plain session puts, not declared publishers: a declared publisher filters on the
-        # writer side and so needs to see the subscribers' declarations, which the fleet ACL
-        # (agents.secure.acl_config) does not forward to robots -- on a secure router it
-        # delivered only its first sample.
-        self._pubs["map"] = KeyPut(s, self.keys.robot_map(self.opts.robot), congestion_control=z.CongestionControl.BLOCK)
-        self._pubs["pose"] = KeyPut(s, self.keys.robot_pose(self.opts.robot), express=True)
-        self._pubs["viz"] = KeyPut(s, self.keys.robot_viz(self.opts.robot))
+        self._token = self.session.liveliness().declare_token(self.keys.alive(self.opts.robot))
+        self._pubs = robot_puts(self.session, self.keys, self.opts.robot)
         self._last_map_put = time.monotonic()  # the first map goes out with the first step
 
     def close(self) -> None:
@@ -390,6 +396,6 @@ def start_pose_of(route: NDArray[np.float64]) -> Pose:
 
 
 __all__ = [
-    "DEFAULT_RESOLUTION", "DEFAULT_THRESHOLD", "RobotAgent", "RobotOptions", "RobotStatus", "filter_options",
-    "map_message", "parse_route", "start_pose_of",
+    "DEFAULT_RESOLUTION", "DEFAULT_THRESHOLD", "RobotAgent", "RobotOptions", "RobotStatus", "map_message",
+    "parse_route", "robot_map_message", "robot_puts", "start_pose_of",
 ]

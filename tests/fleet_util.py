@@ -179,15 +179,21 @@ class FusedWatcher:
 
     def wait_for(self, pred: Callable[[Any], bool], timeout: float, what: str, since: int = 0) -> Any:
         """The newest message (from index ``since`` on) that satisfies ``pred``."""
-        return self.wait_for_timed(pred, timeout, what, since)[0]
+        return self._wait(pred, timeout, what, since, newest=True)[0]
 
     def wait_for_timed(self, pred: Callable[[Any], bool], timeout: float, what: str, since: int = 0) -> tuple[Any, float]:
-        """Like :meth:`wait_for`, also returning the arrival time of the *first* message (from
-        ``since``) that satisfies ``pred``."""
+        """The *first* message (from index ``since`` on) that satisfies ``pred``, with its
+        arrival time."""
+        return self._wait(pred, timeout, what, since, newest=False)
+
+    def _wait(
+        self, pred: Callable[[Any], bool], timeout: float, what: str, since: int, newest: bool
+    ) -> tuple[Any, float]:
         deadline = time.monotonic() + timeout
         with self.cond:
             while True:
-                for i in range(since, len(self.msgs)):
+                order = range(len(self.msgs) - 1, since - 1, -1) if newest else range(since, len(self.msgs))
+                for i in order:
                     if pred(self.msgs[i]):
                         return self.msgs[i], self.times[i]
                 left = deadline - time.monotonic()

@@ -13,7 +13,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import zenoh
 
 from agents.bus import FleetKeys
 from agents.fusion import decode_message, encode_message
@@ -21,9 +20,11 @@ from mapping.se2 import Pose
 from mapping.wireframe import Label, Wireframe
 from tests.fleet_util import (
     Fleet,
+    FusedWatcher,
     client,
     free_port,
     in_process_router,
+    query_fused,
     query_stats,
     tcp_endpoint,
     wait_until,
@@ -51,43 +52,6 @@ def robot_map(rid: str, pts, labels, origin: Pose, seq: int = 1) -> bytes:
             meta={"boot": 1, "t": float(seq)},
         )
     )
-
-
-class FusedWatcher:
-    """Subscribes to the fused map and keeps the decoded versions (an Event per arrival)."""
-
-    def __init__(self, session: zenoh.Session, keys: FleetKeys) -> None:
-        self.msgs: list[MapMessage] = []
-        self.cond = threading.Condition()
-        self.sub = session.declare_subscriber(keys.fused_map, self._cb)
-
-    def _cb(self, sample: zenoh.Sample) -> None:
-        m = decode_message(sample.payload.to_bytes())
-        with self.cond:
-            self.msgs.append(m)
-            self.cond.notify_all()
-
-    def wait_for(self, pred, timeout: float, what: str) -> MapMessage:
-        deadline = time.monotonic() + timeout
-        with self.cond:
-            while True:
-                for m in reversed(self.msgs):
-                    if pred(m):
-                        return m
-                left = deadline - time.monotonic()
-                if left <= 0:
-                    raise TimeoutError(f"no fused map with {what} in {timeout} s (got {len(self.msgs)})")
-                self.cond.wait(left)
-
-    def close(self) -> None:
-        self.sub.undeclare()
-
-
-def query_fused(session: zenoh.Session, keys: FleetKeys, timeout: float = 1.0) -> MapMessage | None:
-    for reply in session.get(keys.fused_map, timeout=timeout):
-        if reply.ok is not None:
-            return decode_message(reply.ok.payload.to_bytes())
-    return None
 
 
 def test_fusion_service_with_scripted_robots(tmp_path: Path):
@@ -383,22 +347,21 @@ def test_robot_and_fusion_exit_on_signal_even_without_router(tmp_path: Path, sig
 
 def test_robot_options_split_quantisation_from_the_filter_threshold():
     """``wiremap robot``: ``--resolution`` (default 0.05) quantises the published map,
-    ``--threshold`` (default 0.2) is the filter's merge threshold, which is what
-    :func:`agents.mapping_run.robot_steps` gets as ``resolution``."""
+    ``--threshold`` (default 0.2) is the filter's merge threshold (what
+    :func:`agents.mapping_run.robot_steps` merges at)."""
     import argparse
 
     from agents.commands.robot import add_arguments, options_from_args
-    from agents.robot import filter_options, map_message
+    from agents.robot import map_message
 
     parser = argparse.ArgumentParser()
     add_arguments(parser)
     opts = options_from_args(parser.parse_args(["--id", "r1", "--world", "tiny", "--start", "1,1,0"]))
     assert (opts.resolution, opts.threshold) == (0.05, 0.2)
-    assert filter_options(opts).resolution == 0.2 and opts.resolution == 0.05
     wf = Wireframe.build([(0.0, 0.0), (1.03, 0.0)], [(0, 1)], [Label.NOMINAL] * 2)
     msg = decode_message(encode_message(map_message(opts, wf, Pose.identity(), 1, 0, {})))
     assert msg.resolution == 0.05 and np.isclose(msg.wireframe.points[:, 0].max(), 1.05)
     opts = options_from_args(parser.parse_args(
         ["--id", "r1", "--world", "museum", "--start", "1,1,0", "--resolution", "0.1", "--threshold", "0.4"]
     ))
-    assert (opts.resolution, opts.threshold, filter_options(opts).resolution) == (0.1, 0.4, 0.4)
+    assert (opts.resolution, opts.threshold) == (0.1, 0.4)

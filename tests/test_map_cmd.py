@@ -134,13 +134,14 @@ def test_speed_measure_keys():
 
 def test_robot_steps_yield_the_robot_state():
     from agents.mapping_run import robot_steps
-    from agents.robot import RobotOptions, filter_options, start_pose_of
+    from agents.robot import RobotOptions, start_pose_of
 
     route = np.array([[1.0, 1.0], [4.0, 1.0], [4.0, 3.0]])
     opts = RobotOptions(robot="r1", world=str(WORLDS / "tiny.geojson"), start=start_pose_of(route), route=route,
                         particles=3, seed=4, duration=3.0)
-    steps = list(robot_steps(filter_options(opts)))  # the filter merges at opts.threshold
+    steps = list(robot_steps(opts))
     assert len(steps) == 7  # t = 0, 0.5, ..., 3.0
+    assert steps[0].filter.config.merge_threshold == opts.threshold != opts.resolution
     first, last = steps[0], steps[-1]
     assert first.pose.almost_equal(first.pose.identity())  # the map frame is the odometry frame
     assert first.true_pose.distance(opts.start) < 1e-9

@@ -89,22 +89,12 @@ def _pose_list(p: Pose | None) -> list[float] | None:
 
 def save_recording(path: str | os.PathLike[str], rec: Recording) -> None:
     """Write a recording (msgpack; each frame's map as ``wire_codec`` bytes), atomically."""
-    from wire_codec import MapMessage, MessageKind, encode
+    from agents.robot import robot_map_message
+    from wire_codec import encode
 
     frames = []
     for k, f in enumerate(rec.frames):
-        msg = MapMessage(
-            kind=MessageKind.ROBOT_MAP,
-            sender=rec.robot,
-            seq=k + 1,
-            stamp_ns=0,
-            pose=f.pose,
-            frame=f"odom/{rec.robot}",
-            origin=rec.start,
-            resolution=rec.resolution,
-            wireframe=f.wireframe,
-            meta={},
-        )
+        msg = robot_map_message(rec.robot, rec.start, rec.resolution, f.wireframe, f.pose, k + 1, 0, {})
         frames.append({"t": float(f.t), "pose": _pose_list(f.pose), "truth": _pose_list(f.truth), "map": encode(msg)})
     doc = {
         "format": RECORDING_FORMAT,
@@ -174,8 +164,8 @@ def record_robot(
 
     The origin is the first true pose (what :class:`agents.robot.RobotAgent` does when the
     simulator knows it)."""
-    from agents.robot import RobotOptions, default_steps, start_pose_of
-    from wire_codec import MapMessage, MessageKind, decode, encode
+    from agents.robot import RobotOptions, default_steps, robot_map_message, start_pose_of
+    from wire_codec import decode, encode
 
     opts = RobotOptions(
         robot=robot, world=world_spec, start=start_pose_of(route), route=route, seed=seed,
@@ -189,12 +179,7 @@ def record_robot(
         steps += 1
         if start is None:
             start = s.true_pose if s.true_pose is not None else opts.start
-        msg = MapMessage(
-            kind=MessageKind.ROBOT_MAP, sender=robot, seq=0, stamp_ns=0, pose=Pose.identity(),
-            frame=f"odom/{robot}", origin=start, resolution=resolution,
-            wireframe=s.filter.best.replace(sources=np.zeros(s.filter.best.n_edges, dtype=np.uint64)),
-            meta={},
-        )
+        msg = robot_map_message(robot, start, resolution, s.filter.best, Pose.identity(), 0, 0, {})
         data = encode(msg)
         if data == last:
             continue

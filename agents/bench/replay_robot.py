@@ -75,8 +75,8 @@ from agents.bus import (
     watch_parent,
 )
 from agents.errors import UserError
-from agents.fusion import freeze_heap
-from agents.robot import KeyPut
+from agents.proc import freeze_heap
+from agents.robot import robot_map_message, robot_puts
 
 HELP = "replay recorded robot maps on the bus (benchmark robot)"
 
@@ -135,11 +135,8 @@ class ReplayRobot:
         log_fd: int | None = None,
         phase: float = 0.0,
     ) -> None:
-        import zenoh
-
         from wire_codec import encode
 
-        self._zenoh = zenoh
         self._encode = encode
         self.session = session
         self.keys = keys
@@ -179,15 +176,8 @@ class ReplayRobot:
             os.write(self.log_fd, line.encode())
 
     def start(self) -> None:
-        z = self._zenoh
         self._token = self.session.liveliness().declare_token(self.keys.alive(self.robot))
-        # Plain session puts, like the robot agent: a declared publisher filters on the writer
-        # side and needs the subscribers' declarations, which the secure fleet's ACL does not
-        # forward to robots (it delivered only the first sample there).
-        self._pubs["map"] = KeyPut(
-            self.session, self.keys.robot_map(self.robot), congestion_control=z.CongestionControl.BLOCK
-        )
-        self._pubs["pose"] = KeyPut(self.session, self.keys.robot_pose(self.robot), express=True)
+        self._pubs = robot_puts(self.session, self.keys, self.robot)  # the agent's puts (no viz sent)
         self._write(f"B {self.boot} {os.getpid()}\n")
 
     def close(self) -> None:
@@ -200,21 +190,11 @@ class ReplayRobot:
             self._token = None
 
     def publish_map(self, k: int) -> None:
-        from wire_codec import MapMessage, MessageKind
-
         f = self.rec.frames[k]
         self.seq += 1
-        msg = MapMessage(
-            kind=MessageKind.ROBOT_MAP,
-            sender=self.robot,
-            seq=self.seq,
-            stamp_ns=time.time_ns(),
-            pose=f.pose,
-            frame=f"odom/{self.robot}",
-            origin=self.rec.start,
-            resolution=self.rec.resolution,
-            wireframe=f.wireframe,
-            meta={"boot": self.boot, "t": round(f.t + self.loops * self._loop_t, 6), "step": k},
+        msg = robot_map_message(
+            self.robot, self.rec.start, self.rec.resolution, f.wireframe, f.pose, self.seq, time.time_ns(),
+            {"boot": self.boot, "t": round(f.t + self.loops * self._loop_t, 6), "step": k},
         )
         data = self._encode(msg)
         valid = True
@@ -383,7 +363,12 @@ def run(args: argparse.Namespace) -> int:
                     phase=float(phases[k]),
                 ))
             freeze_heap()  # no full collection of the modules' objects between two puts
-            old = signal.signal(signal.SIGUSR1, lambda *_a: [b.final.set() for b in bots])
+
+            def final(*_a: Any) -> None:
+                for b in bots:
+                    b.final.set()
+
+            old = signal.signal(signal.SIGUSR1, final)
             try:
                 for bot in bots:
                     bot.start()
