@@ -29,7 +29,6 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
-from functools import reduce
 
 import numpy as np
 from numpy.typing import NDArray
@@ -45,6 +44,7 @@ _FRONTIER = int(Label.FRONTIER)
 _DENSE_SNAP_MAX = 4096  # candidate vertex pairs from a dense distance matrix up to this many entries
 _DENSE_PAIRS_MAX = 160
 _COS_45 = math.sqrt(0.5)
+_LIST_ASSEMBLY_MAX = 512  # vertices (base + new) up to which step 6 runs on lists
 _DENSE_NEAR_MAX = 20000  # (corner, wall) pairs tested densely up to this many, else via a grid  # all edge pairs are tested up to this many local edges, else angle windows
 
 
@@ -130,8 +130,8 @@ def _snap_pairs(
     lab_n: NDArray[np.int64],
     thr: float,
     allowed: Callable[[NDArray[np.intp], NDArray[np.intp]], NDArray[np.bool_]] | None = None,
-) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
-    """One-to-one pairs ``(rows into pb, cols into pn)`` within ``thr`` to combine.
+) -> tuple[list[int], list[int]]:
+    """One-to-one pairs ``(rows into pb, cols into pn)`` within ``thr`` to combine, as lists.
 
     ``allowed(rows, cols)`` may veto candidate pairs before the assignment.
 
@@ -139,9 +139,8 @@ def _snap_pairs(
     when the other wireframe has a frontier right there: merging the same scan twice stays a
     fixed point) but are not returned: frontiers are reconciled along their walls instead.
     """
-    empty = np.zeros(0, dtype=np.intp)
     if len(pb) == 0 or len(pn) == 0:
-        return empty, empty
+        return [], []
     if len(pb) * len(pn) <= _DENSE_SNAP_MAX:
         d = np.hypot(pb[:, None, 0] - pn[None, :, 0], pb[:, None, 1] - pn[None, :, 1])
         r, c = np.nonzero(d <= thr)
@@ -156,9 +155,9 @@ def _snap_pairs(
         keep = allowed(r, c)
         r, c, dist = r[keep], c[keep], dist[keep]
     if len(r) == 0:
-        return empty, empty
-    # r is sorted (nonzero / lexsort order): unique rows iff strictly increasing
-    if not ((len(r) == 1 or bool(np.all(r[1:] != r[:-1]))) and int(np.bincount(c).max()) <= 1):
+        return [], []
+    r_l, c_l = r.tolist(), c.tolist()
+    if len(set(r_l)) < len(r_l) or len(set(c_l)) < len(c_l):  # a corner with several candidates
         ur, ri = np.unique(r, return_inverse=True)
         uc, ci = np.unique(c, return_inverse=True)
         big = 1e6 * (1.0 + thr)
@@ -170,7 +169,7 @@ def _snap_pairs(
         keep = cost[rows, cols] < big
         r, c = ur[rows[keep]].astype(np.intp), uc[cols[keep]].astype(np.intp)
     ok = (lab_b[r] != _FRONTIER) | (lab_n[c] != _FRONTIER)
-    return r[ok], c[ok]
+    return r[ok].tolist(), c[ok].tolist()
 
 
 def _related(
@@ -201,37 +200,40 @@ def _related(
       bending away at the end of a long one (a door jamb next to a line-of-sight edge) is not a
       noisy piece of it.
     """
-    cos = u[i, 0] * u[j, 0] + u[i, 1] * u[j, 1]
-    shortest = np.minimum(length[i], length[j])
-    sin = np.abs(u[i, 0] * u[j, 1] - u[i, 1] * u[j, 0])
+    # (the same element-wise operations as one pair at a time, on stacked arrays)
+    ui, uj = u[i], u[j]
+    cos = ui[:, 0] * uj[:, 0] + ui[:, 1] * uj[:, 1]
+    li, lj = length[i], length[j]
+    shortest = np.minimum(li, lj)
+    sin = np.abs(ui[:, 0] * uj[:, 1] - ui[:, 1] * uj[:, 0])
     parallel = cos >= cos_tol
     same = parallel | ((cos >= _COS_45) & (shortest * sin <= thr))
-    i, j, parallel = i[same], j[same], parallel[same]
+    if not same.all():
+        i, j, parallel, li, lj = i[same], j[same], parallel[same], li[same], lj[same]
     if len(i) == 0:
         return i, j
-    swap = length[j] > length[i]
+    swap = lj > li
     lg = np.where(swap, j, i)  # the longer edge defines the line
     sh = np.where(swap, i, j)
-    ul, al, ll = u[lg], a[lg], length[lg]
-    ds, de = a[sh] - al, b[sh] - al
-    off_s = ul[:, 0] * ds[:, 1] - ul[:, 1] * ds[:, 0]
-    off_e = ul[:, 0] * de[:, 1] - ul[:, 1] * de[:, 0]
-    ts = ul[:, 0] * ds[:, 0] + ul[:, 1] * ds[:, 1]
-    te = ul[:, 0] * de[:, 0] + ul[:, 1] * de[:, 1]
+    ul, al, ll = u[lg], a[lg], np.where(swap, lj, li)
+    # positions along the longer edge's line (and offsets across it) of the shorter edge's ends,
+    # then, as measured, of both edges' ends
+    rel = np.stack((a[sh], b[sh], a0[lg], b0[lg], a0[sh], b0[sh])) - al
+    ux, uy = ul[:, 0], ul[:, 1]
+    t = ux * rel[..., 0] + uy * rel[..., 1]
+    off = ux * rel[:2, :, 1] - uy * rel[:2, :, 0]
+    ts, te, l0, l1, s0, s1 = t
     gap = np.maximum(ts - ll, -te)
     # the same gap between the ends as measured, along the same line
-    def along_line(p: NDArray[np.float64]) -> NDArray[np.float64]:
-        return np.asarray(ul[:, 0] * (p[:, 0] - al[:, 0]) + ul[:, 1] * (p[:, 1] - al[:, 1]), dtype=np.float64)
-
-    l0, l1 = along_line(a0[lg]), along_line(b0[lg])
-    s0, s1 = along_line(a0[sh]), along_line(b0[sh])
     gap0 = np.maximum(np.minimum(s0, s1) - np.maximum(l0, l1), np.minimum(l0, l1) - np.maximum(s0, s1))
-    on_line = (np.abs(off_s) <= thr) & (np.abs(off_e) <= thr)
-    # distance of each end of the short edge to the long edge's segment
-    out_s = np.maximum(np.maximum(-ts, ts - ll), 0.0)
-    out_e = np.maximum(np.maximum(-te, te - ll), 0.0)
-    along = (np.hypot(off_s, out_s) <= thr) & (np.hypot(off_e, out_e) <= thr)
-    ok = on_line & np.where(parallel, gap <= thr, along) & (gap0 <= thr)
+    on_line = (np.abs(off) <= thr).all(axis=0)
+    if parallel.all():
+        ok = on_line & (gap <= thr) & (gap0 <= thr)
+    else:
+        # distance of each end of the short edge to the long edge's segment
+        out = np.maximum(np.maximum(-t[:2], t[:2] - ll), 0.0)
+        along = (np.hypot(off, out) <= thr).all(axis=0)
+        ok = on_line & np.where(parallel, gap <= thr, along) & (gap0 <= thr)
     return i[ok], j[ok]
 
 
@@ -291,62 +293,92 @@ def _box_pairs(
     return (key // n2).astype(np.intp), (key % n2).astype(np.intp)
 
 
-_UPPER: dict[int, tuple[NDArray[np.intp], NDArray[np.intp]]] = {}
+_UPPER: dict[int, NDArray[np.bool_]] = {}
 
 
-def _upper_pairs(k: int) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
-    """``np.triu_indices(k, 1)``, cached (read-only arrays)."""
+def _upper_mask(k: int) -> NDArray[np.bool_]:
+    """``[i, j]`` is ``j > i`` (``k x k``), cached read-only."""
     got = _UPPER.get(k)
     if got is None:
-        i, j = np.triu_indices(k, 1)
-        i.setflags(write=False)
-        j.setflags(write=False)
-        got = _UPPER[k] = (i, j)
+        got = np.triu(np.ones((k, k), dtype=bool), 1)
+        got.setflags(write=False)
+        if len(_UPPER) > 256:
+            _UPPER.clear()
+        _UPPER[k] = got
     return got
 
 
+def _near_pairs(
+    a: NDArray[np.float64],
+    b: NDArray[np.float64],
+    u: NDArray[np.float64],
+    length: NDArray[np.float64],
+    thr: float,
+    cos_tol: float,
+) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
+    """The pairs ``i < j`` of a few edges that :func:`_related` may relate, from dense ``k x k``
+    tests: directions at most 45 degrees apart (the cosine computed exactly as it does), and
+    bounding boxes grown by ``0.75 * thr`` that meet. That is no approximation: a related pair has a point of
+    the shorter edge within ``thr * sqrt(2)`` of the longer edge (parallel: within ``thr`` of
+    its line and projecting within ``thr`` of its extent; noisy: both ends within ``thr`` of it).
+    Testing only these pairs gives the related pairs of all pairs, hence the same groups."""
+    ux, uy = u[:, 0], u[:, 1]
+    grow = 0.75 * thr + 1e-6
+    lo = np.minimum(a, b) - grow
+    hi = np.maximum(a, b) + grow
+    lx, ly, hx, hy = lo[:, 0], lo[:, 1], hi[:, 0], hi[:, 1]
+    keep = (lx[:, None] <= hx[None, :]) & (lx[None, :] <= hx[:, None])
+    keep &= (ly[:, None] <= hy[None, :]) & (ly[None, :] <= hy[:, None])
+    keep &= np.multiply.outer(ux, ux) + np.multiply.outer(uy, uy) >= min(cos_tol, _COS_45)
+    i, j = np.nonzero(keep & _upper_mask(len(u)))
+    return i.astype(np.intp), j.astype(np.intp)
+
+
 def _not_other_face(
-    pos: NDArray[np.float64], edges: NDArray[np.int64], nlb: int, thr: float, cos_tol: float
+    edges: NDArray[np.int64],
+    raw_a: NDArray[np.float64],
+    raw_d: NDArray[np.float64],
+    raw_n: NDArray[np.float64],
+    mbl: int,
+    nlb: int,
+    thr: float,
+    cos_tol: float,
 ) -> Callable[[NDArray[np.intp], NDArray[np.intp]], NDArray[np.bool_]]:
     """Veto for :func:`_snap_pairs`: a base corner and a new corner (local ids ``r`` and
     ``nlb + c``) are not combined when a wall at one and a wall at the other point in opposite
     directions (within ``angle_tol``) along lines more than ``thr / 4`` apart: they are the two
     faces of a thick wall (or the two sides of a narrow gap), whose corners may lie within the
     threshold of each other, not two sightings of one corner. Two faces of a *thin* wall lie on
-    one line and still share their corners."""
+    one line and still share their corners.
+
+    ``edges`` are the local edges (the first ``mbl`` of base, joining base corners ``< nlb``,
+    then those of new), ``raw_a``/``raw_d``/``raw_n`` their starts, vectors and lengths."""
 
     def allowed(r: NDArray[np.intp], c: NDArray[np.intp]) -> NDArray[np.bool_]:
-        out = np.ones(len(r), dtype=bool)
-        if len(edges) == 0:
-            return out
-        a = pos[edges[:, 0]]
-        d = pos[edges[:, 1]] - a
-        n = np.hypot(d[:, 0], d[:, 1])
-        u = d / np.where(n > 0.0, n, 1.0)[:, None]
-        # vertex -> its edges, as slices of one sorted incidence list
-        inc_v = np.concatenate([edges[:, 0], edges[:, 1]])
-        inc_e = np.concatenate([np.arange(len(edges)), np.arange(len(edges))])
-        order = np.argsort(inc_v, kind="stable")
-        inc_v, inc_e = inc_v[order], inc_e[order]
-        lo_r, hi_r = np.searchsorted(inc_v, r, "left"), np.searchsorted(inc_v, r, "right")
-        lo_c, hi_c = np.searchsorted(inc_v, c + nlb, "left"), np.searchsorted(inc_v, c + nlb, "right")
-        # every (candidate, base edge at its base corner, new edge at its new corner) triple
-        nr, nc = hi_r - lo_r, hi_c - lo_c
-        per = nr * nc
-        k = np.repeat(np.arange(len(r)), per)
-        if len(k) == 0:
-            return out
-        local = np.arange(len(k)) - np.repeat(np.cumsum(per) - per, per)
-        fb = inc_e[lo_r[k] + local // nc[k]]
-        fn = inc_e[lo_c[k] + local % nc[k]]
-        ub, un = u[fb], u[fn]
-        anti = ub[:, 0] * un[:, 0] + ub[:, 1] * un[:, 1] <= -cos_tol  # pointing opposite ways
-        rel = a[fn] - a[fb]
-        off = np.abs(ub[:, 0] * rel[:, 1] - ub[:, 1] * rel[:, 0])  # apart across the base wall
-        veto = anti & (off > 0.25 * thr)
-        if veto.any():
-            out[np.unique(k[veto])] = False
-        return out
+        if mbl == 0 or mbl == len(edges):
+            return np.ones(len(r), dtype=bool)
+        # every (base wall, new wall) pair is tested once, as dense matrices; a candidate is
+        # vetoed when a vetoing pair has one wall at each of its corners
+        u = raw_d / np.where(raw_n > 0.0, raw_n, 1.0)[:, None]
+        ub, un = u[:mbl, None, :], u[None, mbl:, :]
+        anti = ub[..., 0] * un[..., 0] + ub[..., 1] * un[..., 1] <= -cos_tol  # pointing opposite ways
+        if not anti.any():
+            return np.ones(len(r), dtype=bool)
+        rel = raw_a[None, mbl:, :] - raw_a[:mbl, None, :]
+        veto = anti & (np.abs(ub[..., 0] * rel[..., 1] - ub[..., 1] * rel[..., 0]) > 0.25 * thr)  # apart
+        if not veto.any():
+            return np.ones(len(r), dtype=bool)
+        eb, en = edges[:mbl], edges[mbl:] - nlb
+        inc_b = np.zeros((nlb, mbl))  # base corner x base wall at it (counts: exact in floats)
+        ar_b = np.arange(mbl)
+        inc_b[eb[:, 0], ar_b] = 1.0
+        inc_b[eb[:, 1], ar_b] = 1.0
+        inc_n = np.zeros((len(en), int(max(en.max(), c.max())) + 1))  # new wall x new corner
+        ar_n = np.arange(len(en))
+        inc_n[ar_n, en[:, 0]] = 1.0
+        inc_n[ar_n, en[:, 1]] = 1.0
+        hits = (inc_b[r] @ veto.astype(np.float64)) * inc_n.T[c]
+        return np.asarray(hits.sum(axis=1) == 0.0)
 
     return allowed
 
@@ -368,8 +400,10 @@ def _pick_ends(
                 continue
             dx, dy = pos[e][0] - sx, pos[e][1] - sy
             lim = cos_tol * math.hypot(dx, dy)
-            if lim > 0.0 and any(ux * dx + uy * dy >= lim for ux, uy in units):
-                return s, e
+            if lim > 0.0:
+                for ux, uy in units:
+                    if ux * dx + uy * dy >= lim:
+                        return s, e
     return None
 
 
@@ -423,6 +457,105 @@ def _may_absorb(
             if raw[f][0] * dx + raw[f][1] * dy < cos_tol * math.hypot(dx, dy) * math.hypot(*raw[f]):
                 return False
     return True
+
+
+def _valid_wireframe(
+    points: NDArray[np.float64],
+    labels: NDArray[np.uint8],
+    edges: NDArray[np.int64],
+    likelihood: NDArray[np.float64],
+    sources: NDArray[np.uint64],
+) -> Wireframe:
+    """``Wireframe(points, labels, edges, likelihood, sources)`` for arrays that are valid by
+    construction (a merge's result: indices in range, no self-loops, finite coordinates,
+    likelihoods in [0, 1]): the same fresh read-only arrays of the same dtypes, without
+    ``Wireframe.__post_init__``'s checks, which cost as much as a tenth of a small merge."""
+    wf = object.__new__(Wireframe)
+    for name, arr, dtype in (
+        ("points", points.reshape(-1, 2), np.float64),
+        ("labels", labels, np.uint8),
+        ("edges", edges.reshape(-1, 2), np.int32),
+        ("likelihood", likelihood, np.float64),
+        ("sources", sources, np.uint64),
+    ):
+        a = np.array(arr, dtype=dtype, order="C")
+        a.setflags(write=False)
+        object.__setattr__(wf, name, a)
+    return wf
+
+
+def _assemble_lists(
+    pos: list[list[float]],
+    lab: list[int],
+    kept_v: list[bool] | None,
+    eu: list[int],
+    ev: list[int],
+    el: list[float],
+    es: list[int],
+    prov: list[list[int]],
+    trace: bool,
+) -> tuple[Wireframe, list[list[int]]]:
+    """Step 6 of :func:`_merge` for a small map, in plain lists (global ids: ``pos``, ``lab``;
+    ``kept_v``: base vertices kept whether used or not; the edges ``eu -> ev``, untouched base
+    edges first): degenerate edges dropped, duplicate directed edges combined (then every
+    likelihood is ``clip(1 - (1 - L))``, as the vectorised path computes it), unused vertices
+    dropped. The same result as the vectorised path."""
+    keep_e = [x != y and pos[x] != pos[y] for x, y in zip(eu, ev)]
+    if not all(keep_e):
+        eu = [x for x, o in zip(eu, keep_e) if o]
+        ev = [x for x, o in zip(ev, keep_e) if o]
+        el = [x for x, o in zip(el, keep_e) if o]
+        es = [x for x, o in zip(es, keep_e) if o]
+        if trace:
+            prov = [x for x, o in zip(prov, keep_e) if o]
+    total = len(pos)
+    if len(eu) > 1:
+        key = [x * total + y for x, y in zip(eu, ev)]
+        if len(set(key)) < len(key):  # duplicate directed edges: combined like any merge
+            slot: dict[int, int] = {}
+            q: list[float] = []
+            s_acc: list[int] = []
+            acc: list[list[int]] = []
+            eu2: list[int] = []
+            ev2: list[int] = []
+            for n, kk in enumerate(key):
+                g = slot.get(kk)
+                if g is None:
+                    g = slot[kk] = len(q)
+                    q.append(1.0)
+                    s_acc.append(0)
+                    acc.append([])
+                    eu2.append(eu[n])
+                    ev2.append(ev[n])
+                q[g] *= 1.0 - el[n]
+                s_acc[g] |= es[n]
+                if trace:
+                    acc[g].extend(prov[n])
+            eu, ev, es = eu2, ev2, s_acc
+            el = [min(1.0, max(0.0, 1.0 - x)) for x in q]
+            if trace:
+                prov = acc
+    used = [False] * total
+    if kept_v is not None:
+        used[: len(kept_v)] = kept_v
+    for x in eu:
+        used[x] = True
+    for x in ev:
+        used[x] = True
+    remap = [0] * total
+    kept: list[int] = []
+    for x in range(total):
+        if used[x]:
+            remap[x] = len(kept)
+            kept.append(x)
+    merged = _valid_wireframe(
+        np.array([pos[x] for x in kept], dtype=np.float64),
+        np.array([lab[x] for x in kept], dtype=np.uint8),
+        np.stack((np.array([remap[x] for x in eu], dtype=np.int64), np.array([remap[y] for y in ev], dtype=np.int64)), axis=1),
+        np.array(el, dtype=np.float64),
+        np.array(es, dtype=np.uint64),
+    )
+    return merged, [sorted(set(x)) for x in prov]
 
 
 def _find(parent: list[int], x: int) -> int:
@@ -586,7 +719,12 @@ def merge_traced(
 def _merge(
     base: Wireframe, new: Wireframe, cfg: MergeConfig, trace: bool
 ) -> tuple[Wireframe, list[list[int]]]:
-    """The body of :func:`merge`; with ``trace`` also the provenance of :func:`merge_traced`."""
+    """The body of :func:`merge`; with ``trace`` also the provenance of :func:`merge_traced`.
+
+    Written for small inputs (a scan, a robot's map): numpy for what is quadratic in their size,
+    plain lists for the per-corner and per-wall bookkeeping (numpy's per-call cost dominates at
+    a few dozen elements). Every number is computed by the same operations in the same order
+    either way (``np.hypot`` where a length is vectorised, ``math.hypot`` where it is not)."""
     thr = cfg.threshold
     cos_tol = math.cos(cfg.angle_tol)
     sin_tol = math.sin(cfg.angle_tol)
@@ -596,76 +734,98 @@ def _merge(
     new = new.compacted()
     nb, nn = base.n_vertices, new.n_vertices
     mb = base.n_edges
+    bpts, bedges = base.points, base.edges
 
     # ---- 1. the local part of base ------------------------------------------------------------
     if cfg.cull and mb:
         grow = 2.0 * thr
         lo = new.points.min(axis=0) - grow
         hi = new.points.max(axis=0) + grow
-        seg = base.points[base.edges]
-        smin, smax = seg.min(axis=1), seg.max(axis=1)
-        local_e = (
-            (smax[:, 0] >= lo[0]) & (smax[:, 1] >= lo[1]) & (smin[:, 0] <= hi[0]) & (smin[:, 1] <= hi[1])
-        )
-        bp = base.points
-        local_v = (bp[:, 0] >= lo[0]) & (bp[:, 1] >= lo[1]) & (bp[:, 0] <= hi[0]) & (bp[:, 1] <= hi[1])
+        if bool((bpts.min(axis=0) >= lo).all() and (bpts.max(axis=0) <= hi).all()):  # all of base is near
+            local_e = np.ones(mb, dtype=bool)
+            local_v = np.ones(nb, dtype=bool)
+        else:
+            pa, pb = bpts[bedges[:, 0]], bpts[bedges[:, 1]]
+            local_e = ((np.maximum(pa, pb) >= lo) & (np.minimum(pa, pb) <= hi)).all(axis=1)
+            local_v = ((bpts >= lo) & (bpts <= hi)).all(axis=1)
     else:
         local_e = np.ones(mb, dtype=bool)
         local_v = np.ones(nb, dtype=bool)
-    local_v[base.edges[local_e].reshape(-1)] = True
-    lb = np.flatnonzero(local_v)
+    all_e = bool(local_e.all())
+    le = bedges if all_e else bedges[local_e]
+    local_v[le.reshape(-1)] = True
+    all_v = bool(local_v.all())
+    lb = np.arange(nb) if all_v else np.flatnonzero(local_v)
     nlb = len(lb)
     nl = nlb + nn
+    mbl = len(le)
 
-    pos = np.concatenate([base.points[lb], new.points])
-    lab = np.concatenate([base.labels[lb], new.labels]).astype(np.int64)
-    is_new = np.zeros(nl, dtype=bool)
-    is_new[nlb:] = True
-    fixed = ~is_new  # position taken from base
-
-    g2l = np.full(nb, -1, dtype=np.int64)
-    g2l[lb] = np.arange(nlb)
+    pos = np.concatenate([bpts if all_v else bpts[lb], new.points])
+    lab = np.concatenate([base.labels if all_v else base.labels[lb], new.labels]).astype(np.int64)
 
     # ---- 2. vertex correspondence ---------------------------------------------------------------
-    edges = np.concatenate([g2l[base.edges[local_e]], new.edges.astype(np.int64) + nlb])
+    if all_v:
+        le_l = le.astype(np.int64)
+    else:
+        g2l = np.full(nb, -1, dtype=np.int64)
+        g2l[lb] = np.arange(nlb)
+        le_l = g2l[le]
+    edges = np.concatenate([le_l, new.edges.astype(np.int64) + nlb])
     # glimpses: shorter than thr with a frontier end, as observed (before corners are combined):
     # the wall was seen for less than the map's resolution, no reliable direction, no corner
-    ea, eb = pos[edges[:, 0]], pos[edges[:, 1]]
-    glimpse = ((lab[edges[:, 0]] == _FRONTIER) | (lab[edges[:, 1]] == _FRONTIER)) & (
-        np.hypot(eb[:, 0] - ea[:, 0], eb[:, 1] - ea[:, 1]) < thr
+    e0, e1 = edges[:, 0], edges[:, 1]
+    raw_a = pos[e0]  # edge starts and directions as measured
+    raw_d = pos[e1] - raw_a
+    raw_n = np.hypot(raw_d[:, 0], raw_d[:, 1])
+    glimpse = ((lab[e0] == _FRONTIER) | (lab[e1] == _FRONTIER)) & (raw_n < thr)
+
+    pos_l = pos.tolist()
+    pos0_l = pos.tolist()  # positions as measured, before corners are combined
+    lab_l = lab.tolist()
+    is_new_l = [False] * nlb + [True] * nn
+    fixed_l = [True] * nlb + [False] * nn  # position taken from base
+    snap_l = list(range(nl))
+    mate_l = [-1] * nl  # the new corner each base corner was combined with
+    r_l, c_l = _snap_pairs(
+        pos[:nlb], pos[nlb:], lab[:nlb], lab[nlb:], thr,
+        _not_other_face(edges, raw_a, raw_d, raw_n, mbl, nlb, thr, cos_tol),
     )
+    if r_l:
+        for rr, cc in zip(r_l, c_l):
+            cn = cc + nlb
+            if lab_l[cn] < lab_l[rr]:
+                pos_l[rr] = pos_l[cn]
+                fixed_l[rr] = False
+                lab_l[rr] = lab_l[cn]
+            snap_l[cn] = rr
+            mate_l[rr] = cn
+        pos = np.array(pos_l, dtype=np.float64)
+        edges = np.array(snap_l, dtype=np.int64)[edges]
 
-    pos0 = pos.copy()  # positions as measured, before corners are combined
-    raw_a = pos0[edges[:, 0]]  # edge starts and directions as measured
-    raw_d = pos0[edges[:, 1]] - raw_a
-    snap = np.arange(nl)
-    mate = np.full(nl, -1, dtype=np.int64)  # the new corner each base corner was combined with
-    r, c = _snap_pairs(pos[:nlb], pos[nlb:], lab[:nlb], lab[nlb:], thr, _not_other_face(pos, edges, nlb, thr, cos_tol))
-    if len(r):
-        cn = c + nlb
-        better = lab[cn] < lab[r]
-        pos[r[better]] = pos[cn[better]]
-        fixed[r[better]] = False
-        lab[r] = np.minimum(lab[r], lab[cn])
-        snap[cn] = r
-        mate[r] = cn
-
-    edges = snap[edges]
-    lik = np.concatenate([base.likelihood[local_e], new.likelihood])
-    src = np.concatenate([base.sources[local_e], new.sources])
-    e_new = np.zeros(len(edges), dtype=bool)
-    e_new[int(local_e.sum()) :] = True
-    orig = np.concatenate([np.flatnonzero(local_e), mb + np.arange(new.n_edges)])  # input edge ids
+    if all_e:
+        lik_l = base.likelihood.tolist() + new.likelihood.tolist()
+        src_l = base.sources.tolist() + new.sources.tolist()
+        orig_l = list(range(mb + new.n_edges))  # input edge ids
+    else:
+        lik_l = base.likelihood[local_e].tolist() + new.likelihood.tolist()
+        src_l = base.sources[local_e].tolist() + new.sources.tolist()
+        orig_l = np.flatnonzero(local_e).tolist() + list(range(mb, mb + new.n_edges))
 
     a = pos[edges[:, 0]]
     b = pos[edges[:, 1]]
     d = b - a
     length = np.hypot(d[:, 0], d[:, 1])
     ok = (edges[:, 0] != edges[:, 1]) & (length > 0.0) & ~glimpse
+    e_new_l = [False] * mbl + [True] * new.n_edges
     if not ok.all():
-        edges, lik, src, e_new, orig = edges[ok], lik[ok], src[ok], e_new[ok], orig[ok]
+        edges = edges[ok]
         raw_a, raw_d = raw_a[ok], raw_d[ok]
         a, b, d, length = a[ok], b[ok], d[ok], length[ok]
+        ok_l = ok.tolist()
+        e_new_l = [x for x, o in zip(e_new_l, ok_l) if o]
+        lik_l = [x for x, o in zip(lik_l, ok_l) if o]
+        src_l = [x for x, o in zip(src_l, ok_l) if o]
+        orig_l = [x for x, o in zip(orig_l, ok_l) if o]
     k = len(edges)
     u = d / np.where(length > 0.0, length, 1.0)[:, None]
 
@@ -673,14 +833,15 @@ def _merge(
     # candidate pairs: all of them for a few edges; else roughly the same direction and
     # bounding boxes within thr of each other
     if k <= _DENSE_PAIRS_MAX:
-        pi_, pj_ = _upper_pairs(k)
+        pi_, pj_ = _near_pairs(a, b, u, length, thr, cos_tol)
     else:  # grid on the boxes grown by thr / 2, then the direction
         half = 0.5 * thr + 1e-12
         cell = max(4.0 * thr, float(np.median(length)))
         pi_, pj_ = _box_pairs(np.minimum(a, b) - half, np.maximum(a, b) + half, None, None, cell)
         same_dir = u[pi_, 0] * u[pj_, 0] + u[pi_, 1] * u[pj_, 1] >= _COS_45
         pi_, pj_ = pi_[same_dir], pj_[same_dir]
-    pi_, pj_ = _related(a, b, u, length, pi_, pj_, thr, cos_tol, raw_a, raw_a + raw_d)
+    if len(pi_):
+        pi_, pj_ = _related(a, b, u, length, pi_, pj_, thr, cos_tol, raw_a, raw_a + raw_d)
     eparent = list(range(k))
     for x, y in zip(pi_.tolist(), pj_.tolist()):
         rx, ry = _find(eparent, x), _find(eparent, y)
@@ -689,26 +850,23 @@ def _merge(
                 eparent[ry] = rx
             else:
                 eparent[rx] = ry
-    comp = np.array([_find(eparent, x) for x in range(k)], dtype=np.int64) if k else np.zeros(0, np.int64)
+    comp_l = [_find(eparent, x) for x in range(k)]
     members: dict[int, list[int]] = {}
-    for x in sorted({int(cx) for cx in comp[comp != np.arange(k)]}) if k else []:
-        members[x] = []
-    if members:
-        for x in range(k):
-            cx = int(comp[x])
+    multi = sorted({cx for x, cx in enumerate(comp_l) if cx != x})
+    if multi:
+        for x in multi:
+            members[x] = []
+        for x, cx in enumerate(comp_l):
             if cx in members:
                 members[cx].append(x)
 
     # ---- 4a. spans of all groups (multi-edge groups in Python, singletons vectorised) --------
     vparent = list(range(nl))  # absorption of corners into wall ends
-    lab_l = lab.tolist()
-    is_new_l = is_new.tolist()
-    pos_l = pos.tolist()
     a_l, b_l = a.tolist(), b.tolist()
-    u_l = u.tolist()
     len_l = length.tolist()
-    e_new_l = e_new.tolist()
     edges_l = edges.tolist()
+    raw_l = raw_d.tolist()
+    raw_nl = [math.hypot(x, y) for x, y in raw_l]  # = math.hypot(*raw_l[e])
 
     # per resolved multi-edge group: (component, start, end, base reference?, its length, edges)
     grp_info: list[tuple[int, int, int, bool, float, list[int]]] = []
@@ -716,44 +874,46 @@ def _merge(
     g_o: list[list[float]] = []
     g_t0: list[float] = []
     g_t1: list[float] = []
-    raw_l = raw_d.tolist()
-    mate_l = mate.tolist()
-    pos0_l = pos0.tolist()
     vclass: dict[int, list[int]] = {}  # absorbed corners per root (roots absorbing nothing: absent)
     inc_of: dict[int, list[int]] = {}  # local corner -> its edges (only filled for groups' corners)
+    u_l = u.tolist()
     if members:
         for f, (x, y) in enumerate(edges_l):
             inc_of.setdefault(x, []).append(f)
             inc_of.setdefault(y, []).append(f)
     for cid, eds in members.items():
-        ref = min(eds, key=lambda e: (e_new_l[e], -len_l[e], e))
+        ref = eds[0]
+        for e in eds[1:]:  # min over (new?, -length, index): base first, then the longest
+            if (e_new_l[e], -len_l[e]) < (e_new_l[ref], -len_l[ref]):
+                ref = e
         ux, uy = u_l[ref]
         ox, oy = a_l[ref]
         verts = sorted({v for e in eds for v in edges_l[e]})
-        tv = {v: ux * (pos_l[v][0] - ox) + uy * (pos_l[v][1] - oy) for v in verts}
+        tv = {}
+        for v in verts:
+            pv = pos_l[v]
+            tv[v] = ux * (pv[0] - ox) + uy * (pv[1] - oy)
         t0 = min(tv.values())
         t1 = max(tv.values())
+        lo_t, hi_t = t0 + thr, t1 - thr
         # best label; real corners: base before new (a stable map), frontiers: farthest out
-        starts = sorted(
-            (v for v in verts if tv[v] <= t0 + thr),
-            key=lambda v: (lab_l[v], lab_l[v] != _FRONTIER and is_new_l[v], tv[v], is_new_l[v], v),
-        )
-        ends = sorted(
-            (v for v in verts if tv[v] >= t1 - thr),
-            key=lambda v: (lab_l[v], lab_l[v] != _FRONTIER and is_new_l[v], -tv[v], is_new_l[v], v),
-        )
+        starts = [v for v in verts if tv[v] <= lo_t]
+        if len(starts) > 1:
+            starts.sort(key=lambda v: (lab_l[v], lab_l[v] != _FRONTIER and is_new_l[v], tv[v], is_new_l[v], v))
+        ends = [v for v in verts if tv[v] >= hi_t]
+        if len(ends) > 1:
+            ends.sort(key=lambda v: (lab_l[v], lab_l[v] != _FRONTIER and is_new_l[v], -tv[v], is_new_l[v], v))
         # the first (start, end) in that order whose wall points like one of its edges as
         # measured; none (a short group of noisy pieces): leave the edges as they are
-        dirs = [raw_l[e] for e in eds]
-        chosen = _pick_ends(starts, ends, pos_l, dirs, cos_tol)
+        chosen = _pick_ends(starts, ends, pos_l, [raw_l[e] for e in eds], cos_tol)
         if chosen is None:
             continue
         s, e_ = chosen
         for v in verts:  # corners near an end are absorbed into it; those inside leave the wall
             if v == s or v == e_:
                 continue
-            near_s = tv[v] <= t0 + thr
-            near_e = tv[v] >= t1 - thr
+            near_s = tv[v] <= lo_t
+            near_e = tv[v] >= hi_t
             if near_s and near_e:
                 tgt = s if tv[v] - tv[s] <= tv[e_] - tv[v] else e_
             elif near_s:
@@ -775,27 +935,26 @@ def _merge(
         g_t1.append(t1)
 
     n_multi = len(grp_info)
-    singles = np.flatnonzero(comp == np.arange(k)) if k else np.zeros(0, dtype=np.intp)
-    if members:
-        singles = singles[[int(x) not in members for x in singles.tolist()]] if len(singles) else singles
-    # also multi-edge groups skipped above pass their edges through as singletons
-    handled = {cid for cid, *_ in grp_info}
+    # singletons, and the edges of multi-edge groups skipped above, pass as singletons
+    handled = {info[0] for info in grp_info}
+    single_list = [x for x, cx in enumerate(comp_l) if cx == x and x not in members]
     skipped = [e for cid, eds in members.items() if cid not in handled for e in eds]
     if skipped:
-        singles = np.sort(np.concatenate([singles, np.asarray(skipped, dtype=singles.dtype)]))
-
-    gu = np.concatenate([np.asarray(g_u, dtype=np.float64).reshape(-1, 2), u[singles]])
-    go = np.concatenate([np.asarray(g_o, dtype=np.float64).reshape(-1, 2), a[singles]])
-    gt0 = np.concatenate([np.asarray(g_t0, dtype=np.float64), np.zeros(len(singles))])
-    gt1 = np.concatenate([np.asarray(g_t1, dtype=np.float64), length[singles]])
-    ng = len(gu)
+        single_list = sorted(single_list + skipped)
+    gu_l = g_u + [u_l[e] for e in single_list]
+    go_l = g_o + [a_l[e] for e in single_list]
+    ng = len(gu_l)
 
     # ---- 4b. T-junction candidates: corners near a wall's interior ---------------------------
-    active = snap == np.arange(nl)
-    cand_v = np.flatnonzero(active & (lab != _FRONTIER))
+    cand_l = [v for v in range(nl) if snap_l[v] == v and lab_l[v] != _FRONTIER]
     splits: dict[int, list[int]] = {}
-    if ng and len(cand_v):
-        if ng * len(cand_v) <= _DENSE_NEAR_MAX:
+    if ng and cand_l:
+        cand_v = np.array(cand_l, dtype=np.intp)
+        gu = np.array(gu_l, dtype=np.float64)
+        go = np.array(go_l, dtype=np.float64)
+        gt0 = np.array(g_t0 + [0.0] * len(single_list), dtype=np.float64)
+        gt1 = np.array(g_t1 + [len_l[e] for e in single_list], dtype=np.float64)
+        if ng * len(cand_l) <= _DENSE_NEAR_MAX:
             rel = pos[cand_v][:, None, :] - go[None, :, :]
             off = gu[None, :, 0] * rel[..., 1] - gu[None, :, 1] * rel[..., 0]
             tt = gu[None, :, 0] * rel[..., 0] + gu[None, :, 1] * rel[..., 1]
@@ -804,28 +963,27 @@ def _merge(
         else:  # many: candidate (corner, wall) pairs from a grid first
             ends0 = go + gt0[:, None] * gu
             ends1 = go + gt1[:, None] * gu
-            pv = pos[cand_v]
+            pv_ = pos[cand_v]
             cell = max(4.0 * thr, float(np.median(gt1 - gt0)))
-            vi, gi = _box_pairs(pv, pv, np.minimum(ends0, ends1) - thr, np.maximum(ends0, ends1) + thr, cell)
-            rel = pv[vi] - go[gi]
+            vi, gi = _box_pairs(pv_, pv_, np.minimum(ends0, ends1) - thr, np.maximum(ends0, ends1) + thr, cell)
+            rel = pv_[vi] - go[gi]
             ug = gu[gi]
             off = ug[:, 0] * rel[:, 1] - ug[:, 1] * rel[:, 0]
             tt = ug[:, 0] * rel[:, 0] + ug[:, 1] * rel[:, 1]
             near = (np.abs(off) <= thr) & (tt > gt0[gi] + thr) & (tt < gt1[gi] - thr)
             vi, gi = vi[near], gi[near]
         if len(vi):
-            group_of_edge = comp.tolist()
-            gcomp = [info[0] for info in grp_info] + [int(comp[e]) for e in singles.tolist()]
+            gcomp = [info[0] for info in grp_info] + [comp_l[e] for e in single_list]
             incident: dict[int, list[int]] = {}
             for f, (x, y) in enumerate(edges_l):
                 incident.setdefault(x, []).append(f)
                 incident.setdefault(y, []).append(f)
             for v, g in zip(cand_v[vi].tolist(), gi.tolist()):
-                gx, gy = gu[g]
+                gx, gy = gu_l[g]
                 own = gcomp[g]
                 px, py = pos_l[v]
                 for f in incident.get(v, ()):
-                    if group_of_edge[f] == own:
+                    if comp_l[f] == own:
                         continue
                     w = edges_l[f][1] if edges_l[f][0] == v else edges_l[f][0]
                     dx, dy = pos_l[w][0] - px, pos_l[w][1] - py
@@ -840,11 +998,7 @@ def _merge(
     out_s: list[int] = []
     nominal: set[int] = set()
     constraints: dict[int, list[tuple[float, float, float, float]]] = {}
-    pass_mask = np.zeros(k, dtype=bool)
-    single_list = singles.tolist()
-    src_l = [int(x) for x in src.tolist()]
-    lik_l = lik.tolist()
-    orig_l = orig.tolist()
+    pass_l = [False] * k
     out_p: list[list[int]] = []
 
     todo: list[tuple[list[int], list[float], list[int], float, float, float, float]] = []
@@ -887,72 +1041,78 @@ def _merge(
             out.append((nodes[p], nodes[p + 1], cov, sorted({*cov, *touch[p]})))
         return out
 
+    snap_lines = cfg.snap_to_lines
     for g in range(ng):
-        spl = splits.get(g, [])
+        spl = splits.get(g)
         if g >= n_multi:
             e = single_list[g - n_multi]
             if not spl:
-                pass_mask[e] = True
+                pass_l[e] = True
                 continue
-            s, e_, eds, base_ref, ref_len = edges_l[e][0], edges_l[e][1], [e], not e_new_l[e], len_l[e]
+            s, e_ = edges_l[e]
+            eds, base_ref, ref_len = [e], not e_new_l[e], len_l[e]
         else:
             _, s, e_, base_ref, ref_len, eds = grp_info[g]
-        ux, uy = gu[g].tolist()
-        ox, oy = go[g].tolist()
-        spl_sorted = sorted(set(spl), key=lambda v: (ux * (pos_l[v][0] - ox) + uy * (pos_l[v][1] - oy), v))
-        nodes = [s, *spl_sorted, e_]
+        ux, uy = gu_l[g]
+        ox, oy = go_l[g]
+        if spl:
+            spl_sorted = sorted(set(spl), key=lambda v: (ux * (pos_l[v][0] - ox) + uy * (pos_l[v][1] - oy), v))
+            nominal.update(spl_sorted)
+            nodes = [s, *spl_sorted, e_]
+        else:
+            nodes = [s, e_]
         tn = [ux * (pos_l[v][0] - ox) + uy * (pos_l[v][1] - oy) for v in nodes]
-        nominal.update(spl_sorted)
         todo.append((nodes, tn, eds, ux, uy, ox, oy))
-        if cfg.snap_to_lines and base_ref:
+        if snap_lines and base_ref and spl:
             for v, tv_ in zip(nodes[1:-1], tn[1:-1]):
                 if 0.0 <= tv_ <= ref_len:  # inside the base wall: interpolation, never beyond
                     constraints.setdefault(v, []).append((ux, uy, ox, oy))
 
     # ---- 5. resolve corner absorption, labels and positions ---------------------------------
-    root = np.array([_find(vparent, x) for x in range(nl)], dtype=np.int64)
-    lab_out = lab.copy()
-    if nominal:
-        lab_out[list(nominal)] = _NOMINAL
-    absorbed = np.flatnonzero(root != np.arange(nl))
-    if len(absorbed):
-        best_lab = lab_out.copy()
-        np.minimum.at(best_lab, root, lab_out)
-        for v in absorbed.tolist():  # a root worse-labelled than its class takes a best member's place
-            rv = int(root[v])
+    root_l = [_find(vparent, x) for x in range(nl)]
+    lab_out = lab_l  # (lab_l is not used below under its own name)
+    for v in nominal:
+        lab_out[v] = _NOMINAL
+    absorbed = [v for v in range(nl) if root_l[v] != v]
+    if absorbed:
+        best_lab = list(lab_out)
+        for x in range(nl):
+            rx = root_l[x]
+            if lab_out[x] < best_lab[rx]:
+                best_lab[rx] = lab_out[x]
+        for v in absorbed:  # a root worse-labelled than its class takes a best member's place
+            rv = root_l[v]
             if lab_out[rv] > best_lab[rv] and lab_out[v] == best_lab[rv]:
-                pos[rv] = pos[v]
-                fixed[rv] = fixed[v]
+                pos_l[rv] = pos_l[v]
+                fixed_l[rv] = fixed_l[v]
                 lab_out[rv] = lab_out[v]
         lab_out = best_lab
 
     walls_at: dict[int, list[tuple[int, bool, list[int]]]] = {}  # root -> (other end, starts?, edges)
     if constraints:
-        root_l = root.tolist()
         ends_l = [(x, y, cov) for item in todo for x, y, cov, _ in pieces(*item)]
-        ends_l += [(edges_l[e][0], edges_l[e][1], [e]) for e in np.flatnonzero(pass_mask).tolist()]
+        ends_l += [(edges_l[e][0], edges_l[e][1], [e]) for e in range(k) if pass_l[e]]
         for x, y, cov in ends_l:
             walls_at.setdefault(root_l[x], []).append((root_l[y], True, cov))
             walls_at.setdefault(root_l[y], []).append((root_l[x], False, cov))
-        raw_c = raw_d.tolist()
 
         def turns_a_wall(rv: int, qx: float, qy: float) -> bool:
             for w, starts, cov in walls_at.get(rv, ()):
                 if w == rv:
                     continue
-                dx, dy = float(pos[w, 0]) - qx, float(pos[w, 1]) - qy
+                dx, dy = pos_l[w][0] - qx, pos_l[w][1] - qy
                 if not starts:
                     dx, dy = -dx, -dy
                 dd = math.hypot(dx, dy)
-                if not any(raw_c[e][0] * dx + raw_c[e][1] * dy >= cos_tol * dd * math.hypot(*raw_c[e]) for e in cov):
+                if not any(raw_l[e][0] * dx + raw_l[e][1] * dy >= cos_tol * dd * raw_nl[e] for e in cov):
                     return True
             return False
 
         for v, lines in constraints.items():
-            rv = int(root[v])
-            if fixed[rv]:
+            rv = root_l[v]
+            if fixed_l[rv]:
                 continue
-            px, py = float(pos[rv, 0]), float(pos[rv, 1])
+            px, py = pos_l[rv]
             m00 = m01 = m11 = r0 = r1 = 0.0
             for ux, uy, ox, oy in lines:  # least squares over the lines' normal equations
                 nx, ny = -uy, ux
@@ -972,27 +1132,32 @@ def _merge(
                 qx, qy = ox + tp * ux, oy + tp * uy
             # never farther than thr from where any corner combined into it was measured
             # (combining and then snapping could otherwise move a corner twice)
-            near = [int(rv), int(v)] + [int(mate[x]) for x in (rv, v) if mate[x] >= 0]
+            near_c = [rv, v] + [mate_l[x] for x in (rv, v) if mate_l[x] >= 0]
             # and never turning a wall that ends there away from the edges it comes from
-            if all(math.hypot(qx - pos0[x, 0], qy - pos0[x, 1]) <= thr for x in near) and not turns_a_wall(
+            if all(math.hypot(qx - pos0_l[x][0], qy - pos0_l[x][1]) <= thr for x in near_c) and not turns_a_wall(
                 rv, qx, qy
             ):
-                pos[rv] = (qx, qy)
+                pos_l[rv] = [qx, qy]
 
     # ---- 5b. emit the resolved walls, each pointing like one of the edges it covers ---------
     # (with the final corner positions: a split corner off the line, or a corner absorbed
     # elsewhere, can turn a short piece; then the split is undone, and a wall that still does not
     # point like its edges leaves them as they were)
-    rx_l = root.tolist()
-    fpos = pos.tolist()
+    rx_l = root_l
+    fpos = pos_l
 
     def points_like(x: int, y: int, cov: list[int]) -> bool:
         px, py = fpos[rx_l[x]]
-        dx, dy = fpos[rx_l[y]][0] - px, fpos[rx_l[y]][1] - py
+        qx, qy = fpos[rx_l[y]]
+        dx, dy = qx - px, qy - py
         dd = math.hypot(dx, dy)
-        return dd > 0.0 and any(
-            raw_l[e][0] * dx + raw_l[e][1] * dy >= cos_tol * dd * math.hypot(*raw_l[e]) for e in cov
-        )
+        if dd > 0.0:
+            lim = cos_tol * dd
+            for e in cov:
+                rd = raw_l[e]
+                if rd[0] * dx + rd[1] * dy >= lim * raw_nl[e]:
+                    return True
+        return False
 
     for nodes, tn, eds, ux, uy, ox, oy in todo:
         while True:
@@ -1002,13 +1167,21 @@ def _merge(
                 for x, y, cov, prov_xy in walls:
                     out_u.append(x)
                     out_v.append(y)
-                    out_l.append(_combine([lik_l[e] for e in cov]))
-                    out_s.append(reduce(lambda p_, q_: p_ | q_, (src_l[e] for e in cov), 0))
+                    if len(cov) == 1:
+                        out_l.append(_combine([lik_l[cov[0]]]))
+                        out_s.append(src_l[cov[0]])
+                    else:
+                        out_l.append(_combine([lik_l[e] for e in cov]))
+                        sv = 0
+                        for e in cov:
+                            sv |= src_l[e]
+                        out_s.append(sv)
                     if trace:
                         out_p.append([orig_l[e] for e in prov_xy])
                 break
             if len(nodes) == 2:
-                pass_mask[eds] = True
+                for e in eds:
+                    pass_l[e] = True
                 break
             inner = [i for i in (bad[0], bad[0] + 1) if 0 < i < len(nodes) - 1]
             offs = [abs(ux * (fpos[rx_l[nodes[i]]][1] - oy) - uy * (fpos[rx_l[nodes[i]]][0] - ox)) for i in inner]
@@ -1018,42 +1191,67 @@ def _merge(
 
     # An edge left as it was but turned around by combining corners (its ends were within the
     # threshold of each other and moved past each other) is removed like a degenerate one.
-    for e in np.flatnonzero(pass_mask).tolist():
-        x, y = edges_l[e]
-        px, py = fpos[rx_l[x]]
-        qx, qy = fpos[rx_l[y]]
-        if raw_l[e][0] * (qx - px) + raw_l[e][1] * (qy - py) <= 0.0:
-            pass_mask[e] = False
+    pass_idx: list[int] = []
+    for e in range(k):
+        if pass_l[e]:
+            x, y = edges_l[e]
+            px, py = fpos[rx_l[x]]
+            qx, qy = fpos[rx_l[y]]
+            if raw_l[e][0] * (qx - px) + raw_l[e][1] * (qy - py) > 0.0:
+                pass_idx.append(e)
 
     # ---- 6. assemble (global ids: base vertices, then new ones) --------------------------------
     total = nb + nn
-    gid = np.concatenate([lb, nb + np.arange(nn)])
-    all_pos = np.concatenate([base.points, new.points])
+    lb_l = lb.tolist()
+    gid_l = lb_l + list(range(nb, total))
+    # the surviving edges: untouched base edges, resolved walls, edges passed through
+    eu_l = [gid_l[rx_l[x]] for x in out_u] + [gid_l[rx_l[edges_l[e][0]]] for e in pass_idx]
+    ev_l = [gid_l[rx_l[y]] for y in out_v] + [gid_l[rx_l[edges_l[e][1]]] for e in pass_idx]
+    el_l = out_l + [lik_l[e] for e in pass_idx]
+    es_l = out_s + [src_l[e] for e in pass_idx]
+    if total <= _LIST_ASSEMBLY_MAX:  # a small map: the rest in plain lists
+        all_pos_l = bpts.tolist() + new.points.tolist()
+        all_lab_l = base.labels.tolist() + new.labels.tolist()
+        for x, g in enumerate(gid_l):
+            all_pos_l[g] = fpos[x]
+            all_lab_l[g] = lab_out[x]
+        prov_l = out_p + [[orig_l[e]] for e in pass_idx] if trace else []
+        if not all_e:
+            gmap_l = list(range(total))
+            for x, g in enumerate(gid_l):
+                gmap_l[g] = gid_l[rx_l[snap_l[x]]]
+            far_l = np.flatnonzero(~local_e).tolist()
+            be_l = bedges[far_l].tolist()
+            eu_l = [gmap_l[x] for x, _ in be_l] + eu_l
+            ev_l = [gmap_l[y] for _, y in be_l] + ev_l
+            el_l = base.likelihood[far_l].tolist() + el_l
+            es_l = base.sources[far_l].tolist() + es_l
+            if trace:
+                prov_l = [[x] for x in far_l] + prov_l
+        kept_v = None if all_v else (~local_v).tolist()
+        return _assemble_lists(all_pos_l, all_lab_l, kept_v, eu_l, ev_l, el_l, es_l, prov_l, trace)
+    all_pos = np.concatenate([bpts, new.points])
+    all_pos[gid_l] = fpos
     all_lab = np.concatenate([base.labels, new.labels])
-    all_pos[gid] = pos
-    all_lab[gid] = lab_out.astype(np.uint8)
-    gmap = np.arange(total)
-    gmap[gid] = gid[root[snap]]
-    far = ~local_e
-    eu = np.concatenate(
-        [
-            gmap[base.edges[far, 0]],
-            gid[root[np.asarray(out_u, dtype=np.int64)]],
-            gid[root[edges[pass_mask, 0]]],
-        ]
-    )
-    ev = np.concatenate(
-        [
-            gmap[base.edges[far, 1]],
-            gid[root[np.asarray(out_v, dtype=np.int64)]],
-            gid[root[edges[pass_mask, 1]]],
-        ]
-    )
-    el = np.concatenate([base.likelihood[far], np.asarray(out_l, dtype=np.float64), lik[pass_mask]])
-    es = np.concatenate([base.sources[far], np.asarray(out_s, dtype=np.uint64), src[pass_mask]])
+    all_lab[gid_l] = np.asarray(lab_out, dtype=np.uint8)
     prov: list[list[int]] = []
-    if trace:
-        prov = [[x] for x in np.flatnonzero(far).tolist()] + out_p + [[x] for x in orig[pass_mask].tolist()]
+    if all_e:
+        eu = np.asarray(eu_l, dtype=np.int64)
+        ev = np.asarray(ev_l, dtype=np.int64)
+        el = np.asarray(el_l, dtype=np.float64)
+        es = np.asarray(es_l, dtype=np.uint64)
+        if trace:
+            prov = out_p + [[orig_l[e]] for e in pass_idx]
+    else:
+        gmap = np.arange(total)
+        gmap[gid_l] = [gid_l[rx_l[snap_l[x]]] for x in range(nl)]
+        far = ~local_e
+        eu = np.concatenate([gmap[bedges[far, 0]], np.asarray(eu_l, dtype=np.int64)])
+        ev = np.concatenate([gmap[bedges[far, 1]], np.asarray(ev_l, dtype=np.int64)])
+        el = np.concatenate([base.likelihood[far], np.asarray(el_l, dtype=np.float64)])
+        es = np.concatenate([base.sources[far], np.asarray(es_l, dtype=np.uint64)])
+        if trace:
+            prov = [[x] for x in np.flatnonzero(far).tolist()] + out_p + [[orig_l[e]] for e in pass_idx]
     pu, pv = all_pos[eu], all_pos[ev]
     ok = (eu != ev) & ((pu[:, 0] != pv[:, 0]) | (pu[:, 1] != pv[:, 1]))
     if not ok.all():
@@ -1062,8 +1260,9 @@ def _merge(
             prov = [x for x, o in zip(prov, ok.tolist()) if o]
     if len(eu) > 1:
         key = eu * total + ev
-        uk, first, inv = np.unique(key, return_index=True, return_inverse=True)
-        if len(uk) < len(key):  # duplicate directed edges: combined like any merge
+        key_l = key.tolist()
+        if len(set(key_l)) < len(key_l):  # duplicate directed edges: combined like any merge
+            uk, first, inv = np.unique(key, return_index=True, return_inverse=True)
             order = np.argsort(first, kind="stable")  # keep first-occurrence order
             q = np.ones(len(uk))
             np.multiply.at(q, inv, 1.0 - el)
@@ -1083,5 +1282,5 @@ def _merge(
     keep[ev] = True
     remap = np.cumsum(keep) - 1
     out_edges = np.stack([remap[eu], remap[ev]], axis=1)
-    merged = Wireframe(all_pos[keep], all_lab[keep], out_edges, el, es)  # type: ignore[arg-type]
+    merged = _valid_wireframe(all_pos[keep], all_lab[keep], out_edges, el, es)
     return merged, [sorted(set(x)) for x in prov]

@@ -761,3 +761,61 @@ def test_faces_of_a_wall_as_thick_as_the_threshold_keep_their_corners():
     # a thin wall's two faces (on one line) still share their corners
     thin = merge(Wireframe.build([(0, 0), (0, 3)], [(0, 1)]), Wireframe.build([(0.02, 3), (0.01, 0)], [(0, 1)]), CFG)
     assert thin.n_vertices == 2 and thin.n_edges == 2
+
+
+def _arrays(wf: Wireframe) -> list[tuple[str, tuple[int, ...], bytes]]:
+    return [(str(a.dtype), a.shape, a.tobytes()) for a in (wf.points, wf.labels, wf.edges, wf.likelihood, wf.sources)]
+
+
+@settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(garbage_wireframe(), garbage_wireframe(), st.sampled_from([0.05, 0.2, 1.0]), st.booleans())
+def test_list_and_vectorised_assembly_are_bit_identical(a, b, thr, cull):
+    """Small merges assemble their result in plain lists, large ones with numpy: the same
+    arrays (values, dtypes, order) and the same provenance."""
+    import importlib
+
+    mm = importlib.import_module("mapping.merge")
+    cfg = MergeConfig(threshold=thr, cull=cull)
+    small, prov_small = merge_traced(a, b, cfg)
+    saved = mm._LIST_ASSEMBLY_MAX
+    try:
+        mm._LIST_ASSEMBLY_MAX = -1
+        big, prov_big = merge_traced(a, b, cfg)
+        plain = merge(a, b, cfg)
+    finally:
+        mm._LIST_ASSEMBLY_MAX = saved
+    assert _arrays(small) == _arrays(big) == _arrays(plain) == _arrays(merge(a, b, cfg))
+    assert prov_small == prov_big
+    for arr in (small.points, small.labels, small.edges, small.likelihood, small.sources):
+        assert arr.flags.c_contiguous and not arr.flags.writeable
+    # the unchecked constructor builds what the checked one would
+    assert _arrays(Wireframe(small.points, small.labels, small.edges, small.likelihood, small.sources)) == _arrays(small)
+
+
+@settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(garbage_wireframe(), garbage_wireframe(), st.sampled_from([0.05, 0.2, 1.0]))
+def test_dense_pair_prefilter_keeps_every_related_pair(a, b, thr):
+    """The few-edges path tests only pairs whose directions and grown boxes are close; every
+    pair that the full test relates is among them."""
+    import importlib
+
+    mm = importlib.import_module("mapping.merge")
+    cfg = MergeConfig(threshold=thr)
+    w = Wireframe.build(
+        np.concatenate([a.points, b.points]).reshape(-1, 2),
+        np.concatenate([a.edges, b.edges + a.n_vertices]).reshape(-1, 2),
+        np.concatenate([a.labels, b.labels]),
+    )
+    p, q = w.points[w.edges[:, 0]], w.points[w.edges[:, 1]]
+    d = q - p
+    length = np.hypot(d[:, 0], d[:, 1])
+    real = length > 0.0  # the merge drops zero-length edges before this test
+    p, q, d, length = p[real], q[real], d[real], length[real]
+    assume(len(length) >= 2)
+    u = d / length[:, None]
+    cos_tol = math.cos(cfg.angle_tol)
+    i, j = np.triu_indices(len(length), 1)
+    full = mm._related(p, q, u, length, i, j, thr, cos_tol, p, q)
+    pi, pj = mm._near_pairs(p, q, u, length, thr, cos_tol)
+    near = mm._related(p, q, u, length, pi, pj, thr, cos_tol, p, q)
+    assert set(zip(*map(np.ndarray.tolist, full))) == set(zip(*map(np.ndarray.tolist, near)))
