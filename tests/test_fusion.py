@@ -679,3 +679,38 @@ def test_merge_threshold_default_configured_and_raised_by_a_coarse_map():
     st_.add(replace(robot_msg("r2"), resolution=0.5))
     assert st_.threshold == 0.5 and st_.resolution == 0.05  # corners may be a whole step apart
     assert FusionState(FusionConfig(threshold=0.4)).threshold == 0.4
+
+
+@settings(max_examples=80, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(st.integers(1, 12), st.integers(0, 2**32 - 1), st.sampled_from(["same", "permuted", "moved", "relabelled", "lik", "src"]))
+def test_quick_difference_test_never_contradicts_almost_equal(n, seed, change):
+    """``_same_wireframe`` skips the vertex matching when sorted coordinates, labels,
+    likelihoods or sources already differ; it must agree with ``almost_equal``."""
+    from agents.fusion import _same_wireframe, _surely_differ
+
+    rng = np.random.default_rng(seed)
+    pts = rng.integers(0, 6, (n, 2)) * 0.5
+    edges = [(i, (i + 1) % n) for i in range(n - 1)] if n > 1 else []
+    a = Wireframe.build(pts, edges, rng.integers(0, 3, n), rng.random(len(edges)), rng.integers(0, 4, len(edges)))
+    perm = rng.permutation(n)
+    inv = np.argsort(perm)
+    b = Wireframe.build(
+        a.points[perm], [(int(inv[x]), int(inv[y])) for x, y in a.edges.tolist()][::-1], a.labels[perm],
+        a.likelihood[::-1], a.sources[::-1],
+    )
+    if change == "same":
+        b = a.replace()
+    elif change == "moved":
+        b = b.replace(points=b.points + rng.choice([0.0, 1e-6], b.points.shape))
+    elif change == "relabelled":
+        b = b.replace(labels=(b.labels + rng.integers(0, 2, n)) % 3)
+    elif change == "lik" and b.n_edges:
+        b = b.replace(likelihood=np.clip(b.likelihood + rng.choice([0.0, 1e-3], b.n_edges), 0.0, 1.0))
+    elif change == "src" and b.n_edges:
+        b = b.replace(sources=b.sources ^ rng.integers(0, 2, b.n_edges).astype(np.uint64))
+    equal = a.almost_equal(b, tol=1e-9)
+    if _surely_differ(a, b, 1e-9):
+        assert not equal
+    assert _same_wireframe(a, b) == equal
+    if change in ("same", "permuted"):  # the same graph: never reported as surely different
+        assert not _surely_differ(a, b, 1e-9)
