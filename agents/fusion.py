@@ -1553,8 +1553,20 @@ class DropLog:
         return line
 
 
+_PAGE_KB = (os.sysconf("SC_PAGE_SIZE") // 1024) if hasattr(os, "sysconf") else 4
+
+
 def rss_kb(pid: int | str = "self") -> int | None:
-    """Resident set size of a process in KiB (``VmRSS`` in ``/proc``; None elsewhere)."""
+    """Resident set size of a process in KiB (``VmRSS`` in ``/proc``; None elsewhere).
+
+    Read from ``/proc/<pid>/statm`` (resident pages, the same counter as ``VmRSS``; a third of
+    the cost of ``status``, and the service reports it with every new version), else from
+    ``status``."""
+    try:
+        with open(f"/proc/{pid}/statm", "rb") as fh:
+            return int(fh.read().split()[1]) * _PAGE_KB
+    except (OSError, ValueError, IndexError):
+        pass
     try:
         for line in Path(f"/proc/{pid}/status").read_text().splitlines():
             if line.startswith("VmRSS:"):

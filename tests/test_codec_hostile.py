@@ -20,7 +20,16 @@ from hypothesis import strategies as st
 
 import wire_codec
 from mapping.wireframe import Wireframe
-from tests.test_codec_util import FUSED, check_round_trip, fields_of, message, random_wireframe, room, seal
+from tests.test_codec_util import (
+    FUSED,
+    check_round_trip,
+    fields_of,
+    message,
+    messages,
+    random_wireframe,
+    room,
+    seal,
+)
 from wire_codec import reference
 from wire_codec.bits import BitWriter
 from wire_codec.codec import decode_with
@@ -347,3 +356,54 @@ def test_fuzzer_finds_stay_fixed() -> None:
         payload = with_body(SMALL_BYTES, bytes.fromhex(body_hex))
         assert outcome(payload) is wire_codec.FormatError
         assert outcome(payload, reference.decode_body) is wire_codec.FormatError
+
+
+# ---------------------------------------------------------------------------------------- small reader
+def _vectorised_outcome(body: bytes, res_mm: int, n_robots: int | None) -> Any:
+    from wire_codec import body as body_mod
+
+    saved = body_mod.SMALL_BODY_BYTES
+    body_mod.SMALL_BODY_BYTES = -1
+    try:
+        return body_mod.decode_body(body, res_mm, n_robots, DEFAULT_LIMITS)
+    except wire_codec.CodecError as exc:
+        return type(exc)
+    finally:
+        body_mod.SMALL_BODY_BYTES = saved
+
+
+@settings(max_examples=300, deadline=2000, suppress_health_check=[HealthCheck.too_slow])
+@given(messages(), st.data())
+def test_small_body_reader_accepts_only_what_the_vectorised_reader_reads(msg: Any, data: st.DataObject) -> None:
+    """Small bodies are read in plain Python first; it must return exactly the vectorised
+    reader's map, and decline (None) whatever that reader rejects -- on valid bodies and on
+    mutated ones."""
+    from wire_codec.body import _decode_small
+
+    f = fields_of(wire_codec.encode(msg))
+    body, res_mm = f[11], f[8]
+    n_robots = len(f[9]) if f[1] == FUSED.value else None
+    bodies = [body]
+    for _ in range(5):
+        b = bytearray(body)
+        how = data.draw(st.sampled_from(["flip", "truncate", "splice"]))
+        if how == "flip" and b:
+            for bit in data.draw(st.lists(st.integers(0, 8 * len(b) - 1), min_size=1, max_size=3)):
+                b[bit // 8] ^= 0x80 >> (bit % 8)
+        elif how == "truncate" and b:
+            del b[data.draw(st.integers(0, len(b) - 1)) :]
+        else:
+            at = data.draw(st.integers(0, len(b)))
+            b[at:at] = data.draw(st.binary(min_size=1, max_size=4))
+        bodies.append(bytes(b))
+    for k, b in enumerate(bodies):
+        small = _decode_small(b, res_mm, n_robots, DEFAULT_LIMITS)
+        vec = _vectorised_outcome(b, res_mm, n_robots)
+        if small is None:
+            # declined: only an empty map or a body the vectorised reader rejects
+            assert k > 0 or isinstance(vec, type) or vec.n_vertices == 0
+            continue
+        assert not isinstance(vec, type), vec
+        for name in ("points", "labels", "edges", "likelihood", "sources"):
+            x, y = getattr(small, name), getattr(vec, name)
+            assert x.dtype == y.dtype and x.shape == y.shape and np.array_equal(x, y), name

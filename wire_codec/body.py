@@ -26,13 +26,14 @@ orders, label and likelihood modes, the reverse section) the encoder takes the c
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
 
 from mapping.wireframe import Wireframe
-from wire_codec.bits import I64, BitReader, BitWriter, best_eg_orders, ceil_log2
+from wire_codec.bits import I64, MAX_EG_BITS, BitReader, BitWriter, best_eg_orders, ceil_log2
 from wire_codec.errors import EncodeError, ExtraDataError, FormatError, LimitError, Limits, TruncatedError
 
 MAX_GRID = 1 << 50
@@ -344,6 +345,199 @@ def _read_values(r: BitReader, count: int, width: int, exc_width: int, what: str
     return out
 
 
+SMALL_BODY_BYTES = 4096
+"""Bodies up to this size are first read by :func:`_decode_small`."""
+
+
+def _decode_small(data: bytes, resolution_mm: int, n_robots: int | None, limits: Limits) -> Wireframe | None:
+    """:func:`decode_body` for a well-formed small body, in plain Python (a robot's map is a
+    few hundred bits: numpy's per-call cost dominated the vectorised reader there).
+
+    Returns exactly the wireframe the vectorised reader returns, or None at the first sign of
+    anything it would reject (or that this reader does not handle: an empty map, moves near the
+    grid's limit); :func:`decode_body` then runs the vectorised reader, which says why. So the
+    errors are the vectorised reader's, and this reader only has to accept nothing more."""
+    nbits = 8 * len(data)
+    if nbits == 0:
+        return None
+    bits = format(int.from_bytes(data, "big"), "b").zfill(nbits)
+    find = bits.find
+    pos = 0
+
+    def uint(w: int) -> int:
+        nonlocal pos
+        if pos + w > nbits:
+            raise _Reject
+        v = int(bits[pos : pos + w], 2) if w else 0
+        pos += w
+        return v
+
+    def flags(count: int) -> str:
+        nonlocal pos
+        if pos + count > nbits:
+            raise _Reject
+        out = bits[pos : pos + count]
+        pos += count
+        return out
+
+    def eg_block(orders: list[int]) -> list[int]:
+        nonlocal pos
+        zeros = []
+        for k in orders:  # the prefixes, each at most MAX_EG_BITS - k zeros
+            j = find("1", pos, pos + MAX_EG_BITS - k + 1)
+            if j < 0:
+                raise _Reject
+            zeros.append(j - pos)
+            pos = j + 1
+        out = []
+        for z, k in zip(zeros, orders):
+            w = z + k
+            out.append((1 << w) + uint(w) - (1 << k))
+        return out
+
+    def values(count: int, width: int, exc_width: int) -> list[int]:
+        mode = uint(2)
+        if mode == MODE_PLAIN:
+            return [uint(width) for _ in range(count)]
+        dom = uint(width)
+        if width == LABEL_BITS and dom == 3:
+            raise _Reject
+        out = [dom] * count
+        if mode == MODE_CONSTANT:
+            return out
+        if mode == MODE_FLAGS:
+            exc = [i for i, c in enumerate(flags(count)) if c == "1"]
+        else:
+            n_exc = eg_block([0])[0]
+            if n_exc > count:
+                raise _Reject
+            kg = uint(4)
+            exc = []
+            at = -1
+            for g in eg_block([kg] * n_exc):
+                at += g + 1
+                exc.append(at)
+            if exc and exc[-1] >= count:
+                raise _Reject
+        if exc_width == 1:
+            lo, hi = (x for x in (0, 1, 2) if x != dom)
+            for i, c in zip(exc, flags(len(exc))):
+                out[i] = hi if c == "1" else lo
+        else:
+            for i in exc:
+                v = uint(exc_width)
+                if v == dom:
+                    raise _Reject
+                out[i] = v
+        return out
+
+    try:
+        n = eg_block([0])[0]
+        if n == 0 or n > limits.max_vertices or n > nbits - pos:
+            return None
+        k1, k2, k3 = uint(4), uint(4), uint(4)
+        turn = flags(n)
+        straight = iter(flags(n - turn.count("1")))
+        single = [t == "1" or next(straight) == "1" for t in turn]
+        n_single = sum(single)
+        n_general = n - n_single
+        gturn = iter(flags(n_general))
+        toggle = [t == "1" if s else next(gturn) == "1" for t, s in zip(turn, single)]
+        negative = flags(n)
+        minor_negative = flags(n_general)
+        moves = eg_block([k1] * n_single + [k2] * n_general + [k3] * n_general)
+        q: list[list[int]] = []
+        x = y = 0
+        axis = 1  # the axis before the first move is y
+        total = 0
+        ts = tg = 0
+        for i in range(n):
+            if single[i]:
+                major, minor = moves[ts] + 1, 0
+                ts += 1
+            else:
+                major, minor = moves[n_single + tg], moves[n + tg]
+                if minor_negative[tg] == "1":
+                    minor = -minor
+                tg += 1
+            if negative[i] == "1":
+                major = -major
+            if toggle[i]:
+                axis = 1 - axis
+            dx, dy = (major, minor) if axis == 0 else (minor, major)
+            total += abs(dx) + abs(dy)
+            x += dx
+            y += dy
+            q.append([x, y])
+        if total > 2**59:  # near the vectorised reader's limit (a float sum): let it decide
+            return None
+        far = float(max(max(abs(a), abs(b)) for a, b in q))
+        if far > MAX_GRID or far * resolution_mm / 1e3 > limits.max_coordinate:
+            return None
+        labels = values(n, LABEL_BITS, 1)
+        if 3 in labels:
+            return None
+        nxt = flags(n - 1)
+        starts = [0] + [k + 1 for k, c in enumerate(nxt) if c == "0"]
+        ends = [k for k, c in enumerate(nxt) if c == "0"] + [n - 1]
+        rings = [(a, b) for a, b in zip(starts, ends) if b - a >= 2]
+        close = flags(len(rings))
+        rev = flags(n - 1) if uint(1) else ""
+        n_rest = eg_block([0])[0]
+        edges = [(k, k + 1) for k, c in enumerate(nxt) if c == "1"]
+        edges += [(k + 1, k) for k, c in enumerate(rev) if c == "1"]
+        edges += [(b, a) for (a, b), c in zip(rings, close) if c == "1"]
+        m = len(edges) + n_rest
+        if m > limits.max_edges or 2 * n_rest > nbits - pos:
+            return None
+        if n_rest:
+            ke, kd = uint(4), uint(4)
+            vals = eg_block([ke] * n_rest + [kd] * n_rest)
+            if max(vals[:n_rest]) >= n:
+                return None
+            first = 0
+            for t in range(n_rest):
+                first += vals[t]
+                zz = vals[n_rest + t]
+                second = first + ((zz >> 1) ^ -(zz & 1))
+                if first >= n or not 0 <= second < n or first == second:
+                    return None
+                edges.append((first, second))
+        lq: list[int] = []
+        if m:
+            lq = values(m, LIKELIHOOD_BITS, LIKELIHOOD_BITS)
+            if max(lq) > LIKELIHOOD_LEVELS:
+                return None
+        sources = [0] * m
+        if n_robots is not None and m:
+            n_masks = eg_block([0])[0]
+            if not 1 <= n_masks <= m:
+                return None
+            masks = [uint(n_robots) for _ in range(n_masks)]
+            if any(b <= a for a, b in itertools.pairwise(masks)):
+                return None
+            w = ceil_log2(n_masks)
+            index = [uint(w) for _ in range(m)]
+            if max(index) >= n_masks:
+                return None
+            sources = [masks[i] for i in index]
+        if nbits - pos >= 8 or "1" in bits[pos:]:
+            return None
+        return Wireframe(
+            np.array(q, dtype=np.float64) * resolution_mm / 1e3,  # type: ignore[arg-type]
+            np.array(labels, dtype=np.uint8),
+            np.array(edges, dtype=np.int32).reshape(-1, 2),
+            np.array(lq, dtype=np.float64) / LIKELIHOOD_LEVELS,
+            np.array(sources, dtype=np.uint64),
+        )
+    except (_Reject, ValueError, IndexError, StopIteration):
+        return None
+
+
+class _Reject(Exception):
+    """The small reader's way out: the vectorised reader will say what is wrong."""
+
+
 def decode_body(data: bytes, resolution_mm: int, n_robots: int | None, limits: Limits) -> Wireframe:
     """Parse a body written by :func:`encode_body`.
 
@@ -360,6 +554,10 @@ def decode_body(data: bytes, resolution_mm: int, n_robots: int | None, limits: L
     TruncatedError, ExtraDataError, LimitError, FormatError
         As their names say; nothing else.
     """
+    if len(data) <= SMALL_BODY_BYTES:
+        wf = _decode_small(data, resolution_mm, n_robots, limits)
+        if wf is not None:
+            return wf
     r = BitReader(data, "body")
     n = r.eg(0, "the vertex count")
     if n > limits.max_vertices:
