@@ -47,6 +47,11 @@ Choices where the paper is silent or that differ from it
 * **Frontiers continue established walls** (:func:`snap_frontiers`): before the merge, a scan
   frontier that extends a longer map wall is moved onto that wall's line; a wall growing at its
   frontier would otherwise follow the pose's error and the pose would follow the wall.
+* **Corners are averaged** (:mod:`mapping.refine`): a scan whose match fixed the whole pose
+  moves every map corner it observes to the running mean of its observations, until the corner
+  has had :attr:`FilterConfig.refine_max_count` of them, before the merge (the merge itself
+  keeps the map's position); otherwise the first sighting's pose error stays in the corner for
+  good and the pose inherits it.
 * **Carving** (:func:`seen_through_spans`, :func:`carve`): stretches of a map wall that a scan
   saw through while it saw the rest of the wall are cut out (a false-positive edge that the
   merge joined to a real collinear wall cannot be removed by mutation, whose unit is the edge).
@@ -116,6 +121,7 @@ from mapping.likelihood import (
     seen_through,
 )
 from mapping.loops import Closure, LoopCloser, LoopConfig
+from mapping.refine import refine_corners
 from mapping.resample import resample_with_mutation
 from mapping.se2 import Pose
 from mapping.wireframe import Label, Wireframe
@@ -250,6 +256,14 @@ class FilterConfig:
     pose_floor_xy, pose_floor_theta : float
         Least standard deviation (metres, radians) of the pose after an accepted match: the
         pose is relative to a map whose own corners are that uncertain.
+    refine_corners : bool
+        Move each map corner a scan observes to the mean of its observations before the merge
+        (:mod:`mapping.refine`; not in the paper, whose merge keeps one position). Only scans
+        whose match was accepted with all three directions constrained refine (measured on the
+        museum, seed 1: refining from every consistent scan, degenerate ones included, gave a
+        mean wall error of 0.83 m, from fully constrained ones 0.45 m, without 0.48 m).
+    refine_max_count : int
+        Observations (>= 1) after which a corner is settled and no longer refined (default 10).
     likelihood : LikelihoodConfig
     icp : ICPConfig
     loops : LoopConfig
@@ -290,6 +304,8 @@ class FilterConfig:
     odometry_rot_per_m: float = 0.003
     pose_floor_xy: float = 0.01
     pose_floor_theta: float = 0.002
+    refine_corners: bool = True
+    refine_max_count: int = 10
     likelihood: LikelihoodConfig = field(default_factory=LikelihoodConfig)
     icp: ICPConfig = field(default_factory=ICPConfig)
     loops: LoopConfig = field(default_factory=LoopConfig)
@@ -322,6 +338,9 @@ class FilterConfig:
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
                 raise ValueError(f"{name} must be a positive number, got {v!r}")
+        if isinstance(self.refine_max_count, bool) or not isinstance(self.refine_max_count, (int, np.integer)) \
+                or self.refine_max_count < 1:
+            raise ValueError(f"refine_max_count must be an integer >= 1, got {self.refine_max_count!r}")
         if self.max_vertices < 3 or self.max_scan_vertices < 2:
             raise ValueError("max_vertices must be >= 3 and max_scan_vertices >= 2")
 
@@ -905,21 +924,23 @@ class WireframeFilter:
         StepInfo
         """
         info, matched_scan = self._step(odometry, scan, fault)
+        # Keyframes, births and observation counts (mapping.loops, mapping.refine).
+        lc = self._loops
+        lc.advance(self._pose, math.hypot(odometry.x, odometry.y) + 0.5 * abs(odometry.theta))
+        lc.stamp(self._particles)
+        if self._steps % 500 == 0:
+            lc.prune(self._particles)
         if self.config.loops.enabled:
-            closed = self._close_loops(math.hypot(odometry.x, odometry.y) + 0.5 * abs(odometry.theta), matched_scan)
+            closed = self._close_loops(matched_scan)
             if closed is not None:
                 info = dataclasses.replace(info, pose=self._pose, loop=closed)
         return info
 
-    def _close_loops(self, driven: float, scan: Wireframe) -> Closure | None:
-        """After a step: keyframes and birth stamps; every ``check_every`` metres, the scan
-        matched against the old part of the best map, and a closure when it is off."""
+    def _close_loops(self, scan: Wireframe) -> Closure | None:
+        """After a step: every ``check_every`` metres, the scan matched against the old part of
+        the best map, and a closure when it is off."""
         lc = self._loops
         lcfg = lc.config
-        lc.advance(self._pose, driven)
-        lc.stamp(self._particles)
-        if self._steps % 500 == 0:
-            lc.prune(self._particles)
         if not lc.due() or scan.n_edges < 2:
             return None
         old, young, _ = lc.split(self.best)
@@ -1131,7 +1152,13 @@ class WireframeFilter:
         # Merge the scan into every distinct resulting particle (identical ones share the result).
         merged: dict[tuple[int, int], Wireframe] = {}
         by_content: dict[bytes, Wireframe] = {}
+        refined: dict[int, Wireframe] = {}
         new: list[Wireframe] = []
+        # Corner refinement (mapping.refine) only from a scan whose match fixed all three
+        # directions of the pose: along a degenerate direction (a corridor's axis) the pose is
+        # the odometry's, and averaging it in would drag the corners along with its error.
+        refine = cfg.refine_corners and (icp_res is None or (icp_res.accepted and icp_res.constrained == 3))
+        placed = scan.transformed(place)
         for k, q in enumerate(res.particles):
             parent = self._particles[int(res.indexes[k])]
             key = (id(q), id(parent))
@@ -1140,6 +1167,14 @@ class WireframeFilter:
                 scan_world = scan.replace(likelihood=ev.scan_edge_likelihood).transformed(place)
                 if not ev.merge_mask.all():
                     scan_world = scan_world.subgraph_edges(ev.merge_mask)
+                if refine and q.n_vertices:
+                    if id(q) not in refined:
+                        rq, moved = refine_corners(
+                            q, placed, cfg.merge_threshold, self._loops.counts(q.points), cfg.refine_max_count
+                        )
+                        self._loops.moved(moved.old, moved.new, moved.counts)
+                        refined[id(q)] = rq
+                    q = refined[id(q)]
                 m = budget_map(self._merge_fn(q, scan_world, cfg.merge_threshold), cfg.max_vertices)
                 # Particles that came out equal share one object (their next steps run once).
                 merged[key] = by_content.setdefault(_content_key(m), m)

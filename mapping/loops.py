@@ -15,8 +15,10 @@ what the paper does not have, a back end (choices written down here, tested in
   square-root metre).
 * **Birth of map corners.** Each corner of every particle is stamped with the keyframe current
   when it took its position (looked up by its exact coordinates: the merge never moves a corner
-  it keeps, so a corner with coordinates not seen before has just been placed). A corner's
-  position is only as good as the pose of that keyframe, and moves with it.
+  it keeps, so a corner with coordinates not seen before has just been placed; a corner that
+  :mod:`mapping.refine` moves is re-keyed by :meth:`LoopCloser.moved` and keeps its birth). A
+  corner's position is only as good as the pose of that keyframe, and moves with it. The same
+  table keeps each corner's observation count for :mod:`mapping.refine`.
 * **Detection.** Every ``check_every`` metres, the scan is matched (the filter's ICP) against the
   *old* part of the best map only: the walls both of whose corners were born at least
   ``min_travel`` metres of driving ago. The prior is wide, the drift accumulated since those
@@ -57,6 +59,7 @@ __all__ = ["Closure", "LoopCloser", "LoopConfig", "optimize"]
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
+BoolArray = NDArray[np.bool_]
 
 
 @dataclass(frozen=True)
@@ -254,6 +257,7 @@ class LoopCloser:
         self._since_check = 0.0
         self._known = np.zeros(0, dtype=np.complex128)  # sorted corner keys
         self._birth = np.zeros(0, dtype=np.int64)  # keyframe of each key
+        self._count = np.zeros(0, dtype=np.int64)  # observations of each key (mapping.refine)
         self._pending: list[tuple[NDArray[np.complex128], int]] = []
 
     # ------------------------------------------------------------------ bookkeeping
@@ -275,14 +279,37 @@ class LoopCloser:
             self.kf_distance.append(self.distance)
             self._since_kf = 0.0
 
-    def births(self, points: FloatArray) -> IntArray:
-        """Birth keyframe of each corner (-1 where unknown)."""
+    def _lookup(self, points: FloatArray) -> tuple[IntArray, BoolArray]:
         self._flush()
         k = _keys(points)
         if len(self._known) == 0:
-            return np.full(len(k), -1, dtype=np.int64)
+            return np.zeros(len(k), dtype=np.int64), np.zeros(len(k), dtype=bool)
         i = np.clip(np.searchsorted(self._known, k), 0, len(self._known) - 1)
-        return np.where(self._known[i] == k, self._birth[i], -1)
+        return i, self._known[i] == k
+
+    def births(self, points: FloatArray) -> IntArray:
+        """Birth keyframe of each corner (-1 where unknown)."""
+        i, found = self._lookup(points)
+        return np.where(found, self._birth[i] if len(self._birth) else -1, -1)
+
+    def counts(self, points: FloatArray) -> IntArray:
+        """Observations of each corner so far (:mod:`mapping.refine`; 1 where unknown)."""
+        i, found = self._lookup(points)
+        return np.where(found, self._count[i] if len(self._count) else 1, 1)
+
+    def moved(self, old: FloatArray, new: FloatArray, counts: IntArray) -> None:
+        """Corners refined from ``old`` to ``new`` coordinates (:mod:`mapping.refine`): the new
+        keys keep the old ones' births (the current keyframe where unknown) and take ``counts``.
+        The old keys stay known until :meth:`prune` (another particle may still have them)."""
+        if len(old) == 0:
+            return
+        b = self.births(old)
+        b = np.where(b < 0, self.current_keyframe, b)
+        keys = np.concatenate([_keys(new), self._known])
+        births = np.concatenate([b, self._birth])
+        cnt = np.concatenate([np.asarray(counts, dtype=np.int64), self._count])
+        keys, first = np.unique(keys, return_index=True)  # the refined entries win
+        self._known, self._birth, self._count = keys, births[first], cnt[first]
 
     def stamp(self, particles: Sequence[Wireframe]) -> None:
         """Stamp the corners of ``particles`` not seen before with the current keyframe."""
@@ -302,9 +329,10 @@ class LoopCloser:
             return
         keys = np.concatenate([self._known] + [k for k, _ in self._pending])
         births = np.concatenate([self._birth] + [np.full(len(k), b, dtype=np.int64) for k, b in self._pending])
+        cnt = np.concatenate([self._count] + [np.ones(len(k), dtype=np.int64) for k, _ in self._pending])
         self._pending = []
         keys, first = np.unique(keys, return_index=True)  # keeps the first stamp of a key
-        self._known, self._birth = keys, births[first]
+        self._known, self._birth, self._count = keys, births[first], cnt[first]
 
     def prune(self, particles: Sequence[Wireframe]) -> None:
         """Forget the corners no particle has any more."""
@@ -313,7 +341,7 @@ class LoopCloser:
             return
         alive = np.unique(np.concatenate([_keys(p.points) for p in particles] + [np.zeros(0, np.complex128)]))
         keep = np.isin(self._known, alive)
-        self._known, self._birth = self._known[keep], self._birth[keep]
+        self._known, self._birth, self._count = self._known[keep], self._birth[keep], self._count[keep]
 
     # ------------------------------------------------------------------ detection
     def due(self) -> bool:
@@ -369,7 +397,7 @@ class LoopCloser:
         new_kf = self._solve(kf)
         # Deform: each corner moves with its birth keyframe.
         out: dict[int, Wireframe] = {}
-        moved_keys: list[tuple[NDArray[np.complex128], NDArray[np.complex128], IntArray]] = []
+        moved_keys: list[tuple[NDArray[np.complex128], IntArray, IntArray]] = []
         split = self.distance - self.config.min_travel
         kd = np.asarray(self.kf_distance)
         for p in particles:
@@ -386,7 +414,7 @@ class LoopCloser:
                 [new_kf[b, 0] + c * local[:, 0] - s * local[:, 1], new_kf[b, 1] + s * local[:, 0] + c * local[:, 1]]
             )
             moved = p.replace(points=pts)
-            moved_keys.append((_keys(p.points), _keys(pts), b))
+            moved_keys.append((_keys(pts), b, self.counts(p.points)))
             # Young walls (a corner born within the last min_travel metres: the walls mapped
             # again on coming back) merged into the old ones.
             young_v = kd[b] > split
@@ -397,10 +425,11 @@ class LoopCloser:
         # Re-key the births: deformed coordinates keep their corner's birth; corners the merge
         # created are stamped by the caller's next :meth:`stamp` (current keyframe).
         if moved_keys:
-            keys = np.concatenate([m for _, m, _ in moved_keys])
-            births = np.concatenate([bb for _, _, bb in moved_keys])
+            keys = np.concatenate([m for m, _, _ in moved_keys])
+            births = np.concatenate([bb for _, bb, _ in moved_keys])
+            cnt = np.concatenate([cc for _, _, cc in moved_keys])
             keys, first = np.unique(keys, return_index=True)
-            self._known, self._birth = keys, births[first]
+            self._known, self._birth, self._count = keys, births[first], cnt[first]
         self.keyframes = [row.copy() for row in new_kf]
         new_pose = Pose(*new_kf[cur]).compose(at_cur)
         return new_pose, [out[id(p)] for p in particles]

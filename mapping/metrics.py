@@ -10,6 +10,10 @@ Four measures, all pure functions of two :class:`~mapping.wireframe.Wireframe` v
 * :func:`distance_to_truth` -- the paper's large-environment measure (Sec. V-B): the map's
   walls are finely discretised into points and each point's distance to the nearest true wall
   is taken; the paper reports a mean of 0.33 m. The 95th percentile is added.
+* :func:`align_to_truth` -- the rigid motion that best lays the map onto the truth, to tell a
+  map that is off as a whole (an early heading error turns everything after it) from one that
+  is off in its parts; :func:`distance_to_truth` of the aligned map is reported beside the
+  plain one, never instead of it (the start pose is known: the map's frame *is* the truth's).
 * :func:`evaluate` -- all of them in one dictionary.
 
 Free space comes from the edge direction convention (free space on the *left* of every directed
@@ -32,6 +36,7 @@ from numpy.typing import NDArray
 from shapely.geometry import Polygon
 from shapely.ops import polygonize, unary_union
 
+from mapping.se2 import Pose
 from mapping.wireframe import Wireframe
 
 FloatArray = NDArray[np.float64]
@@ -412,6 +417,63 @@ def distance_to_truth(truth: Wireframe, wf: Wireframe, step: float) -> tuple[flo
     dist = np.asarray(dist, dtype=np.float64)
     mean = float(np.dot(dist, weights) / weights.sum())
     return mean, _weighted_quantile(dist, weights, 0.95)
+
+
+def align_to_truth(
+    truth: Wireframe, wf: Wireframe, step: float, iterations: int = 100, keep: float = 0.9
+) -> Pose:
+    """The rigid motion that lays the map's walls best onto the true walls.
+
+    Trimmed ICP: the map's walls sampled every ``step`` (:func:`sample_walls`), each sample
+    paired with the closest point of the nearest true wall, the ``keep`` share of closest pairs
+    aligned in closed form (Kabsch / Umeyama, length-weighted), repeated from the identity until
+    it stops moving or ``iterations`` times.
+
+    Returns
+    -------
+    Pose
+        ``T`` such that ``wf.transformed(T)`` is the aligned map (identity for an empty map).
+
+    Raises
+    ------
+    ValueError
+        When ``step`` is not positive, ``keep`` not in (0, 1] or the truth has no walls.
+    """
+    if not (math.isfinite(step) and step > 0):
+        raise ValueError(f"step must be a positive number of metres, got {step}")
+    if not (0.0 < keep <= 1.0):
+        raise ValueError(f"keep must be within (0, 1], got {keep}")
+    pieces = wall_pieces(truth)
+    if len(pieces) == 0:
+        raise ValueError("the ground truth has no walls")
+    mp, mw, _ = sample_walls(wf, step)
+    if len(mp) < 2:
+        return Pose.identity()
+    tree = shapely.STRtree(shapely.linestrings(pieces))
+    a0, d0 = pieces[:, 0], pieces[:, 1] - pieces[:, 0]
+    len2 = np.maximum(np.einsum("ij,ij->i", d0, d0), 1e-18)
+    R, t = np.eye(2), np.zeros(2)
+    for _ in range(iterations):
+        q = mp @ R.T + t
+        idx = tree.query_nearest(shapely.points(q), all_matches=False)
+        src, seg = idx[0], idx[1]
+        u = np.clip(np.einsum("ij,ij->i", q[src] - a0[seg], d0[seg]) / len2[seg], 0.0, 1.0)
+        target = a0[seg] + u[:, None] * d0[seg]
+        d = np.hypot(*(q[src] - target).T)
+        sel = d <= np.quantile(d, keep)
+        a, b, w = mp[src[sel]], target[sel], mw[src[sel]]
+        ca = (a * w[:, None]).sum(0) / w.sum()
+        cb = (b * w[:, None]).sum(0) / w.sum()
+        H = ((a - ca) * w[:, None]).T @ (b - cb)
+        U, _, Vt = np.linalg.svd(H)
+        D = np.diag([1.0, float(np.sign(np.linalg.det(Vt.T @ U.T)) or 1.0)])
+        R_new = Vt.T @ D @ U.T
+        t_new = cb - R_new @ ca
+        done = np.abs(R_new - R).max() < 1e-9 and np.abs(t_new - t).max() < 1e-7
+        R, t = R_new, t_new
+        if done:
+            break
+    return Pose(float(t[0]), float(t[1]), math.atan2(R[1, 0], R[0, 0]))
 
 
 def evaluate(

@@ -133,7 +133,9 @@ def test_the_filter_closes_a_loop_around_a_ring_corridor():
     """An 80 m square ring of corridors (tests/worlds/bigring.geojson), driven once around:
     coming back, the scan sees walls mapped 300 m earlier off by the drift; the closure pulls
     the pose and the map back (seed 1: pose error at the end 0.41 -> 0.27 m, mean wall error
-    0.19 -> 0.14 m). The paper's filter (loops disabled) on the same scans is the reference."""
+    0.19 -> 0.14 m). The paper's filter (loops disabled) on the same scans is the reference.
+    Corner refinement is off in both runs: with it the ring barely drifts (0.02 m at the end,
+    tests/test_refine.py), leaving nothing for the closure to show."""
     from pathlib import Path
 
     from agents.mapping_run import SimOptions, filter_config_for, seeds_for, simulate
@@ -145,7 +147,7 @@ def test_the_filter_closes_a_loop_around_a_ring_corridor():
     inputs = list(simulate(world, SimOptions(), 1))
     out = {}
     for on in (False, True):
-        f = WireframeFilter(filter_config_for(5, 0.2, 8.0, loops=LoopConfig(enabled=on)), seeds_for(1)["filter"],
+        f = WireframeFilter(filter_config_for(5, 0.2, 8.0, loops=LoopConfig(enabled=on), refine_corners=False), seeds_for(1)["filter"],
                             inputs[0].true_pose)
         closures = sum(f.step(inp.odometry, inp.scan).loop is not None for inp in inputs)
         out[on] = (closures, evaluate(world.truth, f.best, 0.2), f.pose.distance(inputs[-1].true_pose))

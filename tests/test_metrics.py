@@ -316,3 +316,30 @@ def test_museum_scale_runs_well_under_a_second() -> None:
     assert 0.0 < got["cell_error"] < 0.05
     assert got["wall_recall"] > 0.95 and got["wall_precision"] > 0.95
     assert 0.05 < got["mean_dist_m"] < 0.2
+
+
+# ------------------------------------------------------------------ rigid alignment
+def test_align_to_truth_undoes_a_rigid_motion_and_only_that():
+    truth = Wireframe.from_polylines([ROOM, BOX_CW, [(12.0, 0.0), (20.0, 0.0), (20.0, 6.0), (12.0, 6.0)]])
+    moved = truth.transformed(Pose(0.3, -0.2, math.radians(1.5)))
+    assert M.distance_to_truth(truth, moved, 0.1)[0] > 0.1
+    T = M.align_to_truth(truth, moved, 0.1)
+    back = moved.transformed(T)
+    assert np.allclose(back.points, truth.points, atol=0.01)
+    assert M.distance_to_truth(truth, back, 0.1)[0] < 0.005
+    # a map that is right needs no motion; an empty one gets the identity
+    T0 = M.align_to_truth(truth, truth, 0.1)
+    assert abs(T0.x) < 1e-6 and abs(T0.y) < 1e-6 and abs(T0.theta) < 1e-6
+    assert M.align_to_truth(truth, Wireframe.empty(), 0.1) == Pose.identity()
+    with pytest.raises(ValueError):
+        M.align_to_truth(truth, moved, 0.0)
+    with pytest.raises(ValueError):
+        M.align_to_truth(truth, moved, 0.1, keep=0.0)
+
+
+def test_aligned_distance_keeps_an_error_in_the_parts():
+    """One wall 0.5 m off: no rigid motion removes it (the aligned distance stays > 0)."""
+    truth = Wireframe.from_polylines([ROOM, [(12.0, 0.0), (20.0, 0.0), (20.0, 6.0), (12.0, 6.0)]])
+    bent = truth.replace(points=truth.points + np.where(truth.points[:, :1] > 11, [[0.0, 0.5]], [[0.0, 0.0]]))
+    T = M.align_to_truth(truth, bent, 0.1)
+    assert M.distance_to_truth(truth, bent.transformed(T), 0.1)[0] > 0.05  # rigid case: < 0.005
