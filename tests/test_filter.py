@@ -21,6 +21,7 @@ from mapping.filter import (
     drop_line_of_sight,
     edge_log_odds,
     seen_through_spans,
+    snap_collinear,
     snap_frontiers,
 )
 from mapping.metrics import wall_precision_recall
@@ -251,6 +252,33 @@ def test_frontiers_snap_onto_a_longer_established_wall():
     assert np.allclose(snap_frontiers(scan.points, scan, ref, pairs, np.array([5.0]), 0.3), scan.points)
     # nor does a frontier farther off the line than the limit
     assert np.allclose(snap_frontiers(scan.points, scan, ref, pairs, np.array([30.0]), 0.1), scan.points)
+
+
+def test_a_new_wall_beyond_a_doorway_continues_the_established_line():
+    """snap_collinear: a new scan wall in the line of a long map wall, past its end, is put on
+    that line; not when it runs the other way, is too far off the line, overlaps the wall, was
+    matched to a reference edge, or the map wall is short."""
+    ref = Wireframe.build([(0, 0), (5, 0)], [(0, 1)])
+    scan = Wireframe.build([(6.0, 0.05), (9.0, 0.02)], [(0, 1)])
+    none = np.zeros((0, 2), dtype=np.int64)
+    args = (2.0, 0.08, math.radians(1.5))
+    out = snap_collinear(scan.points, scan, ref, none, np.array([5.0]), *args)
+    assert np.allclose(out, [(6.0, 0.0), (9.0, 0.0)])
+    # the other face of a thin wall (free side opposite) stays
+    back = Wireframe.build([(9.0, 0.05), (6.0, 0.05)], [(0, 1)])
+    assert np.allclose(snap_collinear(back.points, back, ref, none, np.array([5.0]), *args), back.points)
+    # 0.15 m off the line: a different wall
+    off = scan.replace(points=scan.points + np.array([0.0, 0.1]))
+    assert np.allclose(snap_collinear(off.points, off, ref, none, np.array([5.0]), *args), off.points)
+    # overlapping the wall's extent: the merge's business, not a continuation
+    over = Wireframe.build([(3.0, 0.05), (9.0, 0.02)], [(0, 1)])
+    assert np.allclose(snap_collinear(over.points, over, ref, none, np.array([5.0]), *args), over.points)
+    # matched to a reference edge, or a short map wall: nothing moves
+    assert np.allclose(snap_collinear(scan.points, scan, ref, np.array([[0, 0]]), np.array([5.0]), *args), scan.points)
+    assert np.allclose(snap_collinear(scan.points, scan, ref, none, np.array([1.5]), *args), scan.points)
+    # a wall a degree and a half off is not the same line
+    tilt = Wireframe.build([(6.0, -0.04), (9.0, 0.05)], [(0, 1)])  # both ends within 0.08 m
+    assert np.allclose(snap_collinear(tilt.points, tilt, ref, none, np.array([5.0]), *args), tilt.points)
 
 
 # ------------------------------------------------------------------ any world file
