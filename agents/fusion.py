@@ -1354,26 +1354,7 @@ def _same_wireframe(a: Wireframe, b: Wireframe) -> bool:
         return True
     if a.n_vertices != b.n_vertices or a.n_edges != b.n_edges:
         return False
-    if _surely_differ(a, b, 1e-9):
-        return False
     return a.almost_equal(b, tol=1e-9)
-
-
-def _surely_differ(a: Wireframe, b: Wireframe, tol: float) -> bool:
-    """A cheap test that ``a.almost_equal(b, tol, tol)`` is false: any one-to-one matching
-    within ``tol`` leaves the sorted x and y coordinates, labels, likelihoods and sources
-    within ``tol`` of (equal to) each other. (The fused map usually changed: this spares the
-    matching.)"""
-    if a.n_vertices and float(np.abs(np.sort(a.points, axis=0) - np.sort(b.points, axis=0)).max()) > tol:
-        return True
-    if not np.array_equal(np.sort(a.labels), np.sort(b.labels)):
-        return True
-    if a.n_edges:
-        if float(np.abs(np.sort(a.likelihood) - np.sort(b.likelihood)).max()) > tol:
-            return True
-        if not np.array_equal(np.sort(a.sources), np.sort(b.sources)):
-            return True
-    return False
 
 
 def _refine(source: Wireframe, target: Wireframe, threshold: float, cfg: FusionConfig) -> Pose | None:

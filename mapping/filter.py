@@ -1259,7 +1259,7 @@ class WireframeFilter:
         # directions of the pose: along a degenerate direction (a corridor's axis) the pose is
         # the odometry's, and averaging it in would drag the corners along with its error.
         refine = cfg.refine_corners and (icp_res is None or (icp_res.accepted and icp_res.constrained == 3))
-        placed = scan.transformed(place)
+        placed = scan.transformed(place) if refine else scan
         for k, q in enumerate(res.particles):
             parent = self._particles[int(res.indexes[k])]
             key = (id(q), id(parent))

@@ -36,6 +36,7 @@ from numpy.typing import NDArray
 from shapely.geometry import Polygon
 from shapely.ops import polygonize, unary_union
 
+from mapping.geometry import point_segment_distance, projection_parameter
 from mapping.se2 import Pose
 from mapping.wireframe import Wireframe
 
@@ -100,16 +101,6 @@ def wall_pieces(wf: Wireframe) -> FloatArray:
     return _pieces_of(_noded(segs))
 
 
-def _point_segment_distance(p: FloatArray, a: FloatArray, b: FloatArray) -> FloatArray:
-    """Row-wise distance from points ``p`` to segments ``a``-``b`` (all ``(k, 2)``)."""
-    ab = b - a
-    denom = np.einsum("ij,ij->i", ab, ab)
-    t = np.clip(np.einsum("ij,ij->i", p - a, ab) / np.where(denom > 0, denom, 1.0), 0.0, 1.0)
-    proj = a + t[:, None] * ab
-    return np.asarray(np.hypot(*(p - proj).T), dtype=np.float64)
-
-
-# ---------------------------------------------------------------------------- free space
 def classify_faces(wf: Wireframe) -> tuple[list[Polygon], FloatArray]:
     """The faces the walls cut the plane into, each with its free-space vote.
 
@@ -146,8 +137,8 @@ def classify_faces(wf: Wireframe) -> tuple[list[Polygon], FloatArray]:
     mids = 0.5 * (pieces[:, 0] + pieces[:, 1])
     pi, ei = tree.query(shapely.points(mids), predicate="dwithin", distance=eps)
     a, b = segs[ei, 0], segs[ei, 1]
-    on_line = (_point_segment_distance(pieces[pi, 0], a, b) <= eps) & (
-        _point_segment_distance(pieces[pi, 1], a, b) <= eps
+    on_line = (point_segment_distance(pieces[pi, 0], a, b) <= eps) & (
+        point_segment_distance(pieces[pi, 1], a, b) <= eps
     )
     pi, ei = pi[on_line], ei[on_line]
     sign = np.sign(np.einsum("ij,ij->i", pieces[pi, 1] - pieces[pi, 0], segs[ei, 1] - segs[ei, 0]))
@@ -450,15 +441,14 @@ def align_to_truth(
     if len(mp) < 2:
         return Pose.identity()
     tree = shapely.STRtree(shapely.linestrings(pieces))
-    a0, d0 = pieces[:, 0], pieces[:, 1] - pieces[:, 0]
-    len2 = np.maximum(np.einsum("ij,ij->i", d0, d0), 1e-18)
     R, t = np.eye(2), np.zeros(2)
     for _ in range(iterations):
         q = mp @ R.T + t
         idx = tree.query_nearest(shapely.points(q), all_matches=False)
         src, seg = idx[0], idx[1]
-        u = np.clip(np.einsum("ij,ij->i", q[src] - a0[seg], d0[seg]) / len2[seg], 0.0, 1.0)
-        target = a0[seg] + u[:, None] * d0[seg]
+        a0, d0 = pieces[seg, 0], pieces[seg, 1] - pieces[seg, 0]
+        u = np.clip(projection_parameter(q[src], pieces[seg, 0], pieces[seg, 1]), 0.0, 1.0)
+        target = a0 + u[:, None] * d0
         d = np.hypot(*(q[src] - target).T)
         sel = d <= np.quantile(d, keep)
         a, b, w = mp[src[sel]], target[sel], mw[src[sel]]

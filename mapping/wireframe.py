@@ -280,6 +280,8 @@ class Wireframe:
             return False
         if self.n_vertices == 0:
             return True
+        if _surely_differ(self, other, tol, likelihood_tol):
+            return False
         perm = _match_vertices(self.points, other.points, tol)
         if perm is None or np.any(self.labels != other.labels[perm]):
             return False
@@ -407,6 +409,25 @@ class Wireframe:
 def paper_storage_bytes(n_vertices: int, n_edges: int) -> int:
     """The paper's storage accounting (Sec. IV-G): ``10 |V| + 10 |E|`` bytes per wireframe."""
     return 10 * int(n_vertices) + 10 * int(n_edges)
+
+
+def _surely_differ(a: Wireframe, b: Wireframe, tol: float, likelihood_tol: float | None = None) -> bool:
+    """A cheap test that ``a.almost_equal(b, tol, likelihood_tol)`` is false (same sizes
+    assumed): a one-to-one matching within ``tol`` leaves the sorted x and the sorted y
+    coordinates within ``tol`` of each other, the sorted labels and sources equal and the
+    sorted likelihoods within ``likelihood_tol`` (default ``tol``). Maps that changed -- the
+    usual case for the fusion service -- are told apart without the matching."""
+    lt = tol if likelihood_tol is None else likelihood_tol
+    if a.n_vertices and float(np.abs(np.sort(a.points, axis=0) - np.sort(b.points, axis=0)).max()) > tol:
+        return True
+    if not np.array_equal(np.sort(a.labels), np.sort(b.labels)):
+        return True
+    if a.n_edges:
+        if float(np.abs(np.sort(a.likelihood) - np.sort(b.likelihood)).max()) > lt:
+            return True
+        if not np.array_equal(np.sort(a.sources), np.sort(b.sources)):
+            return True
+    return False
 
 
 def _match_vertices(a: FloatArray, b: FloatArray, tol: float) -> NDArray[np.int64] | None:

@@ -684,9 +684,11 @@ def test_merge_threshold_default_configured_and_raised_by_a_coarse_map():
 @settings(max_examples=80, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(st.integers(1, 12), st.integers(0, 2**32 - 1), st.sampled_from(["same", "permuted", "moved", "relabelled", "lik", "src"]))
 def test_quick_difference_test_never_contradicts_almost_equal(n, seed, change):
-    """``_same_wireframe`` skips the vertex matching when sorted coordinates, labels,
-    likelihoods or sources already differ; it must agree with ``almost_equal``."""
-    from agents.fusion import _same_wireframe, _surely_differ
+    """``almost_equal`` (and so ``_same_wireframe``) skips the vertex matching when sorted
+    coordinates, labels, likelihoods or sources already differ; the quick test must agree with
+    the full one."""
+    from agents.fusion import _same_wireframe
+    from mapping.wireframe import _surely_differ
 
     rng = np.random.default_rng(seed)
     pts = rng.integers(0, 6, (n, 2)) * 0.5
