@@ -12,7 +12,13 @@ what the paper does not have, a back end (choices written down here, tested in
 * **Keyframes.** Every ``spacing`` metres driven, the filter's pose estimate becomes a keyframe;
   the relative pose between consecutive keyframes, as estimated then, is an *odometry edge*
   whose covariance grows with the distance between them (``drift_xy``, ``drift_theta`` per
-  square-root metre).
+  square-root metre) plus, with ``motion_cov``, the part of the motion the scans did not pin
+  down: each step's odometry noise fused with its accepted scan match's information
+  (``(Q^-1 + H)^-1``, supplied by the filter to :meth:`LoopCloser.advance`). Tracking against
+  walls in view keeps that small; a turn in an empty room, nothing within range, carries the
+  odometry's full heading noise (degrees). The optimiser then bends the chain where the error
+  was made instead of spreading a closure evenly along it (museum, seeds 0-4: mean distance
+  to the truth 0.305/0.286/0.305/0.214/0.429 m without, 0.296/0.311/0.160/0.228/0.285 m with).
 * **Birth of map corners.** Each corner of every particle is stamped with the keyframe current
   when it took its position (looked up by its exact coordinates: the merge never moves a corner
   it keeps, so a corner with coordinates not seen before has just been placed; a corner that
@@ -98,6 +104,9 @@ class LoopConfig:
         Largest inlier RMS residual (metres) of a loop match.
     min_old_edges : int
         Fewest old walls in view for a check.
+    motion_cov : bool
+        Add the per-step covariances passed to :meth:`LoopCloser.advance` to the odometry
+        edges (module docstring, "Keyframes").
     """
 
     enabled: bool = True
@@ -114,6 +123,7 @@ class LoopConfig:
     min_constrained: int = 2
     max_rmse: float = 0.05
     min_old_edges: int = 2
+    motion_cov: bool = True
 
     def __post_init__(self) -> None:
         for name in ("spacing", "check_every", "drift_xy", "drift_theta", "max_prior_xy", "max_prior_theta",
@@ -251,6 +261,8 @@ class LoopCloser:
         self.kf_distance: list[float] = [0.0]
         self.odom: list[FloatArray] = []  # relative pose kf[i] -> kf[i+1] as estimated then
         self.odom_length: list[float] = []
+        self.odom_cov: list[FloatArray] = []  # extra covariance of each odometry edge (motion_cov)
+        self._since_cov = np.zeros((3, 3))
         self.closures: list[Closure] = []
         self.distance = 0.0
         self._since_kf = 0.0
@@ -265,8 +277,16 @@ class LoopCloser:
     def current_keyframe(self) -> int:
         return len(self.keyframes) - 1
 
-    def advance(self, pose: Pose, driven: float) -> None:
-        """Account for ``driven`` metres ending at ``pose`` (adds a keyframe every ``spacing``)."""
+    def advance(self, pose: Pose, driven: float, increment: FloatArray | None = None) -> None:
+        """Account for ``driven`` metres ending at ``pose`` (adds a keyframe every ``spacing``).
+
+        ``increment`` (3 x 3, robot frame at ``pose``) is the covariance this step adds to the
+        relative pose of the current odometry edge (``LoopConfig.motion_cov``)."""
+        if increment is not None:
+            dth = pose.theta - float(self.keyframes[-1][2])
+            c, s_ = math.cos(dth), math.sin(dth)
+            R = np.array([[c, -s_, 0.0], [s_, c, 0.0], [0.0, 0.0, 1.0]])
+            self._since_cov = self._since_cov + R @ increment @ R.T
         self.distance += driven
         self._since_kf += driven
         self._since_check += driven
@@ -275,6 +295,8 @@ class LoopCloser:
             rel = _rel(self.keyframes[-1][None, :], cur[None, :])[0]
             self.odom.append(rel)
             self.odom_length.append(self._since_kf)
+            self.odom_cov.append(self._since_cov)
+            self._since_cov = np.zeros((3, 3))
             self.keyframes.append(cur)
             self.kf_distance.append(self.distance)
             self._since_kf = 0.0
@@ -440,8 +462,13 @@ class LoopCloser:
         edges = [(i, i + 1) for i in range(n - 1)] + [(c.old, c.new) for c in self.closures]
         meas = list(self.odom) + [np.array([c.relative.x, c.relative.y, c.relative.theta]) for c in self.closures]
         sq: list[FloatArray] = []
-        for length in self.odom_length:
+        use_cov = cfg.motion_cov and len(self.odom_cov) == len(self.odom_length)
+        for k, length in enumerate(self.odom_length):
             d = max(length, 0.1)
+            if use_cov:
+                C = np.diag([cfg.drift_xy**2 * d] * 2 + [cfg.drift_theta**2 * d]) + self.odom_cov[k]
+                sq.append(np.asarray(np.linalg.cholesky(np.linalg.inv(0.5 * (C + C.T))).T, dtype=np.float64))
+                continue
             sq.append(np.diag([1.0 / (cfg.drift_xy * math.sqrt(d))] * 2 + [1.0 / (cfg.drift_theta * math.sqrt(d))]))
         for c in self.closures:
             sq.append(np.asarray(np.linalg.cholesky(c.information).T, dtype=np.float64))

@@ -20,11 +20,14 @@ from mapping.filter import (
     drop_fragments,
     drop_line_of_sight,
     edge_log_odds,
+    seen_fraction,
     seen_through_spans,
     snap_collinear,
     snap_frontiers,
 )
+from mapping.loops import LoopConfig
 from mapping.metrics import wall_precision_recall
+from mapping.visibility import visible_view
 
 WORLDS = Path(__file__).parent / "worlds"
 
@@ -133,6 +136,44 @@ def test_contradiction_update_is_bayes_and_leaves_certainty_capped():
     for _ in range(4):
         lik = contradiction_update(lik, 0.1, 0.1)
     assert lik[0] < 0.5
+
+
+def test_a_weighted_contradiction_counts_for_its_fraction_of_a_whole_one():
+    L = np.array([0.2, 0.6, 0.95])
+    whole = contradiction_update(L, 0.1, 0.1)
+    assert contradiction_update(L, 0.1, 0.1, 1.0) == pytest.approx(whole)
+    assert contradiction_update(L, 0.1, 0.1, 0.0) == pytest.approx(L)
+    halves = contradiction_update(contradiction_update(L, 0.1, 0.1, 0.5), 0.1, 0.1, 0.5)
+    assert halves == pytest.approx(whole)  # odds multiply: two half updates are one whole
+    w = np.array([0.0, 0.5, 1.0])
+    assert contradiction_update(L, 0.1, 0.1, w) == pytest.approx(
+        [L[0], contradiction_update(L[1:2], 0.1, 0.1, 0.5)[0], whole[2]]
+    )
+
+
+def test_a_long_wall_seen_through_in_part_loses_only_that_part_of_its_likelihood():
+    """A 100 m map wall stands 1.5 m in front of the real one over the 14 m in range (mapped
+    a little turned): the scan sees through that stretch. It counts for 14 % of a
+    contradiction; the 6 m wall fully in view, seen through too, takes a whole one."""
+    m = Wireframe.build([(50, 2), (-50, 2), (1, -3), (7, -3)], [(0, 1), (2, 3)], likelihood=[0.99, 0.99])
+    view = visible_view(m, Pose.identity(), 8.0, 2 * math.pi)
+    frac = seen_fraction(m, view.scan, view.edge_source)
+    assert frac[0] == pytest.approx(2 * math.sqrt(64 - 4) / 100, abs=1e-6) and frac[1] == 1.0
+    scan = visible_view(Wireframe.build([(50, 3.5), (-50, 3.5)], [(0, 1)]), Pose.identity(), 8.0, 2 * math.pi).scan
+    out = {}
+    for partial in (True, False):
+        cfg = FilterConfig(particles=1, mutate=False, use_icp=False, carve=False,
+                           partial_contradiction=partial, loops=LoopConfig(enabled=False))
+        f = WireframeFilter(cfg, np.random.default_rng(0))
+        f._particles = [m]  # start from this map
+        f.step(Pose.identity(), scan)
+        lengths = f.best.edge_lengths()
+        out[partial] = {round(float(n)): float(x) for n, x in zip(lengths, f.best.likelihood)}
+    whole = float(contradiction_update(np.array([0.99]), 0.1, 0.1)[0])
+    assert out[False][100] == pytest.approx(whole) and out[False][6] == pytest.approx(whole)
+    assert out[True][6] == pytest.approx(whole)
+    assert out[True][100] == pytest.approx(contradiction_update(np.array([0.99]), 0.1, 0.1, frac[0])[0])
+    assert out[True][100] > 0.98 > whole
 
 
 def test_edge_log_odds_penalises_doubtful_edges():

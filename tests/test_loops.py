@@ -120,6 +120,32 @@ def test_closing_moves_young_corners_with_their_keyframe_and_merges_duplicates()
     assert any(np.allclose(fixed.points[e], wall.points, atol=0.05) for e in fixed.edges)
 
 
+def test_a_closure_bends_the_chain_where_the_motion_was_uncertain():
+    # 30 keyframes along x; the estimate turned by 2 degrees too little at keyframe 10, a turn
+    # made with nothing in view (the filter reports the odometry's heading noise there), and
+    # tracked the walls everywhere else. With motion_cov the closure's correction goes into that
+    # one edge: the keyframes before it stay, the ones after it turn by the whole 2 degrees.
+    bias = math.radians(2.0)
+
+    def run(motion_cov: bool) -> np.ndarray:
+        lc = LoopCloser(LoopConfig(spacing=1.0, motion_cov=motion_cov), Pose())
+        true_pose, est_pose = Pose(), Pose()
+        for k in range(30):
+            true_pose = true_pose.compose(Pose(1.0, 0.0, bias if k == 10 else 0.0))
+            est_pose = est_pose.compose(Pose(1.0, 0.0, 0.0))
+            sd = math.radians(3.0) if k == 10 else math.radians(0.01)
+            lc.advance(est_pose, 1.0, np.diag([1e-6, 1e-6, sd * sd]))
+        lc.close(est_pose, true_pose, 0, np.diag([0.01**2, 0.01**2, 1e-6]), [], lambda a, b: a)
+        return np.asarray(lc.keyframes)
+
+    kf = run(True)
+    assert np.degrees(np.abs(kf[:11, 2])).max() < 0.1  # before the turn: untouched
+    assert np.degrees(kf[12:, 2]) == pytest.approx(2.0, abs=0.1)  # after it: the whole correction
+    assert kf[25, 1] == pytest.approx(15 * math.sin(bias), abs=0.05)
+    even = run(False)  # without: the correction is spread along the chain
+    assert np.degrees(even[5, 2]) > 0.2 and np.degrees(even[20, 2]) < 1.8
+
+
 def test_config_rejects_bad_values():
     with pytest.raises(ValueError):
         LoopConfig(spacing=0.0)
