@@ -134,7 +134,7 @@ FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 BoolArray = NDArray[np.bool_]
 
-__all__ = ["FilterConfig", "StepInfo", "WireframeFilter", "budget_map", "budget_scan", "carve", "contradiction_update", "drop_fragments", "drop_line_of_sight", "edge_log_odds", "fragment_mask", "seen_fraction", "particle_bytes", "seen_through_spans"]
+__all__ = ["FilterConfig", "StepInfo", "WireframeFilter", "budget_map", "budget_scan", "carve", "contradiction_update", "drop_fragments", "drop_line_of_sight", "edge_log_odds", "fragment_mask", "particle_bytes", "seen_fraction", "seen_through_spans"]
 
 
 class ViewLike(Protocol):
