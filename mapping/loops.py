@@ -462,10 +462,9 @@ class LoopCloser:
         edges = [(i, i + 1) for i in range(n - 1)] + [(c.old, c.new) for c in self.closures]
         meas = list(self.odom) + [np.array([c.relative.x, c.relative.y, c.relative.theta]) for c in self.closures]
         sq: list[FloatArray] = []
-        use_cov = cfg.motion_cov and len(self.odom_cov) == len(self.odom_length)
         for k, length in enumerate(self.odom_length):
             d = max(length, 0.1)
-            if use_cov:
+            if cfg.motion_cov:
                 C = np.diag([cfg.drift_xy**2 * d] * 2 + [cfg.drift_theta**2 * d]) + self.odom_cov[k]
                 sq.append(np.asarray(np.linalg.cholesky(np.linalg.inv(0.5 * (C + C.T))).T, dtype=np.float64))
                 continue
