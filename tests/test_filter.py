@@ -152,8 +152,8 @@ def test_a_weighted_contradiction_counts_for_its_fraction_of_a_whole_one():
 
 
 def test_a_long_wall_seen_through_in_part_loses_only_that_part_of_its_likelihood():
-    """A 100 m map wall stands 1.5 m in front of the real one over the 14 m in range (mapped
-    a little turned): the scan sees through that stretch. It counts for 14 % of a
+    """A 100 m map wall stands 1.5 m in front of the real one over the 15.5 m in range
+    (mapped a little turned): the scan sees through that stretch. It counts for 15.5 % of a
     contradiction; the 6 m wall fully in view, seen through too, takes a whole one."""
     m = Wireframe.build([(50, 2), (-50, 2), (1, -3), (7, -3)], [(0, 1), (2, 3)], likelihood=[0.99, 0.99])
     view = visible_view(m, Pose.identity(), 8.0, 2 * math.pi)
