@@ -463,14 +463,18 @@ class LoopCloser:
         n = len(kf)
         edges = [(i, i + 1) for i in range(n - 1)] + [(c.old, c.new) for c in self.closures]
         meas = list(self.odom) + [np.array([c.relative.x, c.relative.y, c.relative.theta]) for c in self.closures]
-        sq: list[FloatArray] = []
-        for k, length in enumerate(self.odom_length):
-            d = max(length, 0.1)
-            if cfg.motion_cov:
-                C = np.diag([cfg.drift_xy**2 * d] * 2 + [cfg.drift_theta**2 * d]) + self.odom_cov[k]
-                sq.append(np.asarray(np.linalg.cholesky(np.linalg.inv(0.5 * (C + C.T))).T, dtype=np.float64))
-                continue
-            sq.append(np.diag([1.0 / (cfg.drift_xy * math.sqrt(d))] * 2 + [1.0 / (cfg.drift_theta * math.sqrt(d))]))
-        for c in self.closures:
-            sq.append(np.asarray(np.linalg.cholesky(c.information).T, dtype=np.float64))
-        return optimize(kf, np.asarray(edges, dtype=np.int64), np.asarray(meas), np.asarray(sq))
+        d = np.maximum(np.asarray(self.odom_length, dtype=np.float64), 0.1)
+        if cfg.motion_cov and len(d):
+            # One stacked inverse and Cholesky factor for all odometry edges.
+            C = np.zeros((len(d), 3, 3))
+            C[:, 0, 0] = C[:, 1, 1] = cfg.drift_xy**2 * d
+            C[:, 2, 2] = cfg.drift_theta**2 * d
+            C = C + np.asarray(self.odom_cov, dtype=np.float64)
+            odo = np.linalg.cholesky(np.linalg.inv(0.5 * (C + C.transpose(0, 2, 1)))).transpose(0, 2, 1)
+        else:
+            odo = np.zeros((len(d), 3, 3))
+            odo[:, 0, 0] = odo[:, 1, 1] = 1.0 / (cfg.drift_xy * np.sqrt(d))
+            odo[:, 2, 2] = 1.0 / (cfg.drift_theta * np.sqrt(d))
+        loops = [np.linalg.cholesky(c.information).T for c in self.closures]
+        sq = np.concatenate([odo, np.asarray(loops, dtype=np.float64).reshape(-1, 3, 3)])
+        return optimize(kf, np.asarray(edges, dtype=np.int64), np.asarray(meas), sq)
