@@ -983,7 +983,6 @@ class WireframeFilter:
         ``s_r = rot_per_rad |th_u| + rot_per_m d`` (``d`` the distance driven), the noise model
         of :class:`agents.sim.motion.OdometryNoise` with the filter's own parameters.
         """
-        cfg = self.config
         c, s_ = math.cos(odometry.theta), math.sin(odometry.theta)
         A = np.array(
             [
@@ -992,11 +991,16 @@ class WireframeFilter:
                 [0.0, 0.0, 1.0],
             ]
         )
+        out = A @ cov @ A.T + self._odometry_noise(odometry)
+        return np.asarray(0.5 * (out + out.T), dtype=np.float64)
+
+    def _odometry_noise(self, odometry: Pose) -> FloatArray:
+        """``diag(s_t^2, s_t^2, s_r^2)`` of :meth:`predict_covariance` for one increment."""
+        cfg = self.config
         d = math.hypot(odometry.x, odometry.y)
         st = cfg.odometry_trans_per_m * d
         sr = cfg.odometry_rot_per_rad * abs(odometry.theta) + cfg.odometry_rot_per_m * d
-        out = A @ cov @ A.T + np.diag([st * st, st * st, sr * sr])
-        return np.asarray(0.5 * (out + out.T), dtype=np.float64)
+        return np.diag([st * st, st * st, sr * sr])
 
     def motion_increment(self, odometry: Pose, match: ICPResult | None) -> FloatArray:
         """What one step adds to the uncertainty of the robot's motion (robot frame): the
@@ -1004,11 +1008,7 @@ class WireframeFilter:
         the step's scan match when it was accepted, ``(Q^-1 + H)^-1``. Directions the scan
         pinned down add next to nothing; a turn with nothing in view adds the odometry's
         whole heading noise (:class:`mapping.loops.LoopConfig`, ``motion_cov``)."""
-        cfg = self.config
-        d = math.hypot(odometry.x, odometry.y)
-        st = cfg.odometry_trans_per_m * d
-        sr = cfg.odometry_rot_per_rad * abs(odometry.theta) + cfg.odometry_rot_per_m * d
-        Q = np.diag([st * st, st * st, sr * sr]) + 1e-12 * np.eye(3)
+        Q = self._odometry_noise(odometry) + 1e-12 * np.eye(3)
         if match is None or not match.accepted:
             return Q
         H = np.asarray(match.information, dtype=np.float64)
@@ -1316,13 +1316,13 @@ class WireframeFilter:
         # directions of the pose: along a degenerate direction (a corridor's axis) the pose is
         # the odometry's, and averaging it in would drag the corners along with its error.
         refine = cfg.refine_corners and (icp_res is None or (icp_res.accepted and icp_res.constrained == 3))
-        placed = scan.transformed(place) if refine else scan
+        placed = scan.transformed(place)  # the scan in the map frame, for every merge below
         for k, q in enumerate(res.particles):
             parent = self._particles[int(res.indexes[k])]
             key = (id(q), id(parent))
             if key not in merged:
                 ev = evals[id(parent)]
-                scan_world = scan.replace(likelihood=ev.scan_edge_likelihood).transformed(place)
+                scan_world = placed.replace(likelihood=ev.scan_edge_likelihood)
                 if not ev.merge_mask.all():
                     scan_world = scan_world.subgraph_edges(ev.merge_mask)
                 if refine and q.n_vertices:
