@@ -1124,6 +1124,7 @@ class WireframeFilter:
         P = self._cov
         gain = P[:, 2] / (P[2, 2] + h.variance)
         dx = gain * h.offset
+        self._loops.heading(float(h.offset - dx[2]), h.variance)
         C = P - np.outer(gain, P[2, :])
         self._cov = np.asarray(0.5 * (C + C.T), dtype=np.float64)
         return pose.compose(Pose(float(dx[0]), float(dx[1]), float(dx[2]))), h

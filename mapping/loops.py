@@ -37,8 +37,15 @@ what the paper does not have, a back end (choices written down here, tested in
   drifted chain put them. A match that constrains at least ``min_constrained`` directions with a small residual and
   moves the pose by more than ``min_correction`` is a loop closure: a constraint between the
   keyframe where the matched corners were born (the median) and the current one.
-* **Optimisation.** The pose graph (odometry edges and every loop constraint so far, the first
-  keyframe fixed) is solved by sparse nonlinear least squares (:func:`optimize`,
+* **Heading factors.** The filter's wall-direction compass (:mod:`mapping.compass`) measures
+  the heading against the building's wall directions, an absolute reference. Each measurement
+  (the part the filter's own update did not apply, :meth:`LoopCloser.heading`) becomes a factor
+  on the next keyframe: a relative constraint to the fixed first keyframe with information on
+  the heading only. Without them a closure that has to move the pose sideways does it largely by
+  turning the chain (turning is cheap over a long lever), and the compass then fights the
+  turned map.
+* **Optimisation.** The pose graph (odometry edges, heading factors and every loop constraint
+  so far, the first keyframe fixed) is solved by sparse nonlinear least squares (:func:`optimize`,
   Levenberg-Marquardt on the sparse normal equations).
 * **Deformation.** Every particle's corners move with their birth keyframe,
   ``p' = K'_a K_a^{-1} p``; the pose estimate moves with the current keyframe. Walls that the
@@ -109,6 +116,15 @@ class LoopConfig:
     motion_cov : bool
         Add the per-step covariances passed to :meth:`LoopCloser.advance` to the odometry
         edges (module docstring, "Keyframes").
+    heading_factors : bool
+        Keep the filter's absolute heading measurements (:meth:`LoopCloser.heading`, the
+        wall-direction compass of :mod:`mapping.compass`) as factors on the keyframes, so that
+        a closure does not turn a keyframe away from a heading the walls measured (module
+        docstring, "Heading factors"). Museum seeds 0-7, mean wall distance / recall, compass
+        on: without 0.262/0.976, 0.200/0.999, 0.276/0.996, 0.188/0.966, 0.152/0.987,
+        0.217/0.995, 0.183/0.964, 0.309/0.942 (median 0.208 m, 0.982); with 0.077/1.0,
+        0.151/1.0, 0.131/1.0, 0.250/1.0, 0.197/0.990, 0.151/1.0, 0.192/0.997, 0.263/1.0
+        (median 0.172 m, 1.0).
     """
 
     enabled: bool = True
@@ -126,6 +142,7 @@ class LoopConfig:
     max_rmse: float = 0.05
     min_old_edges: int = 2
     motion_cov: bool = True
+    heading_factors: bool = True
 
     def __post_init__(self) -> None:
         for name in ("spacing", "check_every", "drift_xy", "drift_theta", "max_prior_xy", "max_prior_theta",
@@ -265,6 +282,8 @@ class LoopCloser:
         self.odom_length: list[float] = []
         self.odom_cov: list[FloatArray] = []  # extra covariance of each odometry edge (motion_cov)
         self._since_cov = np.zeros((3, 3))
+        self.headings: list[tuple[int, float, float]] = []  # (keyframe, absolute heading, variance)
+        self._pending_heading: tuple[float, float] | None = None
         self.closures: list[Closure] = []
         self.distance = 0.0
         self._since_kf = 0.0
@@ -302,6 +321,18 @@ class LoopCloser:
             self.keyframes.append(cur)
             self.kf_distance.append(self.distance)
             self._since_kf = 0.0
+            if self._pending_heading is not None:
+                rest, var = self._pending_heading
+                self.headings.append((len(self.keyframes) - 1, float(cur[2]) + rest, var))
+                self._pending_heading = None
+
+    def heading(self, rest: float, variance: float) -> None:
+        """An absolute heading measurement at the current step: the measured heading minus the
+        pose's heading after the filter fused it (``rest``, radians) and its variance. It becomes
+        a factor on the next keyframe (``heading_factors``); a later measurement before that
+        keyframe replaces it."""
+        if self.config.heading_factors:
+            self._pending_heading = (float(rest), float(variance))
 
     def _lookup(self, points: FloatArray) -> tuple[IntArray, BoolArray]:
         self._flush()
@@ -477,4 +508,17 @@ class LoopCloser:
             odo[:, 2, 2] = 1.0 / (cfg.drift_theta * np.sqrt(d))
         loops = [np.linalg.cholesky(c.information).T for c in self.closures]
         sq = np.concatenate([odo, np.asarray(loops, dtype=np.float64).reshape(-1, 3, 3)])
+        if cfg.heading_factors and self.headings:
+            # An absolute heading is a relative one to the fixed first keyframe, with no
+            # information on the position (zero rows).
+            hk = np.array([k for k, _, _ in self.headings], dtype=np.int64)
+            ht = np.array([t for _, t, _ in self.headings])
+            hv = np.array([v for _, _, v in self.headings])
+            edges += [(0, int(k)) for k in hk]
+            hm = np.zeros((len(hk), 3))
+            hm[:, 2] = wrap_angles(ht - kf[0, 2])
+            meas += list(hm)
+            hs = np.zeros((len(hk), 3, 3))
+            hs[:, 2, 2] = 1.0 / np.sqrt(hv)
+            sq = np.concatenate([sq, hs])
         return optimize(kf, np.asarray(edges, dtype=np.int64), np.asarray(meas), sq)

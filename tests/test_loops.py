@@ -146,6 +146,31 @@ def test_a_closure_bends_the_chain_where_the_motion_was_uncertain():
     assert np.degrees(even[5, 2]) > 0.2 and np.degrees(even[20, 2]) < 1.8
 
 
+def test_heading_factors_keep_the_measured_headings():
+    # 30 keyframes along x; at keyframe 10 the robot slid 0.5 m sideways without turning (the
+    # estimate did not see it). A closure at the end puts the pose 0.5 m over, heading
+    # unchanged. The pose graph alone explains most of that offset by turning the chain a little
+    # (turning is cheap for a long lever); with an absolute heading measurement on every
+    # keyframe (the compass's, 0.2 degree) it stays straight and the offset goes into positions.
+    def run(factors: bool) -> np.ndarray:
+        lc = LoopCloser(LoopConfig(spacing=1.0, heading_factors=factors), Pose())
+        true_pose, est_pose = Pose(), Pose()
+        for k in range(30):
+            true_pose = true_pose.compose(Pose(1.0, 0.5 if k == 10 else 0.0, 0.0))
+            est_pose = est_pose.compose(Pose(1.0, 0.0, 0.0))
+            lc.heading(true_pose.theta - est_pose.theta, math.radians(0.2) ** 2)
+            lc.advance(est_pose, 1.0, np.diag([1e-4, 1e-4, math.radians(0.05) ** 2]))
+        lc.close(est_pose, true_pose, 0, np.diag([0.01**2, 0.01**2, 1e-6]), [], lambda a, b: a)
+        assert len(lc.headings) == (30 if factors else 0)
+        return np.asarray(lc.keyframes)
+
+    kf = run(True)
+    free = run(False)
+    assert np.degrees(np.abs(kf[:, 2])).max() < 0.02  # measured 0.004
+    assert np.degrees(np.abs(free[:, 2])).max() > 0.1  # measured 0.15
+    assert kf[-1, 1] == pytest.approx(0.5, abs=0.02) and free[-1, 1] == pytest.approx(0.5, abs=0.02)
+
+
 def test_config_rejects_bad_values():
     with pytest.raises(ValueError):
         LoopConfig(spacing=0.0)
