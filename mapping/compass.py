@@ -121,7 +121,8 @@ class Directions:
     """The reference directions of the compass: the building's wall directions in the map frame.
 
     While the robot has driven less than ``anchor`` metres, they are the clusters
-    (:func:`direction_clusters`) of the map's established walls, recomputed at every update: the
+    (:func:`direction_clusters`, neighbours more than ``gap`` apart start a new cluster) of the
+    map's established walls, recomputed at every update: the
     map frame is the first pose's, and those walls carry the least heading error of any. Then
     every cluster with at least ``min_support`` metres of walls is frozen for good. A direction
     met later (a wing of the building turned against the rest) joins the reference once its
@@ -135,6 +136,7 @@ class Directions:
     def __init__(self, anchor: float, min_support: float, max_gate: float, gap: float = math.radians(1.0)) -> None:
         self.anchor, self.min_support, self.max_gate, self.gap = anchor, min_support, max_gate, gap
         self.frozen: list[tuple[float, float]] = []  # (direction, support when frozen)
+        self.settled = False  # updated once at or past the anchor: the frozen set is taken
         self._live = (np.zeros(0), np.zeros(0))
 
     def update(self, map_dirs: FloatArray, map_lengths: FloatArray, distance: float) -> None:
@@ -150,6 +152,7 @@ class Directions:
         if distance < self.anchor:
             self._live = (dirs, support)
             return
+        self.settled = True
         ok = support >= self.min_support
         for x, s in zip(dirs[ok].tolist(), support[ok].tolist()):
             if not self.frozen or np.abs(_wrap_half(np.array([x - y for y, _ in self.frozen]))).min() > self.max_gate:

@@ -70,6 +70,10 @@ Choices where the paper is silent or that differ from it
   ``L <- L p_fn / (L p_fn + (1 - L)(1 - p_fp))``, in proportion to the part of the edge in
   view (:attr:`FilterConfig.partial_contradiction`). This is how a wrong wall falls below the
   keep threshold "verified through multiple scans" (Sec. IV-F).
+* **Wall-direction compass** (:mod:`mapping.compass`, :attr:`FilterConfig.compass`): while the
+  match leaves the heading uncertain, the directions of the scan's long walls against the
+  building's wall directions (learnt from the first metres driven, then frozen) are fused as a
+  heading measurement; the loop closer keeps them as heading factors on its keyframes.
 * **Static world.** A new scan edge that lies where a particle is sure there is free space
   (its prediction sees past it onto confirmed walls) is not merged into that particle
   (:attr:`FilterConfig.reject_in_free_space`): a false positive or a passer-by.
@@ -303,8 +307,8 @@ class FilterConfig:
         Fuse a heading measurement from wall directions (:mod:`mapping.compass`, not in the
         paper) whenever the heading's standard deviation after the scan match is above
         ``compass_min_sigma``: the scan's walls at least ``compass_min_length`` long against
-        the directions of the map's established walls, all over the map but for those the scan
-        match used (``compass_min_support`` metres of them along a direction). After a turn in
+        the building's wall directions as the map learnt them (``compass_anchor``), each
+        supported by ``compass_min_support`` metres of established walls. After a turn in
         a hall wider than the range, or when new territory comes into view, the ICP has no
         mapped wall to fix the heading on, and the odometry's error of the turn went into
         every new wall.
@@ -962,7 +966,6 @@ class WireframeFilter:
         self._directions = Directions(
             config.compass_anchor or 0.0, config.compass_min_support, config.compass_max_gate
         )
-        self._directions_frozen = False
 
     # ------------------------------------------------------------------ state
     @property
@@ -1287,10 +1290,9 @@ class WireframeFilter:
             need = scan.n_edges > 0 and math.sqrt(self._cov[2, 2]) > cfg.compass_min_sigma
             if cfg.compass_anchor is not None:
                 anchoring = self._loops.distance < cfg.compass_anchor
-                if anchoring or need or not self._directions_frozen:
+                if anchoring or need or not self._directions.settled:
                     md, ml = wall_directions(best, cfg.compass_min_length, cfg.keep_threshold)
                     self._directions.update(md, ml, self._loops.distance)
-                    self._directions_frozen = not anchoring
             if need:
                 pose, heading = self._compass(scan, pose, best, matched_edges)
         self._pose = pose

@@ -155,8 +155,9 @@ def test_directions_freeze_after_the_anchor():
     half a degree does not turn it; a new direction joins once it has the support."""
     ref = Directions(anchor=10.0, min_support=10.0, max_gate=D(6.0))
     ref.update(np.radians([0.0, 90.0]), np.array([12.0, 11.0]), 5.0)
-    assert np.allclose(np.degrees(ref.reference()[0]), [0.0, 90.0])
+    assert np.allclose(np.degrees(ref.reference()[0]), [0.0, 90.0]) and not ref.settled
     ref.update(np.radians([0.0, 90.0]), np.array([12.0, 11.0]), 10.0)  # anchor reached: frozen
+    assert ref.settled and len(ref.frozen) == 2
     ref.update(np.radians([0.5, 90.5, 30.0]), np.array([40.0, 40.0, 5.0]), 50.0)
     assert np.allclose(np.degrees(ref.reference()[0]), [0.0, 90.0])
     ref.update(np.radians([0.5, 90.5, 30.0, 30.2]), np.array([40.0, 40.0, 5.0, 6.0]), 60.0)
