@@ -18,9 +18,12 @@ Choices
 -------
 * **Directions modulo 180 degrees.** A wall and the one facing it across a corridor run
   opposite ways; both give the same direction.
-* **The map's walls** that count are the established ones (likelihood at or above the filter's
-  keep threshold) at least ``min_map_length`` long, over the *whole* map: the reference is the
-  map's consensus, not the walls near the robot (which the drift may have turned).
+* **The reference** is the building's wall directions as the map learnt them
+  (:class:`Directions`): the established walls (likelihood at or above the filter's keep
+  threshold, at least the filter's ``compass_min_length`` long) of the first metres driven,
+  where the map frame is exact, then frozen. Not the walls near the robot, nor the whole map's
+  consensus at every step: the drift turns those with the heading (measured alternatives in
+  :attr:`mapping.filter.FilterConfig.compass_anchor`).
 * **One scan wall, one residual**: the length-weighted median of the differences to the map
   directions within the gate (three standard deviations of the heading and of the scan wall's
   own direction, at most ``max_gate``), provided those map walls add up to ``min_support``

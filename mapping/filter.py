@@ -1099,11 +1099,12 @@ class WireframeFilter:
         self, scan: Wireframe, pose: Pose, best: Wireframe, matched: IntArray
     ) -> tuple[Pose, Heading | None]:
         """The wall-direction heading measurement (:mod:`mapping.compass`) of ``scan`` at
-        ``pose`` against the established walls of ``best`` but the edges ``matched`` (those the
-        scan match already used: counting them again would make the heading look better known
-        than it is, and in a corridor that is all the map there is), fused into the pose and
-        its covariance as a Kalman update of the heading (the position moves with it through
-        the covariance's cross terms). Returns the pose and the measurement (None: none)."""
+        ``pose`` against the reference directions (:class:`mapping.compass.Directions`; with
+        ``compass_anchor=None``, the established walls of ``best`` but the edges ``matched``,
+        those the scan match already used), fused into the pose and its covariance as a Kalman
+        update of the heading (the position moves with it through the covariance's cross
+        terms); the part of the measurement the update did not apply goes to the loop closer
+        as a heading factor. Returns the pose and the measurement (None: none)."""
         cfg = self.config
         sd, sl = wall_directions(scan, cfg.compass_min_length)
         if len(sd) == 0:
