@@ -23,7 +23,9 @@ Choices
   threshold, at least the filter's ``compass_min_length`` long) of the first metres driven,
   where the map frame is exact, then frozen. Not the walls near the robot, nor the whole map's
   consensus at every step: the drift turns those with the heading (measured alternatives in
-  :attr:`mapping.filter.FilterConfig.compass_anchor`).
+  :attr:`mapping.filter.FilterConfig.compass_anchor`). A direction frozen within a degree of
+  perpendicular to one established before it is frozen at exactly perpendicular (a
+  right-angle prior, :attr:`mapping.filter.FilterConfig.compass_right_angle`).
 * **One scan wall, one residual**: the length-weighted median of the differences to the map
   directions within the gate (three standard deviations of the heading and of the scan wall's
   own direction, at most ``max_gate``), provided those map walls add up to ``min_support``
@@ -38,7 +40,9 @@ Choices
 * The assumption fails for a wall that is really a few degrees off a frequent direction. The
   gate keeps "a few" to the heading's own uncertainty (the compass only runs while that is
   larger than :attr:`mapping.filter.FilterConfig.compass_min_sigma`), so a wall 10 degrees off
-  is never mistaken for a parallel one at a 1-degree uncertainty.
+  is never mistaken for a parallel one at a 1-degree uncertainty. Likewise the right-angle
+  prior squares a building whose wings really meet at 89.5 degrees (by at most its 1-degree
+  tolerance); wings at 45 or 60 degrees (tests/worlds/angled, slanted) are left as mapped.
 """
 
 from __future__ import annotations
@@ -134,10 +138,30 @@ class Directions:
     heading's drift has turned a little cannot turn its own reference with it (tried: the whole
     map as reference, museum seeds 4 and 7 kept a 0.5-degree heading error from their first
     30 m for the whole run).
+
+    **Right angles** (``right_angle``, radians; 0 turns it off): a direction frozen within
+    ``right_angle`` of perpendicular to one frozen before it is frozen at exactly
+    perpendicular. Most buildings are built square, and the map's first walls of the second
+    direction carry the heading error of the turn that brought them into view (often the first
+    corner, where the compass had only one direction to hold on to); without the prior the
+    compass then holds the rest of the run at that error. The clusters are frozen in the order
+    their walls were first established (ties: the longest first), so the direction seen from
+    the first pose, the one with no heading error, is the one the others are squared to: a
+    robot that starts next to a corner maps the second direction with the turn's error within
+    its first 10 m, and that cluster may well be the longer one by then.
     """
 
-    def __init__(self, anchor: float, min_support: float, max_gate: float, gap: float = math.radians(1.0)) -> None:
+    def __init__(
+        self,
+        anchor: float,
+        min_support: float,
+        max_gate: float,
+        gap: float = math.radians(1.0),
+        right_angle: float = 0.0,
+    ) -> None:
         self.anchor, self.min_support, self.max_gate, self.gap = anchor, min_support, max_gate, gap
+        self.right_angle = right_angle
+        self._first: list[float] = []  # directions in the order they were first established
         self.frozen: list[tuple[float, float]] = []  # (direction, support when frozen)
         self.settled = False  # updated once at or past the anchor: the frozen set is taken
         self._live = (np.zeros(0), np.zeros(0))
@@ -152,15 +176,41 @@ class Directions:
             far = np.abs(_wrap_half(md[:, None] - f[None, :])).min(axis=1) > self.max_gate
             md, ml = md[far], ml[far]
         dirs, support = direction_clusters(md, ml, self.gap)
+        ok = support >= self.min_support
+        if not self.settled:
+            for x in dirs[ok].tolist():
+                if not self._first or np.abs(_wrap_half(np.array(self._first) - x)).min() > self.max_gate:
+                    self._first.append(x)
         if distance < self.anchor:
             self._live = (dirs, support)
             return
         self.settled = True
-        ok = support >= self.min_support
-        for x, s in zip(dirs[ok].tolist(), support[ok].tolist()):
+        order = np.argsort([self._rank(x) for x in dirs[ok].tolist()], kind="stable")
+        for x, s in zip(dirs[ok][order].tolist(), support[ok][order].tolist()):
             if not self.frozen or np.abs(_wrap_half(np.array([x - y for y, _ in self.frozen]))).min() > self.max_gate:
-                self.frozen.append((x, s))
+                self.frozen.append((self._square(x), s))
         self._live = (np.zeros(0), np.zeros(0))
+
+    def _rank(self, x: float) -> int:
+        """Index of the first-established direction within ``max_gate`` of ``x`` (the nearest),
+        or the number of them when none is."""
+        if not self._first:
+            return 0
+        d = np.abs(_wrap_half(np.array(self._first) - x))
+        k = int(np.argmin(d))
+        return k if d[k] <= self.max_gate else len(self._first)
+
+    def _square(self, x: float) -> float:
+        """``x`` moved to exactly perpendicular to the nearest frozen direction when within
+        ``right_angle`` of it, else ``x``."""
+        if not self.frozen or self.right_angle <= 0.0:
+            return x
+        perp = np.array([y + 0.5 * math.pi for y, _ in self.frozen])
+        d = _wrap_half(perp - x)
+        k = int(np.argmin(np.abs(d)))
+        if abs(float(d[k])) > self.right_angle:
+            return x
+        return float(np.mod(x + float(d[k]), math.pi))
 
     def reference(self) -> tuple[FloatArray, FloatArray]:
         """Directions and their supports (metres) for :func:`compass_heading`."""

@@ -136,6 +136,10 @@ def test_config_rejects_bad_compass_values():
         FilterConfig(compass_min_support=-1.0)
     with pytest.raises(ValueError):
         FilterConfig(compass_anchor=-1.0)
+    with pytest.raises(ValueError):
+        FilterConfig(compass_right_angle=-D(1.0))
+    with pytest.raises(ValueError):
+        FilterConfig(compass_right_angle=D(50.0))
     assert FilterConfig(compass_anchor=None).compass_anchor is None
 
 
@@ -168,3 +172,57 @@ def test_directions_freeze_after_the_anchor():
     young.update(np.radians([0.0]), np.array([3.0]), 1.0)
     d, s = young.reference()
     assert compass_heading(np.radians([1.0]), np.array([3.0]), d, s, D(2.0)) is None
+
+
+@pytest.mark.parametrize("first", [0.0, 179.7, 45.0])
+def test_right_angle_prior_squares_a_late_direction(first):
+    """A corridor's first 10 m show one direction; the perpendicular one, met after the first
+    corner, comes with that turn's heading error (0.6 degrees here). Within ``right_angle`` of
+    perpendicular it is frozen at exactly perpendicular (across the 0/180 wrap too); a direction
+    further off, or with the prior off, is frozen as the map has it."""
+    def grown(right_angle: float, later: float) -> np.ndarray:
+        ref = Directions(anchor=10.0, min_support=10.0, max_gate=D(6.0), right_angle=right_angle)
+        ref.update(np.radians([first]), np.array([12.0]), 10.0)
+        ref.update(np.radians([first, first + later]), np.array([30.0, 12.0]), 40.0)
+        return np.degrees(ref.reference()[0])
+
+    def off(a: float, b: float) -> float:  # difference of two directions (degrees, mod 180)
+        return abs((a - b + 90.0) % 180.0 - 90.0)
+
+    on = grown(D(1.0), 90.6)
+    assert len(on) == 2 and off(on[0], first) < 1e-9 and off(on[1], first + 90.0) < 1e-9
+    assert 0.0 <= on[1] < 180.0
+    assert off(grown(0.0, 90.6)[1], first + 90.6) < 1e-9  # prior off: as mapped
+    assert off(grown(D(1.0), 91.5)[1], first + 91.5) < 1e-9  # 1.5 degrees off: not squared
+    assert off(grown(D(1.0), 89.2)[1], first + 90.0) < 1e-9  # the other side of 90
+
+
+def test_right_angle_prior_changes_what_the_compass_reads():
+    """Without the prior the reference holds the 90-degree wing at the turn's error, so a scan
+    of the (truly square) wing taken at the true heading reads as a 0.5-degree heading error;
+    with the prior it reads as none."""
+    out = {}
+    for ra in (D(1.0), 0.0):
+        ref = Directions(anchor=10.0, min_support=10.0, max_gate=D(6.0), right_angle=ra)
+        ref.update(np.radians([0.0]), np.array([20.0]), 10.0)
+        ref.update(np.radians([0.0, 90.5]), np.array([20.0, 15.0]), 30.0)
+        d, s = ref.reference()
+        h = compass_heading(np.radians([90.0, 90.0]), np.array([6.0, 6.0]), d, s, D(1.0))
+        out[ra] = math.degrees(h.offset)
+    assert abs(out[D(1.0)]) < 1e-9 and out[0.0] == pytest.approx(0.5, abs=1e-9)
+
+
+def test_right_angle_prior_squares_to_the_first_direction_seen():
+    """A robot starting next to a corner: the corridor it starts in (90 degrees, exact) is
+    established first; after the turn, within the first 10 m, the next corridor's walls
+    (mapped with the turn's 0.4-degree error) become the longer cluster. The reference squares
+    the later one to the first, not the other way round."""
+    ref = Directions(anchor=10.0, min_support=10.0, max_gate=D(6.0), right_angle=D(1.0))
+    ref.update(np.radians([90.0]), np.array([12.0]), 3.0)
+    ref.update(np.radians([90.0, 0.4]), np.array([12.0, 30.0]), 10.0)
+    dirs = np.degrees(ref.reference()[0])
+    assert np.allclose(dirs, [90.0, 0.0])
+    # Without the order (both established at once) the longest cluster comes first.
+    both = Directions(anchor=10.0, min_support=10.0, max_gate=D(6.0), right_angle=D(1.0))
+    both.update(np.radians([90.0, 0.4]), np.array([12.0, 30.0]), 10.0)
+    assert np.allclose(np.degrees(both.reference()[0]), [0.4, 90.4])

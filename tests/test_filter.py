@@ -18,6 +18,7 @@ from mapping.filter import (
     carve,
     contradiction_update,
     drop_fragments,
+    drop_gap_bridges,
     drop_line_of_sight,
     edge_log_odds,
     seen_fraction,
@@ -334,3 +335,66 @@ def test_maps_every_test_world(name):
         f.step(inp.odometry, inp.scan)
     p, r = wall_precision_recall(world.truth, f.best, 0.2)
     assert p >= 0.95 and r >= 0.95, (name, p, r)
+
+
+def _corridor() -> Wireframe:
+    """A 4 m wide, 120 m long corridor along x (only its two long walls)."""
+    return Wireframe.from_polylines([[(-60, -2), (60, -2)], [(60, 2), (-60, 2)]])
+
+
+def _bridged(scan: Wireframe) -> Wireframe:
+    """``scan`` (robot frame) with the corner sensor's false edge across the corridor ahead:
+    counterclockwise from the right wall's frontier to the left wall's."""
+    ahead = np.flatnonzero(scan.points[:, 0] > 0)
+    a, b = sorted(ahead.tolist(), key=lambda i: scan.points[i, 1])
+    edges = np.concatenate([scan.edges, [[a, b]]])
+    return Wireframe.build(scan.points, edges, scan.labels, np.ones(len(edges)), np.zeros(len(edges), np.uint64))
+
+
+def test_drop_gap_bridges_drops_only_edges_between_loose_ends():
+    scan = visible_view(_corridor(), Pose.identity(), 8.0, 2 * math.pi).scan
+    assert scan.n_edges == 2 and (scan.labels == Label.FRONTIER).all()
+    bridged = _bridged(scan)
+    kept = drop_gap_bridges(bridged)
+    assert kept.n_edges == 2
+    assert np.allclose(np.sort(kept.edge_lengths()), np.sort(scan.edge_lengths()))
+    # A wall cut by the range at both ends (a chord) ends in frontiers of its own: kept, and
+    # so is every edge of a scan without loose ends joined.
+    assert drop_gap_bridges(scan) is scan
+    chord = Wireframe.build([(7.0, -3.0), (7.0, 3.0)], [(0, 1)], [Label.FRONTIER, Label.FRONTIER])
+    assert drop_gap_bridges(chord).n_edges == 1
+    # Two walls meeting in a nominal corner, the other ends frontiers: kept.
+    corner = Wireframe.build([(-7.0, 2.0), (3.0, 2.0), (3.0, -7.0)], [(0, 1), (1, 2)],
+                             [Label.FRONTIER, Label.NOMINAL, Label.FRONTIER])
+    assert drop_gap_bridges(corner).n_edges == 2
+    # An occlusion joined to the wall behind it (a gap closed across open space): dropped.
+    gap = Wireframe.build([(-4.0, 2.0), (1.0, 2.0), (2.0, 5.0), (6.0, 5.0)], [(0, 1), (1, 2), (2, 3)],
+                          [Label.FRONTIER, Label.OCCLUSION, Label.FRONTIER, Label.FRONTIER])
+    assert drop_gap_bridges(gap).n_edges == 2
+
+
+@pytest.mark.parametrize("on", [True, False])
+def test_false_edges_across_a_corridor_do_not_drag_the_pose(on):
+    """The traced failure (tests/worlds/bigring, seed 5): a false edge across the corridor at
+    the range limit goes into the map; the next scan, 0.25 m further on, has its own false edge
+    at its range limit; matched together they pull the pose back 0.25 m along the corridor.
+    With the bridges dropped the pose follows the odometry there (exact here)."""
+    truth = _corridor()
+    cfg = FilterConfig(particles=1, mutate=False, compass=False, drop_gap_bridges=on,
+                       loops=LoopConfig(enabled=False))
+    f = WireframeFilter(cfg, np.random.default_rng(0), initial_pose=Pose.identity())
+    step = Pose(0.25, 0.0, 0.0)
+    true = Pose.identity()
+    f.step(Pose.identity(), visible_view(truth, true, 8.0, 2 * math.pi).scan)
+    for k in range(1, 6):
+        true = true.compose(step)
+        scan = visible_view(truth, true, 8.0, 2 * math.pi).scan
+        if k >= 4:  # after 60 m of such corridor the along-track sigma is about 0.1 m
+            f._cov = np.diag([0.1**2, 0.02**2, math.radians(0.1) ** 2])
+        f.step(step, _bridged(scan) if k >= 4 else scan)
+    err = f.pose.x - true.x
+    if on:
+        assert abs(err) < 0.02
+        assert not any(abs(e) < 0.1 for e in f.best.edge_lengths() - 4.0)  # no wall across
+    else:
+        assert err < -0.15

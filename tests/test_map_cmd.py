@@ -124,6 +124,25 @@ def test_bench_accuracy_json_and_table(tmp_path, capsys):
     assert len(list(tmp_path.glob("*.png"))) == 2
 
 
+def test_bench_accuracy_jobs_give_the_same_maps(tmp_path, capsys):
+    """Seeds run in worker processes (--jobs 2) give the same figures as one after another,
+    in seed order, and every map's PNG."""
+    common = ["bench", "accuracy", "--world", str(WORLDS / "tiny.geojson"), "--seeds", "2", "--first-seed", "3",
+              "--steps", "10", "--json", "--quiet"]
+    out = {}
+    for jobs in ("1", "2"):
+        assert main([*common, "--jobs", jobs, "--out", str(tmp_path / jobs)]) == 0
+        lines = capsys.readouterr().out.strip().splitlines()
+        out[jobs] = ([ln.split()[:7] for ln in lines if ln[:1].isdigit()], json.loads(lines[-1]))
+        assert len(list((tmp_path / jobs).glob("*.png"))) == 2
+    rows1, sum1 = out["1"]
+    rows2, sum2 = out["2"]
+    assert [r[0] for r in rows1] == ["3", "4"] and rows1 == rows2
+    del sum1["updates_per_s"], sum2["updates_per_s"]
+    assert sum1 == sum2
+    assert main([*common, "--jobs", "0", "--out", str(tmp_path / "0")]) == 2
+
+
 def test_speed_measure_keys():
     from agents.bench.speed import measure
 

@@ -20,6 +20,7 @@ known, so the map's frame is the truth's). Each seed's map is written as a PNG (
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import math
 import sys
@@ -51,6 +52,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--json", action="store_true", help="print the JSON summary as the last line")
     parser.add_argument("--out", default="out/bench-accuracy", metavar="DIR", help="where the PNGs go")
     parser.add_argument("--quiet", action="store_true", help="no progress on stderr")
+    parser.add_argument("--jobs", type=int, default=1, metavar="N",
+                        help="run N seeds at once in separate processes (default 1; the runs then "
+                             "share the cores, so updates_per_s is lower than alone)")
 
 
 def run_one(
@@ -127,45 +131,83 @@ def _fmt(v: Any, f: str) -> str:
     return f.format(v)
 
 
-def run(args: argparse.Namespace) -> int:
+def run_seed(
+    world_arg: str, sensor: str, steps: int | None, seed: int, particles: int, thr: float,
+    baseline: bool, out: str,
+) -> list[tuple[str, dict[str, Any], float]]:
+    """One seed: simulate the scans once, run the filter (and the baseline on the same scans),
+    write each map's PNG to ``out``. Returns ``(method, row, seconds since start)`` per run.
+    Loads the world itself, so that it can run in a worker process (``--jobs``)."""
     from agents import mapping_run as mr
     from agents.io import write_atomic
     from agents.render import map_png
     from agents.sim.world import load_world
 
+    t0 = time.perf_counter()
+    world = load_world(world_arg)
+    options = mr.SimOptions(sensor=sensor, steps=steps)
+    try:
+        inputs = list(mr.simulate(world, options, seed))
+    except ValueError as exc:
+        raise UserError(f"{world_arg}: {exc}") from None
+    done = []
+    for method, p in [("filter", particles)] + ([("baseline", 1)] if baseline else []):
+        row, best, traj = run_one(world, inputs, p, thr, options.max_range, seed)
+        png = Path(out) / f"{world.name}-{sensor}-seed{seed}-{method}.png"
+        write_atomic(png, map_png(best, truth=world.truth, trajectory=np.asarray(traj)))
+        done.append((method, row, time.perf_counter() - t0))
+    return done
+
+
+def run(args: argparse.Namespace) -> int:
+    from concurrent.futures import ProcessPoolExecutor
+
+    from agents import mapping_run as mr
+    from agents.sim.world import load_world
+
     if args.seeds < 1:
         raise UserError(f"--seeds must be >= 1, got {args.seeds}")
+    if args.jobs < 1:
+        raise UserError(f"--jobs must be >= 1, got {args.jobs}")
     world = load_world(args.world)
     large = max(world.size) > 100.0
     particles = args.particles if args.particles is not None else (6 if large else 10)
     if particles < 1:
         raise UserError(f"--particles must be >= 1, got {particles}")
     thr = args.merge_threshold if args.merge_threshold is not None else mr.default_merge_threshold(world)
-    options = mr.SimOptions(sensor=args.sensor, steps=args.steps)
-    out = Path(args.out)
+    seeds = list(range(args.first_seed, args.first_seed + args.seeds))
+    job = functools.partial(
+        run_seed, str(args.world), args.sensor, args.steps,
+        particles=particles, thr=thr, baseline=bool(args.baseline), out=str(args.out),
+    )
+    results: dict[int, list[tuple[str, dict[str, Any], float]]] = {}
+
+    def report(seed: int, done: list[tuple[str, dict[str, Any], float]]) -> None:
+        results[seed] = done
+        for method, row, secs in done if not args.quiet else ():
+            sys.stderr.write(
+                f"seed {seed} {method}: cell error {row['cell_error']:.2%}, "
+                f"precision {row['wall_precision']:.3f}, recall {row['wall_recall']:.3f}, "
+                f"{row['particle_bytes']} B, {row['updates_per_s']:.1f} ups "
+                f"({secs:.0f} s) [{len(results)}/{len(seeds)} seeds]\n"
+            )
+
+    if args.jobs == 1 or len(seeds) == 1:
+        for seed in seeds:
+            report(seed, job(seed))
+    else:
+        with ProcessPoolExecutor(max_workers=min(args.jobs, len(seeds))) as pool:
+            futures = {seed: pool.submit(job, seed) for seed in seeds}
+            for seed, fut in futures.items():  # in seed order; later seeds may be done already
+                report(seed, fut.result())
     table: list[tuple[str, str, dict[str, Any]]] = []
     filt_rows: list[dict[str, Any]] = []
     base_rows: list[dict[str, Any]] = []
-    for seed in range(args.first_seed, args.first_seed + args.seeds):
-        t0 = time.perf_counter()
-        try:
-            inputs = list(mr.simulate(world, options, seed))
-        except ValueError as exc:
-            raise UserError(f"{args.world}: {exc}") from None
-        runs = [("filter", particles)] + ([("baseline", 1)] if args.baseline else [])
-        for method, p in runs:
-            row, best, traj = run_one(world, inputs, p, thr, options.max_range, seed)
-            png = out / f"{world.name}-{args.sensor}-seed{seed}-{method}.png"
-            write_atomic(png, map_png(best, truth=world.truth, trajectory=np.asarray(traj)))
+    for seed in seeds:
+        for method, row, _ in results[seed]:
             table.append((str(seed), method, row))
             (filt_rows if method == "filter" else base_rows).append(row)
-            if not args.quiet:
-                sys.stderr.write(
-                    f"seed {seed} {method}: cell error {row['cell_error']:.2%}, "
-                    f"precision {row['wall_precision']:.3f}, recall {row['wall_recall']:.3f}, "
-                    f"{row['particle_bytes']} B, {row['updates_per_s']:.1f} ups "
-                    f"({time.perf_counter() - t0:.0f} s)\n"
-                )
+    out = Path(args.out)
     med = _median(filt_rows)
     table.append(("median", "filter", med))
     if base_rows:
