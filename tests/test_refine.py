@@ -99,11 +99,13 @@ def test_filter_config_validates_the_cap():
 
 def test_refinement_makes_the_ring_corridor_map_better():
     """tests/worlds/bigring.geojson (80 m square ring, 4 m corridors), seed 1, the default
-    filter with and without refinement, without the wall-direction compass
-    (``FilterConfig.compass``). Measured: median pose error along the run 0.11 against 0.25 m
-    (at the end 0.18 against 0.24 m), mean wall error 0.105 against 0.112 m, precision/recall at
-    0.2 m 0.96/1.0 against 0.93/0.985. With the compass the ring gains nothing from refinement:
-    median over seeds 0-7 of the median pose error 0.31 m with, 0.31 m without."""
+    filter with and without refinement. Measured: median pose error along the run 0.139
+    against 0.272 m (at the end 0.029 against 0.173 m), mean wall error 0.048 against
+    0.079 m, precision/recall at 0.2 m 0.993/1.0 both. Seeds 0-7: the median pose error is
+    lower with refinement on 7 of 8 (median over seeds 0.19 against 0.25 m), the mean wall
+    error on 7 of 8. (Before the scan's gap bridges were dropped, ``FilterConfig.
+    drop_gap_bridges``, this test ran without the compass: with it, refinement gained
+    nothing on the ring then.)"""
     from agents.mapping_run import SimOptions, filter_config_for, seeds_for, simulate
     from agents.sim.world import load_world
     from mapping.filter import WireframeFilter
@@ -113,7 +115,7 @@ def test_refinement_makes_the_ring_corridor_map_better():
     inputs = list(simulate(world, SimOptions(), 1))
     out = {}
     for on in (False, True):
-        f = WireframeFilter(filter_config_for(10, 0.2, 8.0, refine_corners=on, compass=False), seeds_for(1)["filter"],
+        f = WireframeFilter(filter_config_for(10, 0.2, 8.0, refine_corners=on), seeds_for(1)["filter"],
                             inputs[0].true_pose)
         errors = []
         for inp in inputs:
@@ -121,7 +123,7 @@ def test_refinement_makes_the_ring_corridor_map_better():
             errors.append(f.pose.distance(inp.true_pose))
         out[on] = (evaluate(world.truth, f.best, 0.2), float(np.median(errors)),
                    wall_precision_recall(world.truth, f.best, 0.2))
-    assert out[True][1] < 0.15 and out[True][1] < 0.6 * out[False][1]
+    assert out[True][1] < 0.16 and out[True][1] < 0.6 * out[False][1]
     assert out[True][0]["mean_dist_m"] < out[False][0]["mean_dist_m"]
     assert out[True][2][0] >= 0.95 and out[True][2][1] >= 0.95
     assert out[True][2][1] >= out[False][2][1]
