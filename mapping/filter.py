@@ -279,8 +279,11 @@ class FilterConfig:
         lidar scan (:mod:`mapping.extract`) gives every non-nominal end its own vertex, so
         neither loses anything. Museum seeds 0-7 (with
         the compass's right-angle prior), mean wall distance / recall: 0.144/1.0, 0.134/1.0,
-        0.114/1.0, 0.125/1.0, 0.126/1.0, 0.123/1.0, 0.257/0.997, 0.215/1.0 (median 0.130 m;
-        0.172 m without both), particle sets 34,080-35,340 B, precision 0.994-1.0. Ring
+        0.114/1.0, 0.125/1.0, 0.126/1.0, 0.123/1.0, 0.257/0.997, 0.215/1.0 (median 0.130 m),
+        particle sets 34,080-35,340 B, precision 0.994-1.0; without: 0.075/1.0, 0.198/1.0,
+        0.113/1.0, 0.314/0.994, 0.165/0.990, 0.153/1.0, 0.268/0.997, 0.197/1.0 (median
+        0.181 m), 34,380-36,450 B, precision 0.990-0.999. The one-particle baseline gains as
+        much (8 seeds: 0.182 m, precision 0.974; 0.90 m, 0.64 before). Ring
         corridor seeds 0-7, precision/recall: 0.991/0.991, 0.993/1.0, 0.653/0.654,
         0.306/0.308, 0.993/1.0, 0.803/0.803, 0.833/0.833, 0.496/0.500 (no false walls any
         more: precision = recall; what is left is along-track drift that no closure
