@@ -179,7 +179,7 @@ class Directions:
         ok = support >= self.min_support
         if not self.settled:
             for x in dirs[ok].tolist():
-                if not self._first or np.abs(_wrap_half(np.array(self._first) - x)).min() > self.max_gate:
+                if self._rank(x) == len(self._first):  # a direction not established before
                     self._first.append(x)
         if distance < self.anchor:
             self._live = (dirs, support)

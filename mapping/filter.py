@@ -1290,8 +1290,9 @@ class WireframeFilter:
     def _step(self, odometry: Pose, scan: Wireframe, fault: Pose | None) -> tuple[StepInfo, Wireframe]:
         cfg = self.config
         self._steps += 1
-        # The evidence (likelihood, contradictions) is the whole scan but for its walls along a
-        # line of sight; the scan that is matched and merged also loses its short fragments.
+        # The evidence (likelihood, contradictions) is the whole scan but for its gap bridges and
+        # its walls along a line of sight; the scan that is matched and merged also loses its
+        # short fragments.
         if cfg.drop_gap_bridges:
             scan = drop_gap_bridges(scan)
         evidence = budget_scan(drop_line_of_sight(scan, cfg.min_line_distance), cfg.max_scan_vertices)

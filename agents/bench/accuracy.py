@@ -184,7 +184,9 @@ def run(args: argparse.Namespace) -> int:
 
     def report(seed: int, done: list[tuple[str, dict[str, Any], float]]) -> None:
         results[seed] = done
-        for method, row, secs in done if not args.quiet else ():
+        if args.quiet:
+            return
+        for method, row, secs in done:
             sys.stderr.write(
                 f"seed {seed} {method}: cell error {row['cell_error']:.2%}, "
                 f"precision {row['wall_precision']:.3f}, recall {row['wall_recall']:.3f}, "
