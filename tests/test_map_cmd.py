@@ -143,6 +143,25 @@ def test_bench_accuracy_jobs_give_the_same_maps(tmp_path, capsys):
     assert main([*common, "--jobs", "0", "--out", str(tmp_path / "0")]) == 2
 
 
+def test_bench_speed_medians_over_seeds(capsys):
+    """--seeds K: one child per world and seed, a table row for each plus the median, and the
+    JSON's figures are the medians (the ratio that of the two median step times)."""
+    args = ["bench", "speed", "--steps", "4", "--museum-warmup", "2", "--seed", "1", "--seeds", "2", "--json"]
+    assert main(args) == 0
+    lines = capsys.readouterr().out.strip().splitlines()
+    summary = json.loads(lines[-1])
+    assert summary["seeds"] == 2
+    for world, key in (("paper-small", "paper_small"), ("museum", "museum")):
+        rows = [r for r in map(str.split, lines) if r[0] == world and (r[1].isdigit() or r[1] == "median")]
+        assert [r[1] for r in rows] == ["1", "2", "median"]
+        p50 = [float(r[3]) for r in rows[:2]]
+        assert summary[key]["step_ms_p50"] == pytest.approx(np.median(p50), abs=0.006)
+        assert set(summary[key]) == {"updates_per_s", "step_ms_p50", "step_ms_p95", "peak_rss_mb"}
+    ratio = summary["museum"]["step_ms_p50"] / summary["paper_small"]["step_ms_p50"]
+    assert summary["museum_to_small_step_ratio"] == pytest.approx(ratio, rel=1e-3)
+    assert main(["bench", "speed", "--seeds", "0"]) == 2
+
+
 def test_speed_measure_keys():
     from agents.bench.speed import measure
 
