@@ -22,7 +22,7 @@ With ``--seeds K`` each world runs K seeds (``--seed`` .. ``--seed`` + K - 1, on
 each, one after another) and every figure is the median over them (the ratio is that of the
 two medians; ``"seeds": K`` is added to the JSON). The time per step follows how many distinct
 particles a run keeps in the timed stretch, which differs from seed to seed (museum
-``step_ms_p50`` 5.9-9.0 ms over seeds 0-2 on one machine), so one seed is a noisy figure.
+``step_ms_p50`` 5.4-9.0 ms over seeds 0-2 on one machine), so one seed is a noisy figure.
 """
 
 from __future__ import annotations
