@@ -511,9 +511,8 @@ class LoopCloser:
         if cfg.heading_factors and self.headings:
             # An absolute heading is a relative one to the fixed first keyframe, with no
             # information on the position (zero rows).
-            hk = np.array([k for k, _, _ in self.headings], dtype=np.int64)
-            ht = np.array([t for _, t, _ in self.headings])
-            hv = np.array([v for _, _, v in self.headings])
+            cols = np.array(self.headings, dtype=np.float64)  # (keyframe, heading, variance) rows
+            hk, ht, hv = cols[:, 0].astype(np.int64), cols[:, 1], cols[:, 2]
             edges += [(0, int(k)) for k in hk]
             hm = np.zeros((len(hk), 3))
             hm[:, 2] = wrap_angles(ht - kf[0, 2])
