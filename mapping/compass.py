@@ -38,9 +38,11 @@ Choices
   perfectly parallel in the map (its drift) nor in the building, and that error is common to
   every scan wall (it does not average out).
 * The assumption fails for a wall that is really a few degrees off a frequent direction. The
-  gate keeps "a few" to the heading's own uncertainty (the compass only runs while that is
-  larger than :attr:`mapping.filter.FilterConfig.compass_min_sigma`), so a wall 10 degrees off
-  is never mistaken for a parallel one at a 1-degree uncertainty. Likewise the right-angle
+  gate keeps "a few" to the heading's own uncertainty (the compass runs at full weight only
+  while that is larger than :attr:`mapping.filter.FilterConfig.compass_min_sigma`; below, a
+  slow pull against young walls, :attr:`mapping.filter.FilterConfig.compass_young_weight`,
+  within a gate of about a degree), so a wall 10 degrees off is never mistaken for a parallel
+  one at a 1-degree uncertainty. Likewise the right-angle
   prior squares a building whose wings really meet at 89.5 degrees (by at most its 1-degree
   tolerance); wings at 45 or 60 degrees (tests/worlds/angled, slanted) are left as mapped.
 """

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -122,11 +123,24 @@ def test_filter_covariance_shrinks_with_the_measurement():
     f._cov = np.diag([0.05**2, 0.05**2, D(2.5) ** 2])
     f.step(Pose.identity(), scan)
     assert math.degrees(math.sqrt(f.pose_covariance[2, 2])) < 0.5
-    # Below compass_min_sigma the compass does not run (the ICP is the better reference).
-    f2 = WireframeFilter(cfg, np.random.default_rng(0), initial_pose=Pose(0, 0, D(1.0)))
-    f2._particles = [_world_map()]
-    f2._cov = np.diag([0.05**2, 0.05**2, D(0.1) ** 2])
-    assert f2.step(Pose.identity(), scan).compass is None
+    # Below compass_min_sigma the match is the better reference: the compass does not run at
+    # full weight. The map here has no birth stamps (as young as can be), so only the slow
+    # young-map pull runs (compass_young_weight), moving the heading by at most that fraction
+    # of the measured offset; with the weight 0 nothing runs.
+    poses, infos = {}, {}
+    for w in (0.0, 0.05):
+        f2 = WireframeFilter(dataclasses.replace(cfg, compass_young_weight=w), np.random.default_rng(0),
+                             initial_pose=Pose(0, 0, D(0.3)))  # within the gate of a 0.1-degree sigma
+        f2._particles = [_world_map()]
+        f2._cov = np.diag([0.05**2, 0.05**2, D(0.1) ** 2])
+        infos[w] = f2.step(Pose.identity(), scan)
+        poses[w] = f2.pose
+    assert infos[0.0].compass is None
+    h = infos[0.05].compass
+    assert h is not None and h.walls >= 1
+    moved = poses[0.05].theta - poses[0.0].theta
+    assert abs(moved) <= 0.05 * abs(h.offset) + 1e-12
+    assert moved == 0.0 or np.sign(moved) == np.sign(h.offset)
 
 
 def test_config_rejects_bad_compass_values():
@@ -140,6 +154,13 @@ def test_config_rejects_bad_compass_values():
         FilterConfig(compass_right_angle=-D(1.0))
     with pytest.raises(ValueError):
         FilterConfig(compass_right_angle=D(50.0))
+    with pytest.raises(ValueError):
+        FilterConfig(compass_young_weight=1.5)
+    with pytest.raises(ValueError):
+        FilterConfig(compass_young_weight=-0.1)
+    with pytest.raises(ValueError):
+        FilterConfig(compass_young_travel=-1.0)
+    assert FilterConfig(compass_young_weight=0.0).compass_young_weight == 0.0
     assert FilterConfig(compass_anchor=None).compass_anchor is None
 
 
