@@ -124,6 +124,25 @@ def test_bench_accuracy_json_and_table(tmp_path, capsys):
     assert len(list(tmp_path.glob("*.png"))) == 2
 
 
+def test_bench_accuracy_wall_tolerance(tmp_path, capsys):
+    """--wall-tol scores walls at that tolerance (the world-file target is 95 % at 0.2 m): the
+    same map scores lower at 1 mm than at the default 0.4 m, the JSON says which tolerance it
+    used, and a tolerance that is not a positive number is a user error."""
+    common = ["bench", "accuracy", "--world", str(WORLDS / "tiny.geojson"), "--seeds", "1", "--steps", "12",
+              "--json", "--quiet", "--out", str(tmp_path)]
+    got = {}
+    for tol in (None, "0.2", "0.001"):
+        assert main([*common, *(["--wall-tol", tol] if tol else [])]) == 0
+        got[tol] = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert "wall_tol_m" not in got[None] and got["0.2"]["wall_tol_m"] == 0.2
+    assert got["0.001"]["wall_precision"] < got[None]["wall_precision"]
+    assert got["0.001"]["wall_recall"] < got[None]["wall_recall"]
+    assert got["0.2"]["mean_dist_m"] == got[None]["mean_dist_m"]  # the same map, scored otherwise
+    for bad in ("0", "-1", "nan"):
+        assert main([*common, "--wall-tol", bad]) == 2
+        assert "--wall-tol" in capsys.readouterr().err
+
+
 def test_bench_accuracy_jobs_give_the_same_maps(tmp_path, capsys):
     """Seeds run in worker processes (--jobs 2) give the same figures as one after another,
     in seed order, and every map's PNG."""
