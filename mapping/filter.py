@@ -333,8 +333,8 @@ class FilterConfig:
     compass : bool
         Fuse a heading measurement from wall directions (:mod:`mapping.compass`, not in the
         paper) whenever the heading's standard deviation after the scan match is above
-        ``compass_min_sigma`` (below, see ``compass_young_weight``): the scan's walls at least ``compass_min_length`` long against
-        the building's wall directions as the map learnt them (``compass_anchor``), each
+        ``compass_min_sigma`` (below it, see ``compass_young_weight``): the scan's walls at
+        least ``compass_min_length`` long against the building's wall directions as the map learnt them (``compass_anchor``), each
         supported by ``compass_min_support`` metres of established walls. After a turn in
         a hall wider than the range, or when new territory comes into view, the ICP has no
         mapped wall to fix the heading on, and the odometry's error of the turn went into
@@ -385,9 +385,10 @@ class FilterConfig:
         the compass correct the drift over tens of scans without fighting the match on any one
         of them (a pull at the full weight walked museum seed 5's heading 2 degrees off in five
         scans, with the match at every step). Against older walls the match is the better
-        reference: the map was corrected there by closures, while the compass's reference
-        carries its own small bias (museum seed 6: 0.29 degrees, from one 17.8 m wall in the
-        first 10 m). The part of each measurement not applied still goes to the loop closer
+        reference: they were mapped before the present drift, while the compass's reference
+        carries a small bias of its own (museum seed 6: 0.29 degrees, the heading's drift over
+        its first 10 m, written into the one 17.8 m wall the reference is frozen from; with an
+        exact reference that seed maps at 0.145 m instead of 0.358 m). The part of each measurement not applied still goes to the loop closer
         as a heading factor at the measurement's own variance, so a closure can turn the young
         chain to the walls' heading. Ring corridor (tests/worlds/bigring, 10 particles,
         seeds 0-7, precision/recall at 0.2 m): without 0.991/0.991, 0.993/1.0, 0.653/0.654,
@@ -397,7 +398,7 @@ class FilterConfig:
         seed 5's before it comes back to its first corridor). Museum seeds 0-7, mean wall
         distance: without 0.144, 0.134, 0.114, 0.125, 0.126, 0.123, 0.257, 0.215 m (median
         0.130), with 0.093, 0.122, 0.082, 0.097, 0.160, 0.141, 0.358, 0.196 m (median 0.132;
-        seed 6 is the biased reference), recall 0.989-1.0 both. Tried: the pull whatever the
+        seed 6 is the biased reference), recall 0.989-1.0 both: a wash there. Tried: the pull whatever the
         map's age (weight 0.05): ring 6 of 8 as well, museum median 0.139 with seed 4 at
         0.285 m; weight 0.2 without the heading factors: ring 5 of 8, museum median 0.172;
         0.05 without them: ring 4 of 8; the reference frozen after 20 m instead of 10: ring 6
@@ -1190,7 +1191,8 @@ class WireframeFilter:
     def _view_age(self, best: Wireframe, matched: IntArray) -> float:
         """Metres driven since the map walls ``matched`` (edge indices of ``best``) were
         first mapped: the median over their corners' birth keyframes (:meth:`LoopCloser.births`;
-        corners of unknown birth left out); 0 when none is known."""
+        corners of unknown birth left out); 0 when none is known (no wall matched, or none
+        stamped yet: nothing says the map in view is old)."""
         if len(matched) == 0:
             return 0.0
         born = self._loops.births(best.points[np.unique(best.edges[matched])])

@@ -141,6 +141,20 @@ def test_filter_covariance_shrinks_with_the_measurement():
     moved = poses[0.05].theta - poses[0.0].theta
     assert abs(moved) <= 0.05 * abs(h.offset) + 1e-12
     assert moved == 0.0 or np.sign(moved) == np.sign(h.offset)
+    # The pull is only for young walls: a map holding the walls in view too (the scan is
+    # matched against them), stamped at the start, the robot having driven 20 m (young) or
+    # 30 m (older than compass_young_travel, 25 m) since.
+    w = _world_map()
+    seen = Wireframe.build([(-4, 5), (6, 5), (6, -3)], [(1, 0), (2, 1)], likelihood=[0.99] * 2)
+    both = Wireframe.build(np.vstack([w.points, seen.points]), np.vstack([w.edges, seen.edges + w.n_vertices]),
+                           likelihood=[0.99] * 6)
+    for driven, runs in ((20.0, True), (30.0, False)):
+        f3 = WireframeFilter(cfg, np.random.default_rng(0), initial_pose=Pose(0, 0, D(0.3)))
+        f3._particles = [both]
+        f3._loops.stamp(f3._particles)
+        f3._loops.distance = driven
+        f3._cov = np.diag([0.05**2, 0.05**2, D(0.1) ** 2])
+        assert (f3.step(Pose.identity(), scan).compass is not None) == runs, driven
 
 
 def test_config_rejects_bad_compass_values():
