@@ -1190,17 +1190,11 @@ class WireframeFilter:
 
     def _view_age(self, best: Wireframe, matched: IntArray) -> float:
         """Metres driven since the map walls ``matched`` (edge indices of ``best``) were
-        first mapped: the median over their corners' birth keyframes (:meth:`LoopCloser.births`;
-        corners of unknown birth left out); 0 when none is known (no wall matched, or none
-        stamped yet: nothing says the map in view is old)."""
+        first mapped (:meth:`LoopCloser.age` of their corners); 0 when none is known (no wall
+        matched, or none stamped yet: nothing says the map in view is old)."""
         if len(matched) == 0:
             return 0.0
-        born = self._loops.births(best.points[np.unique(best.edges[matched])])
-        born = born[born >= 0]
-        if len(born) == 0:
-            return 0.0
-        kd = np.asarray(self._loops.kf_distance)
-        return float(self._loops.distance - np.median(kd[born]))
+        return self._loops.age(best.points[np.unique(best.edges[matched])])
 
     def _compass(
         self, scan: Wireframe, pose: Pose, best: Wireframe, matched: IntArray, weight: float = 1.0

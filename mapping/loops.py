@@ -347,6 +347,15 @@ class LoopCloser:
         i, found = self._lookup(points)
         return np.where(found, self._birth[i] if len(self._birth) else -1, -1)
 
+    def age(self, points: FloatArray) -> float:
+        """Metres driven since these corners were born: since the median of their birth
+        keyframes (corners of unknown birth left out); 0 when none is known."""
+        born = self.births(points)
+        born = born[born >= 0]
+        if len(born) == 0:
+            return 0.0
+        return float(self.distance - np.median(np.asarray(self.kf_distance)[born]))
+
     def counts(self, points: FloatArray) -> IntArray:
         """Observations of each corner so far (:mod:`mapping.refine`; 1 where unknown)."""
         i, found = self._lookup(points)

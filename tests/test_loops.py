@@ -87,6 +87,21 @@ def test_old_part_is_what_was_mapped_long_ago():
     assert births.tolist() == [0, 0, 12, 12]
 
 
+def test_age_is_the_distance_since_the_median_birth():
+    lc = LoopCloser(LoopConfig(spacing=1.0), Pose())
+    a = Wireframe.build([(0, 0), (4, 0)], [(0, 1)])
+    lc.stamp([a])
+    for k in range(6):
+        lc.advance(Pose(float(k + 1), 0.0, 0.0), 1.0)
+    b = Wireframe.build([(4, 0), (9, 0), (9, 3)], [(0, 1), (1, 2)])
+    lc.stamp([b])  # (4, 0) keeps its birth at keyframe 0; the other two are born at 6 m
+    assert lc.age(a.points) == 6.0
+    assert lc.age(b.points) == 0.0  # median birth: the 6 m keyframe
+    assert lc.age(np.vstack([a.points, b.points[1:2]])) == 6.0  # births 0, 0, 6 m
+    assert lc.age(np.array([[50.0, 50.0]])) == 0.0  # unknown corners say nothing
+    assert lc.age(np.zeros((0, 2))) == 0.0
+
+
 def test_closing_moves_young_corners_with_their_keyframe_and_merges_duplicates():
     # A robot drives 30 m along x with its heading estimate off by 2 degrees from keyframe 10 on;
     # it mapped a wall at the start (keyframe 0) and, coming back at the end, the same wall again
