@@ -334,11 +334,11 @@ class FilterConfig:
         Fuse a heading measurement from wall directions (:mod:`mapping.compass`, not in the
         paper) whenever the heading's standard deviation after the scan match is above
         ``compass_min_sigma`` (below it, see ``compass_young_weight``): the scan's walls at
-        least ``compass_min_length`` long against the building's wall directions as the map learnt them (``compass_anchor``), each
-        supported by ``compass_min_support`` metres of established walls. After a turn in
-        a hall wider than the range, or when new territory comes into view, the ICP has no
-        mapped wall to fix the heading on, and the odometry's error of the turn went into
-        every new wall.
+        least ``compass_min_length`` long against the building's wall directions as the map
+        learnt them (``compass_anchor``), each supported by ``compass_min_support`` metres of
+        established walls. After a turn in a hall wider than the range, or when new territory
+        comes into view, the ICP has no mapped wall to fix the heading on, and the odometry's
+        error of the turn went into every new wall.
     compass_min_sigma, compass_min_length, compass_min_support : float
         Defaults 0.0026 rad (0.15 degrees, just above ``pose_floor_theta``: the compass runs whenever the
         match did not pin the heading down), 2 m, 10 m.
@@ -388,9 +388,10 @@ class FilterConfig:
         reference: they were mapped before the present drift, while the compass's reference
         carries a small bias of its own (museum seed 6: 0.29 degrees, the heading's drift over
         its first 10 m, written into the one 17.8 m wall the reference is frozen from; with an
-        exact reference that seed maps at 0.145 m instead of 0.358 m). The part of each measurement not applied still goes to the loop closer
-        as a heading factor at the measurement's own variance, so a closure can turn the young
-        chain to the walls' heading. Ring corridor (tests/worlds/bigring, 10 particles,
+        exact reference that seed maps at 0.145 m instead of 0.358 m). The part of each
+        measurement not applied still goes to the loop closer as a heading factor at the
+        measurement's own variance, so a closure can turn the young chain to the walls'
+        heading. Ring corridor (tests/worlds/bigring, 10 particles,
         seeds 0-7, precision/recall at 0.2 m): without 0.991/0.991, 0.993/1.0, 0.653/0.654,
         0.306/0.308, 0.993/1.0, 0.803/0.803, 0.833/0.833, 0.496/0.500 (3 pass 95 %); with
         1.0/1.0, 0.967/0.973, 0.993/0.992, 0.954/0.954, 0.993/1.0, 0.666/0.666, 1.0/1.0,
@@ -398,8 +399,8 @@ class FilterConfig:
         seed 5's before it comes back to its first corridor). Museum seeds 0-7, mean wall
         distance: without 0.144, 0.134, 0.114, 0.125, 0.126, 0.123, 0.257, 0.215 m (median
         0.130), with 0.093, 0.122, 0.082, 0.097, 0.160, 0.141, 0.358, 0.196 m (median 0.132;
-        seed 6 is the biased reference), recall 0.989-1.0 both: a wash there. Tried: the pull whatever the
-        map's age (weight 0.05): ring 6 of 8 as well, museum median 0.139 with seed 4 at
+        seed 6 is the biased reference), recall 0.989-1.0 both: a wash there. Tried: the pull
+        whatever the map's age (weight 0.05): ring 6 of 8 as well, museum median 0.139 with seed 4 at
         0.285 m; weight 0.2 without the heading factors: ring 5 of 8, museum median 0.172;
         0.05 without them: ring 4 of 8; the reference frozen after 20 m instead of 10: ring 6
         of 8, museum median 0.142.
@@ -1188,14 +1189,6 @@ class WireframeFilter:
                     out.setdefault(e, []).append((t0, t1))
         return out
 
-    def _view_age(self, best: Wireframe, matched: IntArray) -> float:
-        """Metres driven since the map walls ``matched`` (edge indices of ``best``) were
-        first mapped (:meth:`LoopCloser.age` of their corners); 0 when none is known (no wall
-        matched, or none stamped yet: nothing says the map in view is old)."""
-        if len(matched) == 0:
-            return 0.0
-        return self._loops.age(best.points[np.unique(best.edges[matched])])
-
     def _compass(
         self, scan: Wireframe, pose: Pose, best: Wireframe, matched: IntArray, weight: float = 1.0
     ) -> tuple[Pose, Heading | None]:
@@ -1402,9 +1395,11 @@ class WireframeFilter:
             if need:
                 pose, heading = self._compass(scan, pose, best, matched_edges)
             elif (cfg.compass_young_weight > 0 and scan.n_edges
-                    and self._view_age(best, matched_edges) <= cfg.compass_young_travel):
+                    and self._loops.age(best.points[np.unique(best.edges[matched_edges])])
+                    <= cfg.compass_young_travel):
                 # The match pinned the heading down, but against walls as young as the drift
                 # they carry: the compass still pulls, slowly (FilterConfig.compass_young_weight).
+                # No wall matched, or none stamped yet, is age 0: nothing says the map is old.
                 pose, heading = self._compass(scan, pose, best, matched_edges, cfg.compass_young_weight)
         self._pose = pose
         place = pose if fault is None else pose.compose(fault)

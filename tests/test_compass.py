@@ -157,23 +157,22 @@ def test_filter_covariance_shrinks_with_the_measurement():
         assert (f3.step(Pose.identity(), scan).compass is not None) == runs, driven
 
 
-def test_config_rejects_bad_compass_values():
+@pytest.mark.parametrize(
+    "bad",
+    [
+        {"compass_max_gate": 0.0},
+        {"compass_min_support": -1.0},
+        {"compass_anchor": -1.0},
+        {"compass_right_angle": -D(1.0)},
+        {"compass_right_angle": D(50.0)},
+        {"compass_young_weight": 1.5},
+        {"compass_young_weight": -0.1},
+        {"compass_young_travel": -1.0},
+    ],
+)
+def test_config_rejects_bad_compass_values(bad):
     with pytest.raises(ValueError):
-        FilterConfig(compass_max_gate=0.0)
-    with pytest.raises(ValueError):
-        FilterConfig(compass_min_support=-1.0)
-    with pytest.raises(ValueError):
-        FilterConfig(compass_anchor=-1.0)
-    with pytest.raises(ValueError):
-        FilterConfig(compass_right_angle=-D(1.0))
-    with pytest.raises(ValueError):
-        FilterConfig(compass_right_angle=D(50.0))
-    with pytest.raises(ValueError):
-        FilterConfig(compass_young_weight=1.5)
-    with pytest.raises(ValueError):
-        FilterConfig(compass_young_weight=-0.1)
-    with pytest.raises(ValueError):
-        FilterConfig(compass_young_travel=-1.0)
+        FilterConfig(**bad)
     assert FilterConfig(compass_young_weight=0.0).compass_young_weight == 0.0
     assert FilterConfig(compass_anchor=None).compass_anchor is None
 
