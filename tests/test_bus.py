@@ -15,7 +15,7 @@ import zenoh
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from agents.bus import (
+from agents.fleet.bus import (
     CLIENT_DEFAULTS,
     DEFAULT_ENDPOINT,
     ROUTER_DEFAULTS,

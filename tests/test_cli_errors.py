@@ -14,7 +14,7 @@ import sys
 
 import pytest
 
-from agents.bus import free_port
+from agents.fleet.bus import free_port
 from agents.cli import main
 from tests.fleet_util import REPO
 

@@ -11,7 +11,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from agents.fusion import (
+from agents.fleet.fusion import (
     FusionConfig,
     FusionState,
     LatencyWindow,
@@ -384,7 +384,7 @@ _MIXED_RAW = [encode_message(m) for m in _MIXED]
 def test_full_path_is_a_function_of_the_set_with_reference_dependent_alignments(order, dups, fuse_between):
     """With an alignment that depends on the fold before it, the fast path's result depends on
     history (alignments go stale), the full path's never does."""
-    with patch("agents.fusion._refine", _fake_refine):
+    with patch("agents.fleet.fusion._refine", _fake_refine):
         latest: dict[str, bytes] = {}
         st_ = FusionState(FusionConfig())
         for i, k in enumerate(list(order) + list(dups)):
@@ -404,7 +404,7 @@ def test_full_path_is_a_function_of_the_set_with_reference_dependent_alignments(
 def test_fast_path_reuses_alignments_and_realigns_on_growth_and_age():
     counting = _Counting()
     cfg = FusionConfig(realign_vertices=2, realign_fraction=0.0, realign_s=5.0)
-    with patch("agents.fusion._refine", counting):
+    with patch("agents.fleet.fusion._refine", counting):
         st_ = FusionState(cfg)
         st_.add(robot_msg("r1"))
         st_.add(robot_msg("r2"))
@@ -435,7 +435,7 @@ def test_fast_path_reuses_alignments_and_realigns_on_growth_and_age():
 
 def test_fast_path_realigns_at_most_the_budget_per_fuse_then_converges():
     counting = _Counting()
-    with patch("agents.fusion._refine", counting):
+    with patch("agents.fleet.fusion._refine", counting):
         st_ = FusionState(FusionConfig(max_realign_per_fuse=1))
         for rid in ("r1", "r2", "r3"):
             st_.add(robot_msg(rid))
@@ -452,7 +452,7 @@ def test_fast_path_converges_to_the_full_path_once_alignments_are_refreshed():
     """Maps arrive one by one with fast fuses in between: alignments go stale (the fused map is
     not the full path's); fast fuses with the clock moving on refresh them one per fuse, after
     which the fast path's map is exactly the full path's, and the full path changes nothing."""
-    with patch("agents.fusion._refine", _fake_refine):
+    with patch("agents.fleet.fusion._refine", _fake_refine):
         st_ = FusionState(FusionConfig(realign_s=1.0))
         for k, m in enumerate(_staggered()):
             st_.add(m)
@@ -472,7 +472,7 @@ def test_fast_path_converges_to_the_full_path_once_alignments_are_refreshed():
 
 def test_resent_map_with_new_seq_keeps_the_cache():
     counting = _Counting()
-    with patch("agents.fusion._refine", counting):
+    with patch("agents.fleet.fusion._refine", counting):
         st_ = FusionState()
         st_.add(robot_msg("r1"))
         st_.add(robot_msg("r2"))
@@ -504,7 +504,7 @@ def test_latency_window_ring_total_and_cached_summary():
 
 
 def test_latency_log_appends_rotates_and_reads_the_tail(tmp_path, monkeypatch):
-    monkeypatch.setattr("agents.fusion.LATENCY_LOG_MAX_BYTES", 25)
+    monkeypatch.setattr("agents.fleet.fusion.LATENCY_LOG_MAX_BYTES", 25)
     append_latency_log(tmp_path, [(1, 1.5, 7), (2, 2.25, 7)])
     append_latency_log(tmp_path, [(3, 3.0, 8)])
     append_latency_log(tmp_path, [(4, 4.0, 9), (5, 5.0, 9)])  # over 25 bytes: rotated first
@@ -547,7 +547,7 @@ def test_store_writer_writes_in_the_background_and_combines_waiting_jobs(tmp_pat
 def test_store_keeps_a_fast_path_map_and_its_version(tmp_path):
     """A fused map computed with stale alignments (not the full path's) comes back from the store
     exactly, with its version: the snapshot stores the corrections it was fused with."""
-    with patch("agents.fusion._refine", _fake_refine):
+    with patch("agents.fleet.fusion._refine", _fake_refine):
         st_ = FusionState(FusionConfig(realign_s=1e9))
         for m in _staggered():
             st_.add(m)
@@ -565,7 +565,7 @@ def test_realign_after_publishing_then_the_next_fuse_applies_it():
     """The service's order: fuse without ICP (publish), then align the robots the fuse wanted,
     then fuse again: the same map the full path gives."""
     counting = _Counting()
-    with patch("agents.fusion._refine", counting):
+    with patch("agents.fleet.fusion._refine", counting):
         st_ = FusionState()
         for m in _staggered():
             st_.add(m)
@@ -621,7 +621,7 @@ def test_fold_tree_remerges_only_the_changed_robots_path():
 
 
 def test_fold_tree_is_the_left_fold_up_to_three_robots():
-    from agents.fusion import default_merge
+    from agents.fleet.fusion import default_merge
 
     st_ = FusionState(FusionConfig(refine=False, close_frontiers=False))
     msgs = [_corridor_msg(k) for k in range(3)]
@@ -644,7 +644,7 @@ def test_robot_maps_quantised_at_5_cm_fuse_to_the_same_walls_at_a_20_cm_threshol
     with its threshold in ``meta``."""
     from dataclasses import replace
 
-    from agents.fusion import merge_threshold_of
+    from agents.fleet.fusion import merge_threshold_of
 
     coarse, fine = FusionState(FusionConfig(refine=False)), FusionState(FusionConfig(refine=False))
     for rid in ("r1", "r2", "r3"):
@@ -687,7 +687,7 @@ def test_quick_difference_test_never_contradicts_almost_equal(n, seed, change):
     """``almost_equal`` (and so ``_same_wireframe``) skips the vertex matching when sorted
     coordinates, labels, likelihoods or sources already differ; the quick test must agree with
     the full one."""
-    from agents.fusion import _same_wireframe
+    from agents.fleet.fusion import _same_wireframe
     from mapping.wireframe import _surely_differ
 
     rng = np.random.default_rng(seed)

@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from agents.bus import FleetKeys, free_port, tcp_endpoint
+from agents.fleet.bus import FleetKeys, free_port, tcp_endpoint
 from agents.commands.watch import Watcher
 from mapping.se2 import Pose
 from mapping.wireframe import Wireframe

@@ -117,7 +117,7 @@ def rss_slope_mb_per_min(samples: list[tuple[float, int]]) -> float | None:
 
 
 def soak(args: argparse.Namespace, world: Any, d: Path, say: Any) -> dict[str, Any]:
-    from agents.bus import free_port, tcp_endpoint
+    from agents.fleet.bus import free_port, tcp_endpoint
     from agents.mapping_run import default_merge_threshold
 
     n = args.robots

@@ -23,7 +23,7 @@ The mapping clock starts when every robot has reported its first pose (process s
 counted), bounded by ``--startup-timeout``.
 
 ``--secure`` runs the whole fleet authenticated and access-controlled
-(:func:`agents.secure.make_secure_fleet`): fresh test certificates and passwords under
+(:func:`agents.fleet.secure.make_secure_fleet`): fresh test certificates and passwords under
 ``DIR/secure/`` (private files mode 600), the router on ``tls/localhost:<free port>`` with
 user/password *and* mutual TLS and the fleet ACL, and every child process given its own
 ``--credentials`` file (robot ``rK`` as ``rK``, the fusion service as ``fusion``). It makes its
@@ -46,7 +46,7 @@ from typing import Any
 
 import numpy as np
 
-from agents.bus import (
+from agents.fleet.bus import (
     StopFlag,
     add_bus_arguments,
     config_from_args,
@@ -57,8 +57,8 @@ from agents.bus import (
     tcp_endpoint,
 )
 from agents.errors import UserError
-from agents.io import write_atomic, write_json
-from agents.proc import stop_processes
+from agents.files.io import write_atomic, write_json
+from agents.fleet.proc import stop_processes
 
 HELP = "the main job: router, N robots and the fusion service"
 
@@ -187,8 +187,8 @@ def write_outputs(
     """Write ``fused.*`` and ``report.json`` from the fusion service's store. Maps are scored
     on a grid of the merge threshold (``resolution`` in the report; ``map_resolution`` is the
     fused map's quantisation step)."""
-    from agents.fusion import decode_message, merge_threshold_of
-    from agents.render import map_png
+    from agents.fleet.fusion import decode_message, merge_threshold_of
+    from agents.files.render import map_png
 
     store = out / "store"
     fused_path = store / "fused.wfm"
@@ -271,7 +271,7 @@ def write_outputs(
 
 # ---------------------------------------------------------------------- the job
 def run(args: argparse.Namespace) -> int:
-    from agents.robot import start_pose_of
+    from agents.fleet.robot import start_pose_of
     from agents.sim.route import plan_routes
     from agents.sim.world import load_world
 
@@ -315,7 +315,7 @@ def run(args: argparse.Namespace) -> int:
     keys = fleet_keys(args)
     creds: dict[str, Path] = {}
     if args.secure:
-        from agents.secure import make_secure_fleet, to_zenoh_config
+        from agents.fleet.secure import make_secure_fleet, to_zenoh_config
 
         given = [f for f, v in (("--config", args.config), ("--listen", args.listen), ("--connect", args.connect)) if v]
         if given:
@@ -344,7 +344,7 @@ def run(args: argparse.Namespace) -> int:
     interrupted = False
     import zenoh
 
-    from agents.fusion import decode_message
+    from agents.fleet.fusion import decode_message
 
     with StopFlag() as stop:
         router = open_session(cfg, wait=False)

@@ -93,8 +93,8 @@ import msgpack
 import numpy as np
 
 from agents.errors import UserError
-from agents.io import write_atomic, write_json
-from agents.proc import freeze_heap
+from agents.files.io import write_atomic, write_json
+from agents.fleet.proc import freeze_heap
 from mapping.se2 import Pose
 from mapping.wireframe import Label, Wireframe
 from wire_codec.message import MapMessage, MessageKind
@@ -107,7 +107,7 @@ SNAPSHOT = "snapshot.msgpack"
 MAX_LATENCIES = 100_000
 LATENCY_LOG = "latency.log"
 LATENCY_LOG_MAX_BYTES = 16 * 1024 * 1024
-_NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,62}$")  # = agents.bus.check_name
+_NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,62}$")  # = agents.fleet.bus.check_name
 
 
 # ---------------------------------------------------------------------- codec access
@@ -1680,7 +1680,7 @@ class FusionService:
         )
         self.recorder: Any = None
         if opts.rrd:
-            from agents.rerun_log import FleetRecorder
+            from agents.files.rerun_log import FleetRecorder
 
             self.recorder = FleetRecorder(opts.rrd, serve_port=opts.serve_viewer, recording_id=opts.recording_id)
             if opts.world:
@@ -2046,7 +2046,7 @@ class FusionService:
         self.last_save = time.monotonic()
 
     def _poll_side_channels(self) -> None:
-        from agents.bus import decode_pose, decode_viz
+        from agents.fleet.bus import decode_pose, decode_viz
 
         st = self.state
         with self.lock:
