@@ -9,8 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from agents.files.carmen import CarmenError, LaserScan, flaser_angles, read_carmen, write_carmen
 from agents.errors import UserError
+from agents.files.carmen import CarmenError, LaserScan, flaser_angles, read_carmen, write_carmen
 from agents.sim.lidar import LidarConfig, raycast
 from mapping.se2 import Pose
 from mapping.wireframe import Wireframe

@@ -19,9 +19,9 @@ import shapely
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from agents.files import export as E
 from agents.cli import main as cli_main
 from agents.errors import UserError
+from agents.files import export as E
 from mapping.se2 import Pose
 from mapping.wireframe import Label, Wireframe
 

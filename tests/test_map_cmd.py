@@ -190,8 +190,8 @@ def test_speed_measure_keys():
 
 
 def test_robot_steps_yield_the_robot_state():
-    from agents.mapping_run import robot_steps
     from agents.fleet.robot import RobotOptions, start_pose_of
+    from agents.mapping_run import robot_steps
 
     route = np.array([[1.0, 1.0], [4.0, 1.0], [4.0, 3.0]])
     opts = RobotOptions(robot="r1", world=str(WORLDS / "tiny.geojson"), start=start_pose_of(route), route=route,

@@ -228,8 +228,8 @@ def _cpu_total(procs: Procs, names: list[str]) -> float | None:
 
 def run_size(n: int, args: argparse.Namespace, world: Any, workdir: Path, say: Any) -> dict[str, Any]:
     """One fleet of ``n`` robots: start, measure, stop; returns the size's JSON entry."""
-    from agents.fleet.bus import free_port, tcp_endpoint
     from agents.files.io import write_json
+    from agents.fleet.bus import free_port, tcp_endpoint
     from agents.fleet.robot import start_pose_of
 
     d = workdir / f"n{n}"

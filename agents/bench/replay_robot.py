@@ -65,6 +65,7 @@ from typing import Any
 import numpy as np
 
 from agents.bench.common import Recording, load_recording
+from agents.errors import UserError
 from agents.fleet.bus import (
     StopFlag,
     add_bus_arguments,
@@ -74,7 +75,6 @@ from agents.fleet.bus import (
     open_session,
     watch_parent,
 )
-from agents.errors import UserError
 from agents.fleet.proc import freeze_heap
 from agents.fleet.robot import robot_map_message, robot_puts
 

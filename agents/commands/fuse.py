@@ -10,10 +10,17 @@ import math
 import sys
 from pathlib import Path
 
-from agents.fleet.bus import StopFlag, add_bus_arguments, config_from_args, fleet_keys, open_session, watch_parent
 from agents.errors import UserError
-from agents.fleet.fusion import InputLimits
 from agents.files.io import output_file
+from agents.fleet.bus import (
+    StopFlag,
+    add_bus_arguments,
+    config_from_args,
+    fleet_keys,
+    open_session,
+    watch_parent,
+)
+from agents.fleet.fusion import InputLimits
 
 HELP = "the fusion service"
 

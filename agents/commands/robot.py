@@ -11,6 +11,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from agents.errors import UserError
 from agents.fleet.bus import (
     StopFlag,
     add_bus_arguments,
@@ -20,7 +21,6 @@ from agents.fleet.bus import (
     open_session,
     watch_parent,
 )
-from agents.errors import UserError
 from agents.fleet.robot import DEFAULT_RESOLUTION, DEFAULT_THRESHOLD
 from mapping.se2 import Pose
 

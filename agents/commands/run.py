@@ -46,6 +46,8 @@ from typing import Any
 
 import numpy as np
 
+from agents.errors import UserError
+from agents.files.io import write_atomic, write_json
 from agents.fleet.bus import (
     StopFlag,
     add_bus_arguments,
@@ -56,8 +58,6 @@ from agents.fleet.bus import (
     open_session,
     tcp_endpoint,
 )
-from agents.errors import UserError
-from agents.files.io import write_atomic, write_json
 from agents.fleet.proc import stop_processes
 
 HELP = "the main job: router, N robots and the fusion service"
@@ -187,8 +187,8 @@ def write_outputs(
     """Write ``fused.*`` and ``report.json`` from the fusion service's store. Maps are scored
     on a grid of the merge threshold (``resolution`` in the report; ``map_resolution`` is the
     fused map's quantisation step)."""
-    from agents.fleet.fusion import decode_message, merge_threshold_of
     from agents.files.render import map_png
+    from agents.fleet.fusion import decode_message, merge_threshold_of
 
     store = out / "store"
     fused_path = store / "fused.wfm"

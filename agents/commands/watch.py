@@ -35,8 +35,8 @@ from pathlib import Path
 from typing import Any
 
 from agents import argtypes
-from agents.fleet.bus import StopFlag, add_bus_arguments, config_from_args, fleet_keys, open_session
 from agents.errors import UserError
+from agents.fleet.bus import StopFlag, add_bus_arguments, config_from_args, fleet_keys, open_session
 
 HELP = "subscribe to the fused map and show each version"
 

@@ -52,7 +52,7 @@ if TYPE_CHECKING:  # zenoh is imported lazily: `wiremap worlds` must not pay for
 DEFAULT_PORT = 7447
 DEFAULT_ENDPOINT = f"tcp/127.0.0.1:{DEFAULT_PORT}"
 DEFAULT_FLEET = "default"
-_NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,62}$")
+_NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,62}$")  # the one rule for robot ids and fleet names
 
 # The embedded default router: loopback only, multicast scouting off. broker_config/router.json5
 # is the same configuration as a file (a test checks that they agree).
@@ -68,13 +68,19 @@ CLIENT_DEFAULTS: dict[str, Any] = {
 }
 
 
+def valid_name(name: object) -> bool:
+    """Whether ``name`` is usable as one key-expression chunk (a robot id, a fleet name; see
+    :func:`check_name`)."""
+    return isinstance(name, str) and _NAME_RE.match(name) is not None
+
+
 def check_name(name: str, what: str = "robot id") -> str:
     """Return ``name`` if it is usable as one key-expression chunk, else raise ``UserError``.
 
     Allowed: 1-63 characters of letters, digits, ``_``, ``.``, ``-``, starting with a letter or
     digit (no ``/``, ``*``, ``$``, ``?``, ``#`` or spaces, which Zenoh treats specially).
     """
-    if not isinstance(name, str) or not _NAME_RE.match(name):
+    if not valid_name(name):
         raise UserError(f"bad {what} {name!r}: use 1-63 letters, digits, '_', '.', '-'")
     return name
 
@@ -145,7 +151,7 @@ class FleetKeys:
             rid = rest[1]
         else:
             return None
-        return rid if _NAME_RE.match(rid) else None
+        return rid if valid_name(rid) else None
 
 
 # ---------------------------------------------------------------------- command-line flags

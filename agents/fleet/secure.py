@@ -80,12 +80,12 @@ from typing import TYPE_CHECKING, Any, Literal
 
 from agents.errors import UserError
 from agents.files.io import write_atomic
+from agents.fleet.bus import valid_name
 
 if TYPE_CHECKING:
     import zenoh
 
 Identity = Literal["username", "cert", "both"]
-_ID_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,62}$")  # = agents.fleet.bus.check_name
 _FIELDS = ("user", "password", "ca", "cert", "key")
 DEFAULT_SECURE_PORT = 7447
 DEFAULT_FUSION_USER = "fusion"
@@ -93,9 +93,9 @@ DEFAULT_OBSERVER = "monitor"
 
 
 def _check_id(name: object, what: str) -> str:
-    # the same rule as agents.fleet.bus.check_name (one key chunk); it also keeps ':' and newlines
+    # the rule of agents.fleet.bus.check_name (one key chunk); it also keeps ':' and newlines
     # out of the password dictionary and '/' out of certificate file names
-    if not isinstance(name, str) or not _ID_RE.match(name):
+    if not valid_name(name):
         raise UserError(f"bad {what} {name!r}: use 1-63 letters, digits, '_', '.', '-'")
     return name
 
