@@ -22,6 +22,7 @@ from typing import Any
 
 import zenoh
 
+from agents.fleet import proc
 from agents.fleet.bus import FleetKeys, build_config, free_port, open_session, tcp_endpoint
 
 REPO = Path(__file__).resolve().parent.parent
@@ -225,11 +226,11 @@ def query_stats(session: zenoh.Session, keys: FleetKeys, timeout: float = 1.0) -
 
 
 def rss_kb(pid: int) -> int:
-    """Resident set size of ``pid`` in KiB (from /proc)."""
-    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-        if line.startswith("VmRSS:"):
-            return int(line.split()[1])
-    raise RuntimeError(f"no VmRSS for {pid}")
+    """Resident set size of ``pid`` in KiB (:func:`agents.fleet.proc.rss_kb`, which must know it)."""
+    kb = proc.rss_kb(pid)
+    if kb is None:
+        raise RuntimeError(f"no VmRSS for {pid}")
+    return kb
 
 
 def record(record_property: Callable[[str, Any], None] | None, name: str, value: Any) -> None:

@@ -41,7 +41,7 @@ import numpy as np
 
 from agents.errors import UserError
 from agents.files.io import write_atomic
-from agents.fleet.proc import stop_processes
+from agents.fleet.proc import rss_kb, stop_processes
 from mapping.se2 import Pose
 from mapping.wireframe import Wireframe
 
@@ -238,24 +238,10 @@ def recordings_for(
 
 
 # ---------------------------------------------------------------------- /proc readers
-def cpu_seconds(pid: int) -> float | None:
-    """User + system CPU seconds of a live process (None when it is gone or /proc is absent)."""
-    try:
-        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
-    except (OSError, ValueError, IndexError):
-        return None
-
-
 def rss_bytes(pid: int) -> int | None:
-    """Resident set size of a live process in bytes (``VmRSS``), or None."""
-    try:
-        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-            if line.startswith("VmRSS:"):
-                return int(line.split()[1]) * 1024
-    except (OSError, ValueError, IndexError):
-        return None
-    return None
+    """Resident set size of a live process in bytes (:func:`agents.fleet.proc.rss_kb`), or None."""
+    kb = rss_kb(pid)
+    return None if kb is None else kb * 1024
 
 
 # ---------------------------------------------------------------------- processes

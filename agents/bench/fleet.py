@@ -88,7 +88,6 @@ from agents.bench.common import (
     BusObserver,
     LatencyHarvest,
     Procs,
-    cpu_seconds,
     fleet_routes,
     grid_bytes,
     merge_counts,
@@ -101,6 +100,8 @@ from agents.bench.common import (
     wait_for,
 )
 from agents.errors import UserError
+from agents.fleet.proc import cpu_seconds
+from wire_codec import MAX_ROBOTS
 
 HELP = "fleet latency, bandwidth and fused-map quality by fleet size"
 FLEET = "bench"
@@ -146,8 +147,8 @@ def parse_sizes(text: str) -> list[int]:
         sizes = [int(s) for s in str(text).split(",") if s.strip()]
     except ValueError:
         raise UserError(f"--robots must be a comma-separated list of fleet sizes, got {text!r}") from None
-    if not sizes or any(not 1 <= n <= 64 for n in sizes):
-        raise UserError(f"--robots: every size must be between 1 and 64, got {text!r}")
+    if not sizes or any(not 1 <= n <= MAX_ROBOTS for n in sizes):
+        raise UserError(f"--robots: every size must be between 1 and {MAX_ROBOTS}, got {text!r}")
     return sizes
 
 

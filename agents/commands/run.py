@@ -58,7 +58,8 @@ from agents.fleet.bus import (
     open_session,
     tcp_endpoint,
 )
-from agents.fleet.proc import stop_processes
+from agents.fleet.proc import cpu_seconds, stop_processes
+from wire_codec import MAX_ROBOTS
 
 HELP = "the main job: router, N robots and the fusion service"
 
@@ -112,16 +113,6 @@ def _spawn(name: str, argv: list[str], logs: Path) -> subprocess.Popen[bytes]:
         )
     finally:
         fh.close()  # the child has its own descriptor
-
-
-def _cpu_seconds(pid: int) -> float | None:
-    """User + system CPU time of a live process, from /proc (None where unavailable)."""
-    try:
-        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-        ticks = os.sysconf("SC_CLK_TCK")
-        return (int(fields[11]) + int(fields[12])) / ticks
-    except (OSError, ValueError, IndexError):
-        return None
 
 
 class Progress:
@@ -276,8 +267,8 @@ def run(args: argparse.Namespace) -> int:
     from agents.sim.world import load_world
 
     n = int(args.robots)
-    if not 1 <= n <= 64:
-        raise UserError(f"--robots must be between 1 and 64, got {n}")
+    if not 1 <= n <= MAX_ROBOTS:
+        raise UserError(f"--robots must be between 1 and {MAX_ROBOTS}, got {n}")
     for name, v in (("--duration", args.duration), ("--rate", args.rate)):
         if not (math.isfinite(v) and v > 0):
             raise UserError(f"{name} must be a positive number, got {v}")
@@ -423,7 +414,7 @@ def run(args: argparse.Namespace) -> int:
             progress.draw(mapping_s, args.duration, force=True)
         finally:
             for name, p in procs.items():
-                c = _cpu_seconds(p.pid)
+                c = cpu_seconds(p.pid)
                 if c is not None:
                     cpu[name] = round(c, 2)
             robots_up = [r for r in ids if r in procs]
