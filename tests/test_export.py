@@ -1,4 +1,4 @@
-"""``wiremap export`` and the occupancy raster behind ``rosmap`` (agents/export.py,
+"""``wiremap export`` and the occupancy raster behind ``rosmap`` (agents/files/export.py,
 agents/commands/export.py), on hand-made maps with known answers."""
 
 from __future__ import annotations

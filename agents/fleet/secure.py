@@ -1,6 +1,6 @@
 """Fleet security: credentials files, user/password authentication, mutual TLS and access control.
 
-Pure helpers (no session is opened here); ``agents/bus.py`` and the commands wire them in.
+Pure helpers (no session is opened here); ``agents/fleet/bus.py`` and the commands wire them in.
 
 Threat model and choices
 ------------------------
