@@ -227,6 +227,8 @@ def _cpu_total(procs: Procs, names: list[str]) -> float | None:
     return total
 
 
+# Over 120 lines: one fleet size measured top to bottom (start, warm up, measure, stop, score),
+# its phases sharing the process table and the counters; not yet split into steps.
 def run_size(n: int, args: argparse.Namespace, world: Any, workdir: Path, say: Any) -> dict[str, Any]:
     """One fleet of ``n`` robots: start, measure, stop; returns the size's JSON entry."""
     from agents.files.io import write_json

@@ -117,6 +117,8 @@ def rss_slope_mb_per_min(samples: list[tuple[float, int]]) -> float | None:
     return float(np.polyfit(t, y, 1)[0])
 
 
+# Over 120 lines: one soak scenario read top to bottom (start, sample, inject faults, restart,
+# stop, score), its phases sharing the process table and the samples; not yet split into steps.
 def soak(args: argparse.Namespace, world: Any, d: Path, say: Any) -> dict[str, Any]:
     from agents.fleet.bus import free_port, tcp_endpoint
     from agents.mapping_run import default_merge_threshold
