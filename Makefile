@@ -37,7 +37,7 @@ fuzz: $(STAMP)
 # Test certificates, passwords and credentials for a secure fleet (never committed; see
 # broker_config/secure/README.md).
 certs: $(STAMP)
-	$(BIN)/python -m agents.secure init broker_config/secure --fleet default --robots r1,r2,r3 --force
+	$(BIN)/python -m agents.fleet.secure init broker_config/secure --fleet default --robots r1,r2,r3 --force
 
 clean:
 	rm -rf out .pytest_cache .mypy_cache .ruff_cache

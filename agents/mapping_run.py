@@ -278,8 +278,8 @@ def carmen_inputs(
 
     Parameters
     ----------
-    log : str or sequence of agents.carmen.LaserScan
-        The log's path, or its scans already read by :func:`agents.carmen.read_carmen`.
+    log : str or sequence of agents.files.carmen.LaserScan
+        The log's path, or its scans already read by :func:`agents.files.carmen.read_carmen`.
     max_range : float, optional
         Cap on the scanner's range (metres): longer returns count as no return. Real scanners
         report up to 50-80 m; far, grazing returns make poor corners.
@@ -289,7 +289,7 @@ def carmen_inputs(
     from mapping.extract import extract_corners
 
     if isinstance(log, str):
-        from agents.carmen import read_carmen
+        from agents.files.carmen import read_carmen
 
         scans: Sequence[Any] = read_carmen(log)
     else:
@@ -328,7 +328,7 @@ def run_filter(
 
 
 def robot_steps(opts: Any) -> Iterator[RunStep]:
-    """The fleet robot's loop (:class:`agents.robot.RobotAgent`): simulate ``opts.world`` from
+    """The fleet robot's loop (:class:`agents.fleet.robot.RobotAgent`): simulate ``opts.world`` from
     ``opts.start`` along ``opts.route`` (planned from the start when None) and run a filter of
     ``opts.particles`` particles whose map frame is the robot's odometry frame (its first pose is
     the identity). ``opts.threshold`` is the merge threshold (``opts.resolution``, the wire

@@ -21,6 +21,7 @@ The value type is immutable: its arrays are read-only, and every operation retur
 
 from __future__ import annotations
 
+import hashlib
 import json
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
@@ -297,6 +298,26 @@ class Wireframe:
             x[0] == y[0] and x[1] == y[1] and abs(x[2] - y[2]) <= likelihood_tol and x[3] == y[3]
             for x, y in zip(mine, theirs)
         )
+
+    def content_digest(self) -> bytes:
+        """A 16-byte digest of the arrays (shape and bytes of points, labels, edges, likelihood,
+        sources, in that order).
+
+        Two wireframes have equal digests exactly when their arrays are byte for byte equal
+        (up to the BLAKE2b collision odds of 2**-128): the same vertices and edges in the same
+        order. It is the identity of a map's content, for caches and for "did it change";
+        :meth:`almost_equal` is the comparison up to order and rounding.
+
+        Returns
+        -------
+        bytes
+            ``blake2b(digest_size=16)`` over ``str(a.shape)`` and ``a.tobytes()`` of each array.
+        """
+        h = hashlib.blake2b(digest_size=16)
+        for a in (self.points, self.labels, self.edges, self.likelihood, self.sources):
+            h.update(str(a.shape).encode())
+            h.update(np.ascontiguousarray(a).tobytes())
+        return h.digest()
 
     # ------------------------------------------------------------------ storage
     def paper_storage_bytes(self) -> int:

@@ -22,7 +22,8 @@ from typing import Any
 
 import zenoh
 
-from agents.bus import FleetKeys, build_config, free_port, open_session, tcp_endpoint
+from agents.fleet import proc
+from agents.fleet.bus import FleetKeys, build_config, free_port, open_session, tcp_endpoint
 
 REPO = Path(__file__).resolve().parent.parent
 __all__ = [
@@ -142,7 +143,7 @@ def client(endpoint: str, timeout: float = 10.0, credentials: str | Path | None 
     on exit."""
     cfg = build_config("client", None, [endpoint])
     if credentials is not None:
-        from agents.secure import apply_credentials, load_credentials
+        from agents.fleet.secure import apply_credentials, load_credentials
 
         apply_credentials(cfg, load_credentials(credentials))
     s = open_session(cfg, timeout=timeout)
@@ -158,7 +159,7 @@ class FusedWatcher:
     (``monotonic``); waits on a condition variable, never on fixed sleeps."""
 
     def __init__(self, session: zenoh.Session, keys: FleetKeys) -> None:
-        from agents.fusion import decode_message
+        from agents.fleet.fusion import decode_message
 
         self._decode = decode_message
         self.msgs: list[Any] = []
@@ -207,7 +208,7 @@ class FusedWatcher:
 
 def query_fused(session: zenoh.Session, keys: FleetKeys, timeout: float = 1.0) -> Any:
     """The fused map the fusion service's queryable answers with, or None."""
-    from agents.fusion import decode_message
+    from agents.fleet.fusion import decode_message
 
     for reply in session.get(keys.fused_map, timeout=timeout):
         if reply.ok is not None:
@@ -225,11 +226,11 @@ def query_stats(session: zenoh.Session, keys: FleetKeys, timeout: float = 1.0) -
 
 
 def rss_kb(pid: int) -> int:
-    """Resident set size of ``pid`` in KiB (from /proc)."""
-    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-        if line.startswith("VmRSS:"):
-            return int(line.split()[1])
-    raise RuntimeError(f"no VmRSS for {pid}")
+    """Resident set size of ``pid`` in KiB (:func:`agents.fleet.proc.rss_kb`, which must know it)."""
+    kb = proc.rss_kb(pid)
+    if kb is None:
+        raise RuntimeError(f"no VmRSS for {pid}")
+    return kb
 
 
 def record(record_property: Callable[[str, Any], None] | None, name: str, value: Any) -> None:

@@ -1,7 +1,7 @@
 """Bad input to the fusion service: random bytes, truncated and oversized payloads, valid codec
 payloads with absurd content, an old format version, bad keys, a flood from one key.
 
-Each is dropped with a counter (:class:`agents.fusion.FusionStats`, served on
+Each is dropped with a counter (:class:`agents.fleet.fusion.FusionStats`, served on
 ``wiremap/<fleet>/fused/stats``) and a rate-limited log line; the fused map stays the last good
 one; memory stays bounded. The first part tests the pieces without a network, the last one a
 real fusion process behind a real router.
@@ -23,8 +23,8 @@ import zenoh
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from agents.bus import FleetKeys
-from agents.fusion import (
+from agents.fleet.bus import FleetKeys
+from agents.fleet.fusion import (
     DropLog,
     FusionConfig,
     FusionState,

@@ -106,7 +106,7 @@ def test_merge_counts_definition() -> None:
 
 
 def test_latency_harvest_collects_across_polls_and_a_rotation(tmp_path: Path) -> None:
-    from agents.fusion import append_latency_log
+    from agents.fleet.fusion import append_latency_log
 
     (tmp_path / "state.json").write_text(json.dumps({"latency_total": 2}))
     append_latency_log(tmp_path, [(1, 1.0, 100), (2, 2.0, 100)])
@@ -263,7 +263,7 @@ def test_one_replay_process_publishes_for_each_robot_with_its_own_token(tmp_path
 
     import zenoh
 
-    from agents.bus import FleetKeys
+    from agents.fleet.bus import FleetKeys
     from tests.fleet_util import client, in_process_router, wait_until
 
     ids = ["ra", "rb", "rc"]

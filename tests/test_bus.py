@@ -15,7 +15,8 @@ import zenoh
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from agents.bus import (
+from agents.errors import UserError
+from agents.fleet.bus import (
     CLIENT_DEFAULTS,
     DEFAULT_ENDPOINT,
     ROUTER_DEFAULTS,
@@ -31,7 +32,6 @@ from agents.bus import (
     fleet_keys,
     open_session,
 )
-from agents.errors import UserError
 from mapping.se2 import Pose
 from mapping.wireframe import Wireframe
 from tests.fleet_util import REPO, Fleet, client, free_port, in_process_router, tcp_endpoint

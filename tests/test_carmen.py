@@ -1,4 +1,4 @@
-"""Tests of CARMEN log reading and writing (agents.carmen)."""
+"""Tests of CARMEN log reading and writing (agents.files.carmen)."""
 
 from __future__ import annotations
 
@@ -9,8 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from agents.carmen import CarmenError, LaserScan, flaser_angles, read_carmen, write_carmen
 from agents.errors import UserError
+from agents.files.carmen import CarmenError, LaserScan, flaser_angles, read_carmen, write_carmen
 from agents.sim.lidar import LidarConfig, raycast
 from mapping.se2 import Pose
 from mapping.wireframe import Wireframe

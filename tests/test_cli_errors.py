@@ -14,8 +14,8 @@ import sys
 
 import pytest
 
-from agents.bus import free_port
 from agents.cli import main
+from agents.fleet.bus import free_port
 from tests.fleet_util import REPO
 
 

@@ -1,4 +1,4 @@
-"""``wiremap export`` and the occupancy raster behind ``rosmap`` (agents/export.py,
+"""``wiremap export`` and the occupancy raster behind ``rosmap`` (agents/files/export.py,
 agents/commands/export.py), on hand-made maps with known answers."""
 
 from __future__ import annotations
@@ -19,9 +19,9 @@ import shapely
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from agents import export as E
 from agents.cli import main as cli_main
 from agents.errors import UserError
+from agents.files import export as E
 from mapping.se2 import Pose
 from mapping.wireframe import Label, Wireframe
 
@@ -62,7 +62,7 @@ def parse_yaml(text: str) -> dict[str, object]:
 
 def parse_pgm_header(data: bytes) -> tuple[int, int, int, int]:
     """``(width, height, maxval, offset of the pixels)`` of a P5 file, written independently of
-    :func:`agents.export.read_pgm`."""
+    :func:`agents.files.export.read_pgm`."""
     m = re.match(rb"P5\s+(?:#[^\n]*\n\s*)*(\d+)\s+(?:#[^\n]*\n\s*)*(\d+)\s+(?:#[^\n]*\n\s*)*(\d+)\s", data)
     assert m is not None, data[:40]
     return int(m.group(1)), int(m.group(2)), int(m.group(3)), m.end()

@@ -20,8 +20,8 @@ import numpy as np
 import pytest
 import zenoh
 
-from agents.bus import FleetKeys
-from agents.fusion import decode_message, read_store
+from agents.fleet.bus import FleetKeys
+from agents.fleet.fusion import decode_message, read_store
 from tests.fleet_util import (
     Fleet,
     FusedWatcher,
@@ -68,7 +68,7 @@ class MapTap:
         self.sub_pose = session.declare_subscriber(keys.all_poses, self._on_pose)
 
     def _on_pose(self, sample: zenoh.Sample) -> None:
-        from agents.bus import decode_pose
+        from agents.fleet.bus import decode_pose
 
         rid = self.keys.robot_of(str(sample.key_expr))
         p = decode_pose(sample.payload.to_bytes())
@@ -112,7 +112,7 @@ def test_robot_kill9_marks_stale_keeps_its_walls_and_a_restart_replaces_them(tmp
     """kill -9 of robot r1: the fusion service sees its token go within a second and flags it
     stale (fused map metadata and the Rerun recording) without touching the walls; r1
     restarted with the same id (a new boot) replaces its stale map and is no longer stale."""
-    from agents.rerun_log import read_recording
+    from agents.files.rerun_log import read_recording
 
     keys = FleetKeys("k9")
     rrd = tmp_path / "fuse.rrd"

@@ -14,8 +14,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from agents.bus import FleetKeys
-from agents.fusion import decode_message, encode_message
+from agents.fleet.bus import FleetKeys
+from agents.fleet.fusion import decode_message, encode_message
 from mapping.se2 import Pose
 from mapping.wireframe import Label, Wireframe
 from tests.fleet_util import (
@@ -128,7 +128,7 @@ class _FakeFilter:
 
 
 class _FakeStep:
-    """What agents.robot needs from a simulation step, scripted: the robot sees more and more
+    """What agents.fleet.robot needs from a simulation step, scripted: the robot sees more and more
     of the bottom wall of a 12 x 5 room."""
 
     def __init__(self, k: int, origin: Pose) -> None:
@@ -145,8 +145,8 @@ def test_robot_agent_shell_publishes_map_pose_and_token():
     """The robot shell in this process with a scripted simulation: a token while it runs, a
     map per change (seq increasing, sender and origin set), heartbeats when nothing changes,
     poses with a status at ~10 Hz."""
-    from agents.bus import StopFlag, decode_pose
-    from agents.robot import RobotAgent, RobotOptions
+    from agents.fleet.bus import StopFlag, decode_pose
+    from agents.fleet.robot import RobotAgent, RobotOptions
 
     keys = FleetKeys("t2")
     origin = Pose(1.0, 1.0, 0.0)
@@ -220,8 +220,8 @@ def test_run_three_robots_on_paper_small(tmp_path: Path):
     map reaches wall recall >= 90 % and is at least as good as the best robot; a subscriber
     that joins during the run has the current fused map within a second; the recording opens
     and holds the expected entities and the sim_time timeline; every output is written."""
-    from agents.render import decode_png
-    from agents.rerun_log import read_recording
+    from agents.files.render import decode_png
+    from agents.files.rerun_log import read_recording
 
     port = free_port()
     ep = tcp_endpoint(port)
@@ -352,7 +352,7 @@ def test_robot_options_split_quantisation_from_the_filter_threshold():
     import argparse
 
     from agents.commands.robot import add_arguments, options_from_args
-    from agents.robot import map_message
+    from agents.fleet.robot import map_message
 
     parser = argparse.ArgumentParser()
     add_arguments(parser)

@@ -1,4 +1,6 @@
-"""The fusion core (no network): latest-map bookkeeping, fusion, frontier closing, store."""
+"""The fusion core (no network): latest-map bookkeeping, fusion, store. The map algorithms it
+uses (frontier closing, map-to-map alignment, the fold tree's shape) are tested in
+tests/test_fleet_map.py."""
 
 from __future__ import annotations
 
@@ -11,13 +13,12 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from agents.fusion import (
+from agents.fleet.fusion import (
     FusionConfig,
     FusionState,
     LatencyWindow,
     StoreWriter,
     append_latency_log,
-    close_frontiers,
     decode_message,
     encode_message,
     latency_summary,
@@ -64,57 +65,6 @@ def robot_msg(rid: str, seq: int = 1, wf_fleet: Wireframe | None = None, boot: i
         wireframe=wf_fleet.transformed(origin.inverse()),
         meta={"boot": boot, "t": float(seq)},
     )
-
-
-def edge_set(wf: Wireframe, nd: int = 1) -> set[tuple[tuple[float, float], tuple[float, float]]]:
-    s = wf.segments()
-    return {(tuple(np.round(a, nd)), tuple(np.round(b, nd))) for a, b in s}
-
-
-# ---------------------------------------------------------------------- close_frontiers
-def test_frontier_closed_by_a_longer_wall_reattaches():
-    # A: (0,0) -> (3,0) ending in a frontier; B: (2,0) -> (6,0) covers the frontier.
-    wf = Wireframe.build([(0, 0), (3, 0), (2, 0), (6, 0)], [(0, 1), (2, 3)], [N, F, N, N])
-    out = close_frontiers(wf, 0.2)
-    assert edge_set(out) == {((0.0, 0.0), (2.0, 0.0)), ((2.0, 0.0), (6.0, 0.0))}
-    assert not np.any(out.labels == F)
-
-
-def test_frontier_edge_entirely_covered_is_dropped():
-    wf = Wireframe.build([(2.5, 0), (3, 0), (0, 0), (6, 0)], [(0, 1), (2, 3)], [N, F, N, N], sources=[1, 2])
-    out = close_frontiers(wf, 0.2)
-    assert edge_set(out) == {((0.0, 0.0), (6.0, 0.0))}
-    assert out.n_vertices == 2 and int(out.sources[0]) == 2
-
-
-def test_frontier_meeting_a_wall_at_an_angle_becomes_a_corner():
-    # a wall coming down to a frontier that sits on another robot's wall: a T junction
-    wf = Wireframe.build([(3, 2), (3, 0.05), (0, 0), (6, 0)], [(0, 1), (2, 3)], [N, F, N, N])
-    out = close_frontiers(wf, 0.2)
-    assert out.n_edges == 2 and out.labels[1] == N
-
-
-def test_frontier_not_closed_by_the_back_of_a_thin_wall_or_far_walls():
-    back = Wireframe.build([(0, 0), (3, 0), (6, 0), (1, 0)], [(0, 1), (2, 3)], [N, F, N, N])
-    assert close_frontiers(back, 0.2) is back  # opposite direction: the other side
-    far = Wireframe.build([(0, 0), (3, 0), (2, 1), (6, 1)], [(0, 1), (2, 3)], [N, F, N, N])
-    assert close_frontiers(far, 0.2) is far
-    near_end = Wireframe.build([(0, 0), (3, 0), (3.1, 0), (6, 0)], [(0, 1), (2, 3)], [N, F, N, N])
-    assert close_frontiers(near_end, 0.2) is near_end  # at an end, not the interior: merge's job
-
-
-@given(st.floats(0.3, 2.7), st.floats(-0.15, 0.15), st.floats(0.05, 0.3))
-@settings(max_examples=60, deadline=None)
-def test_close_frontiers_never_loses_covered_length(fx, fy, thr):
-    """Whatever it does, the union of walls still covers the truth [0, 6] on y = 0."""
-    wf = Wireframe.build([(-1, 0), (fx, fy), (0, 0), (6, 0)], [(0, 1), (2, 3)], [N, F, N, N])
-    out = close_frontiers(wf, thr)
-    xs = np.linspace(-0.9, 5.9, 69)
-    segs = out.segments()
-    for x in xs:
-        covered = any(min(a[0], b[0]) - 1e-9 <= x <= max(a[0], b[0]) + 1e-9 for a, b in segs)
-        assert covered, (x, segs)
-    assert out.n_edges <= wf.n_edges
 
 
 # ---------------------------------------------------------------------- bookkeeping
@@ -263,7 +213,6 @@ def test_fused_map_independent_of_order_and_duplicates(order, dups, fuse_between
 def test_icp_refinement_removes_a_start_pose_error():
     """r2's start pose is off by 0.29 m and 2 degrees: the refinement pulls r2's map back onto
     r1's, so the fused walls come out single (not doubled)."""
-    pytest.importorskip("mapping.icp")
     wrong = ORIGINS["r2"]
     err = Pose(0.25, -0.15, math.radians(2.0))
     room = chain([(12, 5), (0, 5), (0, 0), (12, 0), (12, 5)], [N, N, N, N, N])
@@ -330,7 +279,7 @@ def test_store_tolerates_a_corrupt_robot_file_and_missing_store(tmp_path, capsys
 
 
 # ---------------------------------------------------------------------- fast path and full path
-def _fake_refine(source: Wireframe, target: Wireframe, threshold: float, cfg: FusionConfig) -> Pose:
+def _fake_refine(source: Wireframe, target: Wireframe, max_shift: float, max_turn: float) -> Pose:
     """A stand-in for ICP whose correction depends on the reference (its edge count and extent)
     and on the map aligned (its extent), so that a stale alignment shows in the result."""
     return Pose(0.001 * target.n_edges, 0.0005 * float(np.ptp(target.points[:, 0]) + np.ptp(source.points[:, 0])), 0.0)
@@ -340,9 +289,9 @@ class _Counting:
     def __init__(self) -> None:
         self.calls: list[int] = []
 
-    def __call__(self, source, target, threshold, cfg):
+    def __call__(self, source, target, max_shift, max_turn):
         self.calls.append(source.n_vertices)
-        return _fake_refine(source, target, threshold, cfg)
+        return _fake_refine(source, target, max_shift, max_turn)
 
 
 def _arrays(wf: Wireframe) -> tuple:
@@ -384,7 +333,7 @@ _MIXED_RAW = [encode_message(m) for m in _MIXED]
 def test_full_path_is_a_function_of_the_set_with_reference_dependent_alignments(order, dups, fuse_between):
     """With an alignment that depends on the fold before it, the fast path's result depends on
     history (alignments go stale), the full path's never does."""
-    with patch("agents.fusion._refine", _fake_refine):
+    with patch("agents.fleet.fusion.state.align_maps", _fake_refine):
         latest: dict[str, bytes] = {}
         st_ = FusionState(FusionConfig())
         for i, k in enumerate(list(order) + list(dups)):
@@ -404,7 +353,7 @@ def test_full_path_is_a_function_of_the_set_with_reference_dependent_alignments(
 def test_fast_path_reuses_alignments_and_realigns_on_growth_and_age():
     counting = _Counting()
     cfg = FusionConfig(realign_vertices=2, realign_fraction=0.0, realign_s=5.0)
-    with patch("agents.fusion._refine", counting):
+    with patch("agents.fleet.fusion.state.align_maps", counting):
         st_ = FusionState(cfg)
         st_.add(robot_msg("r1"))
         st_.add(robot_msg("r2"))
@@ -435,7 +384,7 @@ def test_fast_path_reuses_alignments_and_realigns_on_growth_and_age():
 
 def test_fast_path_realigns_at_most_the_budget_per_fuse_then_converges():
     counting = _Counting()
-    with patch("agents.fusion._refine", counting):
+    with patch("agents.fleet.fusion.state.align_maps", counting):
         st_ = FusionState(FusionConfig(max_realign_per_fuse=1))
         for rid in ("r1", "r2", "r3"):
             st_.add(robot_msg(rid))
@@ -452,7 +401,7 @@ def test_fast_path_converges_to_the_full_path_once_alignments_are_refreshed():
     """Maps arrive one by one with fast fuses in between: alignments go stale (the fused map is
     not the full path's); fast fuses with the clock moving on refresh them one per fuse, after
     which the fast path's map is exactly the full path's, and the full path changes nothing."""
-    with patch("agents.fusion._refine", _fake_refine):
+    with patch("agents.fleet.fusion.state.align_maps", _fake_refine):
         st_ = FusionState(FusionConfig(realign_s=1.0))
         for k, m in enumerate(_staggered()):
             st_.add(m)
@@ -472,7 +421,7 @@ def test_fast_path_converges_to_the_full_path_once_alignments_are_refreshed():
 
 def test_resent_map_with_new_seq_keeps_the_cache():
     counting = _Counting()
-    with patch("agents.fusion._refine", counting):
+    with patch("agents.fleet.fusion.state.align_maps", counting):
         st_ = FusionState()
         st_.add(robot_msg("r1"))
         st_.add(robot_msg("r2"))
@@ -504,7 +453,7 @@ def test_latency_window_ring_total_and_cached_summary():
 
 
 def test_latency_log_appends_rotates_and_reads_the_tail(tmp_path, monkeypatch):
-    monkeypatch.setattr("agents.fusion.LATENCY_LOG_MAX_BYTES", 25)
+    monkeypatch.setattr("agents.fleet.fusion.store.LATENCY_LOG_MAX_BYTES", 25)
     append_latency_log(tmp_path, [(1, 1.5, 7), (2, 2.25, 7)])
     append_latency_log(tmp_path, [(3, 3.0, 8)])
     append_latency_log(tmp_path, [(4, 4.0, 9), (5, 5.0, 9)])  # over 25 bytes: rotated first
@@ -547,7 +496,7 @@ def test_store_writer_writes_in_the_background_and_combines_waiting_jobs(tmp_pat
 def test_store_keeps_a_fast_path_map_and_its_version(tmp_path):
     """A fused map computed with stale alignments (not the full path's) comes back from the store
     exactly, with its version: the snapshot stores the corrections it was fused with."""
-    with patch("agents.fusion._refine", _fake_refine):
+    with patch("agents.fleet.fusion.state.align_maps", _fake_refine):
         st_ = FusionState(FusionConfig(realign_s=1e9))
         for m in _staggered():
             st_.add(m)
@@ -565,7 +514,7 @@ def test_realign_after_publishing_then_the_next_fuse_applies_it():
     """The service's order: fuse without ICP (publish), then align the robots the fuse wanted,
     then fuse again: the same map the full path gives."""
     counting = _Counting()
-    with patch("agents.fusion._refine", counting):
+    with patch("agents.fleet.fusion.state.align_maps", counting):
         st_ = FusionState()
         for m in _staggered():
             st_.add(m)
@@ -621,7 +570,7 @@ def test_fold_tree_remerges_only_the_changed_robots_path():
 
 
 def test_fold_tree_is_the_left_fold_up_to_three_robots():
-    from agents.fusion import default_merge
+    from agents.fleet.fusion import default_merge
 
     st_ = FusionState(FusionConfig(refine=False, close_frontiers=False))
     msgs = [_corridor_msg(k) for k in range(3)]
@@ -644,7 +593,7 @@ def test_robot_maps_quantised_at_5_cm_fuse_to_the_same_walls_at_a_20_cm_threshol
     with its threshold in ``meta``."""
     from dataclasses import replace
 
-    from agents.fusion import merge_threshold_of
+    from agents.fleet.fusion import merge_threshold_of
 
     coarse, fine = FusionState(FusionConfig(refine=False)), FusionState(FusionConfig(refine=False))
     for rid in ("r1", "r2", "r3"):
@@ -687,7 +636,7 @@ def test_quick_difference_test_never_contradicts_almost_equal(n, seed, change):
     """``almost_equal`` (and so ``_same_wireframe``) skips the vertex matching when sorted
     coordinates, labels, likelihoods or sources already differ; the quick test must agree with
     the full one."""
-    from agents.fusion import _same_wireframe
+    from agents.fleet.fusion.state import _same_wireframe
     from mapping.wireframe import _surely_differ
 
     rng = np.random.default_rng(seed)

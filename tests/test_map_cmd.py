@@ -54,7 +54,7 @@ def test_map_world_file_with_lidar(tmp_path):
 
 def _write_log(path: Path, steps: int, clutter: bool) -> list:
     """A CARMEN log of a lidar driving through the hall world, with people-like clutter."""
-    from agents.carmen import LaserScan, write_carmen
+    from agents.files.carmen import LaserScan, write_carmen
     from agents.mapping_run import seeds_for
     from agents.sim.lidar import LidarConfig, raycast
     from agents.sim.motion import drive
@@ -190,8 +190,8 @@ def test_speed_measure_keys():
 
 
 def test_robot_steps_yield_the_robot_state():
+    from agents.fleet.robot import RobotOptions, start_pose_of
     from agents.mapping_run import robot_steps
-    from agents.robot import RobotOptions, start_pose_of
 
     route = np.array([[1.0, 1.0], [4.0, 1.0], [4.0, 3.0]])
     opts = RobotOptions(robot="r1", world=str(WORLDS / "tiny.geojson"), start=start_pose_of(route), route=route,

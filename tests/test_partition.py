@@ -37,7 +37,7 @@ import numpy as np
 import pytest
 
 from agents.bench.common import Procs, read_state
-from agents.bus import FleetKeys, build_config, decode_pose, free_port, open_session
+from agents.fleet.bus import FleetKeys, build_config, decode_pose, free_port, open_session
 from wire_codec import decode
 
 pytestmark = pytest.mark.fleet

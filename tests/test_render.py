@@ -11,7 +11,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from agents.render import (
+from agents.files.render import (
     LABEL_COLORS,
     TRAJECTORY_COLOR,
     TRUTH_COLOR,

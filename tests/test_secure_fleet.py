@@ -20,9 +20,15 @@ from pathlib import Path
 import pytest
 import zenoh
 
-from agents.bus import FleetKeys
-from agents.fusion import decode_message, encode_message
-from agents.secure import SecureFleet, load_credentials, make_secure_fleet, to_zenoh_config, write_credentials
+from agents.fleet.bus import FleetKeys
+from agents.fleet.fusion import decode_message, encode_message
+from agents.fleet.secure import (
+    SecureFleet,
+    load_credentials,
+    make_secure_fleet,
+    to_zenoh_config,
+    write_credentials,
+)
 from mapping.se2 import Pose
 from mapping.wireframe import Wireframe
 from tests.fleet_util import REPO, Fleet, client, free_port, query_fused, query_stats, record, wait_until
@@ -79,8 +85,8 @@ def test_run_secure_fleet_two_robots(tmp_path: Path, record_property) -> None:
                              "the fusion counters")  # fmt: skip
             assert doc["stats"]["dropped"] == 0 and doc["stale"] == []
         # no credentials: refused at connect (the bus reports it in one line, without waiting)
-        from agents.bus import build_config, open_session
         from agents.errors import UserError
+        from agents.fleet.bus import build_config, open_session
 
         with pytest.raises(UserError, match="refused us"):
             open_session(build_config("client", None, [ep]), timeout=20)

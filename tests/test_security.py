@@ -25,7 +25,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from agents.errors import UserError
-from agents.secure import (
+from agents.fleet.secure import (
     CertSet,
     Credentials,
     ServerTls,
@@ -549,7 +549,7 @@ def test_cli_init_writes_a_fleet_and_refuses_to_overwrite(tmp_path: Path, capsys
 def test_fusion_drops_a_map_whose_sender_does_not_match_its_key() -> None:
     """The payload check behind the ACL: r1 may put on robots/r1/map, but an envelope saying
     "r2" there is counted and dropped by the fusion service."""
-    fusion = pytest.importorskip("agents.fusion")
+    fusion = pytest.importorskip("agents.fleet.fusion")
     import numpy as np
 
     from mapping.se2 import Pose

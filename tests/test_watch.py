@@ -14,8 +14,8 @@ from typing import Any
 import numpy as np
 import pytest
 
-from agents.bus import FleetKeys, free_port, tcp_endpoint
 from agents.commands.watch import Watcher
+from agents.fleet.bus import FleetKeys, free_port, tcp_endpoint
 from mapping.se2 import Pose
 from mapping.wireframe import Wireframe
 from tests.fleet_util import client, in_process_router, log_text, spawn, stop_process, wait_until

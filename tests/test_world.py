@@ -338,7 +338,7 @@ def test_worlds_command_lists_builtins(capsys):
 
 
 def test_world_show_png_and_geojson(tmp_path, capsys):
-    from agents.render import decode_png
+    from agents.files.render import decode_png
 
     png, gj = tmp_path / "w.png", tmp_path / "w.geojson"
     assert cli_main(["world", "show", "paper-small", "--png", str(png), "--geojson", str(gj), "--max-px", "400"]) == 0

@@ -4,6 +4,7 @@
 decoding failure is a :class:`CodecError`. No I/O, no zenoh, no rerun.
 """
 
+from wire_codec.body import MAX_ROBOTS
 from wire_codec.codec import VERSION, decode, encode
 from wire_codec.errors import (
     ChecksumError,
@@ -19,6 +20,7 @@ from wire_codec.errors import (
 from wire_codec.message import MapMessage, MessageKind
 
 __all__ = [
+    "MAX_ROBOTS",
     "VERSION",
     "ChecksumError",
     "CodecError",

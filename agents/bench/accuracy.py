@@ -147,8 +147,8 @@ def run_seed(
     write each map's PNG to ``out``. Returns ``(method, row, seconds since start)`` per run.
     Loads the world itself, so that it can run in a worker process (``--jobs``)."""
     from agents import mapping_run as mr
-    from agents.io import write_atomic
-    from agents.render import map_png
+    from agents.files.io import write_atomic
+    from agents.files.render import map_png
     from agents.sim.world import load_world
 
     t0 = time.perf_counter()

@@ -12,7 +12,7 @@
 * **Bus observer** (:class:`BusObserver`): a Zenoh client of the benchmark itself that counts
   what the robots put on the bus (map and pose bytes, valid and corrupt map payloads).
 * **Fusion store** readers: the fusion service records its counters in ``<store>/state.json``
-  and every publish latency in ``<store>/latency.log`` (:class:`agents.fusion.StoreJob`); the
+  and every publish latency in ``<store>/latency.log`` (:class:`agents.fleet.fusion.StoreJob`); the
   benchmarks read them there, as ``wiremap run`` does for ``report.json``.
 
 Nothing here imports zenoh at module level (the CLI must stay light).
@@ -40,8 +40,8 @@ import msgpack
 import numpy as np
 
 from agents.errors import UserError
-from agents.io import write_atomic
-from agents.proc import stop_processes
+from agents.files.io import write_atomic
+from agents.fleet.proc import rss_kb, stop_processes
 from mapping.se2 import Pose
 from mapping.wireframe import Wireframe
 
@@ -89,7 +89,7 @@ def _pose_list(p: Pose | None) -> list[float] | None:
 
 def save_recording(path: str | os.PathLike[str], rec: Recording) -> None:
     """Write a recording (msgpack; each frame's map as ``wire_codec`` bytes), atomically."""
-    from agents.robot import robot_map_message
+    from agents.fleet.robot import robot_map_message
     from wire_codec import encode
 
     frames = []
@@ -158,13 +158,13 @@ def record_robot(
     resolution: float = DEFAULT_RESOLUTION,
     threshold: float = DEFAULT_THRESHOLD,
 ) -> Recording:
-    """Run the robot agent's simulation + filter loop (:func:`agents.robot.default_steps`,
+    """Run the robot agent's simulation + filter loop (:func:`agents.fleet.robot.default_steps`,
     merge threshold ``threshold``) along ``route`` and keep the best map after every step
     whose travelling (codec) form at ``resolution`` changed, as the robot agent would publish it.
 
-    The origin is the first true pose (what :class:`agents.robot.RobotAgent` does when the
+    The origin is the first true pose (what :class:`agents.fleet.robot.RobotAgent` does when the
     simulator knows it)."""
-    from agents.robot import RobotOptions, default_steps, robot_map_message, start_pose_of
+    from agents.fleet.robot import RobotOptions, default_steps, robot_map_message, start_pose_of
     from wire_codec import decode, encode
 
     opts = RobotOptions(
@@ -238,24 +238,10 @@ def recordings_for(
 
 
 # ---------------------------------------------------------------------- /proc readers
-def cpu_seconds(pid: int) -> float | None:
-    """User + system CPU seconds of a live process (None when it is gone or /proc is absent)."""
-    try:
-        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
-    except (OSError, ValueError, IndexError):
-        return None
-
-
 def rss_bytes(pid: int) -> int | None:
-    """Resident set size of a live process in bytes (``VmRSS``), or None."""
-    try:
-        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-            if line.startswith("VmRSS:"):
-                return int(line.split()[1]) * 1024
-    except (OSError, ValueError, IndexError):
-        return None
-    return None
+    """Resident set size of a live process in bytes (:func:`agents.fleet.proc.rss_kb`), or None."""
+    kb = rss_kb(pid)
+    return None if kb is None else kb * 1024
 
 
 # ---------------------------------------------------------------------- processes
@@ -414,7 +400,7 @@ class BusObserver:
     Use as a context manager; the session and subscribers are closed on exit."""
 
     def __init__(self, endpoint: str, fleet: str, timeout: float = 30.0) -> None:
-        from agents.bus import FleetKeys, build_config, open_session
+        from agents.fleet.bus import FleetKeys, build_config, open_session
 
         self.keys = FleetKeys(fleet)
         self.lock = threading.Lock()
@@ -549,7 +535,7 @@ def latency_total(state: dict[str, Any]) -> int:
 
 class LatencyHarvest:
     """Collects the fusion service's publish latencies over a run from ``<store>/latency.log``
-    (:func:`agents.fusion.append_latency_log`: one line ``<index> <ms> <published_ns>`` per
+    (:func:`agents.fleet.fusion.append_latency_log`: one line ``<index> <ms> <published_ns>`` per
     sample, ``index`` counting every sample ever recorded; the file is rotated to
     ``latency.log.1``; the service appends at its store interval, about once a second).
 
@@ -577,7 +563,7 @@ class LatencyHarvest:
         return [ms for t, ms in self.records if t == 0 or t0_ns <= t <= t1_ns]
 
     def poll(self) -> None:
-        from agents.fusion import LATENCY_LOG
+        from agents.fleet.fusion import LATENCY_LOG
 
         seen: dict[int, int] = {}
         for name in (LATENCY_LOG + ".1", LATENCY_LOG):  # the rotated (older) file first
@@ -613,7 +599,7 @@ class LatencyHarvest:
 
 
 def merge_counts(stats: dict[str, Any]) -> dict[str, int]:
-    """The fusion service's map counters (:class:`agents.fusion.FusionStats`), summed into
+    """The fusion service's map counters (:class:`agents.fleet.fusion.FusionStats`), summed into
     what the benchmarks report:
 
     * ``arrived``: map payloads that reached the service: those its intake dropped before

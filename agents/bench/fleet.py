@@ -54,7 +54,7 @@ after every robot's first map has reached the bus:
   traffic and are counted apart (``pose_bytes_per_s_per_robot``);
 * ``fused_recall``, ``fused_precision``, ``fused_mean_dist_m``: :func:`mapping.metrics.evaluate`
   of the final fused map against the world's truth on a grid of the merge threshold (as the
-  paper scores maps; :func:`agents.fusion.merge_threshold_of`). Replay robots loop
+  paper scores maps; :func:`agents.fleet.fusion.merge_threshold_of`). Replay robots loop
   their recording during the window and jump to its last frame when the window ends (SIGUSR1),
   so the evaluated fused map holds their complete recorded maps; filter robots' maps are
   whatever they mapped by then (at ``--rate`` scans per second);
@@ -88,7 +88,6 @@ from agents.bench.common import (
     BusObserver,
     LatencyHarvest,
     Procs,
-    cpu_seconds,
     fleet_routes,
     grid_bytes,
     merge_counts,
@@ -101,6 +100,8 @@ from agents.bench.common import (
     wait_for,
 )
 from agents.errors import UserError
+from agents.fleet.proc import cpu_seconds
+from wire_codec import MAX_ROBOTS
 
 HELP = "fleet latency, bandwidth and fused-map quality by fleet size"
 FLEET = "bench"
@@ -146,8 +147,8 @@ def parse_sizes(text: str) -> list[int]:
         sizes = [int(s) for s in str(text).split(",") if s.strip()]
     except ValueError:
         raise UserError(f"--robots must be a comma-separated list of fleet sizes, got {text!r}") from None
-    if not sizes or any(not 1 <= n <= 64 for n in sizes):
-        raise UserError(f"--robots: every size must be between 1 and 64, got {text!r}")
+    if not sizes or any(not 1 <= n <= MAX_ROBOTS for n in sizes):
+        raise UserError(f"--robots: every size must be between 1 and {MAX_ROBOTS}, got {text!r}")
     return sizes
 
 
@@ -176,7 +177,7 @@ def _grid_totals(kept: list[tuple[str, bytes]], threshold: float) -> dict[str, i
 
 def _fused_quality(store: Path, world: Any) -> dict[str, Any]:
     """The stored fused map against the truth, scored on a grid of the merge threshold."""
-    from agents.fusion import merge_threshold_of
+    from agents.fleet.fusion import merge_threshold_of
     from mapping.metrics import evaluate
     from wire_codec import decode
 
@@ -226,11 +227,13 @@ def _cpu_total(procs: Procs, names: list[str]) -> float | None:
     return total
 
 
+# Over 120 lines: one fleet size measured top to bottom (start, warm up, measure, stop, score),
+# its phases sharing the process table and the counters; not yet split into steps.
 def run_size(n: int, args: argparse.Namespace, world: Any, workdir: Path, say: Any) -> dict[str, Any]:
     """One fleet of ``n`` robots: start, measure, stop; returns the size's JSON entry."""
-    from agents.bus import free_port, tcp_endpoint
-    from agents.io import write_json
-    from agents.robot import start_pose_of
+    from agents.files.io import write_json
+    from agents.fleet.bus import free_port, tcp_endpoint
+    from agents.fleet.robot import start_pose_of
 
     d = workdir / f"n{n}"
     if d.exists():

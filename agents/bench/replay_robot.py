@@ -3,7 +3,7 @@
 ``python -m agents.bench.replay_robot --id r3 --recording FILE [--id r4 --recording FILE ...]
 [--rate HZ] [--corrupt P] [--seed S] [--log FILE] [--connect ...]``
 
-Each robot behaves on the bus exactly like the robot agent (:mod:`agents.robot`), without
+Each robot behaves on the bus exactly like the robot agent (:mod:`agents.fleet.robot`), without
 running a particle filter, so that two cores can carry 16 robots at 10 Hz and what a benchmark
 measures is transport and fusion.
 
@@ -26,7 +26,7 @@ Per robot:
   ``meta = {"boot": <process start ns>, "t": <sim s>, "step": <frame>}``; put with
   ``CongestionControl.BLOCK`` and, like the agent, with plain ``session.put`` (no declared
   publisher: those deliver only the first sample under the secure fleet's ACL);
-* ``robots/<id>/pose`` at ``--pose-rate`` (10 Hz): :func:`agents.bus.encode_pose` with the
+* ``robots/<id>/pose`` at ``--pose-rate`` (10 Hz): :func:`agents.fleet.bus.encode_pose` with the
   recorded pose, ``fleet = origin * pose``, the recorded true pose and a status map
   (``step``, ``vertices``, ``edges``, ``maps_sent``, ``bytes_sent``, ``finished``, ``replay``);
 * ``alive/<id>``: a liveliness token while the process runs.
@@ -65,7 +65,8 @@ from typing import Any
 import numpy as np
 
 from agents.bench.common import Recording, load_recording
-from agents.bus import (
+from agents.errors import UserError
+from agents.fleet.bus import (
     StopFlag,
     add_bus_arguments,
     check_name,
@@ -74,9 +75,8 @@ from agents.bus import (
     open_session,
     watch_parent,
 )
-from agents.errors import UserError
-from agents.proc import freeze_heap
-from agents.robot import robot_map_message, robot_puts
+from agents.fleet.proc import freeze_heap
+from agents.fleet.robot import robot_map_message, robot_puts
 
 HELP = "replay recorded robot maps on the bus (benchmark robot)"
 
@@ -228,7 +228,7 @@ class ReplayRobot:
         }
 
     def publish_pose(self) -> None:
-        from agents.bus import encode_pose
+        from agents.fleet.bus import encode_pose
         from mapping.se2 import Pose
 
         f = self.rec.frames[self.current] if self.current is not None else None
@@ -287,7 +287,7 @@ class ReplayRobot:
         return wake
 
     def run(self, stop: Any) -> dict[str, Any]:
-        """Replay until ``stop`` (a ``threading.Event`` or :class:`agents.bus.StopFlag`) is set."""
+        """Replay until ``stop`` (a ``threading.Event`` or :class:`agents.fleet.bus.StopFlag`) is set."""
         run_all([self], stop)
         return self.status()
 
@@ -393,7 +393,7 @@ def run(args: argparse.Namespace) -> int:
             continue
         say(f"{rid} stopped: {st['maps_sent']} maps ({st['corrupt_sent']} damaged), {st['bytes_sent']} bytes")
         if sf:
-            from agents.io import write_json
+            from agents.files.io import write_json
 
             write_json(sf, {"robot": rid, **st})
     return 0

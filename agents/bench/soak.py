@@ -53,7 +53,6 @@ from agents.bench.common import (
     BusObserver,
     LatencyHarvest,
     Procs,
-    cpu_seconds,
     merge_counts,
     percentile,
     print_table,
@@ -65,6 +64,8 @@ from agents.bench.common import (
     wait_for,
 )
 from agents.errors import UserError
+from agents.fleet.proc import cpu_seconds
+from wire_codec import MAX_ROBOTS
 
 HELP = "long run with corrupt payloads and robot restarts"
 FLEET = "soak"
@@ -116,8 +117,10 @@ def rss_slope_mb_per_min(samples: list[tuple[float, int]]) -> float | None:
     return float(np.polyfit(t, y, 1)[0])
 
 
+# Over 120 lines: one soak scenario read top to bottom (start, sample, inject faults, restart,
+# stop, score), its phases sharing the process table and the samples; not yet split into steps.
 def soak(args: argparse.Namespace, world: Any, d: Path, say: Any) -> dict[str, Any]:
-    from agents.bus import free_port, tcp_endpoint
+    from agents.fleet.bus import free_port, tcp_endpoint
     from agents.mapping_run import default_merge_threshold
 
     n = args.robots
@@ -267,8 +270,8 @@ def soak(args: argparse.Namespace, world: Any, d: Path, say: Any) -> dict[str, A
 def run(args: argparse.Namespace) -> int:
     from agents.sim.world import load_world
 
-    if not 1 <= args.robots <= 64:
-        raise UserError(f"--robots must be between 1 and 64, got {args.robots}")
+    if not 1 <= args.robots <= MAX_ROBOTS:
+        raise UserError(f"--robots must be between 1 and {MAX_ROBOTS}, got {args.robots}")
     for name, v in (("--minutes", args.minutes), ("--rate", args.rate), ("--kill-every", args.kill_every)):
         if not (math.isfinite(v) and v > 0):
             raise UserError(f"{name} must be a positive number, got {v}")

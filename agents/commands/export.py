@@ -7,10 +7,10 @@ Formats:
 
 * ``geojson`` -- the wireframe as GeoJSON (corners and directed walls); a ``.wfm``'s metadata
   (sender, version, robots, ...) goes on the collection's ``properties``;
-* ``svg`` / ``png`` -- pictures (:mod:`agents.render`): walls coloured by likelihood, corners
+* ``svg`` / ``png`` -- pictures (:mod:`agents.files.render`): walls coloured by likelihood, corners
   by label;
 * ``rosmap`` -- a ROS ``map_server`` map for Nav2: ``PATH.pgm`` + ``PATH.yaml`` at
-  ``--resolution`` metres per cell (see :mod:`agents.export` for the free / occupied / unknown
+  ``--resolution`` metres per cell (see :mod:`agents.files.export` for the free / occupied / unknown
   rules). ``--out maps/floor`` writes ``maps/floor.pgm`` and ``maps/floor.yaml``; an ``--out``
   ending in ``.pgm`` or ``.yaml`` names one of the pair and the other gets the same stem.
 
@@ -29,7 +29,7 @@ HELP = "export a map as GeoJSON, SVG, PNG or a ROS map"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from agents.export import DEFAULT_RESOLUTION, FORMATS
+    from agents.files.export import DEFAULT_RESOLUTION, FORMATS
 
     parser.add_argument("map", metavar="MAP", help="a .wfm (wire message) or .geojson map file")
     parser.add_argument(
@@ -60,7 +60,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from agents.export import FORMATS, export_map, format_from_suffix, load_map
+    from agents.files.export import FORMATS, export_map, format_from_suffix, load_map
 
     fmt = args.format or format_from_suffix(args.out)
     if fmt is None:

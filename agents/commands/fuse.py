@@ -1,7 +1,7 @@
 """``wiremap fuse [--store DIR] [--rrd FILE] [--serve-viewer PORT] [--connect ...]``: the fusion
 service. Keeps each robot's latest map, fuses them in the fleet frame, publishes the fused map
 on ``wiremap/<fleet>/fused/map`` (and answers queries for it), stores its state, records to
-Rerun. Stops cleanly on SIGINT/SIGTERM. See :mod:`agents.fusion`."""
+Rerun. Stops cleanly on SIGINT/SIGTERM. See :mod:`agents.fleet.fusion`."""
 
 from __future__ import annotations
 
@@ -10,10 +10,17 @@ import math
 import sys
 from pathlib import Path
 
-from agents.bus import StopFlag, add_bus_arguments, config_from_args, fleet_keys, open_session, watch_parent
 from agents.errors import UserError
-from agents.fusion import InputLimits
-from agents.io import output_file
+from agents.files.io import output_file
+from agents.fleet.bus import (
+    StopFlag,
+    add_bus_arguments,
+    config_from_args,
+    fleet_keys,
+    open_session,
+    watch_parent,
+)
+from agents.fleet.fusion import InputLimits
 
 HELP = "the fusion service"
 
@@ -71,7 +78,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     import dataclasses
 
-    from agents.fusion import FusionConfig, ServeOptions, serve
+    from agents.fleet.fusion import FusionConfig, ServeOptions, serve
 
     if args.serve_viewer is not None and not args.rrd:
         raise UserError("--serve-viewer needs --rrd FILE (the recording always goes to a file)")

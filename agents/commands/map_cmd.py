@@ -96,8 +96,8 @@ def write_outputs(
     properties: dict[str, Any] | None = None,
 ) -> None:
     """Write ``map.geojson``, ``trajectory.tsv``, ``map.png`` and ``report.json`` atomically."""
-    from agents.io import save_wireframe_geojson, write_atomic, write_json
-    from agents.render import map_png
+    from agents.files.io import save_wireframe_geojson, write_atomic, write_json
+    from agents.files.render import map_png
 
     out.mkdir(parents=True, exist_ok=True)
     save_wireframe_geojson(out / "map.geojson", best, properties)
@@ -136,7 +136,7 @@ def run(args: argparse.Namespace) -> int:
             raise UserError(f"{args.world}: {exc}") from None
         source: dict[str, Any] = {"world": world_name, "sensor": args.sensor}
     else:
-        from agents.carmen import read_carmen
+        from agents.files.carmen import read_carmen
 
         scans = read_carmen(args.carmen)  # CarmenError (a UserError) names the bad line
         if not scans:

@@ -1,6 +1,6 @@
 """``wiremap robot --id ID --world NAME|FILE --start X,Y,THETA [--route ...] [--rate HZ] [--seed S]
 [--connect ...]``: one simulated robot with its own particle filter, publishing its map, pose
-and liveliness on the bus until SIGINT/SIGTERM. See :mod:`agents.robot`."""
+and liveliness on the bus until SIGINT/SIGTERM. See :mod:`agents.fleet.robot`."""
 
 from __future__ import annotations
 
@@ -11,7 +11,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from agents.bus import (
+from agents.errors import UserError
+from agents.fleet.bus import (
     StopFlag,
     add_bus_arguments,
     check_name,
@@ -20,12 +21,11 @@ from agents.bus import (
     open_session,
     watch_parent,
 )
-from agents.errors import UserError
-from agents.robot import DEFAULT_RESOLUTION, DEFAULT_THRESHOLD
+from agents.fleet.robot import DEFAULT_RESOLUTION, DEFAULT_THRESHOLD
 from mapping.se2 import Pose
 
 if TYPE_CHECKING:
-    from agents.robot import RobotOptions
+    from agents.fleet.robot import RobotOptions
 
 HELP = "one robot agent process"
 
@@ -62,7 +62,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def options_from_args(args: argparse.Namespace) -> RobotOptions:
-    from agents.robot import RobotOptions, parse_route, start_pose_of
+    from agents.fleet.robot import RobotOptions, parse_route, start_pose_of
 
     rid = check_name(args.id)
     route = None
@@ -112,14 +112,14 @@ def options_from_args(args: argparse.Namespace) -> RobotOptions:
 
 
 def run(args: argparse.Namespace) -> int:
-    from agents.robot import RobotAgent, default_steps
+    from agents.fleet.robot import RobotAgent, default_steps
 
     opts = options_from_args(args)
     keys = fleet_keys(args)
     cfg = config_from_args(args, "client")
     rid = opts.robot
     if args.status_file:
-        from agents.io import output_file
+        from agents.files.io import output_file
 
         output_file("--status-file", args.status_file)
 
@@ -151,7 +151,7 @@ def run(args: argparse.Namespace) -> int:
             session.close()
     say(f"stopped after {st.step} steps (t={st.t:.1f} s): {st.maps_sent} maps, {st.bytes_sent} bytes")
     if args.status_file:
-        from agents.io import write_json
+        from agents.files.io import write_json
 
         write_json(args.status_file, {"robot": rid, **st.as_dict()})
     return 0

@@ -10,7 +10,7 @@ import argparse
 import json
 import sys
 
-from agents.bus import StopFlag, add_bus_arguments, config_from_args, open_session
+from agents.fleet.bus import StopFlag, add_bus_arguments, config_from_args, open_session
 
 HELP = "a Zenoh router"
 

@@ -23,7 +23,7 @@ The mapping clock starts when every robot has reported its first pose (process s
 counted), bounded by ``--startup-timeout``.
 
 ``--secure`` runs the whole fleet authenticated and access-controlled
-(:func:`agents.secure.make_secure_fleet`): fresh test certificates and passwords under
+(:func:`agents.fleet.secure.make_secure_fleet`): fresh test certificates and passwords under
 ``DIR/secure/`` (private files mode 600), the router on ``tls/localhost:<free port>`` with
 user/password *and* mutual TLS and the fleet ACL, and every child process given its own
 ``--credentials`` file (robot ``rK`` as ``rK``, the fusion service as ``fusion``). It makes its
@@ -46,7 +46,9 @@ from typing import Any
 
 import numpy as np
 
-from agents.bus import (
+from agents.errors import UserError
+from agents.files.io import write_atomic, write_json
+from agents.fleet.bus import (
     StopFlag,
     add_bus_arguments,
     config_from_args,
@@ -56,9 +58,8 @@ from agents.bus import (
     open_session,
     tcp_endpoint,
 )
-from agents.errors import UserError
-from agents.io import write_atomic, write_json
-from agents.proc import stop_processes
+from agents.fleet.proc import cpu_seconds, stop_processes
+from wire_codec import MAX_ROBOTS
 
 HELP = "the main job: router, N robots and the fusion service"
 
@@ -112,16 +113,6 @@ def _spawn(name: str, argv: list[str], logs: Path) -> subprocess.Popen[bytes]:
         )
     finally:
         fh.close()  # the child has its own descriptor
-
-
-def _cpu_seconds(pid: int) -> float | None:
-    """User + system CPU time of a live process, from /proc (None where unavailable)."""
-    try:
-        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-        ticks = os.sysconf("SC_CLK_TCK")
-        return (int(fields[11]) + int(fields[12])) / ticks
-    except (OSError, ValueError, IndexError):
-        return None
 
 
 class Progress:
@@ -187,8 +178,8 @@ def write_outputs(
     """Write ``fused.*`` and ``report.json`` from the fusion service's store. Maps are scored
     on a grid of the merge threshold (``resolution`` in the report; ``map_resolution`` is the
     fused map's quantisation step)."""
-    from agents.fusion import decode_message, merge_threshold_of
-    from agents.render import map_png
+    from agents.files.render import map_png
+    from agents.fleet.fusion import decode_message, merge_threshold_of
 
     store = out / "store"
     fused_path = store / "fused.wfm"
@@ -271,70 +262,19 @@ def write_outputs(
 
 # ---------------------------------------------------------------------- the job
 def run(args: argparse.Namespace) -> int:
-    from agents.robot import start_pose_of
-    from agents.sim.route import plan_routes
+    from agents.mapping_run import default_merge_threshold
     from agents.sim.world import load_world
 
-    n = int(args.robots)
-    if not 1 <= n <= 64:
-        raise UserError(f"--robots must be between 1 and 64, got {n}")
-    for name, v in (("--duration", args.duration), ("--rate", args.rate)):
-        if not (math.isfinite(v) and v > 0):
-            raise UserError(f"{name} must be a positive number, got {v}")
-    if not 0 <= args.overlap <= 1:
-        raise UserError(f"--overlap must be within [0, 1], got {args.overlap}")
-    for name, v in (("--resolution", args.resolution), ("--threshold", args.threshold)):
-        if v is not None and not (math.isfinite(v) and v > 0):
-            raise UserError(f"{name} must be a positive number of metres, got {v}")
+    n = _check_arguments(args)
     world = load_world(args.world)
-    from agents.mapping_run import default_merge_threshold
-
     threshold = float(args.threshold) if args.threshold is not None else default_merge_threshold(world)
     out = Path(args.out)
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise UserError(f"--out {out}: cannot create the directory: {exc.strerror or exc}") from None
-    logs = out / "logs"
     ids = [f"r{k + 1}" for k in range(n)]
-    rng = np.random.default_rng(args.seed)
-    try:
-        routes = plan_routes(world, n, rng, overlap=args.overlap)
-    except ValueError as exc:
-        raise UserError(f"cannot plan routes in {world.name}: {exc}") from None
-    for rid, r in zip(ids, routes):
-        write_json(out / "routes" / f"{rid}.json", {"route": np.round(r, 9).tolist()})
-    for stale in ("fused.wfm", "fused.geojson", "fused.png", "report.json", "recording.rrd"):
-        (out / stale).unlink(missing_ok=True)
-    store = out / "store"
-    if store.exists():  # a new run: do not resume an old fleet's state
-        import shutil
-
-        shutil.rmtree(store)
-
+    routes = _prepare_output(out, world, ids, args)
     keys = fleet_keys(args)
-    creds: dict[str, Path] = {}
-    if args.secure:
-        from agents.secure import make_secure_fleet, to_zenoh_config
-
-        given = [f for f, v in (("--config", args.config), ("--listen", args.listen), ("--connect", args.connect)) if v]
-        if given:
-            raise UserError(f"--secure makes its own router configuration: drop {', '.join(given)}")
-        if args.credentials:
-            raise UserError("--secure writes the credentials itself: drop --credentials")
-        listen = [f"tls/localhost:{free_port()}"]  # the generated server certificate is for localhost
-        fl = make_secure_fleet(out / "secure", keys.fleet, ids, listen=listen[0])
-        cfg = to_zenoh_config(fl.router)
-        creds = dict(fl.credentials)
-    else:
-        listen = list(args.listen) or [tcp_endpoint(free_port())]
-        cfg = config_from_args(argparse.Namespace(**{**vars(args), "listen": listen}), "router")
+    cfg, listen, creds = _router_config(args, out, keys.fleet, ids)
     child_ep = listen[0].replace("0.0.0.0", "127.0.0.1").replace("[::]", "[::1]")
     bus = ["--connect", child_ep, "--fleet", keys.fleet, "--parent-pid", str(os.getpid())]
-
-    def cred_args(who: str) -> list[str]:
-        return ["--credentials", str(creds[who])] if who in creds else []
-
     progress = Progress(ids, not args.no_progress)
     procs: dict[str, subprocess.Popen[bytes]] = {}
     cpu: dict[str, float] = {}
@@ -343,8 +283,6 @@ def run(args: argparse.Namespace) -> int:
     mapping_s = 0.0
     interrupted = False
     import zenoh
-
-    from agents.fusion import decode_message
 
     with StopFlag() as stop:
         router = open_session(cfg, wait=False)
@@ -356,81 +294,11 @@ def run(args: argparse.Namespace) -> int:
             print(
                 f"wiremap run: router on {', '.join(listen)}; fleet {keys.fleet!r}; output in {out}{secure}", flush=True
             )
-            fuse_argv = ["fuse", *bus, *cred_args("fusion"), "--store", str(store), "--rrd", str(out / "recording.rrd")]
-            fuse_argv += ["--threshold", repr(threshold)]
-            fuse_argv += ["--world", args.world, "--recording-id", str(uuid.uuid4())]
-            if args.serve_viewer is not None:
-                fuse_argv += ["--serve-viewer", str(args.serve_viewer)]
-            procs["fuse"] = _spawn("fuse", fuse_argv, logs)
-            for k, (rid, r) in enumerate(zip(ids, routes)):
-                s0 = start_pose_of(r)
-                procs[rid] = _spawn(
-                    rid,
-                    [
-                        "robot", "--id", rid, "--world", args.world,
-                        "--start", f"{s0.x:.9f},{s0.y:.9f},{s0.theta:.9f}",
-                        "--route", str(out / "routes" / f"{rid}.json"),
-                        "--rate", str(args.rate), "--seed", str(args.seed + k + 1),
-                        "--particles", str(args.particles),
-                        "--resolution", repr(float(args.resolution)), "--threshold", repr(threshold),
-                        "--status-file", str(out / "status" / f"{rid}.json"),
-                        *bus, *cred_args(rid),
-                    ],
-                    logs,
-                )
-            # the mapping clock starts when every robot is up (or at the start-up timeout)
-            t_map: float | None = None
-            done_at: float | None = None
-            while not stop.is_set():
-                now = time.monotonic()
-                while (s := sub_pose.handler.try_recv()) is not None:
-                    who = keys.robot_of(str(s.key_expr))
-                    try:
-                        if who is not None and who in progress.ids:
-                            progress.status[who] = decode_pose(s.payload.to_bytes())["status"]
-                    except ValueError:
-                        pass
-                while (s := sub_fused.handler.try_recv()) is not None:
-                    try:
-                        m = decode_message(s.payload.to_bytes())
-                        progress.fused = (
-                            f"fused v{m.seq}: {m.wireframe.n_vertices} vertices, {m.wireframe.n_edges} edges, "
-                            f"{len(s.payload.to_bytes())} bytes from {' '.join(m.robots)}"
-                        )
-                    except ValueError:
-                        pass
-                if t_map is None and (
-                    len(progress.status) == n or now - t_start > args.startup_timeout
-                ):
-                    t_map = now
-                elapsed = 0.0 if t_map is None else now - t_map
-                progress.draw(elapsed, args.duration)
-                if t_map is not None and elapsed >= args.duration:
-                    break
-                if args.stop_when_done and len(progress.status) == n and all(
-                    st.get("finished") for st in progress.status.values()
-                ):
-                    done_at = now if done_at is None else done_at
-                    if now - done_at >= 1.0:  # the last maps reach the fusion service
-                        break
-                dead = [k for k, p in procs.items() if p.poll() is not None]
-                if dead:
-                    tails = "; ".join(f"{k} exited with {procs[k].returncode} (see {logs / (k + '.log')})" for k in dead)
-                    raise UserError(f"a fleet process stopped early: {tails}")
-                stop.wait(0.1)
+            _start_fleet(procs, args, out, ids, routes, threshold, bus, creds)
+            mapping_s = _watch_fleet(args, keys, procs, progress, sub_pose, sub_fused, stop, t_start, out / "logs")
             interrupted = stop.is_set()
-            mapping_s = 0.0 if t_map is None else time.monotonic() - t_map
-            progress.draw(mapping_s, args.duration, force=True)
         finally:
-            for name, p in procs.items():
-                c = _cpu_seconds(p.pid)
-                if c is not None:
-                    cpu[name] = round(c, 2)
-            robots_up = [r for r in ids if r in procs]
-            if robots_up:
-                codes.update(stop_processes(procs, robots_up, 15.0))
-            if "fuse" in procs:
-                codes.update(stop_processes(procs, ["fuse"], 60.0))
+            _stop_fleet(procs, ids, cpu, codes)
             sub_pose.undeclare()
             sub_fused.undeclare()
             router.close()
@@ -459,6 +327,198 @@ def run(args: argparse.Namespace) -> int:
             "startup_s": round(max(0.0, time.monotonic() - t_start - mapping_s), 2),
         },
     )
+    _print_summary(report, ids, out)
+    return 0
+
+
+def _check_arguments(args: argparse.Namespace) -> int:
+    """Refuse bad numbers before anything starts; returns the number of robots."""
+    n = int(args.robots)
+    if not 1 <= n <= MAX_ROBOTS:
+        raise UserError(f"--robots must be between 1 and {MAX_ROBOTS}, got {n}")
+    for name, v in (("--duration", args.duration), ("--rate", args.rate)):
+        if not (math.isfinite(v) and v > 0):
+            raise UserError(f"{name} must be a positive number, got {v}")
+    if not 0 <= args.overlap <= 1:
+        raise UserError(f"--overlap must be within [0, 1], got {args.overlap}")
+    for name, v in (("--resolution", args.resolution), ("--threshold", args.threshold)):
+        if v is not None and not (math.isfinite(v) and v > 0):
+            raise UserError(f"{name} must be a positive number of metres, got {v}")
+    return n
+
+
+def _prepare_output(out: Path, world: Any, ids: list[str], args: argparse.Namespace) -> list[Any]:
+    """Make ``out``, plan and write the robots' routes (``routes/<id>.json``), and clear what an
+    earlier run left there (its outputs and its fusion store: a new run does not resume)."""
+    from agents.sim.route import plan_routes
+
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise UserError(f"--out {out}: cannot create the directory: {exc.strerror or exc}") from None
+    rng = np.random.default_rng(args.seed)
+    try:
+        routes = plan_routes(world, len(ids), rng, overlap=args.overlap)
+    except ValueError as exc:
+        raise UserError(f"cannot plan routes in {world.name}: {exc}") from None
+    for rid, r in zip(ids, routes):
+        write_json(out / "routes" / f"{rid}.json", {"route": np.round(r, 9).tolist()})
+    for stale in ("fused.wfm", "fused.geojson", "fused.png", "report.json", "recording.rrd"):
+        (out / stale).unlink(missing_ok=True)
+    store = out / "store"
+    if store.exists():  # a new run: do not resume an old fleet's state
+        import shutil
+
+        shutil.rmtree(store)
+    return list(routes)
+
+
+def _router_config(
+    args: argparse.Namespace, out: Path, fleet: str, ids: list[str]
+) -> tuple[Any, list[str], dict[str, Path]]:
+    """The embedded router's configuration, its listen endpoints and each child's credentials
+    file (none without ``--secure``)."""
+    if not args.secure:
+        listen = list(args.listen) or [tcp_endpoint(free_port())]
+        return config_from_args(argparse.Namespace(**{**vars(args), "listen": listen}), "router"), listen, {}
+    from agents.fleet.secure import make_secure_fleet, to_zenoh_config
+
+    given = [f for f, v in (("--config", args.config), ("--listen", args.listen), ("--connect", args.connect)) if v]
+    if given:
+        raise UserError(f"--secure makes its own router configuration: drop {', '.join(given)}")
+    if args.credentials:
+        raise UserError("--secure writes the credentials itself: drop --credentials")
+    listen = [f"tls/localhost:{free_port()}"]  # the generated server certificate is for localhost
+    fl = make_secure_fleet(out / "secure", fleet, ids, listen=listen[0])
+    return to_zenoh_config(fl.router), listen, dict(fl.credentials)
+
+
+def _start_fleet(
+    procs: dict[str, subprocess.Popen[bytes]],
+    args: argparse.Namespace,
+    out: Path,
+    ids: list[str],
+    routes: list[Any],
+    threshold: float,
+    bus: list[str],
+    creds: dict[str, Path],
+) -> None:
+    """Spawn the fusion service, then the robots, into ``procs`` (filled as they start, so that
+    a failure half-way still stops the ones already running)."""
+    from agents.fleet.robot import start_pose_of
+
+    def cred_args(who: str) -> list[str]:
+        return ["--credentials", str(creds[who])] if who in creds else []
+
+    logs = out / "logs"
+    store = out / "store"
+    fuse_argv = ["fuse", *bus, *cred_args("fusion"), "--store", str(store), "--rrd", str(out / "recording.rrd")]
+    fuse_argv += ["--threshold", repr(threshold)]
+    fuse_argv += ["--world", args.world, "--recording-id", str(uuid.uuid4())]
+    if args.serve_viewer is not None:
+        fuse_argv += ["--serve-viewer", str(args.serve_viewer)]
+    procs["fuse"] = _spawn("fuse", fuse_argv, logs)
+    for k, (rid, r) in enumerate(zip(ids, routes)):
+        s0 = start_pose_of(r)
+        procs[rid] = _spawn(
+            rid,
+            [
+                "robot", "--id", rid, "--world", args.world,
+                "--start", f"{s0.x:.9f},{s0.y:.9f},{s0.theta:.9f}",
+                "--route", str(out / "routes" / f"{rid}.json"),
+                "--rate", str(args.rate), "--seed", str(args.seed + k + 1),
+                "--particles", str(args.particles),
+                "--resolution", repr(float(args.resolution)), "--threshold", repr(threshold),
+                "--status-file", str(out / "status" / f"{rid}.json"),
+                *bus, *cred_args(rid),
+            ],
+            logs,
+        )
+
+
+def _watch_fleet(
+    args: argparse.Namespace,
+    keys: Any,
+    procs: dict[str, subprocess.Popen[bytes]],
+    progress: Progress,
+    sub_pose: Any,
+    sub_fused: Any,
+    stop: StopFlag,
+    t_start: float,
+    logs: Path,
+) -> float:
+    """The progress loop: show the robots' status and the fused map until ``--duration`` seconds
+    of mapping have passed (the clock starts when every robot is up, or at the start-up
+    timeout), every robot is done (``--stop-when-done``) or ``stop`` is set. Raises
+    ``UserError`` when a fleet process stops early. Returns the seconds of mapping."""
+    from agents.fleet.fusion import decode_message
+
+    n = len(progress.ids)
+    t_map: float | None = None
+    done_at: float | None = None
+    while not stop.is_set():
+        now = time.monotonic()
+        while (s := sub_pose.handler.try_recv()) is not None:
+            who = keys.robot_of(str(s.key_expr))
+            try:
+                if who is not None and who in progress.ids:
+                    progress.status[who] = decode_pose(s.payload.to_bytes())["status"]
+            except ValueError:
+                pass
+        while (s := sub_fused.handler.try_recv()) is not None:
+            try:
+                m = decode_message(s.payload.to_bytes())
+                progress.fused = (
+                    f"fused v{m.seq}: {m.wireframe.n_vertices} vertices, {m.wireframe.n_edges} edges, "
+                    f"{len(s.payload.to_bytes())} bytes from {' '.join(m.robots)}"
+                )
+            except ValueError:
+                pass
+        if t_map is None and (
+            len(progress.status) == n or now - t_start > args.startup_timeout
+        ):
+            t_map = now
+        elapsed = 0.0 if t_map is None else now - t_map
+        progress.draw(elapsed, args.duration)
+        if t_map is not None and elapsed >= args.duration:
+            break
+        if args.stop_when_done and len(progress.status) == n and all(
+            st.get("finished") for st in progress.status.values()
+        ):
+            done_at = now if done_at is None else done_at
+            if now - done_at >= 1.0:  # the last maps reach the fusion service
+                break
+        dead = [k for k, p in procs.items() if p.poll() is not None]
+        if dead:
+            tails = "; ".join(f"{k} exited with {procs[k].returncode} (see {logs / (k + '.log')})" for k in dead)
+            raise UserError(f"a fleet process stopped early: {tails}")
+        stop.wait(0.1)
+    mapping_s = 0.0 if t_map is None else time.monotonic() - t_map
+    progress.draw(mapping_s, args.duration, force=True)
+    return mapping_s
+
+
+def _stop_fleet(
+    procs: dict[str, subprocess.Popen[bytes]],
+    ids: list[str],
+    cpu: dict[str, float],
+    codes: dict[str, int | None],
+) -> None:
+    """Record each process's CPU time into ``cpu``, then stop the robots and after them the
+    fusion service (which saves its store and closes the recording); exit codes into ``codes``."""
+    for name, p in procs.items():
+        c = cpu_seconds(p.pid)
+        if c is not None:
+            cpu[name] = round(c, 2)
+    robots_up = [r for r in ids if r in procs]
+    if robots_up:
+        codes.update(stop_processes(procs, robots_up, 15.0))
+    if "fuse" in procs:
+        codes.update(stop_processes(procs, ["fuse"], 60.0))
+
+
+def _print_summary(report: dict[str, Any], ids: list[str], out: Path) -> None:
+    """The closing lines: the fused map's size, quality and latency, then one line per robot."""
     f = report["fused"]
     lat = report["latency_ms"]
     print(
@@ -474,7 +534,6 @@ def run(args: argparse.Namespace) -> int:
             flush=True,
         )
     print(f"wiremap run: wrote {out}/fused.geojson fused.wfm fused.png recording.rrd report.json", flush=True)
-    return 0
 
 
 def _ms(v: object) -> str:

@@ -35,8 +35,8 @@ from pathlib import Path
 from typing import Any
 
 from agents import argtypes
-from agents.bus import StopFlag, add_bus_arguments, config_from_args, fleet_keys, open_session
 from agents.errors import UserError
+from agents.fleet.bus import StopFlag, add_bus_arguments, config_from_args, fleet_keys, open_session
 
 HELP = "subscribe to the fused map and show each version"
 
@@ -128,9 +128,9 @@ class Watcher:
         )
 
     def save(self, msg: Any, nbytes: int) -> None:
-        from agents.export import message_properties
-        from agents.io import save_wireframe_geojson, write_atomic
-        from agents.render import map_png
+        from agents.files.export import message_properties
+        from agents.files.io import save_wireframe_geojson, write_atomic
+        from agents.files.render import map_png
 
         assert self.save_dir is not None
         props = message_properties(msg)

@@ -56,7 +56,7 @@ def run(args: argparse.Namespace) -> int:
     import numpy as np
     import shapely
 
-    from agents.io import write_atomic, write_json
+    from agents.files.io import write_atomic, write_json
     from agents.sim.world import load_world
 
     world = load_world(args.world)
@@ -100,7 +100,7 @@ def run(args: argparse.Namespace) -> int:
 
 def world_png(world: World, routes: Sequence[np.ndarray] = (), *, max_px: int = 1600) -> bytes:
     """The world as a PNG: solid grey, free space white, walls black, corners red, routes."""
-    from agents.render import Canvas, draw_wireframe
+    from agents.files.render import Canvas, draw_wireframe
 
     canvas = Canvas(world.bounds(), max_px=max_px, background=(150, 150, 150))
     canvas.polygon_fill(world.free_space, (255, 255, 255))
@@ -115,7 +115,7 @@ def world_png(world: World, routes: Sequence[np.ndarray] = (), *, max_px: int = 
 
 def world_svg(world: World, routes: Sequence[np.ndarray] = ()) -> str:
     """The world's truth wireframe as SVG, with the first route as the trajectory."""
-    from agents.render import wireframe_svg
+    from agents.files.render import wireframe_svg
 
     traj = routes[0] if len(routes) else None
     return wireframe_svg(world.truth, trajectory=traj, arrows=True, title=world.name)

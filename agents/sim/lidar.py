@@ -3,7 +3,7 @@
 The lidar turns a world's walls (e.g. ``World.truth.segments()``) into the raw ranges a planar
 laser scanner would return from a robot pose: one range per beam, beams evenly spread over the
 field of view and centred on the robot's heading. :func:`mapping.extract.extract_corners` turns
-these ranges into a corner scan, and :mod:`agents.carmen` writes them as a CARMEN log.
+these ranges into a corner scan, and :mod:`agents.files.carmen` writes them as a CARMEN log.
 
 Conventions
 -----------

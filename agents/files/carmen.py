@@ -68,7 +68,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from agents.errors import UserError
-from agents.io import write_atomic
+from agents.files.io import write_atomic
 from mapping.se2 import Pose
 
 FloatArray = NDArray[np.float64]

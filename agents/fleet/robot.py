@@ -12,7 +12,7 @@ it in real time and publishes, under ``wiremap/<fleet>/``:
   (maps are whole states: re-sending is idempotent). ``seq`` counts maps sent;
   ``meta = {"boot": <process start ns>, "t": <sim s>, "step": k}``; ``stamp_ns`` is the wall
   clock at the send (the fusion service measures its latency against it).
-* ``robots/<id>/pose`` at ``pose_hz`` (10 Hz): :func:`agents.bus.encode_pose`, with a status map
+* ``robots/<id>/pose`` at ``pose_hz`` (10 Hz): :func:`agents.fleet.bus.encode_pose`, with a status map
   (step, vertices, edges, maps_sent, bytes_sent, finished) that ``wiremap run`` displays.
 * ``robots/<id>/viz`` at ``viz_hz``: the current scan and every particle, for the recorder.
 * ``alive/<id>``: a liveliness token for as long as the process runs.
@@ -159,7 +159,7 @@ def robot_puts(session: Any, keys: Any, robot: str) -> dict[str, KeyPut]:
     """The puts of robot ``robot``: ``map`` (``CongestionControl.BLOCK``), ``pose`` (express)
     and ``viz``. Plain session puts, not declared publishers: a declared publisher filters on
     the writer side and so needs to see the subscribers' declarations, which the fleet ACL
-    (agents.secure.acl_config) does not forward to robots -- on a secure router it delivered
+    (agents.fleet.secure.acl_config) does not forward to robots -- on a secure router it delivered
     only its first sample."""
     import zenoh
 
@@ -184,7 +184,7 @@ class RobotAgent:
     Parameters
     ----------
     session : an open Zenoh session.
-    keys : :class:`agents.bus.FleetKeys`.
+    keys : :class:`agents.fleet.bus.FleetKeys`.
     opts : :class:`RobotOptions`.
     steps : the step iterator (default :func:`default_steps`).
     log : one-line progress messages.
@@ -257,7 +257,7 @@ class RobotAgent:
         return True
 
     def publish_pose(self) -> None:
-        from agents.bus import encode_pose
+        from agents.fleet.bus import encode_pose
 
         if self.last is None:
             odom, truth, t = Pose.identity(), None, 0.0
@@ -276,7 +276,7 @@ class RobotAgent:
         self.status.pose_bytes += len(data)
 
     def publish_viz(self) -> None:
-        from agents.bus import encode_viz
+        from agents.fleet.bus import encode_viz
 
         if self.last is None:
             return

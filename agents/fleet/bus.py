@@ -16,7 +16,7 @@ cannot be interrupted by SIGTERM, so :func:`open_session` instead retries a fail
 ``zenoh.open`` from Python every few hundred milliseconds until it connects or the stop flag
 is set. After the first connection Zenoh reconnects by itself when the router restarts.
 
-Credentials (``--credentials FILE``, :mod:`agents.secure`): a refused login (wrong password, no
+Credentials (``--credentials FILE``, :mod:`agents.fleet.secure`): a refused login (wrong password, no
 or a foreign certificate, ``tcp/`` to a ``tls/`` router) fails ``zenoh.open`` with the same
 "Unable to connect" as an absent router. :func:`open_session` tells them apart by trying a plain
 TCP connection to the endpoint: when something listens there twice in a row while Zenoh cannot
@@ -52,7 +52,7 @@ if TYPE_CHECKING:  # zenoh is imported lazily: `wiremap worlds` must not pay for
 DEFAULT_PORT = 7447
 DEFAULT_ENDPOINT = f"tcp/127.0.0.1:{DEFAULT_PORT}"
 DEFAULT_FLEET = "default"
-_NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,62}$")
+_NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,62}$")  # the one rule for robot ids and fleet names
 
 # The embedded default router: loopback only, multicast scouting off. broker_config/router.json5
 # is the same configuration as a file (a test checks that they agree).
@@ -68,13 +68,19 @@ CLIENT_DEFAULTS: dict[str, Any] = {
 }
 
 
+def valid_name(name: object) -> bool:
+    """Whether ``name`` is usable as one key-expression chunk (a robot id, a fleet name; see
+    :func:`check_name`)."""
+    return isinstance(name, str) and _NAME_RE.match(name) is not None
+
+
 def check_name(name: str, what: str = "robot id") -> str:
     """Return ``name`` if it is usable as one key-expression chunk, else raise ``UserError``.
 
     Allowed: 1-63 characters of letters, digits, ``_``, ``.``, ``-``, starting with a letter or
     digit (no ``/``, ``*``, ``$``, ``?``, ``#`` or spaces, which Zenoh treats specially).
     """
-    if not isinstance(name, str) or not _NAME_RE.match(name):
+    if not valid_name(name):
         raise UserError(f"bad {what} {name!r}: use 1-63 letters, digits, '_', '.', '-'")
     return name
 
@@ -111,7 +117,7 @@ class FleetKeys:
     @property
     def fusion_stats(self) -> str:
         """The fusion service's counters (JSON), answered by a queryable. Under ``fused/`` so
-        that the fleet ACL (:func:`agents.secure.acl_config`) lets the fusion identity answer
+        that the fleet ACL (:func:`agents.fleet.secure.acl_config`) lets the fusion identity answer
         and any authenticated client ask."""
         return f"{self.prefix}/fused/stats"
 
@@ -145,14 +151,14 @@ class FleetKeys:
             rid = rest[1]
         else:
             return None
-        return rid if _NAME_RE.match(rid) else None
+        return rid if valid_name(rid) else None
 
 
 # ---------------------------------------------------------------------- command-line flags
 def add_bus_arguments(parser: argparse.ArgumentParser, *, router: bool = False) -> None:
     """The bus flags every fleet process takes: ``--connect``, ``--config``, ``--credentials``,
     ``--fleet`` and, for routers, ``--listen``. Flags given on the command line override the
-    config file; the credentials file (:mod:`agents.secure`) is applied last."""
+    config file; the credentials file (:mod:`agents.fleet.secure`) is applied last."""
     g = parser.add_argument_group("bus (Zenoh)")
     g.add_argument(
         "--connect",
@@ -255,7 +261,7 @@ def build_config(
 
 def config_from_args(args: argparse.Namespace, mode: str = "client") -> zenoh.Config:
     """:func:`build_config` from the flags of :func:`add_bus_arguments`, then the
-    ``--credentials`` file applied (:func:`agents.secure.apply_credentials`).
+    ``--credentials`` file applied (:func:`agents.fleet.secure.apply_credentials`).
 
     Raises
     ------
@@ -270,7 +276,7 @@ def config_from_args(args: argparse.Namespace, mode: str = "client") -> zenoh.Co
     )
     cred_file = getattr(args, "credentials", None)
     if cred_file:
-        from agents.secure import apply_credentials, load_credentials
+        from agents.fleet.secure import apply_credentials, load_credentials
 
         apply_credentials(cfg, load_credentials(cred_file))
     return cfg
@@ -291,7 +297,7 @@ def refused_endpoint(cfg: zenoh.Config) -> str | None:
 
     Called after ``zenoh.open`` failed with "Unable to connect": a listening endpoint means the
     router is there and refused the login (see the module docstring)."""
-    from agents.secure import endpoint_reachable
+    from agents.fleet.secure import endpoint_reachable
 
     for ep in connect_endpoints(cfg):
         if endpoint_reachable(ep, timeout=0.5):

@@ -41,7 +41,7 @@ import shapely
 from numpy.typing import NDArray
 
 from agents.errors import UserError
-from agents.io import load_wireframe_geojson, save_wireframe_geojson, write_atomic
+from agents.files.io import load_wireframe_geojson, save_wireframe_geojson, write_atomic
 from mapping.wireframe import Wireframe
 
 FREE = 254
@@ -139,7 +139,7 @@ def load_map(path: str | os.PathLike[str]) -> LoadedMap:
 
 
 def _geojson_properties(p: Path) -> dict[str, Any]:
-    from agents.io import read_json
+    from agents.files.io import read_json
 
     doc = read_json(p)
     props = doc.get("properties") if isinstance(doc, dict) else None
@@ -490,15 +490,15 @@ def write_rosmap(
 
 # ---------------------------------------------------------------------------- other formats
 def svg_text(wf: Wireframe) -> str:
-    """The map as SVG (drawn by :func:`agents.render.wireframe_svg`)."""
-    from agents import render
+    """The map as SVG (drawn by :func:`agents.files.render.wireframe_svg`)."""
+    from agents.files import render
 
     return str(render.wireframe_svg(wf))
 
 
 def png_bytes(wf: Wireframe) -> bytes:
-    """The map as PNG (drawn by :func:`agents.render.map_png`)."""
-    from agents import render
+    """The map as PNG (drawn by :func:`agents.files.render.map_png`)."""
+    from agents.files import render
 
     return bytes(render.map_png(wf))
 
@@ -528,7 +528,7 @@ def export_map(
     """Write ``loaded`` in format ``fmt`` to ``out``; returns the files written.
 
     ``geojson`` keeps the source's properties; ``svg``/``png`` draw the map with
-    :mod:`agents.render`; ``rosmap`` writes PGM + YAML (:func:`write_rosmap`).
+    :mod:`agents.files.render`; ``rosmap`` writes PGM + YAML (:func:`write_rosmap`).
 
     Raises
     ------

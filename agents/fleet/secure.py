@@ -1,6 +1,6 @@
 """Fleet security: credentials files, user/password authentication, mutual TLS and access control.
 
-Pure helpers (no session is opened here); ``agents/bus.py`` and the commands wire them in.
+Pure helpers (no session is opened here); ``agents/fleet/bus.py`` and the commands wire them in.
 
 Threat model and choices
 ------------------------
@@ -57,7 +57,7 @@ Certificates for tests and demos come from the ``openssl`` command-line tool
 (:func:`generate_test_certs`): an EC P-256 CA, a server certificate with
 ``subjectAltName = DNS:localhost, IP:127.0.0.1`` and one client certificate per identity with
 ``CN = id``. :func:`make_secure_fleet` writes everything a fleet needs in one directory;
-``python -m agents.secure init DIR --fleet F --robots r1,r2`` does the same from a shell.
+``python -m agents.fleet.secure init DIR --fleet F --robots r1,r2`` does the same from a shell.
 """
 
 from __future__ import annotations
@@ -79,13 +79,13 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
 
 from agents.errors import UserError
-from agents.io import write_atomic
+from agents.files.io import write_atomic
+from agents.fleet.bus import valid_name
 
 if TYPE_CHECKING:
     import zenoh
 
 Identity = Literal["username", "cert", "both"]
-_ID_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,62}$")  # = agents.bus.check_name
 _FIELDS = ("user", "password", "ca", "cert", "key")
 DEFAULT_SECURE_PORT = 7447
 DEFAULT_FUSION_USER = "fusion"
@@ -93,9 +93,9 @@ DEFAULT_OBSERVER = "monitor"
 
 
 def _check_id(name: object, what: str) -> str:
-    # the same rule as agents.bus.check_name (one key chunk); it also keeps ':' and newlines
+    # the rule of agents.fleet.bus.check_name (one key chunk); it also keeps ':' and newlines
     # out of the password dictionary and '/' out of certificate file names
-    if not isinstance(name, str) or not _ID_RE.match(name):
+    if not valid_name(name):
         raise UserError(f"bad {what} {name!r}: use 1-63 letters, digits, '_', '.', '-'")
     return name
 
@@ -692,7 +692,7 @@ def make_secure_fleet(
         )
         creds[i] = write_credentials(d / "credentials" / f"{i}.json", c)
     router = router_config([listen], dictionary_file=dictionary, tls=certs.server if certs else None, acl=acl)
-    header = f"// wiremap secure router for fleet {fleet!r}, written by agents.secure.make_secure_fleet\n"
+    header = f"// wiremap secure router for fleet {fleet!r}, written by agents.fleet.secure.make_secure_fleet\n"
     router_file = write_private(d / "router.json5", header + json.dumps(router, indent=2) + "\n")
     return SecureFleet(directory=d, router=router, router_file=router_file, credentials=creds, endpoint=listen)
 
@@ -725,8 +725,8 @@ def endpoint_reachable(endpoint: str, timeout: float = 0.5) -> bool:
 
 # ---------------------------------------------------------------------- command line
 def main(argv: Sequence[str] | None = None) -> int:
-    """``python -m agents.secure init DIR --fleet F --robots r1,r2 [...]`` (see :func:`make_secure_fleet`)."""
-    ap = argparse.ArgumentParser(prog="python -m agents.secure", description="wiremap fleet credentials")
+    """``python -m agents.fleet.secure init DIR --fleet F --robots r1,r2 [...]`` (see :func:`make_secure_fleet`)."""
+    ap = argparse.ArgumentParser(prog="python -m agents.fleet.secure", description="wiremap fleet credentials")
     sub = ap.add_subparsers(dest="cmd", required=True)
     init = sub.add_parser("init", help="write certificates, passwords, credentials files and a router config")
     init.add_argument("directory")

@@ -343,8 +343,8 @@ class Canvas:
         return encode_png(self.image)
 
     def save_png(self, path: str | os.PathLike[str]) -> None:
-        """Write the PNG atomically (:func:`agents.io.write_atomic`)."""
-        from agents.io import write_atomic
+        """Write the PNG atomically (:func:`agents.files.io.write_atomic`)."""
+        from agents.files.io import write_atomic
 
         write_atomic(path, self.to_png())
 

@@ -1,0 +1,49 @@
+"""Map messages as the fusion service handles them: bytes <-> :class:`MapMessage` and the order
+of a robot's maps.
+
+The fusion decodes robot maps with tighter :class:`wire_codec.Limits` than the codec's default
+(:meth:`agents.fleet.fusion.intake.InputLimits.codec_limits`).
+"""
+
+from __future__ import annotations
+
+import hashlib
+
+import wire_codec
+from wire_codec.message import MapMessage
+
+
+def encode_message(msg: MapMessage) -> bytes:
+    """The codec bytes of ``msg`` (:func:`wire_codec.encode`)."""
+    return wire_codec.encode(msg)
+
+
+def decode_message(data: bytes, limits: wire_codec.Limits | None = None) -> MapMessage:
+    """Decode codec bytes.
+
+    Parameters
+    ----------
+    data : bytes
+    limits : wire_codec.Limits, optional
+        What the decoder accepts (default: the codec's).
+
+    Raises
+    ------
+    wire_codec.CodecError
+        (a ``ValueError``) on a malformed payload or one beyond ``limits``.
+    """
+    if limits is None:
+        return wire_codec.decode(data)
+    return wire_codec.decode(data, limits=limits)
+
+
+def order_key(msg: MapMessage, raw: bytes) -> tuple[int, int, str]:
+    """``(boot, seq, sha256)``: a restarted robot (new ``meta["boot"]``) supersedes its old
+    maps even though its ``seq`` starts again; the hash breaks (unexpected) ties the same way
+    whatever the arrival order."""
+    boot = msg.meta.get("boot", 0) if isinstance(msg.meta, dict) else 0
+    try:
+        boot = int(boot)
+    except (TypeError, ValueError):
+        boot = 0
+    return (boot, int(msg.seq), hashlib.sha256(raw).hexdigest())

@@ -1,0 +1,245 @@
+"""What the fusion service accepts from the bus, and the bounded inbox in front of it.
+
+* :class:`InputLimits`: sizes, rates and content bounds (choices, see there);
+* :class:`Intake`: the bounded FIFO between Zenoh's callback thread and the fusion loop, which
+  drops (and counts) payloads before anything is decoded;
+* :func:`implausible`: the content checks of a decoded robot map;
+* :class:`DropLog`: at most one line per period summarising what was dropped.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+import wire_codec
+from wire_codec import MAX_ROBOTS
+from wire_codec.message import MapMessage
+
+
+@dataclass(frozen=True)
+class InputLimits:
+    """What the fusion service accepts on ``robots/<id>/map`` (choices; see
+    :mod:`agents.fleet.fusion`).
+
+    max_bytes : largest payload (256 KiB: a robot map of the largest built-in world is ~10 kB).
+    max_vertices, max_edges : largest robot map (decoder limits, checked before allocating).
+    max_extent_m : largest ``|x|`` or ``|y|`` of the origin and of every vertex in the fleet
+        frame ("kilometres away" is absurd for a building).
+    max_resolution_m : largest map resolution (a coarser one raises the default merge threshold).
+    max_clock_skew_s : how far in the future a ``meta.boot`` may lie (wall clocks differ).
+    rate_hz, burst : token bucket per key (robots send at most ~10 maps/s).
+    queue_depth : payloads waiting per key (the oldest is dropped: maps are whole states).
+    queue_bytes : bytes waiting over all keys.
+    max_keys : keys tracked at once (rate buckets and side channels).
+    pose_bytes, viz_bytes : largest pose / visualisation payload.
+    """
+
+    max_bytes: int = 256 * 1024
+    max_vertices: int = 20_000
+    max_edges: int = 40_000
+    max_extent_m: float = 1000.0
+    max_resolution_m: float = 2.0
+    max_clock_skew_s: float = 3600.0
+    rate_hz: float = 50.0
+    burst: int = 100
+    queue_depth: int = 64
+    queue_bytes: int = 8 * 1024 * 1024
+    max_keys: int = 4 * MAX_ROBOTS
+    pose_bytes: int = 16 * 1024
+    viz_bytes: int = 4 * 1024 * 1024
+
+    def codec_limits(self) -> wire_codec.Limits:
+        """The :class:`wire_codec.Limits` the decoder enforces for robot maps."""
+        return wire_codec.Limits(
+            max_bytes=self.max_bytes,
+            max_vertices=self.max_vertices,
+            max_edges=self.max_edges,
+            max_coordinate=self.max_extent_m,
+            max_string=128,
+        )
+
+
+def implausible(msg: MapMessage, limits: InputLimits, now_ns: int | None = None) -> tuple[str, str] | None:
+    """``(reason, detail)`` when a decoded robot map's content is absurd, else None.
+
+    Reasons: ``resolution`` (not in ``(0, max_resolution_m]``), ``extent`` (origin or a vertex
+    beyond ``max_extent_m`` in the fleet frame), ``meta`` (``boot`` not a non-negative int,
+    ``t`` not a finite non-negative number, ``step`` not an int), ``future`` (``boot`` more than
+    ``max_clock_skew_s`` after ``now_ns``; only checked when ``now_ns`` is given).
+    """
+    res = float(msg.resolution)
+    if not (0.0 < res <= limits.max_resolution_m):
+        return "resolution", f"resolution {res:g} m (limit {limits.max_resolution_m:g} m)"
+    ext = limits.max_extent_m
+    o = msg.origin
+    if max(abs(o.x), abs(o.y)) > ext:
+        return "extent", f"origin ({o.x:.1f}, {o.y:.1f}) is over {ext:g} m away"
+    wf = msg.wireframe
+    if wf.n_vertices:
+        far = float(np.abs(o.apply(wf.points)).max())
+        if not math.isfinite(far) or far > ext:
+            return "extent", f"a vertex is {far:.1f} m from the fleet origin (limit {ext:g} m)"
+    meta = msg.meta if isinstance(msg.meta, dict) else {}
+    boot = meta.get("boot", 0)
+    if isinstance(boot, bool) or not isinstance(boot, int) or boot < 0:
+        return "meta", f"meta.boot {boot!r} is not a non-negative integer"
+    if now_ns is not None and boot > now_ns + limits.max_clock_skew_s * 1e9:
+        return "future", f"meta.boot is {(boot - now_ns) / 1e9:.0f} s in the future"
+    t = meta.get("t", 0.0)
+    if isinstance(t, bool) or not isinstance(t, (int, float)) or not math.isfinite(t) or t < 0:
+        return "meta", f"meta.t {t!r} is not a finite non-negative number"
+    step = meta.get("step", 0)
+    if isinstance(step, bool) or not isinstance(step, int):
+        return "meta", f"meta.step {step!r} is not an integer"
+    return None
+
+
+class Intake:
+    """The bounded inbox between Zenoh's callback thread and the fusion loop.
+
+    :meth:`put` runs in Zenoh's thread and decides, before copying or decoding anything,
+    whether a payload may wait: not over ``limits.max_bytes`` (``oversized``), within its key's
+    token bucket (``rate_hz`` refilled, ``burst`` deep; ``rate_limited``), at most
+    ``max_keys`` keys at once (idle buckets are forgotten first), at most ``queue_depth``
+    payloads per key (the oldest is dropped) and ``queue_bytes`` in all (the new one is
+    dropped); both count as ``overflow``. :meth:`drain` hands the waiting payloads to the
+    main thread in arrival order. Thread-safe.
+    """
+
+    def __init__(self, limits: InputLimits, clock: Callable[[], float] = time.monotonic) -> None:
+        self.limits = limits
+        self.clock = clock
+        self._cond = threading.Condition()
+        self._queues: dict[str, deque[tuple[int, bytes, int]]] = {}  # (arrival number, bytes, wall ns)
+        self._buckets: dict[str, list[float]] = {}  # key -> [tokens, last refill]
+        self._bytes = 0
+        self._arrival = 0
+        self.arrived = 0
+        self.oversized = 0
+        self.rate_limited = 0
+        self.overflow = 0
+
+    def _bucket(self, key: str, now: float) -> list[float] | None:
+        b = self._buckets.get(key)
+        if b is None:
+            if len(self._buckets) >= self.limits.max_keys:
+                # forget buckets that have refilled (they carry no information) and keys
+                # with nothing queued
+                full = float(self.limits.burst)
+                for k, (tok, t) in list(self._buckets.items()):
+                    if min(full, tok + (now - t) * self.limits.rate_hz) >= full and k not in self._queues:
+                        del self._buckets[k]
+                if len(self._buckets) >= self.limits.max_keys:
+                    return None
+            b = self._buckets[key] = [float(self.limits.burst), now]
+        return b
+
+    def put(self, key: str, payload: Any) -> str | None:
+        """Queue ``payload`` (bytes, or anything with ``len()`` and ``to_bytes()``) from ``key``;
+        returns None, or the counter it was dropped under."""
+        size = len(payload)
+        lim = self.limits
+        with self._cond:
+            self.arrived += 1
+            if size > lim.max_bytes:
+                self.oversized += 1
+                return "oversized"
+            now = self.clock()
+            b = self._bucket(key, now)
+            if b is None:
+                self.overflow += 1
+                return "overflow"
+            b[0] = min(float(lim.burst), b[0] + (now - b[1]) * lim.rate_hz)
+            b[1] = now
+            if b[0] < 1.0:
+                self.rate_limited += 1
+                return "rate_limited"
+            b[0] -= 1.0
+            if self._bytes + size > lim.queue_bytes:
+                self.overflow += 1
+                return "overflow"
+            q = self._queues.setdefault(key, deque())
+            dropped = None
+            if len(q) >= lim.queue_depth:
+                _, old, _ = q.popleft()
+                self._bytes -= len(old)
+                self.overflow += 1
+                dropped = "overflow"
+            data = payload if isinstance(payload, bytes) else bytes(payload.to_bytes())
+            self._arrival += 1
+            q.append((self._arrival, data, time.time_ns()))
+            self._bytes += len(data)
+            self._cond.notify()
+            return dropped
+
+    def drain(self, timeout: float = 0.0) -> list[tuple[str, bytes]]:
+        """Everything waiting, oldest first; waits up to ``timeout`` for the first payload."""
+        return [(k, d) for k, d, _ in self.drain_timed(timeout)]
+
+    def drain_timed(self, timeout: float = 0.0) -> list[tuple[str, bytes, int]]:
+        """:meth:`drain` with each payload's arrival time (wall clock, ns)."""
+        with self._cond:
+            if not self._queues and timeout > 0:
+                self._cond.wait(timeout)
+            items = [(n, k, d, t) for k, q in self._queues.items() for n, d, t in q]
+            self._queues.clear()
+            self._bytes = 0
+        items.sort(key=lambda x: x[0])
+        return [(k, d, t) for _, k, d, t in items]
+
+    @property
+    def queued_bytes(self) -> int:
+        with self._cond:
+            return self._bytes
+
+    @property
+    def empty(self) -> bool:
+        """Whether no payload is waiting."""
+        with self._cond:
+            return not self._queues
+
+
+class DropLog:
+    """Rate-limited reporting of dropped payloads: the first drop is reported at once, later
+    ones at most once per ``period`` seconds, as one line with the counts per reason since the
+    last line and the last drop's key and detail. Thread-safe."""
+
+    def __init__(self, say: Callable[[str], None], period: float = 5.0, clock: Callable[[], float] = time.monotonic) -> None:
+        self.say = say
+        self.period = period
+        self.clock = clock
+        self._lock = threading.Lock()
+        self._counts: dict[str, int] = {}
+        self._last: tuple[str, str] | None = None
+        self._said = -math.inf
+        self.lines = 0
+
+    def note(self, reason: str, key: str, detail: str = "") -> None:
+        with self._lock:
+            self._counts[reason] = self._counts.get(reason, 0) + 1
+            self._last = (key, f"{reason}: {detail}" if detail else reason)
+
+    def flush(self, force: bool = False) -> str | None:
+        """Say the summary line if one is due (or ``force``); returns it."""
+        now = self.clock()
+        with self._lock:
+            if not self._counts or (not force and now - self._said < self.period):
+                return None
+            n = sum(self._counts.values())
+            parts = ", ".join(f"{c} {r}" for r, c in sorted(self._counts.items()))
+            key, detail = self._last or ("?", "")
+            since = "" if self._said == -math.inf else f" in the last {now - self._said:.0f} s"
+            line = f"dropped {n} payload{'s' if n != 1 else ''}{since} ({parts}); last on {key}: {detail[:200]}"
+            self._counts.clear()
+            self._said = now
+            self.lines += 1
+        self.say(line)
+        return line

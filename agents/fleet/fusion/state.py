@@ -1,0 +1,689 @@
+"""The fusion core: every robot's latest map -> one fleet map, without any I/O but the store.
+
+:class:`FusionState` keeps each robot's latest :class:`~wire_codec.message.MapMessage`
+(:class:`RobotEntry`), each robot's cached alignment (:class:`Alignment`) and the fold tree of
+the fused map (see :meth:`FusionState.compute` and ``ARCHITECTURE.md``, "Fusion rules"). The
+map algorithms it uses are in :mod:`mapping.fleet` (frontier closing, map-to-map alignment,
+the tree's shape) and :mod:`mapping.merge`.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import sys
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from agents.errors import UserError
+from agents.fleet.bus import valid_name
+from agents.fleet.fusion.codec import decode_message, encode_message, order_key
+from agents.fleet.fusion.intake import InputLimits, implausible
+from agents.fleet.fusion.stats import MAX_LATENCIES, FusionStats
+from agents.fleet.fusion.store import LATENCY_LOG, StoreJob, read_latency_log, read_store
+from mapping.fleet import align_maps, close_frontiers, fold_split
+from mapping.se2 import Pose
+from mapping.wireframe import Wireframe
+from wire_codec import MAX_ROBOTS
+from wire_codec.message import MapMessage, MessageKind
+
+DEFAULT_THRESHOLD = 0.2  # merge threshold (m) unless configured
+DEFAULT_RESOLUTION = 0.05  # the fused map's quantisation step (m) while no robot map sets it
+FUSION_ID = "fusion"
+
+
+MergeFn = Callable[[Wireframe, Wireframe, float], Wireframe]
+
+
+def default_merge(base: Wireframe, new: Wireframe, threshold: float) -> Wireframe:
+    """:func:`mapping.merge.merge` with ``MergeConfig(threshold=threshold)``."""
+    from mapping.merge import MergeConfig, merge
+
+    return merge(base, new, MergeConfig(threshold=threshold))
+
+
+@dataclass(frozen=True)
+class FusionConfig:
+    """Fusion parameters.
+
+    threshold : merge threshold in metres; None: ``DEFAULT_THRESHOLD`` (0.2 m), or the largest
+        ``resolution`` of the robot maps when that is larger. The robots' resolution is their
+        quantisation step, not a merge scale (robots quantise at 0.05 m by default).
+    refine : align each robot's map to the robots before it (:func:`mapping.fleet.align_maps`).
+    max_refine_m, max_refine_rad : largest accepted ICP correction.
+    close_frontiers : apply :func:`mapping.fleet.close_frontiers` to the result.
+    realign_vertices, realign_fraction : a fast fuse re-runs a robot's ICP alignment when its
+        map's vertex count moved by more than ``max(realign_vertices, realign_fraction * n)``
+        since the alignment (``n`` the count then), or its start pose or boot changed.
+    realign_s : ... or when the alignment is this old (caller's clock, ``fuse(now=...)``) and
+        no longer the one the full path would compute (own map or reference changed).
+    max_realign_per_fuse : ICP runs at most per fast fuse (the robots earliest in sorted order
+        first; the others keep their cached correction until a later fuse).
+    """
+
+    threshold: float | None = None
+    refine: bool = True
+    max_refine_m: float = 0.6
+    max_refine_rad: float = math.radians(6.0)
+    close_frontiers: bool = True
+    realign_vertices: int = 8
+    realign_fraction: float = 0.25
+    realign_s: float = 10.0
+    max_realign_per_fuse: int = 1
+
+
+@dataclass(frozen=True)
+class RobotEntry:
+    """A robot's latest map as received: the message, its exact bytes, its order key and its
+    content revision ``rev`` (a number that changes exactly when the map's content -- origin,
+    resolution, wireframe arrays -- changes; a re-sent map with a new ``seq`` keeps it)."""
+
+    message: MapMessage
+    raw: bytes
+    key: tuple[int, int, str]
+    rev: int = 0
+
+
+@dataclass(frozen=True)
+class Alignment:
+    """A robot's cached fleet-frame alignment (the slow path of :meth:`FusionState.compute`).
+
+    correction : the ICP correction applied after the start pose (None: start pose only).
+    rev : the :attr:`RobotEntry.rev` of the map it was computed for.
+    n_vertices : that map's vertex count (the growth criterion of :class:`FusionConfig`).
+    origin : that map's start pose and boot ``(x, y, theta, boot)``.
+    at : the caller's clock when computed (None: unknown).
+    reference : the fold prefix it was aligned against, ``(threshold, (robot, rev, correction),
+        ...)`` of the robots before it; None when unknown (restored from a store).
+    """
+
+    correction: Pose | None
+    rev: int
+    n_vertices: int
+    origin: tuple[float, float, float, int]
+    at: float | None = None
+    reference: tuple[Any, ...] | None = None
+
+
+def merge_threshold_of(msg: MapMessage) -> float:
+    """The merge threshold a fused map was made with: its ``meta["threshold"]``; for maps
+    without it (older services, which quantised the fused map at the threshold) its
+    ``resolution``; ``DEFAULT_THRESHOLD`` when neither is a positive number. Maps are scored
+    against the truth on a grid of this size (``mapping.metrics.evaluate``), as the paper does."""
+    meta = msg.meta if isinstance(msg.meta, dict) else {}
+    for v in (meta.get("threshold"), msg.resolution):
+        if isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v > 0:
+            return float(v)
+    return DEFAULT_THRESHOLD
+
+
+class FusionState:
+    """The fusion service's state, without any I/O but the store.
+
+    Parameters
+    ----------
+    config : :class:`FusionConfig`.
+    sender : the id in the fused messages' envelope.
+    merge_fn : ``merge_fn(base, new, threshold) -> Wireframe``; default
+        :func:`mapping.merge.merge` (tests may pass another).
+    limits : :class:`InputLimits` for :meth:`offer`.
+
+    Notes
+    -----
+    The fused map is a fold of :func:`mapping.merge.merge` over the robots' fleet-frame maps in
+    sorted-id order, shaped as a fixed binary tree (:meth:`compute`). Two paths compute it:
+
+    * the **full path** (``full=True``) aligns every robot afresh -- start pose, then ICP onto
+      the map of the robots before it (:meth:`_prefix_map`) -- and is a deterministic function
+      of the set of latest maps (and the config): the fused map does not depend on the order or
+      repetition of arrivals;
+    * the **fast path** (default) reuses each robot's cached :class:`Alignment` and re-runs
+      ICP only for robots whose map changed substantially (:class:`FusionConfig`), at most
+      ``max_realign_per_fuse`` per fuse; its result is the same tree with the cached
+      corrections, so it equals the full path's exactly once every alignment is current
+      (:attr:`converged`). An alignment is current when it was computed for the robot's present
+      map against the present prefix ``(threshold, (robot, rev, correction), ...)`` of the
+      robots before it, whose alignments are all current.
+
+    The tree's nodes are cached by the identity of their two inputs (a leaf: ``(robot, rev,
+    correction, k)``; a node: the content digest of its map), so a fuse re-merges only the
+    nodes above the robots whose map or correction changed, and stops where a node's map came
+    out unchanged.
+    """
+
+    def __init__(
+        self,
+        config: FusionConfig | None = None,
+        sender: str = FUSION_ID,
+        merge_fn: MergeFn | None = None,
+        limits: InputLimits | None = None,
+    ) -> None:
+        self.config = config or FusionConfig()
+        self.sender = sender
+        self.merge_fn: MergeFn = merge_fn or default_merge
+        self.limits = limits or InputLimits()
+        self._codec_limits = self.limits.codec_limits()
+        self.last_drop: tuple[str, str, str] | None = None  # (counter, reason, detail) of the last drop
+        self.robots: dict[str, RobotEntry] = {}
+        self.fused: Wireframe = Wireframe.empty()
+        self.fused_robots: tuple[str, ...] = ()
+        self.corrections: dict[str, Pose] = {}
+        self.alignments: dict[str, Alignment] = {}
+        self.converged = True  # the fused map is the full path's
+        self.wanted: list[str] = []  # robots the last fast fuse wanted to re-align but had no budget for
+        self.version = 0
+        self.stats = FusionStats()
+        self._rev = 0
+        self._pending: dict[str, int] = {}  # robot -> stamp_ns of an accepted map not yet fused
+        # the fold tree (see compute): node (lo, hi) -> (key, map, identity); leaves of the last compute
+        self._nodes: dict[tuple[int, int], tuple[tuple[Any, ...], Wireframe, Any]] = {}
+        self._leaves: list[tuple[Any, Wireframe]] = []
+        self._references: list[tuple[Any, ...]] = []  # per fold position: the prefix before it
+        self._prefix_maps: dict[int, tuple[tuple[Any, ...], Wireframe]] = {}  # k -> (key, map of robots < k)
+        self.merges = 0  # merge_fn calls made (all paths; a cost counter)
+        self._closed: tuple[tuple[Any, ...], Wireframe] | None = None  # the folded map after close_frontiers
+        self._in_fleet: dict[str, tuple[int, Wireframe]] = {}  # robot -> (rev, map moved by its start pose)
+        self._prepared: dict[str, tuple[tuple[Any, ...], Wireframe]] = {}  # robot -> (key, map ready to merge)
+        self._lat_saved = 0  # latency_total already handed to a store job
+
+    # ------------------------------------------------------------------ input
+    def offer(self, data: bytes, key_robot: str | None = None, now_ns: int | None = None) -> bool:
+        """Decode and :meth:`add` a payload from ``robots/<key_robot>/map``.
+
+        Returns whether the robot's latest map changed. Dropped and counted (the reason also
+        in :attr:`last_drop`): a payload the codec refuses under :class:`InputLimits`
+        (``malformed``); a fused map, a sender that is not a valid robot id or does not match
+        the key, a robot beyond the 64th (``rejected``); absurd content (``absurd``, see
+        :func:`implausible`; ``now_ns`` enables the clock check).
+        """
+        self.stats.received += 1
+        self.last_drop = None
+        raw = bytes(data)
+        try:
+            msg = decode_message(raw, self._codec_limits)
+        except ValueError as exc:
+            return self._drop("malformed", type(exc).__name__, str(exc))
+        if msg.kind != MessageKind.ROBOT_MAP:
+            return self._drop("rejected", "not_robot_map", f"a {msg.kind.name} on a robot key")
+        if not valid_name(msg.sender):
+            return self._drop("rejected", "bad_sender", f"sender {msg.sender[:80]!r} is not a robot id")
+        if key_robot is not None and msg.sender != key_robot:
+            return self._drop("rejected", "sender_mismatch", f"sender {msg.sender!r} on the key of {key_robot!r}")
+        bad = implausible(msg, self.limits, now_ns)
+        if bad is not None:
+            return self._drop("absurd", *bad)
+        return self._add(msg, raw)
+
+    def reject_key(self, key: str) -> bool:
+        """Count a payload that arrived on a key whose id chunk is not a valid robot id."""
+        self.stats.received += 1
+        self.last_drop = None
+        return self._drop("rejected", "bad_key", f"{key[:120]!r} does not name a robot")
+
+    def _drop(self, counter: str, reason: str, detail: str) -> bool:
+        setattr(self.stats, counter, getattr(self.stats, counter) + 1)
+        by: dict[str, int] = getattr(self.stats, f"{counter}_by")
+        by[reason] = by.get(reason, 0) + 1
+        self.last_drop = (counter, reason, detail)
+        return False
+
+    def add(self, msg: MapMessage) -> bool:
+        """Add a robot map given as a message: it is encoded and decoded first, so that the
+        state holds exactly what would have travelled (the codec quantises coordinates)."""
+        return self.offer(encode_message(msg), msg.sender)
+
+    def _add(self, msg: MapMessage, raw: bytes) -> bool:
+        rid = msg.sender
+        key = order_key(msg, raw)
+        old = self.robots.get(rid)
+        if old is not None:
+            if key == old.key:
+                self.stats.duplicates += 1
+                return False
+            if key < old.key:
+                self.stats.outdated += 1
+                return False
+        elif len(self.robots) >= MAX_ROBOTS:
+            return self._drop("rejected", "too_many_robots", f"{rid!r} would be robot {MAX_ROBOTS + 1}")
+        same = old is not None and _same_content(old.message, msg)
+        if same:
+            assert old is not None
+            rev = old.rev
+        else:
+            self._rev += 1
+            rev = self._rev
+        self.robots[rid] = RobotEntry(msg, raw, key, rev)
+        self.stats.accepted += 1
+        if not same:
+            self._pending.setdefault(rid, int(msg.stamp_ns))
+        return not same
+
+    # ------------------------------------------------------------------ fusion
+    @property
+    def threshold(self) -> float:
+        """The merge threshold: ``config.threshold``; by default ``DEFAULT_THRESHOLD`` (0.2 m),
+        or the largest robot-map resolution when that is coarser (two robots' copies of one
+        corner may then be a whole quantisation step apart)."""
+        if self.config.threshold is not None:
+            return float(self.config.threshold)
+        res = [float(e.message.resolution) for e in self.robots.values() if e.message.resolution > 0]
+        return max([DEFAULT_THRESHOLD, *res])
+
+    @property
+    def resolution(self) -> float:
+        """The fused map's quantisation step on the wire: the finest robot-map resolution (the
+        fused map is no more precise than its inputs, and no coarser: quantising it at the
+        merge threshold would throw away what the robots measured); ``DEFAULT_RESOLUTION``
+        without robots."""
+        res = [float(e.message.resolution) for e in self.robots.values() if e.message.resolution > 0]
+        return min(res, default=DEFAULT_RESOLUTION)
+
+    def robot_in_fleet(self, robot: str) -> Wireframe:
+        """A robot's latest map in the fleet frame (start pose, then the ICP correction)."""
+        wf = self._fleet_map(robot)
+        corr = self.corrections.get(robot)
+        return wf.transformed(corr) if corr is not None else wf
+
+    def _fleet_map(self, rid: str) -> Wireframe:
+        """The robot's map moved by its start pose (cached per content revision)."""
+        e = self.robots[rid]
+        hit = self._in_fleet.get(rid)
+        if hit is not None and hit[0] == e.rev:
+            return hit[1]
+        m = e.message
+        wf = m.wireframe.transformed(m.origin)
+        self._in_fleet[rid] = (e.rev, wf)
+        return wf
+
+    def _ready(self, rid: str, corr: Pose | None, k: int) -> Wireframe:
+        """The robot's map in the fleet frame with its correction, contributor bit ``k`` set."""
+        e = self.robots[rid]
+        key = (e.rev, corr, k)
+        hit = self._prepared.get(rid)
+        if hit is not None and hit[0] == key:
+            return hit[1]
+        m = e.message
+        src = m.wireframe
+        pose = m.origin if corr is None else corr.compose(m.origin)
+        # one Wireframe (one validation) for origin, correction and contributor bit together
+        wf = Wireframe(
+            pose.apply(src.points), src.labels, src.edges, src.likelihood,
+            np.full(src.n_edges, np.uint64(1) << np.uint64(k), dtype=np.uint64),
+        )
+        self._prepared[rid] = (key, wf)
+        return wf
+
+    def _align(self, source: Wireframe, reference: Wireframe) -> Pose | None:
+        """The ICP correction of a robot's fleet-frame map onto the map of the robots before it
+        (:func:`mapping.fleet.align_maps` within ``max_refine_m`` / ``max_refine_rad``)."""
+        return align_maps(source, reference, self.config.max_refine_m, self.config.max_refine_rad)
+
+    def _wants_realign(self, al: Alignment | None, e: RobotEntry, current: bool, now: float | None) -> bool:
+        """The fast path's test: re-run this robot's ICP now? (see :class:`FusionConfig`)."""
+        if al is None:
+            return True
+        if current:
+            return False
+        cfg = self.config
+        if al.rev != e.rev:
+            if _origin_of(e.message) != al.origin:
+                return True
+            n = e.message.wireframe.n_vertices
+            if abs(n - al.n_vertices) > max(cfg.realign_vertices, cfg.realign_fraction * al.n_vertices):
+                return True
+        return now is not None and (al.at is None or now - al.at >= cfg.realign_s)
+
+    # ------------------------------------------------------------------ the fold tree
+    def _merge(self, base: Wireframe, new: Wireframe, thr: float) -> Wireframe:
+        if new.n_vertices == 0:
+            return base
+        if base.n_vertices == 0:
+            return new
+        self.merges += 1
+        return self.merge_fn(base, new, thr)
+
+    def _node(self, lo: int, hi: int, leaves: list[tuple[Any, Wireframe]], thr: float) -> tuple[Wireframe, Any]:
+        """The fold of ``leaves[lo:hi]`` (see :meth:`compute`) and its identity: a leaf's item,
+        or a digest of the node's map. Cached per ``(lo, hi)`` under ``(thr, identity of the
+        left part, identity of the right part)``, so a change that leaves a partial result
+        as it was (a wall another robot already reported) stops there."""
+        if hi - lo == 1:
+            return leaves[lo][1], leaves[lo][0]
+        mid = fold_split(lo, hi)
+        left, kl = self._node(lo, mid, leaves, thr)
+        right, kr = self._node(mid, hi, leaves, thr)
+        key = (thr, kl, kr)
+        hit = self._nodes.get((lo, hi))
+        if hit is not None and hit[0] == key:
+            return hit[1], hit[2]
+        out = self._merge(left, right, thr)
+        ident = out.content_digest()
+        self._nodes[(lo, hi)] = (key, out, ident)
+        return out, ident
+
+    def _prefix_map(self, k: int, leaves: list[tuple[Any, Wireframe]], thr: float) -> Wireframe:
+        """The map of the robots before fold position ``k`` (what robot ``k`` is aligned onto):
+        the tree's nodes that cover ``[0, k)``, merged left to right. For ``k <= 2`` and for
+        fleets of up to three robots that is exactly the left fold of their maps."""
+        parts: list[tuple[Wireframe, Any]] = []
+        lo, hi = 0, len(leaves)
+        while k > lo and hi - lo > 0:
+            if k >= hi:
+                parts.append(self._node(lo, hi, leaves, thr))
+                break
+            if hi - lo == 1:
+                break
+            mid = fold_split(lo, hi)
+            if k <= mid:
+                hi = mid
+            else:
+                parts.append(self._node(lo, mid, leaves, thr))
+                lo = mid
+        key = (thr, *(ident for _, ident in parts))
+        hit = self._prefix_maps.get(k)
+        if hit is not None and hit[0] == key:
+            return hit[1]
+        acc = Wireframe.empty()
+        for wf, _ in parts:
+            acc = self._merge(acc, wf, thr)
+        self._prefix_maps[k] = (key, acc)
+        return acc
+
+    def compute(
+        self, full: bool = False, now: float | None = None, max_realign: int | None = None
+    ) -> tuple[Wireframe, tuple[str, ...], dict[str, Pose]]:
+        """The fused map of the current latest maps: ``(map, robot ids, corrections)``.
+
+        ``full=True``: the full path, every alignment made current (a deterministic function
+        of the set of latest maps); otherwise the fast path, which re-aligns at most
+        ``max_realign`` robots (default ``config.max_realign_per_fuse``) chosen by
+        :class:`FusionConfig`'s criteria, earliest in sorted order first. ``now`` is the
+        caller's clock in seconds (for ``realign_s``). Updates :attr:`alignments` and
+        :attr:`converged`; the cached tree nodes change the cost, never the result.
+
+        The fold: the robots' maps (fleet frame, correction applied, contributor bit set) in
+        sorted-id order are the leaves of a fixed binary tree; a node over ``[lo, hi)`` is
+        ``merge(node(lo, mid), node(mid, hi))`` with ``mid - lo`` the largest power of two
+        below ``hi - lo`` (so up to three robots it is the left fold ``((r1, r2), r3)``; with
+        16 a balanced tree). A changed robot costs the merges on its path to the root (4 of
+        15 with 16 robots, against 8 on average for a left fold), and the nodes are cached.
+        """
+        cfg = self.config
+        ids = tuple(sorted(self.robots))
+        thr = self.threshold
+        budget = len(ids) if full else (cfg.max_realign_per_fuse if max_realign is None else max_realign)
+        prefix: tuple[Any, ...] = (thr,)
+        exact = True
+        corrections: dict[str, Pose] = {}
+        alignments: dict[str, Alignment] = {}
+        wanted: list[str] = []
+        leaves: list[tuple[Any, Wireframe]] = []
+        references: list[tuple[Any, ...]] = []
+        for k, rid in enumerate(ids):
+            e = self.robots[rid]
+            al = self.alignments.get(rid)
+            n = e.message.wireframe.n_vertices
+            references.append(prefix)
+            if k == 0 or not cfg.refine:
+                # the anchor (and everyone without refinement): the start pose alone, by definition current
+                if al is None or al.rev != e.rev or al.reference != prefix or al.correction is not None:
+                    al = Alignment(None, e.rev, n, _origin_of(e.message), now, prefix)
+            else:
+                current = exact and al is not None and al.rev == e.rev and al.reference == prefix
+                want = (not current) if full else self._wants_realign(al, e, current, now)
+                if want and budget <= 0:
+                    wanted.append(rid)
+                elif want:
+                    budget -= 1
+                    wf0 = self._fleet_map(rid)
+                    ref = self._prefix_map(k, leaves, thr)
+                    corr_new = self._align(wf0, ref) if ref.n_edges and wf0.n_edges else None
+                    al = Alignment(corr_new, e.rev, n, _origin_of(e.message), now, prefix)
+                    self.stats.alignments += 1
+                    current = exact
+                exact = current
+            if al is not None:
+                alignments[rid] = al
+            corr = al.correction if al is not None else None
+            if corr is not None:
+                corrections[rid] = corr
+            prefix = (*prefix, (rid, e.rev, corr))
+            leaves.append(((rid, e.rev, corr, k), self._ready(rid, corr, k)))
+        acc = self._node(0, len(leaves), leaves, thr)[0] if leaves else Wireframe.empty()
+        for span in [p for p in self._nodes if p[1] > len(leaves)]:
+            del self._nodes[span]
+        for pos in [p for p in self._prefix_maps if p > len(leaves)]:
+            del self._prefix_maps[pos]
+        self._leaves = leaves
+        self._references = references
+        self.alignments = alignments
+        self.wanted = wanted
+        self.converged = exact
+        for cache in (self._in_fleet, self._prepared):
+            for rid in [r for r in cache if r not in self.robots]:
+                del cache[rid]
+        closed = (*prefix, self.config.close_frontiers)
+        if self._closed is not None and self._closed[0] == closed:
+            acc = self._closed[1]
+        elif self.config.close_frontiers:
+            acc = close_frontiers(acc, thr)
+        self._closed = (closed, acc)
+        return acc, ids, corrections
+
+    def realign(self, now: float | None = None, limit: int = 1) -> list[str]:
+        """The slow path on its own: re-run the ICP alignment of up to ``limit`` robots that the
+        last fuse found wanting one (:attr:`wanted`, in fold order), each against the prefix of
+        that fuse's fold. The fused map does not change; the next :meth:`fuse` uses the new
+        alignments (and recomputes the fold where a correction changed).
+        Lets a service publish first and align afterwards. Returns the robots aligned."""
+        done: list[str] = []
+        if not self.config.refine:
+            return done
+        position = {item[0]: k for k, (item, _) in enumerate(self._leaves)}
+        thr = self.threshold
+        for rid in list(self.wanted):
+            if len(done) >= limit:
+                break
+            self.wanted.remove(rid)
+            k = position.get(rid, 0)
+            e = self.robots.get(rid)
+            if e is None or k == 0:
+                continue
+            reference = self._references[k]
+            if reference[0] != thr:
+                continue  # the threshold changed since that fold: the next fuse decides
+            acc = self._prefix_map(k, self._leaves, thr)
+            wf0 = self._fleet_map(rid)
+            corr = self._align(wf0, acc) if acc.n_edges and wf0.n_edges else None
+            n = e.message.wireframe.n_vertices
+            self.alignments[rid] = Alignment(corr, e.rev, n, _origin_of(e.message), now, reference)
+            self.stats.alignments += 1
+            done.append(rid)
+        return done
+
+    def fuse(self, full: bool = False, now: float | None = None, max_realign: int | None = None) -> bool:
+        """Recompute the fused map (:meth:`compute`); bump ``version`` and return True when it
+        changed."""
+        wf, ids, corr = self.compute(full, now, max_realign)
+        self.stats.fuses += 1
+        self.stats.full_fuses += int(full)
+        self.corrections = corr
+        changed = ids != self.fused_robots or not _same_wireframe(wf, self.fused)
+        if changed:
+            self.fused, self.fused_robots = wf, ids
+            self.version += 1
+        else:
+            self._pending.clear()
+        return changed
+
+    def take_latencies(self, published_ns: int) -> list[float]:
+        """Latency (ms) from each robot map that changed since the last fused publish to this
+        publish at ``published_ns`` (same machine clock); recorded in ``stats.latencies_ms``
+        (the last ``MAX_LATENCIES`` in the window, all in its ``total``)."""
+        out = [max(0.0, (published_ns - s) / 1e6) for s in self._pending.values()]
+        self._pending.clear()
+        self.stats.latencies_ms.extend(out, published_ns)
+        self.stats.published += 1
+        return out
+
+    def fused_message(self, stamp_ns: int, meta: dict[str, Any] | None = None) -> MapMessage:
+        """The fused map as a ``FUSED_MAP`` message: quantised at :attr:`resolution`, ``meta``
+        with ``version`` and the merge ``threshold`` (the scale its walls were merged at, and
+        the grid its quality is scored on) plus ``meta``."""
+        m: dict[str, Any] = {"version": self.version, "threshold": self.threshold}
+        m.update(meta or {})
+        return MapMessage(
+            kind=MessageKind.FUSED_MAP,
+            sender=self.sender,
+            seq=self.version,
+            stamp_ns=int(stamp_ns),
+            pose=Pose.identity(),
+            frame="fleet",
+            origin=Pose.identity(),
+            resolution=self.resolution,
+            wireframe=self.fused,
+            robots=self.fused_robots,
+            meta=m,
+        )
+
+    def sim_time(self) -> float:
+        """The latest simulated time any robot map carries (``meta["t"]``), 0 if none."""
+        ts = [float(e.message.meta.get("t", 0.0)) for e in self.robots.values() if isinstance(e.message.meta, dict)]
+        return max(ts, default=0.0)
+
+    # ------------------------------------------------------------------ store
+    def store_job(
+        self,
+        store: str | os.PathLike[str],
+        robots: Iterable[str] | None = None,
+        stamp_ns: int = 0,
+        fresh_latency: bool = True,
+    ) -> StoreJob:
+        """What :meth:`save` writes, gathered now (cheap: references to bytes, the counters,
+        the new latencies) and written later by :meth:`StoreJob.write`, possibly in another
+        thread (:class:`StoreWriter`)."""
+        ids = sorted(self.robots if robots is None else robots)
+        lat = self.stats.latencies_ms
+        new = min(lat.total - self._lat_saved, len(lat))
+        first = lat.total - new + 1  # index of the first new sample (1-based, all-time)
+        job = StoreJob(
+            store=Path(store),
+            version=self.version,
+            stamp_ns=int(stamp_ns),
+            robots={r: e.raw for r, e in sorted(self.robots.items())},
+            views={r for r in ids if r in self.robots},
+            fused_raw=encode_message(self.fused_message(stamp_ns)),
+            alignments={
+                r: (None if (c := self.corrections.get(r)) is None else [c.x, c.y, c.theta]) for r in self.fused_robots
+            },
+            state={
+                "version": self.version,
+                "robots": {
+                    r: {"seq": e.key[1], "boot": e.key[0], "sha256": e.key[2]} for r, e in sorted(self.robots.items())
+                },
+                "fused": {"vertices": self.fused.n_vertices, "edges": self.fused.n_edges},
+                "converged": self.converged,
+                "stats": self.stats.as_dict(fresh_latency),
+                "latency_total": lat.total,
+                "latency_log": LATENCY_LOG,
+            },
+            latencies=[(first + i, v, t) for i, (v, t) in enumerate(zip(*(a.tolist() for a in lat.tail(new))))],
+        )
+        self._lat_saved = lat.total
+        return job
+
+    def save(self, store: str | os.PathLike[str], robots: Iterable[str] | None = None, stamp_ns: int = 0) -> None:
+        """Write the state under ``store`` now (see :class:`StoreJob` for the files)."""
+        self.store_job(store, robots, stamp_ns).write()
+
+    @classmethod
+    def load(
+        cls,
+        store: str | os.PathLike[str],
+        config: FusionConfig | None = None,
+        sender: str = FUSION_ID,
+        merge_fn: MergeFn | None = None,
+        limits: InputLimits | None = None,
+    ) -> FusionState:
+        """Resume from :meth:`save`'s files (an absent or empty store gives a fresh state).
+
+        The robot maps come from ``snapshot.msgpack`` (or, in a store without one, from
+        ``robots/*.wfm``) and pass the same checks as maps from the bus. The fused map is
+        recomputed from them: with the snapshot's stored alignments when it has them for every
+        robot (so a map the fast path published comes back exactly), otherwise by the full
+        path. It keeps the stored version when it equals the stored fused map; otherwise the
+        version goes up. Unreadable files are skipped with a warning on stderr. The latency
+        window is refilled from the tail of ``latency.log`` and its all-time count from
+        ``state.json``.
+        """
+        st = cls(config, sender, merge_fn, limits)
+        d = Path(store)
+        if not d.exists():
+            return st
+        if not d.is_dir():
+            raise UserError(f"{d}: not a directory")
+
+        def warn(text: str) -> None:
+            sys.stderr.write(f"wiremap fuse: {text}\n")
+
+        contents = read_store(d, warn=warn)
+        for rid, raw in contents.raw_robots.items():
+            if not st.offer(raw, rid) and st.last_drop is not None:
+                sys.stderr.write(f"wiremap fuse: skipping stored map of {rid}: {st.last_drop[2]}\n")
+        st.stats = FusionStats()
+        total = 0
+        try:
+            state = json.loads((d / "state.json").read_text())
+            total = int(state.get("latency_total", 0) or 0)
+        except (OSError, ValueError, TypeError, AttributeError):
+            pass
+        tail = read_latency_log(d, MAX_LATENCIES)
+        st.stats.latencies_ms.extend(v for _, v in tail)
+        st.stats.latencies_ms.total = max(total, tail[-1][0] if tail else 0, len(tail))
+        st._lat_saved = st.stats.latencies_ms.total
+        if st.robots:
+            al = contents.alignments
+            if al is not None and set(al) == set(st.robots):
+                for rid, corr in al.items():
+                    e = st.robots[rid]
+                    st.alignments[rid] = Alignment(corr, e.rev, e.message.wireframe.n_vertices, _origin_of(e.message))
+                st.fuse(max_realign=0)
+            else:
+                st.fuse(full=True)
+        st._pending.clear()
+        same = False
+        if contents.fused is not None and st.robots:
+            # compare as stored: through the codec
+            again = decode_message(encode_message(st.fused_message(0))).wireframe
+            same = again.almost_equal(contents.fused.wireframe, tol=1e-9, likelihood_tol=1e-9)
+        st.version = contents.version if (same or not st.robots) else contents.version + 1
+        return st
+
+
+def _origin_of(msg: MapMessage) -> tuple[float, float, float, int]:
+    boot = msg.meta.get("boot", 0) if isinstance(msg.meta, dict) else 0
+    return (msg.origin.x, msg.origin.y, msg.origin.theta, boot if isinstance(boot, int) else 0)
+
+
+def _same_content(a: MapMessage, b: MapMessage) -> bool:
+    """Exactly the same map for fusion: start pose, resolution and wireframe arrays (the codec
+    decodes the same content to the same arrays)."""
+    return (
+        a.origin.as_tuple() == b.origin.as_tuple()
+        and float(a.resolution) == float(b.resolution)
+        and a.wireframe.content_digest() == b.wireframe.content_digest()
+    )
+
+
+def _same_wireframe(a: Wireframe, b: Wireframe) -> bool:
+    """Identical arrays, or the same graph up to vertex and edge order (1e-9)."""
+    if a is b or a.content_digest() == b.content_digest():
+        return True
+    if a.n_vertices != b.n_vertices or a.n_edges != b.n_edges:
+        return False
+    return a.almost_equal(b, tol=1e-9)
