@@ -86,7 +86,7 @@ milliseconds on one core; the per-map :func:`prepare` is about a third of it and
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
@@ -120,6 +120,9 @@ class RegistrationConfig:
     ----------
     sample_spacing : float
         Wall sample spacing (support, conflict and refinement resolution).
+    max_samples : int
+        Larger maps are sampled more coarsely, to about this many samples (cost bound: 2,000
+        samples is 500 m of wall at the default spacing).
     min_wall : float
         Edges shorter than this are ignored (noise, corner slivers).
     free_depths : tuple of float
@@ -164,6 +167,9 @@ class RegistrationConfig:
         Huber threshold of the refinement's residuals.
     use_icp : bool
         Polish the result with :func:`mapping.icp.icp` on the cropped overlap.
+    max_icp_pairs : int
+        ICP is skipped when the cropped maps' edge counts multiply to more than this (its edge
+        correspondence test is quadratic; the point-to-line refinement already converged).
     distinct_translation, distinct_rotation : float
         Two hypotheses are distinct when their translations (at the centre of B's walls) differ
         by more than ``distinct_translation`` or their rotations by more than
@@ -204,6 +210,7 @@ class RegistrationConfig:
     """
 
     sample_spacing: float = 0.25
+    max_samples: int = 2000
     min_wall: float = 0.15
     free_depths: tuple[float, ...] = (0.35, 0.7, 1.05)
     free_clearance: float = 0.3
@@ -227,6 +234,7 @@ class RegistrationConfig:
     refine_iterations: int = 6
     huber: float = 0.05
     use_icp: bool = True
+    max_icp_pairs: int = 20_000
     distinct_translation: float = 1.0
     distinct_rotation: float = math.radians(5.0)
     min_support: float = 8.0
@@ -253,7 +261,7 @@ class RegistrationConfig:
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0):
                 raise ValueError(f"RegistrationConfig.{name} must be >= 0, got {v!r}")
-        for name in ("direction_bins", "max_rotations", "peaks_per_rotation", "verify_candidates",
+        for name in ("max_samples", "direction_bins", "max_rotations", "peaks_per_rotation", "verify_candidates",
                      "refine_candidates", "refine_iterations"):
             if int(getattr(self, name)) < 1:
                 raise ValueError(f"RegistrationConfig.{name} must be >= 1")
@@ -425,8 +433,10 @@ def prepare(wf: Wireframe, config: RegistrationConfig | None = None) -> MapFeatu
     edges = wf.edges[keep]
     u = d / np.where(ln > 0, ln, 1.0)[:, None]
     nrm = np.stack([-u[:, 1], u[:, 0]], axis=1)
-    # Samples: midpoints of equal pieces of each directed edge.
-    n = np.maximum(1, np.ceil(ln / cfg.sample_spacing - 1e-9)).astype(np.int64)
+    # Samples: midpoints of equal pieces of each directed edge; the spacing grows on large maps
+    # so that there are at most about ``max_samples`` (cost is linear in them).
+    spacing = max(cfg.sample_spacing, float(ln.sum()) / cfg.max_samples)
+    n = np.maximum(1, np.ceil(ln / spacing - 1e-9)).astype(np.int64)
     owner = np.repeat(np.arange(len(seg)), n)
     first = np.cumsum(n) - n
     j = np.arange(int(n.sum())) - np.repeat(first, n)
@@ -461,7 +471,12 @@ def prepare(wf: Wireframe, config: RegistrationConfig | None = None) -> MapFeatu
     # Direction histogram, circularly smoothed.
     nb = cfg.direction_bins
     width = 2.0 * math.pi / nb
-    hist = np.bincount(((ang + math.pi) / width).astype(np.int64) % nb, weights=ln, minlength=nb).astype(np.float64)
+    # Linear binning (each wall split between its two nearest bins) keeps the sub-bin direction.
+    pos = (ang + math.pi) / width - 0.5
+    b0 = np.floor(pos).astype(np.int64)
+    fr = pos - b0
+    hist = np.bincount(np.concatenate([b0 % nb, (b0 + 1) % nb]), weights=np.concatenate([ln * (1 - fr), ln * fr]),
+                       minlength=nb).astype(np.float64)
     k = np.fft.rfftfreq(nb, d=1.0 / nb)
     sig = cfg.direction_smooth / width
     hist = np.fft.irfft(np.fft.rfft(hist) * np.exp(-2.0 * (math.pi * sig * k / nb) ** 2), n=nb)
@@ -555,18 +570,27 @@ def _vote(
     x0, y0 = np.floor(gx).astype(np.int64), np.floor(gy).astype(np.int64)
     fx, fy = gx - x0, gy - y0
     xmin, ymin = int(x0.min()), int(y0.min())
-    nx = int(x0.max()) - xmin + 2
     ny = int(y0.max()) - ymin + 2
     base = (x0 - xmin) * ny + (y0 - ymin)
     keys = np.concatenate([base, base + ny, base + 1, base + ny + 1])
     vals = np.concatenate([wv * (1 - fx) * (1 - fy), wv * fx * (1 - fy), wv * (1 - fx) * fy, wv * fx * fy])
-    # Sparse accumulation: only the cells that got votes (the grid can be millions of cells).
-    uk, inv = np.unique(keys, return_inverse=True)
-    acc = np.bincount(inv, weights=vals)
-    order = np.argsort(-acc, kind="stable")
+    nx = int(x0.max()) - xmin + 2
+    top = 50 * cfg.peaks_per_rotation
+    if nx * ny <= 4_000_000:
+        # Dense accumulation (a bincount is much cheaper than sorting the keys).
+        grid = np.bincount(keys, weights=vals, minlength=nx * ny)
+        uk = np.flatnonzero(grid)
+        acc = grid[uk]
+    else:  # sparse: only the cells that got votes
+        uk, inv = np.unique(keys, return_inverse=True)
+        acc = np.bincount(inv, weights=vals)
+    if len(acc) > top:
+        part = np.argpartition(-acc, top)[:top]
+        uk, acc = uk[part], acc[part]
+    order = np.lexsort((uk, -acc))  # strongest first, ties by cell
     out: list[tuple[FloatArray, float]] = []
     sep2 = cfg.peak_separation**2
-    for o in order[: 50 * cfg.peaks_per_rotation]:
+    for o in order:
         cx = (uk[o] // ny + xmin) * cfg.vote_cell
         cy = (uk[o] % ny + ymin) * cfg.vote_cell
         if any((cx - p[0]) ** 2 + (cy - p[1]) ** 2 < sep2 for p, _ in out):
@@ -688,7 +712,7 @@ def _polish(fa: MapFeatures, fb: MapFeatures, h: Hypothesis, cfg: RegistrationCo
     shift = Pose(-float(c[0]), -float(c[1]), 0.0)
     a = _crop(fa.wireframe, c, radius).transformed(shift)
     b = _crop(fb.wireframe.transformed(h.transform), c, radius).transformed(shift)
-    if a.n_edges == 0 or b.n_edges == 0:
+    if a.n_edges == 0 or b.n_edges == 0 or a.n_edges * b.n_edges > cfg.max_icp_pairs:
         return h
     res = icp(b, a, ICPConfig(gate_start=0.3, gate_end=0.15, prior_sigma_xy=0.2, prior_sigma_theta=0.05,
                               min_matched_fraction=0.1))
@@ -843,8 +867,3 @@ def register_prepared(fa: MapFeatures, fb: MapFeatures, config: RegistrationConf
         cross_support=best.cross_support, runner_up_ratio=float(ratio), best=best, runner_up=runner,
         hypotheses=n_cands, extra={"corners": float(corners), "self_a": self_a, "self_b": self_b},
     )
-
-
-def with_overrides(config: RegistrationConfig, **changes: float) -> RegistrationConfig:
-    """``config`` with some fields replaced (validated)."""
-    return replace(config, **changes)

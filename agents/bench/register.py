@@ -181,7 +181,7 @@ def _seen_length(truth: Any, s: dict[int, list[tuple[float, float]]]) -> float:
 
 def _stretch(w: SimWorld, rng: np.random.Generator, s0: float | None = None) -> tuple[float, float]:
     total = float(w.cum[-1])
-    length = min(total, float(rng.uniform(15.0, 70.0)))
+    length = min(0.6 * total, float(rng.uniform(10.0, 50.0)))
     if s0 is None:
         s0 = float(rng.uniform(0.0, max(0.0, total - length)))
     s0 = float(np.clip(s0, 0.0, max(0.0, total - length)))
@@ -221,8 +221,8 @@ def sim_pair(w: SimWorld, rng: np.random.Generator, noise: float) -> tuple[Sampl
     if rng.random() < 0.2:
         b0, b1 = _stretch(w, rng)  # anywhere: mostly disjoint
     else:
-        lb = min(float(w.cum[-1]), float(rng.uniform(15.0, 70.0)))
-        b0, b1 = _stretch(w, rng, a0 + float(rng.uniform(-0.8 * lb, 0.8 * la)))
+        lb = min(0.6 * float(w.cum[-1]), float(rng.uniform(10.0, 50.0)))
+        b0, b1 = _stretch(w, rng, a0 + float(rng.uniform(-lb, la)))
     sa = _sim_map(w, a0, a1, noise, rng)
     sb = _sim_map(w, b0, b1, noise, rng)
     assert sa.seen is not None and sb.seen is not None
@@ -392,7 +392,21 @@ def summarise(rows: list[dict[str, Any]]) -> dict[str, Any]:
         "ms_per_attempt_p50": _pct([r["ms"] for r in rows], 50),
         "ms_per_attempt_p95": _pct([r["ms"] for r in rows], 95),
         "by_overlap": by,
+        "by_world_overlap_ge_30": {
+            name: {"pairs": len(rs), "success_rate": round(sum(r["success"] for r in rs) / len(rs), 4)}
+            for name in sorted({r["worlds"][0] for r in ge30})
+            for rs in [[r for r in ge30 if r["worlds"][0] == name]]
+        },
+        "refusal_reasons_overlap_ge_30": _reasons([r for r in ge30 if not r["accepted"]]),
     }
+
+
+def _reasons(rows: list[dict[str, Any]]) -> dict[str, int]:
+    out: dict[str, int] = {}
+    for r in rows:
+        key = r["reason"].split(" (")[0].split(":")[0]
+        out[key] = out.get(key, 0) + 1
+    return dict(sorted(out.items(), key=lambda kv: -kv[1]))
 
 
 def _print_table(summary: dict[str, Any], rows: list[dict[str, Any]]) -> None:
