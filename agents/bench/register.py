@@ -1,0 +1,496 @@
+"""``wiremap bench register``: global registration of two maps in unrelated frames.
+
+Map pairs
+---------
+* **Simulated worlds** (built-ins ``paper-small``, ``museum``, ``office``, ``warehouse`` and the
+  test worlds ``tests/worlds/*.geojson``). One coverage route per world
+  (:func:`agents.sim.route.plan_route`, seeded). A robot's map is the *truth wireframe cropped to
+  what an 8 m, 360 degree sensor sees* from poses every ``POSE_STEP`` metres along a stretch of the
+  route (:func:`mapping.visibility.visible_view`; where sight of a wall ends the map gets a
+  frontier vertex), plus Gaussian noise of ``--noise`` metres on every vertex. This stands in for
+  a filter-built map (seconds per pair instead of minutes); it has the filter's partial,
+  frontier-ended walls but none of its spurious walls or bent corridors. Each map is expressed in
+  its robot's start frame: the start is the stretch's first point with a uniformly random heading,
+  so the two frames are unrelated. Stretch lengths and the offset between the two stretches are
+  random, from fully overlapping to disjoint.
+* **CARMEN logs** (``/work/shared/data/carmen``, ``--carmen``): stretches of consecutive scans;
+  each scan through split-and-merge (:func:`mapping.extract.extract_corners`) and the scans
+  merged at the *true* poses (``*.truth.tsv``) with :func:`mapping.merge.merge`. A small loader
+  reads the FLASER lines only (the project reader rejects these logs' ``PARAM`` lines for now).
+  Their overlap is measured on the maps themselves (matched wall length at the true transform).
+* **Cross pairs**: two maps from two different worlds (or logs). Any acceptance is a false merge.
+
+Measures
+--------
+* *overlap*: the shared wall length over the smaller map's wall length. Simulated: length of the
+  truth walls seen in both crops. CARMEN: B's wall length lying on A's walls at the true transform.
+* *success*: accepted with a translation error (at B's wall centroid) <= 0.10 m and a rotation
+  error <= 1 degree.
+* *false merge*: accepted and (a cross pair, or an error above 0.5 m or 2 degrees). Accepted
+  within those but outside 0.10 m / 1 degree is counted as *imprecise*.
+* time per attempt: :func:`mapping.registration.register` including the per-map preparation.
+
+Prints a table by overlap band and, with ``--json``, one JSON object on the last line.
+"""
+
+from __future__ import annotations
+
+import argparse
+import gzip
+import json
+import math
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from agents.errors import UserError
+
+HELP = "global registration of map pairs in unrelated frames"
+
+WORLDS = ("paper-small", "museum", "office", "warehouse")
+TEST_WORLDS = Path(__file__).resolve().parents[2] / "tests" / "worlds"
+CARMEN_DIR = Path("/work/shared/data/carmen")
+MAX_RANGE = 8.0
+POSE_STEP = 0.5
+BANDS = ((0.0, 0.0), (0.0, 0.1), (0.1, 0.2), (0.2, 0.3), (0.3, 0.5), (0.5, 0.7), (0.7, 1.01))
+SUCCESS_T, SUCCESS_R = 0.10, math.radians(1.0)
+FALSE_T, FALSE_R = 0.5, math.radians(2.0)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--pairs", type=int, default=1000, metavar="N", help="same-world pairs (default 1000)")
+    parser.add_argument("--cross", type=int, default=None, metavar="N",
+                        help="cross-world pairs (default a quarter of --pairs)")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--noise", type=float, default=0.03, metavar="M", help="vertex noise, metres (default 0.03)")
+    parser.add_argument("--worlds", default=None, metavar="A,B,...",
+                        help="worlds (default the built-ins and tests/worlds/*.geojson)")
+    parser.add_argument("--carmen", type=int, default=None, metavar="N",
+                        help="CARMEN stretch pairs (default a tenth of --pairs; 0 for none)")
+    parser.add_argument("--quick", action="store_true", help="100 pairs, 30 cross, 10 CARMEN")
+    parser.add_argument("--json", action="store_true", help="print the JSON summary as the last line")
+    parser.add_argument("--quiet", action="store_true", help="no progress on stderr")
+
+
+# ------------------------------------------------------------------------------ simulated maps
+@dataclass
+class SimWorld:
+    name: str
+    truth: Any
+    route: np.ndarray
+    cum: np.ndarray
+
+
+def _load_worlds(names: list[str], rng: np.random.Generator) -> list[SimWorld]:
+    from agents.sim.route import plan_route
+    from agents.sim.world import load_world
+
+    out = []
+    for name in names:
+        world = load_world(name)
+        route = plan_route(world, rng, sensor_range=MAX_RANGE)
+        seg = np.hypot(*np.diff(route, axis=0).T)
+        out.append(SimWorld(world.name, world.truth, route, np.concatenate([[0.0], np.cumsum(seg)])))
+    return out
+
+
+def _poses_along(w: SimWorld, s0: float, s1: float) -> np.ndarray:
+    s = np.arange(s0, s1 + 1e-9, POSE_STEP)
+    return np.column_stack([np.interp(s, w.cum, w.route[:, 0]), np.interp(s, w.cum, w.route[:, 1])])
+
+
+def _seen_intervals(truth: Any, xy: np.ndarray) -> dict[int, list[tuple[float, float]]]:
+    """Per truth edge, the merged parameter intervals seen from the poses ``xy``."""
+    from mapping.se2 import Pose
+    from mapping.visibility import visible_view
+
+    raw: dict[int, list[tuple[float, float]]] = {}
+    for x, y in xy:
+        v = visible_view(truth, Pose(float(x), float(y), 0.0), MAX_RANGE)
+        for src, (t0, t1) in zip(v.edge_source.tolist(), v.edge_t.tolist()):
+            raw.setdefault(src, []).append((t0, t1))
+    out: dict[int, list[tuple[float, float]]] = {}
+    for e, iv in raw.items():
+        iv.sort()
+        merged = [list(iv[0])]
+        for a, b in iv[1:]:
+            if a <= merged[-1][1] + 1e-6:
+                merged[-1][1] = max(merged[-1][1], b)
+            else:
+                merged.append([a, b])
+        out[e] = [(a, b) for a, b in merged]
+    return out
+
+
+def _crop(truth: Any, seen: dict[int, list[tuple[float, float]]], noise: float, rng: np.random.Generator) -> Any:
+    """The truth's seen pieces as a wireframe (frontier vertices where a piece ends inside a wall)."""
+    from mapping.wireframe import Label, Wireframe
+
+    lengths = truth.edge_lengths()
+    pts: list[tuple[float, float]] = []
+    labels: list[int] = []
+    edges: list[tuple[int, int]] = []
+    index: dict[int, int] = {}
+
+    def vertex(v: int) -> int:
+        if v not in index:
+            index[v] = len(pts)
+            pts.append(tuple(truth.points[v]))
+            labels.append(int(Label.NOMINAL))
+        return index[v]
+
+    def point(p: np.ndarray) -> int:
+        pts.append((float(p[0]), float(p[1])))
+        labels.append(int(Label.FRONTIER))
+        return len(pts) - 1
+
+    for e in sorted(seen):
+        i, j = (int(k) for k in truth.edges[e])
+        a, b = truth.points[i], truth.points[j]
+        for t0, t1 in seen[e]:
+            if (t1 - t0) * lengths[e] < 0.1:
+                continue
+            # Within 2 cm of a corner: the corner itself (the view clips at float precision).
+            u = vertex(i) if t0 * lengths[e] <= 0.02 else point(a + t0 * (b - a))
+            w = vertex(j) if (1 - t1) * lengths[e] <= 0.02 else point(a + t1 * (b - a))
+            edges.append((u, w))
+    if not edges:
+        return Wireframe.empty()
+    p = np.asarray(pts) + rng.normal(0.0, noise, (len(pts), 2))
+    return Wireframe.build(p, edges, labels)
+
+
+def _shared(truth: Any, sa: dict[int, list[tuple[float, float]]], sb: dict[int, list[tuple[float, float]]]) -> float:
+    lengths = truth.edge_lengths()
+    total = 0.0
+    for e in set(sa) & set(sb):
+        for a0, a1 in sa[e]:
+            for b0, b1 in sb[e]:
+                total += max(0.0, min(a1, b1) - max(a0, b0)) * lengths[e]
+    return total
+
+
+def _seen_length(truth: Any, s: dict[int, list[tuple[float, float]]]) -> float:
+    lengths = truth.edge_lengths()
+    return float(sum((b - a) * lengths[e] for e, iv in s.items() for a, b in iv if (b - a) * lengths[e] >= 0.1))
+
+
+def _stretch(w: SimWorld, rng: np.random.Generator, s0: float | None = None) -> tuple[float, float]:
+    total = float(w.cum[-1])
+    length = min(0.6 * total, float(rng.uniform(10.0, 50.0)))
+    if s0 is None:
+        s0 = float(rng.uniform(0.0, max(0.0, total - length)))
+    s0 = float(np.clip(s0, 0.0, max(0.0, total - length)))
+    return s0, s0 + length
+
+
+def _start_pose(w: SimWorld, s0: float, rng: np.random.Generator) -> Any:
+    from mapping.se2 import Pose
+
+    x = float(np.interp(s0, w.cum, w.route[:, 0]))
+    y = float(np.interp(s0, w.cum, w.route[:, 1]))
+    return Pose(x, y, float(rng.uniform(-math.pi, math.pi)))
+
+
+@dataclass
+class Sample:
+    """One robot's map: in its own frame, with its start pose in the world frame."""
+
+    wf: Any
+    start: Any
+    seen: dict[int, list[tuple[float, float]]] | None
+    length: float
+    world: str
+
+
+def _sim_map(w: SimWorld, s0: float, s1: float, noise: float, rng: np.random.Generator) -> Sample:
+    seen = _seen_intervals(w.truth, _poses_along(w, s0, s1))
+    crop = _crop(w.truth, seen, noise, rng)
+    start = _start_pose(w, s0, rng)
+    return Sample(crop.transformed(start.inverse()), start, seen, _seen_length(w.truth, seen), w.name)
+
+
+def sim_pair(w: SimWorld, rng: np.random.Generator, noise: float) -> tuple[Sample, Sample, float]:
+    """Two maps of ``w`` whose stretches are offset at random; returns them and the overlap."""
+    a0, a1 = _stretch(w, rng)
+    la = a1 - a0
+    if rng.random() < 0.2:
+        b0, b1 = _stretch(w, rng)  # anywhere: mostly disjoint
+    else:
+        lb = min(0.6 * float(w.cum[-1]), float(rng.uniform(10.0, 50.0)))
+        b0, b1 = _stretch(w, rng, a0 + float(rng.uniform(-lb, la)))
+    sa = _sim_map(w, a0, a1, noise, rng)
+    sb = _sim_map(w, b0, b1, noise, rng)
+    assert sa.seen is not None and sb.seen is not None
+    smaller = min(sa.length, sb.length)
+    overlap = _shared(w.truth, sa.seen, sb.seen) / smaller if smaller > 0 else 0.0
+    return sa, sb, overlap
+
+
+# ------------------------------------------------------------------------------ CARMEN maps
+@dataclass
+class Log:
+    name: str
+    scans: list[Any]  # robot-frame scan wireframes
+    poses: list[Any]  # true poses
+
+
+def _read_log(path: Path, max_range: float = MAX_RANGE) -> Log:
+    """FLASER lines only (PARAM and everything else skipped), scans through split-and-merge,
+    poses from the sibling ``.truth.tsv`` (one row per FLASER line, in order)."""
+    from mapping.extract import extract_corners
+    from mapping.se2 import Pose
+
+    truth_rows = [ln.split() for ln in path.with_name(path.name.replace(".log.gz", ".truth.tsv")).read_text().splitlines()]
+    truth_rows = [r for r in truth_rows if r and not r[0].startswith("#")]
+    poses = []
+    for r in truth_rows:
+        try:
+            poses.append(Pose(float(r[1]), float(r[2]), float(r[3])))
+        except (ValueError, IndexError):
+            continue
+    scans = []
+    with gzip.open(path, "rt") as fh:
+        for line in fh:
+            tok = line.split()
+            if not tok or tok[0] != "FLASER":
+                continue
+            n = int(tok[1])
+            ranges = np.asarray(tok[2 : 2 + n], dtype=np.float64)
+            angles = -math.pi / 2 + np.arange(n) * (math.pi / max(1, n - 1)) if n > 1 else np.zeros(n)
+            ranges = np.where(ranges >= max_range, np.inf, ranges)
+            scans.append(extract_corners(ranges, angles, max_range))
+    k = min(len(scans), len(poses))
+    return Log(path.name.replace(".log.gz", ""), scans[:k], poses[:k])
+
+
+def _log_map(log: Log, i0: int, i1: int, rng: np.random.Generator) -> Sample:
+    from mapping.merge import MergeConfig, merge
+    from mapping.wireframe import Wireframe
+
+    cfg = MergeConfig()
+    wf = Wireframe.empty()
+    for k in range(i0, i1):
+        scan = log.scans[k].transformed(log.poses[k])
+        wf = scan if wf.n_edges == 0 else merge(wf, scan, cfg)
+    from mapping.se2 import Pose
+
+    p = log.poses[i0]
+    start = Pose(p.x, p.y, float(rng.uniform(-math.pi, math.pi)))
+    return Sample(wf.transformed(start.inverse()), start, None, wf.total_length(), log.name)
+
+
+def _true_transform(sa: Sample, sb: Sample) -> Any:
+    return sa.start.inverse().compose(sb.start)
+
+
+def _map_overlap(sa: Sample, sb: Sample) -> float:
+    """Overlap measured on the maps: B's wall length on A's walls at the true transform."""
+    from mapping.registration import RegistrationConfig, _match, prepare
+
+    cfg = RegistrationConfig()
+    fa, fb = prepare(sa.wf, cfg), prepare(sb.wf, cfg)
+    if len(fa.points) == 0 or len(fb.points) == 0:
+        return 0.0
+    ib, _ = _match(fa, fb, _true_transform(sa, sb), 0.2, cfg)
+    smaller = min(fa.length, fb.length)
+    return float(fb.weights[ib].sum()) / smaller if smaller > 0 else 0.0
+
+
+def log_pair(log: Log, rng: np.random.Generator) -> tuple[Sample, Sample, float]:
+    n = len(log.scans)
+    la = int(rng.integers(20, 60))
+    lb = int(rng.integers(20, 60))
+    a0 = int(rng.integers(0, max(1, n - la)))
+    b0 = int(np.clip(a0 + int(rng.integers(-lb, la)), 0, max(0, n - lb)))
+    sa = _log_map(log, a0, min(n, a0 + la), rng)
+    sb = _log_map(log, b0, min(n, b0 + lb), rng)
+    return sa, sb, _map_overlap(sa, sb)
+
+
+# ------------------------------------------------------------------------------ scoring
+def attempt(sa: Sample, sb: Sample, same: bool) -> dict[str, Any]:
+    """Register B onto A; the row of the result table."""
+    from mapping.registration import register
+
+    t0 = time.perf_counter()
+    res = register(sa.wf, sb.wf)
+    ms = 1e3 * (time.perf_counter() - t0)
+    row: dict[str, Any] = {
+        "accepted": res.accepted, "ms": ms, "confidence": res.confidence, "reason": res.reason,
+        "trans_err": math.nan, "rot_err": math.nan, "corners": (sa.wf.n_vertices, sb.wf.n_vertices),
+    }
+    if res.transform is not None and same:
+        true = _true_transform(sa, sb)
+        c = res.best.transform.inverse().apply(np.zeros((1, 2)))[0] if res.best else np.zeros(2)
+        # Error at B's wall centroid (B frame), and in heading.
+        from mapping.registration import prepare
+
+        cb = prepare(sb.wf).centre if sb.wf.n_edges else c
+        pe = res.transform.apply(cb[None, :])[0] - true.apply(cb[None, :])[0]
+        row["trans_err"] = float(math.hypot(*pe))
+        row["rot_err"] = abs(math.remainder(res.transform.theta - true.theta, 2 * math.pi))
+    if res.accepted:
+        if not same:
+            row["false_merge"] = True
+        else:
+            row["false_merge"] = row["trans_err"] > FALSE_T or row["rot_err"] > FALSE_R
+    else:
+        row["false_merge"] = False
+    row["success"] = bool(res.accepted and same and row["trans_err"] <= SUCCESS_T and row["rot_err"] <= SUCCESS_R)
+    return row
+
+
+def _band(ov: float) -> str:
+    if ov <= 0.0:
+        return "0"
+    for lo, hi in BANDS[1:]:
+        if lo < ov <= hi or (lo == 0.0 and 0 < ov <= hi):
+            return f"{int(lo * 100)}-{min(100, int(hi * 100))}%"
+    return "70-100%"
+
+
+def _pct(v: list[float], q: float) -> float | None:
+    a = np.asarray([x for x in v if math.isfinite(x)])
+    return None if len(a) == 0 else round(float(np.percentile(a, q)), 4)
+
+
+def summarise(rows: list[dict[str, Any]]) -> dict[str, Any]:
+    same = [r for r in rows if r["same"]]
+    cross = [r for r in rows if not r["same"]]
+    ge30 = [r for r in same if r["overlap"] >= 0.3]
+    acc = [r for r in same if r["accepted"] and not r["false_merge"]]
+    by: dict[str, dict[str, Any]] = {}
+    for label in ["0"] + [f"{int(lo * 100)}-{min(100, int(hi * 100))}%" for lo, hi in BANDS[1:]]:
+        rs = [r for r in same if r["band"] == label]
+        if not rs:
+            continue
+        by[label] = {
+            "pairs": len(rs),
+            "accepted": sum(r["accepted"] for r in rs),
+            "success_rate": round(sum(r["success"] for r in rs) / len(rs), 4),
+            "false_merges": sum(r["false_merge"] for r in rs),
+        }
+    return {
+        "pairs": len(rows),
+        "same_pairs": len(same),
+        "cross_pairs": len(cross),
+        "carmen_pairs": sum(r["source"] == "carmen" for r in rows),
+        "false_merges": sum(r["false_merge"] for r in rows),
+        "false_merges_cross": sum(r["false_merge"] for r in cross),
+        "imprecise_accepts": sum(r["accepted"] and not r["false_merge"] and not r["success"] for r in same),
+        "pairs_overlap_ge_30": len(ge30),
+        "success_rate_overlap_ge_30": round(sum(r["success"] for r in ge30) / len(ge30), 4) if ge30 else None,
+        "trans_err_m_p50": _pct([r["trans_err"] for r in acc], 50),
+        "trans_err_m_p95": _pct([r["trans_err"] for r in acc], 95),
+        "rot_err_deg_p50": _pct([math.degrees(r["rot_err"]) for r in acc], 50),
+        "rot_err_deg_p95": _pct([math.degrees(r["rot_err"]) for r in acc], 95),
+        "ms_per_attempt_p50": _pct([r["ms"] for r in rows], 50),
+        "ms_per_attempt_p95": _pct([r["ms"] for r in rows], 95),
+        "by_overlap": by,
+        "by_world_overlap_ge_30": {
+            name: {"pairs": len(rs), "success_rate": round(sum(r["success"] for r in rs) / len(rs), 4)}
+            for name in sorted({r["worlds"][0] for r in ge30})
+            for rs in [[r for r in ge30 if r["worlds"][0] == name]]
+        },
+        "refusal_reasons_overlap_ge_30": _reasons([r for r in ge30 if not r["accepted"]]),
+    }
+
+
+def _reasons(rows: list[dict[str, Any]]) -> dict[str, int]:
+    out: dict[str, int] = {}
+    for r in rows:
+        key = r["reason"].split(" (")[0].split(":")[0]
+        out[key] = out.get(key, 0) + 1
+    return dict(sorted(out.items(), key=lambda kv: -kv[1]))
+
+
+def _print_table(summary: dict[str, Any], rows: list[dict[str, Any]]) -> None:
+    from agents.bench.common import print_table
+
+    table = [
+        [band, v["pairs"], v["accepted"], f"{v['success_rate']:.1%}", v["false_merges"]]
+        for band, v in summary["by_overlap"].items()
+    ]
+    cross = [r for r in rows if not r["same"]]
+    table.append(["cross-world", len(cross), sum(r["accepted"] for r in cross), "-", sum(r["false_merge"] for r in cross)])
+    print_table(["overlap", "pairs", "accepted", "success", "false merges"], table)
+    for src in ("sim", "carmen"):
+        rs = [r for r in rows if r["source"] == src and r["same"] and r["overlap"] >= 0.3]
+        if rs:
+            print(f"{src}: overlap >= 30 %: {sum(r['success'] for r in rs)}/{len(rs)} registered within 0.10 m / 1 deg")
+
+
+# ------------------------------------------------------------------------------ main
+def run(args: argparse.Namespace) -> int:
+    if args.quick:
+        n_pairs, n_cross, n_carmen = 100, 30, 10
+    else:
+        n_pairs = args.pairs
+        n_cross = args.cross if args.cross is not None else max(1, n_pairs // 4)
+        n_carmen = args.carmen if args.carmen is not None else n_pairs // 10
+    if n_pairs < 0 or n_cross < 0 or n_carmen < 0:
+        raise UserError("pair counts must be >= 0")
+    rng = np.random.default_rng(args.seed)
+    names = args.worlds.split(",") if args.worlds else [*WORLDS, *sorted(str(p) for p in TEST_WORLDS.glob("*.geojson"))]
+    log = (lambda msg: None) if args.quiet else (lambda msg: sys.stderr.write(msg + "\n"))
+    log(f"planning routes in {len(names)} worlds")
+    worlds = _load_worlds(names, rng)
+    logs: list[Log] = []
+    if n_carmen:
+        paths = sorted(CARMEN_DIR.glob("*.log.gz"))
+        if not paths:
+            log(f"no CARMEN logs in {CARMEN_DIR}: skipped")
+        for p in paths:
+            logs.append(_read_log(p))
+            log(f"read {p.name}: {len(logs[-1].scans)} scans")
+    rows: list[dict[str, Any]] = []
+    t_start = time.perf_counter()
+    total = n_pairs + n_cross + (n_carmen if logs else 0)
+
+    def record(source: str, same: bool, sa: Sample, sb: Sample, overlap: float) -> None:
+        row = attempt(sa, sb, same)
+        row.update(source=source, same=same, overlap=overlap if same else 0.0, band=_band(overlap) if same else "cross",
+                   worlds=(sa.world, sb.world))
+        rows.append(row)
+        if len(rows) % 25 == 0 or row["false_merge"]:
+            fm = sum(r["false_merge"] for r in rows)
+            log(f"[{len(rows)}/{total}] {time.perf_counter() - t_start:.0f} s, false merges {fm}"
+                + (f"  FALSE MERGE {sa.world}/{sb.world} overlap {overlap:.2f} err {row['trans_err']:.2f} m" if row["false_merge"] else ""))
+
+    for k in range(n_pairs):
+        w = worlds[k % len(worlds)]
+        sa, sb, ov = sim_pair(w, rng, args.noise)
+        record("sim", True, sa, sb, ov)
+    for k in range(n_carmen if logs else 0):
+        lg = logs[k % len(logs)]
+        sa, sb, ov = log_pair(lg, rng)
+        record("carmen", True, sa, sb, ov)
+    sources: list[tuple[str, Any]] = [("sim", w) for w in worlds] + [("carmen", lg) for lg in logs]
+    for k in range(n_cross):
+        i = k % len(sources)
+        j = (i + 1 + int(rng.integers(0, len(sources) - 1))) % len(sources)
+        maps = []
+        for kind, src in (sources[i], sources[j]):
+            if kind == "sim":
+                s0, s1 = _stretch(src, rng)
+                maps.append(_sim_map(src, s0, s1, args.noise, rng))
+            else:
+                n = len(src.scans)
+                ln = int(rng.integers(20, 60))
+                i0 = int(rng.integers(0, max(1, n - ln)))
+                maps.append(_log_map(src, i0, min(n, i0 + ln), rng))
+        record("cross", False, maps[0], maps[1], 0.0)
+    summary = summarise(rows)
+    _print_table(summary, rows)
+    print(f"false merges {summary['false_merges']} (cross {summary['false_merges_cross']}), "
+          f"success at >= 30 % overlap {summary['success_rate_overlap_ge_30']}, "
+          f"p95 error {summary['trans_err_m_p95']} m / {summary['rot_err_deg_p95']} deg, "
+          f"{summary['ms_per_attempt_p50']} ms per attempt (p50)")
+    if args.json:
+        print(json.dumps(summary))
+    return 0

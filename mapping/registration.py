@@ -1,0 +1,879 @@
+"""Global registration of two wireframes in unrelated frames (robots that never met).
+
+Given two maps ``A`` and ``B`` (each in the frame of its own robot's start pose), find the rigid
+motion ``T`` such that ``B.transformed(T)`` lies on ``A`` -- or say that the evidence supports no
+such motion. Nothing is assumed about the start poses: every step is invariant to a rigid motion
+of either map.
+
+Pipeline
+--------
+1. **Per-map features** (:func:`prepare`, once per map; the fusion service keeps them per robot
+   and registers pairs with :func:`register_prepared`):
+
+   * *wall samples*: every directed edge cut into pieces of about ``sample_spacing`` metres, each
+     piece's midpoint, unit direction and length (a k-d tree over the midpoints);
+   * *wall ends*: every end of an edge at a real corner (nominal or occlusion vertex, never a
+     frontier: a frontier is where sight of a wall ended, not where the wall ends), with the
+     edge's direction and whether the edge starts or ends there;
+   * *free probes*: points ``free_depths`` metres to the left (the free side, see
+     :mod:`mapping.wireframe`) of every wall sample that is at least ``probe_end_margin`` from
+     the wall's ends, dropped when closer than ``free_clearance`` to any wall of the map. The
+     robot saw the wall from its left, through that strip: it is space the map has *seen free*.
+     This is the map's free space without a trajectory and without closed faces
+     (:func:`mapping.metrics.free_space` needs closed rooms, which partial maps rarely have);
+   * the *direction histogram*: wall length per directed direction (``direction_bins`` bins,
+     Gaussian-smoothed by ``direction_smooth``).
+
+2. **Rotation hypotheses.** The circular cross-correlation of the two direction histograms (FFT)
+   peaks at the rotations that turn B's walls onto A's; up to ``max_rotations`` local maxima of at
+   least ``rotation_peak_ratio`` times the highest are kept, each refined by a parabola through
+   the peak and its neighbours. Directed walls make the histogram span 360 degrees, so a
+   rectangular room gives four hypotheses, not two; the ambiguity that remains is resolved by
+   the translation and verification steps.
+
+3. **Translation voting** (a Hough transform over corner pairs). Under a rotation, a wall end of
+   B and one of A with the same role (start or end of its edge) and directions within
+   ``feature_angle_tol`` propose the translation that puts one on the other. Each proposal votes
+   with the shorter of the two walls' lengths (capped at ``vote_weight_cap``: one long wall must
+   not outvote many corners), split bilinearly over the four nearest cells of a ``vote_cell``
+   grid; a nominal corner votes twice (once per wall), which favours full corners. The strongest
+   cells, at least ``peak_separation`` apart, are the candidate translations
+   (``peaks_per_rotation`` per rotation). Both maps are centred on their wall centroid first, so
+   that a small rotation error spreads the votes as little as possible.
+
+4. **Verification.** The ``verify_candidates`` strongest candidates are scored: B's wall samples
+   are moved by the candidate and matched to A's (within ``coarse_match_dist``, same direction
+   within ``match_angle``): *support* is the matched wall length. *Conflict* is the wall length of
+   each map that falls onto the other's free probes (within ``conflict_radius``): a wall where the
+   other robot has seen free space, the false-merge guard. The score is ``support -
+   conflict_weight * conflict``.
+
+5. **Refinement.** The ``refine_candidates`` best are refined by iteratively re-matched
+   point-to-line least squares on the wall samples (each matched B sample against the line of
+   its A sample, Huber-weighted, gate shrinking to ``match_dist``) and re-scored at the final
+   gate. The result is polished by the wireframe ICP :func:`mapping.icp.icp` on the two maps
+   cropped to the overlap (used only when ICP accepts its correction and the score does not
+   drop).
+
+6. **Decision.** The best refined hypothesis is compared with the best *distinct* one (a
+   translation more than ``distinct_translation`` or a rotation more than ``distinct_rotation``
+   away, among every verified hypothesis): repeated structure (identical offices along a
+   corridor) gives two similar scores and is refused rather than guessed. Accepted when all of
+
+   * ``support >= min_support`` metres and ``support >= min_support_fraction`` of the smaller map;
+   * ``conflict <= max_conflict + max_conflict_fraction * support``;
+   * ``runner_up_ratio <= max_runner_up_ratio`` (runner-up score over best score, 0 when the
+     runner-up's score is not positive);
+   * the matched walls constrain translation in every direction: the smaller eigenvalue of
+     ``sum(length * n n^T)`` over matched samples (``n`` the wall normal) is at least
+     ``min_cross_support`` metres (a corridor seen as two parallel walls does not say where
+     along it the other map lies);
+   * the RMS point-to-line residual of the matched samples is at most ``max_rmse``;
+   * at least ``min_corners`` real corners of B land on real corners of A (one L of two walls
+     looks like every other corner of its kind);
+   * the overlap is not *self-similar*: the part of each map that the other matched, registered
+     against its own map, has no hypothesis distinct from the identity that lands more than
+     ``max_self_ratio`` of its corners on corners without conflict. A robot that has itself seen
+     the overlap's structure repeated (identical offices, pillar rows, the sides of a symmetric
+     ring) is in a building where the other robot may have seen a *different* copy, which no
+     agreement between the two maps can rule out.
+
+Confidence
+----------
+:attr:`Registration.confidence` is ``(1 - runner_up_ratio) * support / (support + min_support)``
+in [0, 1): 0 when a distinct hypothesis is as good, approaching 1 with a unique hypothesis and much
+more supporting wall than the minimum. It is a ranking, not a probability; the accept decision
+uses the individual gates above, all reported in :class:`Registration`.
+
+Determinism: no randomness at all (exhaustive voting, not RANSAC); ties are broken by index.
+
+Cost (one core, a shared machine): 30-100 ms for maps of 20-80 corners; about 185 ms for two
+220-corner halves of the museum (2.5 km of wall each), most of it in the translation vote (every
+same-direction corner pair of a rectilinear map votes) -- over the 50 ms target for 300 corners.
+:func:`prepare` is a small part and can be cached per map.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial import cKDTree
+
+from mapping.icp import ICPConfig, icp
+from mapping.se2 import Pose
+from mapping.wireframe import Label, Wireframe
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.int64]
+BoolArray = NDArray[np.bool_]
+
+__all__ = [
+    "Hypothesis",
+    "MapFeatures",
+    "Registration",
+    "RegistrationConfig",
+    "prepare",
+    "register",
+    "register_prepared",
+    "rotation_candidates",
+]
+
+
+@dataclass(frozen=True)
+class RegistrationConfig:
+    """Parameters of :func:`register`. Lengths in metres, angles in radians.
+
+    Parameters
+    ----------
+    sample_spacing : float
+        Wall sample spacing (support, conflict and refinement resolution).
+    max_samples : int
+        Larger maps are sampled more coarsely, to about this many samples (cost bound: 2,000
+        samples is 500 m of wall at the default spacing).
+    min_wall : float
+        Edges shorter than this are ignored (noise, corner slivers).
+    free_depths : tuple of float
+        Depths of the free probes in front of every wall sample.
+    free_clearance : float
+        Probes closer than this to a wall of their own map are dropped (corners, clutter).
+    probe_end_margin : float
+        Probes only in front of the part of a wall at least this far from its ends.
+    direction_bins : int
+        Bins of the direction histogram over 360 degrees (720: half a degree).
+    direction_smooth : float
+        Standard deviation of the Gaussian that smooths the histogram (wall noise).
+    max_rotations : int
+        Rotation hypotheses kept (local maxima of the histogram correlation).
+    rotation_peak_ratio : float
+        A correlation peak is kept only if at least this times the highest.
+    feature_angle_tol : float
+        Two wall ends pair up when their rotated directions differ by at most this.
+    vote_cell : float
+        Translation vote grid cell.
+    vote_weight_cap : float
+        Largest vote of one wall-end pair (metres of wall).
+    peaks_per_rotation : int
+        Candidate translations kept per rotation hypothesis.
+    peak_separation : float
+        Least distance between two candidate translations of one rotation.
+    verify_candidates : int
+        Candidates (by vote, over all rotations) that are scored.
+    refine_candidates : int
+        Scored candidates (by score) that are refined.
+    coarse_match_dist, match_dist : float
+        Largest distance of a matched wall sample before and after refinement.
+    match_angle : float
+        Largest direction difference of a matched wall sample.
+    conflict_radius : float
+        A wall sample this close to a free probe of the other map is in conflict.
+    conflict_weight : float
+        Weight of conflicting wall length in the score.
+    refine_iterations : int
+        Point-to-line iterations of the refinement.
+    huber : float
+        Huber threshold of the refinement's residuals.
+    use_icp : bool
+        Polish the result with :func:`mapping.icp.icp` on the cropped overlap.
+    max_icp_pairs : int
+        ICP is skipped when the cropped maps' edge counts multiply to more than this (its edge
+        correspondence test is quadratic; the point-to-line refinement already converged).
+    distinct_translation, distinct_rotation : float
+        Two hypotheses are distinct when their translations (at the centre of B's walls) differ
+        by more than ``distinct_translation`` or their rotations by more than
+        ``distinct_rotation``.
+    min_support : float
+        Least matched wall length for acceptance. With 8 m a single room wall pair cannot
+        merge two maps; maps with less wall than this never merge.
+    min_support_fraction : float
+        Least matched wall length as a fraction of the smaller map's wall length.
+    max_conflict, max_conflict_fraction : float
+        Largest accepted conflict: ``max_conflict + max_conflict_fraction * support`` (the
+        constant absorbs clutter and corner noise of real maps).
+    max_runner_up_ratio : float
+        Largest accepted ratio of the best distinct runner-up's score to the best score.
+    min_cross_support : float
+        Least wall length constraining the weaker translation direction.
+    max_rmse : float
+        Largest accepted RMS point-to-line residual of the matched samples.
+    min_corners : int
+        Least number of B's real corners that land within ``corner_match_dist`` of a real
+        corner of A. One room corner (an L of two walls) looks like every other corner of
+        its kind: four were needed to keep the corners of a symmetric ring apart.
+    corner_match_dist : float
+        Distance within which two real corners match.
+    max_self_ratio : float
+        Largest accepted *self-similarity* of the overlap: the part of each map that the
+        other matched is registered against its own map, and the best hypothesis distinct from
+        the identity must score at most this fraction of the identity's score. A robot that
+        has itself seen the overlap's structure twice (identical offices along a corridor, the
+        sides of a symmetric ring) lives in a repetitive building, where the other robot may
+        well have seen a *different* copy: no amount of agreement between the two maps can
+        tell which (step 6 of the module docstring).
+
+    Raises
+    ------
+    ValueError
+        On a non-positive length, count or angle, or a ratio outside [0, 1].
+    """
+
+    sample_spacing: float = 0.25
+    max_samples: int = 2000
+    min_wall: float = 0.15
+    free_depths: tuple[float, ...] = (0.35, 0.7, 1.05)
+    free_clearance: float = 0.3
+    probe_end_margin: float = 0.3
+    direction_bins: int = 720
+    direction_smooth: float = math.radians(1.0)
+    max_rotations: int = 8
+    rotation_peak_ratio: float = 0.3
+    feature_angle_tol: float = math.radians(6.0)
+    vote_cell: float = 0.3
+    vote_weight_cap: float = 4.0
+    peaks_per_rotation: int = 6
+    peak_separation: float = 1.0
+    verify_candidates: int = 16
+    refine_candidates: int = 4
+    coarse_match_dist: float = 0.35
+    match_dist: float = 0.15
+    match_angle: float = math.radians(15.0)
+    conflict_radius: float = 0.2
+    conflict_weight: float = 3.0
+    refine_iterations: int = 6
+    huber: float = 0.05
+    use_icp: bool = True
+    max_icp_pairs: int = 20_000
+    distinct_translation: float = 1.0
+    distinct_rotation: float = math.radians(5.0)
+    min_support: float = 8.0
+    min_support_fraction: float = 0.1
+    max_conflict: float = 0.5
+    max_conflict_fraction: float = 0.05
+    max_runner_up_ratio: float = 0.7
+    min_cross_support: float = 1.5
+    max_rmse: float = 0.08
+    min_corners: int = 4
+    corner_match_dist: float = 0.25
+    max_self_ratio: float = 0.75
+
+    def __post_init__(self) -> None:
+        for name in ("sample_spacing", "free_clearance", "direction_smooth", "feature_angle_tol",
+                     "vote_cell", "vote_weight_cap", "peak_separation", "coarse_match_dist",
+                     "match_dist", "match_angle", "conflict_radius", "huber", "distinct_translation",
+                     "distinct_rotation", "max_rmse"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v > 0):
+                raise ValueError(f"RegistrationConfig.{name} must be a positive number, got {v!r}")
+        for name in ("min_wall", "probe_end_margin", "conflict_weight", "min_support", "max_conflict",
+                     "max_conflict_fraction", "min_cross_support"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v >= 0):
+                raise ValueError(f"RegistrationConfig.{name} must be >= 0, got {v!r}")
+        for name in ("max_samples", "direction_bins", "max_rotations", "peaks_per_rotation", "verify_candidates",
+                     "refine_candidates", "refine_iterations"):
+            if int(getattr(self, name)) < 1:
+                raise ValueError(f"RegistrationConfig.{name} must be >= 1")
+        for name in ("rotation_peak_ratio", "min_support_fraction", "max_runner_up_ratio"):
+            v = getattr(self, name)
+            if not 0.0 <= v <= 1.0:
+                raise ValueError(f"RegistrationConfig.{name} must be within [0, 1], got {v!r}")
+        if any(not (math.isfinite(d) and d > 0) for d in self.free_depths):
+            raise ValueError("RegistrationConfig.free_depths must be positive")
+        if self.match_dist > self.coarse_match_dist:
+            raise ValueError("RegistrationConfig.match_dist must not exceed coarse_match_dist")
+
+
+@dataclass(frozen=True, eq=False)
+class MapFeatures:
+    """What registration needs of one map (:func:`prepare`), in the map's own frame.
+
+    Attributes
+    ----------
+    wireframe : Wireframe
+    centre : (2,)
+        Length-weighted centroid of the walls (votes are cast in centred coordinates).
+    points, directions, normals : (k, 2)
+        Wall samples: midpoints, unit directions, left (free-side) unit normals.
+    weights : (k,)
+        Wall length per sample.
+    tree : cKDTree
+        Over ``points``.
+    probes : (p, 2)
+        Free probes (module docstring).
+    probe_tree : cKDTree or None
+        Over ``probes`` (None when there are none).
+    end_points : (f, 2)
+        Wall ends at real corners.
+    end_angles : (f,)
+        Direction of the wall at each end, radians in ``[-pi, pi)``.
+    end_starts : (f,) bool
+        Whether the wall starts (True) or ends there.
+    end_weights : (f,)
+        Length of the wall.
+    histogram : (direction_bins,)
+        Smoothed wall length per direction.
+    length : float
+        Total wall length (edges of at least ``min_wall``).
+    owner : (k,) int64
+        Index of each sample's edge in ``wireframe``.
+    corner_points : (c, 2)
+        Vertices at real corners (nominal or occlusion) that end an edge of at least ``min_wall``.
+    """
+
+    wireframe: Wireframe
+    centre: FloatArray
+    points: FloatArray
+    directions: FloatArray
+    normals: FloatArray
+    weights: FloatArray
+    tree: cKDTree
+    probes: FloatArray
+    probe_tree: cKDTree | None
+    end_points: FloatArray
+    end_angles: FloatArray
+    end_starts: BoolArray
+    end_weights: FloatArray
+    histogram: FloatArray
+    length: float
+    owner: IntArray
+    corner_points: FloatArray
+
+
+@dataclass(frozen=True)
+class Hypothesis:
+    """One scored transform of B onto A.
+
+    Attributes
+    ----------
+    transform : Pose
+        Maps B's points into A's frame.
+    votes : float
+        Its translation vote (metres of wall, step 3 of the module docstring); 0 if not voted.
+    support : float
+        Matched wall length of B (metres).
+    conflict : float
+        Wall length of either map on the other's seen-free space (metres).
+    score : float
+        ``support - conflict_weight * conflict``.
+    rmse : float
+        RMS point-to-line residual of the matched samples (metres).
+    cross_support : float
+        Smaller eigenvalue of the matched walls' normal scatter (metres of wall).
+    refined : bool
+        Whether it went through the refinement.
+    """
+
+    transform: Pose
+    votes: float
+    support: float
+    conflict: float
+    score: float
+    rmse: float
+    cross_support: float
+    refined: bool = False
+
+
+@dataclass(frozen=True)
+class Registration:
+    """Outcome of :func:`register`.
+
+    Attributes
+    ----------
+    accepted : bool
+        Whether ``transform`` is supported by the evidence (all gates of the module docstring).
+    transform : Pose or None
+        The best hypothesis (B's frame into A's), also when refused; None when there was none.
+    reason : str
+        Why it was refused ("" when accepted).
+    confidence : float
+        ``(1 - runner_up_ratio) * support / (support + min_support)``, 0 without a hypothesis.
+    support, support_fraction, conflict, rmse, cross_support : float
+        Of the best hypothesis; ``support_fraction`` is over the smaller map's wall length.
+    runner_up_ratio : float
+        Score of the best distinct runner-up over the best score (0 when there is none).
+    best, runner_up : Hypothesis or None
+    hypotheses : int
+        Candidate transforms voted for.
+    """
+
+    accepted: bool
+    transform: Pose | None
+    reason: str
+    confidence: float = 0.0
+    support: float = 0.0
+    support_fraction: float = 0.0
+    conflict: float = 0.0
+    rmse: float = math.inf
+    cross_support: float = 0.0
+    runner_up_ratio: float = 0.0
+    best: Hypothesis | None = None
+    runner_up: Hypothesis | None = None
+    hypotheses: int = 0
+    extra: dict[str, float] = field(default_factory=dict)
+
+
+# ------------------------------------------------------------------------------ features
+def _wrap(a: FloatArray) -> FloatArray:
+    return np.asarray((a + np.pi) % (2.0 * np.pi) - np.pi, dtype=np.float64)
+
+
+def prepare(wf: Wireframe, config: RegistrationConfig | None = None) -> MapFeatures:
+    """The registration features of one map (module docstring, step 1).
+
+    Parameters
+    ----------
+    wf : Wireframe
+        The map, in its own frame. Every edge counts whatever its likelihood (drop unlikely
+        edges first with :meth:`Wireframe.subgraph_edges` if wanted).
+    config : RegistrationConfig, optional
+
+    Returns
+    -------
+    MapFeatures
+    """
+    cfg = config or RegistrationConfig()
+    seg = wf.segments()
+    d = seg[:, 1] - seg[:, 0] if len(seg) else np.zeros((0, 2))
+    ln = np.hypot(d[:, 0], d[:, 1])
+    keep = ln >= max(cfg.min_wall, 1e-9)
+    kept = np.flatnonzero(keep)
+    seg, d, ln = seg[keep], d[keep], ln[keep]
+    edges = wf.edges[keep]
+    u = d / np.where(ln > 0, ln, 1.0)[:, None]
+    nrm = np.stack([-u[:, 1], u[:, 0]], axis=1)
+    # Samples: midpoints of equal pieces of each directed edge; the spacing grows on large maps
+    # so that there are at most about ``max_samples`` (cost is linear in them).
+    spacing = max(cfg.sample_spacing, float(ln.sum()) / cfg.max_samples)
+    n = np.maximum(1, np.ceil(ln / spacing - 1e-9)).astype(np.int64)
+    owner = np.repeat(np.arange(len(seg)), n)
+    first = np.cumsum(n) - n
+    j = np.arange(int(n.sum())) - np.repeat(first, n)
+    t = (j + 0.5) / n[owner]
+    pts = seg[owner, 0] + t[:, None] * d[owner]
+    w = ln[owner] / n[owner]
+    dirs = u[owner]
+    nor = nrm[owner]
+    total = float(ln.sum())
+    centre = (pts * w[:, None]).sum(0) / total if total > 0 else np.zeros(2)
+    tree = cKDTree(pts if len(pts) else np.zeros((0, 2)))
+    # Free probes in front of the inner part of every wall.
+    along = t * ln[owner]
+    inner = (along >= cfg.probe_end_margin) & (ln[owner] - along >= cfg.probe_end_margin)
+    probes = np.concatenate([pts[inner] + dep * nor[inner] for dep in cfg.free_depths]) if len(pts) else np.zeros((0, 2))
+    if len(probes) and len(pts):
+        dist, _ = tree.query(probes, k=1, distance_upper_bound=cfg.free_clearance)
+        probes = probes[~np.isfinite(dist)]
+    probe_tree = cKDTree(probes) if len(probes) else None
+    # Wall ends at real corners.
+    real = np.zeros(len(Label), dtype=bool)
+    real[[int(Label.NOMINAL), int(Label.OCCLUSION)]] = True
+    ang = np.arctan2(u[:, 1], u[:, 0]) if len(u) else np.zeros(0)
+    s_ok = real[wf.labels[edges[:, 0]]] if len(edges) else np.zeros(0, bool)
+    e_ok = real[wf.labels[edges[:, 1]]] if len(edges) else np.zeros(0, bool)
+    end_points = np.concatenate([seg[s_ok, 0], seg[e_ok, 1]])
+    end_angles = np.concatenate([ang[s_ok], ang[e_ok]])
+    end_starts = np.concatenate([np.ones(int(s_ok.sum()), bool), np.zeros(int(e_ok.sum()), bool)])
+    end_weights = np.concatenate([ln[s_ok], ln[e_ok]])
+    used = np.unique(np.concatenate([edges[s_ok, 0], edges[e_ok, 1]]))
+    corner_points = np.asarray(wf.points[used], dtype=np.float64).reshape(-1, 2)
+    # Direction histogram, circularly smoothed.
+    nb = cfg.direction_bins
+    width = 2.0 * math.pi / nb
+    # Linear binning (each wall split between its two nearest bins) keeps the sub-bin direction.
+    pos = (ang + math.pi) / width - 0.5
+    b0 = np.floor(pos).astype(np.int64)
+    fr = pos - b0
+    hist = np.bincount(np.concatenate([b0 % nb, (b0 + 1) % nb]), weights=np.concatenate([ln * (1 - fr), ln * fr]),
+                       minlength=nb).astype(np.float64)
+    k = np.fft.rfftfreq(nb, d=1.0 / nb)
+    sig = cfg.direction_smooth / width
+    hist = np.fft.irfft(np.fft.rfft(hist) * np.exp(-2.0 * (math.pi * sig * k / nb) ** 2), n=nb)
+    return MapFeatures(
+        wireframe=wf, centre=np.asarray(centre, dtype=np.float64), points=pts, directions=dirs, normals=nor,
+        weights=w, tree=tree, probes=probes, probe_tree=probe_tree, end_points=end_points,
+        end_angles=end_angles, end_starts=end_starts, end_weights=end_weights, histogram=hist, length=total,
+        owner=kept[owner].astype(np.int64), corner_points=corner_points,
+    )
+
+
+# ------------------------------------------------------------------------------ rotation
+def rotation_candidates(fa: MapFeatures, fb: MapFeatures, config: RegistrationConfig | None = None) -> FloatArray:
+    """Rotations (radians) that turn B's wall directions onto A's, best first (step 2).
+
+    The circular cross-correlation ``c[k] = sum_i hist_A[i + k] hist_B[i]`` is computed by FFT;
+    its local maxima of at least ``rotation_peak_ratio`` of the highest, refined by a parabola
+    through three bins, are returned (at most ``max_rotations``).
+    """
+    cfg = config or RegistrationConfig()
+    nb = cfg.direction_bins
+    c = np.fft.irfft(np.fft.rfft(fa.histogram) * np.conj(np.fft.rfft(fb.histogram)), n=nb)
+    if not np.any(c > 0):
+        return np.zeros(0)
+    left, right = np.roll(c, 1), np.roll(c, -1)
+    peak = (c >= left) & (c > right) & (c >= cfg.rotation_peak_ratio * c.max())
+    idx = np.flatnonzero(peak)
+    idx = idx[np.argsort(-c[idx], kind="stable")][: cfg.max_rotations]
+    den = left[idx] - 2.0 * c[idx] + right[idx]
+    off = np.where(den < 0, 0.5 * (left[idx] - right[idx]) / np.where(den < 0, den, -1.0), 0.0)
+    return _wrap((idx + np.clip(off, -0.5, 0.5)) * (2.0 * math.pi / nb))
+
+
+# ------------------------------------------------------------------------------ voting
+def _angle_pairs(
+    ang_a: FloatArray, key_a: IntArray, ang_b: FloatArray, key_b: IntArray, tol: float
+) -> tuple[IntArray, IntArray]:
+    """All ``(i, j)`` with ``key_a[i] == key_b[j]`` and ``|wrap(ang_a[i] - ang_b[j])| <= tol``.
+
+    Angles are binned by ``tol``; each B entry looks up its own and the two neighbouring bins
+    (with the same key) through a sorted index, so the cost is the number of near pairs, not
+    ``len(a) * len(b)``.
+    """
+    nbin = max(3, int(2.0 * math.pi / tol))
+    width = 2.0 * math.pi / nbin
+    ba = ((ang_a + math.pi) / width).astype(np.int64) % nbin
+    bb = ((ang_b + math.pi) / width).astype(np.int64) % nbin
+    ka = key_a * nbin + ba
+    order = np.argsort(ka, kind="stable")
+    sk = ka[order]
+    ib_l, ia_l = [], []
+    for shift in (-1, 0, 1):
+        kb = key_b * nbin + (bb + shift) % nbin
+        lo = np.searchsorted(sk, kb, side="left")
+        hi = np.searchsorted(sk, kb, side="right")
+        cnt = hi - lo
+        tot = int(cnt.sum())
+        if tot == 0:
+            continue
+        jb = np.repeat(np.arange(len(kb)), cnt)
+        pos = np.arange(tot) - np.repeat(np.cumsum(cnt) - cnt, cnt) + np.repeat(lo, cnt)
+        ib_l.append(jb)
+        ia_l.append(order[pos])
+    if not ia_l:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    ia = np.concatenate(ia_l)
+    ib = np.concatenate(ib_l)
+    ok = np.abs(_wrap(ang_a[ia] - ang_b[ib])) <= tol
+    return ia[ok], ib[ok]
+
+
+def _vote(
+    fa: MapFeatures, fb: MapFeatures, theta: float, cfg: RegistrationConfig
+) -> list[tuple[FloatArray, float]]:
+    """Candidate translations (centred coordinates) under rotation ``theta``, strongest first."""
+    if len(fa.end_points) == 0 or len(fb.end_points) == 0:
+        return []
+    ia, ib = _angle_pairs(
+        fa.end_angles, fa.end_starts.astype(np.int64),
+        _wrap(fb.end_angles + theta), fb.end_starts.astype(np.int64), cfg.feature_angle_tol,
+    )
+    if len(ia) == 0:
+        return []
+    c, s = math.cos(theta), math.sin(theta)
+    pb = fb.end_points[ib] - fb.centre
+    pa = fa.end_points[ia] - fa.centre
+    tx = pa[:, 0] - (c * pb[:, 0] - s * pb[:, 1])
+    ty = pa[:, 1] - (s * pb[:, 0] + c * pb[:, 1])
+    wv = np.minimum(np.minimum(fa.end_weights[ia], fb.end_weights[ib]), cfg.vote_weight_cap)
+    gx, gy = tx / cfg.vote_cell, ty / cfg.vote_cell
+    x0, y0 = np.floor(gx).astype(np.int64), np.floor(gy).astype(np.int64)
+    fx, fy = gx - x0, gy - y0
+    xmin, ymin = int(x0.min()), int(y0.min())
+    ny = int(y0.max()) - ymin + 2
+    base = (x0 - xmin) * ny + (y0 - ymin)
+    keys = np.concatenate([base, base + ny, base + 1, base + ny + 1])
+    vals = np.concatenate([wv * (1 - fx) * (1 - fy), wv * fx * (1 - fy), wv * (1 - fx) * fy, wv * fx * fy])
+    nx = int(x0.max()) - xmin + 2
+    top = 50 * cfg.peaks_per_rotation
+    if nx * ny <= 4_000_000:
+        # Dense accumulation (a bincount is much cheaper than sorting the keys).
+        grid = np.bincount(keys, weights=vals, minlength=nx * ny)
+        uk = np.flatnonzero(grid)
+        acc = grid[uk]
+    else:  # sparse: only the cells that got votes
+        uk, inv = np.unique(keys, return_inverse=True)
+        acc = np.bincount(inv, weights=vals)
+    if len(acc) > top:
+        part = np.argpartition(-acc, top)[:top]
+        uk, acc = uk[part], acc[part]
+    order = np.lexsort((uk, -acc))  # strongest first, ties by cell
+    out: list[tuple[FloatArray, float]] = []
+    sep2 = cfg.peak_separation**2
+    for o in order:
+        cx = (uk[o] // ny + xmin) * cfg.vote_cell
+        cy = (uk[o] % ny + ymin) * cfg.vote_cell
+        if any((cx - p[0]) ** 2 + (cy - p[1]) ** 2 < sep2 for p, _ in out):
+            continue
+        # Sub-cell position: weighted mean of the proposals near the peak cell.
+        near = (np.abs(tx - cx) <= cfg.vote_cell) & (np.abs(ty - cy) <= cfg.vote_cell)
+        wn = wv[near]
+        t = np.array([np.dot(tx[near], wn), np.dot(ty[near], wn)]) / wn.sum() if wn.sum() > 0 else np.array([cx, cy])
+        out.append((t, float(acc[o])))
+        if len(out) >= cfg.peaks_per_rotation:
+            break
+    return out
+
+
+# ------------------------------------------------------------------------------ scoring
+def _rot(theta: float) -> FloatArray:
+    c, s = math.cos(theta), math.sin(theta)
+    return np.array([[c, -s], [s, c]])
+
+
+def _match(
+    fa: MapFeatures, fb: MapFeatures, T: Pose, gate: float, cfg: RegistrationConfig, stride: int = 1
+) -> tuple[IntArray, IntArray]:
+    """B samples (every ``stride``-th) moved by ``T`` matched to A samples: ``(ib, ia)``."""
+    sel = np.arange(0, len(fb.points), stride)
+    q = T.apply(fb.points[sel])
+    dist, idx = fa.tree.query(q, k=3, distance_upper_bound=gate)
+    R = _rot(T.theta)
+    db = fb.directions[sel] @ R.T
+    ok = np.isfinite(dist)
+    idx_c = np.where(ok, idx, 0)
+    cosang = np.einsum("ijk,ik->ij", fa.directions[idx_c], db)
+    ok &= cosang >= math.cos(cfg.match_angle)
+    first = np.argmax(ok, axis=1)
+    has = ok[np.arange(len(sel)), first]
+    return sel[has], idx_c[np.arange(len(sel)), first][has]
+
+
+def _conflict(fa: MapFeatures, fb: MapFeatures, T: Pose, cfg: RegistrationConfig, stride: int = 1) -> float:
+    """Wall length of each map on the other's free probes, B moved by ``T``."""
+    total = 0.0
+    if fa.probe_tree is not None and len(fb.points):
+        sel = np.arange(0, len(fb.points), stride)
+        d, _ = fa.probe_tree.query(T.apply(fb.points[sel]), k=1, distance_upper_bound=cfg.conflict_radius)
+        total += float(fb.weights[sel][np.isfinite(d)].sum()) * stride
+    if fb.probe_tree is not None and len(fa.points):
+        sel = np.arange(0, len(fa.points), stride)
+        d, _ = fb.probe_tree.query(T.inverse().apply(fa.points[sel]), k=1, distance_upper_bound=cfg.conflict_radius)
+        total += float(fa.weights[sel][np.isfinite(d)].sum()) * stride
+    return total
+
+
+def _residuals(fa: MapFeatures, fb: MapFeatures, T: Pose, ib: IntArray, ia: IntArray) -> FloatArray:
+    q = T.apply(fb.points[ib])
+    return np.asarray(np.einsum("ij,ij->i", q - fa.points[ia], fa.normals[ia]), dtype=np.float64)
+
+
+def _score(
+    fa: MapFeatures, fb: MapFeatures, T: Pose, gate: float, cfg: RegistrationConfig, votes: float,
+    stride: int = 1, refined: bool = False,
+) -> Hypothesis:
+    ib, ia = _match(fa, fb, T, gate, cfg, stride)
+    support = float(fb.weights[ib].sum()) * stride
+    conflict = _conflict(fa, fb, T, cfg, stride)
+    if len(ib):
+        r = _residuals(fa, fb, T, ib, ia)
+        rmse = float(np.sqrt(np.average(r**2, weights=fb.weights[ib])))
+        n = fa.normals[ia]
+        w = fb.weights[ib] * stride
+        M = (n * w[:, None]).T @ n
+        cross = float(np.linalg.eigvalsh(M)[0])
+    else:
+        rmse, cross = math.inf, 0.0
+    return Hypothesis(T, votes, support, conflict, support - cfg.conflict_weight * conflict, rmse, cross, refined)
+
+
+def _refine(fa: MapFeatures, fb: MapFeatures, T: Pose, cfg: RegistrationConfig) -> Pose:
+    """Iteratively re-matched point-to-line least squares (step 5), about B's wall centre."""
+    for it in range(cfg.refine_iterations):
+        frac = it / max(1, cfg.refine_iterations - 1)
+        gate = cfg.coarse_match_dist + (cfg.match_dist - cfg.coarse_match_dist) * frac
+        ib, ia = _match(fa, fb, T, gate, cfg)
+        if len(ib) < 3:
+            break
+        q = T.apply(fb.points[ib])
+        c = T.apply(fb.centre[None, :])[0]
+        n = fa.normals[ia]
+        r = np.einsum("ij,ij->i", q - fa.points[ia], n)
+        qc = q - c
+        J = np.column_stack([n[:, 0], n[:, 1], n[:, 1] * qc[:, 0] - n[:, 0] * qc[:, 1]])
+        w = fb.weights[ib] * np.where(np.abs(r) <= cfg.huber, 1.0, cfg.huber / np.maximum(np.abs(r), 1e-12))
+        H = (J * w[:, None]).T @ J + 1e-9 * np.eye(3)
+        g = (J * w[:, None]).T @ r
+        dx, dy, dth = -np.linalg.solve(H, g)
+        # Rotate about c by dth, then shift: composed on the left of T.
+        Rd = _rot(float(dth))
+        tt = Rd @ (np.array([T.x, T.y]) - c) + c + np.array([dx, dy])
+        T = Pose(float(tt[0]), float(tt[1]), T.theta + float(dth))
+        if math.hypot(dx, dy) < 1e-4 and abs(dth) < 1e-5:
+            break
+    return T
+
+
+def _crop(wf: Wireframe, centre: FloatArray, radius: float) -> Wireframe:
+    """Edges with an end within ``radius`` of ``centre`` (unused vertices dropped)."""
+    seg = wf.segments()
+    near = np.minimum(np.hypot(*(seg[:, 0] - centre).T), np.hypot(*(seg[:, 1] - centre).T)) <= radius
+    return wf.subgraph_edges(near)
+
+
+def _polish(fa: MapFeatures, fb: MapFeatures, h: Hypothesis, cfg: RegistrationConfig) -> Hypothesis:
+    """The wireframe ICP on the overlap (step 5); kept only if accepted and the score holds."""
+    ib, _ = _match(fa, fb, h.transform, cfg.match_dist, cfg)
+    if len(ib) < 3:
+        return h
+    moved = h.transform.apply(fb.points[ib])
+    c = moved.mean(axis=0)
+    radius = float(np.max(np.hypot(*(moved - c).T))) + 1.0
+    shift = Pose(-float(c[0]), -float(c[1]), 0.0)
+    a = _crop(fa.wireframe, c, radius).transformed(shift)
+    b = _crop(fb.wireframe.transformed(h.transform), c, radius).transformed(shift)
+    if a.n_edges == 0 or b.n_edges == 0 or a.n_edges * b.n_edges > cfg.max_icp_pairs:
+        return h
+    res = icp(b, a, ICPConfig(gate_start=0.3, gate_end=0.15, prior_sigma_xy=0.2, prior_sigma_theta=0.05,
+                              min_matched_fraction=0.1))
+    if not res.accepted:
+        return h
+    # In A's frame: shift^-1 * correction * shift * T.
+    T = shift.inverse().compose(res.correction).compose(shift).compose(h.transform)
+    new = _score(fa, fb, T, cfg.match_dist, cfg, h.votes, refined=True)
+    return new if new.score >= h.score - 1e-9 and new.rmse <= h.rmse + 1e-9 else h
+
+
+def _distinct(a: Pose, b: Pose, fb: MapFeatures, cfg: RegistrationConfig) -> bool:
+    pa = a.apply(fb.centre[None, :])[0]
+    pb = b.apply(fb.centre[None, :])[0]
+    return bool(
+        math.hypot(*(pa - pb)) > cfg.distinct_translation
+        or abs(float(_wrap(np.array(a.theta - b.theta)))) > cfg.distinct_rotation
+    )
+
+
+def _matched_corners(fa: MapFeatures, fb: MapFeatures, T: Pose, cfg: RegistrationConfig) -> int:
+    """B's real corners within ``corner_match_dist`` of one of A's, B moved by ``T``."""
+    if len(fa.corner_points) == 0 or len(fb.corner_points) == 0:
+        return 0
+    d, _ = cKDTree(fa.corner_points).query(T.apply(fb.corner_points), k=1, distance_upper_bound=cfg.corner_match_dist)
+    return int(np.isfinite(d).sum())
+
+
+def _self_ratio(f: MapFeatures, samples: IntArray, cfg: RegistrationConfig) -> float:
+    """Self-similarity of the part of ``f``'s map whose wall samples are ``samples``.
+
+    The part (its edges) is registered onto the whole map by the same rotation and vote steps;
+    each hypothesis distinct from the identity that puts no wall on seen-free space is counted by
+    the part's real corners that land on real corners of the map. Corners, not wall length:
+    sliding a long wall along itself keeps most of its length matched in any rectilinear
+    building, while a shift that maps most corners onto corners means a repeated structure.
+    Returns the best count over the part's corner count (0 when the part has no corner).
+    """
+    mask = np.zeros(f.wireframe.n_edges, dtype=bool)
+    mask[f.owner[samples]] = True
+    region = prepare(f.wireframe.subgraph_edges(mask), cfg)
+    if len(region.end_points) == 0 or len(region.corner_points) == 0:
+        return 0.0
+    cands: list[tuple[float, Pose]] = []
+    for theta in rotation_candidates(f, region, cfg).tolist():
+        R = _rot(theta)
+        for t, v in _vote(f, region, theta, cfg):
+            tt = f.centre + t - R @ region.centre
+            T = Pose(float(tt[0]), float(tt[1]), theta)
+            if _distinct(T, Pose.identity(), region, cfg):
+                cands.append((v, T))
+    cands.sort(key=lambda c: -c[0])
+    best = 0
+    for v, T in cands[: cfg.verify_candidates]:
+        n = _matched_corners(f, region, T, cfg)
+        if n <= best:
+            continue
+        h = _score(f, region, T, cfg.match_dist, cfg, v)
+        if h.conflict <= cfg.max_conflict + cfg.max_conflict_fraction * h.support:
+            best = n
+    return best / len(region.corner_points)
+
+
+# ------------------------------------------------------------------------------ entry points
+def register(a: Wireframe, b: Wireframe, config: RegistrationConfig | None = None) -> Registration:
+    """Globally register map ``b`` onto map ``a`` (frames unrelated).
+
+    Parameters
+    ----------
+    a, b : Wireframe
+        The two maps, each in its own frame.
+    config : RegistrationConfig, optional
+
+    Returns
+    -------
+    Registration
+        ``transform`` maps ``b``'s points into ``a``'s frame (``b.transformed(transform)`` lies
+        on ``a``); use it only when ``accepted``.
+    """
+    cfg = config or RegistrationConfig()
+    return register_prepared(prepare(a, cfg), prepare(b, cfg), cfg)
+
+
+def register_prepared(fa: MapFeatures, fb: MapFeatures, config: RegistrationConfig | None = None) -> Registration:
+    """:func:`register` on features from :func:`prepare` (computed once per map and reused for
+    every pair, as the fusion service would), with the same ``config``."""
+    cfg = config or RegistrationConfig()
+    if len(fa.points) == 0 or len(fb.points) == 0:
+        return Registration(False, None, "a map has no walls")
+    if len(fa.end_points) == 0 or len(fb.end_points) == 0:
+        return Registration(False, None, "a map has no real corners")
+    cands: list[tuple[float, Pose]] = []
+    for theta in rotation_candidates(fa, fb, cfg).tolist():
+        R = _rot(theta)
+        for t, v in _vote(fa, fb, theta, cfg):
+            # x_a = R (x_b - c_b) + t + c_a.
+            tt = fa.centre + t - R @ fb.centre
+            cands.append((v, Pose(float(tt[0]), float(tt[1]), theta)))
+    if not cands:
+        return Registration(False, None, "no hypothesis")
+    cands.sort(key=lambda c: -c[0])
+    n_cands = len(cands)
+    stride = 2 if len(fb.points) + len(fa.points) > 2000 else 1
+    scored = [_score(fa, fb, T, cfg.coarse_match_dist, cfg, v, stride) for v, T in cands[: cfg.verify_candidates]]
+    scored.sort(key=lambda h: -h.score)
+    refined = []
+    for h in scored[: cfg.refine_candidates]:
+        T = _refine(fa, fb, h.transform, cfg)
+        refined.append(_score(fa, fb, T, cfg.match_dist, cfg, h.votes, refined=True))
+    refined.sort(key=lambda h: -h.score)
+    best = refined[0]
+    if cfg.use_icp and best.score > 0:
+        best = _polish(fa, fb, best, cfg)
+    # Runner-up: the best distinct hypothesis among all scored ones (refined ones at their
+    # refined score; a coarse score at the coarse gate is an overestimate, which errs on the
+    # side of refusing).
+    pool = refined[1:] + scored[cfg.refine_candidates:]
+    rivals = [h for h in pool if _distinct(h.transform, best.transform, fb, cfg)]
+    runner = max(rivals, key=lambda h: h.score) if rivals else None
+    ratio = 0.0
+    if runner is not None and runner.score > 0:
+        ratio = runner.score / best.score if best.score > 0 else 1.0
+    smaller = min(fa.length, fb.length)
+    frac = best.support / smaller if smaller > 0 else 0.0
+    reason = ""
+    if best.support < cfg.min_support:
+        reason = f"too little matched wall ({best.support:.1f} m < {cfg.min_support} m)"
+    elif frac < cfg.min_support_fraction:
+        reason = f"too little of the smaller map matched ({frac:.0%})"
+    elif best.conflict > cfg.max_conflict + cfg.max_conflict_fraction * best.support:
+        reason = f"walls on seen-free space ({best.conflict:.1f} m)"
+    elif ratio > cfg.max_runner_up_ratio:
+        reason = f"ambiguous: a distinct hypothesis scores {ratio:.0%} of the best"
+    elif best.cross_support < cfg.min_cross_support:
+        reason = f"translation not constrained in every direction ({best.cross_support:.1f} m)"
+    elif best.rmse > cfg.max_rmse:
+        reason = f"residual too large ({best.rmse:.3f} m)"
+    corners = _matched_corners(fa, fb, best.transform, cfg)
+    self_a = self_b = 0.0
+    if not reason and corners < cfg.min_corners:
+        reason = f"too few matched corners ({corners} < {cfg.min_corners})"
+    if not reason:
+        ib, ia = _match(fa, fb, best.transform, cfg.match_dist, cfg)
+        self_a = _self_ratio(fa, ia, cfg)
+        self_b = _self_ratio(fb, ib, cfg)
+        if max(self_a, self_b) > cfg.max_self_ratio:
+            reason = f"repetitive: the overlap recurs within one map ({max(self_a, self_b):.0%})"
+    conf = max(0.0, 1.0 - ratio) * best.support / (best.support + cfg.min_support) if best.support > 0 else 0.0
+    return Registration(
+        accepted=reason == "", transform=best.transform, reason=reason, confidence=float(conf),
+        support=best.support, support_fraction=float(frac), conflict=best.conflict, rmse=best.rmse,
+        cross_support=best.cross_support, runner_up_ratio=float(ratio), best=best, runner_up=runner,
+        hypotheses=n_cands, extra={"corners": float(corners), "self_a": self_a, "self_b": self_b},
+    )

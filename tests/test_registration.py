@@ -1,0 +1,178 @@
+"""Global registration of two wireframes in unrelated frames (mapping.registration)."""
+
+from __future__ import annotations
+
+import math
+from functools import cache
+
+import numpy as np
+import pytest
+
+from mapping.registration import (
+    RegistrationConfig,
+    prepare,
+    register,
+    register_prepared,
+    rotation_candidates,
+)
+from mapping.se2 import Pose
+from mapping.wireframe import Label, Wireframe
+
+
+@cache
+def _truth(name: str) -> Wireframe:
+    from agents.sim.world import load_world
+
+    return load_world(name).truth
+
+
+def _noisy(wf: Wireframe, rng: np.random.Generator, sigma: float = 0.02) -> Wireframe:
+    return wf.replace(points=wf.points + rng.normal(0.0, sigma, wf.points.shape))
+
+
+def _crop(wf: Wireframe, xmin: float, xmax: float) -> Wireframe:
+    """Edges whose midpoint has ``xmin <= x < xmax``."""
+    mid = wf.segments().mean(axis=1)
+    return wf.subgraph_edges((mid[:, 0] >= xmin) & (mid[:, 0] < xmax))
+
+
+def _error(found: Pose, true: Pose, at: np.ndarray) -> tuple[float, float]:
+    """Translation error at the point ``at`` (B frame) and rotation error (radians)."""
+    d = found.apply(at[None, :])[0] - true.apply(at[None, :])[0]
+    return float(math.hypot(*d)), abs(math.remainder(found.theta - true.theta, 2 * math.pi))
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_invariant_to_a_random_rigid_transform(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    a = _noisy(_truth("paper-small"), rng)
+    move = Pose(float(rng.uniform(-50, 50)), float(rng.uniform(-50, 50)), float(rng.uniform(-math.pi, math.pi)))
+    b = _noisy(_truth("paper-small"), rng).transformed(move)
+    res = register(a, b)
+    assert res.accepted, res.reason
+    assert res.transform is not None
+    te, re = _error(res.transform, move.inverse(), b.points.mean(axis=0))
+    assert te <= 0.05 and re <= math.radians(0.5)
+    # The same pair in the other order gives the inverse.
+    back = register(b, a)
+    assert back.accepted and back.transform is not None
+    te, re = _error(back.transform, move, a.points.mean(axis=0))
+    assert te <= 0.05 and re <= math.radians(0.5)
+
+
+def test_partial_overlap_registers() -> None:
+    rng = np.random.default_rng(3)
+    truth = _truth("paper-small")
+    xmin, _, xmax, _ = truth.bounds()
+    w = xmax - xmin
+    a = _noisy(_crop(truth, xmin, xmin + 0.65 * w), rng)
+    move = Pose(12.0, -7.0, 2.0)
+    b = _noisy(_crop(truth, xmin + 0.35 * w, xmax + 1), rng).transformed(move)
+    res = register(a, b)
+    assert res.accepted, res.reason
+    assert res.transform is not None
+    te, re = _error(res.transform, move.inverse(), b.points.mean(axis=0))
+    assert te <= 0.1 and re <= math.radians(1.0)
+    assert 0.0 < res.support_fraction < 1.0
+
+
+def test_repeated_offices_never_wrong() -> None:
+    """Identical offices along a corridor: the right transform or a refusal, never a wrong one."""
+    rng = np.random.default_rng(4)
+    office = _truth("office")
+    move = Pose(-3.0, 40.0, -1.0)
+    wrong = 0
+    for lo_a, hi_a, lo_b, hi_b in [(0, 16, 9, 26), (0, 12, 14, 27), (5, 21, 0, 14), (0, 30, 6, 19)]:
+        a = _noisy(_crop(office, lo_a, hi_a), rng)
+        b = _noisy(_crop(office, lo_b, hi_b), rng).transformed(move)
+        res = register(a, b)
+        if res.accepted:
+            assert res.transform is not None
+            te, re = _error(res.transform, move.inverse(), b.points.mean(axis=0))
+            wrong += te > 0.1 or re > math.radians(1.0)
+    assert wrong == 0
+
+
+def test_disjoint_copies_of_a_repeated_office_are_refused() -> None:
+    """Two robots in different (identical) offices with no shared wall must not merge."""
+    rng = np.random.default_rng(5)
+    office = _truth("office")
+    seg = office.segments()
+    mid = seg.mean(axis=1)
+    # The south offices 1-2 (x 5..15) and 4-5 (x 20..30), corridor excluded: congruent pieces.
+    south = mid[:, 1] < 8.4
+    a = _noisy(office.subgraph_edges(south & (mid[:, 0] > 4.9) & (mid[:, 0] < 15.1)), rng)
+    b = _noisy(office.subgraph_edges(south & (mid[:, 0] > 19.9) & (mid[:, 0] < 30.1)), rng)
+    res = register(a, b.transformed(Pose(1.0, 2.0, 0.5)))
+    assert not res.accepted
+
+
+@pytest.mark.parametrize("other", ["office", "warehouse", "museum"])
+def test_cross_world_pairs_are_refused(other: str) -> None:
+    rng = np.random.default_rng(6)
+    a = _noisy(_truth("paper-small"), rng)
+    b = _noisy(_truth(other), rng).transformed(Pose(3.0, 1.0, 0.7))
+    assert not register(a, b).accepted
+    assert not register(b, a).accepted
+
+
+def test_confidence_grows_with_overlap() -> None:
+    rng = np.random.default_rng(7)
+    truth = _truth("paper-small")
+    xmin, _, xmax, _ = truth.bounds()
+    w = xmax - xmin
+    a = _noisy(truth, rng)
+    move = Pose(-4.0, 9.0, 0.3)
+    full = register(a, _noisy(truth, rng).transformed(move))
+    part = register(a, _noisy(_crop(truth, xmin, xmin + 0.5 * w), rng).transformed(move))
+    assert full.accepted and part.accepted, (full.reason, part.reason)
+    assert full.confidence > part.confidence > 0.0
+    assert full.support > part.support
+    # A cross-world pair scores below both.
+    other = register(a, _noisy(_truth("warehouse"), rng))
+    assert other.confidence < part.confidence
+
+
+def test_free_space_conflict_is_counted() -> None:
+    """A wall of B laid across A's room lies on A's seen-free space."""
+    room = Wireframe.from_polylines([[(0, 0), (8, 0), (8, 6), (0, 6)]])
+    fa = prepare(room)
+    assert len(fa.probes) > 0
+    across = Wireframe.build([(4.0, 0.5), (4.0, 5.5)], [(0, 1)])
+    res = register_prepared(fa, prepare(across))
+    assert not res.accepted
+    from mapping.registration import _conflict
+
+    # Probes reach 1.05 m into the room from each wall: the wall's 2 x 0.5 m nearest them.
+    assert _conflict(fa, prepare(across), Pose.identity(), RegistrationConfig()) >= 0.9
+    assert _conflict(fa, fa, Pose.identity(), RegistrationConfig()) == 0.0
+
+
+def test_rotation_candidates_include_the_true_rotation() -> None:
+    truth = _truth("paper-small")
+    for theta in (0.3, -2.0, 3.0):
+        rots = rotation_candidates(prepare(truth), prepare(truth.transformed(Pose(0, 0, theta))))
+        assert np.min(np.abs(np.remainder(rots + theta + math.pi, 2 * math.pi) - math.pi)) < math.radians(0.3)
+
+
+def test_deterministic_and_degenerate_inputs() -> None:
+    rng = np.random.default_rng(8)
+    a = _noisy(_truth("paper-small"), rng)
+    b = _noisy(_truth("paper-small"), rng).transformed(Pose(1.0, 2.0, 3.0))
+    r1, r2 = register(a, b), register(a, b)
+    assert r1.transform == r2.transform and r1.confidence == r2.confidence
+    empty = register(a, Wireframe.empty())
+    assert not empty.accepted and empty.transform is None
+    frontier_only = Wireframe.build([(0, 0), (5, 0)], [(0, 1)], labels=[Label.FRONTIER, Label.FRONTIER])
+    assert not register(a, frontier_only).accepted
+
+
+def test_config_rejects_bad_values() -> None:
+    with pytest.raises(ValueError):
+        RegistrationConfig(sample_spacing=0.0)
+    with pytest.raises(ValueError):
+        RegistrationConfig(max_runner_up_ratio=1.5)
+    with pytest.raises(ValueError):
+        RegistrationConfig(match_dist=1.0, coarse_match_dist=0.5)
+    with pytest.raises(ValueError):
+        RegistrationConfig(free_depths=(0.5, -1.0))
