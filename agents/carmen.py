@@ -129,6 +129,7 @@ __all__ = [
     "read_carmen",
     "read_carmen_log",
     "read_truth_tsv",
+    "scan_truth",
     "truth_path_for",
     "write_carmen",
 ]
@@ -662,3 +663,40 @@ def write_carmen(
         count += 1
     write_atomic(path, out.getvalue())
     return count
+
+
+# ---------------------------------------------------------------------------- truth per scan
+def scan_truth(log: CarmenLog, truth_file: str | os.PathLike[str] | None = None) -> list[Pose] | None:
+    """The true pose of the **laser** at each scan of ``log``, or None when the log has none.
+
+    The truth is, in this order: ``truth_file`` when given; else ``NAME.truth.tsv`` beside the
+    log (:func:`truth_path_for`) when it exists -- one row per line of the log's laser stream,
+    matched by :attr:`LaserScan.index` (so skipped lines keep the rows aligned) and describing
+    what the line's odometry slot describes (each row is composed with the scan's ``mount``);
+    else the ``TRUEPOS`` track (the robot's true pose), interpolated linearly at each scan's
+    time and composed with the scan's ``mount``.
+
+    Raises
+    ------
+    CarmenError
+        When the truth file cannot be read or has fewer rows than the log has laser lines.
+    """
+    path = Path(truth_file) if truth_file is not None else truth_path_for(log.path)
+    if truth_file is not None or path.is_file():
+        rows = read_truth_tsv(path)
+        lines = log.lasers.get(log.laser or "", 0)
+        if len(rows) < lines:
+            raise CarmenError(f"{path}: {len(rows)} truth rows, but {log.path} has {lines} {log.laser} lines")
+        return [rows[s.index][1].compose(s.mount) for s in log.scans]
+    if not log.truepos:
+        return None
+    t = np.array([tp[0] for tp in log.truepos])
+    order = np.argsort(t, kind="stable")
+    t = t[order]
+    xyt = np.array([[p.x, p.y, p.theta] for _, p in log.truepos])[order]
+    th = np.unwrap(xyt[:, 2])
+    out = []
+    for s in log.scans:
+        pose = Pose(float(np.interp(s.t, t, xyt[:, 0])), float(np.interp(s.t, t, xyt[:, 1])), float(np.interp(s.t, t, th)))
+        out.append(pose.compose(s.mount))
+    return out

@@ -1,4 +1,4 @@
-"""``wiremap bench {accuracy,speed,codec,fleet,soak,sensor}``: dispatches to :mod:`agents.bench`."""
+"""``wiremap bench {accuracy,speed,codec,fleet,soak,sensor,lidar}``: dispatches to :mod:`agents.bench`."""
 
 from __future__ import annotations
 
@@ -13,6 +13,7 @@ BENCHES: dict[str, tuple[str, str]] = {
     "fleet": ("agents.bench.fleet", "fleet latency, bandwidth and fused-map quality by fleet size"),
     "soak": ("agents.bench.soak", "long run with corrupt payloads and robot restarts"),
     "sensor": ("agents.bench.sensor", "corner-sensor label accuracy and split-and-merge corner error"),
+    "lidar": ("agents.bench.lidar", "the mapper on real CARMEN lidar logs against their truth"),
 }
 
 
