@@ -24,7 +24,7 @@ def test_ate_is_unaligned_rmse_and_max() -> None:
     assert rmse == pytest.approx(math.sqrt((0.09 + 0.16) / 4))
     assert mx == pytest.approx(0.4)
     # A constant offset is an error (no alignment).
-    assert ate(t + [1.0, 0.0, 0.0], t) == pytest.approx((1.0, 1.0))
+    assert ate(t + np.array([1.0, 0.0, 0.0]), t) == pytest.approx((1.0, 1.0))
     assert all(math.isnan(v) for v in ate(np.zeros((0, 3)), np.zeros((0, 3))))
     with pytest.raises(ValueError, match="differ in length"):
         ate(t[:2], t)
@@ -32,7 +32,7 @@ def test_ate_is_unaligned_rmse_and_max() -> None:
 
 def test_rpe_ignores_a_constant_offset_but_sees_drift() -> None:
     t = straight(21, 0.25)  # 5 m, poses 0.25 m apart: pairs 4 scans apart
-    assert rpe(t + [3.0, -2.0, 0.0], t, 1.0) == pytest.approx(0.0, abs=1e-12)
+    assert rpe(t + np.array([3.0, -2.0, 0.0]), t, 1.0) == pytest.approx(0.0, abs=1e-12)
     # Odometry 10 % short: each 1 m pair is 0.1 m short.
     e = t.copy()
     e[:, 0] *= 0.9
@@ -68,7 +68,7 @@ def test_precision_and_coverage_against_endpoints() -> None:
     assert map_precision(wall, pts, tol=0.2) == pytest.approx(2.2 / 4.0, abs=0.02)
     assert map_coverage(wall, pts, tol=0.2) == pytest.approx(0.5)
     assert map_coverage(wall, pts, tol=0.04) == 0.0  # 5 cm off the wall
-    assert map_precision(wall, along + [0.0, 0.3], tol=0.2) == 0.0
+    assert map_precision(wall, along + np.array([0.0, 0.3]), tol=0.2) == 0.0
     empty = Wireframe.from_polylines([])
     assert math.isnan(map_precision(empty, pts))
     assert map_coverage(empty, pts) == 0.0
