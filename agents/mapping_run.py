@@ -271,7 +271,10 @@ def _scanner(world: Any, options: SimOptions) -> Any:
 
 
 def carmen_inputs(
-    log: str | Sequence[Any], max_range: float | None = None, steps: int | None = None
+    log: str | Sequence[Any],
+    max_range: float | None = None,
+    steps: int | None = None,
+    truth: Sequence[Pose] | None = None,
 ) -> Iterator[ScanInput]:
     """Scans of a CARMEN log: each laser line's ranges through split-and-merge
     (:func:`mapping.extract.extract_corners`), odometry from consecutive odometry poses.
@@ -285,6 +288,8 @@ def carmen_inputs(
         report up to 50-80 m; far, grazing returns make poor corners.
     steps : int, optional
         Stop after this many scans.
+    truth : sequence of Pose, optional
+        The true laser pose per scan (:func:`agents.files.carmen.scan_truth`), for ``true_pose``.
     """
     from mapping.extract import extract_corners
 
@@ -304,7 +309,7 @@ def carmen_inputs(
         scan = extract_corners(ranges, np.asarray(ls.angles, dtype=np.float64), rmax)
         odo = Pose.identity() if prev is None else prev.between(ls.odom)
         prev = ls.odom
-        yield ScanInput(float(ls.t), odo, scan, None)
+        yield ScanInput(float(ls.t), odo, scan, None if truth is None else truth[k])
 
 
 def scan_fov(angles: Any) -> float:

@@ -142,9 +142,12 @@ def test_robotlaser_and_rawlaser_lines(tmp_path: Path) -> None:
         "ODOM 3.0 4.0 0.5 0 0 0 9.0 h 9.0\n"
         "RAWLASER1 0 -1.0 2.0 1.0 30.0 0.01 0 3 1.0 2.0 3.0 0 10.0 h 10.5\n"
     )
-    scans = read_carmen(write(tmp_path, text))
-    assert len(scans) == 2
-    rl, raw = scans
+    path = write(tmp_path, text)
+    # One laser stream at a time: ROBOTLASER1 comes before RAWLASER1 by default.
+    (rl,) = read_carmen(path)
+    assert rl.kind == "ROBOTLASER1"
+    (raw,) = read_carmen(path, laser="RAWLASER1")
+    assert raw.kind == "RAWLASER1" and raw.index == 1  # the first RAWLASER1 line had no odometry
     assert np.allclose(rl.angles, [-0.5, 0.0, 0.5])
     assert rl.max_range == 4.0 and np.isinf(rl.ranges[2]) and rl.t == 8.5
     # The laser is 0.1 m ahead of the robot along its heading 0.3.

@@ -1,4 +1,4 @@
-"""``wiremap bench {accuracy,speed,codec,fleet,soak,sensor,register}``: dispatches to :mod:`agents.bench`."""
+"""``wiremap bench {accuracy,speed,codec,fleet,soak,sensor,register,lidar}``: dispatches to :mod:`agents.bench`."""
 
 from __future__ import annotations
 
@@ -14,6 +14,7 @@ BENCHES: dict[str, tuple[str, str]] = {
     "soak": ("agents.bench.soak", "long run with corrupt payloads and robot restarts"),
     "sensor": ("agents.bench.sensor", "corner-sensor label accuracy and split-and-merge corner error"),
     "register": ("agents.bench.register", "global registration of map pairs in unrelated frames"),
+    "lidar": ("agents.bench.lidar", "the mapper on real CARMEN lidar logs against their truth"),
 }
 
 

@@ -8,6 +8,13 @@ Writes, in ``--out DIR``:
 * ``map.png`` -- the map over the truth (when there is one) with the estimated trajectory;
 * ``report.json`` -- metrics against the truth (when there is one), storage, steps, time.
 
+A CARMEN log is read as it is (:func:`agents.files.carmen.read_carmen_log`): unreadable lines are
+reported on stderr with their line number and skipped (``--strict``: the first one is an error).
+When the log has a ``TRUEPOS`` track or a ``NAME.truth.tsv`` beside it, the filter starts at the
+true first pose and the run is scored against it (:mod:`mapping.lidar_metrics`: ATE without
+alignment, relative error over 1 m, map precision and coverage at 0.2 m against the real scan
+endpoints placed at the true poses) and ``map.png`` shows the map over those endpoints.
+
 A live progress line on stderr shows the step, the best map's size and the update rate.
 """
 
@@ -25,6 +32,7 @@ import numpy as np
 from agents.errors import UserError
 
 HELP = "run one robot (simulated or a CARMEN log) and write its map"
+MAX_ISSUES_SHOWN = 5  # unreadable CARMEN lines reported one by one on stderr
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -42,6 +50,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="sensing range in metres (default 8 in simulation; CARMEN: the log's, at most 20)")
     parser.add_argument("--steps", type=int, default=None, metavar="N", help="stop after N scans")
     parser.add_argument("--duration", type=float, default=None, metavar="S", help="stop after S simulated seconds")
+    parser.add_argument("--strict", action="store_true",
+                        help="CARMEN: an unreadable line is an error (default: skip it and count it)")
     parser.add_argument("--quiet", action="store_true", help="no progress line")
 
 
@@ -94,8 +104,10 @@ def write_outputs(
     report: dict[str, Any],
     truth: Any = None,
     properties: dict[str, Any] | None = None,
+    png: bytes | None = None,
 ) -> None:
-    """Write ``map.geojson``, ``trajectory.tsv``, ``map.png`` and ``report.json`` atomically."""
+    """Write ``map.geojson``, ``trajectory.tsv``, ``map.png`` (``png`` when given, else the map
+    over ``truth``) and ``report.json`` atomically."""
     from agents.files.io import save_wireframe_geojson, write_atomic, write_json
     from agents.files.render import map_png
 
@@ -104,7 +116,9 @@ def write_outputs(
     lines = [f"{t:.6f}\t{x:.6f}\t{y:.6f}\t{th:.6f}\n" for t, x, y, th in trajectory]
     write_atomic(out / "trajectory.tsv", "".join(lines))
     xy = np.array([(x, y) for _, x, y, _ in trajectory], dtype=np.float64).reshape(-1, 2)
-    write_atomic(out / "map.png", map_png(best, truth=truth, trajectory=xy if len(xy) else None))
+    if png is None:
+        png = map_png(best, truth=truth, trajectory=xy if len(xy) else None)
+    write_atomic(out / "map.png", png)
     write_json(out / "report.json", report)
 
 
@@ -136,18 +150,26 @@ def run(args: argparse.Namespace) -> int:
             raise UserError(f"{args.world}: {exc}") from None
         source: dict[str, Any] = {"world": world_name, "sensor": args.sensor}
     else:
-        from agents.files.carmen import read_carmen
+        from agents.files.carmen import read_carmen_log, scan_truth
 
-        scans = read_carmen(args.carmen)  # CarmenError (a UserError) names the bad line
+        # CarmenError (a UserError) names the bad line; without --strict such lines are skipped.
+        log = read_carmen_log(args.carmen, strict=args.strict)
+        for msg in log.issues[:MAX_ISSUES_SHOWN]:
+            print(f"wiremap: skipped {msg}", file=sys.stderr)
+        if len(log.issues) > MAX_ISSUES_SHOWN:
+            print(f"wiremap: skipped {len(log.issues) - MAX_ISSUES_SHOWN} more unreadable lines", file=sys.stderr)
+        scans = log.scans
         if not scans:
             raise UserError(f"{args.carmen}: no laser scans in the log")
+        true_scans = scan_truth(log)
         thr = args.merge_threshold if args.merge_threshold is not None else 0.2
         max_range = min(float(scans[0].max_range), args.max_range if args.max_range is not None else 20.0)
-        inputs = mr.carmen_inputs(scans, max_range=max_range, steps=args.steps)
+        inputs = mr.carmen_inputs(scans, max_range=max_range, steps=args.steps, truth=true_scans)
         cfg = mr.filter_config_for(args.particles, thr, max_range, fov=mr.scan_fov(scans[0].angles))
-        filt = WireframeFilter(cfg, mr.seeds_for(args.seed)["filter"], initial_pose=scans[0].odom)
+        start = true_scans[0] if true_scans is not None else scans[0].odom
+        filt = WireframeFilter(cfg, mr.seeds_for(args.seed)["filter"], initial_pose=start)
         total = len(scans) if args.steps is None else min(len(scans), args.steps)
-        source = {"carmen": str(args.carmen), "sensor": "lidar"}
+        source = {"carmen": str(args.carmen), "sensor": "lidar", "laser": log.laser}
 
     progress = Progress(not args.quiet)
     trajectory: list[tuple[float, float, float, float]] = []
@@ -195,14 +217,53 @@ def run(args: argparse.Namespace) -> int:
         report["metrics"] = None if metrics is None else {k2: _num(v) for k2, v in metrics.items()}
         report["pose_error_mean_m"] = round(float(np.mean(pose_err)), 4) if pose_err else None
         report["pose_error_max_m"] = round(float(np.max(pose_err)), 4) if pose_err else None
+    png = None
+    if args.carmen is not None:
+        report["skipped_lines"] = len(log.issues)
+        if true_scans is not None and k:
+            lidar, png = _score_log(scans[:k], true_scans[:k], trajectory, best, max_range)
+            report.update(lidar)
     props = {**source, "steps": k, "seed": args.seed, "particles": args.particles, "merge_threshold": thr}
-    write_outputs(out, best, trajectory, report, truth=truth, properties=props)
+    write_outputs(out, best, trajectory, report, truth=truth, properties=props, png=png)
     msg = f"wrote {out}/map.geojson ({best.n_vertices} vertices, {best.n_edges} edges) after {k} steps"
+    if report.get("skipped_lines"):
+        msg += f"; skipped {report['skipped_lines']} unreadable lines"
+    if report.get("ate_rmse_m") is not None:
+        msg += f"; ATE {report['ate_rmse_m']:.3f} m (odometry {report['odometry_ate_rmse_m']:.3f} m)"
+        if report.get("map_precision") is not None:
+            msg += f", map precision {report['map_precision']:.3f}, coverage {report['map_coverage']:.3f}"
     if report["metrics"]:
         m = report["metrics"]
         msg += f"; cell error {m['cell_error']:.2%}, precision {m['wall_precision']:.3f}, recall {m['wall_recall']:.3f}"
     print(msg)
     return 0
+
+
+def _score_log(
+    scans: list[Any], truth: list[Any], trajectory: list[tuple[float, float, float, float]], best: Any,
+    max_range: float,
+) -> tuple[dict[str, Any], bytes]:
+    """Scores of a CARMEN run against its true poses (:mod:`mapping.lidar_metrics`) and the
+    picture of the map over the real endpoints at those poses."""
+    from agents.bench.lidar_png import lidar_png
+    from mapping.lidar_metrics import ate, map_coverage, map_precision, rpe, scan_endpoints
+
+    true_xyt = np.array([[p.x, p.y, p.theta] for p in truth], dtype=np.float64)
+    est = np.array([(x, y, th) for _, x, y, th in trajectory], dtype=np.float64)
+    odom = np.array([[s.odom.x, s.odom.y, s.odom.theta] for s in scans], dtype=np.float64)
+    ends = scan_endpoints(true_xyt, [s.ranges for s in scans], [s.angles for s in scans], max_range=max_range)
+    rmse, mx = ate(est, true_xyt)
+    o_rmse, _ = ate(odom, true_xyt)
+    scores = {
+        "ate_rmse_m": rmse,
+        "ate_max_m": mx,
+        "rpe_1m_m": rpe(est, true_xyt, 1.0),
+        "map_precision": map_precision(best, ends, 0.2, 0.05),
+        "map_coverage": map_coverage(best, ends, 0.2),
+        "odometry_ate_rmse_m": o_rmse,
+    }
+    png = lidar_png(best, ends, true_xyt[:, :2], est[:, :2], title=f"ate {rmse:.2f} m")
+    return {k: _num(v) for k, v in scores.items()}, png
 
 
 def _num(v: Any) -> Any:

@@ -1,57 +1,83 @@
 """CARMEN log files: read real laser scans with odometry, write simulated ones.
 
 CARMEN logs are text, one message per line, the message type first. This module reads the
-laser messages and the parameters that describe the scanner, and writes logs that CARMEN tools
-(and this reader) understand.
+laser, odometry and true-pose messages and the parameters that describe the scanners, from
+logs as robots wrote them (plain or gzip'd, whatever the suffix; CRLF line ends; a truncated
+last line), and writes logs that CARMEN tools (and this reader) understand.
 
 Messages read
 -------------
-``FLASER num_readings [range_readings] x y theta odom_x odom_y odom_theta ipc_timestamp ipc_hostname logger_timestamp``
-    The front laser. ``x y theta`` is the laser's pose *as the logger knew it* -- in corrected
-    logs a pose estimate, never a measurement -- so it is ignored; the **odometry**
-    ``odom_x odom_y odom_theta`` is used. Old logs without ``ipc_hostname logger_timestamp``
-    are accepted too.
-``ROBOTLASER1 laser_type start_angle field_of_view angular_resolution maximum_range accuracy remission_mode num_readings [range_readings] num_remissions [remissions] laser_x laser_y laser_theta robot_x robot_y robot_theta tv rv forward_safety side_safety turn_axis timestamp hostname logger_timestamp``
-    A laser with its own geometry: bearings ``start_angle + k * angular_resolution``, its own
-    ``maximum_range`` (when positive). The odometry is ``robot_x robot_y robot_theta``; the
-    laser's mounting offset is ``robot^-1 * laser`` from the same line.
-``RAWLASER1 laser_type start_angle field_of_view angular_resolution maximum_range accuracy remission_mode num_readings [range_readings] num_remissions [remissions] ipc_timestamp hostname logger_timestamp``
+Each laser line ends in its time: ``ipc_timestamp hostname logger_timestamp`` (current logs) or
+a single ``timestamp`` (old logs). ``t`` of a scan is the last one (the logger's timestamp).
+
+``FLASER num_readings [range_readings] x y theta odom_x odom_y odom_theta <time>``
+    The front laser (``RLASER``: the rear laser, same fields). ``x y theta`` is the laser's pose
+    *as the logger knew it* -- in corrected logs a pose estimate, never a measurement -- so it
+    is checked but ignored; the **odometry** ``odom_x odom_y odom_theta`` is used. When the two
+    triples are equal (corrected logs, and logs whose odometry was rewritten from them, such as
+    the shared Radish logs), the odometry is the *laser's* pose already and the mounting offset
+    is not composed again: ``mount`` is the identity for that line.
+``ROBOTLASER1 laser_type start_angle field_of_view angular_resolution maximum_range accuracy remission_mode num_readings [range_readings] num_remissions [remissions] laser_x laser_y laser_theta robot_x robot_y robot_theta tv rv forward_safety side_safety turn_axis <time>``
+    A laser with its own geometry (``ROBOTLASER2`` likewise): bearings ``start_angle + k *
+    angular_resolution``, its own ``maximum_range`` (when positive). The odometry is ``robot_x
+    robot_y robot_theta``; the laser's mounting offset is ``robot^-1 * laser`` from the same
+    line. Old lines without the five ``tv .. turn_axis`` fields are accepted.
+``RAWLASER1 .. RAWLASER4 laser_type start_angle field_of_view angular_resolution maximum_range accuracy remission_mode num_readings [range_readings] num_remissions [remissions] <time>``
     A laser without a pose: its odometry is that of the latest ``ODOM`` line before it (scans
     before the first ``ODOM`` are skipped).
-``ODOM x y theta tv rv accel ipc_timestamp hostname logger_timestamp``
-    Robot odometry. **Which wins:** a laser line that carries an odometry pose (``FLASER``,
-    ``ROBOTLASER1``) uses its own, which the logger recorded for the scan's time; ``ODOM`` lines
-    are used only for ``RAWLASER1`` scans, which carry none.
-``PARAM name value``
-    Parameters, wherever they appear in the file (see below).
+``ODOM x y theta tv rv accel <time>``
+    Robot odometry. **Which wins:** a laser line that carries an odometry pose uses its own,
+    which the logger recorded for the scan's time; ``ODOM`` lines are used only for
+    ``RAWLASER`` scans, which carry none.
+``TRUEPOS true_x true_y true_theta odom_x odom_y odom_theta <time>``
+    The robot's true pose (simulators): kept as :attr:`CarmenLog.truepos`.
+``PARAM name value [hostname timestamp]``
+    Parameters, wherever they appear in the file; the first line of a name wins.
 
-Every other message type (``RLASER``, ``TRUEPOS``, ``NMEAGGA``, ...) is skipped, as are empty
-lines and lines starting with ``#``. A malformed line of a type read here (a field that is not a
-number, a wrong field count) raises :class:`CarmenError` naming the file and line number.
+Every other message type (``NMEAGGA``, ``NEFF``, ``SYNC``, ...) is skipped, as are empty lines
+and lines starting with ``#``.
+
+Laser streams
+-------------
+A log may hold several lasers; one stream is mapped: the ``laser`` argument, by default the
+first of :data:`LASERS` that occurs in the log (``FLASER`` before ``ROBOTLASER1`` before
+``RAWLASER1`` before the rear lasers).
+
+Unreadable lines
+----------------
+A line of a type read here that cannot be read (a field that is not a number, a pose that is
+``nan``, a wrong field count, a truncated last line) is an *issue* naming the file and line
+(``log.txt:12: FLASER line has 40 fields, ...``). With ``strict=True`` the first issue raises
+:class:`CarmenError`; otherwise the line is skipped and the issue kept in
+:attr:`CarmenLog.issues`. A skipped laser line still counts in :attr:`LaserScan.index`, so
+that per-scan files (one truth row per ``FLASER`` line) stay aligned.
 
 Parameters honoured
 -------------------
-* field of view of ``FLASER`` scans, in **degrees**: ``laser_front_laser_fov`` (CARMEN's laser
-  module), ``robot_front_laser_fov``, ``laser_laser1_fov``; default 180 degrees. Bearings are
-  ``-fov/2 .. +fov/2`` in ``num_readings`` even steps (both edges included); a full 360 degrees
-  does not repeat its first beam (step ``fov / num_readings``).
-* maximum range, metres: ``robot_front_laser_max`` (CARMEN's robot module),
-  ``laser_front_laser_maxrange``, ``laser_front_laser_max_range``, ``robot_front_laser_maxrange``,
-  ``laser_laser1_maxrange``, ``laser_laser1_max_range``. Without one, the largest reading in
-  the log is taken as the scanner's saturation value.
-* mounting offset of the front laser on the robot: ``robot_frontlaser_offset`` (forwards, m),
-  ``robot_frontlaser_side_offset`` (to the left, m), ``robot_frontlaser_angular_offset`` (rad);
-  default 0.
+For the front laser (``FLASER``; ``RLASER`` reads the same names with ``rear`` for ``front``):
 
-The first name found in the list wins; ``read_carmen(fov=..., max_range=...)`` overrides both.
+* field of view in **degrees**: ``laser_front_laser_fov``, ``robot_front_laser_fov``; else
+  the angular resolution in degrees, ``laser_front_laser_resolution`` (field of view
+  ``resolution * (num_readings - 1)``); else 180 degrees. Bearings are ``-fov/2 .. +fov/2`` in
+  ``num_readings`` even steps (both edges included); a full 360 degrees does not repeat its
+  first beam (step ``fov / num_readings``).
+* maximum range, metres: ``robot_front_laser_max`` (CARMEN's robot module),
+  ``laser_front_laser_maxrange``, ``laser_front_laser_max_range``,
+  ``robot_front_laser_maxrange``. Without one, the largest reading of the stream is taken as
+  the scanner's saturation value.
+* mounting offset on the robot: ``robot_frontlaser_offset`` (forwards, m),
+  ``robot_frontlaser_side_offset`` (to the left, m), ``robot_frontlaser_angular_offset``
+  (rad); default 0. The rear laser faces backwards (angular offset ``pi`` added).
+
+The first name found in the list wins; ``fov=`` and ``max_range=`` arguments override them. A
+parameter honoured here whose value is not a number is an issue (see above) and is ignored.
 
 Scans
 -----
 Each laser line becomes a :class:`LaserScan` whose ``odom`` is the pose of the **laser** in the
-odometry frame (the robot's odometry composed with the mounting offset), so that the ranges and
-``odom`` describe the same sensor. Readings at or beyond the maximum range, zero, negative or
-``nan`` readings are *no return* and become ``inf``. ``t`` is the line's last field, the
-logger's timestamp.
+odometry frame (the robot's odometry composed with ``mount``, the mounting offset), so that the
+ranges and ``odom`` describe the same sensor. Readings at or beyond the maximum range, zero,
+negative, ``nan`` or ``inf`` readings are *no return* and become ``inf``.
 """
 
 from __future__ import annotations
@@ -60,6 +86,8 @@ import gzip
 import io
 import math
 import os
+import re
+import zlib
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -73,20 +101,38 @@ from mapping.se2 import Pose
 
 FloatArray = NDArray[np.float64]
 
-FOV_PARAMS = ("laser_front_laser_fov", "robot_front_laser_fov", "laser_laser1_fov")
+#: Laser message types, in the order a stream is chosen by default.
+LASERS = (
+    "FLASER", "ROBOTLASER1", "RAWLASER1", "RLASER", "ROBOTLASER2", "RAWLASER2", "RAWLASER3", "RAWLASER4",
+)
+#: Message types read (everything else is skipped).
+MESSAGES = (*LASERS, "ODOM", "TRUEPOS", "PARAM")
+FOV_PARAMS = ("laser_front_laser_fov", "robot_front_laser_fov")
+RESOLUTION_PARAMS = ("laser_front_laser_resolution",)
 MAX_RANGE_PARAMS = (
     "robot_front_laser_max",
     "laser_front_laser_maxrange",
     "laser_front_laser_max_range",
     "robot_front_laser_maxrange",
-    "laser_laser1_maxrange",
-    "laser_laser1_max_range",
 )
 OFFSET_PARAMS = ("robot_frontlaser_offset", "robot_frontlaser_side_offset", "robot_frontlaser_angular_offset")
 DEFAULT_FOV = math.pi
 HOSTNAME = "wiremap"
+_MESSAGE_TYPE = re.compile(r"[A-Z][A-Z0-9_]*\Z")
 
-__all__ = ["CarmenError", "LaserScan", "flaser_angles", "read_carmen", "write_carmen"]
+__all__ = [
+    "LASERS",
+    "CarmenError",
+    "CarmenLog",
+    "LaserScan",
+    "flaser_angles",
+    "read_carmen",
+    "read_carmen_log",
+    "read_truth_tsv",
+    "scan_truth",
+    "truth_path_for",
+    "write_carmen",
+]
 
 
 class CarmenError(UserError):
@@ -101,7 +147,7 @@ class LaserScan:
     Attributes
     ----------
     t : float
-        Timestamp in seconds (the log line's last field).
+        Timestamp in seconds (the line's logger timestamp, else its last timestamp).
     ranges : (n,) float64
         Range per beam in metres; ``inf`` is no return.
     angles : (n,) float64
@@ -109,7 +155,13 @@ class LaserScan:
     max_range : float
         The scanner's maximum range in metres.
     odom : Pose
-        The laser's pose in the odometry frame (robot odometry times mounting offset).
+        The laser's pose in the odometry frame (robot odometry times ``mount``).
+    mount : Pose
+        The laser's pose on the robot (its mounting offset).
+    kind : str
+        The message type (``"FLASER"``, ...).
+    index : int
+        0-based number of the line among the log's lines of ``kind``, unreadable ones included.
     """
 
     t: float
@@ -117,6 +169,9 @@ class LaserScan:
     angles: FloatArray
     max_range: float
     odom: Pose = field(default_factory=Pose)
+    mount: Pose = field(default_factory=Pose)
+    kind: str = "FLASER"
+    index: int = 0
 
     def __post_init__(self) -> None:
         r = np.array(self.ranges, dtype=np.float64, copy=True).reshape(-1)
@@ -127,6 +182,36 @@ class LaserScan:
         a.setflags(write=False)
         object.__setattr__(self, "ranges", r)
         object.__setattr__(self, "angles", a)
+
+
+@dataclass
+class CarmenLog:
+    """What :func:`read_carmen_log` found in a log.
+
+    Attributes
+    ----------
+    path : str
+    scans : list of LaserScan
+        The chosen laser stream's scans, in file order.
+    laser : str or None
+        The chosen stream's message type (None: the log has no laser lines).
+    lasers : dict of str to int
+        Lines per laser message type (unreadable ones included).
+    truepos : list of (float, Pose)
+        ``(t, true robot pose)`` of each ``TRUEPOS`` line.
+    issues : list of str
+        One message per skipped unreadable line (``path:line: ...``).
+    params : dict of str to str
+        Every ``PARAM`` (first line of a name wins), value without host and timestamp.
+    """
+
+    path: str
+    scans: list[LaserScan]
+    laser: str | None
+    lasers: dict[str, int]
+    truepos: list[tuple[float, Pose]]
+    issues: list[str]
+    params: dict[str, str]
 
 
 def flaser_angles(n: int, fov: float) -> FloatArray:
@@ -146,50 +231,54 @@ def flaser_angles(n: int, fov: float) -> FloatArray:
 class _Raw:
     """A laser line before the log-wide parameters are known."""
 
-    line: int
+    kind: str
+    index: int
     t: float
     ranges: FloatArray
-    angles: FloatArray | None  # None: FLASER, bearings from the fov parameter
-    max_range: float | None  # None: the log-wide maximum range
+    angles: FloatArray | None  # None: FLASER/RLASER, bearings from the parameters
+    max_range: float | None  # None: the stream's maximum range
     odom: Pose
-    offset: Pose | None  # None: the log-wide mounting offset
+    mount: Pose | None  # None: the stream's mounting offset
 
 
 class _Line:
     """Token access with errors that name the file and line."""
 
-    def __init__(self, where: str, number: int, tokens: list[str]) -> None:
+    def __init__(self, where: str, number: int, tokens: list[str], truncated: bool) -> None:
         self.where, self.number, self.tokens = where, number, tokens
         self.kind = tokens[0]
+        self.truncated = truncated
 
     def fail(self, why: str) -> CarmenError:
-        return CarmenError(f"{self.where}:{self.number}: {self.kind} line {why}")
+        tail = " (truncated last line)" if self.truncated else ""
+        return CarmenError(f"{self.where}:{self.number}: {self.kind} line {why}{tail}")
 
     def need(self, count: int) -> None:
         if len(self.tokens) < count:
             raise self.fail(f"has {len(self.tokens)} fields, expected at least {count}")
 
     def num(self, k: int) -> float:
+        tok = self.tokens[k] if k < len(self.tokens) else "<missing>"
         try:
-            v = float(self.tokens[k])
-        except (IndexError, ValueError):
-            raise self.fail(f"field {k + 1} is not a number: {self.tokens[k]!r}") from None
+            v = float(tok)
+        except ValueError:
+            raise self.fail(f"field {k + 1} is not a number: {tok!r}") from None
         if not math.isfinite(v):
-            raise self.fail(f"field {k + 1} is not finite: {self.tokens[k]!r}")
+            raise self.fail(f"field {k + 1} is not finite: {tok!r}")
         return v
 
     def count(self, k: int) -> int:
+        tok = self.tokens[k] if k < len(self.tokens) else "<missing>"
         try:
-            v = int(self.tokens[k])
-        except (IndexError, ValueError):
-            tok = self.tokens[k] if k < len(self.tokens) else "<missing>"
+            v = int(tok)
+        except ValueError:
             raise self.fail(f"field {k + 1} is not a count: {tok!r}") from None
         if v < 0:
             raise self.fail(f"field {k + 1} is a negative count: {v}")
         return v
 
     def nums(self, k: int, n: int) -> FloatArray:
-        """``n`` readings from field ``k`` on (``nan`` allowed: no return)."""
+        """``n`` readings from field ``k`` on (``nan`` and ``inf`` allowed: no return)."""
         if k + n > len(self.tokens):
             raise self.fail(f"has {len(self.tokens)} fields, too few for {n} readings")
         try:
@@ -201,6 +290,12 @@ class _Line:
     def pose(self, k: int) -> Pose:
         return Pose(self.num(k), self.num(k + 1), self.num(k + 2))
 
+    def stamp(self, first: int) -> float:
+        """The time of a line whose time fields start at ``first``: ``timestamp`` (old logs) or
+        ``ipc_timestamp hostname logger_timestamp`` (the logger's)."""
+        rest = len(self.tokens) - first
+        return self.num(first + (2 if rest == 3 else 0))
+
 
 def _is_float(tok: str) -> bool:
     try:
@@ -211,44 +306,86 @@ def _is_float(tok: str) -> bool:
 
 
 def _open_text(path: Path) -> io.TextIOBase:
-    if path.suffix == ".gz":
-        return io.TextIOWrapper(gzip.open(path, "rb"), encoding="utf-8", errors="replace")
-    return open(path, encoding="utf-8", errors="replace")
+    """The file as text: gzip'd or not by its first bytes, not its name; newline="" keeps CRLF
+    out of the way (``split`` drops the ``\\r``)."""
+    with open(path, "rb") as fh:
+        magic = fh.read(2)
+    if magic == b"\x1f\x8b":
+        return io.TextIOWrapper(gzip.open(path, "rb"), encoding="utf-8", errors="replace", newline="")
+    return open(path, encoding="utf-8", errors="replace", newline="")
 
 
-def read_carmen(
-    path: str | os.PathLike[str], *, fov: float | None = None, max_range: float | None = None
-) -> list[LaserScan]:
-    """All laser scans of a CARMEN log, in file order (see the module notes for the format).
+def _param_value(tokens: list[str]) -> str:
+    """The value of ``PARAM name value [hostname timestamp]``: a trailing pair whose last field
+    is a number is the host and timestamp (``PARAM robot_front_laser_max 80.99 nohost 0``)."""
+    vals = tokens[2:]
+    if len(vals) >= 3 and _is_float(vals[-1]):
+        vals = vals[:-2]
+    return " ".join(vals)
+
+
+def _names(names: tuple[str, ...], kind: str) -> tuple[str, ...]:
+    """Parameter names for the stream ``kind``: the rear laser's are the front's with ``rear``."""
+    if kind in ("RLASER", "ROBOTLASER2"):
+        return tuple(n.replace("front", "rear") for n in names)
+    return names
+
+
+def read_carmen_log(
+    path: str | os.PathLike[str],
+    *,
+    strict: bool = False,
+    fov: float | None = None,
+    max_range: float | None = None,
+    laser: str | None = None,
+) -> CarmenLog:
+    """Read a CARMEN log (see the module notes for the format).
 
     Parameters
     ----------
     path : str or path-like
-        The log (``.gz`` is decompressed).
+        The log, plain text or gzip'd (recognised by its first bytes).
+    strict : bool
+        Raise on the first unreadable line instead of skipping it.
     fov : float, optional
-        Field of view of ``FLASER`` scans in radians, overriding the log's parameters.
+        Field of view of ``FLASER``/``RLASER`` scans in radians, overriding the parameters.
     max_range : float, optional
         Maximum range in metres, overriding the log's parameters and each line's own.
+    laser : str, optional
+        The laser stream to read (one of :data:`LASERS`); default the first present.
 
     Returns
     -------
-    list of LaserScan
+    CarmenLog
 
     Raises
     ------
     CarmenError
-        When the file cannot be read, or a line of a type read here is malformed (the message
-        gives the line number), or a parameter honoured here is not a number.
+        When the file is missing or unreadable, is not a CARMEN log or a corrupt gzip file;
+        with ``strict``, for the first unreadable line or parameter.
     """
-    p = Path(path)
+    if laser is not None and laser not in LASERS:
+        raise CarmenError(f"unknown laser message type {laser!r}; one of {', '.join(LASERS)}")
     where = str(path)
     params: dict[str, tuple[int, str]] = {}
     raws: list[_Raw] = []
+    counts: dict[str, int] = {}
+    truepos: list[tuple[float, Pose]] = []
+    issues: list[str] = []
     last_odom: Pose | None = None
+    seen_message = False
+
+    def issue(err: CarmenError) -> None:
+        if strict:
+            raise err
+        issues.append(str(err))
+
     try:
-        fh = _open_text(p)
+        fh = _open_text(Path(path))
     except FileNotFoundError:
         raise CarmenError(f"{where}: no such file") from None
+    except IsADirectoryError:
+        raise CarmenError(f"{where}: is a directory, not a log") from None
     except OSError as exc:
         raise CarmenError(f"{where}: {exc.strerror or exc}") from None
     try:
@@ -258,22 +395,45 @@ def read_carmen(
                 if not tokens or tokens[0].startswith("#"):
                     continue
                 kind = tokens[0]
+                if not seen_message:
+                    if not _MESSAGE_TYPE.match(kind) or "\ufffd" in text:
+                        raise CarmenError(
+                            f"{where}: not a CARMEN log (line {number} does not start with a message type)"
+                        )
+                    seen_message = True
                 if kind == "PARAM":
                     if len(tokens) >= 3:
-                        params.setdefault(tokens[1], (number, " ".join(tokens[2:])))
+                        params.setdefault(tokens[1], (number, _param_value(tokens)))
                     continue
-                if kind not in ("FLASER", "ROBOTLASER1", "RAWLASER1", "ODOM"):
+                if kind not in MESSAGES:
                     continue
-                ln = _Line(where, number, tokens)
-                if kind == "ODOM":
-                    ln.need(4)
-                    last_odom = ln.pose(1)
-                    continue
-                raw = _parse_laser(ln, last_odom)
-                if raw is not None:
-                    raws.append(raw)
-    except (OSError, EOFError, gzip.BadGzipFile) as exc:
+                ln = _Line(where, number, tokens, truncated=not text.endswith("\n"))
+                if kind in LASERS:
+                    index = counts.get(kind, 0)
+                    counts[kind] = index + 1
+                    if laser is not None and kind != laser:
+                        continue
+                try:
+                    if kind == "ODOM":
+                        ln.need(8)
+                        last_odom = ln.pose(1)
+                    elif kind == "TRUEPOS":
+                        ln.need(8)
+                        truepos.append((ln.stamp(7), ln.pose(1)))
+                    else:
+                        raw = _parse_laser(ln, index, last_odom)
+                        if raw is not None:
+                            raws.append(raw)
+                except CarmenError as err:
+                    issue(err)
+    except (EOFError, gzip.BadGzipFile, zlib.error) as exc:
+        raise CarmenError(f"{where}: corrupt or truncated gzip file: {exc}") from None
+    except OSError as exc:
         raise CarmenError(f"{where}: cannot read: {exc}") from None
+
+    if laser is None:
+        laser = next((k for k in LASERS if counts.get(k)), None)
+    raws = [r for r in raws if r.kind == laser]
 
     def param(names: tuple[str, ...]) -> float | None:
         for name in names:
@@ -282,79 +442,158 @@ def read_carmen(
                 try:
                     v = float(value)
                 except ValueError:
-                    raise CarmenError(f"{where}:{number}: PARAM {name} is not a number: {value!r}") from None
+                    issue(CarmenError(f"{where}:{number}: PARAM {name} is not a number: {value!r}"))
+                    continue
                 if not math.isfinite(v):
-                    raise CarmenError(f"{where}:{number}: PARAM {name} is not finite: {value!r}")
+                    issue(CarmenError(f"{where}:{number}: PARAM {name} is not finite: {value!r}"))
+                    continue
                 return v
         return None
 
-    if fov is None:
-        fov_deg = param(FOV_PARAMS)
-        fov = DEFAULT_FOV if fov_deg is None else math.radians(fov_deg)
-    if not (0.0 < fov <= 2.0 * math.pi + 1e-9):
-        raise CarmenError(f"{where}: laser field of view {math.degrees(fov):g} degrees is outside (0, 360]")
-    log_max = max_range if max_range is not None else param(MAX_RANGE_PARAMS)
+    kind = laser or "FLASER"
+    fov_deg = param(_names(FOV_PARAMS, kind))
+    res_deg = param(_names(RESOLUTION_PARAMS, kind)) if fov_deg is None else None
+    if fov is not None:
+        fov_deg = math.degrees(fov)
+    if fov_deg is not None and not (0.0 < fov_deg <= 360.0 + 1e-7):
+        raise CarmenError(f"{where}: laser field of view {fov_deg:g} degrees is outside (0, 360]")
+    log_max = max_range if max_range is not None else param(_names(MAX_RANGE_PARAMS, kind))
     if log_max is None:
-        finite = [float(np.nanmax(r.ranges)) for r in raws if r.ranges.size and np.any(np.isfinite(r.ranges))]
+        finite = [float(np.max(r.ranges[np.isfinite(r.ranges)])) for r in raws if np.isfinite(r.ranges).any()]
         log_max = max(finite) if finite else math.inf
     if not log_max > 0.0:
         raise CarmenError(f"{where}: maximum laser range {log_max:g} m is not positive")
-    fwd, side, ang = (param((name,)) or 0.0 for name in OFFSET_PARAMS)
-    log_offset = Pose(fwd, side, ang)
+    fwd, side, ang = (param((name,)) or 0.0 for name in _names(OFFSET_PARAMS, kind))
+    stream_mount = Pose(fwd, side, ang + (math.pi if kind == "RLASER" else 0.0))
 
     scans: list[LaserScan] = []
     for raw in raws:
-        angles = raw.angles if raw.angles is not None else flaser_angles(raw.ranges.size, fov)
+        angles = raw.angles
+        if angles is None:
+            n = raw.ranges.size
+            if fov_deg is not None:
+                width = math.radians(fov_deg)
+            elif res_deg is not None and 0.0 < res_deg * (n - 1) <= 360.0:
+                width = math.radians(res_deg * (n - 1))
+            else:
+                width = DEFAULT_FOV
+            angles = flaser_angles(n, width)
         rmax = max_range if max_range is not None else (raw.max_range or log_max)
         ranges = raw.ranges.copy()
         with np.errstate(invalid="ignore"):
             ranges[~(ranges > 0.0) | (ranges >= rmax)] = np.inf
-        offset = raw.offset if raw.offset is not None else log_offset
-        scans.append(LaserScan(raw.t, ranges, angles, float(rmax), raw.odom.compose(offset)))
-    return scans
+        mount = raw.mount if raw.mount is not None else stream_mount
+        scans.append(
+            LaserScan(raw.t, ranges, angles, float(rmax), raw.odom.compose(mount), mount, raw.kind, raw.index)
+        )
+    values = {name: value for name, (_, value) in params.items()}
+    return CarmenLog(where, scans, laser, counts, truepos, issues, values)
 
 
-def _parse_laser(ln: _Line, last_odom: Pose | None) -> _Raw | None:
+def read_carmen(
+    path: str | os.PathLike[str],
+    *,
+    fov: float | None = None,
+    max_range: float | None = None,
+    strict: bool = True,
+    laser: str | None = None,
+) -> list[LaserScan]:
+    """The scans of one laser stream of a CARMEN log, in file order: :func:`read_carmen_log`
+    (strict by default) without the rest.
+
+    Raises
+    ------
+    CarmenError
+        See :func:`read_carmen_log`.
+    """
+    return read_carmen_log(path, strict=strict, fov=fov, max_range=max_range, laser=laser).scans
+
+
+def _parse_laser(ln: _Line, index: int, last_odom: Pose | None) -> _Raw | None:
     tok = ln.tokens
-    if ln.kind == "FLASER":
+    if ln.kind in ("FLASER", "RLASER"):
         ln.need(2)
         n = ln.count(1)
-        # n readings, 6 pose numbers, then "ipc_timestamp hostname logger_timestamp" (current)
-        # or a single timestamp (old logs).
-        if len(tok) not in (2 + n + 6 + 3, 2 + n + 6 + 1):
+        # n readings, 6 pose numbers, then 1 to 3 time fields.
+        rest = len(tok) - 2 - n
+        if rest not in (7, 9):
             raise ln.fail(f"has {len(tok)} fields, expected {2 + n + 9} for {n} readings")
         ranges = ln.nums(2, n)
-        ln.pose(2 + n)  # the logged laser pose: checked, not used
+        logged = ln.pose(2 + n)
         odom = ln.pose(2 + n + 3)
-        t = ln.num(len(tok) - 1)
-        return _Raw(ln.number, t, ranges, None, None, odom, None)
-    # ROBOTLASER1 / RAWLASER1 share their first fields.
-    ln.need(9)
-    start, _fov, res, rmax = ln.num(2), ln.num(3), ln.num(4), ln.num(5)
+        # Equal pose triples: the odometry slot holds the laser's own pose (see the notes).
+        mount = Pose() if logged.almost_equal(odom, tol=1e-6, angle_tol=1e-6) else None
+        return _Raw(ln.kind, index, ln.stamp(2 + n + 6), ranges, None, None, odom, mount)
+    # ROBOTLASER / RAWLASER share their first fields.
+    ln.need(10)
+    start, res, rmax = ln.num(2), ln.num(4), ln.num(5)
     n = ln.count(8)
     ranges = ln.nums(9, n)
     k = 9 + n
     ln.need(k + 1)
     n_rem = ln.count(k)
     k += 1 + n_rem
+    ln.need(k)
     angles = start + res * np.arange(n, dtype=np.float64)
     if n > 1 and not res > 0.0:
         raise ln.fail(f"has a non-positive angular resolution {res:g}")
-    if ln.kind == "ROBOTLASER1":
-        expected = k + 6 + 5 + 3
-        if len(tok) != expected:
-            raise ln.fail(f"has {len(tok)} fields, expected {expected} for {n} readings and {n_rem} remissions")
+    rest = len(tok) - k
+    if ln.kind.startswith("ROBOTLASER"):
+        if rest not in (7, 9, 12, 14):
+            raise ln.fail(f"has {len(tok)} fields, expected {k + 14} for {n} readings and {n_rem} remissions")
         laser = ln.pose(k)
         robot = ln.pose(k + 3)
-        t = ln.num(len(tok) - 1)
-        return _Raw(ln.number, t, ranges, angles, rmax if rmax > 0 else None, robot, robot.between(laser))
-    expected = k + 3
-    if len(tok) != expected:
-        raise ln.fail(f"has {len(tok)} fields, expected {expected} for {n} readings and {n_rem} remissions")
-    t = ln.num(len(tok) - 1)
+        t = ln.stamp(k + (11 if rest >= 12 else 6))
+        return _Raw(ln.kind, index, t, ranges, angles, rmax if rmax > 0 else None, robot, robot.between(laser))
+    if rest not in (1, 3):
+        raise ln.fail(f"has {len(tok)} fields, expected {k + 3} for {n} readings and {n_rem} remissions")
+    t = ln.stamp(k)
     if last_odom is None:
         return None  # no odometry yet
-    return _Raw(ln.number, t, ranges, angles, rmax if rmax > 0 else None, last_odom, None)
+    return _Raw(ln.kind, index, t, ranges, angles, rmax if rmax > 0 else None, last_odom, None)
+
+
+# ---------------------------------------------------------------------------- truth
+def truth_path_for(log: str | os.PathLike[str]) -> Path:
+    """Where a log's truth file sits: ``NAME.truth.tsv`` beside ``NAME.log`` or ``NAME.log.gz``
+    (any other suffix: the name without its last suffixes ``.gz`` and ``.log``)."""
+    p = Path(log)
+    name = p.name
+    for suffix in (".gz", ".log"):
+        if name.endswith(suffix):
+            name = name[: -len(suffix)]
+    return p.with_name(name + ".truth.tsv")
+
+
+def read_truth_tsv(path: str | os.PathLike[str]) -> list[tuple[float, Pose]]:
+    """The rows ``timestamp x y theta`` of a truth file (one per laser line of the log, in
+    order; ``#`` lines and blank lines skipped).
+
+    Raises
+    ------
+    CarmenError
+        When the file cannot be read or a row is not four finite numbers.
+    """
+    where = str(path)
+    try:
+        text = Path(path).read_text(encoding="utf-8", errors="replace")
+    except FileNotFoundError:
+        raise CarmenError(f"{where}: no such file") from None
+    except OSError as exc:
+        raise CarmenError(f"{where}: {exc.strerror or exc}") from None
+    rows: list[tuple[float, Pose]] = []
+    for number, line in enumerate(text.splitlines(), start=1):
+        fields = line.split()
+        if not fields or fields[0].startswith("#"):
+            continue
+        try:
+            vals = [float(f) for f in fields]
+        except ValueError:
+            raise CarmenError(f"{where}:{number}: truth row is not numbers: {line.strip()[:60]!r}") from None
+        if len(vals) != 4 or not all(math.isfinite(v) for v in vals):
+            raise CarmenError(f"{where}:{number}: truth row must be 4 finite numbers (t x y theta)")
+        rows.append((vals[0], Pose(vals[1], vals[2], vals[3])))
+    return rows
 
 
 # ---------------------------------------------------------------------------- writing
@@ -424,3 +663,40 @@ def write_carmen(
         count += 1
     write_atomic(path, out.getvalue())
     return count
+
+
+# ---------------------------------------------------------------------------- truth per scan
+def scan_truth(log: CarmenLog, truth_file: str | os.PathLike[str] | None = None) -> list[Pose] | None:
+    """The true pose of the **laser** at each scan of ``log``, or None when the log has none.
+
+    The truth is, in this order: ``truth_file`` when given; else ``NAME.truth.tsv`` beside the
+    log (:func:`truth_path_for`) when it exists -- one row per line of the log's laser stream,
+    matched by :attr:`LaserScan.index` (so skipped lines keep the rows aligned) and describing
+    what the line's odometry slot describes (each row is composed with the scan's ``mount``);
+    else the ``TRUEPOS`` track (the robot's true pose), interpolated linearly at each scan's
+    time and composed with the scan's ``mount``.
+
+    Raises
+    ------
+    CarmenError
+        When the truth file cannot be read or has fewer rows than the log has laser lines.
+    """
+    path = Path(truth_file) if truth_file is not None else truth_path_for(log.path)
+    if truth_file is not None or path.is_file():
+        rows = read_truth_tsv(path)
+        lines = log.lasers.get(log.laser or "", 0)
+        if len(rows) < lines:
+            raise CarmenError(f"{path}: {len(rows)} truth rows, but {log.path} has {lines} {log.laser} lines")
+        return [rows[s.index][1].compose(s.mount) for s in log.scans]
+    if not log.truepos:
+        return None
+    t = np.array([tp[0] for tp in log.truepos])
+    order = np.argsort(t, kind="stable")
+    t = t[order]
+    xyt = np.array([[p.x, p.y, p.theta] for _, p in log.truepos])[order]
+    th = np.unwrap(xyt[:, 2])
+    out = []
+    for s in log.scans:
+        pose = Pose(float(np.interp(s.t, t, xyt[:, 0])), float(np.interp(s.t, t, xyt[:, 1])), float(np.interp(s.t, t, th)))
+        out.append(pose.compose(s.mount))
+    return out

@@ -1,0 +1,372 @@
+"""``wiremap bench lidar``: the mapper on real CARMEN lidar logs, scored against their truth.
+
+For each log (``LOG ...``, or every ``*.log`` / ``*.log.gz`` in ``--data DIR``) the laser scans
+are read as they are (:func:`agents.files.carmen.read_carmen_log`, unreadable lines skipped and
+counted), turned into corner scans once (split-and-merge, :func:`agents.mapping_run.carmen_inputs`)
+and fed to the particle filter (and with ``--baseline`` to the one-particle mapper on the same
+scans). The filter starts at the true first pose. The truth is the log's ``NAME.truth.tsv`` or
+its ``TRUEPOS`` track (:func:`agents.files.carmen.scan_truth`); a log without either is an error.
+
+Scores (:mod:`mapping.lidar_metrics`), per log and method:
+
+* ``ate_rmse_m``, ``ate_max_m`` -- position error of the estimated sensor pose, no alignment;
+* ``rpe_1m_m`` -- mean relative error over pose pairs 1 m apart along the true path;
+* ``map_precision`` -- share of points every 5 cm along the map's walls within 0.2 m of a real
+  scan endpoint placed at the true pose; ``map_coverage`` -- share of those endpoints within
+  0.2 m of a map wall. Endpoints are the returns within the mapper's range cap
+  (``max_range_m``), the part of the scan the mapper is given;
+* ``best_map_bytes`` -- the best particle's map as one wire message (:func:`wire_codec.encode`,
+  a ``ROBOT_MAP`` at the robot agent's 0.05 m resolution); ``particle_bytes`` --
+  :func:`mapping.filter.particle_bytes` of the whole particle set (paper Sec. IV-G);
+* ``time_s`` -- wall-clock seconds of split-and-merge plus the filter's steps; ``ms_per_scan``;
+* ``odometry_ate_rmse_m``, ``odometry_ate_max_m``, ``odometry_rpe_1m_m`` -- the log's own
+  (drifting) odometry, beside them.
+
+Real-log settings, passed from here and never changed in the mapper: the range cap (default
+20 m, as ``wiremap map``), the merge threshold (0.2 m), the field of view from the log's beams.
+
+Output: an aligned table on stdout, a PNG per log in ``--out`` (the map over the endpoints, with
+the true and estimated paths, a legend and a scale bar), and with ``--json`` one last line::
+
+    {"logs": {NAME: {"scans", "ate_rmse_m", ..., ["baseline": {...}]}}, "median": {...}}
+
+where ``median`` holds the medians over logs of every numeric key (and of the baseline's under
+``"baseline"``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import functools
+import json
+import math
+import shutil
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from agents.errors import UserError
+
+HELP = "the mapper on real CARMEN lidar logs against their truth (ATE, map precision, bytes)"
+
+#: Keys of each run's scores (filter or baseline), in table order.
+RUN_KEYS = (
+    "scans", "ate_rmse_m", "ate_max_m", "rpe_1m_m", "map_precision", "map_coverage",
+    "best_map_bytes", "particle_bytes", "vertices", "edges", "time_s", "ms_per_scan",
+)
+ODOMETRY_KEYS = ("odometry_ate_rmse_m", "odometry_ate_max_m", "odometry_rpe_1m_m")
+INT_KEYS = ("scans", "best_map_bytes", "particle_bytes", "vertices", "edges", "skipped_lines", "particles", "seed")
+WIRE_RESOLUTION = 0.05  # the robot agent's map resolution (agents.fleet.robot.DEFAULT_RESOLUTION)
+TOL = 0.2  # metres, precision and coverage
+SPACING = 0.05  # metres between wall samples
+RPE_DISTANCE = 1.0
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("logs", nargs="*", metavar="LOG", help="CARMEN logs (.log or .log.gz)")
+    parser.add_argument("--data", metavar="DIR", help="take every *.log and *.log.gz in DIR")
+    parser.add_argument("--seed", type=int, default=1, help="random seed of the filter (default 1)")
+    parser.add_argument("--particles", type=int, default=10, help="particles (default 10)")
+    parser.add_argument("--steps", type=int, default=None, metavar="N", help="only the first N scans of each log")
+    parser.add_argument("--max-range", type=float, default=20.0, metavar="M",
+                        help="range cap given to the mapper, metres (default 20, as wiremap map)")
+    parser.add_argument("--merge-threshold", type=float, default=0.2, metavar="M",
+                        help="merge threshold, metres (default 0.2)")
+    parser.add_argument("--baseline", action="store_true", help="also run the one-particle mapper")
+    parser.add_argument("--json", action="store_true", help="print the JSON summary as the last line")
+    parser.add_argument("--out", default="out/bench-lidar", metavar="DIR", help="where the PNGs go")
+    parser.add_argument("--jobs", type=int, default=1, metavar="N",
+                        help="run N logs at once in separate processes (default 1; they share the cores)")
+    parser.add_argument("--quiet", action="store_true", help="no progress on stderr")
+
+
+def log_name(path: str | Path) -> str:
+    """``freiburg-101`` for ``.../freiburg-101.log.gz``."""
+    name = Path(path).name
+    for suffix in (".gz", ".log"):
+        if name.endswith(suffix):
+            name = name[: -len(suffix)]
+    return name
+
+
+def find_logs(logs: list[str], data: str | None) -> list[Path]:
+    """The logs to run: those named, else every ``*.log`` / ``*.log.gz`` in ``data``.
+
+    Raises
+    ------
+    UserError
+        Without logs and without ``data``, for a missing folder or one without logs, and for
+        two logs of the same name.
+    """
+    if logs:
+        paths = [Path(p) for p in logs]
+    elif data is not None:
+        d = Path(data)
+        if not d.is_dir():
+            raise UserError(f"--data {data}: no such folder")
+        paths = sorted(p for p in d.iterdir() if p.is_file() and (p.name.endswith(".log") or p.name.endswith(".log.gz")))
+        if not paths:
+            raise UserError(f"--data {data}: no *.log or *.log.gz files there")
+    else:
+        raise UserError("no logs: pass LOG files or --data DIR (e.g. --data ../shared/data/carmen)")
+    names = [log_name(p) for p in paths]
+    dup = next((n for n in names if names.count(n) > 1), None)
+    if dup is not None:
+        raise UserError(f"two logs are named {dup}")
+    return paths
+
+
+def _check(args: argparse.Namespace) -> None:
+    if args.particles < 1:
+        raise UserError(f"--particles must be >= 1, got {args.particles}")
+    if args.steps is not None and args.steps < 1:
+        raise UserError(f"--steps must be >= 1, got {args.steps}")
+    if args.jobs < 1:
+        raise UserError(f"--jobs must be >= 1, got {args.jobs}")
+    for flag, v in (("--max-range", args.max_range), ("--merge-threshold", args.merge_threshold)):
+        if not (math.isfinite(v) and v > 0):
+            raise UserError(f"{flag} must be a positive number of metres, got {v}")
+
+
+class _Progress:
+    """One live line on stderr, cut to the terminal's width (a line per run when stderr is not
+    a terminal or several logs run at once)."""
+
+    def __init__(self, enabled: bool, live: bool) -> None:
+        self.enabled = enabled
+        self.live = live and enabled and sys.stderr.isatty()
+        self._last = 0.0
+        self._shown = False
+
+    def update(self, text: str) -> None:
+        if not self.live:
+            return
+        now = time.monotonic()
+        if now - self._last < 0.2:
+            return
+        self._last = now
+        cols = shutil.get_terminal_size((80, 24)).columns - 1
+        sys.stderr.write("\r" + text[:cols].ljust(cols))
+        sys.stderr.flush()
+        self._shown = True
+
+    def line(self, text: str) -> None:
+        if not self.enabled:
+            return
+        if self._shown:
+            sys.stderr.write("\r" + " " * (shutil.get_terminal_size((80, 24)).columns - 1) + "\r")
+            self._shown = False
+        sys.stderr.write(text + "\n")
+        sys.stderr.flush()
+
+
+def wire_bytes(wf: Any, pose: Any) -> int:
+    """Bytes of ``wf`` as one ``ROBOT_MAP`` wire message (:func:`wire_codec.encode`)."""
+    from mapping.se2 import Pose
+    from wire_codec import encode
+    from wire_codec.message import MapMessage, MessageKind
+
+    if wf.n_edges and wf.sources.any():
+        wf = wf.replace(sources=np.zeros(wf.n_edges, dtype=np.uint64))
+    msg = MapMessage(
+        kind=MessageKind.ROBOT_MAP, sender="r1", seq=0, stamp_ns=0, pose=pose, frame="odom/r1",
+        origin=Pose(), resolution=WIRE_RESOLUTION, wireframe=wf,
+    )
+    return len(encode(msg))
+
+
+def _poses(ps: list[Any]) -> np.ndarray:
+    return np.array([[p.x, p.y, p.theta] for p in ps], dtype=np.float64).reshape(-1, 3)
+
+
+def run_log(
+    path: str, *, seed: int, particles: int, steps: int | None, max_range: float, thr: float,
+    baseline: bool, out: str, progress: bool = False,
+) -> dict[str, Any]:
+    """One log: read it, map it (and the baseline on the same scans), score, write its PNG.
+    Returns the log's result object (see the module notes). Runs in a worker process too."""
+    from agents import mapping_run as mr
+    from agents.bench.lidar_png import lidar_png
+    from agents.files.carmen import read_carmen_log, scan_truth
+    from agents.files.io import write_atomic
+    from mapping.filter import WireframeFilter, particle_bytes
+    from mapping.lidar_metrics import ate, map_coverage, map_precision, rpe, scan_endpoints
+
+    name = log_name(path)
+    show = _Progress(progress, live=True)
+    log = read_carmen_log(path)
+    if not log.scans:
+        raise UserError(f"{path}: no laser scans in the log")
+    truth = scan_truth(log)
+    if truth is None:
+        raise UserError(f"{path}: no truth (no TRUEPOS lines and no {log_name(path)}.truth.tsv beside it)")
+    scans = log.scans[:steps] if steps is not None else log.scans
+    truth = truth[: len(scans)]
+    cap = min(float(scans[0].max_range), max_range)
+    t0 = time.perf_counter()
+    inputs = list(mr.carmen_inputs(scans, max_range=cap, truth=truth))
+    extract_s = time.perf_counter() - t0
+    true_xyt = _poses(truth)
+    odom_xyt = _poses([s.odom for s in scans])
+    endpoints = scan_endpoints(true_xyt, [s.ranges for s in scans], [s.angles for s in scans], max_range=cap)
+    fov = mr.scan_fov(scans[0].angles)
+
+    def one(method: str, p: int) -> tuple[dict[str, Any], Any, np.ndarray]:
+        cfg = mr.filter_config_for(p, thr, cap, fov=fov)
+        filt = WireframeFilter(cfg, mr.seeds_for(seed)["filter"], initial_pose=truth[0])
+        busy = 0.0
+        est = []
+        for st in mr.run_filter(inputs, filt, len(inputs)):
+            busy += st.step_s
+            est.append(st.pose)
+            show.update(f"{name} {method}: scan {st.index + 1}/{len(inputs)}, "
+                        f"{filt.best.n_edges} walls, {(st.index + 1) / busy if busy else 0:.1f} scans/s")
+        best = filt.best
+        est_xyt = _poses(est)
+        rmse, mx = ate(est_xyt, true_xyt)
+        secs = extract_s + busy
+        row = {
+            "scans": len(inputs),
+            "ate_rmse_m": rmse,
+            "ate_max_m": mx,
+            "rpe_1m_m": rpe(est_xyt, true_xyt, RPE_DISTANCE),
+            "map_precision": map_precision(best, endpoints, TOL, SPACING),
+            "map_coverage": map_coverage(best, endpoints, TOL),
+            "best_map_bytes": wire_bytes(best, filt.pose),
+            "particle_bytes": particle_bytes(filt.particles),
+            "vertices": best.n_vertices,
+            "edges": best.n_edges,
+            "time_s": secs,
+            "ms_per_scan": 1000.0 * secs / len(inputs),
+        }
+        show.line(f"{name} {method}: ATE {rmse:.3f} m (max {mx:.2f}), precision {row['map_precision']:.3f}, "
+                  f"coverage {row['map_coverage']:.3f}, {row['ms_per_scan']:.0f} ms/scan")
+        return row, best, est_xyt
+
+    result, best, est_xyt = one("filter", particles)
+    o_rmse, o_max = ate(odom_xyt, true_xyt)
+    result.update({
+        "odometry_ate_rmse_m": o_rmse,
+        "odometry_ate_max_m": o_max,
+        "odometry_rpe_1m_m": rpe(odom_xyt, true_xyt, RPE_DISTANCE),
+        "skipped_lines": len(log.issues),
+        "particles": particles,
+        "seed": seed,
+        "max_range_m": cap,
+    })
+    title = f"{name}: ate {result['ate_rmse_m']:.2f} m, precision {result['map_precision']:.2f}, seed {seed}"
+    write_atomic(Path(out) / f"{name}.png", lidar_png(best, endpoints, true_xyt[:, :2], est_xyt[:, :2], title=title))
+    if baseline:
+        brow, bbest, best_xyt = one("baseline", 1)
+        result["baseline"] = brow
+        write_atomic(Path(out) / f"{name}-baseline.png",
+                     lidar_png(bbest, endpoints, true_xyt[:, :2], best_xyt[:, :2], title=f"{name}: baseline"))
+    return _rounded(result)
+
+
+def _rounded(d: dict[str, Any]) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for k, v in d.items():
+        if isinstance(v, dict):
+            out[k] = _rounded(v)
+        elif k in INT_KEYS or isinstance(v, int):
+            out[k] = int(v)
+        else:
+            f = float(v)
+            out[k] = round(f, 6) if math.isfinite(f) else None
+    return out
+
+
+def median(rows: list[dict[str, Any]]) -> dict[str, Any]:
+    """Median over logs of every numeric key (None when no log has a finite value)."""
+    keys = [k for k in rows[0] if not isinstance(rows[0][k], dict)] if rows else []
+    out: dict[str, Any] = {}
+    for k in keys:
+        vals = np.array([r[k] for r in rows if r.get(k) is not None], dtype=np.float64)
+        vals = vals[np.isfinite(vals)]
+        m = float(np.median(vals)) if len(vals) else math.nan
+        out[k] = None if not math.isfinite(m) else (round(m) if k in INT_KEYS else round(m, 6))
+    return out
+
+
+def format_table(logs: dict[str, dict[str, Any]], med: dict[str, Any], base_med: dict[str, Any] | None) -> str:
+    """One line per log and method (filter, baseline, odometry), then the medians."""
+    head = ["log", "method", "scans", "ate_m", "ate_max_m", "rpe_1m_m", "precision", "coverage",
+            "map_B", "particle_B", "time_s", "ms/scan"]
+    lines = [head]
+
+    def add(name: str, method: str, r: dict[str, Any]) -> None:
+        lines.append([
+            name, method, _fmt(r.get("scans"), "{}"), _fmt(r.get("ate_rmse_m"), "{:.3f}"),
+            _fmt(r.get("ate_max_m"), "{:.3f}"), _fmt(r.get("rpe_1m_m"), "{:.3f}"),
+            _fmt(r.get("map_precision"), "{:.3f}"), _fmt(r.get("map_coverage"), "{:.3f}"),
+            _fmt(r.get("best_map_bytes"), "{}"), _fmt(r.get("particle_bytes"), "{}"),
+            _fmt(r.get("time_s"), "{:.1f}"), _fmt(r.get("ms_per_scan"), "{:.0f}"),
+        ])
+
+    def odometry(name: str, r: dict[str, Any]) -> None:
+        add(name, "odometry", {"scans": r.get("scans"), "ate_rmse_m": r.get("odometry_ate_rmse_m"),
+                               "ate_max_m": r.get("odometry_ate_max_m"), "rpe_1m_m": r.get("odometry_rpe_1m_m")})
+
+    for name, r in logs.items():
+        add(name, "filter", r)
+        if "baseline" in r:
+            add(name, "baseline", r["baseline"])
+        odometry(name, r)
+    add("median", "filter", med)
+    if base_med is not None:
+        add("median", "baseline", base_med)
+    odometry("median", med)
+    widths = [max(len(row[i]) for row in lines) for i in range(len(head))]
+    return "\n".join(
+        "  ".join(c.ljust(w) if i < 2 else c.rjust(w) for i, (c, w) in enumerate(zip(row, widths))) for row in lines
+    )
+
+
+def _fmt(v: Any, f: str) -> str:
+    if v is None or (isinstance(v, float) and not math.isfinite(v)):
+        return "-"
+    return f.format(v)
+
+
+def run(args: argparse.Namespace) -> int:
+    from concurrent.futures import ProcessPoolExecutor
+
+    _check(args)
+    paths = find_logs(list(args.logs), args.data)
+    for p in paths:
+        if not p.is_file():
+            raise UserError(f"{p}: no such file")
+    job = functools.partial(
+        run_log, seed=args.seed, particles=args.particles, steps=args.steps, max_range=args.max_range,
+        thr=args.merge_threshold, baseline=bool(args.baseline), out=str(args.out),
+    )
+    results: dict[str, dict[str, Any]] = {}
+    say = _Progress(not args.quiet, live=False)
+    t0 = time.perf_counter()
+    if args.jobs == 1 or len(paths) == 1:
+        for p in paths:
+            results[log_name(p)] = job(str(p), progress=not args.quiet)
+    else:
+        with ProcessPoolExecutor(max_workers=min(args.jobs, len(paths))) as pool:
+            futures = {log_name(p): pool.submit(job, str(p)) for p in paths}
+            for name, fut in futures.items():
+                results[name] = fut.result()
+                r = results[name]
+                say.line(f"{name}: ATE {r['ate_rmse_m']} m, precision {r['map_precision']}, "
+                         f"{r['ms_per_scan']} ms/scan [{len(results)}/{len(paths)} logs, "
+                         f"{time.perf_counter() - t0:.0f} s]")
+    rows = list(results.values())
+    med = median(rows)
+    base_rows = [r["baseline"] for r in rows if "baseline" in r]
+    base_med = median(base_rows) if base_rows else None
+    print(format_table(results, med, base_med))
+    print(f"PNGs in {args.out}/")
+    if base_med is not None:
+        med["baseline"] = base_med
+    if args.json:
+        print(json.dumps({"logs": results, "median": med}))
+    return 0

@@ -1,0 +1,77 @@
+"""Tests of the real-lidar scores (mapping.lidar_metrics)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from mapping.lidar_metrics import ate, map_coverage, map_precision, rpe, scan_endpoints
+from mapping.wireframe import Wireframe
+
+
+def straight(n: int = 21, step: float = 0.25) -> np.ndarray:
+    """Poses along the x axis, facing +x."""
+    return np.stack([np.arange(n) * step, np.zeros(n), np.zeros(n)], axis=1)
+
+
+def test_ate_is_unaligned_rmse_and_max() -> None:
+    t = straight(4)
+    e = t.copy()
+    e[:, 1] += [0.0, 0.3, 0.0, 0.4]  # errors 0, 0.3, 0, 0.4
+    rmse, mx = ate(e, t)
+    assert rmse == pytest.approx(math.sqrt((0.09 + 0.16) / 4))
+    assert mx == pytest.approx(0.4)
+    # A constant offset is an error (no alignment).
+    assert ate(t + np.array([1.0, 0.0, 0.0]), t) == pytest.approx((1.0, 1.0))
+    assert all(math.isnan(v) for v in ate(np.zeros((0, 3)), np.zeros((0, 3))))
+    with pytest.raises(ValueError, match="differ in length"):
+        ate(t[:2], t)
+
+
+def test_rpe_ignores_a_constant_offset_but_sees_drift() -> None:
+    t = straight(21, 0.25)  # 5 m, poses 0.25 m apart: pairs 4 scans apart
+    assert rpe(t + np.array([3.0, -2.0, 0.0]), t, 1.0) == pytest.approx(0.0, abs=1e-12)
+    # Odometry 10 % short: each 1 m pair is 0.1 m short.
+    e = t.copy()
+    e[:, 0] *= 0.9
+    assert rpe(e, t, 1.0) == pytest.approx(0.1)
+    # A heading error at the start turns every later motion: the relative error sees it
+    # wherever the pair starts before the turn, not after.
+    turned = t.copy()
+    turned[:, 2] = 0.1
+    assert rpe(turned, t, 1.0) == pytest.approx(2 * math.sin(0.05) * 1.0)
+    assert math.isnan(rpe(t, t, 100.0))
+    with pytest.raises(ValueError):
+        rpe(t, t, 0.0)
+
+
+def test_scan_endpoints_place_returns_at_the_poses() -> None:
+    poses = np.array([[0.0, 0.0, 0.0], [1.0, 1.0, math.pi / 2]])
+    ranges = [np.array([1.0, np.inf, 2.0]), np.array([0.5, 9.0, np.nan])]
+    angles = [np.array([0.0, 0.5, math.pi / 2]), np.array([0.0, 0.1, 0.2])]
+    pts = scan_endpoints(poses, ranges, angles, max_range=5.0)
+    assert pts.shape == (3, 2)  # inf, nan and 9 m (beyond 5 m) are dropped
+    assert np.allclose(pts, [[1.0, 0.0], [0.0, 2.0], [1.0, 1.5]])
+    with pytest.raises(ValueError):
+        scan_endpoints(poses, ranges[:1], angles)
+
+
+def test_precision_and_coverage_against_endpoints() -> None:
+    wall = Wireframe.from_polylines([[(0.0, 0.0), (4.0, 0.0)]])
+    # Endpoints along the first 2 m of the wall, 5 cm off it, every 1 cm; more 3 m away.
+    along = np.stack([np.arange(0.0, 2.0, 0.01), np.full(200, 0.05)], axis=1)
+    far = np.stack([np.arange(0.0, 2.0, 0.01), np.full(200, 3.0)], axis=1)
+    pts = np.concatenate([along, far])
+    # Half the wall is within 0.2 m of an endpoint (2 m + the 0.2 m reach past the last one).
+    assert map_precision(wall, pts, tol=0.2) == pytest.approx(2.2 / 4.0, abs=0.02)
+    assert map_coverage(wall, pts, tol=0.2) == pytest.approx(0.5)
+    assert map_coverage(wall, pts, tol=0.04) == 0.0  # 5 cm off the wall
+    assert map_precision(wall, along + np.array([0.0, 0.3]), tol=0.2) == 0.0
+    empty = Wireframe.from_polylines([])
+    assert math.isnan(map_precision(empty, pts))
+    assert map_coverage(empty, pts) == 0.0
+    assert math.isnan(map_coverage(wall, np.zeros((0, 2))))
+    with pytest.raises(ValueError):
+        map_precision(wall, pts, tol=-1.0)
