@@ -1,23 +1,34 @@
 """The wireframe particle filter (paper Sec. III-B, Fig. 7, Sec. IV-B to IV-F).
 
 Each particle is a candidate map, a :class:`~mapping.wireframe.Wireframe` in the world frame.
-One :meth:`WireframeFilter.step` takes an odometry increment and a scan (robot frame) and
+One :meth:`WireframeFilter.step` takes an odometry increment and a scan (robot frame), cleans
+the scan up (:mod:`mapping.scan_cleanup`) and runs these phases, each a method:
 
-1. **predicts the pose** ``x_pred = x (+) odometry`` (Sec. IV-A);
-2. **matches** the scan against the best particle's predicted scan at ``x_pred`` with the
+1. **predict** the pose ``x_pred = x (+) odometry`` and its covariance (Sec. IV-A,
+   :meth:`WireframeFilter._predict`);
+2. **match** the scan against the best particle's predicted scan at ``x_pred`` with the
    wireframe ICP (Sec. IV-C, :func:`mapping.icp.icp`) and, when the match is accepted,
-   corrects the pose ``x = x_pred (+) correction``; otherwise keeps ``x_pred``;
-3. for every distinct particle, **predicts the scan** at ``x`` (Sec. IV-B,
-   :func:`mapping.visibility.visible_view`), computes ``log p(S | W_i)`` and the per-edge
-   likelihoods (Sec. IV-D, :func:`mapping.likelihood.scan_likelihood`) and updates the weight
-   ``w_i <- eta w_i p(S | W_i)``;
-4. lowers the stored likelihood of every in-sight edge the scan contradicts (see below);
-   edges in view that the prediction does not report (back-facing ones, paper Fig. 5) count
-   as contradicted, in the weight and in the bookkeeping, when the scan saw through them
-   (:func:`mapping.likelihood.seen_through`);
-5. **resamples with mutation** (Sec. IV-F, :func:`mapping.resample.resample_with_mutation`);
-6. **merges** the scan, placed at ``x``, into every resulting particle (Sec. IV-E,
-   :func:`mapping.merge.merge`); scan edges carry their per-edge likelihoods into the merge.
+   correct the pose ``x = x_pred (+) correction``; otherwise keep ``x_pred``
+   (:meth:`WireframeFilter._match_scan`);
+3. fuse the wall-direction **compass** (:mod:`mapping.compass`,
+   :meth:`WireframeFilter._fuse_compass`);
+4. for every distinct particle, **predict the scan** at ``x`` (Sec. IV-B,
+   :func:`mapping.visibility.visible_view`), compute ``log p(S | W_i)`` and the per-edge
+   likelihoods (Sec. IV-D, :func:`mapping.likelihood.scan_likelihood`) and lower the stored
+   likelihood of every in-sight edge the scan contradicts (:mod:`mapping.evidence`); edges in
+   view that the prediction does not report (back-facing ones, paper Fig. 5) count as
+   contradicted, in the weight and in the bookkeeping, when the scan saw through them
+   (:meth:`WireframeFilter._evaluate`);
+5. **reweight** ``w_i <- eta w_i p(S | W_i)`` (:meth:`WireframeFilter._reweight`);
+6. **resample with mutation** (Sec. IV-F, :func:`mapping.resample.resample_with_mutation`,
+   :meth:`WireframeFilter._resample`);
+7. **merge** the scan, placed at ``x``, into every resulting particle (Sec. IV-E,
+   :func:`mapping.merge.merge`); scan edges carry their per-edge likelihoods into the merge
+   (:meth:`WireframeFilter._merge_scan`);
+8. **close loops** (:mod:`mapping.loops`, :meth:`WireframeFilter._loop_closure`).
+
+The configuration (:class:`FilterConfig`) groups its settings by concern, each group next to
+the code it tunes; the measurements behind the defaults are in docs/experiments.md.
 
 Choices where the paper is silent or that differ from it
 --------------------------------------------------------
@@ -27,35 +38,35 @@ Choices where the paper is silent or that differ from it
   relative to the map): the odometry noise model grows it (:meth:`WireframeFilter.predict_covariance`),
   it is the ICP's prior (:func:`mapping.icp.icp`: the scan corrects only the directions it
   constrains better than the odometry, within a Mahalanobis gate), and an accepted match
-  replaces it by the ICP's posterior covariance, floored at :attr:`FilterConfig.pose_floor_xy`
-  and :attr:`FilterConfig.pose_floor_theta` (the map itself is not more accurate than that).
+  replaces it by the ICP's posterior covariance, floored at :attr:`OdometryConfig.pose_floor_xy`
+  and :attr:`OdometryConfig.pose_floor_theta` (the map itself is not more accurate than that).
   The ICP's first correspondence gate follows it too (three standard deviations, the rotation
   taken at half the range, within the ICP config's ``gate_end``..``gate_start``).
 * **Re-anchoring.** That covariance is the pose's uncertainty relative to the map *around it*,
   which the robot has just built. A part of the map built long ago can be off from it by the
   drift accumulated in between, more than the gate allows; a rejected match is therefore tried
-  once more with the drift (:attr:`FilterConfig.drift_xy`, :attr:`FilterConfig.drift_theta`,
+  once more with the drift (:attr:`GatingConfig.drift_xy`, :attr:`GatingConfig.drift_theta`,
   growing with the square root of the distance driven) added to the prior, and accepted only if
   it constrains all three directions with half the usual residual. The pose then rejoins the
   older map instead of building a second copy beside it (the map's own drift stays: no past
   scan is moved).
 * **Gating the map.** A scan that cannot be placed does not touch the map: when a map is in
   view and, after matching, the heading is uncertain by more than
-  :attr:`FilterConfig.max_map_sigma_theta` (a sharp turn the scan could not fix), or the match
-  failed while the position is uncertain by more than :attr:`FilterConfig.max_map_sigma_xy`
+  :attr:`GatingConfig.max_sigma_theta` (a sharp turn the scan could not fix), or the match
+  failed while the position is uncertain by more than :attr:`GatingConfig.max_sigma_xy`
   (lost track), the step only predicts (``StepInfo.mapped`` is False).
-* **Frontiers continue established walls** (:func:`snap_frontiers`): before the merge, a scan
+* **Frontiers continue established walls** (:func:`mapping.snapping.snap_frontiers`): before the merge, a scan
   frontier that extends a longer map wall is moved onto that wall's line; a wall growing at its
   frontier would otherwise follow the pose's error and the pose would follow the wall.
-* **Walls continue across doorways** (:func:`snap_collinear`): a new scan wall in the line of an
+* **Walls continue across doorways** (:func:`mapping.snapping.snap_collinear`): a new scan wall in the line of an
   established map wall, past its end, is put onto that line; door by door a corridor would
   otherwise bend by the pose's heading error at each new wall.
 * **Corners are averaged** (:mod:`mapping.refine`): a scan whose match fixed the whole pose
   moves every map corner it observes to the running mean of its observations, until the corner
-  has had :attr:`FilterConfig.refine_max_count` of them, before the merge (the merge itself
+  has had ``refine.max_count`` of them, before the merge (the merge itself
   keeps the map's position); otherwise the first sighting's pose error stays in the corner for
   good and the pose inherits it.
-* **Carving** (:func:`seen_through_spans`, :func:`carve`): stretches of a map wall that a scan
+* **Carving** (:func:`mapping.evidence.seen_through_spans`, :func:`mapping.evidence.carve`): stretches of a map wall that a scan
   saw through while it saw the rest of the wall are cut out (a false-positive edge that the
   merge joined to a real collinear wall cannot be removed by mutation, whose unit is the edge).
 * **Evidence and merge scans.** Likelihoods and contradictions use the whole scan (short
@@ -68,17 +79,17 @@ Choices where the paper is silent or that differ from it
   map edge in sight that the scan *contradicts* (it sees through it, see
   :mod:`mapping.likelihood`) and does not observe anywhere gets the Bayes update
   ``L <- L p_fn / (L p_fn + (1 - L)(1 - p_fp))``, in proportion to the part of the edge in
-  view (:attr:`FilterConfig.partial_contradiction`). This is how a wrong wall falls below the
+  view (``evidence.partial_contradiction``). This is how a wrong wall falls below the
   keep threshold "verified through multiple scans" (Sec. IV-F).
-* **Wall-direction compass** (:mod:`mapping.compass`, :attr:`FilterConfig.compass`): while the
+* **Wall-direction compass** (:mod:`mapping.compass`, :class:`mapping.compass.CompassConfig`): while the
   match leaves the heading uncertain, the directions of the scan's long walls against the
   building's wall directions (learnt from the first metres driven, then frozen) are fused as a
   heading measurement; the loop closer keeps them as heading factors on its keyframes. While
   the match pins the heading against a map young enough to carry the current drift, the
-  measurement still pulls, at a twentieth of its weight (:attr:`FilterConfig.compass_young_weight`).
+  measurement still pulls, at a twentieth of its weight (``compass.young_weight``).
 * **Static world.** A new scan edge that lies where a particle is sure there is free space
   (its prediction sees past it onto confirmed walls) is not merged into that particle
-  (:attr:`FilterConfig.reject_in_free_space`): a false positive or a passer-by.
+  (``evidence.reject_in_free_space``): a false positive or a passer-by.
 * Stored likelihoods are capped at :data:`MAX_LIKELIHOOD` before a contradiction update, so a
   wall merged often enough to round to 1.0 can still be taken down.
 * **Copies.** Particles that the current scan cannot tell apart (the same predicted scan with
@@ -93,15 +104,17 @@ Choices where the paper is silent or that differ from it
   predicted sight; below the keep threshold it may be dropped).
 * **Weights** are reset to uniform after resampling, which happens every step. The best
   particle is the highest-weight one of the step (its unmutated copy after resampling); among
-  particles of equal weight, the one whose edge set is most plausible (:func:`edge_log_odds`).
+  particles of equal weight, the one whose edge set is most plausible
+  (:func:`mapping.evidence.edge_log_odds`).
 * **Locality.** Prediction (:func:`mapping.visibility.visible_view`) and merging
   (:func:`mapping.merge.merge`) both cull the map to the edges near the robot with one
   vectorised bounding-box test before any Python-level work, so the time per step does not
   grow with the map.
 * **Scan clean-up** before anything else: edges that close a gap between two walls' loose
-  ends (frontier or occlusion vertices) are dropped (:attr:`FilterConfig.drop_gap_bridges`),
-  so are walls along a line of sight (:attr:`FilterConfig.min_line_distance`); short frontier fragments
-  (:attr:`FilterConfig.min_fragment_length`) are kept as evidence only (above).
+  ends (frontier or occlusion vertices) are dropped (``cleanup.drop_gap_bridges``),
+  so are walls along a line of sight (``cleanup.min_line_distance``); short frontier fragments
+  (``cleanup.min_fragment_length``) are kept as evidence only (above;
+  :mod:`mapping.scan_cleanup`).
 * **Budgets.** A scan keeps at most ``max_scan_vertices`` vertices (longest walls first); a
   particle at most ``max_vertices`` (lowest-likelihood edges are dropped first).
 * Distinct particles are found by object identity; unmutated copies share one object, and
@@ -374,7 +387,7 @@ class StepInfo:
         Number of mutated copies made at resampling.
     mapped : bool
         Whether the scan updated the particles (False when its pose was too uncertain, see
-        :attr:`FilterConfig.max_map_sigma_theta`).
+        :class:`GatingConfig`).
     loop : Closure or None
         The loop closure this step made (:mod:`mapping.loops`; ``pose`` is then the pose after it).
     compass : Heading or None
@@ -659,7 +672,7 @@ class WireframeFilter:
     ) -> tuple[Pose, Heading | None]:
         """The wall-direction heading measurement (:mod:`mapping.compass`) of ``scan`` at
         ``pose`` against the reference directions (:class:`mapping.compass.Directions`; with
-        ``compass_anchor=None``, the established walls of ``best`` but the edges ``matched``,
+        ``compass.anchor=None``, the established walls of ``best`` but the edges ``matched``,
         those the scan match already used), fused into the pose and its covariance as a Kalman
         update of the heading with the measurement's variance divided by ``weight`` (the
         position moves with it through the covariance's cross terms); the part of the

@@ -116,7 +116,7 @@ def clean_scan(scan: Wireframe, config: CleanupConfig, max_vertices: int) -> Cle
 
 def fragment_mask(scan: Wireframe, min_length: float) -> BoolArray:
     """The scan edges to keep: all but those shorter than ``min_length`` with a frontier end
-    (see :attr:`FilterConfig.min_fragment_length`)."""
+    (see :attr:`CleanupConfig.min_fragment_length`)."""
     if scan.n_edges == 0 or min_length <= 0:
         return np.ones(scan.n_edges, dtype=bool)
     fr = scan.labels[scan.edges] == Label.FRONTIER
@@ -125,14 +125,14 @@ def fragment_mask(scan: Wireframe, min_length: float) -> BoolArray:
 
 def drop_fragments(scan: Wireframe, min_length: float) -> Wireframe:
     """Drop scan edges shorter than ``min_length`` that have a frontier end (see
-    :attr:`FilterConfig.min_fragment_length`)."""
+    :attr:`CleanupConfig.min_fragment_length`)."""
     keep = fragment_mask(scan, min_length)
     return scan if keep.all() else scan.subgraph_edges(keep)
 
 
 def drop_line_of_sight(scan: Wireframe, min_distance: float) -> Wireframe:
     """Drop scan edges (robot frame) whose supporting line passes within ``min_distance`` of the
-    robot at the origin (see :attr:`FilterConfig.min_line_distance`)."""
+    robot at the origin (see :attr:`CleanupConfig.min_line_distance`)."""
     if scan.n_edges == 0 or min_distance <= 0:
         return scan
     s = scan.segments()
@@ -145,7 +145,7 @@ def drop_line_of_sight(scan: Wireframe, min_distance: float) -> Wireframe:
 
 def drop_gap_bridges(scan: Wireframe) -> Wireframe:
     """Drop scan edges that join two non-nominal vertices each of which also ends another edge
-    (see :attr:`FilterConfig.drop_gap_bridges`)."""
+    (see :attr:`CleanupConfig.drop_gap_bridges`)."""
     if scan.n_edges == 0:
         return scan
     din, dout = scan.degree()
