@@ -978,15 +978,7 @@ class WireframeFilter:
         view, src, unreported = self.predicted_view(p, place)
         lik = scan_likelihood(evidence, view, lcfg, max_range=cfg.max_range)
         in_sight, observed, contra = edge_states(p.n_edges, src, lik.predicted_edge_state)
-        # Edges in view that the prediction does not report (back-facing, or hidden behind
-        # another map edge): contradicted when the scan saw through them.
-        through = np.zeros(p.n_edges, dtype=bool)
-        cand_hidden = np.flatnonzero(unreported & ~observed)
-        if len(cand_hidden) and evidence.n_edges:
-            segs = place.apply_inverse(p.points[p.edges[cand_hidden]].reshape(-1, 2)).reshape(-1, 2, 2)
-            through[cand_hidden] = seen_through(
-                evidence, segs, lcfg.occlusion_margin, cfg.max_range, min_incidence=lcfg.min_incidence
-            )
+        through = self._seen_through_unreported(p, place, evidence, unreported & ~observed)
         if through.any():
             contra |= through
             in_sight |= through
@@ -1037,6 +1029,22 @@ class WireframeFilter:
             updated, origin = carve(updated, spans)
             in_sight, cands = in_sight[origin], cands[origin]
         return _Eval(lik, updated, in_sight, cands, lik.scan_edge_likelihood[ctx.kept], group, merge_mask)
+
+    def _seen_through_unreported(
+        self, p: Wireframe, place: Pose, evidence: Wireframe, candidates: BoolArray
+    ) -> BoolArray:
+        """Which edges of ``p`` in view but not reported by the prediction (back-facing, or
+        hidden behind another map edge; ``candidates``) the scan ``evidence`` saw through
+        (:func:`mapping.likelihood.seen_through`): they count as contradicted (paper Fig. 5)."""
+        lcfg = self.config.likelihood
+        through = np.zeros(p.n_edges, dtype=bool)
+        cand_hidden = np.flatnonzero(candidates)
+        if len(cand_hidden) and evidence.n_edges:
+            segs = place.apply_inverse(p.points[p.edges[cand_hidden]].reshape(-1, 2)).reshape(-1, 2, 2)
+            through[cand_hidden] = seen_through(
+                evidence, segs, lcfg.occlusion_margin, self.config.max_range, min_incidence=lcfg.min_incidence
+            )
+        return through
 
     def _reweight(self, evals: dict[int, _Eval]) -> tuple[FloatArray, int, FloatArray]:
         """The weight update ``w_i <- eta w_i p(S | W_i)^(1 / temperature)`` (Sec. III-B, IV-D).
