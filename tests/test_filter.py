@@ -26,6 +26,7 @@ from mapping.metrics import wall_precision_recall
 from mapping.scan_cleanup import (
     CleanupConfig,
     budget_scan,
+    clean_scan,
     drop_fragments,
     drop_gap_bridges,
     drop_line_of_sight,
@@ -214,6 +215,22 @@ def test_scan_clean_up():
     assert a.n_edges == 2
     b = drop_line_of_sight(a, 0.15)
     assert b.n_edges == 1 and np.allclose(b.points, [(3, 1), (3, 1.2)])
+
+
+def test_clean_scan_keeps_fragments_as_evidence_only():
+    # Edge 0 a frontier fragment (evidence only), edge 1 a complete wall, edge 2 along a line
+    # of sight (gone from both).
+    scan = Wireframe.build(
+        [(2, -1), (2, -0.8), (3, 1), (3, 1.2), (1, 1), (4, 4)],
+        [(0, 1), (2, 3), (4, 5)],
+        labels=[Label.NOMINAL, Label.FRONTIER, Label.NOMINAL, Label.NOMINAL, Label.OCCLUSION, Label.FRONTIER],
+    )
+    out = clean_scan(scan, CleanupConfig(), 200)
+    assert out.evidence.n_edges == 2 and out.scan.n_edges == 1
+    assert np.allclose(out.evidence.segments()[out.kept], out.scan.segments())
+    assert np.allclose(out.scan.points, [(3, 1), (3, 1.2)])
+    kept_all = clean_scan(scan, CleanupConfig(min_fragment_length=0.0, min_line_distance=0.0), 200)
+    assert kept_all.scan.n_edges == kept_all.evidence.n_edges == 3 and kept_all.kept.tolist() == [0, 1, 2]
 
 
 def test_budgets():
