@@ -20,12 +20,12 @@ Choices
   opposite ways; both give the same direction.
 * **The reference** is the building's wall directions as the map learnt them
   (:class:`Directions`): the established walls (likelihood at or above the filter's keep
-  threshold, at least the filter's ``compass_min_length`` long) of the first metres driven,
+  threshold, at least the compass's ``min_length`` long) of the first metres driven,
   where the map frame is exact, then frozen. Not the walls near the robot, nor the whole map's
   consensus at every step: the drift turns those with the heading (measured alternatives in
-  :attr:`mapping.filter.FilterConfig.compass_anchor`). A direction frozen within a degree of
+  :attr:`CompassConfig.anchor`). A direction frozen within a degree of
   perpendicular to one established before it is frozen at exactly perpendicular (a
-  right-angle prior, :attr:`mapping.filter.FilterConfig.compass_right_angle`).
+  right-angle prior, :attr:`CompassConfig.right_angle`).
 * **One scan wall, one residual**: the length-weighted median of the differences to the map
   directions within the gate (three standard deviations of the heading and of the scan wall's
   own direction, at most ``max_gate``), provided those map walls add up to ``min_support``
@@ -39,8 +39,8 @@ Choices
   every scan wall (it does not average out).
 * The assumption fails for a wall that is really a few degrees off a frequent direction. The
   gate keeps "a few" to the heading's own uncertainty (the compass runs at full weight only
-  while that is larger than :attr:`mapping.filter.FilterConfig.compass_min_sigma`; below, a
-  slow pull against young walls, :attr:`mapping.filter.FilterConfig.compass_young_weight`,
+  while that is larger than :attr:`CompassConfig.min_sigma`; below, a
+  slow pull against young walls, :attr:`CompassConfig.young_weight`,
   within a gate of about a degree), so a wall 10 degrees off is never mistaken for a parallel
   one at a 1-degree uncertainty. Likewise the right-angle
   prior squares a building whose wings really meet at 89.5 degrees (by at most its 1-degree
@@ -55,11 +55,81 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from mapping.config import check_number
 from mapping.wireframe import Wireframe
 
 FloatArray = NDArray[np.float64]
 
-__all__ = ["Directions", "Heading", "compass_heading", "direction_clusters", "wall_directions"]
+__all__ = ["CompassConfig", "Directions", "Heading", "compass_heading", "direction_clusters", "wall_directions"]
+
+
+@dataclass(frozen=True)
+class CompassConfig:
+    """When and how :class:`mapping.filter.WireframeFilter` fuses the compass (``compass.*``).
+
+    Evidence for each default is in docs/experiments.md (entries "compass ...").
+
+    Parameters
+    ----------
+    enabled : bool
+        Fuse the measurement: after a turn with no mapped wall in view the odometry's heading
+        error would otherwise go into every new wall.
+    min_sigma : float
+        Full-weight measurement while the heading's standard deviation after the match is
+        above this (radians; 0.15 degrees, just above the pose floor: whenever the match did
+        not pin the heading).
+    min_length : float
+        Shortest wall (metres) whose direction counts (2: a corner sigma of 3 cm then tilts
+        it by under a degree).
+    min_support : float
+        Metres of established map wall a direction needs to be a reference (10).
+    corner_sigma : float
+        Corner noise (metres) in a scan wall's direction variance (the sensor's, 0.03).
+    model_sigma : float
+        Error common to all walls of a direction (radians; 0.15 degrees: map drift and
+        buildings' own non-parallel walls).
+    max_gate : float
+        Largest gate (radians; 6 degrees: a 90-degree turn's odometry error, with margin).
+    anchor : float or None
+        Reference directions frozen after this many metres driven (10: the map frame is still
+        exact); None uses the whole map at every step, which turned with the drift.
+    right_angle : float
+        A reference within this angle (radians; 1 degree, 0 off) of perpendicular to an earlier
+        one is frozen at exactly perpendicular: it straightened the ring corridor.
+    young_weight : float
+        Weight (0 off) of the measurement when the match pinned the heading against young walls
+        (0.05: a slow pull; at full weight it fought the match and walked a heading 2 degrees off).
+    young_travel : float
+        Matched walls mapped at most this many metres of driving ago are young (25: they carry
+        the present drift).
+
+    Raises
+    ------
+    ValueError
+        On a value out of range (the message names the field).
+    """
+
+    enabled: bool = True
+    min_sigma: float = 0.0026
+    min_length: float = 2.0
+    min_support: float = 10.0
+    corner_sigma: float = 0.03
+    model_sigma: float = math.radians(0.15)
+    max_gate: float = math.radians(6.0)
+    anchor: float | None = 10.0
+    right_angle: float = math.radians(1.0)
+    young_weight: float = 0.05
+    young_travel: float = 25.0
+
+    def __post_init__(self) -> None:
+        for name in ("min_sigma", "min_length", "min_support", "corner_sigma", "model_sigma"):
+            check_number(name, getattr(self, name), 0.0)
+        check_number("max_gate", self.max_gate, 0.0, math.pi / 4, open_low=True)
+        if self.anchor is not None:
+            check_number("anchor", self.anchor, 0.0)
+        check_number("right_angle", self.right_angle, 0.0, math.pi / 4)
+        check_number("young_weight", self.young_weight, 0.0, 1.0)
+        check_number("young_travel", self.young_travel, 0.0, finite=False)
 
 
 @dataclass(frozen=True)

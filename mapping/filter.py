@@ -1,23 +1,34 @@
 """The wireframe particle filter (paper Sec. III-B, Fig. 7, Sec. IV-B to IV-F).
 
 Each particle is a candidate map, a :class:`~mapping.wireframe.Wireframe` in the world frame.
-One :meth:`WireframeFilter.step` takes an odometry increment and a scan (robot frame) and
+One :meth:`WireframeFilter.step` takes an odometry increment and a scan (robot frame), cleans
+the scan up (:mod:`mapping.scan_cleanup`) and runs these phases, each a method:
 
-1. **predicts the pose** ``x_pred = x (+) odometry`` (Sec. IV-A);
-2. **matches** the scan against the best particle's predicted scan at ``x_pred`` with the
+1. **predict** the pose ``x_pred = x (+) odometry`` and its covariance (Sec. IV-A,
+   :meth:`WireframeFilter._predict`);
+2. **match** the scan against the best particle's predicted scan at ``x_pred`` with the
    wireframe ICP (Sec. IV-C, :func:`mapping.icp.icp`) and, when the match is accepted,
-   corrects the pose ``x = x_pred (+) correction``; otherwise keeps ``x_pred``;
-3. for every distinct particle, **predicts the scan** at ``x`` (Sec. IV-B,
-   :func:`mapping.visibility.visible_view`), computes ``log p(S | W_i)`` and the per-edge
-   likelihoods (Sec. IV-D, :func:`mapping.likelihood.scan_likelihood`) and updates the weight
-   ``w_i <- eta w_i p(S | W_i)``;
-4. lowers the stored likelihood of every in-sight edge the scan contradicts (see below);
-   edges in view that the prediction does not report (back-facing ones, paper Fig. 5) count
-   as contradicted, in the weight and in the bookkeeping, when the scan saw through them
-   (:func:`mapping.likelihood.seen_through`);
-5. **resamples with mutation** (Sec. IV-F, :func:`mapping.resample.resample_with_mutation`);
-6. **merges** the scan, placed at ``x``, into every resulting particle (Sec. IV-E,
-   :func:`mapping.merge.merge`); scan edges carry their per-edge likelihoods into the merge.
+   correct the pose ``x = x_pred (+) correction``; otherwise keep ``x_pred``
+   (:meth:`WireframeFilter._match_scan`);
+3. fuse the wall-direction **compass** (:mod:`mapping.compass`,
+   :meth:`WireframeFilter._fuse_compass`);
+4. for every distinct particle, **predict the scan** at ``x`` (Sec. IV-B,
+   :func:`mapping.visibility.visible_view`), compute ``log p(S | W_i)`` and the per-edge
+   likelihoods (Sec. IV-D, :func:`mapping.likelihood.scan_likelihood`) and lower the stored
+   likelihood of every in-sight edge the scan contradicts (:mod:`mapping.evidence`); edges in
+   view that the prediction does not report (back-facing ones, paper Fig. 5) count as
+   contradicted, in the weight and in the bookkeeping, when the scan saw through them
+   (:meth:`WireframeFilter._evaluate`);
+5. **reweight** ``w_i <- eta w_i p(S | W_i)`` (:meth:`WireframeFilter._reweight`);
+6. **resample with mutation** (Sec. IV-F, :func:`mapping.resample.resample_with_mutation`,
+   :meth:`WireframeFilter._resample`);
+7. **merge** the scan, placed at ``x``, into every resulting particle (Sec. IV-E,
+   :func:`mapping.merge.merge`); scan edges carry their per-edge likelihoods into the merge
+   (:meth:`WireframeFilter._merge_scan`);
+8. **close loops** (:mod:`mapping.loops`, :meth:`WireframeFilter._loop_closure`).
+
+The configuration (:class:`FilterConfig`) groups its settings by concern, each group next to
+the code it tunes; the measurements behind the defaults are in docs/experiments.md.
 
 Choices where the paper is silent or that differ from it
 --------------------------------------------------------
@@ -27,35 +38,35 @@ Choices where the paper is silent or that differ from it
   relative to the map): the odometry noise model grows it (:meth:`WireframeFilter.predict_covariance`),
   it is the ICP's prior (:func:`mapping.icp.icp`: the scan corrects only the directions it
   constrains better than the odometry, within a Mahalanobis gate), and an accepted match
-  replaces it by the ICP's posterior covariance, floored at :attr:`FilterConfig.pose_floor_xy`
-  and :attr:`FilterConfig.pose_floor_theta` (the map itself is not more accurate than that).
+  replaces it by the ICP's posterior covariance, floored at :attr:`OdometryConfig.pose_floor_xy`
+  and :attr:`OdometryConfig.pose_floor_theta` (the map itself is not more accurate than that).
   The ICP's first correspondence gate follows it too (three standard deviations, the rotation
   taken at half the range, within the ICP config's ``gate_end``..``gate_start``).
 * **Re-anchoring.** That covariance is the pose's uncertainty relative to the map *around it*,
   which the robot has just built. A part of the map built long ago can be off from it by the
   drift accumulated in between, more than the gate allows; a rejected match is therefore tried
-  once more with the drift (:attr:`FilterConfig.drift_xy`, :attr:`FilterConfig.drift_theta`,
+  once more with the drift (:attr:`GatingConfig.drift_xy`, :attr:`GatingConfig.drift_theta`,
   growing with the square root of the distance driven) added to the prior, and accepted only if
   it constrains all three directions with half the usual residual. The pose then rejoins the
   older map instead of building a second copy beside it (the map's own drift stays: no past
   scan is moved).
 * **Gating the map.** A scan that cannot be placed does not touch the map: when a map is in
   view and, after matching, the heading is uncertain by more than
-  :attr:`FilterConfig.max_map_sigma_theta` (a sharp turn the scan could not fix), or the match
-  failed while the position is uncertain by more than :attr:`FilterConfig.max_map_sigma_xy`
+  :attr:`GatingConfig.max_sigma_theta` (a sharp turn the scan could not fix), or the match
+  failed while the position is uncertain by more than :attr:`GatingConfig.max_sigma_xy`
   (lost track), the step only predicts (``StepInfo.mapped`` is False).
-* **Frontiers continue established walls** (:func:`snap_frontiers`): before the merge, a scan
+* **Frontiers continue established walls** (:func:`mapping.snapping.snap_frontiers`): before the merge, a scan
   frontier that extends a longer map wall is moved onto that wall's line; a wall growing at its
   frontier would otherwise follow the pose's error and the pose would follow the wall.
-* **Walls continue across doorways** (:func:`snap_collinear`): a new scan wall in the line of an
+* **Walls continue across doorways** (:func:`mapping.snapping.snap_collinear`): a new scan wall in the line of an
   established map wall, past its end, is put onto that line; door by door a corridor would
   otherwise bend by the pose's heading error at each new wall.
 * **Corners are averaged** (:mod:`mapping.refine`): a scan whose match fixed the whole pose
   moves every map corner it observes to the running mean of its observations, until the corner
-  has had :attr:`FilterConfig.refine_max_count` of them, before the merge (the merge itself
+  has had ``refine.max_count`` of them, before the merge (the merge itself
   keeps the map's position); otherwise the first sighting's pose error stays in the corner for
   good and the pose inherits it.
-* **Carving** (:func:`seen_through_spans`, :func:`carve`): stretches of a map wall that a scan
+* **Carving** (:func:`mapping.evidence.seen_through_spans`, :func:`mapping.evidence.carve`): stretches of a map wall that a scan
   saw through while it saw the rest of the wall are cut out (a false-positive edge that the
   merge joined to a real collinear wall cannot be removed by mutation, whose unit is the edge).
 * **Evidence and merge scans.** Likelihoods and contradictions use the whole scan (short
@@ -68,17 +79,17 @@ Choices where the paper is silent or that differ from it
   map edge in sight that the scan *contradicts* (it sees through it, see
   :mod:`mapping.likelihood`) and does not observe anywhere gets the Bayes update
   ``L <- L p_fn / (L p_fn + (1 - L)(1 - p_fp))``, in proportion to the part of the edge in
-  view (:attr:`FilterConfig.partial_contradiction`). This is how a wrong wall falls below the
+  view (``evidence.partial_contradiction``). This is how a wrong wall falls below the
   keep threshold "verified through multiple scans" (Sec. IV-F).
-* **Wall-direction compass** (:mod:`mapping.compass`, :attr:`FilterConfig.compass`): while the
+* **Wall-direction compass** (:mod:`mapping.compass`, :class:`mapping.compass.CompassConfig`): while the
   match leaves the heading uncertain, the directions of the scan's long walls against the
   building's wall directions (learnt from the first metres driven, then frozen) are fused as a
   heading measurement; the loop closer keeps them as heading factors on its keyframes. While
   the match pins the heading against a map young enough to carry the current drift, the
-  measurement still pulls, at a twentieth of its weight (:attr:`FilterConfig.compass_young_weight`).
+  measurement still pulls, at a twentieth of its weight (``compass.young_weight``).
 * **Static world.** A new scan edge that lies where a particle is sure there is free space
   (its prediction sees past it onto confirmed walls) is not merged into that particle
-  (:attr:`FilterConfig.reject_in_free_space`): a false positive or a passer-by.
+  (``evidence.reject_in_free_space``): a false positive or a passer-by.
 * Stored likelihoods are capped at :data:`MAX_LIKELIHOOD` before a contradiction update, so a
   wall merged often enough to round to 1.0 can still be taken down.
 * **Copies.** Particles that the current scan cannot tell apart (the same predicted scan with
@@ -93,15 +104,17 @@ Choices where the paper is silent or that differ from it
   predicted sight; below the keep threshold it may be dropped).
 * **Weights** are reset to uniform after resampling, which happens every step. The best
   particle is the highest-weight one of the step (its unmutated copy after resampling); among
-  particles of equal weight, the one whose edge set is most plausible (:func:`edge_log_odds`).
+  particles of equal weight, the one whose edge set is most plausible
+  (:func:`mapping.evidence.edge_log_odds`).
 * **Locality.** Prediction (:func:`mapping.visibility.visible_view`) and merging
   (:func:`mapping.merge.merge`) both cull the map to the edges near the robot with one
   vectorised bounding-box test before any Python-level work, so the time per step does not
   grow with the map.
 * **Scan clean-up** before anything else: edges that close a gap between two walls' loose
-  ends (frontier or occlusion vertices) are dropped (:attr:`FilterConfig.drop_gap_bridges`),
-  so are walls along a line of sight (:attr:`FilterConfig.min_line_distance`); short frontier fragments
-  (:attr:`FilterConfig.min_fragment_length`) are kept as evidence only (above).
+  ends (frontier or occlusion vertices) are dropped (``cleanup.drop_gap_bridges``),
+  so are walls along a line of sight (``cleanup.min_line_distance``); short frontier fragments
+  (``cleanup.min_fragment_length``) are kept as evidence only (above;
+  :mod:`mapping.scan_cleanup`).
 * **Budgets.** A scan keeps at most ``max_scan_vertices`` vertices (longest walls first); a
   particle at most ``max_vertices`` (lowest-likelihood edges are dropped first).
 * Distinct particles are found by object identity; unmutated copies share one object, and
@@ -120,29 +133,38 @@ from typing import Any, Protocol
 import numpy as np
 from numpy.typing import NDArray
 
-from mapping.compass import Directions, Heading, compass_heading, wall_directions
+from mapping.compass import CompassConfig, Directions, Heading, compass_heading, wall_directions
+from mapping.config import check_number
+from mapping.evidence import (
+    EvidenceConfig,
+    carve,
+    contradiction_update,
+    edge_log_odds,
+    edge_states,
+    seen_fraction,
+    seen_through_spans,
+)
 from mapping.icp import ICPConfig, ICPResult, icp
 from mapping.likelihood import (
-    CONTRADICTED,
-    OBSERVED,
     LikelihoodConfig,
     ScanLikelihood,
     in_known_free_space,
-    ray_ranges,
     scan_likelihood,
     seen_through,
 )
 from mapping.loops import Closure, LoopCloser, LoopConfig
-from mapping.refine import refine_corners
-from mapping.resample import resample_with_mutation
+from mapping.refine import RefineConfig, refine_corners
+from mapping.resample import ResampleResult, resample_with_mutation
+from mapping.scan_cleanup import CleanScan, CleanupConfig, clean_scan
 from mapping.se2 import Pose
-from mapping.wireframe import Label, Wireframe
+from mapping.snapping import SnappingConfig, snap_collinear, snap_frontiers
+from mapping.wireframe import Wireframe
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 BoolArray = NDArray[np.bool_]
 
-__all__ = ["FilterConfig", "StepInfo", "WireframeFilter", "budget_map", "budget_scan", "carve", "contradiction_update", "drop_fragments", "drop_line_of_sight", "edge_log_odds", "fragment_mask", "particle_bytes", "seen_fraction", "seen_through_spans"]
+__all__ = ["FilterConfig", "GatingConfig", "OdometryConfig", "StepInfo", "WireframeFilter", "budget_map", "particle_bytes"]
 
 
 class ViewLike(Protocol):
@@ -160,261 +182,148 @@ MergeFn = Callable[[Wireframe, Wireframe, float], Wireframe]
 
 
 @dataclass(frozen=True)
+class OdometryConfig:
+    """The odometry noise model and the pose's least uncertainty (``odometry.*`` settings).
+
+    The pose covariance grows by the noise while no match is accepted
+    (:meth:`WireframeFilter.predict_covariance`); it is the ICP's prior, so a scan cannot move
+    the pose further than the odometry can plausibly be off.
+
+    Parameters
+    ----------
+    trans_per_m : float
+        Translation noise std per metre driven, on each axis (0.03: 1.5 times the simulator's
+        :class:`agents.sim.motion.OdometryNoise`; a filter should not trust its odometry more
+        than it deserves).
+    rot_per_rad : float
+        Heading noise std per radian turned (0.03, likewise 1.5 times the simulator's).
+    rot_per_m : float
+        Heading noise std (radians) per metre driven (0.003, likewise).
+    pose_floor_xy, pose_floor_theta : float
+        Least std (metres, radians) of the pose after an accepted match (0.01 m, 0.002 rad): the
+        map's own corners are that uncertain.
+
+    Raises
+    ------
+    ValueError
+        On a negative or non-finite value.
+    """
+
+    trans_per_m: float = 0.03
+    rot_per_rad: float = 0.03
+    rot_per_m: float = 0.003
+    pose_floor_xy: float = 0.01
+    pose_floor_theta: float = 0.002
+
+    def __post_init__(self) -> None:
+        for name in ("trans_per_m", "rot_per_rad", "rot_per_m", "pose_floor_xy", "pose_floor_theta"):
+            check_number(name, getattr(self, name), 0.0)
+
+
+@dataclass(frozen=True)
+class GatingConfig:
+    """When a scan may touch the map, and re-anchoring to an older map (``gating.*`` settings).
+
+    Parameters
+    ----------
+    max_sigma_theta : float
+        A scan whose heading std after matching exceeds this (radians; 1 degree) does not touch
+        the map when a map was in view: after a sharp turn it would be written in rotated.
+    max_sigma_xy : float
+        Nor does a scan whose match was rejected while the position std exceeds this (metres;
+        0.5): the robot has lost track and would duplicate walls beside themselves.
+    reanchor : bool
+        Retry a rejected match with the map's drift added to the prior, accepting it only fully
+        constrained at half the usual residual: otherwise the pose never rejoins an older map.
+    drift_xy, drift_theta : float
+        The map's drift relative to itself per square-root metre driven (0.02 m, 0.0008 rad:
+        0.5 m and 1 degree after 500 m).
+    anchored_evidence : bool
+        Lower no likelihood and carve nothing from a scan whose match with the map in view was
+        rejected: its pose is the odometry's, and a wall that looks seen through may only be
+        misplaced relative to it.
+
+    Raises
+    ------
+    ValueError
+        On a negative (or, for the sigmas, zero) value.
+    """
+
+    max_sigma_theta: float = math.radians(1.0)
+    max_sigma_xy: float = 0.5
+    reanchor: bool = True
+    drift_xy: float = 0.02
+    drift_theta: float = 0.0008
+    anchored_evidence: bool = True
+
+    def __post_init__(self) -> None:
+        for name in ("max_sigma_theta", "max_sigma_xy"):
+            check_number(name, getattr(self, name), 0.0, open_low=True)
+        for name in ("drift_xy", "drift_theta"):
+            check_number(name, getattr(self, name), 0.0)
+
+
+@dataclass(frozen=True)
 class FilterConfig:
-    """Configuration of :class:`WireframeFilter`.
+    """Configuration of :class:`WireframeFilter`: the paper's parameters, then groups by concern.
+
+    Each setting has a dotted name (``compass.young_weight``; :func:`mapping.config.config_items`,
+    :func:`mapping.config.with_overrides`). The measurements behind the defaults are in
+    docs/experiments.md, each with the command that reproduces it.
 
     Parameters
     ----------
     particles : int
-        Number of particles ``M`` (default 10, as in the paper's small simulation).
+        Number of particles ``M`` (10, as in the paper's small simulation).
     max_range : float
-        Sensing range (metres) used for the predicted scan; match the sensor's.
+        Sensing range (metres) of the predicted scan; the sensor's.
     fov : float
-        Field of view (radians, centred on the heading) of the predicted scan.
+        Field of view (radians, centred on the heading) of the predicted scan; the sensor's.
     merge_threshold : float
-        Distance (metres) below which vertices are merged (Sec. IV-E; 0.2 m in the paper's
-        small world, 0.4 m in the large one).
+        Distance (metres) below which vertices merge (Sec. IV-E: 0.2 m in the paper's small
+        world, 0.4 m in the large one).
     keep_threshold : float
-        Edges with likelihood at or above this are never dropped by mutation (Sec. IV-F).
+        Edges at or above this likelihood are never dropped by mutation (Sec. IV-F; 0.5).
     mutate : bool
-        Mutate further copies at resampling (False with ``particles=1`` is the single-hypothesis
+        Mutate further copies at resampling (False with one particle: the single-hypothesis
         baseline).
     use_icp : bool
         Correct the pose by ICP (False: dead reckoning).
     temperature : float
         Log-likelihoods are divided by this before the weight update (1: the paper's update).
     tie_tolerance : float
-        Particles whose log-weight is within this of the best one are tied; the tie goes to
-        the largest :func:`edge_log_odds` (the paper does not say how to pick among equals).
-    reject_in_free_space : bool
-        Do not merge into a particle the new scan edges (matched by none of its predicted
-        edges) that lie where it is sure there is free space: its predicted scan sees past
-        them onto walls at or above the keep threshold (the paper assumes a static world, so
-        such an edge is a false positive or a passer-by; merging it could also swallow real
-        walls, see the merge's collinear grouping). Walls behind that are themselves doubtful
-        do not count, so a wall misplaced behind the true one (a scan-matching failure) does
-        not lock the true one out.
-    carve : bool
-        Cut out of a map wall the stretches that a scan saw through while it saw the rest of
-        the wall (:func:`seen_through_spans`, :func:`carve`): stretches at least 2.5 merge
-        thresholds long, more than one merge threshold from the observed parts, and seen
-        through by two consecutive scans (a single scan in which the sensor missed part of a
-        wall must not carve it). (Walls the
-        prediction does not report, seen from behind or hidden, are not carved: when the corner
-        sensor misses the wall in front, p_fn, the one behind looks seen through.) A wall extended
-        too far (a false-positive edge that the merge joined to a real collinear wall, across a
-        doorway or between aligned pillars) would otherwise stay forever: its likelihood is the
-        real wall's, so mutation never drops it. Only partly observed walls are carved; a wall
-        the scan misses entirely is a matter for its likelihood (``p_fn``).
-    anchored_evidence : bool
-        Lower no edge likelihood and carve nothing from a scan whose match against the map in
-        view was rejected (and did not even confirm the prediction): its pose is the odometry's, and a wall that looks seen through may
-        only be misplaced relative to it (its weight update, resampling and merge still run).
-    reanchor : bool
-        When a scan match is rejected, try it once more with the prior widened by the map's
-        drift (below) and accept it only if it constrains all three directions with half the
-        usual residual: a robot coming back to a part of the map built long ago finds it
-        where the map put it, which differs from where its recent, locally consistent pose says
-        by the drift accumulated in between. Without this the pose could never rejoin the older
-        map (its gate is the local uncertainty), and the map would grow a second copy of it.
-    drift_xy, drift_theta : float
-        Drift of the map relative to itself per square-root metre driven (metres, radians): the
-        covariance ``diag(drift_xy^2, drift_xy^2, drift_theta^2) * distance`` is added to the
-        prior of the second match; it only grows (defaults: 0.5 m and 1 degree after 500 m).
-    max_map_sigma_theta : float
-        A scan whose heading standard deviation after matching exceeds this (radians) does not
-        touch the map (no likelihood, carving, resampling or merge), when there was a map in view
-        to match it against: after a sharp turn (the odometry's heading error grows with the
-        angle turned) a scan that could not be matched would be written into the map rotated,
-        and the map would then agree with the wrong heading. Position errors are not gated:
-        they shift walls by a bounded amount, and a long featureless corridor leaves the
-        position along it uncertain for good reasons. Without a map in view (new territory)
-        the scan is always used.
-    max_map_sigma_xy : float
-        Likewise a scan that could not be matched (a map in view, the match rejected) while the
-        position's standard deviation exceeds this (metres) does not touch the map: the robot
-        has lost track, and what it writes would duplicate walls beside themselves.
-    snap_frontiers : bool
-        Before merging, move the scan's frontier vertices onto the line of the longer map wall
-        they continue (:func:`snap_frontiers`), so that a wall growing at its frontier keeps
-        its established line instead of following the pose's error. Also after a match that
-        only confirmed the prediction (:attr:`mapping.icp.ICPResult.consistent`: in a corridor,
-        right after an accepted match, the scan knows no direction better than the tight
-        prior): snapping only after accepted matches let every other scan drag the wall's far
-        end by the odometry's heading error, and a museum wall turned by 0.4 degrees over
-        40 m.
-    snap_collinear : bool
-        Before merging, put a new scan wall that continues a map wall at least
-        ``collinear_min_support`` long past its end (a corridor wall behind a doorway) onto
-        that wall's line, when both its ends are within ``collinear_max_offset`` of the line
-        and it runs within ``collinear_max_angle`` of the same direction (:func:`snap_collinear`;
-        after accepted matches only). Not in the paper. Measured on the museum, seed 1: mean
-        wall error 0.45 -> 0.29 m, recall 0.80 -> 0.89.
-    collinear_min_support, collinear_max_offset, collinear_max_angle : float
-        Defaults 2 m, 0.08 m, 1.5 degrees.
+        Log-weights within this of the best are tied; the tie goes to the largest
+        :func:`mapping.evidence.edge_log_odds` (the paper does not say how to pick).
     max_vertices : int
-        Vertex budget of one particle.
+        Vertex budget of one particle (5000: bounds memory and time; never reached in the test
+        worlds).
     max_scan_vertices : int
-        Vertex budget of one scan.
-    min_fragment_length : float
-        Scan edges shorter than this (metres) with a frontier end are dropped before anything
-        else: a short piece of a wall glimpsed past an occluder has a direction dominated by
-        corner noise (a 2 cm error on a 0.2 m piece tilts it by 11 degrees), so it would not
-        merge into its wall and would linger as clutter. Complete short walls (no frontier end)
-        are kept.
-    min_line_distance : float
-        Scan edges whose supporting line passes within this (metres) of the robot are dropped:
-        a wall along a line of sight cannot be seen (a real scanner sees it edge-on), and an
-        occlusion joined to its frontier by a corner extractor lies exactly on a line of sight
-        (paper Sec. IV-A: such a pair is "colinear along the same line of sight").
-    drop_gap_bridges : bool
-        Drop, before anything else, scan edges that join two frontier or occlusion vertices
-        each of which also ends another scan edge (not in the paper). Such a vertex is where a
-        wall leaves the sensor's range or view; it ends that one wall, so an edge from it to
-        another such vertex closes a gap between two walls' loose ends: a false positive
-        (the corner sensor's ``p_fp``, Sec. IV-A). Traced on a long corridor (tests/worlds/
-        bigring): the false edge across the corridor between the two walls' frontiers at the
-        range limit goes into the map, the next scan's own false edge 0.25 m further on matches
-        it, and the scan match moves the pose 0.2-0.5 m back along the corridor, where nothing
-        else constrains it; the filter's likelihoods only drop the edge a scan later. A real
-        wall cut by the range at both ends has frontiers that end only it, and an extracted
-        lidar scan (:mod:`mapping.extract`) gives every non-nominal end its own vertex, so
-        neither loses anything. Museum seeds 0-7 (with
-        the compass's right-angle prior), mean wall distance / recall: 0.144/1.0, 0.134/1.0,
-        0.114/1.0, 0.125/1.0, 0.126/1.0, 0.123/1.0, 0.257/0.997, 0.215/1.0 (median 0.130 m),
-        particle sets 34,080-35,340 B, precision 0.994-1.0; without: 0.075/1.0, 0.198/1.0,
-        0.113/1.0, 0.314/0.994, 0.165/0.990, 0.153/1.0, 0.268/0.997, 0.197/1.0 (median
-        0.181 m), 34,380-36,450 B, precision 0.990-0.999. The one-particle baseline gains as
-        much (8 seeds: 0.182 m, precision 0.974; 0.90 m, 0.64 before). Ring
-        corridor seeds 0-7, precision/recall: 0.991/0.991, 0.993/1.0, 0.653/0.654,
-        0.306/0.308, 0.993/1.0, 0.803/0.803, 0.833/0.833, 0.496/0.500 (no false walls any
-        more: precision = recall; what is left is along-track drift that no closure
-        removes). tests/worlds/slanted seed 0: 1.0/1.0 (was 0.924/1.0: its two false walls
-        from a pillar to the room's wall were such bridges).
-    odometry_trans_per_m, odometry_rot_per_rad, odometry_rot_per_m : float
-        Assumed odometry noise (std per metre driven on each axis, per radian turned, radians
-        per metre driven). The pose covariance grows by these while no scan match is accepted
-        and shrinks after one; it is the ICP's prior, so a scan step cannot "correct" the pose by
-        more than the odometry can plausibly be off (defaults: 1.5 times the simulator's
-        :class:`agents.sim.motion.OdometryNoise`, a filter should not trust its odometry more
-        than it deserves).
-    pose_floor_xy, pose_floor_theta : float
-        Least standard deviation (metres, radians) of the pose after an accepted match: the
-        pose is relative to a map whose own corners are that uncertain.
-    refine_corners : bool
-        Move each map corner a scan observes to the mean of its observations before the merge
-        (:mod:`mapping.refine`; not in the paper, whose merge keeps one position). Only scans
-        whose match was accepted with all three directions constrained refine (measured on the
-        museum, seed 1: refining from every consistent scan, degenerate ones included, gave a
-        mean wall error of 0.83 m, from fully constrained ones 0.45 m, without 0.48 m).
-    refine_max_count : int
-        Observations (>= 1) after which a corner is settled and no longer refined (default 10).
-    partial_contradiction : bool
-        A scan that contradicts a wall it sees only a part of counts for that part: the Bayes
-        update of the wall's likelihood (:func:`contradiction_update`) is weighted by the
-        length of the wall in view over its length (:func:`seen_fraction`). The paper's edge is
-        the unit of evidence; its museum's outer walls are single 200 m edges, 8 m of which are
-        in range at a time. Mapped a few tenths of a degree off (the drift of the poses that
-        built them), a stretch of such a wall stands in front of the real one, the scans there
-        see through it, and with whole updates a few of them took the whole 200 m wall below the
-        keep threshold, and mutation dropped it from every particle (museum, seeds 0-4, wall
-        recall 0.959/0.889/0.926/0.837/0.752 with whole updates; 0.927/0.925/0.975/0.998/0.842
-        weighted, with ``LoopConfig.motion_cov``). Weighted, the wall has to be seen through
-        along a good part of its length before it goes. Over seeds 0-7 the gain is smaller than
-        those five suggest: median recall 0.926 against 0.908, worst seed 0.79 against 0.75,
-        mean distance unchanged (0.308 against 0.305 m); a museum run is chaotic (a 0.008 m
-        difference at one loop closure grew into 0.33 against 1.06 m), so judge a change on
-        eight seeds, not three. (Tried and not kept:
-        cutting the seen-through stretch out, or exempting long walls from contradiction and
-        mutation: recall up on most seeds, but a wall cut or kept on a wrong pose's evidence
-        then pulled the pose away, 1-2 seeds in 5 collapsed to 0.4-0.7 recall; mutated copies
-        that cut the stretch in view of an old long wall instead of dropping all of it: seeds
-        0-4 recall 0.905/0.944/0.975/0.983/0.698 against 0.927/0.925/0.975/0.998/0.842.)
-    compass : bool
-        Fuse a heading measurement from wall directions (:mod:`mapping.compass`, not in the
-        paper) whenever the heading's standard deviation after the scan match is above
-        ``compass_min_sigma`` (below it, see ``compass_young_weight``): the scan's walls at
-        least ``compass_min_length`` long against the building's wall directions as the map
-        learnt them (``compass_anchor``), each supported by ``compass_min_support`` metres of
-        established walls. After a turn in a hall wider than the range, or when new territory
-        comes into view, the ICP has no mapped wall to fix the heading on, and the odometry's
-        error of the turn went into every new wall.
-    compass_min_sigma, compass_min_length, compass_min_support : float
-        Defaults 0.0026 rad (0.15 degrees, just above ``pose_floor_theta``: the compass runs whenever the
-        match did not pin the heading down), 2 m, 10 m.
-    compass_corner_sigma, compass_model_sigma, compass_max_gate : float
-        The measurement's noise model and its largest gate (:func:`mapping.compass.compass_heading`;
-        defaults 0.03 m, 0.15 degrees, 6 degrees).
-    compass_anchor : float or None
-        The reference directions (:class:`mapping.compass.Directions`) are those of the walls
-        mapped in the first ``compass_anchor`` metres driven (default 10), frozen then;
-        directions met later join when established. ``None``: the reference is the whole map's
-        walls at every step, but those the scan match used (counted twice, they made the heading
-        look better known than it was, and a 120 m corridor, all of whose map the scan matched,
-        came out at 0.36/0.21 wall precision instead of 1.0). Museum seeds 0-7, mean wall distance
-        / recall: without the compass 0.311/0.927, 0.260/0.925, 0.270/0.975, 0.198/0.998,
-        0.428/0.842, 0.440/0.793, 0.304/0.933, 0.337/0.911 (median 0.308 m, 0.926); whole map
-        (``None``) 0.266/0.990, 0.212/0.994, 0.326/0.994, 0.244/0.985, 0.467/0.770, 0.183/0.999,
-        0.263/0.986, 0.484/0.765 (median 0.265 m, 0.988: seeds 4 and 7 kept a 0.5-degree error of
-        their first 30 m all run long, the map's consensus had it); anchored 0.262/0.976,
-        0.200/0.999, 0.276/0.996, 0.188/0.966, 0.152/0.987, 0.217/0.995, 0.183/0.964,
-        0.309/0.942 (median 0.208 m, 0.982).
-    compass_right_angle : float
-        A reference direction within this angle (radians, default 1 degree; 0 turns the prior
-        off) of perpendicular to one frozen before it is frozen at exactly perpendicular
-        (:class:`mapping.compass.Directions`). Ring corridor (tests/worlds/bigring,
-        10 particles, seeds 0-7, wall precision/recall at 0.2 m): without the prior
-        0.844/0.890, 0.871/0.916, 0.546/0.571, 0.607/0.654, 0.956/1.0, 0.545/0.563,
-        0.685/0.739, 0.956/1.0; with it (squaring to the longest direction, before the
-        first-established order) 0.934/0.985, 0.950/1.0, 0.607/0.634, 0.831/0.887, 0.956/1.0,
-        0.703/0.742, 0.804/0.852, 0.956/1.0. Museum seeds 0-7, mean wall distance: without
-        0.077, 0.151, 0.131, 0.250, 0.197, 0.151, 0.192, 0.263 m (median 0.172), with 0.075,
-        0.198, 0.106, 0.314, 0.165, 0.153, 0.268, 0.197 m (median 0.181): a wash there. With
-        ``drop_gap_bridges`` as well, see that option.
-    compass_young_weight, compass_young_travel : float
-        The compass also runs when the scan match pinned the heading down (its standard
-        deviation at most ``compass_min_sigma``), provided the map walls the scan was matched
-        against were first mapped at most ``compass_young_travel`` metres of driving ago
-        (default 25; the median over their corners' birth keyframes), with its variance
-        divided by ``compass_young_weight`` (default 0.05: the heading moves by about 5 % of the
-        measured offset per scan; 0 turns this off). Why: a map that young carries the drift
-        the robot has now, so the match is confident about a heading relative to a map that
-        turns with it -- in a long corridor mapped as it is driven, the first metres' error of
-        a few tenths of a degree stays for good (ring seed 3: -0.3 degrees over its first side,
-        0.74 m off at the end; -0.04 degrees and 0.30 m with it). The small weight lets
-        the compass correct the drift over tens of scans without fighting the match on any one
-        of them (a pull at the full weight walked museum seed 5's heading 2 degrees off in five
-        scans, with the match at every step). Against older walls the match is the better
-        reference: they were mapped before the present drift, while the compass's reference
-        carries a small bias of its own (museum seed 6: 0.29 degrees, the heading's drift over
-        its first 10 m, written into the one 17.8 m wall the reference is frozen from; with an
-        exact reference that seed maps at 0.145 m instead of 0.358 m). The part of each
-        measurement not applied still goes to the loop closer as a heading factor at the
-        measurement's own variance, so a closure can turn the young chain to the walls'
-        heading. Ring corridor (tests/worlds/bigring, 10 particles,
-        seeds 0-7, precision/recall at 0.2 m): without 0.991/0.991, 0.993/1.0, 0.653/0.654,
-        0.306/0.308, 0.993/1.0, 0.803/0.803, 0.833/0.833, 0.496/0.500 (3 pass 95 %); with
-        1.0/1.0, 0.967/0.973, 0.993/0.992, 0.954/0.954, 0.993/1.0, 0.666/0.666, 1.0/1.0,
-        0.496/0.500 (6 pass; seed 7's route ends before anything fixes its along-track drift,
-        seed 5's before it comes back to its first corridor). Museum seeds 0-7, mean wall
-        distance: without 0.144, 0.134, 0.114, 0.125, 0.126, 0.123, 0.257, 0.215 m (median
-        0.130), with 0.093, 0.122, 0.082, 0.097, 0.160, 0.141, 0.358, 0.196 m (median 0.132;
-        seed 6 is the biased reference), recall 0.989-1.0 both: a wash there. Tried: the pull
-        whatever the map's age (weight 0.05): ring 6 of 8 as well, museum median 0.139 with seed 4 at
-        0.285 m; weight 0.2 without the heading factors: ring 5 of 8, museum median 0.172;
-        0.05 without them: ring 4 of 8; the reference frozen after 20 m instead of 10: ring 6
-        of 8, museum median 0.142.
-    likelihood : LikelihoodConfig
-    icp : ICPConfig
-    loops : LoopConfig
-        Loop closure (:mod:`mapping.loops`): keyframes, birth stamps of the map corners, loop
-        detection against the old part of the map, pose-graph optimisation and deformation of
-        the particles. Not in the paper; ``LoopConfig(enabled=False)`` is the paper's filter.
+        Vertex budget of one scan (200, longest walls kept first).
+    odometry : OdometryConfig
+        Odometry noise and pose floors.
+    gating : GatingConfig
+        When a scan may touch the map; re-anchoring.
+    cleanup : mapping.scan_cleanup.CleanupConfig
+        What a scan loses before use.
+    snapping : mapping.snapping.SnappingConfig
+        Snapping scan walls onto established ones before the merge.
+    compass : mapping.compass.CompassConfig
+        The wall-direction heading measurement.
+    evidence : mapping.evidence.EvidenceConfig
+        Contradictions, carving, free-space rejection.
+    refine : mapping.refine.RefineConfig
+        Corner refinement.
+    likelihood : mapping.likelihood.LikelihoodConfig
+        The scan likelihood (Sec. IV-D).
+    icp : mapping.icp.ICPConfig
+        The scan matcher (Sec. IV-C).
+    loops : mapping.loops.LoopConfig
+        Loop closure (not in the paper; ``enabled=False`` is the paper's filter).
 
     Raises
     ------
     ValueError
-        On a value out of range.
+        On a value out of range (the message names the field).
     """
 
     particles: int = 10
@@ -428,93 +337,32 @@ class FilterConfig:
     tie_tolerance: float = 1e-6
     max_vertices: int = 5000
     max_scan_vertices: int = 200
-    min_fragment_length: float = 0.4
-    min_line_distance: float = 0.15
-    drop_gap_bridges: bool = True
-    reject_in_free_space: bool = True
-    carve: bool = True
-    anchored_evidence: bool = True
-    reanchor: bool = True
-    drift_xy: float = 0.02
-    drift_theta: float = 0.0008
-    max_map_sigma_theta: float = math.radians(1.0)
-    max_map_sigma_xy: float = 0.5
-    snap_frontiers: bool = True
-    snap_collinear: bool = True
-    collinear_min_support: float = 2.0
-    collinear_max_offset: float = 0.08
-    collinear_max_angle: float = math.radians(1.5)
-    odometry_trans_per_m: float = 0.03
-    odometry_rot_per_rad: float = 0.03
-    odometry_rot_per_m: float = 0.003
-    pose_floor_xy: float = 0.01
-    pose_floor_theta: float = 0.002
-    refine_corners: bool = True
-    refine_max_count: int = 10
-    partial_contradiction: bool = True
-    compass: bool = True
-    compass_min_sigma: float = 0.0026
-    compass_min_length: float = 2.0
-    compass_min_support: float = 10.0
-    compass_corner_sigma: float = 0.03
-    compass_model_sigma: float = math.radians(0.15)
-    compass_max_gate: float = math.radians(6.0)
-    compass_anchor: float | None = 10.0
-    compass_right_angle: float = math.radians(1.0)
-    compass_young_weight: float = 0.05
-    compass_young_travel: float = 25.0
+    odometry: OdometryConfig = field(default_factory=OdometryConfig)
+    gating: GatingConfig = field(default_factory=GatingConfig)
+    cleanup: CleanupConfig = field(default_factory=CleanupConfig)
+    snapping: SnappingConfig = field(default_factory=SnappingConfig)
+    compass: CompassConfig = field(default_factory=CompassConfig)
+    evidence: EvidenceConfig = field(default_factory=EvidenceConfig)
+    refine: RefineConfig = field(default_factory=RefineConfig)
     likelihood: LikelihoodConfig = field(default_factory=LikelihoodConfig)
     icp: ICPConfig = field(default_factory=ICPConfig)
     loops: LoopConfig = field(default_factory=LoopConfig)
 
     def __post_init__(self) -> None:
-        if isinstance(self.particles, bool) or not isinstance(self.particles, (int, np.integer)) or self.particles < 1:
-            raise ValueError(f"particles must be an integer >= 1, got {self.particles!r}")
+        check_number("particles", self.particles, 1, integer=True)
         for name in ("max_range", "merge_threshold", "temperature"):
-            v = getattr(self, name)
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
-                raise ValueError(f"{name} must be a positive number, got {v!r}")
-        for name in ("odometry_trans_per_m", "odometry_rot_per_rad", "odometry_rot_per_m", "pose_floor_xy",
-                     "pose_floor_theta"):
-            v = getattr(self, name)
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
-                raise ValueError(f"{name} must be a number >= 0, got {v!r}")
-        if not (0 < self.fov <= 2 * math.pi + 1e-12):
-            raise ValueError(f"fov must be in (0, 2 pi], got {self.fov!r}")
-        if not (0.0 <= self.keep_threshold <= 1.0):
-            raise ValueError(f"keep_threshold must be within [0, 1], got {self.keep_threshold!r}")
-        if not (math.isfinite(self.min_line_distance) and self.min_line_distance >= 0):
-            raise ValueError(f"min_line_distance must be >= 0, got {self.min_line_distance!r}")
-        if not (math.isfinite(self.min_fragment_length) and self.min_fragment_length >= 0):
-            raise ValueError(f"min_fragment_length must be >= 0, got {self.min_fragment_length!r}")
-        for name in ("drift_xy", "drift_theta", "collinear_min_support", "collinear_max_offset", "compass_min_sigma",
-                     "compass_min_length", "compass_min_support", "compass_corner_sigma", "compass_model_sigma"):
-            v = getattr(self, name)
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
-                raise ValueError(f"{name} must be a number >= 0, got {v!r}")
-        for name in ("max_map_sigma_theta", "max_map_sigma_xy"):
-            v = getattr(self, name)
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
-                raise ValueError(f"{name} must be a positive number, got {v!r}")
-        if self.compass_anchor is not None and not (
-            isinstance(self.compass_anchor, (int, float)) and math.isfinite(self.compass_anchor) and self.compass_anchor >= 0
-        ):
-            raise ValueError(f"compass_anchor must be None or a number >= 0, got {self.compass_anchor!r}")
-        if not (0.0 <= self.compass_right_angle <= math.pi / 4):
-            raise ValueError(f"compass_right_angle must be within [0, pi/4], got {self.compass_right_angle!r}")
-        if not (0.0 <= self.compass_young_weight <= 1.0):
-            raise ValueError(f"compass_young_weight must be within [0, 1], got {self.compass_young_weight!r}")
-        if not (isinstance(self.compass_young_travel, (int, float)) and self.compass_young_travel >= 0):
-            raise ValueError(f"compass_young_travel must be a number >= 0, got {self.compass_young_travel!r}")
-        if not (0.0 < self.compass_max_gate <= math.pi / 4):
-            raise ValueError(f"compass_max_gate must be within (0, pi/4], got {self.compass_max_gate!r}")
-        if not (0.0 <= self.collinear_max_angle <= math.pi / 2):
-            raise ValueError(f"collinear_max_angle must be within [0, pi/2], got {self.collinear_max_angle!r}")
-        if isinstance(self.refine_max_count, bool) or not isinstance(self.refine_max_count, (int, np.integer)) \
-                or self.refine_max_count < 1:
-            raise ValueError(f"refine_max_count must be an integer >= 1, got {self.refine_max_count!r}")
-        if self.max_vertices < 3 or self.max_scan_vertices < 2:
-            raise ValueError("max_vertices must be >= 3 and max_scan_vertices >= 2")
+            check_number(name, getattr(self, name), 0.0, open_low=True)
+        check_number("fov", self.fov, 0.0, 2 * math.pi + 1e-12, open_low=True)
+        check_number("keep_threshold", self.keep_threshold, 0.0, 1.0)
+        check_number("tie_tolerance", self.tie_tolerance, 0.0)
+        check_number("max_vertices", self.max_vertices, 3, integer=True)
+        check_number("max_scan_vertices", self.max_scan_vertices, 2, integer=True)
+        groups = {"odometry": OdometryConfig, "gating": GatingConfig, "cleanup": CleanupConfig,
+                  "snapping": SnappingConfig, "compass": CompassConfig, "evidence": EvidenceConfig,
+                  "refine": RefineConfig, "likelihood": LikelihoodConfig, "icp": ICPConfig, "loops": LoopConfig}
+        for name, kind in groups.items():
+            if not isinstance(getattr(self, name), kind):
+                raise ValueError(f"{name} must be a {kind.__name__}, got {getattr(self, name)!r}")
 
 
 @dataclass(frozen=True)
@@ -539,7 +387,7 @@ class StepInfo:
         Number of mutated copies made at resampling.
     mapped : bool
         Whether the scan updated the particles (False when its pose was too uncertain, see
-        :attr:`FilterConfig.max_map_sigma_theta`).
+        :class:`GatingConfig`).
     loop : Closure or None
         The loop closure this step made (:mod:`mapping.loops`; ``pose`` is then the pose after it).
     compass : Heading or None
@@ -560,65 +408,6 @@ class StepInfo:
 
 
 # ------------------------------------------------------------------------------ pure helpers
-def fragment_mask(scan: Wireframe, min_length: float) -> BoolArray:
-    """The scan edges to keep: all but those shorter than ``min_length`` with a frontier end
-    (see :attr:`FilterConfig.min_fragment_length`)."""
-    if scan.n_edges == 0 or min_length <= 0:
-        return np.ones(scan.n_edges, dtype=bool)
-    fr = scan.labels[scan.edges] == Label.FRONTIER
-    return np.asarray(~((scan.edge_lengths() < min_length) & fr.any(axis=1)))
-
-
-def drop_fragments(scan: Wireframe, min_length: float) -> Wireframe:
-    """Drop scan edges shorter than ``min_length`` that have a frontier end (see
-    :attr:`FilterConfig.min_fragment_length`)."""
-    keep = fragment_mask(scan, min_length)
-    return scan if keep.all() else scan.subgraph_edges(keep)
-
-
-def drop_line_of_sight(scan: Wireframe, min_distance: float) -> Wireframe:
-    """Drop scan edges (robot frame) whose supporting line passes within ``min_distance`` of the
-    robot at the origin (see :attr:`FilterConfig.min_line_distance`)."""
-    if scan.n_edges == 0 or min_distance <= 0:
-        return scan
-    s = scan.segments()
-    d = s[:, 1] - s[:, 0]
-    length = np.hypot(d[:, 0], d[:, 1])
-    cross = np.abs(s[:, 0, 0] * s[:, 1, 1] - s[:, 0, 1] * s[:, 1, 0])
-    bad = cross < min_distance * np.maximum(length, 1e-12)
-    return scan.subgraph_edges(~bad) if bad.any() else scan
-
-
-def drop_gap_bridges(scan: Wireframe) -> Wireframe:
-    """Drop scan edges that join two non-nominal vertices each of which also ends another edge
-    (see :attr:`FilterConfig.drop_gap_bridges`)."""
-    if scan.n_edges == 0:
-        return scan
-    din, dout = scan.degree()
-    loose = (scan.labels != Label.NOMINAL) & (din + dout >= 2)
-    bad = loose[scan.edges[:, 0]] & loose[scan.edges[:, 1]]
-    return scan.subgraph_edges(~bad) if bad.any() else scan
-
-
-def budget_scan(scan: Wireframe, max_vertices: int) -> Wireframe:
-    """Keep whole walls, longest first, while the scan has at most ``max_vertices`` vertices."""
-    if scan.n_vertices <= max_vertices:
-        return scan
-    order = np.argsort(-scan.edge_lengths(), kind="stable")
-    used = np.zeros(scan.n_vertices, dtype=bool)
-    keep = np.zeros(scan.n_edges, dtype=bool)
-    count = 0
-    for e in order.tolist():
-        a, b = (int(v) for v in scan.edges[e])
-        extra = int(not used[a]) + int(not used[b])
-        if count + extra > max_vertices:
-            continue
-        used[a] = used[b] = True
-        count += extra
-        keep[e] = True
-    return scan.subgraph_edges(keep)
-
-
 def budget_map(wf: Wireframe, max_vertices: int) -> Wireframe:
     """Drop the lowest-likelihood edges until ``wf`` has at most ``max_vertices`` vertices."""
     while wf.n_vertices > max_vertices and wf.n_edges:
@@ -630,364 +419,6 @@ def budget_map(wf: Wireframe, max_vertices: int) -> Wireframe:
     return wf
 
 
-def edge_log_odds(wf: Wireframe, floor: float = 1e-3) -> float:
-    """``sum_e log(L_e / (1 - L_e))`` over the edges of ``wf`` (likelihoods clipped to
-    ``[floor, 1 - floor]``): how plausible its edge set is under independent edge likelihoods.
-    Adding an edge with likelihood below 1/2 lowers it."""
-    if wf.n_edges == 0:
-        return 0.0
-    L = np.clip(wf.likelihood, floor, 1.0 - floor)
-    return float(np.sum(np.log(L) - np.log1p(-L)))
-
-
-#: Edge likelihoods are capped here before a contradiction update: merging combines them as
-#: ``1 - (1 - L1)(1 - L2)``, which rounds to exactly 1.0 after a few dozen sightings, and a
-#: likelihood of exactly 1 could never be lowered again. At 0.999, four contradicting scans
-#: take a wall below a keep threshold of 0.5.
-MAX_LIKELIHOOD = 0.999
-
-
-def contradiction_update(
-    likelihood: FloatArray, p_fp: float, p_fn: float, weight: float | FloatArray = 1.0
-) -> FloatArray:
-    """Bayes update of an edge's existence likelihood after a scan that saw through it:
-    ``L p_fn / (L p_fn + (1 - L)(1 - p_fp))``, with ``L`` first capped at
-    :data:`MAX_LIKELIHOOD`. With ``weight`` ``w`` (per edge, in [0, 1]) the update counts for
-    that fraction of a whole one: the odds are multiplied by ``(p_fn / (1 - p_fp)) ** w``
-    (``w = 1`` is the formula above, ``w = 0`` leaves ``L``)."""
-    L = np.minimum(np.asarray(likelihood, dtype=np.float64), MAX_LIKELIHOOD)
-    ratio = np.power(p_fn / (1.0 - p_fp), np.asarray(weight, dtype=np.float64))
-    num = L * ratio
-    den = num + (1.0 - L)
-    return np.asarray(np.where(den > 0, num / np.where(den > 0, den, 1.0), 0.0), dtype=np.float64)
-
-
-def seen_fraction(wf: Wireframe, view: Wireframe, edge_source: IntArray) -> FloatArray:
-    """Per edge of ``wf``: the length of its pieces in the predicted scan ``view``
-    (``edge_source``: the map edge of each view edge) over its own length, in [0, 1]; 1 for an
-    edge with no piece in the view (hidden or back-facing: see the filter's step 4)."""
-    src = np.asarray(edge_source, dtype=np.int64)
-    ok = src >= 0
-    seen = np.bincount(src[ok], weights=view.edge_lengths()[ok], minlength=wf.n_edges)
-    frac = np.clip(seen / np.maximum(wf.edge_lengths(), 1e-12), 0.0, 1.0)
-    return np.asarray(np.where(seen > 0, frac, 1.0), dtype=np.float64)
-
-
-def _edge_states(n_edges: int, edge_source: IntArray, state: NDArray[np.int8]) -> tuple[BoolArray, BoolArray, BoolArray]:
-    """Per source edge: in sight, observed (any piece), contradicted (some piece, none observed)."""
-    in_sight = np.zeros(n_edges, dtype=bool)
-    observed = np.zeros(n_edges, dtype=bool)
-    contra = np.zeros(n_edges, dtype=bool)
-    src = np.asarray(edge_source, dtype=np.int64)
-    ok = src >= 0
-    in_sight[src[ok]] = True
-    observed[src[ok & (state == OBSERVED)]] = True
-    contra[src[ok & (state == CONTRADICTED)]] = True
-    return in_sight, observed, contra & ~observed
-
-
-def seen_through_spans(
-    wf: Wireframe,
-    pose: Pose,
-    view: Wireframe,
-    edge_source: IntArray,
-    edge_pairs: IntArray,
-    evidence: Wireframe,
-    min_span: float,
-    cover_margin: float,
-    margin: float,
-    max_range: float,
-) -> dict[int, list[tuple[float, float]]]:
-    """Parts of map edges that this scan observed in part and saw through elsewhere.
-
-    For every predicted edge (a visible piece of map edge ``e``) that some scan edges match
-    (``edge_pairs``: ``(scan edge, predicted edge)``), the matched scan edges are projected on
-    ``e``'s line and their union, grown by ``cover_margin`` at both ends, is *covered*. Each
-    uncovered stretch of the visible piece at least ``min_span`` long whose three sample points
-    (a quarter, half and three quarters along) the scan saw through -- its ray at that bearing
-    meets no scan wall before the point plus ``margin``, and the point is within ``max_range``
-    minus ``margin`` (no wall within range is seen-through too: a corner sensor reports every
-    wall in range) -- is returned, as arc-length intervals along ``e`` from its start.
-
-    This is the evidence that carves a wall that was extended too far (a false-positive edge
-    joined to a real collinear wall by the merge, e.g. across a doorway or between aligned
-    pillars): the scan sees the real part and sees through the rest.
-
-    Parameters
-    ----------
-    wf : Wireframe
-        The particle's map (world frame).
-    pose : Pose
-        Where the scan was taken.
-    view : Wireframe
-        The predicted scan (robot frame) and ``edge_source``, the map edge of each of its edges.
-    edge_pairs : (k, 2) int
-        Edge correspondences between ``evidence`` and ``view``.
-    evidence : Wireframe
-        The scan (robot frame).
-
-    Returns
-    -------
-    dict
-        Map edge index -> list of ``(t0, t1)`` intervals (metres along the edge), disjoint.
-    """
-    out: dict[int, list[tuple[float, float]]] = {}
-    if len(edge_pairs) == 0 or view.n_edges == 0:
-        return out
-    src = np.asarray(edge_source, dtype=np.int64)
-    ends = pose.apply_inverse(wf.points[wf.edges].reshape(-1, 2)).reshape(-1, 2, 2)
-    vseg = view.segments()
-    sseg = evidence.segments()
-    by_pred: dict[int, list[int]] = {}
-    for si, pj in edge_pairs.tolist():
-        by_pred.setdefault(int(pj), []).append(int(si))
-    samples: list[FloatArray] = []
-    meta: list[tuple[int, float, float]] = []
-    for pj, scan_edges in by_pred.items():
-        e = int(src[pj])
-        if e < 0:
-            continue
-        a, b = ends[e]
-        d = b - a
-        length = float(math.hypot(d[0], d[1]))
-        if length < min_span:
-            continue
-        u = d / length
-        v0, v1 = sorted(float((q - a) @ u) for q in vseg[pj])
-        v0, v1 = max(v0, 0.0), min(v1, length)
-        if v1 - v0 < min_span:
-            continue
-        cov = sorted(
-            (min(t0, t1) - cover_margin, max(t0, t1) + cover_margin)
-            for t0, t1 in (((sseg[i, 0] - a) @ u, (sseg[i, 1] - a) @ u) for i in scan_edges)
-        )
-        gaps: list[tuple[float, float]] = []
-        cur = v0
-        for c0, c1 in cov:
-            if c0 > cur:
-                gaps.append((cur, min(c0, v1)))
-            cur = max(cur, c1)
-            if cur >= v1:
-                break
-        if cur < v1:
-            gaps.append((cur, v1))
-        for g0, g1 in gaps:
-            if g1 - g0 >= min_span:
-                t = g0 + (g1 - g0) * np.array([0.25, 0.5, 0.75])
-                samples.append(a + t[:, None] * u)
-                meta.append((e, float(g0), float(g1)))
-    if not samples:
-        return out
-    pts = np.concatenate(samples)
-    dist = np.hypot(pts[:, 0], pts[:, 1])
-    rng_scan = ray_ranges(evidence, np.arctan2(pts[:, 1], pts[:, 0]))
-    seen = np.asarray((rng_scan > dist + margin) & (dist <= max_range - margin), dtype=bool)
-    all_seen: list[bool] = np.asarray(seen.reshape(-1, 3).all(axis=1), dtype=bool).tolist()
-    for (e, g0, g1), good in zip(meta, all_seen):
-        if good:
-            out.setdefault(e, []).append((g0, g1))
-    for e in out:
-        out[e].sort()
-    return out
-
-
-def snap_frontiers(
-    scan_points: FloatArray,
-    scan: Wireframe,
-    ref: Wireframe,
-    edge_pairs: IntArray,
-    support: FloatArray,
-    max_offset: float,
-) -> FloatArray:
-    """Frontier vertices of the scan moved onto the line of the map wall they continue.
-
-    A frontier vertex is where sight of a wall ended, not a corner: its position *along* the
-    wall says how far the wall was seen, its position *across* it is only as good as the pose.
-    When the scan edge that ends in it corresponds (``edge_pairs``: ``(scan edge, ref edge)``)
-    to a reference edge whose map wall (``support``: length of the map wall behind each
-    reference edge) is longer than the scan edge, the established wall knows its line better:
-    the vertex is projected onto that line if that moves it by at most ``max_offset``.
-    Otherwise a wall growing scan by scan at its frontier would follow the pose's error (its
-    newest end is placed by the newest pose), and matching the next scan against it could not
-    see that error: the map and the pose would drift together.
-
-    Parameters
-    ----------
-    scan_points : (n, 2)
-        The scan's vertices, in the reference's frame (moved by the ICP correction).
-    scan, ref : Wireframe
-        The scan and the reference (predicted scan).
-    edge_pairs : (k, 2) int
-    support : (ref.n_edges,) float
-    max_offset : float
-
-    Returns
-    -------
-    (n, 2) float64
-        The vertices, frontiers snapped where the rule applies.
-    """
-    out = np.array(scan_points, dtype=np.float64, copy=True)
-    if len(edge_pairs) == 0:
-        return out
-    s_len = np.hypot(*(scan_points[scan.edges[:, 1]] - scan_points[scan.edges[:, 0]]).T)
-    best: dict[int, tuple[float, int]] = {}
-    for si, rj in edge_pairs.tolist():
-        sup = float(support[rj])
-        if sup <= s_len[si]:
-            continue
-        for v in scan.edges[si].tolist():
-            if scan.labels[v] == Label.FRONTIER and sup > best.get(v, (-1.0, -1))[0]:
-                best[v] = (sup, rj)
-    for v, (_, rj) in best.items():
-        a, b = ref.points[ref.edges[rj, 0]], ref.points[ref.edges[rj, 1]]
-        d = b - a
-        ln = float(math.hypot(d[0], d[1]))
-        if ln <= 0:
-            continue
-        n = np.array([-d[1], d[0]]) / ln
-        off = float((out[v] - a) @ n)
-        if abs(off) <= max_offset:
-            out[v] = out[v] - off * n
-    return out
-
-
-def snap_collinear(
-    scan_points: FloatArray,
-    scan: Wireframe,
-    ref: Wireframe,
-    edge_pairs: IntArray,
-    support: FloatArray,
-    min_support: float,
-    max_offset: float,
-    max_angle: float,
-) -> FloatArray:
-    """Scan walls that continue an established map wall across a gap put onto its line.
-
-    A wall behind a doorway is new to the map, so nothing pins it: it enters at the pose's
-    heading, a tenth of a degree off, and the next wall of the corridor continues *it*; door by
-    door the corridor bends. Buildings are built along lines: a new scan wall (no reference edge
-    corresponds to it) that runs in the same direction as a map wall at least ``min_support``
-    long (within ``max_angle``, same free side) with both ends within ``max_offset`` of that
-    wall's line, beyond its extent, is taken to continue it, and its ends are projected onto
-    the line. A wall genuinely offset by less than ``max_offset`` is straightened by at most
-    that much.
-
-    Parameters
-    ----------
-    scan_points : (n, 2)
-        The scan's vertices in the reference's frame.
-    scan, ref : Wireframe
-    edge_pairs : (k, 2) int
-        ``(scan edge, ref edge)`` correspondences of the match.
-    support : (ref.n_edges,) float
-        Length of the map wall behind each reference edge (0 where none).
-    min_support, max_offset, max_angle : float
-
-    Returns
-    -------
-    (n, 2) float64
-    """
-    out = np.array(scan_points, dtype=np.float64, copy=True)
-    if scan.n_edges == 0 or ref.n_edges == 0:
-        return out
-    new = np.ones(scan.n_edges, dtype=bool)
-    if len(edge_pairs):
-        new[edge_pairs[:, 0]] = False
-    cand = np.flatnonzero(support >= min_support)
-    if not new.any() or len(cand) == 0:
-        return out
-    ra, rb = ref.points[ref.edges[cand, 0]], ref.points[ref.edges[cand, 1]]
-    rd = rb - ra
-    rl = np.hypot(rd[:, 0], rd[:, 1])
-    ru = rd / np.maximum(rl, 1e-12)[:, None]
-    rn = np.stack([-ru[:, 1], ru[:, 0]], axis=1)
-    cos_tol = math.cos(max_angle)
-    moved: dict[int, FloatArray] = {}
-    for si in np.flatnonzero(new).tolist():
-        i, j = scan.edges[si].tolist()
-        p, q = out[i], out[j]
-        d = q - p
-        ln = math.hypot(d[0], d[1])
-        if ln <= 0:
-            continue
-        ok = (ru @ (d / ln)) >= cos_tol
-        op = np.einsum("ij,ij->i", p - ra, rn)
-        oq = np.einsum("ij,ij->i", q - ra, rn)
-        ok &= (np.abs(op) <= max_offset) & (np.abs(oq) <= max_offset)
-        tp = np.einsum("ij,ij->i", p - ra, ru)
-        tq = np.einsum("ij,ij->i", q - ra, ru)
-        ok &= (np.minimum(tp, tq) >= rl - 1e-9) | (np.maximum(tp, tq) <= 1e-9)  # beyond its extent
-        if not ok.any():
-            continue
-        k = int(np.flatnonzero(ok)[np.argmax(rl[ok])])
-        for v, off in ((i, op[k]), (j, oq[k])):
-            if v not in moved:
-                moved[v] = out[v] - off * rn[k]
-    for v, pt in moved.items():
-        out[v] = pt
-    return out
-
-
-def carve(wf: Wireframe, spans: dict[int, list[tuple[float, float]]]) -> tuple[Wireframe, IntArray]:
-    """Remove the ``spans`` (arc-length intervals along edges, see :func:`seen_through_spans`)
-    from the edges of ``wf``. The remaining pieces keep the edge's direction, likelihood and
-    sources; a cut point is a new ``FRONTIER`` vertex (sight of the wall ends there).
-
-    Returns
-    -------
-    Wireframe
-        The kept edges of ``wf`` in order, then the new pieces.
-    origin : (m',) int64
-        For each edge of the result, the edge of ``wf`` it comes from.
-    """
-    if not spans:
-        return wf, np.arange(wf.n_edges, dtype=np.int64)
-    pts = [wf.points]
-    labels = [wf.labels]
-    n = wf.n_vertices
-    new_edges: list[tuple[int, int]] = []
-    origin_new: list[int] = []
-    for e, ivs in sorted(spans.items()):
-        i, j = (int(v) for v in wf.edges[e])
-        a, b = wf.points[i], wf.points[j]
-        d = b - a
-        length = float(math.hypot(d[0], d[1]))
-        u = d / length
-        cur_v, cur_t = i, 0.0
-        for t0, t1 in ivs:
-            if t0 > cur_t + 1e-9:
-                if t0 >= length - 1e-9:
-                    end_v = j
-                else:
-                    pts.append((a + t0 * u)[None, :])
-                    labels.append(np.array([Label.FRONTIER], dtype=np.uint8))
-                    end_v = n
-                    n += 1
-                new_edges.append((cur_v, end_v))
-                origin_new.append(e)
-            if t1 >= length - 1e-9:
-                cur_v, cur_t = -1, length
-                break
-            pts.append((a + t1 * u)[None, :])
-            labels.append(np.array([Label.FRONTIER], dtype=np.uint8))
-            cur_v, cur_t = n, t1
-            n += 1
-        if cur_v >= 0 and cur_t < length - 1e-9:
-            new_edges.append((cur_v, j))
-            origin_new.append(e)
-    keep = np.ones(wf.n_edges, dtype=bool)
-    keep[list(spans)] = False
-    kept = np.flatnonzero(keep)
-    org = np.asarray(origin_new, dtype=np.int64)
-    edges = np.concatenate([wf.edges[kept], np.asarray(new_edges, dtype=np.int64).reshape(-1, 2)])
-    out = Wireframe(
-        np.concatenate(pts),
-        np.concatenate(labels),
-        edges,  # type: ignore[arg-type]
-        np.concatenate([wf.likelihood[kept], wf.likelihood[org]]),
-        np.concatenate([wf.sources[kept], wf.sources[org]]),
-    ).compacted()
-    return out, np.concatenate([kept, org]).astype(np.int64)
 
 
 def _default_view(wf: Wireframe, pose: Pose, max_range: float, fov: float) -> ViewLike:
@@ -1003,6 +434,52 @@ def _default_merge(base: Wireframe, new: Wireframe, threshold: float) -> Wirefra
 
 
 # ------------------------------------------------------------------------------ the filter
+@dataclass
+class _StepContext:
+    """What the phases of one :meth:`WireframeFilter.step` pass on to each other.
+
+    Attributes
+    ----------
+    evidence : Wireframe
+        The cleaned-up scan (robot frame): what the likelihood and the contradictions use.
+    scan : Wireframe
+        ``evidence`` without short fragments, snapped after the match: what is merged.
+    matched_scan : Wireframe
+        ``scan`` before snapping: what the loop closure matches.
+    kept : (m,) int64
+        The edge of ``evidence`` of each edge of ``scan``.
+    predicted, pose : Pose
+        The odometry's prediction and the current estimate (after the match and the compass).
+    best : Wireframe
+        The best particle at the start of the step (the match's reference).
+    fault : Pose or None
+        Fault injection (:meth:`WireframeFilter.step`).
+    icp : ICPResult or None
+        The scan match (None: nothing to match against).
+    matched_edges : (k,) int64
+        Edges of ``best`` in the predicted scan the scan was matched against.
+    heading : Heading or None
+        The compass measurement fused.
+    """
+
+    evidence: Wireframe
+    scan: Wireframe
+    matched_scan: Wireframe
+    kept: IntArray
+    predicted: Pose
+    pose: Pose
+    best: Wireframe
+    fault: Pose | None
+    icp: ICPResult | None = None
+    matched_edges: IntArray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    heading: Heading | None = None
+
+    @property
+    def place(self) -> Pose:
+        """Where the scan is placed for the likelihood and the merge (the pose, or the fault)."""
+        return self.pose if self.fault is None else self.pose.compose(self.fault)
+
+
 @dataclass
 class _Eval:
     """Per distinct particle: its prediction, likelihood and likelihood-updated map."""
@@ -1050,15 +527,16 @@ class WireframeFilter:
         self._weights = np.full(config.particles, 1.0 / config.particles)
         self._best = 0
         self._steps = 0
-        self._cov = np.diag([config.pose_floor_xy**2, config.pose_floor_xy**2, config.pose_floor_theta**2])
+        odo = config.odometry
+        self._cov = np.diag([odo.pose_floor_xy**2, odo.pose_floor_xy**2, odo.pose_floor_theta**2])
         self._drift = np.zeros((3, 3))
         self._pending_spans = np.zeros((0, 2, 2))
         self._view_fn: ViewFn = view_fn or _default_view
         self._merge_fn: MergeFn = merge_fn or _default_merge
         self._loops = LoopCloser(config.loops, self._pose)
         self._directions = Directions(
-            config.compass_anchor or 0.0, config.compass_min_support, config.compass_max_gate,
-            right_angle=config.compass_right_angle,
+            config.compass.anchor or 0.0, config.compass.min_support, config.compass.max_gate,
+            right_angle=config.compass.right_angle,
         )
 
     # ------------------------------------------------------------------ state
@@ -1147,8 +625,8 @@ class WireframeFilter:
         """``diag(s_t^2, s_t^2, s_r^2)`` of :meth:`predict_covariance` for one increment."""
         cfg = self.config
         d = math.hypot(odometry.x, odometry.y)
-        st = cfg.odometry_trans_per_m * d
-        sr = cfg.odometry_rot_per_rad * abs(odometry.theta) + cfg.odometry_rot_per_m * d
+        st = cfg.odometry.trans_per_m * d
+        sr = cfg.odometry.rot_per_rad * abs(odometry.theta) + cfg.odometry.rot_per_m * d
         return np.diag([st * st, st * st, sr * sr])
 
     def motion_increment(self, odometry: Pose, match: ICPResult | None) -> FloatArray:
@@ -1194,17 +672,18 @@ class WireframeFilter:
     ) -> tuple[Pose, Heading | None]:
         """The wall-direction heading measurement (:mod:`mapping.compass`) of ``scan`` at
         ``pose`` against the reference directions (:class:`mapping.compass.Directions`; with
-        ``compass_anchor=None``, the established walls of ``best`` but the edges ``matched``,
+        ``compass.anchor=None``, the established walls of ``best`` but the edges ``matched``,
         those the scan match already used), fused into the pose and its covariance as a Kalman
         update of the heading with the measurement's variance divided by ``weight`` (the
         position moves with it through the covariance's cross terms); the part of the
         measurement the update did not apply goes to the loop closer as a heading factor, at
         the measurement's own variance. Returns the pose and the measurement (None: none)."""
         cfg = self.config
-        sd, sl = wall_directions(scan, cfg.compass_min_length)
+        ccfg = cfg.compass
+        sd, sl = wall_directions(scan, ccfg.min_length)
         if len(sd) == 0:
             return pose, None
-        if cfg.compass_anchor is not None:
+        if ccfg.anchor is not None:
             md, ml = self._directions.reference()
         else:
             ref = best
@@ -1212,11 +691,11 @@ class WireframeFilter:
                 keep = np.ones(best.n_edges, dtype=bool)
                 keep[matched] = False
                 ref = best.subgraph_edges(keep)
-            md, ml = wall_directions(ref, cfg.compass_min_length, cfg.keep_threshold)
+            md, ml = wall_directions(ref, ccfg.min_length, cfg.keep_threshold)
         h = compass_heading(
             np.mod(sd + pose.theta, math.pi), sl, md, ml, math.sqrt(self._cov[2, 2]),
-            corner_sigma=cfg.compass_corner_sigma, model_sigma=cfg.compass_model_sigma,
-            min_support=cfg.compass_min_support, max_gate=cfg.compass_max_gate,
+            corner_sigma=ccfg.corner_sigma, model_sigma=ccfg.model_sigma,
+            min_support=ccfg.min_support, max_gate=ccfg.max_gate,
         )
         if h is None:
             return pose, None
@@ -1228,7 +707,7 @@ class WireframeFilter:
         self._cov = np.asarray(0.5 * (C + C.T), dtype=np.float64)
         return pose.compose(Pose(float(dx[0]), float(dx[1]), float(dx[2]))), h
 
-    def _match(self, scan: Wireframe, ref: Wireframe, prior: FloatArray) -> ICPResult:
+    def _icp(self, scan: Wireframe, ref: Wireframe, prior: FloatArray) -> ICPResult:
         """ICP of ``scan`` on ``ref`` with ``prior`` as the correction's prior; the first
         correspondence gate is three standard deviations (the rotation's taken at half the
         range), within the ICP config's ``gate_end``..``gate_start``."""
@@ -1246,6 +725,13 @@ class WireframeFilter:
     def step(self, odometry: Pose, scan: Wireframe, *, fault: Pose | None = None) -> StepInfo:
         """One filter iteration (paper Fig. 7), then the loop-closure check (:mod:`mapping.loops`).
 
+        The phases, each a method: clean the scan up (:func:`mapping.scan_cleanup.clean_scan`),
+        predict the pose (:meth:`_predict`), match the scan (:meth:`_match_scan`), fuse the
+        compass (:meth:`_fuse_compass`); then, when the scan may touch the map
+        (:meth:`_may_map`), evaluate every distinct particle (:meth:`_evaluate`), reweight
+        (:meth:`_reweight`), resample with mutation (:meth:`_resample`) and merge the scan
+        (:meth:`_merge_scan`); last, the loop closure (:meth:`_loop_closure`).
+
         Parameters
         ----------
         odometry : Pose
@@ -1261,8 +747,420 @@ class WireframeFilter:
         -------
         StepInfo
         """
-        info, matched_scan = self._step(odometry, scan, fault)
-        # Keyframes, births and observation counts (mapping.loops, mapping.refine).
+        cfg = self.config
+        self._steps += 1
+        ctx = self._predict(odometry, clean_scan(scan, cfg.cleanup, cfg.max_scan_vertices), fault)
+        self._match_scan(ctx)
+        self._fuse_compass(ctx)
+        self._pose = ctx.pose
+        if self._may_map(ctx):
+            evals = self._evaluate(ctx)
+            weights, best_parent, loglik = self._reweight(evals)
+            resampled, best = self._resample(evals, weights, best_parent)
+            self._merge_scan(ctx, evals, resampled, best)
+            info = self._info(ctx, loglik, int(resampled.mutated.sum()), mapped=True)
+        else:
+            info = self._info(ctx, np.zeros(len(self._particles)), 0, mapped=False)
+        return self._loop_closure(odometry, info, ctx.matched_scan)
+
+    def _info(self, ctx: _StepContext, loglik: FloatArray, mutated: int, mapped: bool) -> StepInfo:
+        """The step's :class:`StepInfo`, after its last phase."""
+        return StepInfo(
+            step=self._steps,
+            pose=ctx.pose,
+            predicted_pose=ctx.predicted,
+            icp=ctx.icp,
+            log_likelihoods=loglik,
+            best=self._best,
+            distinct=self.distinct_particles(),
+            mutated=mutated,
+            mapped=mapped,
+            compass=ctx.heading,
+        )
+
+    def _predict(self, odometry: Pose, cleaned: CleanScan, fault: Pose | None) -> _StepContext:
+        """Predict the pose and its uncertainty from the odometry (paper Sec. IV-A).
+
+        ``x_pred = x (+) u``; the covariance grows by the odometry noise model
+        (:meth:`predict_covariance`), and the map's drift relative to the pose (the prior of a
+        re-anchoring match, :class:`GatingConfig`) by ``diag(drift_xy^2, drift_xy^2,
+        drift_theta^2) d`` for ``d`` metres driven.
+
+        Parameters
+        ----------
+        odometry : Pose
+            The increment since the previous scan (previous robot frame).
+        cleaned : mapping.scan_cleanup.CleanScan
+            This step's scan after clean-up.
+        fault : Pose or None
+            The fault to inject at placing (:meth:`step`).
+
+        Returns
+        -------
+        _StepContext
+            The step's state, the pose set to the prediction.
+        """
+        cfg = self.config
+        predicted = self._pose.compose(odometry)
+        best = self._particles[self._best]
+        self._cov = self.predict_covariance(self._cov, odometry)
+        d = math.hypot(odometry.x, odometry.y)
+        self._drift = self._drift + np.diag(
+            [cfg.gating.drift_xy**2 * d, cfg.gating.drift_xy**2 * d, cfg.gating.drift_theta**2 * d]
+        )
+        return _StepContext(cleaned.evidence, cleaned.scan, cleaned.scan, cleaned.kept, predicted, predicted, best, fault)
+
+    def _match_scan(self, ctx: _StepContext) -> None:
+        """Match the scan against the best particle's predicted scan (paper Sec. IV-C).
+
+        The wireframe ICP (:func:`mapping.icp.icp`) with the pose covariance as its prior; a
+        rejected match is retried once with the map's drift added to the prior
+        (:attr:`GatingConfig.reanchor`). After a consistent match the scan's frontiers, and
+        after an accepted one its walls continuing established ones, are snapped onto the map
+        (:mod:`mapping.snapping`). An accepted match corrects the pose,
+        ``x = x_pred (+) correction``, and its covariance becomes the ICP's posterior, floored at
+        :attr:`OdometryConfig.pose_floor_xy` and :attr:`OdometryConfig.pose_floor_theta`.
+
+        Parameters
+        ----------
+        ctx : _StepContext
+            Updated in place: ``icp``, ``matched_edges``, ``scan`` (snapped) and ``pose``.
+        """
+        cfg = self.config
+        best, scan, predicted = ctx.best, ctx.scan, ctx.predicted
+        if not (cfg.use_icp and best.n_edges and scan.n_edges):
+            return
+        ref, ref_src, _ = self.predicted_view(best, predicted)
+        ctx.matched_edges = ref_src[ref_src >= 0]
+        if not ref.n_vertices:
+            return
+        icp_res = self._icp(scan, ref, self._cov)
+        if not icp_res.accepted and cfg.gating.reanchor and scan.n_edges >= 2:
+            # The map in view may be older than the pose's uncertainty says (module
+            # docstring, "re-anchoring"): try again with the drift added to the prior.
+            again = self._icp(scan, ref, self._cov + self._drift)
+            if again.accepted and again.constrained == 3 and again.rmse <= 0.5 * cfg.icp.max_rmse:
+                icp_res = again
+        ctx.icp = icp_res
+        if icp_res.consistent and cfg.snapping.frontiers:
+            # Also a scan that only confirms the prediction (ICPResult.consistent): its
+            # frontiers must not drag an established wall's line either.
+            corr = icp_res.correction if icp_res.accepted else Pose.identity()
+            support = best.edge_lengths()[np.maximum(ref_src, 0)] * (ref_src >= 0)
+            sp = snap_frontiers(
+                corr.apply(scan.points), scan, ref, icp_res.correspondences.edge_pairs,
+                support, cfg.icp.gate_end,
+            )
+            snap = cfg.snapping
+            if snap.collinear and icp_res.accepted:
+                sp = snap_collinear(
+                    sp, scan, ref, icp_res.correspondences.edge_pairs, support,
+                    snap.collinear_min_support, snap.collinear_max_offset, snap.collinear_max_angle,
+                )
+            ctx.scan = scan.replace(points=corr.inverse().apply(sp))
+        if icp_res.accepted:
+            ctx.pose = predicted.compose(icp_res.correction)
+            C = np.array(icp_res.covariance, dtype=np.float64)
+            odo = cfg.odometry
+            floor = np.array([odo.pose_floor_xy, odo.pose_floor_xy, odo.pose_floor_theta]) ** 2
+            C[np.diag_indices(3)] = np.maximum(np.diag(C), floor)
+            self._cov = C
+
+    def _fuse_compass(self, ctx: _StepContext) -> None:
+        """Fuse the wall-direction heading measurement (:mod:`mapping.compass`; not in the paper).
+
+        While the reference directions are being learnt (the first ``compass.anchor`` metres)
+        or are needed, they are updated from the best particle's established walls. At full
+        weight while the heading's std after the match exceeds ``compass.min_sigma``; below it,
+        at ``compass.young_weight``, only while the walls the scan was matched against are at
+        most ``compass.young_travel`` metres of driving old (a map that young carries the
+        present drift). See :meth:`_compass` for the update itself.
+
+        Parameters
+        ----------
+        ctx : _StepContext
+            Updated in place: ``pose`` and ``heading``.
+        """
+        cfg = self.config
+        ccfg = cfg.compass
+        best, scan = ctx.best, ctx.scan
+        if not (ccfg.enabled and best.n_edges):
+            return
+        need = scan.n_edges > 0 and math.sqrt(self._cov[2, 2]) > ccfg.min_sigma
+        if ccfg.anchor is not None:
+            anchoring = self._loops.distance < ccfg.anchor
+            if anchoring or need or not self._directions.settled:
+                md, ml = wall_directions(best, ccfg.min_length, cfg.keep_threshold)
+                self._directions.update(md, ml, self._loops.distance)
+        if need:
+            ctx.pose, ctx.heading = self._compass(scan, ctx.pose, best, ctx.matched_edges)
+        elif (ccfg.young_weight > 0 and scan.n_edges
+                and self._loops.age(best.points[np.unique(best.edges[ctx.matched_edges])])
+                <= ccfg.young_travel):
+            # The match pinned the heading down, but against walls as young as the drift
+            # they carry: the compass still pulls, slowly (CompassConfig.young_weight).
+            # No wall matched, or none stamped yet, is age 0: nothing says the map is old.
+            ctx.pose, ctx.heading = self._compass(scan, ctx.pose, best, ctx.matched_edges, ccfg.young_weight)
+
+    def _may_map(self, ctx: _StepContext) -> bool:
+        """Whether the scan is placed well enough to touch the map (module docstring, "gating").
+
+        Not when a map was in view and the heading's std after matching exceeds
+        ``gating.max_sigma_theta``, nor when the match was rejected while the position's std
+        exceeds ``gating.max_sigma_xy``; the step then only predicts.
+        """
+        g = self.config.gating
+        icp_res = ctx.icp
+        lost = (
+            icp_res is not None
+            and not icp_res.accepted
+            and math.sqrt(max(self._cov[0, 0], self._cov[1, 1])) > g.max_sigma_xy
+        )
+        return not (lost or (icp_res is not None and math.sqrt(self._cov[2, 2]) > g.max_sigma_theta))
+
+    def _evaluate(self, ctx: _StepContext) -> dict[int, _Eval]:
+        """Predict the scan and score it for every distinct particle (Sec. IV-B, IV-D).
+
+        Negative evidence (contradictions, carving) needs the scan placed against the map: not
+        from a scan whose match with a map in view was rejected (``gating.anchored_evidence``).
+        The seen-through spans found are kept for the next step's confirmation.
+
+        Parameters
+        ----------
+        ctx : _StepContext
+
+        Returns
+        -------
+        dict
+            ``id(particle) -> _Eval``, one per distinct particle object.
+        """
+        icp_res = ctx.icp
+        anchored = icp_res is None or icp_res.consistent or not self.config.gating.anchored_evidence
+        evals: dict[int, _Eval] = {}
+        seen_spans: list[FloatArray] = []
+        for p in self._particles:
+            if id(p) not in evals:
+                evals[id(p)] = self._evaluate_particle(p, ctx, anchored, seen_spans)
+        self._pending_spans = np.concatenate(seen_spans) if seen_spans else np.zeros((0, 2, 2))
+        return evals
+
+    def _evaluate_particle(
+        self, p: Wireframe, ctx: _StepContext, anchored: bool, seen_spans: list[FloatArray]
+    ) -> _Eval:
+        """One particle's predicted scan, likelihood and evidence-updated map (Sec. IV-B, IV-D).
+
+        ``log p(S | W)`` of the evidence scan against the prediction at the placed pose
+        (:func:`mapping.likelihood.scan_likelihood`); edges in view that the prediction does not
+        report (back-facing or hidden, paper Fig. 5) count as contradicted when the scan saw
+        through them. Contradicted edges get the Bayes update
+        (:func:`mapping.evidence.contradiction_update`), seen-through stretches confirmed by
+        the previous scan are carved (:func:`mapping.evidence.carve`), new scan edges in known
+        free space are kept out of this particle's merge, and the in-sight edges the scan does
+        not observe are the candidates for mutation (Sec. IV-F).
+
+        Parameters
+        ----------
+        p : Wireframe
+            The particle.
+        ctx : _StepContext
+        anchored : bool
+            Whether negative evidence may be applied (:meth:`_evaluate`).
+        seen_spans : list
+            Collects this step's seen-through spans (map frame segments).
+
+        Returns
+        -------
+        _Eval
+        """
+        cfg = self.config
+        lcfg = cfg.likelihood
+        evidence, scan, place = ctx.evidence, ctx.scan, ctx.place
+        view, src, unreported = self.predicted_view(p, place)
+        lik = scan_likelihood(evidence, view, lcfg, max_range=cfg.max_range)
+        in_sight, observed, contra = edge_states(p.n_edges, src, lik.predicted_edge_state)
+        through = self._seen_through_unreported(p, place, evidence, unreported & ~observed)
+        if through.any():
+            contra |= through
+            in_sight |= through
+            lik = dataclasses.replace(
+                lik,
+                log_likelihood=lik.log_likelihood + math.log(lcfg.p_fn) * int(through.sum()),
+                edge_log=lik.edge_log + math.log(lcfg.p_fn) * int(through.sum()),
+            )
+        updated = p
+        if not anchored:
+            contra = np.zeros_like(contra)
+        if contra.any():
+            L = p.likelihood.copy()
+            weight = seen_fraction(p, view, src)[contra] if cfg.evidence.partial_contradiction else 1.0
+            L[contra] = contradiction_update(L[contra], lcfg.p_fp, lcfg.p_fn, weight)
+            updated = p.replace(likelihood=L)
+        spans: dict[int, list[tuple[float, float]]] = {}
+        if cfg.evidence.carve and anchored:
+            found = seen_through_spans(
+                p, place, view, src, lik.correspondences.edge_pairs, evidence,
+                2.5 * cfg.merge_threshold, cfg.merge_threshold, lcfg.occlusion_margin, cfg.max_range,
+            )
+            spans = self._confirmed(p, found, seen_spans)
+        group = b"".join(
+            (
+                np.round(view.points, 6).tobytes(),
+                view.edges.tobytes(),
+                view.labels.tobytes(),
+                np.round(updated.likelihood[src[src >= 0]], 6).tobytes(),
+                np.round(p.points[p.edges[through]], 6).tobytes(),
+            )
+        )
+        # New scan edges where this particle is sure there is free space are not merged into
+        # it (static world: a false positive or a passer-by).
+        merge_mask = np.ones(scan.n_edges, dtype=bool)
+        if cfg.evidence.reject_in_free_space and scan.n_edges and view.n_edges:
+            unm = np.flatnonzero(~lik.scan_edge_matched[ctx.kept])
+            if len(unm):
+                free = in_known_free_space(
+                    view, scan.segments()[unm], lcfg.occlusion_margin, cfg.keep_threshold
+                )
+                merge_mask[unm[free]] = False
+        # Candidates for mutation (Sec. IV-F, "within sight (or predicted sight)"): every edge
+        # in view, reported or not, that this scan does not observe.
+        cands = (in_sight | unreported) & ~observed
+        if spans:
+            group += repr(sorted(spans.items())).encode()
+            updated, origin = carve(updated, spans)
+            in_sight, cands = in_sight[origin], cands[origin]
+        return _Eval(lik, updated, in_sight, cands, lik.scan_edge_likelihood[ctx.kept], group, merge_mask)
+
+    def _seen_through_unreported(
+        self, p: Wireframe, place: Pose, evidence: Wireframe, candidates: BoolArray
+    ) -> BoolArray:
+        """Which edges of ``p`` in view but not reported by the prediction (back-facing, or
+        hidden behind another map edge; ``candidates``) the scan ``evidence`` saw through
+        (:func:`mapping.likelihood.seen_through`): they count as contradicted (paper Fig. 5)."""
+        lcfg = self.config.likelihood
+        through = np.zeros(p.n_edges, dtype=bool)
+        cand_hidden = np.flatnonzero(candidates)
+        if len(cand_hidden) and evidence.n_edges:
+            segs = place.apply_inverse(p.points[p.edges[cand_hidden]].reshape(-1, 2)).reshape(-1, 2, 2)
+            through[cand_hidden] = seen_through(
+                evidence, segs, lcfg.occlusion_margin, self.config.max_range, min_incidence=lcfg.min_incidence
+            )
+        return through
+
+    def _reweight(self, evals: dict[int, _Eval]) -> tuple[FloatArray, int, FloatArray]:
+        """The weight update ``w_i <- eta w_i p(S | W_i)^(1 / temperature)`` (Sec. III-B, IV-D).
+
+        Returns
+        -------
+        weights : (M,) float64
+            Normalised.
+        best_parent : int
+            The highest-weight particle; ties (particles that differ only in edges this scan
+            says nothing about) go to the most plausible edge set
+            (:func:`mapping.evidence.edge_log_odds`).
+        log_likelihoods : (M,) float64
+            ``log p(S | W_i)``.
+        """
+        cfg = self.config
+        loglik = np.array([evals[id(p)].lik.log_likelihood for p in self._particles])
+        logw = np.log(np.maximum(self._weights, 1e-300)) + loglik / cfg.temperature
+        logw -= logw.max()
+        w = np.exp(logw)
+        w /= w.sum()
+        tied = np.flatnonzero(logw >= -cfg.tie_tolerance)
+        if len(tied) > 1:
+            score = np.array([edge_log_odds(evals[id(self._particles[i])].updated) for i in tied.tolist()])
+            best_parent = int(tied[int(np.argmax(score))])
+        else:
+            best_parent = int(np.argmax(w))
+        return w, best_parent, loglik
+
+    def _resample(self, evals: dict[int, _Eval], weights: FloatArray, best_parent: int) -> tuple[ResampleResult, int]:
+        """Resample with mutation (Sec. IV-F, :func:`mapping.resample.resample_with_mutation`).
+
+        Particles the scan cannot tell apart (equal ``_Eval.group``) count as copies of one;
+        further draws of a group are mutated: in-sight edges below the keep threshold that the
+        scan does not observe may be dropped.
+
+        Returns
+        -------
+        resampled : mapping.resample.ResampleResult
+        best : int
+            Index of the best particle after resampling: the unmutated copy of ``best_parent``.
+        """
+        cfg = self.config
+        updated_list = [evals[id(p)].updated for p in self._particles]
+        sight_list = [evals[id(p)].candidates_mask for p in self._particles]
+        groups = [evals[id(p)].group for p in self._particles]
+        res = resample_with_mutation(
+            updated_list, weights, sight_list, cfg.keep_threshold, self.rng, cfg.mutate, groups=groups
+        )
+        best_obj = updated_list[best_parent]
+        best = next(
+            (k for k, q in enumerate(res.particles) if q is best_obj and not res.mutated[k]),
+            int(np.flatnonzero(res.indexes == best_parent)[0]) if np.any(res.indexes == best_parent) else 0,
+        )
+        return res, best
+
+    def _merge_scan(self, ctx: _StepContext, evals: dict[int, _Eval], res: ResampleResult, best: int) -> None:
+        """Merge the placed scan into every resulting particle (Sec. IV-E, :func:`mapping.merge.merge`).
+
+        Scan edges carry the parent's per-edge likelihoods into the merge, less those the parent
+        rejected in free space. Corners are refined first (:mod:`mapping.refine`), only from a
+        scan whose match fixed all three directions of the pose. Each merged map is budgeted
+        (:func:`budget_map`); identical resulting particles share one object, so their next
+        steps run once. Weights are reset to uniform.
+
+        Parameters
+        ----------
+        ctx : _StepContext
+        evals : dict
+            From :meth:`_evaluate`.
+        res : mapping.resample.ResampleResult
+        best : int
+            The best particle's index after resampling.
+        """
+        cfg = self.config
+        icp_res = ctx.icp
+        merged: dict[tuple[int, int], Wireframe] = {}
+        by_content: dict[bytes, Wireframe] = {}
+        refined: dict[int, Wireframe] = {}
+        new: list[Wireframe] = []
+        # Corner refinement (mapping.refine) only from a scan whose match fixed all three
+        # directions of the pose: along a degenerate direction (a corridor's axis) the pose is
+        # the odometry's, and averaging it in would drag the corners along with its error.
+        refine = cfg.refine.enabled and (icp_res is None or (icp_res.accepted and icp_res.constrained == 3))
+        placed = ctx.scan.transformed(ctx.place)  # the scan in the map frame, for every merge below
+        for k, q in enumerate(res.particles):
+            parent = self._particles[int(res.indexes[k])]
+            key = (id(q), id(parent))
+            if key not in merged:
+                ev = evals[id(parent)]
+                scan_world = placed.replace(likelihood=ev.scan_edge_likelihood)
+                if not ev.merge_mask.all():
+                    scan_world = scan_world.subgraph_edges(ev.merge_mask)
+                if refine and q.n_vertices:
+                    if id(q) not in refined:
+                        rq, moved = refine_corners(
+                            q, placed, cfg.merge_threshold, self._loops.counts(q.points), cfg.refine.max_count
+                        )
+                        self._loops.moved(moved.old, moved.new, moved.counts)
+                        refined[id(q)] = rq
+                    q = refined[id(q)]
+                m = budget_map(self._merge_fn(q, scan_world, cfg.merge_threshold), cfg.max_vertices)
+                # Particles that came out equal share one object (their next steps run once).
+                merged[key] = by_content.setdefault(_content_key(m), m)
+            new.append(merged[key])
+        self._best = best
+        self._particles = new
+        self._weights = np.full(len(new), 1.0 / len(new))
+
+    def _loop_closure(self, odometry: Pose, info: StepInfo, scan: Wireframe) -> StepInfo:
+        """Loop-closure bookkeeping and check after the filter step (:mod:`mapping.loops`).
+
+        Keyframes, births and observation counts advance with the step; with ``loops.enabled``
+        the matched scan is checked against the old part of the best map
+        (:meth:`_close_loops`), and a closure moves the pose (``info.pose``, ``info.loop``).
+        """
         lc = self._loops
         inc = self.motion_increment(odometry, info.icp) if lc.config.motion_cov else None
         lc.advance(self._pose, math.hypot(odometry.x, odometry.y) + 0.5 * abs(odometry.theta), inc)
@@ -1270,7 +1168,7 @@ class WireframeFilter:
         if self._steps % 500 == 0:
             lc.prune(self._particles)
         if self.config.loops.enabled:
-            closed = self._close_loops(matched_scan)
+            closed = self._close_loops(scan)
             if closed is not None:
                 info = dataclasses.replace(info, pose=self._pose, loop=closed)
         return info
@@ -1300,13 +1198,13 @@ class WireframeFilter:
             return bool(r.accepted and r.constrained >= lcfg.min_constrained
                         and r.n_constraints >= lcfg.min_constraints and r.rmse <= lcfg.max_rmse)
 
-        res = self._match(scan, ref, prior)
+        res = self._icp(scan, ref, prior)
         if not good(res):
             return None
         here = self._pose  # where the young chain puts the robot
         yref = self.predicted_view(young, self._pose)[0] if young.n_edges else Wireframe.empty()
         if yref.n_edges >= lcfg.min_old_edges:
-            yres = self._match(scan, yref, prior)
+            yres = self._icp(scan, yref, prior)
             if good(yres):
                 here = self._pose.compose(yres.correction)
         corrected = self._pose.compose(res.correction)
@@ -1329,244 +1227,6 @@ class WireframeFilter:
         lc.stamp(self._particles)
         return lc.closures[-1]
 
-    def _step(self, odometry: Pose, scan: Wireframe, fault: Pose | None) -> tuple[StepInfo, Wireframe]:
-        cfg = self.config
-        self._steps += 1
-        # The evidence (likelihood, contradictions) is the whole scan but for its gap bridges and
-        # its walls along a line of sight; the scan that is matched and merged also loses its
-        # short fragments.
-        if cfg.drop_gap_bridges:
-            scan = drop_gap_bridges(scan)
-        evidence = budget_scan(drop_line_of_sight(scan, cfg.min_line_distance), cfg.max_scan_vertices)
-        kept = fragment_mask(evidence, cfg.min_fragment_length)
-        kept_idx = np.flatnonzero(kept)
-        scan = evidence if kept.all() else evidence.subgraph_edges(kept)
-        predicted = self._pose.compose(odometry)
-        pose = predicted
-        raw_scan = scan
-        icp_res: ICPResult | None = None
-        best = self._particles[self._best]
-        self._cov = self.predict_covariance(self._cov, odometry)
-        d = math.hypot(odometry.x, odometry.y)
-        self._drift = self._drift + np.diag(
-            [cfg.drift_xy**2 * d, cfg.drift_xy**2 * d, cfg.drift_theta**2 * d]
-        )
-        matched_edges = np.zeros(0, dtype=np.int64)  # the map edges the scan was matched against
-        if cfg.use_icp and best.n_edges and scan.n_edges:
-            ref, ref_src, _ = self.predicted_view(best, predicted)
-            matched_edges = ref_src[ref_src >= 0]
-            if ref.n_vertices:
-                icp_res = self._match(scan, ref, self._cov)
-                if not icp_res.accepted and cfg.reanchor and scan.n_edges >= 2:
-                    # The map in view may be older than the pose's uncertainty says (module
-                    # docstring, "re-anchoring"): try again with the drift added to the prior.
-                    again = self._match(scan, ref, self._cov + self._drift)
-                    if again.accepted and again.constrained == 3 and again.rmse <= 0.5 * cfg.icp.max_rmse:
-                        icp_res = again
-                if icp_res.consistent and cfg.snap_frontiers:
-                    # Also a scan that only confirms the prediction (ICPResult.consistent): its
-                    # frontiers must not drag an established wall's line either.
-                    corr = icp_res.correction if icp_res.accepted else Pose.identity()
-                    support = best.edge_lengths()[np.maximum(ref_src, 0)] * (ref_src >= 0)
-                    sp = snap_frontiers(
-                        corr.apply(scan.points), scan, ref, icp_res.correspondences.edge_pairs,
-                        support, cfg.icp.gate_end,
-                    )
-                    if cfg.snap_collinear and icp_res.accepted:
-                        sp = snap_collinear(
-                            sp, scan, ref, icp_res.correspondences.edge_pairs, support,
-                            cfg.collinear_min_support, cfg.collinear_max_offset, cfg.collinear_max_angle,
-                        )
-                    scan = scan.replace(points=corr.inverse().apply(sp))
-                if icp_res.accepted:
-                    pose = predicted.compose(icp_res.correction)
-                    C = np.array(icp_res.covariance, dtype=np.float64)
-                    floor = np.array([cfg.pose_floor_xy, cfg.pose_floor_xy, cfg.pose_floor_theta]) ** 2
-                    C[np.diag_indices(3)] = np.maximum(np.diag(C), floor)
-                    self._cov = C
-        heading: Heading | None = None
-        if cfg.compass and best.n_edges:
-            need = scan.n_edges > 0 and math.sqrt(self._cov[2, 2]) > cfg.compass_min_sigma
-            if cfg.compass_anchor is not None:
-                anchoring = self._loops.distance < cfg.compass_anchor
-                if anchoring or need or not self._directions.settled:
-                    md, ml = wall_directions(best, cfg.compass_min_length, cfg.keep_threshold)
-                    self._directions.update(md, ml, self._loops.distance)
-            if need:
-                pose, heading = self._compass(scan, pose, best, matched_edges)
-            elif (cfg.compass_young_weight > 0 and scan.n_edges
-                    and self._loops.age(best.points[np.unique(best.edges[matched_edges])])
-                    <= cfg.compass_young_travel):
-                # The match pinned the heading down, but against walls as young as the drift
-                # they carry: the compass still pulls, slowly (FilterConfig.compass_young_weight).
-                # No wall matched, or none stamped yet, is age 0: nothing says the map is old.
-                pose, heading = self._compass(scan, pose, best, matched_edges, cfg.compass_young_weight)
-        self._pose = pose
-        place = pose if fault is None else pose.compose(fault)
-        lost = (
-            icp_res is not None
-            and not icp_res.accepted
-            and math.sqrt(max(self._cov[0, 0], self._cov[1, 1])) > cfg.max_map_sigma_xy
-        )
-        if lost or (icp_res is not None and math.sqrt(self._cov[2, 2]) > cfg.max_map_sigma_theta):
-            # The scan cannot be placed well enough to touch the map (module docstring).
-            return (StepInfo(
-                step=self._steps,
-                pose=pose,
-                predicted_pose=predicted,
-                icp=icp_res,
-                log_likelihoods=np.zeros(len(self._particles)),
-                best=self._best,
-                distinct=self.distinct_particles(),
-                mutated=0,
-                mapped=False,
-                compass=heading,
-            ), raw_scan)
-
-        lcfg = cfg.likelihood
-        # Negative evidence (contradictions, carving) needs the scan placed against the map: not
-        # from a scan whose match with a map in view was rejected.
-        anchored = icp_res is None or icp_res.consistent or not cfg.anchored_evidence
-        evals: dict[int, _Eval] = {}
-        seen_spans: list[FloatArray] = []
-        for p in self._particles:
-            if id(p) in evals:
-                continue
-            view, src, unreported = self.predicted_view(p, place)
-            lik = scan_likelihood(evidence, view, lcfg, max_range=cfg.max_range)
-            in_sight, observed, contra = _edge_states(p.n_edges, src, lik.predicted_edge_state)
-            # Edges in view that the prediction does not report (back-facing, or hidden behind
-            # another map edge): contradicted when the scan saw through them.
-            through = np.zeros(p.n_edges, dtype=bool)
-            cand_hidden = np.flatnonzero(unreported & ~observed)
-            if len(cand_hidden) and evidence.n_edges:
-                segs = place.apply_inverse(p.points[p.edges[cand_hidden]].reshape(-1, 2)).reshape(-1, 2, 2)
-                through[cand_hidden] = seen_through(
-                    evidence, segs, lcfg.occlusion_margin, cfg.max_range, min_incidence=lcfg.min_incidence
-                )
-            if through.any():
-                contra |= through
-                in_sight |= through
-                lik = dataclasses.replace(
-                    lik,
-                    log_likelihood=lik.log_likelihood + math.log(lcfg.p_fn) * int(through.sum()),
-                    edge_log=lik.edge_log + math.log(lcfg.p_fn) * int(through.sum()),
-                )
-            updated = p
-            if not anchored:
-                contra = np.zeros_like(contra)
-            if contra.any():
-                L = p.likelihood.copy()
-                weight = seen_fraction(p, view, src)[contra] if cfg.partial_contradiction else 1.0
-                L[contra] = contradiction_update(L[contra], lcfg.p_fp, lcfg.p_fn, weight)
-                updated = p.replace(likelihood=L)
-            spans: dict[int, list[tuple[float, float]]] = {}
-            if cfg.carve and anchored:
-                found = seen_through_spans(
-                    p, place, view, src, lik.correspondences.edge_pairs, evidence,
-                    2.5 * cfg.merge_threshold, cfg.merge_threshold, lcfg.occlusion_margin, cfg.max_range,
-                )
-                spans = self._confirmed(p, found, seen_spans)
-            group = b"".join(
-                (
-                    np.round(view.points, 6).tobytes(),
-                    view.edges.tobytes(),
-                    view.labels.tobytes(),
-                    np.round(updated.likelihood[src[src >= 0]], 6).tobytes(),
-                    np.round(p.points[p.edges[through]], 6).tobytes(),
-                )
-            )
-            # New scan edges where this particle is sure there is free space are not merged into
-            # it (static world: a false positive or a passer-by).
-            merge_mask = np.ones(scan.n_edges, dtype=bool)
-            if cfg.reject_in_free_space and scan.n_edges and view.n_edges:
-                unm = np.flatnonzero(~lik.scan_edge_matched[kept_idx])
-                if len(unm):
-                    free = in_known_free_space(
-                        view, scan.segments()[unm], lcfg.occlusion_margin, cfg.keep_threshold
-                    )
-                    merge_mask[unm[free]] = False
-            # Candidates for mutation (Sec. IV-F, "within sight (or predicted sight)"): every edge
-            # in view, reported or not, that this scan does not observe.
-            cands = (in_sight | unreported) & ~observed
-            if spans:
-                group += repr(sorted(spans.items())).encode()
-                updated, origin = carve(updated, spans)
-                in_sight, cands = in_sight[origin], cands[origin]
-            evals[id(p)] = _Eval(
-                lik, updated, in_sight, cands, lik.scan_edge_likelihood[kept_idx], group, merge_mask
-            )
-
-        loglik = np.array([evals[id(p)].lik.log_likelihood for p in self._particles])
-        logw = np.log(np.maximum(self._weights, 1e-300)) + loglik / cfg.temperature
-        logw -= logw.max()
-        w = np.exp(logw)
-        w /= w.sum()
-        # The best particle: the highest weight; ties (common: particles that differ only in
-        # edges this scan says nothing about) go to the most plausible edge set.
-        tied = np.flatnonzero(logw >= -cfg.tie_tolerance)
-        if len(tied) > 1:
-            score = np.array([edge_log_odds(evals[id(self._particles[i])].updated) for i in tied.tolist()])
-            best_parent = int(tied[int(np.argmax(score))])
-        else:
-            best_parent = int(np.argmax(w))
-
-        updated_list = [evals[id(p)].updated for p in self._particles]
-        sight_list = [evals[id(p)].candidates_mask for p in self._particles]
-        groups = [evals[id(p)].group for p in self._particles]
-        res = resample_with_mutation(
-            updated_list, w, sight_list, cfg.keep_threshold, self.rng, cfg.mutate, groups=groups
-        )
-
-        # Merge the scan into every distinct resulting particle (identical ones share the result).
-        merged: dict[tuple[int, int], Wireframe] = {}
-        by_content: dict[bytes, Wireframe] = {}
-        refined: dict[int, Wireframe] = {}
-        new: list[Wireframe] = []
-        # Corner refinement (mapping.refine) only from a scan whose match fixed all three
-        # directions of the pose: along a degenerate direction (a corridor's axis) the pose is
-        # the odometry's, and averaging it in would drag the corners along with its error.
-        refine = cfg.refine_corners and (icp_res is None or (icp_res.accepted and icp_res.constrained == 3))
-        placed = scan.transformed(place)  # the scan in the map frame, for every merge below
-        for k, q in enumerate(res.particles):
-            parent = self._particles[int(res.indexes[k])]
-            key = (id(q), id(parent))
-            if key not in merged:
-                ev = evals[id(parent)]
-                scan_world = placed.replace(likelihood=ev.scan_edge_likelihood)
-                if not ev.merge_mask.all():
-                    scan_world = scan_world.subgraph_edges(ev.merge_mask)
-                if refine and q.n_vertices:
-                    if id(q) not in refined:
-                        rq, moved = refine_corners(
-                            q, placed, cfg.merge_threshold, self._loops.counts(q.points), cfg.refine_max_count
-                        )
-                        self._loops.moved(moved.old, moved.new, moved.counts)
-                        refined[id(q)] = rq
-                    q = refined[id(q)]
-                m = budget_map(self._merge_fn(q, scan_world, cfg.merge_threshold), cfg.max_vertices)
-                # Particles that came out equal share one object (their next steps run once).
-                merged[key] = by_content.setdefault(_content_key(m), m)
-            new.append(merged[key])
-        best_obj = updated_list[best_parent]
-        self._best = next(
-            (k for k, q in enumerate(res.particles) if q is best_obj and not res.mutated[k]),
-            int(np.flatnonzero(res.indexes == best_parent)[0]) if np.any(res.indexes == best_parent) else 0,
-        )
-        self._particles = new
-        self._pending_spans = np.concatenate(seen_spans) if seen_spans else np.zeros((0, 2, 2))
-        self._weights = np.full(len(new), 1.0 / len(new))
-        return (StepInfo(
-            step=self._steps,
-            pose=pose,
-            predicted_pose=predicted,
-            icp=icp_res,
-            log_likelihoods=loglik,
-            best=self._best,
-            distinct=self.distinct_particles(),
-            mutated=int(res.mutated.sum()),
-            compass=heading,
-        ), raw_scan)
 
 
 def _content_key(wf: Wireframe) -> bytes:

@@ -42,6 +42,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
+from mapping.config import check_number
 from mapping.wireframe import Label, Wireframe
 
 FloatArray = NDArray[np.float64]
@@ -90,6 +91,32 @@ def corner_pairs(wf: Wireframe, scan: Wireframe, threshold: float) -> tuple[IntA
     _, first = np.unique(j[ok], return_index=True)
     take = ok[first]
     return mi[j[take]].astype(np.int64), si[take].astype(np.int64)
+
+
+@dataclass(frozen=True)
+class RefineConfig:
+    """Corner refinement in :class:`mapping.filter.WireframeFilter` (``refine.*`` settings).
+
+    Parameters
+    ----------
+    enabled : bool
+        Refine before the merge, from scans whose match constrained all three directions
+        (museum seed 1: 0.45 m mean wall error, 0.48 m without, 0.83 m from every scan).
+    max_count : int
+        Observations after which a corner is settled (10: averages out a sighting's noise,
+        then stops following the drift of later poses).
+
+    Raises
+    ------
+    ValueError
+        When ``max_count`` is not an integer >= 1.
+    """
+
+    enabled: bool = True
+    max_count: int = 10
+
+    def __post_init__(self) -> None:
+        check_number("max_count", self.max_count, 1, integer=True)
 
 
 def refine_corners(

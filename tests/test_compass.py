@@ -10,7 +10,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from mapping.compass import Directions, compass_heading, direction_clusters, wall_directions
+from mapping.compass import CompassConfig, Directions, compass_heading, direction_clusters, wall_directions
 from mapping.filter import FilterConfig, WireframeFilter
 from mapping.loops import LoopConfig
 from mapping.se2 import Pose
@@ -96,7 +96,7 @@ def test_filter_fixes_the_heading_from_new_walls(err_deg):
     est = Pose(1.0, 0.5, 0.3 + D(err_deg))
     out = {}
     for on in (True, False):
-        cfg = FilterConfig(particles=1, mutate=False, compass=on, loops=LoopConfig(enabled=False))
+        cfg = FilterConfig(particles=1, mutate=False, compass=CompassConfig(enabled=on), loops=LoopConfig(enabled=False))
         f = WireframeFilter(cfg, np.random.default_rng(0), initial_pose=est)
         f._particles = [_world_map()]
         f._cov = np.diag([0.05**2, 0.05**2, D(2.5) ** 2])
@@ -117,19 +117,19 @@ def test_filter_fixes_the_heading_from_new_walls(err_deg):
 def test_filter_covariance_shrinks_with_the_measurement():
     truth = Wireframe.build([(-4, 5), (6, 5), (6, -3)], [(1, 0), (2, 1)])
     scan = visible_view(truth, Pose.identity(), 8.0, 2 * math.pi).scan
-    cfg = FilterConfig(particles=1, mutate=False, compass=True, loops=LoopConfig(enabled=False))
+    cfg = FilterConfig(particles=1, mutate=False, loops=LoopConfig(enabled=False))
     f = WireframeFilter(cfg, np.random.default_rng(0), initial_pose=Pose(0, 0, D(1.0)))
     f._particles = [_world_map()]
     f._cov = np.diag([0.05**2, 0.05**2, D(2.5) ** 2])
     f.step(Pose.identity(), scan)
     assert math.degrees(math.sqrt(f.pose_covariance[2, 2])) < 0.5
-    # Below compass_min_sigma the match is the better reference: the compass does not run at
+    # Below compass.min_sigma the match is the better reference: the compass does not run at
     # full weight. The map here has no birth stamps (as young as can be), so only the slow
     # young-map pull runs (compass_young_weight), moving the heading by at most that fraction
     # of the measured offset; with the weight 0 nothing runs.
     poses, infos = {}, {}
     for w in (0.0, 0.05):
-        f2 = WireframeFilter(dataclasses.replace(cfg, compass_young_weight=w), np.random.default_rng(0),
+        f2 = WireframeFilter(dataclasses.replace(cfg, compass=CompassConfig(young_weight=w)), np.random.default_rng(0),
                              initial_pose=Pose(0, 0, D(0.3)))  # within the gate of a 0.1-degree sigma
         f2._particles = [_world_map()]
         f2._cov = np.diag([0.05**2, 0.05**2, D(0.1) ** 2])
@@ -160,21 +160,21 @@ def test_filter_covariance_shrinks_with_the_measurement():
 @pytest.mark.parametrize(
     "bad",
     [
-        {"compass_max_gate": 0.0},
-        {"compass_min_support": -1.0},
-        {"compass_anchor": -1.0},
-        {"compass_right_angle": -D(1.0)},
-        {"compass_right_angle": D(50.0)},
-        {"compass_young_weight": 1.5},
-        {"compass_young_weight": -0.1},
-        {"compass_young_travel": -1.0},
+        {"max_gate": 0.0},
+        {"min_support": -1.0},
+        {"anchor": -1.0},
+        {"right_angle": -D(1.0)},
+        {"right_angle": D(50.0)},
+        {"young_weight": 1.5},
+        {"young_weight": -0.1},
+        {"young_travel": -1.0},
     ],
 )
 def test_config_rejects_bad_compass_values(bad):
-    with pytest.raises(ValueError):
-        FilterConfig(**bad)
-    assert FilterConfig(compass_young_weight=0.0).compass_young_weight == 0.0
-    assert FilterConfig(compass_anchor=None).compass_anchor is None
+    with pytest.raises(ValueError, match=next(iter(bad))):
+        CompassConfig(**bad)
+    assert CompassConfig(young_weight=0.0).young_weight == 0.0
+    assert CompassConfig(anchor=None).anchor is None
 
 
 def test_direction_clusters_wrap_around_the_half_circle():

@@ -10,25 +10,28 @@ import pytest
 from agents.mapping_run import SimOptions, filter_config_for, seeds_for, simulate
 from agents.sim.world import load_world
 from mapping import Label, Pose, Wireframe
-from mapping.filter import (
+from mapping.compass import CompassConfig
+from mapping.evidence import (
     MAX_LIKELIHOOD,
-    FilterConfig,
-    WireframeFilter,
-    budget_map,
-    budget_scan,
+    EvidenceConfig,
     carve,
     contradiction_update,
-    drop_fragments,
-    drop_gap_bridges,
-    drop_line_of_sight,
     edge_log_odds,
     seen_fraction,
     seen_through_spans,
-    snap_collinear,
-    snap_frontiers,
 )
+from mapping.filter import FilterConfig, OdometryConfig, WireframeFilter, budget_map
 from mapping.loops import LoopConfig
 from mapping.metrics import wall_precision_recall
+from mapping.scan_cleanup import (
+    CleanupConfig,
+    budget_scan,
+    clean_scan,
+    drop_fragments,
+    drop_gap_bridges,
+    drop_line_of_sight,
+)
+from mapping.snapping import snap_collinear, snap_frontiers
 from mapping.visibility import visible_view
 
 WORLDS = Path(__file__).parent / "worlds"
@@ -56,13 +59,27 @@ def run(world_name: str, steps: int, seed: int = 0, particles: int = 5, faults: 
         {"merge_threshold": 0.0},
         {"temperature": math.nan},
         {"max_vertices": 2},
-        {"min_fragment_length": -0.1},
-        {"min_line_distance": math.inf},
+        {"max_scan_vertices": 1},
+        {"odometry": "not a group"},
     ],
 )
 def test_config_rejects_bad_values(kwargs):
-    with pytest.raises(ValueError):
+    with pytest.raises(ValueError, match=next(iter(kwargs))):
         FilterConfig(**kwargs)
+
+
+@pytest.mark.parametrize(
+    ("group", "kwargs"),
+    [
+        (CleanupConfig, {"min_fragment_length": -0.1}),
+        (CleanupConfig, {"min_line_distance": math.inf}),
+        (OdometryConfig, {"trans_per_m": -0.01}),
+        (OdometryConfig, {"pose_floor_theta": math.nan}),
+    ],
+)
+def test_config_groups_reject_bad_values(group, kwargs):
+    with pytest.raises(ValueError, match=next(iter(kwargs))):
+        group(**kwargs)
 
 
 def test_maps_a_small_room_accurately():
@@ -164,8 +181,9 @@ def test_a_long_wall_seen_through_in_part_loses_only_that_part_of_its_likelihood
     scan = visible_view(Wireframe.build([(50, 3.5), (-50, 3.5)], [(0, 1)]), Pose.identity(), 8.0, 2 * math.pi).scan
     out = {}
     for partial in (True, False):
-        cfg = FilterConfig(particles=1, mutate=False, use_icp=False, carve=False,
-                           partial_contradiction=partial, loops=LoopConfig(enabled=False))
+        cfg = FilterConfig(particles=1, mutate=False, use_icp=False,
+                           evidence=EvidenceConfig(carve=False, partial_contradiction=partial),
+                           loops=LoopConfig(enabled=False))
         f = WireframeFilter(cfg, np.random.default_rng(0))
         f._particles = [m]  # start from this map
         f.step(Pose.identity(), scan)
@@ -199,6 +217,22 @@ def test_scan_clean_up():
     assert b.n_edges == 1 and np.allclose(b.points, [(3, 1), (3, 1.2)])
 
 
+def test_clean_scan_keeps_fragments_as_evidence_only():
+    # Edge 0 a frontier fragment (evidence only), edge 1 a complete wall, edge 2 along a line
+    # of sight (gone from both).
+    scan = Wireframe.build(
+        [(2, -1), (2, -0.8), (3, 1), (3, 1.2), (1, 1), (4, 4)],
+        [(0, 1), (2, 3), (4, 5)],
+        labels=[Label.NOMINAL, Label.FRONTIER, Label.NOMINAL, Label.NOMINAL, Label.OCCLUSION, Label.FRONTIER],
+    )
+    out = clean_scan(scan, CleanupConfig(), 200)
+    assert out.evidence.n_edges == 2 and out.scan.n_edges == 1
+    assert np.allclose(out.evidence.segments()[out.kept], out.scan.segments())
+    assert np.allclose(out.scan.points, [(3, 1), (3, 1.2)])
+    kept_all = clean_scan(scan, CleanupConfig(min_fragment_length=0.0, min_line_distance=0.0), 200)
+    assert kept_all.scan.n_edges == kept_all.evidence.n_edges == 3 and kept_all.kept.tolist() == [0, 1, 2]
+
+
 def test_budgets():
     rng = np.random.default_rng(0)
     rings = [rng.uniform(0, 10, size=(2, 2)) for _ in range(30)]
@@ -217,7 +251,7 @@ def test_budgets():
 def test_predicted_covariance_matches_sampling():
     """The covariance after driving, propagated by the adjoint, agrees with composing sampled
     pose errors with the motion (odometry noise off)."""
-    cfg = FilterConfig(odometry_trans_per_m=0.0, odometry_rot_per_rad=0.0, odometry_rot_per_m=0.0)
+    cfg = FilterConfig(odometry=OdometryConfig(trans_per_m=0.0, rot_per_rad=0.0, rot_per_m=0.0))
     f = WireframeFilter(cfg, np.random.default_rng(0))
     P = np.array([[0.04, 0.01, 0.002], [0.01, 0.02, -0.001], [0.002, -0.001, 0.0004]])
     u = Pose(1.5, -0.4, 0.7)
@@ -329,7 +363,7 @@ def test_a_new_wall_beyond_a_doorway_continues_the_established_line():
 def test_maps_every_test_world(name):
     """Issue 3: any world given as a file is mapped with wall precision and recall >= 95 % at
     0.2 m (the whole coverage route, 10 particles; seed 0). The 80 m ring corridor passes on 6
-    seeds of 8 (FilterConfig.compass_young_weight), seed 0 among them."""
+    seeds of 8 (CompassConfig.young_weight), seed 0 among them."""
     world = load_world(WORLDS / f"{name}.geojson")
     inputs = list(simulate(world, SimOptions(), 0))
     f = WireframeFilter(filter_config_for(10, 0.2, 8.0), seeds_for(0)["filter"], inputs[0].true_pose)
@@ -344,10 +378,10 @@ def test_compass_takes_the_drift_out_of_a_young_corridor(weight):
     """The traced failure (tests/worlds/bigring, seed 3, its first 75 m): driving a corridor as
     it is mapped, the scan match is confident about the heading relative to a map that turns
     with it, so a few tenths of a degree of the first metres' error stay for good. The compass's
-    slow pull against young walls (FilterConfig.compass_young_weight) takes them out."""
+    slow pull against young walls (CompassConfig.young_weight) takes them out."""
     world = load_world(WORLDS / "bigring.geojson")
     inputs = list(itertools.islice(simulate(world, SimOptions(), 3), 300))
-    cfg = filter_config_for(10, 0.2, 8.0, compass_young_weight=weight)
+    cfg = filter_config_for(10, 0.2, 8.0, compass=CompassConfig(young_weight=weight))
     f = WireframeFilter(cfg, seeds_for(3)["filter"], inputs[0].true_pose)
     err = []
     for inp in inputs:
@@ -404,8 +438,8 @@ def test_false_edges_across_a_corridor_do_not_drag_the_pose(on):
     at its range limit; matched together they pull the pose back 0.25 m along the corridor.
     With the bridges dropped the pose follows the odometry there (exact here)."""
     truth = _corridor()
-    cfg = FilterConfig(particles=1, mutate=False, compass=False, drop_gap_bridges=on,
-                       loops=LoopConfig(enabled=False))
+    cfg = FilterConfig(particles=1, mutate=False, compass=CompassConfig(enabled=False),
+                       cleanup=CleanupConfig(drop_gap_bridges=on), loops=LoopConfig(enabled=False))
     f = WireframeFilter(cfg, np.random.default_rng(0), initial_pose=Pose.identity())
     step = Pose(0.25, 0.0, 0.0)
     true = Pose.identity()

@@ -90,17 +90,17 @@ def test_loop_closer_carries_births_and_counts_to_refined_keys():
     assert lc.counts(out.points).tolist() == [2, 1]
 
 
-def test_filter_config_validates_the_cap():
-    from mapping.filter import FilterConfig
+def test_refine_config_validates_the_cap():
+    from mapping.refine import RefineConfig
 
-    with pytest.raises(ValueError):
-        FilterConfig(refine_max_count=0)
+    with pytest.raises(ValueError, match="max_count"):
+        RefineConfig(max_count=0)
 
 
 def test_refinement_keeps_the_ring_corridor_pose_closer():
     """tests/worlds/bigring.geojson (80 m square ring, 4 m corridors), seed 1, the default
     filter with and without refinement. Measured (with the compass's young-map pull,
-    ``FilterConfig.compass_young_weight``): median pose error along the run 0.129 against
+    ``compass.young_weight``): median pose error along the run 0.129 against
     0.293 m (at the end 0.021 against 0.030 m), precision/recall at 0.2 m 0.967/0.973 against
     0.993/1.0, mean wall error 0.084 against 0.079 m. Seeds 0-7: the median pose error is
     lower with refinement on 6 of 8 (equal within 1 mm on the other two; median over seeds
@@ -108,17 +108,18 @@ def test_refinement_keeps_the_ring_corridor_pose_closer():
     maps: 0.096/0.131/0.149 against 0.116/0.140/0.175 m; the other five 0.002-0.016 m worse),
     and the ring passes 95 % precision and recall on 6 seeds with it, 5 without. (Before the
     young-map pull the wall error was lower with refinement on 7 of 8; before the scan's gap
-    bridges were dropped, ``FilterConfig.drop_gap_bridges``, refinement gained nothing here.)"""
+    bridges were dropped, ``cleanup.drop_gap_bridges``, refinement gained nothing here.)"""
     from agents.mapping_run import SimOptions, filter_config_for, seeds_for, simulate
     from agents.sim.world import load_world
     from mapping.filter import WireframeFilter
     from mapping.metrics import evaluate, wall_precision_recall
+    from mapping.refine import RefineConfig
 
     world = load_world(Path(__file__).parent / "worlds" / "bigring.geojson")
     inputs = list(simulate(world, SimOptions(), 1))
     out = {}
     for on in (False, True):
-        f = WireframeFilter(filter_config_for(10, 0.2, 8.0, refine_corners=on), seeds_for(1)["filter"],
+        f = WireframeFilter(filter_config_for(10, 0.2, 8.0, refine=RefineConfig(enabled=on)), seeds_for(1)["filter"],
                             inputs[0].true_pose)
         errors = []
         for inp in inputs:
