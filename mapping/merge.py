@@ -265,6 +265,11 @@ def _box_pairs(
     With ``lo2 is None`` the pairs ``i < j`` within the first set, else pairs ``(i, j)`` of a box
     of the first set and one of the second. Sorted, without duplicates. The cost follows the
     number of (box, cell) incidences and of pairs sharing a cell, not the product of the sizes.
+
+    Not ``shapely.STRtree``: queried with the boxes' cell ranges (the same pairs) it took 4.5 ms
+    against 3.2 ms here (step 3) and 2.4 against 1.2 ms (step 4b) per 600-860-edge merge; queried
+    with the boxes themselves it is 10 % faster but drops pairs that share a cell without
+    overlapping, which step 3 can relate (boxes grown by ``thr / 2``): not bit-identical.
     """
     same = lo2 is None
     if lo2 is None or hi2 is None:
@@ -973,6 +978,9 @@ def _collinear_groups(ed: _Edges, thr: float, cos_tol: float) -> tuple[list[int]
         pi_, pj_ = pi_[same_dir], pj_[same_dir]
     if len(pi_):
         pi_, pj_ = _related(a, b, u, length, pi_, pj_, thr, cos_tol, ed.raw_a, ed.raw_a + ed.raw_d)
+    # Union-find by hand, roots the smallest index: scipy.sparse.csgraph.connected_components
+    # gives the same groups (renumbered by their smallest edge) but costs 410 us per filter
+    # merge against 12 us (530 vs 700 us on 600-860-edge fusion merges; medians, recorded calls).
     eparent = list(range(k))
     for x, y in zip(pi_.tolist(), pj_.tolist()):
         rx, ry = _find(eparent, x), _find(eparent, y)
