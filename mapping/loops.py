@@ -185,8 +185,8 @@ def optimize(
     solved directly (``scipy.sparse.linalg.spsolve``), at most ``max_iterations``.
 
     Not ``scipy.optimize.least_squares``: with this sparse Jacobian (``trf``/``lsmr``) it is not
-    bit-identical (different steps) and was 6x to 90x slower (41, 401, 1001 keyframes: 187 ms vs
-    30 ms, 8.2 s vs 90 ms, 25 s vs 0.30 s; median of 5, loops of tests/test_loops.py's kind).
+    bit-identical (different steps) and was 6x and 90x slower where both converged (square loops
+    of tests/test_loops.py's kind, 41 and 401 keyframes: 187 vs 30 ms, 8.2 s vs 90 ms; medians).
     """
     n = len(poses)
     if n < 2 or len(edges) == 0:
