@@ -441,6 +441,7 @@ def test_empty_map_rosmap_is_a_user_error(tmp_path: Path, capsys: pytest.Capture
         E.load_map(tmp_path / "missing.wfm")
 
 
+@pytest.mark.fleet
 def test_subprocess_errors_have_no_traceback(tmp_path: Path) -> None:
     """The real entry point: one line on stderr, exit status 2, for a bad file and a bad flag."""
     env = dict(os.environ, PYTHONPATH=str(REPO))

@@ -143,6 +143,7 @@ def test_bench_accuracy_wall_tolerance(tmp_path, capsys):
         assert "--wall-tol" in capsys.readouterr().err
 
 
+@pytest.mark.fleet
 def test_bench_accuracy_jobs_give_the_same_maps(tmp_path, capsys):
     """Seeds run in worker processes (--jobs 2) give the same figures as one after another,
     in seed order, and every map's PNG."""
@@ -162,6 +163,7 @@ def test_bench_accuracy_jobs_give_the_same_maps(tmp_path, capsys):
     assert main([*common, "--jobs", "0", "--out", str(tmp_path / "0")]) == 2
 
 
+@pytest.mark.fleet
 def test_bench_speed_medians_over_seeds(capsys):
     """--seeds K: one child per world and seed, a table row for each plus the median, and the
     JSON's figures are the medians (the ratio that of the two median step times)."""
