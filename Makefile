@@ -28,7 +28,7 @@ lint: $(STAMP)
 bench: $(STAMP)
 	$(BIN)/wiremap bench codec --json
 	$(BIN)/wiremap bench accuracy --world paper-small --seeds 3 --json
-	$(BIN)/wiremap bench speed --json
+	$(BIN)/wiremap bench speed --pieces --json
 
 fuzz: $(STAMP)
 	$(BIN)/python -m pip install -q atheris || { echo "atheris does not install here"; exit 1; }

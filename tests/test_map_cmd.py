@@ -191,6 +191,19 @@ def test_speed_measure_keys():
     assert r["updates_per_s"] > 0 and r["step_ms_p95"] >= r["step_ms_p50"] > 0 and r["peak_rss_mb"] > 0
 
 
+@pytest.mark.slow
+def test_speed_pieces_keys():
+    """`wiremap bench speed --pieces`: the pieces whose speed tests no longer assert."""
+    from agents.bench.speed import pieces
+    from agents.sim.world import builtin_names
+
+    r = pieces()
+    assert set(r) == {"raycast_ms", "extract_ms", "evaluate_museum_ms", "render_museum_ms", "codec_reject_claim_us",
+                      "plan_route_s"}
+    assert set(r["plan_route_s"]) == set(builtin_names())
+    assert all(v > 0 for v in [*r.values(), *r.pop("plan_route_s").values()] if not isinstance(v, dict))
+
+
 def test_robot_steps_yield_the_robot_state():
     from agents.mapping_run import robot_steps
     from agents.robot import RobotOptions, start_pose_of
