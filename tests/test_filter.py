@@ -326,7 +326,8 @@ def test_a_new_wall_beyond_a_doorway_continues_the_established_line():
 
 
 # ------------------------------------------------------------------ any world file
-@pytest.mark.parametrize("name", ["angled", "corridor", "hall", "lshape", "longhall", "bigring"])
+@pytest.mark.parametrize("name", ["angled", "corridor", *(pytest.param(n, marks=pytest.mark.slow) for n in ("hall",)),
+                                  "lshape", *(pytest.param(n, marks=pytest.mark.slow) for n in ("longhall", "bigring"))])
 def test_maps_every_test_world(name):
     """Issue 3: any world given as a file is mapped with wall precision and recall >= 95 % at
     0.2 m (the whole coverage route, 10 particles; seed 0). The 80 m ring corridor passes on 6

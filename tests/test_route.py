@@ -99,7 +99,7 @@ def seen_fraction(world, route, reach):
 
 
 # ---------------------------------------------------------------------- routes
-@pytest.mark.parametrize("name", builtin_names())
+@pytest.mark.parametrize("name", [pytest.param(n, marks=pytest.mark.slow) if n == "museum" else n for n in builtin_names()])
 def test_builtin_route_is_collision_free_and_covers_the_walls(name):
     w, r = planned(name)
     assert r.ndim == 2 and r.shape[1] == 2 and len(r) > 5
@@ -131,6 +131,7 @@ def test_route_follows_walls_not_the_floor():
     assert route_length(r) < 2 * (40 + 30) + 20
 
 
+@pytest.mark.slow
 def test_museum_route_length_is_reasonable():
     _w, r = planned("museum")
     length = route_length(r)
