@@ -195,6 +195,7 @@ def test_config_rejects_bad_values():
         LoopConfig(min_constraints=0)
 
 
+@pytest.mark.slow
 def test_the_filter_closes_a_loop_around_a_ring_corridor():
     """An 80 m square ring of corridors (tests/worlds/bigring.geojson), driven once around:
     coming back, the scan sees walls mapped 300 m earlier off by the drift; the closure pulls

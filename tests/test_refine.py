@@ -97,6 +97,7 @@ def test_refine_config_validates_the_cap():
         RefineConfig(max_count=0)
 
 
+@pytest.mark.slow
 def test_refinement_keeps_the_ring_corridor_pose_closer():
     """tests/worlds/bigring.geojson (80 m square ring, 4 m corridors), seed 1, the default
     filter with and without refinement. Measured (with the compass's young-map pull,
