@@ -201,7 +201,8 @@ def optimize(
         p = full(x)
         r = _rel(p[a], p[b]) - measurements
         r[:, 2] = wrap_angles(r[:, 2])
-        return np.einsum("kij,kj->ki", sqrt_info, r).reshape(-1)
+        out: FloatArray = np.einsum("kij,kj->ki", sqrt_info, r).reshape(-1)
+        return out
 
     m = len(edges)
     rows = np.repeat(np.arange(3 * m).reshape(m, 3), 6, axis=1).reshape(m, 3, 6)  # (edge, row, 6 cols)

@@ -153,7 +153,7 @@ def pieces() -> dict[str, Any]:
 
     small = load_world("paper-small")
     noisy = LidarConfig(sigma=0.01)
-    poses = [inp.true_pose for inp in mr.simulate(small, mr.SimOptions(steps=20), 0)]
+    poses = [inp.true_pose for inp in mr.simulate(small, mr.SimOptions(steps=20), 0) if inp.true_pose is not None]
     ranges = [raycast(small.truth.segments(), p, noisy, rng) for p in poses]
     angles = noisy.angles()
 
@@ -242,8 +242,8 @@ def run(args: argparse.Namespace) -> int:
             rows.append([spec, "median", f"{m['updates_per_s']:.1f}", f"{m['step_ms_p50']:.2f}",
                          f"{m['step_ms_p95']:.2f}", f"{m['peak_rss_mb']:.1f}", "-", "-", "-"])
     widths = [max(len(r[i]) for r in rows) for i in range(len(head))]
-    for r in rows:
-        print("  ".join(c.ljust(w) if i == 0 else c.rjust(w) for i, (c, w) in enumerate(zip(r, widths))))
+    for row in rows:
+        print("  ".join(c.ljust(w) if i == 0 else c.rjust(w) for i, (c, w) in enumerate(zip(row, widths))))
     print(f"museum / paper-small median step time: {ratio:.2f}")
     summary: dict[str, Any] = {  # with one seed, the medians are that seed's figures
         "paper_small": medians["paper_small"],

@@ -97,7 +97,7 @@ def _check_id(name: object, what: str) -> str:
     # out of the password dictionary and '/' out of certificate file names
     if not valid_name(name):
         raise UserError(f"bad {what} {name!r}: use 1-63 letters, digits, '_', '.', '-'")
-    return name
+    return str(name)
 
 
 # ---------------------------------------------------------------------- private files
