@@ -17,9 +17,8 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-import numpy as np
-
 import wire_codec
+from agents.fleet import validate
 from wire_codec import MAX_ROBOTS
 from wire_codec.message import MapMessage
 
@@ -34,7 +33,9 @@ class InputLimits:
     max_extent_m : largest ``|x|`` or ``|y|`` of the origin and of every vertex in the fleet
         frame ("kilometres away" is absurd for a building).
     max_resolution_m : largest map resolution (a coarser one raises the default merge threshold).
-    max_clock_skew_s : how far in the future a ``meta.boot`` may lie (wall clocks differ).
+    max_clock_skew_s : how far in the future a ``meta.boot`` or ``stamp_ns`` may lie (wall clocks
+        of one fleet differ by NTP's error; 2 minutes is generous, and a map from the future is
+        refused, not stored).
     rate_hz, burst : token bucket per key (robots send at most ~10 maps/s).
     queue_depth : payloads waiting per key (the oldest is dropped: maps are whole states).
     queue_bytes : bytes waiting over all keys.
@@ -47,7 +48,7 @@ class InputLimits:
     max_edges: int = 40_000
     max_extent_m: float = 1000.0
     max_resolution_m: float = 2.0
-    max_clock_skew_s: float = 3600.0
+    max_clock_skew_s: float = 120.0
     rate_hz: float = 50.0
     burst: int = 100
     queue_depth: int = 64
@@ -70,35 +71,22 @@ class InputLimits:
 def implausible(msg: MapMessage, limits: InputLimits, now_ns: int | None = None) -> tuple[str, str] | None:
     """``(reason, detail)`` when a decoded robot map's content is absurd, else None.
 
-    Reasons: ``resolution`` (not in ``(0, max_resolution_m]``), ``extent`` (origin or a vertex
-    beyond ``max_extent_m`` in the fleet frame), ``meta`` (``boot`` not a non-negative int,
-    ``t`` not a finite non-negative number, ``step`` not an int), ``future`` (``boot`` more than
-    ``max_clock_skew_s`` after ``now_ns``; only checked when ``now_ns`` is given).
+    The field checks are :func:`agents.fleet.validate.robot_map`'s (reasons ``resolution``,
+    ``extent``, ``meta``, ``seq``, ``stamp``); with ``now_ns`` also ``future``: ``meta.boot`` or
+    ``stamp_ns`` more than ``max_clock_skew_s`` after ``now_ns`` (a map from the future would
+    outrank every real one of its robot: it is refused, never stored).
     """
-    res = float(msg.resolution)
-    if not (0.0 < res <= limits.max_resolution_m):
-        return "resolution", f"resolution {res:g} m (limit {limits.max_resolution_m:g} m)"
-    ext = limits.max_extent_m
-    o = msg.origin
-    if max(abs(o.x), abs(o.y)) > ext:
-        return "extent", f"origin ({o.x:.1f}, {o.y:.1f}) is over {ext:g} m away"
-    wf = msg.wireframe
-    if wf.n_vertices:
-        far = float(np.abs(o.apply(wf.points)).max())
-        if not math.isfinite(far) or far > ext:
-            return "extent", f"a vertex is {far:.1f} m from the fleet origin (limit {ext:g} m)"
-    meta = msg.meta if isinstance(msg.meta, dict) else {}
-    boot = meta.get("boot", 0)
-    if isinstance(boot, bool) or not isinstance(boot, int) or boot < 0:
-        return "meta", f"meta.boot {boot!r} is not a non-negative integer"
-    if now_ns is not None and boot > now_ns + limits.max_clock_skew_s * 1e9:
-        return "future", f"meta.boot is {(boot - now_ns) / 1e9:.0f} s in the future"
-    t = meta.get("t", 0.0)
-    if isinstance(t, bool) or not isinstance(t, (int, float)) or not math.isfinite(t) or t < 0:
-        return "meta", f"meta.t {t!r} is not a finite non-negative number"
-    step = meta.get("step", 0)
-    if isinstance(step, bool) or not isinstance(step, int):
-        return "meta", f"meta.step {step!r} is not an integer"
+    bad = validate.robot_map(msg, limits.max_extent_m, limits.max_resolution_m)
+    if bad is not None:
+        return bad
+    if now_ns is not None:
+        meta = msg.meta if isinstance(msg.meta, dict) else {}
+        boot = int(meta.get("boot", 0))
+        skew = limits.max_clock_skew_s * 1e9
+        if boot > now_ns + skew:
+            return "future", f"meta.boot is {(boot - now_ns) / 1e9:.0f} s in the future"
+        if int(msg.stamp_ns) > now_ns + skew:
+            return "future", f"stamp_ns is {(int(msg.stamp_ns) - now_ns) / 1e9:.0f} s in the future"
     return None
 
 

@@ -101,6 +101,7 @@ class FusionService:
         self.drops = DropLog(self._say_drop, opts.drop_log_s)
         self._side: dict[str, dict[str, bytes]] = {"pose": {}, "viz": {}}
         self._side_dropped = 0
+        self._side_by: dict[str, int] = {}  # side_dropped by kind and reason
         self.alive: set[str] = set()
         self.seen_alive: set[str] = set()
         self._gone_during_query: set[str] = set()
@@ -152,8 +153,15 @@ class FusionService:
         rid = self.keys.robot_of(key)
         with self.lock:
             slot = self._side[kind]
-            if rid is None or len(payload) > max_bytes or (rid not in slot and len(slot) >= self.opts.limits.max_keys):
+            reason = (
+                "bad_key" if rid is None
+                else "oversized" if len(payload) > max_bytes
+                else "too_many_keys" if rid not in slot and len(slot) >= self.opts.limits.max_keys
+                else None
+            )
+            if reason is not None:
                 self._side_dropped += 1
+                self._side_by[f"{kind}_{reason}"] = self._side_by.get(f"{kind}_{reason}", 0) + 1
                 return
             slot[rid] = payload.to_bytes()  # only the latest per robot matters
 
@@ -334,6 +342,12 @@ class FusionService:
         s.oversized, s.rate_limited, s.overflow = self.intake.oversized, self.intake.rate_limited, self.intake.overflow
         with self.lock:
             s.side_dropped = self._side_dropped
+            s.side_dropped_by = dict(self._side_by)
+
+    def _side_drop(self, reason: str) -> None:
+        with self.lock:
+            self._side_dropped += 1
+            self._side_by[reason] = self._side_by.get(reason, 0) + 1
 
     def _update_stats(self, force: bool = False) -> None:
         now = time.monotonic()
@@ -451,6 +465,7 @@ class FusionService:
 
     def _poll_side_channels(self) -> None:
         from agents.fleet.bus import decode_pose, decode_viz
+        from agents.fleet.validate import Invalid
 
         st = self.state
         with self.lock:
@@ -458,20 +473,13 @@ class FusionService:
             self._side = {"pose": {}, "viz": {}}
         poses: dict[str, dict[str, Any]] = {}
         viz: dict[str, dict[str, Any]] = {}
-        bad = 0
-        for rid, data in raw_poses.items():
-            try:
-                poses[rid] = decode_pose(data)
-            except ValueError:
-                bad += 1
-        for rid, data in raw_viz.items():
-            try:
-                viz[rid] = decode_viz(data)
-            except ValueError:
-                bad += 1
-        if bad:
-            with self.lock:
-                self._side_dropped += bad
+        for kind, raw, out, decode in (("pose", raw_poses, poses, decode_pose), ("viz", raw_viz, viz, decode_viz)):
+            for rid, data in raw.items():
+                try:
+                    out[rid] = decode(data)  # every field checked (agents.fleet.validate)
+                except Invalid as exc:
+                    self._side_drop(f"{kind}_{exc.reason}")
+                    self.drops.note("side_dropped", f"robots/{rid}/{kind}", str(exc))
         if self.recorder is None:
             return
         for rid, p in sorted(poses.items()):
