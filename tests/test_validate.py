@@ -134,7 +134,10 @@ def test_viz_wireframe_bytes_hostile() -> None:
             decode_viz(msgpack.packb({**GOOD_VIZ, "scan": scan}, use_bin_type=True))
 
 
-def robot_map(meta: Any, seq: int = 1, stamp_ns: int = 5, origin: Pose = Pose(1.0, 1.0, 0.0)) -> MapMessage:
+START = Pose(1.0, 1.0, 0.0)
+
+
+def robot_map(meta: Any, seq: int = 1, stamp_ns: int = 5, origin: Pose = START) -> MapMessage:
     return MapMessage(
         kind=MessageKind.ROBOT_MAP, sender="r1", seq=seq, stamp_ns=stamp_ns, pose=Pose.identity(),
         frame="odom/r1", origin=origin, resolution=0.05, wireframe=ROOM, meta=meta,

@@ -17,6 +17,8 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
+import numpy as np
+
 import wire_codec
 from agents.fleet import validate
 from wire_codec import MAX_ROBOTS
@@ -41,6 +43,12 @@ class InputLimits:
     queue_bytes : bytes waiting over all keys.
     max_keys : keys tracked at once (rate buckets and side channels).
     pose_bytes, viz_bytes : largest pose / visualisation payload.
+    max_robot_vertices, max_robot_wall_m : a robot map's budget (vertices, total wall length):
+        the fusion's cost grows with them (ICP and merge), so one robot cannot buy more. The
+        largest built-in world's robot maps have a few hundred vertices.
+    sensor_range_m, max_speed_mps, reach_slack_m : a robot's map lies within ``sensor_range_m +
+        max_speed_mps * (time since its boot) + reach_slack_m`` of its start pose: it cannot
+        have seen further (a lidar's range, a fast robot; checked with the fusion's clock).
     """
 
     max_bytes: int = 256 * 1024
@@ -56,12 +64,17 @@ class InputLimits:
     max_keys: int = 4 * MAX_ROBOTS
     pose_bytes: int = 16 * 1024
     viz_bytes: int = 4 * 1024 * 1024
+    max_robot_vertices: int = 3000
+    max_robot_wall_m: float = 5000.0
+    sensor_range_m: float = 40.0
+    max_speed_mps: float = 3.0
+    reach_slack_m: float = 10.0
 
     def codec_limits(self) -> wire_codec.Limits:
         """The :class:`wire_codec.Limits` the decoder enforces for robot maps."""
         return wire_codec.Limits(
             max_bytes=self.max_bytes,
-            max_vertices=self.max_vertices,
+            max_vertices=min(self.max_vertices, self.max_robot_vertices),
             max_edges=self.max_edges,
             max_coordinate=self.max_extent_m,
             max_string=128,
@@ -87,6 +100,29 @@ def implausible(msg: MapMessage, limits: InputLimits, now_ns: int | None = None)
             return "future", f"meta.boot is {(boot - now_ns) / 1e9:.0f} s in the future"
         if int(msg.stamp_ns) > now_ns + skew:
             return "future", f"stamp_ns is {(int(msg.stamp_ns) - now_ns) / 1e9:.0f} s in the future"
+    return None
+
+
+def over_budget(msg: MapMessage, limits: InputLimits, now_ns: int | None = None) -> tuple[str, str] | None:
+    """``(reason, detail)`` when a robot map is beyond what one robot may cost or could have
+    seen, else None: ``budget_vertices``, ``budget_walls`` (total wall length), ``reach`` (a
+    vertex further from the start pose than the robot could have seen since its boot; only
+    checked with ``now_ns``). Cheap: one pass over the arrays."""
+    wf = msg.wireframe
+    if wf.n_vertices > limits.max_robot_vertices:
+        return "budget_vertices", f"{wf.n_vertices} vertices (budget {limits.max_robot_vertices})"
+    if wf.n_edges:
+        seg = wf.points[wf.edges]
+        length = float(np.hypot(*(seg[:, 1] - seg[:, 0]).T).sum())
+        if length > limits.max_robot_wall_m:
+            return "budget_walls", f"{length:.0f} m of walls (budget {limits.max_robot_wall_m:g} m)"
+    if now_ns is not None and wf.n_vertices:
+        meta = msg.meta if isinstance(msg.meta, dict) else {}
+        elapsed = max(0.0, (now_ns - int(meta.get("boot", 0))) / 1e9)
+        reach = limits.sensor_range_m + limits.max_speed_mps * elapsed + limits.reach_slack_m
+        far = float(np.hypot(wf.points[:, 0], wf.points[:, 1]).max())  # odometry frame: from the start
+        if far > reach:
+            return "reach", f"a vertex {far:.0f} m from the start, {elapsed:.0f} s after boot (reach {reach:.0f} m)"
     return None
 
 
