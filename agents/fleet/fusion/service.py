@@ -46,6 +46,8 @@ class ServeOptions:
     align_wait_s : an ICP re-alignment (the slow path) runs after a publish when no map is
         waiting, or when none has run for this long even though maps keep waiting.
     limits : :class:`InputLimits` (what is accepted from the bus).
+    reset : start empty when the store cannot be recovered (its files moved aside) instead of
+        refusing to start (:class:`~agents.fleet.fusion.store.StoreDamaged`).
     drop_log_s : at most one "dropped ..." line per this many seconds (:class:`DropLog`).
     config : :class:`FusionConfig`.
     """
@@ -64,6 +66,7 @@ class ServeOptions:
     full_after_s: float = 0.5
     latency_summary_s: float = 1.0
     align_wait_s: float = 0.5
+    reset: bool = False
 
 
 class FusionService:
@@ -78,10 +81,12 @@ class FusionService:
         self.opts = opts
         self.say = log or (lambda _s: None)
         self.state = (
-            FusionState.load(opts.store, opts.config, limits=opts.limits)
+            FusionState.load(opts.store, opts.config, limits=opts.limits, reset=opts.reset)
             if opts.store
             else FusionState(opts.config, limits=opts.limits)
         )
+        self.state.restart_by_token = True  # a robot's restart is learned from its liveliness token
+        self._came_alive: list[str] = []  # tokens that appeared (zenoh thread -> main thread)
         self.recorder: Any = None
         if opts.rrd:
             from agents.files.rerun_log import FleetRecorder
@@ -124,6 +129,9 @@ class FusionService:
         self._timed = 0.0  # of this iteration's time, spent in _fuse
         self.transport_ms = LatencyWindow(10_000)  # robot publish -> inbox, of maps that changed
         self.writer = StoreWriter(self.say) if opts.store else None
+        self.unsaved.update(self.state.store_rewrite)  # damaged views found at start are written again
+        for line in self.state.store_report:
+            self.say(f"store: {line}")
         self.started = time.monotonic()
         self._stats_doc = b"{}"
         self._stats_at = -math.inf
@@ -188,6 +196,8 @@ class FusionService:
             return
         with self.lock:
             if sample.kind == self._zenoh.SampleKind.PUT:
+                if rid not in self.alive:
+                    self._came_alive.append(rid)
                 self.alive.add(rid)
                 self.seen_alive.add(rid)
                 self._gone_during_query.discard(rid)
@@ -260,6 +270,10 @@ class FusionService:
 
     def _take(self, items: list[tuple[str, bytes, int]]) -> None:
         st = self.state
+        with self.lock:
+            came, self._came_alive = self._came_alive, []
+        for rid in came:
+            st.note_alive(rid)
         now_ns = time.time_ns()
         for key, data, arrived_ns in items:
             rid = self.keys.robot_of(key)
@@ -323,10 +337,27 @@ class FusionService:
             "converged": st.converged,
             "transport_ms": self.transport_ms.summary(fresh),
             "queued_bytes": self.intake.queued_bytes,
+            "store": self.store_health(),
             "drop_log_lines": self.drops.lines,
             "rss_kb": rss_kb(),
             "pid": os.getpid(),
             "uptime_s": round(time.monotonic() - self.started, 3),
+        }
+
+    def store_health(self) -> dict[str, Any]:
+        """The store's health for ``fused/stats`` and ``watch``: ``ok`` false while writes fail
+        (disk full, read-only), the last error, the version on disk, what start-up recovered."""
+        w = self.writer
+        if w is None:
+            return {"ok": True, "enabled": False}
+        return {
+            "ok": w.ok,
+            "enabled": True,
+            "errors": w.errors,
+            "error": w.last_error or None,
+            "written_version": w.written_version,
+            "behind": max(0, self.state.version - w.written_version),
+            "recovered": list(self.state.store_report),
         }
 
     def _fresh_latency(self) -> bool:
@@ -409,6 +440,9 @@ class FusionService:
                 self.refuse = True  # fuse again even if no map arrives
             self.timing["align"] += time.perf_counter() - t
             self._timed += time.perf_counter() - t
+        if self.writer is not None and not self.writer.ok and not self.save_due:
+            self.save_due = True  # a failed write (disk full, read-only) is retried with everything
+            self.unsaved.update(st.robots)
         if (
             self.opts.store
             and (self.unsaved or self.save_due)
@@ -514,7 +548,11 @@ class FusionService:
             if self.writer is not None:
                 self.writer.close()
             if self.opts.store:
-                st.save(self.opts.store, None, self.version_stamp_ns)
+                try:
+                    st.save(self.opts.store, None, self.version_stamp_ns)
+                except OSError as exc:  # disk full, read-only: one line, a clean exit
+                    st.exit_error = f"cannot write the store {self.opts.store} at exit: {exc.strerror or exc}"
+                    self.say(st.exit_error)
             if self.recorder is not None:
                 self.recorder.close()
 

@@ -203,6 +203,7 @@ class FusionState:
         self.forgotten: dict[str, str] = {}  # robot id -> why it was forgotten (kept in the store)
         self._since: dict[str, int] = {}  # restored since_ns per robot (load)
         self.store_rewrite: set[str] = set()  # views load found damaged (written again by the next save)
+        self.exit_error: str | None = None  # the final store write failed (the service's last line)
 
     # ------------------------------------------------------------------ input
     def offer(self, data: bytes, key_robot: str | None = None, now_ns: int | None = None) -> bool:

@@ -431,6 +431,8 @@ class StoreWriter:
         self._stop = False
         self.errors = 0
         self.written = 0
+        self.written_version = 0  # the version of the last snapshot written
+        self.ok = True  # the last write succeeded
         self._last_error = ""
         self._thread = threading.Thread(target=self._run, name="fusion-store", daemon=True)
         self._thread.start()
@@ -453,8 +455,14 @@ class StoreWriter:
             try:
                 job.write()
                 self.written += 1
+                self.written_version = job.version
+                if not self.ok:
+                    self.say(f"the store {job.store} is written again (v{job.version})")
+                self.ok = True
+                self._last_error = ""
             except OSError as exc:
                 self.errors += 1
+                self.ok = False
                 text = f"cannot write the store {job.store}: {exc}"
                 if text != self._last_error:
                     self._last_error = text
@@ -463,6 +471,10 @@ class StoreWriter:
                 with self._cond:
                     self._busy = False
                     self._cond.notify_all()
+
+    @property
+    def last_error(self) -> str:
+        return self._last_error
 
     def flush(self, timeout: float | None = None) -> bool:
         """Wait until nothing is queued or being written; returns whether that happened."""
