@@ -42,7 +42,7 @@ HOSTILE = st.one_of(
     st.binary(max_size=16),
     st.lists(st.integers(-5, 5), max_size=4),
     st.lists(st.floats(allow_nan=True), min_size=3, max_size=3),
-    st.dictionaries(st.text(max_size=4), st.integers(), max_size=3),
+    st.dictionaries(st.text(max_size=4), st.integers(-(1 << 63), (1 << 64) - 1), max_size=3),
 )
 GOOD_POSE = msgpack.unpackb(
     encode_pose(seq=1, t=1.0, stamp_ns=1, odom=Pose(1, 2, 0.1), fleet=Pose(1, 2, 0.1), truth=Pose(1, 2, 0.1),

@@ -99,7 +99,10 @@ class Watcher:
             msg = validate.fused_map(data)  # every field checked (agents.fleet.validate)
         except validate.Invalid as exc:
             self.malformed += 1
-            _eprint(f"skipped a bad payload on the fused key ({len(data)} bytes): {exc}")
+            if exc.reason == "kind":
+                _eprint(f"skipped a {exc.detail}")
+            else:
+                _eprint(f"skipped a malformed payload ({len(data)} bytes): {exc.detail}")
             return None
         ident = (msg.sender, int(msg.seq), int(msg.stamp_ns))
         if ident in self._seen:

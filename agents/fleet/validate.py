@@ -313,7 +313,7 @@ def fused_map(data: object) -> Any:
     except ValueError as exc:
         raise Invalid("malformed", str(exc)[:200]) from None
     if msg.kind != MessageKind.FUSED_MAP:
-        raise Invalid("kind", f"a {msg.kind.name} on the fused key")
+        raise Invalid("kind", f"{msg.kind.name.lower()} message from {msg.sender!r} on the fused key")
     if not all(valid_name(r) for r in msg.robots):
         raise Invalid("robots", "a contributor is not a robot id")
     for what, v in (("seq", msg.seq), ("stamp_ns", msg.stamp_ns)):
