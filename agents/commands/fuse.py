@@ -27,6 +27,12 @@ HELP = "the fusion service"
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--store", metavar="DIR", help="state directory: resume from it and keep it up to date")
+    parser.add_argument(
+        "--reset",
+        action="store_true",
+        help="when the --store cannot be recovered, move its files aside and start empty "
+        "(without it: one line and exit 2)",
+    )
     parser.add_argument("--rrd", metavar="FILE", help="write a Rerun recording to FILE")
     parser.add_argument(
         "--serve-viewer", metavar="PORT", type=int, help="also serve the recording to a live viewer on PORT"
@@ -100,6 +106,10 @@ def run(args: argparse.Namespace) -> int:
             Path(args.store).mkdir(parents=True, exist_ok=True)
         except OSError as exc:
             raise UserError(f"--store {args.store}: cannot create it: {exc.strerror or exc}") from None
+        if not args.reset:
+            from agents.fleet.fusion import read_store
+
+            read_store(args.store)  # StoreDamaged (one line, exit 2) before waiting for a router
     if args.rrd:
         output_file("--rrd", args.rrd)
     if args.world:
@@ -118,6 +128,7 @@ def run(args: argparse.Namespace) -> int:
         heartbeat_s=max(0.1, args.heartbeat),
         min_interval_s=args.min_interval,
         save_interval_s=args.save_interval,
+        reset=args.reset,
         config=FusionConfig(threshold=args.threshold, refine=not args.no_refine),
         limits=limits,
     )
@@ -146,6 +157,9 @@ def run(args: argparse.Namespace) -> int:
         f"latency p50 {_ms(lat['p50'])} ms p99 {_ms(lat['p99'])} ms"
     )
     sys.stdout.flush()
+    if state.exit_error:
+        print(f"wiremap fuse: {state.exit_error}", file=sys.stderr, flush=True)
+        return 1
     return 0
 
 

@@ -451,7 +451,7 @@ def _watch_fleet(
     of mapping have passed (the clock starts when every robot is up, or at the start-up
     timeout), every robot is done (``--stop-when-done``) or ``stop`` is set. Raises
     ``UserError`` when a fleet process stops early. Returns the seconds of mapping."""
-    from agents.fleet.fusion import decode_message
+    from agents.fleet import validate
 
     n = len(progress.ids)
     t_map: float | None = None
@@ -467,7 +467,7 @@ def _watch_fleet(
                 pass
         while (s := sub_fused.handler.try_recv()) is not None:
             try:
-                m = decode_message(s.payload.to_bytes())
+                m = validate.fused_map(s.payload.to_bytes())
                 progress.fused = (
                     f"fused v{m.seq}: {m.wireframe.n_vertices} vertices, {m.wireframe.n_edges} edges, "
                     f"{len(s.payload.to_bytes())} bytes from {' '.join(m.robots)}"

@@ -93,17 +93,16 @@ class Watcher:
     # main thread
     def handle(self, data: bytes) -> str | None:
         """Decode one payload; return the line shown, or None (duplicate or malformed)."""
-        from wire_codec import MessageKind, decode
+        from agents.fleet import validate
 
         try:
-            msg = decode(data)
-        except ValueError as exc:  # CodecError derives from ValueError
+            msg = validate.fused_map(data)  # every field checked (agents.fleet.validate)
+        except validate.Invalid as exc:
             self.malformed += 1
-            _eprint(f"skipped a malformed payload ({len(data)} bytes): {exc}")
-            return None
-        if msg.kind != MessageKind.FUSED_MAP:
-            self.malformed += 1
-            _eprint(f"skipped a {msg.kind.name.lower()} message from {msg.sender!r} on the fused key")
+            if exc.reason == "kind":
+                _eprint(f"skipped a {exc.detail}")
+            else:
+                _eprint(f"skipped a malformed payload ({len(data)} bytes): {exc.detail}")
             return None
         ident = (msg.sender, int(msg.seq), int(msg.stamp_ns))
         if ident in self._seen:

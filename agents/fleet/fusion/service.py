@@ -46,6 +46,8 @@ class ServeOptions:
     align_wait_s : an ICP re-alignment (the slow path) runs after a publish when no map is
         waiting, or when none has run for this long even though maps keep waiting.
     limits : :class:`InputLimits` (what is accepted from the bus).
+    reset : start empty when the store cannot be recovered (its files moved aside) instead of
+        refusing to start (:class:`~agents.fleet.fusion.store.StoreDamaged`).
     drop_log_s : at most one "dropped ..." line per this many seconds (:class:`DropLog`).
     config : :class:`FusionConfig`.
     """
@@ -64,6 +66,7 @@ class ServeOptions:
     full_after_s: float = 0.5
     latency_summary_s: float = 1.0
     align_wait_s: float = 0.5
+    reset: bool = False
 
 
 class FusionService:
@@ -78,10 +81,12 @@ class FusionService:
         self.opts = opts
         self.say = log or (lambda _s: None)
         self.state = (
-            FusionState.load(opts.store, opts.config, limits=opts.limits)
+            FusionState.load(opts.store, opts.config, limits=opts.limits, reset=opts.reset)
             if opts.store
             else FusionState(opts.config, limits=opts.limits)
         )
+        self.state.restart_by_token = True  # a robot's restart is learned from its liveliness token
+        self._came_alive: list[str] = []  # tokens that appeared (zenoh thread -> main thread)
         self.recorder: Any = None
         if opts.rrd:
             from agents.files.rerun_log import FleetRecorder
@@ -101,6 +106,7 @@ class FusionService:
         self.drops = DropLog(self._say_drop, opts.drop_log_s)
         self._side: dict[str, dict[str, bytes]] = {"pose": {}, "viz": {}}
         self._side_dropped = 0
+        self._side_by: dict[str, int] = {}  # side_dropped by kind and reason
         self.alive: set[str] = set()
         self.seen_alive: set[str] = set()
         self._gone_during_query: set[str] = set()
@@ -123,6 +129,9 @@ class FusionService:
         self._timed = 0.0  # of this iteration's time, spent in _fuse
         self.transport_ms = LatencyWindow(10_000)  # robot publish -> inbox, of maps that changed
         self.writer = StoreWriter(self.say) if opts.store else None
+        self.unsaved.update(self.state.store_rewrite)  # damaged views found at start are written again
+        for line in self.state.store_report:
+            self.say(f"store: {line}")
         self.started = time.monotonic()
         self._stats_doc = b"{}"
         self._stats_at = -math.inf
@@ -152,8 +161,15 @@ class FusionService:
         rid = self.keys.robot_of(key)
         with self.lock:
             slot = self._side[kind]
-            if rid is None or len(payload) > max_bytes or (rid not in slot and len(slot) >= self.opts.limits.max_keys):
+            reason = (
+                "bad_key" if rid is None
+                else "oversized" if len(payload) > max_bytes
+                else "too_many_keys" if rid not in slot and len(slot) >= self.opts.limits.max_keys
+                else None
+            )
+            if reason is not None:
                 self._side_dropped += 1
+                self._side_by[f"{kind}_{reason}"] = self._side_by.get(f"{kind}_{reason}", 0) + 1
                 return
             slot[rid] = payload.to_bytes()  # only the latest per robot matters
 
@@ -180,6 +196,8 @@ class FusionService:
             return
         with self.lock:
             if sample.kind == self._zenoh.SampleKind.PUT:
+                if rid not in self.alive:
+                    self._came_alive.append(rid)
                 self.alive.add(rid)
                 self.seen_alive.add(rid)
                 self._gone_during_query.discard(rid)
@@ -252,6 +270,10 @@ class FusionService:
 
     def _take(self, items: list[tuple[str, bytes, int]]) -> None:
         st = self.state
+        with self.lock:
+            came, self._came_alive = self._came_alive, []
+        for rid in came:
+            st.note_alive(rid)
         now_ns = time.time_ns()
         for key, data, arrived_ns in items:
             rid = self.keys.robot_of(key)
@@ -315,10 +337,27 @@ class FusionService:
             "converged": st.converged,
             "transport_ms": self.transport_ms.summary(fresh),
             "queued_bytes": self.intake.queued_bytes,
+            "store": self.store_health(),
             "drop_log_lines": self.drops.lines,
             "rss_kb": rss_kb(),
             "pid": os.getpid(),
             "uptime_s": round(time.monotonic() - self.started, 3),
+        }
+
+    def store_health(self) -> dict[str, Any]:
+        """The store's health for ``fused/stats`` and ``watch``: ``ok`` false while writes fail
+        (disk full, read-only), the last error, the version on disk, what start-up recovered."""
+        w = self.writer
+        if w is None:
+            return {"ok": True, "enabled": False}
+        return {
+            "ok": w.ok,
+            "enabled": True,
+            "errors": w.errors,
+            "error": w.last_error or None,
+            "written_version": w.written_version,
+            "behind": max(0, self.state.version - w.written_version),
+            "recovered": list(self.state.store_report),
         }
 
     def _fresh_latency(self) -> bool:
@@ -334,6 +373,12 @@ class FusionService:
         s.oversized, s.rate_limited, s.overflow = self.intake.oversized, self.intake.rate_limited, self.intake.overflow
         with self.lock:
             s.side_dropped = self._side_dropped
+            s.side_dropped_by = dict(self._side_by)
+
+    def _side_drop(self, reason: str) -> None:
+        with self.lock:
+            self._side_dropped += 1
+            self._side_by[reason] = self._side_by.get(reason, 0) + 1
 
     def _update_stats(self, force: bool = False) -> None:
         now = time.monotonic()
@@ -395,6 +440,9 @@ class FusionService:
                 self.refuse = True  # fuse again even if no map arrives
             self.timing["align"] += time.perf_counter() - t
             self._timed += time.perf_counter() - t
+        if self.writer is not None and not self.writer.ok and not self.save_due:
+            self.save_due = True  # a failed write (disk full, read-only) is retried with everything
+            self.unsaved.update(st.robots)
         if (
             self.opts.store
             and (self.unsaved or self.save_due)
@@ -451,6 +499,7 @@ class FusionService:
 
     def _poll_side_channels(self) -> None:
         from agents.fleet.bus import decode_pose, decode_viz
+        from agents.fleet.validate import Invalid
 
         st = self.state
         with self.lock:
@@ -458,20 +507,13 @@ class FusionService:
             self._side = {"pose": {}, "viz": {}}
         poses: dict[str, dict[str, Any]] = {}
         viz: dict[str, dict[str, Any]] = {}
-        bad = 0
-        for rid, data in raw_poses.items():
-            try:
-                poses[rid] = decode_pose(data)
-            except ValueError:
-                bad += 1
-        for rid, data in raw_viz.items():
-            try:
-                viz[rid] = decode_viz(data)
-            except ValueError:
-                bad += 1
-        if bad:
-            with self.lock:
-                self._side_dropped += bad
+        for kind, raw, out, decode in (("pose", raw_poses, poses, decode_pose), ("viz", raw_viz, viz, decode_viz)):
+            for rid, data in raw.items():
+                try:
+                    out[rid] = decode(data)  # every field checked (agents.fleet.validate)
+                except Invalid as exc:
+                    self._side_drop(f"{kind}_{exc.reason}")
+                    self.drops.note("side_dropped", f"robots/{rid}/{kind}", str(exc))
         if self.recorder is None:
             return
         for rid, p in sorted(poses.items()):
@@ -506,7 +548,11 @@ class FusionService:
             if self.writer is not None:
                 self.writer.close()
             if self.opts.store:
-                st.save(self.opts.store, None, self.version_stamp_ns)
+                try:
+                    st.save(self.opts.store, None, self.version_stamp_ns)
+                except OSError as exc:  # disk full, read-only: one line, a clean exit
+                    st.exit_error = f"cannot write the store {self.opts.store} at exit: {exc.strerror or exc}"
+                    self.say(st.exit_error)
             if self.recorder is not None:
                 self.recorder.close()
 

@@ -9,10 +9,12 @@ the tree's shape) and :mod:`mapping.merge`.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import os
 import sys
+import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
@@ -23,9 +25,9 @@ import numpy as np
 from agents.errors import UserError
 from agents.fleet.bus import valid_name
 from agents.fleet.fusion.codec import decode_message, encode_message, order_key
-from agents.fleet.fusion.intake import InputLimits, implausible
+from agents.fleet.fusion.intake import InputLimits, implausible, over_budget
 from agents.fleet.fusion.stats import MAX_LATENCIES, FusionStats
-from agents.fleet.fusion.store import LATENCY_LOG, StoreJob, read_latency_log, read_store
+from agents.fleet.fusion.store import LATENCY_LOG, StoreDamaged, StoreJob, read_latency_log, read_store
 from mapping.fleet import align_maps, close_frontiers, fold_split
 from mapping.se2 import Pose
 from mapping.wireframe import Wireframe
@@ -87,6 +89,9 @@ class RobotEntry:
     raw: bytes
     key: tuple[int, int, str]
     rev: int = 0
+    gen: int = 0  # the robot's liveliness generation when this boot was first accepted
+    since_ns: int = 0  # when this boot was first accepted (the fusion's clock, ns; 0: unknown)
+    at_ns: int = 0  # when this map was accepted (0: unknown)
 
 
 @dataclass(frozen=True)
@@ -190,6 +195,15 @@ class FusionState:
         self._in_fleet: dict[str, tuple[int, Wireframe]] = {}  # robot -> (rev, map moved by its start pose)
         self._prepared: dict[str, tuple[tuple[Any, ...], Wireframe]] = {}  # robot -> (key, map ready to merge)
         self._lat_saved = 0  # latency_total already handed to a store job
+        self.store_report: list[str] = []  # what load found damaged and how it was recovered
+        # ordering that cannot be frozen from outside (see _add): a robot's restart is learned
+        # from the bus (note_alive), not from the boot number its maps claim
+        self.restart_by_token = False
+        self.token_gen: dict[str, int] = {}
+        self.forgotten: dict[str, str] = {}  # robot id -> why it was forgotten (kept in the store)
+        self._since: dict[str, int] = {}  # restored since_ns per robot (load)
+        self.store_rewrite: set[str] = set()  # views load found damaged (written again by the next save)
+        self.exit_error: str | None = None  # the final store write failed (the service's last line)
 
     # ------------------------------------------------------------------ input
     def offer(self, data: bytes, key_robot: str | None = None, now_ns: int | None = None) -> bool:
@@ -215,9 +229,11 @@ class FusionState:
         if key_robot is not None and msg.sender != key_robot:
             return self._drop("rejected", "sender_mismatch", f"sender {msg.sender!r} on the key of {key_robot!r}")
         bad = implausible(msg, self.limits, now_ns)
+        if bad is None:
+            bad = over_budget(msg, self.limits, now_ns)
         if bad is not None:
             return self._drop("absurd", *bad)
-        return self._add(msg, raw)
+        return self._add(msg, raw, now_ns)
 
     def reject_key(self, key: str) -> bool:
         """Count a payload that arrived on a key whose id chunk is not a valid robot id."""
@@ -237,19 +253,56 @@ class FusionState:
         state holds exactly what would have travelled (the codec quantises coordinates)."""
         return self.offer(encode_message(msg), msg.sender)
 
-    def _add(self, msg: MapMessage, raw: bytes) -> bool:
+    def note_alive(self, rid: str) -> None:
+        """The robot's liveliness token appeared (a new session of it): its next map may come
+        from a new boot (see :meth:`_add`)."""
+        self.token_gen[rid] = self.token_gen.get(rid, 0) + 1
+
+    def forget(self, rid: str, why: str) -> bool:
+        """Remove every trace of a robot (its map, alignment, caches); the store records
+        ``why`` (:attr:`forgotten`). Returns whether it had a map."""
+        had = self.robots.pop(rid, None) is not None
+        for cache in (self.alignments, self.corrections, self._in_fleet, self._prepared, self._pending):
+            cache.pop(rid, None)  # type: ignore[attr-defined]
+        self.forgotten[rid] = why[:200]
+        return had
+
+    def _add(self, msg: MapMessage, raw: bytes, now_ns: int | None = None) -> bool:
         rid = msg.sender
         key = order_key(msg, raw)
         old = self.robots.get(rid)
+        gen = self.token_gen.get(rid, 0)
+        since = now_ns or 0
         if old is not None:
             if key == old.key:
                 self.stats.duplicates += 1
                 return False
-            if key < old.key:
+            restarted = key[0] != old.key[0]
+            if restarted and self.restart_by_token:
+                # a different boot supersedes the robot's maps only after its liveliness token
+                # came back (a restart seen on the bus), whichever boot is larger: a map with a
+                # boot from the future cannot freeze the robot, nor one from the past
+                if gen <= old.gen:
+                    if key[0] < old.key[0]:
+                        self.stats.outdated += 1
+                        return False
+                    return self._drop("rejected", "boot_without_restart",
+                                      f"{rid!r} claims boot {key[0]} but its session did not restart")
+            elif key < old.key:
                 self.stats.outdated += 1
                 return False
+            else:
+                since = old.since_ns
+                if now_ns is not None and old.at_ns and not restarted:
+                    # a robot numbers its maps one by one: a seq far ahead of what it could
+                    # have sent since (rate limit x time) is a forged or corrupted map
+                    dt = max(0.0, (now_ns - old.at_ns) / 1e9)
+                    allowed = old.key[1] + self.limits.burst + self.limits.rate_hz * dt
+                    if key[1] > allowed:
+                        return self._drop("absurd", "seq_jump", f"seq {key[1]} after {old.key[1]} {dt:.1f} s ago")
         elif len(self.robots) >= MAX_ROBOTS:
             return self._drop("rejected", "too_many_robots", f"{rid!r} would be robot {MAX_ROBOTS + 1}")
+        self.forgotten.pop(rid, None)
         same = old is not None and _same_content(old.message, msg)
         if same:
             assert old is not None
@@ -257,7 +310,7 @@ class FusionState:
         else:
             self._rev += 1
             rev = self._rev
-        self.robots[rid] = RobotEntry(msg, raw, key, rev)
+        self.robots[rid] = RobotEntry(msg, raw, key, rev, gen, since, now_ns or 0)
         self.stats.accepted += 1
         if not same:
             self._pending.setdefault(rid, int(msg.stamp_ns))
@@ -593,9 +646,29 @@ class FusionState:
                 "latency_log": LATENCY_LOG,
             },
             latencies=[(first + i, v, t) for i, (v, t) in enumerate(zip(*(a.tolist() for a in lat.tail(new))))],
+            extra=self.extra_doc(),
+            forgotten=set(self.forgotten),
         )
         self._lat_saved = lat.total
         return job
+
+    def extra_doc(self) -> dict[str, Any]:
+        """What the snapshot keeps besides the maps: robots forgotten and why, when each robot's
+        boot was first accepted."""
+        return {
+            "forgotten": dict(sorted(self.forgotten.items())),
+            "since_ns": {r: e.since_ns for r, e in sorted(self.robots.items())},
+        }
+
+    def restore_extra(self, extra: dict[str, Any]) -> None:
+        """Inverse of :meth:`extra_doc` (values that are not what it writes are ignored)."""
+        f = extra.get("forgotten")
+        if isinstance(f, dict):
+            self.forgotten = {k: str(v)[:200] for k, v in f.items() if valid_name(k)}
+        since = extra.get("since_ns")
+        self._since = {
+            k: v for k, v in since.items() if isinstance(v, int) and not isinstance(v, bool) and 0 <= v < 1 << 63
+        } if isinstance(since, dict) else {}
 
     def save(self, store: str | os.PathLike[str], robots: Iterable[str] | None = None, stamp_ns: int = 0) -> None:
         """Write the state under ``store`` now (see :class:`StoreJob` for the files)."""
@@ -609,8 +682,20 @@ class FusionState:
         sender: str = FUSION_ID,
         merge_fn: MergeFn | None = None,
         limits: InputLimits | None = None,
+        reset: bool = False,
+        now_ns: int | None = None,
     ) -> FusionState:
         """Resume from :meth:`save`'s files (an absent or empty store gives a fresh state).
+
+        The files are checked and recovered from each other (:func:`read_store`; what was
+        damaged is in :attr:`store_report`, and the views to write again in
+        :attr:`store_rewrite`). A store that cannot be recovered raises
+        :class:`~agents.fleet.fusion.store.StoreDamaged`, unless ``reset``: then its files are
+        moved aside (``damaged-<ns>/``, nothing is deleted) and the state starts empty at a
+        version from the wall clock (milliseconds), above any version a fusion service could
+        have published, so that versions never go backwards for a subscriber.
+        Stored maps pass the checks of the bus at ``now_ns`` (default: now): a map from the
+        future is dropped and reported.
 
         The robot maps come from ``snapshot.msgpack`` (or, in a store without one, from
         ``robots/*.wfm``) and pass the same checks as maps from the bus. The fused map is
@@ -631,16 +716,40 @@ class FusionState:
         def warn(text: str) -> None:
             sys.stderr.write(f"wiremap fuse: {text}\n")
 
-        contents = read_store(d, warn=warn)
+        try:
+            contents = read_store(d, warn=warn)
+        except StoreDamaged as exc:
+            if not reset:
+                raise
+            aside = d / f"damaged-{time.time_ns()}"
+            aside.mkdir()
+            for f in list(d.iterdir()):
+                if f != aside and not f.name.startswith("damaged-"):
+                    os.replace(f, aside / f.name)
+            warn(f"{exc}; --reset: its files are in {aside}, starting empty")
+            st.version = time.time_ns() // 1_000_000
+            st.store_report = [f"reset: damaged files moved to {aside}"]
+            return st
+        st.store_report = list(contents.damaged)
+        st.store_rewrite = set(contents.rewrite)
+        st.restore_extra(contents.extra)
+        now = time.time_ns() if now_ns is None else now_ns
         for rid, raw in contents.raw_robots.items():
-            if not st.offer(raw, rid) and st.last_drop is not None:
-                sys.stderr.write(f"wiremap fuse: skipping stored map of {rid}: {st.last_drop[2]}\n")
+            if rid in st.forgotten:
+                continue
+            if not st.offer(raw, rid, now) and st.last_drop is not None:
+                line = f"stored map of {rid} refused: {st.last_drop[1]}: {st.last_drop[2]}"
+                st.store_report.append(line)
+                warn(line)
+            elif rid in st.robots:
+                e = st.robots[rid]
+                st.robots[rid] = dataclasses.replace(e, since_ns=st._since.get(rid, e.since_ns), at_ns=0)
         st.stats = FusionStats()
         total = 0
         try:
             state = json.loads((d / "state.json").read_text())
             total = int(state.get("latency_total", 0) or 0)
-        except (OSError, ValueError, TypeError, AttributeError):
+        except (OSError, ValueError, TypeError, AttributeError, OverflowError):
             pass
         tail = read_latency_log(d, MAX_LATENCIES)
         st.stats.latencies_ms.extend(v for _, v in tail)
@@ -661,7 +770,8 @@ class FusionState:
             # compare as stored: through the codec
             again = decode_message(encode_message(st.fused_message(0))).wireframe
             same = again.almost_equal(contents.fused.wireframe, tol=1e-9, likelihood_tol=1e-9)
-        st.version = contents.version if (same or not st.robots) else contents.version + 1
+        empty_before = contents.fused is None or contents.fused.wireframe.n_edges == 0
+        st.version = contents.version if (same or (not st.robots and empty_before)) else contents.version + 1
         return st
 
 
