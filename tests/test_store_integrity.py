@@ -121,6 +121,7 @@ def test_a_stored_map_from_the_future_is_refused_and_reported(tmp_path: Path) ->
     assert "r3" not in back.robots and any("r3" in x and "future" in x for x in back.store_report)
 
 
+@pytest.mark.fleet  # runs wiremap fuse as a process
 def test_fuse_refuses_a_damaged_store_in_one_line(tmp_path: Path) -> None:
     d, _ = saved(tmp_path)
     for f in [d / SNAPSHOT, d / "state.json", d / "fused.wfm"]:

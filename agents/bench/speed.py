@@ -37,7 +37,7 @@ here), and adds them to the JSON as ``"pieces"`` (the best of a few repeats of e
   ray-cast paper-small scan at 1 cm range noise (about 1 ms);
 * ``evaluate_museum_ms``: :func:`mapping.metrics.evaluate` of the museum's walls moved by
   0.15 m noise against its truth (about 0.2 s);
-* ``render_museum_ms``: the museum as a 1000-pixel PNG (:func:`agents.render.map_png`);
+* ``render_museum_ms``: the museum as a 1000-pixel PNG (:func:`agents.files.render.map_png`);
 * ``codec_reject_claim_us``: rejecting a map body that claims a million vertices in 100
   bytes (:class:`wire_codec.LimitError`, before anything is allocated);
 * ``plan_route_s``: planning the coverage route of each built-in world (a few seconds on an
@@ -133,7 +133,7 @@ def pieces() -> dict[str, Any]:
     """Time the pieces around the filter in this process (module docstring, ``--pieces``)."""
     import wire_codec
     from agents import mapping_run as mr
-    from agents.render import map_png
+    from agents.files.render import map_png
     from agents.sim.lidar import LidarConfig, raycast
     from agents.sim.route import plan_route
     from agents.sim.world import builtin_names, load_world

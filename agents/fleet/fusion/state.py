@@ -263,7 +263,7 @@ class FusionState:
         ``why`` (:attr:`forgotten`). Returns whether it had a map."""
         had = self.robots.pop(rid, None) is not None
         for cache in (self.alignments, self.corrections, self._in_fleet, self._prepared, self._pending):
-            cache.pop(rid, None)  # type: ignore[attr-defined]
+            cache.pop(rid, None)
         self.forgotten[rid] = why[:200]
         return had
 

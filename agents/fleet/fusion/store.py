@@ -366,7 +366,8 @@ def read_store(store: str | os.PathLike[str], warn: Callable[[str], None] | None
             say(f"robots/{rid}.wfm recovered from {SNAPSHOT}")
     extra = snap.get("extra") if snap is not None else None
     extra = extra if isinstance(extra, dict) else {}
-    forgotten = extra.get("forgotten") if isinstance(extra.get("forgotten"), dict) else {}
+    got = extra.get("forgotten")
+    forgotten: dict[str, Any] = got if isinstance(got, dict) else {}
 
     # ---- what must not be lost
     versions: list[int] = []
