@@ -68,7 +68,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         return int(args._module.run(args) or 0)
     except UserError as exc:
-        sys.stderr.write(f"wiremap {args.command}: {exc}\n")
+        sys.stderr.write(f"wiremap {getattr(args, '_label', None) or args.command}: {exc}\n")
         return 2
     except KeyboardInterrupt:
         sys.stderr.write("interrupted\n")
