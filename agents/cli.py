@@ -29,6 +29,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "replay": ("agents.commands.replay", "open the Rerun viewer on a recording"),
     "export": ("agents.commands.export", "export a map as GeoJSON, SVG, PNG or a ROS map"),
     "bench": ("agents.commands.bench", "benchmarks: accuracy, speed, codec, fleet, soak"),
+    "config": ("agents.commands.config_cmd", "show the particle filter's effective configuration"),
 }
 
 
