@@ -138,7 +138,7 @@ def test_single_hypothesis_baseline_runs():
 def test_dead_reckoning_without_icp_still_maps():
     world = load_world(WORLDS / "tiny.geojson")
     inputs = list(simulate(world, SimOptions(steps=5), 2))
-    cfg = filter_config_for(3, 0.2, 8.0, use_icp=False)
+    cfg = filter_config_for(3, 0.2, 8.0, overrides={"use_icp": False})
     f = WireframeFilter(cfg, np.random.default_rng(0), inputs[0].true_pose)
     for inp in inputs:
         assert f.step(inp.odometry, inp.scan).icp is None
@@ -384,7 +384,7 @@ def test_compass_takes_the_drift_out_of_a_young_corridor():
     pull is what does it: test_young_pull_alone_takes_out_a_heading_error_the_young_map_carries.)"""
     world = load_world(WORLDS / "bigring.geojson")
     inputs = list(itertools.islice(simulate(world, SimOptions(), 3), 300))
-    cfg = filter_config_for(10, 0.2, 8.0, compass=CompassConfig(young_weight=0.05))
+    cfg = filter_config_for(10, 0.2, 8.0, overrides={"compass.young_weight": 0.05})
     f = WireframeFilter(cfg, seeds_for(3)["filter"], inputs[0].true_pose)
     err = []
     for inp in inputs:

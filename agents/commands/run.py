@@ -17,7 +17,15 @@ service (which saves its state and closes the recording), and writes to DIR:
 * ``report.json``: metrics of the fused map and of each robot's map against the truth, bytes
   sent per robot, publish-to-fused latency p50/p99, CPU time per process;
 * ``routes/``, ``logs/``, ``store/``: the routes given to the robots, every process's output,
-  the fusion service's state.
+  the fusion service's state;
+* ``params.toml``: with ``--params``/``--set``, the filter settings they changed (as applied),
+  which every robot is started with (``--params``); ``report.json`` has them as
+  ``config_overrides``.
+
+``--params FILE`` and ``--set group.key=value`` (:mod:`agents.params`) set the robots' filter
+settings; ``--particles`` and ``--threshold`` are shorthands for ``--set particles=`` and ``--set
+merge_threshold=``, and the fusion service merges at the merge threshold in effect. They are
+checked before the router or any robot starts.
 
 The mapping clock starts when every robot has reported its first pose (process start-up is not
 counted), bounded by ``--startup-timeout``.
@@ -59,6 +67,7 @@ from agents.fleet.bus import (
     tcp_endpoint,
 )
 from agents.fleet.proc import cpu_seconds, stop_processes
+from agents.params import ConfigArgs, add_config_arguments, resolve, to_toml
 from wire_codec import MAX_ROBOTS
 
 HELP = "the main job: router, N robots and the fusion service"
@@ -71,7 +80,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, default=0, help="random seed (routes; robot k gets seed + k)")
     parser.add_argument("--out", required=True, metavar="DIR", help="output directory")
     parser.add_argument("--rate", type=float, default=5.0, metavar="HZ", help="scans per second per robot (default 5)")
-    parser.add_argument("--particles", type=int, default=5, help="particles per robot (default 5)")
+    parser.add_argument("--particles", type=int, default=None, help="particles per robot (default 5)")
     parser.add_argument(
         "--resolution", type=float, default=0.05, metavar="M",
         help="quantisation step of the robots' published maps (default 0.05)",
@@ -94,6 +103,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         action="store_true",
         help="authenticated fleet: TLS + passwords + access control, credentials generated in DIR/secure",
     )
+    add_config_arguments(parser, "--particles, --threshold")
     add_bus_arguments(parser, router=True)
 
 
@@ -262,15 +272,26 @@ def write_outputs(
 
 # ---------------------------------------------------------------------- the job
 def run(args: argparse.Namespace) -> int:
-    from agents.mapping_run import default_merge_threshold
+    from agents.mapping_run import default_merge_threshold, filter_config_for
     from agents.sim.world import load_world
 
     n = _check_arguments(args)
+    cargs = ConfigArgs.from_args(args)
     world = load_world(args.world)
-    threshold = float(args.threshold) if args.threshold is not None else default_merge_threshold(world)
+    flags = {"particles": ("--particles", args.particles), "merge_threshold": ("--threshold", args.threshold)}
+    resolved = resolve(
+        cargs,
+        lambda ov: filter_config_for(5, default_merge_threshold(world), 8.0, overrides=ov),
+        {k: v for k, v in flags.items() if v[1] is not None},
+    )
+    threshold = resolved.config.merge_threshold
     out = Path(args.out)
     ids = [f"r{k + 1}" for k in range(n)]
     routes = _prepare_output(out, world, ids, args)
+    robot_args = ["--particles", str(resolved.config.particles)]
+    if resolved.recorded:
+        write_atomic(out / "params.toml", to_toml(resolved.recorded, header="filter settings of `wiremap run`'s robots"))
+        robot_args += ["--params", str(out / "params.toml")]
     keys = fleet_keys(args)
     cfg, listen, creds = _router_config(args, out, keys.fleet, ids)
     child_ep = listen[0].replace("0.0.0.0", "127.0.0.1").replace("[::]", "[::1]")
@@ -294,7 +315,7 @@ def run(args: argparse.Namespace) -> int:
             print(
                 f"wiremap run: router on {', '.join(listen)}; fleet {keys.fleet!r}; output in {out}{secure}", flush=True
             )
-            _start_fleet(procs, args, out, ids, routes, threshold, bus, creds)
+            _start_fleet(procs, args, out, ids, routes, threshold, bus, creds, robot_args)
             mapping_s = _watch_fleet(args, keys, procs, progress, sub_pose, sub_fused, stop, t_start, out / "logs")
             interrupted = stop.is_set()
         finally:
@@ -321,7 +342,8 @@ def run(args: argparse.Namespace) -> int:
             "exit_codes": codes,
             "seed": args.seed,
             "rate_hz": args.rate,
-            "particles": args.particles,
+            "particles": resolved.config.particles,
+            "config_overrides": resolved.recorded,
             "interrupted": interrupted,
             "secure": bool(args.secure),
             "startup_s": round(max(0.0, time.monotonic() - t_start - mapping_s), 2),
@@ -363,7 +385,7 @@ def _prepare_output(out: Path, world: Any, ids: list[str], args: argparse.Namesp
         raise UserError(f"cannot plan routes in {world.name}: {exc}") from None
     for rid, r in zip(ids, routes):
         write_json(out / "routes" / f"{rid}.json", {"route": np.round(r, 9).tolist()})
-    for stale in ("fused.wfm", "fused.geojson", "fused.png", "report.json", "recording.rrd"):
+    for stale in ("fused.wfm", "fused.geojson", "fused.png", "report.json", "recording.rrd", "params.toml"):
         (out / stale).unlink(missing_ok=True)
     store = out / "store"
     if store.exists():  # a new run: do not resume an old fleet's state
@@ -402,9 +424,11 @@ def _start_fleet(
     threshold: float,
     bus: list[str],
     creds: dict[str, Path],
+    filter_args: list[str],
 ) -> None:
-    """Spawn the fusion service, then the robots, into ``procs`` (filled as they start, so that
-    a failure half-way still stops the ones already running)."""
+    """Spawn the fusion service, then the robots (their filter settings: ``filter_args``), into
+    ``procs`` (filled as they start, so that a failure half-way still stops the ones already
+    running)."""
     from agents.fleet.robot import start_pose_of
 
     def cred_args(who: str) -> list[str]:
@@ -427,7 +451,7 @@ def _start_fleet(
                 "--start", f"{s0.x:.9f},{s0.y:.9f},{s0.theta:.9f}",
                 "--route", str(out / "routes" / f"{rid}.json"),
                 "--rate", str(args.rate), "--seed", str(args.seed + k + 1),
-                "--particles", str(args.particles),
+                *filter_args,
                 "--resolution", repr(float(args.resolution)), "--threshold", repr(threshold),
                 "--status-file", str(out / "status" / f"{rid}.json"),
                 *bus, *cred_args(rid),

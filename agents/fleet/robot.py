@@ -65,7 +65,8 @@ class RobotOptions:
     ``resolution`` is the quantisation step of the map's coordinates on the wire (the
     codec's ``resolution``); ``threshold`` is the particle filter's merge threshold. They
     are separate: a fine quantisation keeps the filter's centimetre accuracy while walls
-    still merge at the paper's threshold."""
+    still merge at the paper's threshold. ``filter_overrides`` are further filter settings
+    by dotted key (``{"compass.young_weight": 0.0}``, :func:`mapping.config.with_overrides`)."""
 
     robot: str
     world: str
@@ -81,6 +82,7 @@ class RobotOptions:
     viz_hz: float = 2.0
     duration: float | None = None
     extra: dict[str, Any] = field(default_factory=dict)
+    filter_overrides: dict[str, Any] = field(default_factory=dict)
 
 
 @dataclass
