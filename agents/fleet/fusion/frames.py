@@ -223,6 +223,7 @@ class FleetFrames:
             "poses": {m: [round(v, 6) for v in self.pose[m].as_tuple()] for m in registered},
             "attempts": self.attempts,
             "accepted": sum(1 for r in self.records if r.accepted),
+            "registrations": [r.as_dict() for r in self.records[-4:]],
         }
 
     # ------------------------------------------------------------------ attempts

@@ -17,7 +17,9 @@ from typing import Any
 
 from agents.errors import UserError
 from agents.fleet.fusion.codec import encode_message
+from agents.fleet.fusion.frames import FramesConfig
 from agents.fleet.fusion.intake import DropLog, InputLimits, Intake
+from agents.fleet.fusion.islands import IslandShell, frames_section
 from agents.fleet.fusion.state import FusionConfig, FusionState
 from agents.fleet.fusion.stats import LatencyWindow
 from agents.fleet.fusion.store import StoreWriter
@@ -48,6 +50,7 @@ class ServeOptions:
     limits : :class:`InputLimits` (what is accepted from the bus).
     drop_log_s : at most one "dropped ..." line per this many seconds (:class:`DropLog`).
     config : :class:`FusionConfig`.
+    frames : :class:`FramesConfig` (robots of unknown start pose: anchor, retry schedule).
     """
 
     store: str | None = None
@@ -64,6 +67,7 @@ class ServeOptions:
     full_after_s: float = 0.5
     latency_summary_s: float = 1.0
     align_wait_s: float = 0.5
+    frames: FramesConfig = field(default_factory=FramesConfig)
 
 
 class FusionService:
@@ -82,6 +86,7 @@ class FusionService:
             if opts.store
             else FusionState(opts.config, limits=opts.limits)
         )
+        self.state.frames.config = opts.frames
         self.recorder: Any = None
         if opts.rrd:
             from agents.files.rerun_log import FleetRecorder
@@ -128,6 +133,7 @@ class FusionService:
         self._stats_at = -math.inf
         self._stats_version: tuple[int, tuple[str, ...]] = (-1, ())
         self._entities: list[Any] = []
+        self.islands = IslandShell(session, keys, self.recorder, self.say)
         if self.state.version > 0 and self.state.robots:
             self.version_stamp_ns = time.time_ns()
             self.current = encode_message(self.state.fused_message(self.version_stamp_ns, self._meta()))
@@ -239,6 +245,7 @@ class FusionService:
             self.current = data
         self._update_stats(force=True)  # before the put: whoever sees the map sees its counters
         self._put(data)
+        self.islands.publish(st, self.version_stamp_ns)
         lat = st.take_latencies(time.time_ns())
         if self.recorder is not None:
             self.recorder.log_fused(st.sim_time(), st.fused, st.fused_robots, st.version, max(lat) if lat else None)
@@ -313,6 +320,7 @@ class FusionService:
             },
             "stats": st.stats.as_dict(fresh),
             "converged": st.converged,
+            **({"frames": frames_section(st)} if st.frames.active else {}),
             "transport_ms": self.transport_ms.summary(fresh),
             "queued_bytes": self.intake.queued_bytes,
             "drop_log_lines": self.drops.lines,
@@ -373,7 +381,7 @@ class FusionService:
             self.unsaved.update(changed)
             if self.recorder is not None:
                 for rid in changed:
-                    if rid in st.robots:
+                    if rid in st.robots and st.frames.in_fleet(rid):
                         t = float(st.robots[rid].message.meta.get("t", 0.0))
                         self.recorder.log_robot_map(rid, t, st.robot_in_fleet(rid))
         elif (
@@ -394,6 +402,14 @@ class FusionService:
             if st.realign(now=now, limit=1):
                 self.refuse = True  # fuse again even if no map arrives
             self.timing["align"] += time.perf_counter() - t
+            self._timed += time.perf_counter() - t
+        if st.frames.active:  # robots of unknown start pose: one registration attempt when idle
+            t = time.perf_counter()
+            if self.islands.step(st, now, idle=self.intake.empty and not self.dirty):
+                self.refuse = True
+                self.save_due = True
+            if time.monotonic() - self.islands.last_pub >= 1.0:
+                self.islands.publish(st, time.time_ns())
             self._timed += time.perf_counter() - t
         if (
             self.opts.store

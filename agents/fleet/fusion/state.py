@@ -23,7 +23,13 @@ import numpy as np
 from agents.errors import UserError
 from agents.fleet.bus import valid_name
 from agents.fleet.fusion.codec import decode_message, encode_message, order_key
-from agents.fleet.fusion.frames import FleetFrames, FramesConfig, RegistrationRecord, fold_maps, origin_unknown
+from agents.fleet.fusion.frames import (
+    FleetFrames,
+    FramesConfig,
+    RegistrationRecord,
+    fold_maps,
+    origin_unknown,
+)
 from agents.fleet.fusion.intake import InputLimits, implausible
 from agents.fleet.fusion.stats import MAX_LATENCIES, FusionStats
 from agents.fleet.fusion.store import LATENCY_LOG, StoreJob, read_latency_log, read_store
@@ -350,6 +356,11 @@ class FusionState:
             wf = close_frontiers(wf, thr)
         self._island_cache[root] = (key, ms, wf)
         return wf
+
+    def island_key(self, root: str) -> Any:
+        """What an island's cached map was made from (changes exactly when it changes)."""
+        hit = self._island_cache.get(root)
+        return None if hit is None else hit[0]
 
     def islands(self) -> dict[str, tuple[tuple[str, ...], Wireframe]]:
         """Root -> (members, map in the root's frame) of every island (robots of unknown origin
