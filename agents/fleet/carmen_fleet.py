@@ -86,8 +86,8 @@ def split(n_scans: int, robots: int, overlap: float = 0.3) -> list[tuple[int, in
     piece = n_scans / robots
     out = []
     for k in range(robots):
-        i0 = int(round(k * piece))
-        i1 = min(n_scans, int(round((k + 1) * piece + overlap * piece)))
+        i0 = round(k * piece)
+        i1 = min(n_scans, round((k + 1) * piece + overlap * piece))
         out.append((i0, i1))
     return out
 
