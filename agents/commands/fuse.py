@@ -15,12 +15,14 @@ from agents.files.io import output_file
 from agents.fleet.bus import (
     StopFlag,
     add_bus_arguments,
+    check_name,
     config_from_args,
     fleet_keys,
     open_session,
     watch_parent,
 )
 from agents.fleet.fusion import InputLimits
+from agents.fleet.fusion.frames import FramesConfig
 
 HELP = "the fusion service"
 
@@ -43,6 +45,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--threshold", type=float, help="merge threshold in metres (default 0.2, or the coarsest robot-map resolution if larger)"
     )
     parser.add_argument("--no-refine", action="store_true", help="trust the start poses, no ICP refinement")
+    parser.add_argument(
+        "--anchor", metavar="ID",
+        help="robots of unknown start pose: the fleet frame is this robot's (default: the first registered)",
+    )
     parser.add_argument(
         "--heartbeat", type=float, default=3.0, metavar="S", help="re-publish the fused map every S s (default 3)"
     )
@@ -131,6 +137,7 @@ def run(args: argparse.Namespace) -> int:
         reset=args.reset,
         config=FusionConfig(threshold=args.threshold, refine=not args.no_refine),
         limits=limits,
+        frames=FramesConfig(anchor=check_name(args.anchor) if args.anchor else None),
     )
     keys = fleet_keys(args)
     cfg = config_from_args(args, "client")

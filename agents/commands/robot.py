@@ -35,7 +35,13 @@ HELP = "one robot agent process"
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--id", required=True, help="robot id (letters, digits, '_', '.', '-')")
-    parser.add_argument("--world", required=True, metavar="NAME|FILE", help="built-in world name or world file")
+    parser.add_argument("--world", metavar="NAME|FILE", help="built-in world name or world file (or give --carmen)")
+    parser.add_argument(
+        "--unknown-start", action="store_true",
+        help="publish the map in the robot's own frame with its origin marked unknown (fusion registers it)",
+    )
+    parser.add_argument("--carmen", metavar="LOG", help="replay this CARMEN log instead of simulating a world")
+    parser.add_argument("--scans", metavar="I0:I1", help="with --carmen: replay the log's scans I0 to I1-1")
     parser.add_argument(
         "--start", metavar="X,Y,THETA", help="start pose in the fleet frame (default: the route's start)"
     )
@@ -69,6 +75,10 @@ def options_from_args(args: argparse.Namespace) -> RobotOptions:
     from agents.fleet.robot import RobotOptions, parse_route, start_pose_of
 
     rid = check_name(args.id)
+    if args.carmen:
+        return _carmen_options(args, rid)
+    if not args.world:
+        raise UserError("give --world NAME|FILE (or --carmen LOG)")
     route = None
     if args.route:
         try:
@@ -114,6 +124,7 @@ def options_from_args(args: argparse.Namespace) -> RobotOptions:
         viz_hz=max(0.0, args.viz_rate),
         duration=args.duration,
         filter_overrides=resolved.overrides,
+        unknown_start=bool(args.unknown_start),
     )
 
 
@@ -126,6 +137,29 @@ def _filter_config(args: argparse.Namespace) -> Resolved:
         ConfigArgs.from_args(args),
         lambda ov: filter_config_for(5, DEFAULT_THRESHOLD, 8.0, overrides=ov),
         {k: v for k, v in flags.items() if v[1] is not None},
+    )
+
+
+def _carmen_options(args: argparse.Namespace, rid: str) -> RobotOptions:
+    """A robot replaying (part of) a CARMEN log, always in its own frame (unknown start)."""
+    from agents.fleet.robot import RobotOptions
+
+    scans = None
+    if args.scans:
+        try:
+            a, b = (int(v) for v in args.scans.split(":"))
+        except ValueError:
+            raise UserError(f"--scans must be I0:I1, got {args.scans!r}") from None
+        if not 0 <= a < b:
+            raise UserError(f"--scans must be I0:I1 with 0 <= I0 < I1, got {args.scans!r}")
+        scans = (a, b)
+    resolved = _filter_config(args)
+    return RobotOptions(
+        robot=rid, world="", start=Pose.identity(), rate=args.rate, seed=args.seed,
+        particles=resolved.config.particles, resolution=args.resolution,
+        threshold=resolved.config.merge_threshold, heartbeat_s=args.heartbeat,
+        viz_hz=max(0.0, args.viz_rate), duration=args.duration, unknown_start=True, carmen=args.carmen, scans=scans,
+        filter_overrides=resolved.overrides,
     )
 
 

@@ -74,9 +74,21 @@ HELP = "the main job: router, N robots and the fusion service"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--world", required=True, metavar="NAME|FILE", help="built-in world name or world file")
+    parser.add_argument("--world", metavar="NAME|FILE", help="built-in world name or world file (or give --carmen)")
+    parser.add_argument(
+        "--unknown-starts", action="store_true",
+        help="each robot starts at a random pose (seeded) and publishes in its own frame: fusion registers them",
+    )
+    parser.add_argument("--anchor", metavar="ID", help="with unknown starts: the fleet frame is this robot's")
+    parser.add_argument(
+        "--carmen", metavar="LOG",
+        help="split a real CARMEN log into --robots robots (overlapping stretches, each in its own frame)",
+    )
     parser.add_argument("--robots", required=True, type=int, metavar="N", help="number of robots (1-64)")
-    parser.add_argument("--duration", type=float, default=60.0, metavar="S", help="seconds of mapping (default 60)")
+    parser.add_argument(
+        "--duration", type=float, default=None, metavar="S",
+        help="seconds of mapping (default 60; with --carmen: until every robot has replayed its stretch)",
+    )
     parser.add_argument("--seed", type=int, default=0, help="random seed (routes; robot k gets seed + k)")
     parser.add_argument("--out", required=True, metavar="DIR", help="output directory")
     parser.add_argument("--rate", type=float, default=5.0, metavar="HZ", help="scans per second per robot (default 5)")
@@ -90,7 +102,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="merge threshold of the robots' filters and of the fusion (default 0.2, 0.4 for worlds over 100 m)",
     )
     parser.add_argument(
-        "--overlap", type=float, default=0.15, help="fraction of a route piece shared with the next (default 0.15)"
+        "--overlap", type=float, default=None,
+        help="fraction of a route piece (or log stretch) shared with the next (default 0.15; 0.3 with --carmen)",
     )
     parser.add_argument("--serve-viewer", type=int, metavar="PORT", help="serve the recording live on PORT")
     parser.add_argument("--startup-timeout", type=float, default=60.0, metavar="S", help=argparse.SUPPRESS)
@@ -277,17 +290,28 @@ def run(args: argparse.Namespace) -> int:
 
     n = _check_arguments(args)
     cargs = ConfigArgs.from_args(args)
-    world = load_world(args.world)
+    out = Path(args.out)
+    ids = [f"r{k + 1}" for k in range(n)]
+    if args.carmen:
+        from agents.fleet import unknown_run
+
+        world: Any = unknown_run.carmen_world(args)
+        default_threshold = 0.2
+    else:
+        world = load_world(args.world)
+        default_threshold = default_merge_threshold(world)
     flags = {"particles": ("--particles", args.particles), "merge_threshold": ("--threshold", args.threshold)}
     resolved = resolve(
         cargs,
-        lambda ov: filter_config_for(5, default_merge_threshold(world), 8.0, overrides=ov),
+        lambda ov: filter_config_for(5, default_threshold, 8.0, overrides=ov),
         {k: v for k, v in flags.items() if v[1] is not None},
     )
     threshold = resolved.config.merge_threshold
-    out = Path(args.out)
-    ids = [f"r{k + 1}" for k in range(n)]
-    routes = _prepare_output(out, world, ids, args)
+    if args.carmen:
+        routes: list[Any] = unknown_run.prepare_carmen(out, world, ids, args)
+        _clear_outputs(out)
+    else:
+        routes = _prepare_output(out, world, ids, args)
     robot_args = ["--particles", str(resolved.config.particles)]
     if resolved.recorded:
         write_atomic(out / "params.toml", to_toml(resolved.recorded, header="filter settings of `wiremap run`'s robots"))
@@ -331,7 +355,12 @@ def run(args: argparse.Namespace) -> int:
             statuses[rid] = json.loads((out / "status" / f"{rid}.json").read_text())
         except (OSError, ValueError):
             statuses[rid] = progress.status.get(rid, {})
-    report = write_outputs(
+    writer = write_outputs
+    if args.carmen or args.unknown_starts:
+        from agents.fleet import unknown_run
+
+        writer = unknown_run.write_outputs_carmen if args.carmen else unknown_run.write_outputs_unknown
+    report = writer(
         out,
         world,
         ids,
@@ -350,12 +379,31 @@ def run(args: argparse.Namespace) -> int:
         },
     )
     _print_summary(report, ids, out)
+    if args.carmen or args.unknown_starts:
+        isl = report.get("islands") or {}
+        print(
+            f"wiremap run: registered {' '.join(report.get('registered', [])) or '-'} (frame of "
+            f"{report.get('fleet_root')}); islands {' '.join('+'.join(m) for m in isl.values()) or 'none'}",
+            flush=True,
+        )
     return 0
 
 
 def _check_arguments(args: argparse.Namespace) -> int:
     """Refuse bad numbers before anything starts; returns the number of robots."""
     n = int(args.robots)
+    if bool(args.world) == bool(args.carmen):
+        raise UserError("give --world NAME|FILE or --carmen LOG (one of them)")
+    if args.carmen and not Path(args.carmen).is_file():
+        raise UserError(f"--carmen {args.carmen}: no such file")
+    if args.anchor is not None and args.anchor not in [f"r{k + 1}" for k in range(max(0, n))]:
+        raise UserError(f"--anchor must be one of the robot ids r1..r{n}, got {args.anchor!r}")
+    if args.overlap is None:
+        args.overlap = 0.3 if args.carmen else 0.15
+    if args.carmen:
+        args.stop_when_done = True
+    if args.duration is None:
+        args.duration = 1e9 if args.carmen else 60.0
     if not 1 <= n <= MAX_ROBOTS:
         raise UserError(f"--robots must be between 1 and {MAX_ROBOTS}, got {n}")
     for name, v in (("--duration", args.duration), ("--rate", args.rate)):
@@ -380,11 +428,22 @@ def _prepare_output(out: Path, world: Any, ids: list[str], args: argparse.Namesp
         raise UserError(f"--out {out}: cannot create the directory: {exc.strerror or exc}") from None
     rng = np.random.default_rng(args.seed)
     try:
-        routes = plan_routes(world, len(ids), rng, overlap=args.overlap)
+        if getattr(args, "unknown_starts", False):
+            from agents.fleet.unknown_run import random_routes
+
+            routes = random_routes(world, len(ids), rng)
+        else:
+            routes = plan_routes(world, len(ids), rng, overlap=args.overlap)
     except ValueError as exc:
         raise UserError(f"cannot plan routes in {world.name}: {exc}") from None
     for rid, r in zip(ids, routes):
         write_json(out / "routes" / f"{rid}.json", {"route": np.round(r, 9).tolist()})
+    _clear_outputs(out)
+    return list(routes)
+
+
+def _clear_outputs(out: Path) -> None:
+    """Remove what an earlier run left in ``out`` (its outputs and its fusion store)."""
     for stale in ("fused.wfm", "fused.geojson", "fused.png", "report.json", "recording.rrd", "params.toml"):
         (out / stale).unlink(missing_ok=True)
     store = out / "store"
@@ -392,7 +451,6 @@ def _prepare_output(out: Path, world: Any, ids: list[str], args: argparse.Namesp
         import shutil
 
         shutil.rmtree(store)
-    return list(routes)
 
 
 def _router_config(
@@ -438,12 +496,20 @@ def _start_fleet(
     store = out / "store"
     fuse_argv = ["fuse", *bus, *cred_args("fusion"), "--store", str(store), "--rrd", str(out / "recording.rrd")]
     fuse_argv += ["--threshold", repr(threshold)]
-    fuse_argv += ["--world", args.world, "--recording-id", str(uuid.uuid4())]
+    if args.world and not args.unknown_starts:  # the truth is in the world frame, the fleet's is a robot's
+        fuse_argv += ["--world", args.world]
+    if args.anchor:
+        fuse_argv += ["--anchor", args.anchor]
+    fuse_argv += ["--recording-id", str(uuid.uuid4())]
     if args.serve_viewer is not None:
         fuse_argv += ["--serve-viewer", str(args.serve_viewer)]
     procs["fuse"] = _spawn("fuse", fuse_argv, logs)
     for k, (rid, r) in enumerate(zip(ids, routes)):
+        if args.carmen:
+            procs[rid] = _spawn(rid, _carmen_robot_argv(args, out, rid, k, r, threshold, bus + cred_args(rid)), logs)
+            continue
         s0 = start_pose_of(r)
+        unknown = ["--unknown-start"] if args.unknown_starts else []
         procs[rid] = _spawn(
             rid,
             [
@@ -454,10 +520,23 @@ def _start_fleet(
                 *filter_args,
                 "--resolution", repr(float(args.resolution)), "--threshold", repr(threshold),
                 "--status-file", str(out / "status" / f"{rid}.json"),
-                *bus, *cred_args(rid),
+                *unknown, *bus, *cred_args(rid),
             ],
             logs,
         )
+
+
+def _carmen_robot_argv(
+    args: argparse.Namespace, out: Path, rid: str, k: int, stretch: Any, threshold: float, bus: list[str]
+) -> list[str]:
+    """A robot replaying scans ``stretch = (i0, i1)`` of the log in its own frame."""
+    i0, i1 = stretch
+    return [
+        "robot", "--id", rid, "--carmen", str(args.carmen), "--scans", f"{i0}:{i1}",
+        "--rate", str(args.rate), "--seed", str(args.seed + k + 1), "--particles", str(args.particles),
+        "--resolution", repr(float(args.resolution)), "--threshold", repr(threshold),
+        "--status-file", str(out / "status" / f"{rid}.json"), *bus,
+    ]
 
 
 def _watch_fleet(

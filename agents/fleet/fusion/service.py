@@ -17,7 +17,9 @@ from typing import Any
 
 from agents.errors import UserError
 from agents.fleet.fusion.codec import encode_message
+from agents.fleet.fusion.frames import FramesConfig
 from agents.fleet.fusion.intake import DropLog, InputLimits, Intake
+from agents.fleet.fusion.islands import IslandShell, frames_section
 from agents.fleet.fusion.state import FusionConfig, FusionState
 from agents.fleet.fusion.stats import LatencyWindow
 from agents.fleet.fusion.store import StoreWriter
@@ -50,6 +52,7 @@ class ServeOptions:
         refusing to start (:class:`~agents.fleet.fusion.store.StoreDamaged`).
     drop_log_s : at most one "dropped ..." line per this many seconds (:class:`DropLog`).
     config : :class:`FusionConfig`.
+    frames : :class:`FramesConfig` (robots of unknown start pose: anchor, retry schedule).
     """
 
     store: str | None = None
@@ -67,6 +70,7 @@ class ServeOptions:
     latency_summary_s: float = 1.0
     align_wait_s: float = 0.5
     reset: bool = False
+    frames: FramesConfig = field(default_factory=FramesConfig)
 
 
 class FusionService:
@@ -87,6 +91,7 @@ class FusionService:
         )
         self.state.restart_by_token = True  # a robot's restart is learned from its liveliness token
         self._came_alive: list[str] = []  # tokens that appeared (zenoh thread -> main thread)
+        self.state.frames.config = opts.frames
         self.recorder: Any = None
         if opts.rrd:
             from agents.files.rerun_log import FleetRecorder
@@ -137,6 +142,7 @@ class FusionService:
         self._stats_at = -math.inf
         self._stats_version: tuple[int, tuple[str, ...]] = (-1, ())
         self._entities: list[Any] = []
+        self.islands = IslandShell(session, keys, self.recorder, self.say)
         if self.state.version > 0 and self.state.robots:
             self.version_stamp_ns = time.time_ns()
             self.current = encode_message(self.state.fused_message(self.version_stamp_ns, self._meta()))
@@ -257,6 +263,7 @@ class FusionService:
             self.current = data
         self._update_stats(force=True)  # before the put: whoever sees the map sees its counters
         self._put(data)
+        self.islands.publish(st, self.version_stamp_ns)
         lat = st.take_latencies(time.time_ns())
         if self.recorder is not None:
             self.recorder.log_fused(st.sim_time(), st.fused, st.fused_robots, st.version, max(lat) if lat else None)
@@ -335,6 +342,7 @@ class FusionService:
             },
             "stats": st.stats.as_dict(fresh),
             "converged": st.converged,
+            **({"frames": frames_section(st)} if st.frames.active else {}),
             "transport_ms": self.transport_ms.summary(fresh),
             "queued_bytes": self.intake.queued_bytes,
             "store": self.store_health(),
@@ -418,7 +426,7 @@ class FusionService:
             self.unsaved.update(changed)
             if self.recorder is not None:
                 for rid in changed:
-                    if rid in st.robots:
+                    if rid in st.robots and st.frames.in_fleet(rid):
                         t = float(st.robots[rid].message.meta.get("t", 0.0))
                         self.recorder.log_robot_map(rid, t, st.robot_in_fleet(rid))
         elif (
@@ -443,6 +451,14 @@ class FusionService:
         if self.writer is not None and not self.writer.ok and not self.save_due:
             self.save_due = True  # a failed write (disk full, read-only) is retried with everything
             self.unsaved.update(st.robots)
+        if st.frames.active:  # robots of unknown start pose: one registration attempt when idle
+            t = time.perf_counter()
+            if self.islands.step(st, now, idle=self.intake.empty and not self.dirty):
+                self.refuse = True
+                self.save_due = True
+            if time.monotonic() - self.islands.last_pub >= 1.0:
+                self.islands.publish(st, time.time_ns())
+            self._timed += time.perf_counter() - t
         if (
             self.opts.store
             and (self.unsaved or self.save_due)

@@ -16,7 +16,7 @@ import os
 import sys
 import time
 from collections.abc import Callable, Iterable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -25,6 +25,13 @@ import numpy as np
 from agents.errors import UserError
 from agents.fleet.bus import valid_name
 from agents.fleet.fusion.codec import decode_message, encode_message, order_key
+from agents.fleet.fusion.frames import (
+    FleetFrames,
+    FramesConfig,
+    RegistrationRecord,
+    fold_maps,
+    origin_unknown,
+)
 from agents.fleet.fusion.intake import InputLimits, implausible, over_budget
 from agents.fleet.fusion.stats import MAX_LATENCIES, FusionStats
 from agents.fleet.fusion.store import LATENCY_LOG, StoreDamaged, StoreJob, read_latency_log, read_store
@@ -167,6 +174,7 @@ class FusionState:
         sender: str = FUSION_ID,
         merge_fn: MergeFn | None = None,
         limits: InputLimits | None = None,
+        frames: FramesConfig | None = None,
     ) -> None:
         self.config = config or FusionConfig()
         self.sender = sender
@@ -204,6 +212,9 @@ class FusionState:
         self._since: dict[str, int] = {}  # restored since_ns per robot (load)
         self.store_rewrite: set[str] = set()  # views load found damaged (written again by the next save)
         self.exit_error: str | None = None  # the final store write failed (the service's last line)
+        # robots of unknown start pose (meta origin_unknown): the registration graph (frames.py)
+        self.frames = FleetFrames(frames)
+        self._island_cache: dict[str, tuple[tuple[Any, ...], tuple[str, ...], Wireframe]] = {}
 
     # ------------------------------------------------------------------ input
     def offer(self, data: bytes, key_robot: str | None = None, now_ns: int | None = None) -> bool:
@@ -270,6 +281,8 @@ class FusionState:
     def _add(self, msg: MapMessage, raw: bytes, now_ns: int | None = None) -> bool:
         rid = msg.sender
         key = order_key(msg, raw)
+        if self.frames.active or origin_unknown(msg):
+            msg = self._place(msg, raw)
         old = self.robots.get(rid)
         gen = self.token_gen.get(rid, 0)
         since = now_ns or 0
@@ -315,6 +328,122 @@ class FusionState:
         if not same:
             self._pending.setdefault(rid, int(msg.stamp_ns))
         return not same
+
+    # ------------------------------------------------------------------ unknown start poses
+    def _place(self, msg: MapMessage, raw: bytes) -> MapMessage:
+        """A map of a robot of unknown origin gets its registered pose in the fleet frame as
+        ``origin`` (the identity while it is an island: it is not fused then); a robot that
+        now sends a known origin leaves the registration graph."""
+        rid = msg.sender
+        old = self.robots.get(rid)
+        if old is not None and order_key(msg, raw) <= old.key:
+            return msg  # a duplicate or an outdated map: _add drops it
+        fr = self.frames
+        if origin_unknown(msg):
+            fr.track(rid)
+            pose = fr.fleet_pose(rid) or Pose.identity()
+            msg = replace(msg, origin=pose)
+        else:
+            fr.forget(rid)
+        fr.has_known = any(r not in fr.root for r in (*self.robots, rid))
+        return msg
+
+    def _replace_origins(self) -> list[str]:
+        """After a change of the registration graph: every unknown robot's entry gets its new
+        fleet pose as ``origin`` (and a new revision when it changed). Returns the robots moved."""
+        moved = []
+        for rid in sorted(self.frames.root):
+            e = self.robots.get(rid)
+            if e is None:
+                continue
+            pose = self.frames.fleet_pose(rid) or Pose.identity()
+            if pose.as_tuple() != e.message.origin.as_tuple():
+                self._rev += 1
+                self.robots[rid] = RobotEntry(replace(e.message, origin=pose), e.raw, e.key, self._rev)
+                self._pending.setdefault(rid, int(e.message.stamp_ns))
+                moved.append(rid)
+        return moved
+
+    def fleet_ids(self) -> tuple[str, ...]:
+        """The robots fused into the fleet map, sorted: all of them, but for robots of unknown
+        origin that are not (yet) registered into the fleet frame (islands)."""
+        if not self.frames.active:
+            return tuple(sorted(self.robots))
+        return tuple(r for r in sorted(self.robots) if self.frames.in_fleet(r))
+
+    def _own_length(self, rid: str) -> float:
+        wf = self.robots[rid].message.wireframe
+        return float(wf.edge_lengths().sum()) if wf.n_edges else 0.0
+
+    def _component_length(self, members: tuple[str, ...], root: str | None) -> float:
+        if root is None or root == self.frames.fleet_component():
+            return sum(self._own_length(r) for r in self.fleet_ids())
+        return sum(self._own_length(r) for r in members if r in self.robots)
+
+    def _component_map(self, members: tuple[str, ...], root: str | None) -> Wireframe:
+        """A component's map in its root's frame; the fleet's is the fused map (in the fleet
+        frame), recomputed when the fused robots are not the fleet's present members."""
+        if root is None or root == self.frames.fleet_component():
+            ids = self.fleet_ids()
+            if ids == self.fused_robots:
+                return self.fused
+            thr = self.threshold
+            return fold_maps((self.robot_in_fleet(r) for r in ids), lambda a, b: self._merge(a, b, thr))
+        return self.island_map(root, members)
+
+    def island_map(self, root: str, members: tuple[str, ...] | None = None) -> Wireframe:
+        """An island's map in its root's frame: its members' maps moved by their poses in that
+        frame, merged in sorted order (cached until a member's map or pose changes)."""
+        fr = self.frames
+        ms = tuple(members) if members is not None else fr.components().get(root, ())
+        ms = tuple(m for m in ms if m in self.robots)
+        thr = self.threshold
+        key = (thr, *((m, self.robots[m].rev, fr.pose[m].as_tuple()) for m in ms))
+        hit = self._island_cache.get(root)
+        if hit is not None and hit[0] == key:
+            return hit[2]
+        wf = fold_maps(
+            (self.robots[m].message.wireframe.transformed(fr.pose[m]) for m in ms), lambda a, b: self._merge(a, b, thr)
+        )
+        if self.config.close_frontiers and len(ms) > 1:
+            wf = close_frontiers(wf, thr)
+        self._island_cache[root] = (key, ms, wf)
+        return wf
+
+    def island_key(self, root: str) -> Any:
+        """What an island's cached map was made from (changes exactly when it changes)."""
+        hit = self._island_cache.get(root)
+        return None if hit is None else hit[0]
+
+    def islands(self) -> dict[str, tuple[tuple[str, ...], Wireframe]]:
+        """Root -> (members, map in the root's frame) of every island (robots of unknown origin
+        not registered into the fleet frame)."""
+        out = {}
+        for root, ms in self.frames.islands().items():
+            ms = tuple(m for m in ms if m in self.robots)
+            if ms:
+                out[root] = (ms, self.island_map(root, ms))
+        for gone in [r for r in self._island_cache if r not in out]:
+            del self._island_cache[gone]
+        return out
+
+    def register_due(self) -> bool:
+        """Whether :meth:`register_step` has a pair of components to try."""
+        return self.frames.active and self.frames.next_pair(self._component_length) is not None
+
+    def register_step(self, t: float = 0.0) -> RegistrationRecord | None:
+        """One registration attempt of the registration graph (:mod:`.frames`), the pair it
+        finds due; on acceptance the moved robots get their fleet poses (the next :meth:`fuse`
+        includes them). None when no pair is due (and always for known-start fleets)."""
+        if not self.frames.active:
+            return None
+        pair = self.frames.next_pair(self._component_length)
+        if pair is None:
+            return None
+        rec = self.frames.attempt(pair, self._component_map, t)
+        if rec.accepted:
+            self._replace_origins()
+        return rec
 
     # ------------------------------------------------------------------ fusion
     @property
@@ -467,7 +596,7 @@ class FusionState:
         15 with 16 robots, against 8 on average for a left fold), and the nodes are cached.
         """
         cfg = self.config
-        ids = tuple(sorted(self.robots))
+        ids = self.fleet_ids()
         thr = self.threshold
         budget = len(ids) if full else (cfg.max_realign_per_fuse if max_realign is None else max_realign)
         prefix: tuple[Any, ...] = (thr,)
@@ -589,6 +718,8 @@ class FusionState:
         with ``version`` and the merge ``threshold`` (the scale its walls were merged at, and
         the grid its quality is scored on) plus ``meta``."""
         m: dict[str, Any] = {"version": self.version, "threshold": self.threshold}
+        if self.frames.active:  # robots of unknown origin: who is registered, the islands
+            m["frames"] = self.frames.summary()
         m.update(meta or {})
         return MapMessage(
             kind=MessageKind.FUSED_MAP,
