@@ -536,11 +536,24 @@ def svg_text(wf: Wireframe) -> str:
     return str(render.wireframe_svg(wf))
 
 
-def png_bytes(wf: Wireframe) -> bytes:
-    """The map as PNG (drawn by :func:`agents.files.render.map_png`)."""
+def png_bytes(wf: Wireframe, title: str = "map") -> bytes:
+    """The map as PNG: the figure every command draws (:func:`agents.files.render.map_figure`)."""
     from agents.files import render
 
-    return bytes(render.map_png(wf))
+    return bytes(render.map_figure(wf, title=title))
+
+
+def _title(props: dict[str, Any]) -> str:
+    """A picture's title from a map's properties: what map it is and whose."""
+    kind = str(props.get("kind", "map")).replace("_", " ")
+    version = props.get("version", props.get("seq"))
+    robots = props.get("robots") or []
+    text = kind + (f" v{version}" if version is not None else "")
+    if robots:
+        text += " from " + ", ".join(str(r) for r in robots)
+    if props.get("world"):
+        text = f"{props['world']}: {text}"
+    return text
 
 
 def format_from_suffix(path: str | os.PathLike[str]) -> str | None:
@@ -586,7 +599,7 @@ def export_map(
         write_atomic(out, svg_text(wf))
         return [Path(out)]
     if fmt == "png":
-        write_atomic(out, png_bytes(wf))
+        write_atomic(out, png_bytes(wf, title=_title(loaded.properties)))
         return [Path(out)]
     if fmt == "rosmap":
         pgm, yaml, _ = write_rosmap(wf, out, resolution, min_likelihood=min_likelihood)
