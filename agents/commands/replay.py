@@ -37,10 +37,12 @@ DEFAULT_WEB_PORT = 9090
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
-        "file", metavar="FILE.rrd", help="a Rerun recording (e.g. from `wiremap run --record`)"
+        "file", metavar="FILE.rrd", help="a Rerun recording (e.g. DIR/recording.rrd of `wiremap run --out DIR`)"
     )
     parser.add_argument(
-        "--web", action="store_true", help="serve it with Rerun's web viewer instead of opening a window"
+        "--web", action="store_true",
+        help="serve it with Rerun's web viewer instead of opening a window (the server keeps about "
+        "one core busy even while idle: stop it with Ctrl-C when done)",
     )
     parser.add_argument(
         "--bind", default="127.0.0.1", metavar="IP", help="--web: address to serve on (default 127.0.0.1)"
@@ -136,6 +138,12 @@ def run(args: argparse.Namespace) -> int:
     if rerun is None:
         raise UserError("the `rerun` viewer is not installed (pip install rerun-sdk)")
     cmd = viewer_command(rerun, path, args.web, args.bind, args.port)
+    if args.web:
+        print(
+            f"wiremap replay: serving {path} on http://{args.bind}:{args.port} (Rerun's server uses about "
+            "a core even while idle; Ctrl-C stops it)",
+            flush=True,
+        )
     try:
         child = subprocess.Popen(cmd)
     except OSError as exc:

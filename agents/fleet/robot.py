@@ -81,6 +81,9 @@ class RobotOptions:
     viz_hz: float = 2.0
     duration: float | None = None
     extra: dict[str, Any] = field(default_factory=dict)
+    #: False when ``--start`` gave no heading: the simulated robot's heading (along its route)
+    #: is taken without a word.
+    heading_given: bool = True
 
 
 @dataclass
@@ -317,8 +320,16 @@ class RobotAgent:
         route's) would rotate the whole map in the fleet frame. The true pose wins, with a
         warning when they differ by more than 1 cm or 0.01 rad."""
         s = self.opts.start
-        if not s.almost_equal(first, 0.01, 0.01):
-            self.say(f"start pose {s.as_tuple()} differs from the simulated start {first.as_tuple()}; using the latter")
+        if math.hypot(s.x - first.x, s.y - first.y) > 0.01:
+            self.say(
+                f"--start {s.x:.2f},{s.y:.2f} differs from where the simulation starts the robot "
+                f"({first.x:.2f},{first.y:.2f}, heading {math.degrees(first.theta):.0f} deg); using the latter"
+            )
+        elif self.opts.heading_given and abs(math.remainder(s.theta - first.theta, math.tau)) > 0.01:
+            self.say(
+                f"start heading {math.degrees(s.theta):.0f} deg replaced by {math.degrees(first.theta):.0f} deg "
+                f"(a simulated robot starts facing along its route)"
+            )
         if not s.almost_equal(first, 1e-9, 1e-9):
             self.opts.start = first
             self._last_body = None
