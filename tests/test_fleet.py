@@ -256,7 +256,8 @@ def test_run_three_robots_on_paper_small(tmp_path: Path):
     fused, per = rep["fused"], rep["per_robot"]
     assert fused["wall_recall"] >= 0.90, rep
     assert fused["wall_recall"] >= max(r["wall_recall"] for r in per.values())
-    assert fused["cell_error"] <= min(r["cell_error"] for r in per.values()) + 1e-9
+    assert fused["cell_error"] <= 0.01  # every robot finished: the fused map is closed and scored
+    assert all(r["cell_error"] is None and "partial" in r["cell_error_note"] for r in per.values())
     assert set(per) == {"r1", "r2", "r3"}
     for r in per.values():
         assert r["maps_sent"] > 0 and r["bytes_sent"] > 0
@@ -322,7 +323,7 @@ def test_run_stops_cleanly_on_sigterm_and_sigint(tmp_path: Path):
         # wait until the fleet works (a fused map on disk), then stop it
         wait_until(lambda: (out / "store" / "fused.wfm").is_file(), 60, "a fused map in the store")
         t0 = time.monotonic()
-        assert fleet.stop("run", signal.SIGTERM, timeout=20) == 0, fleet.log("run")
+        assert fleet.stop("run", signal.SIGTERM, timeout=20) == 130, fleet.log("run")  # INTERRUPTED
         assert time.monotonic() - t0 < 10
         assert not [k for k in kids if alive(k)]
     log = (tmp_path / "run.log").read_text()

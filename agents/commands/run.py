@@ -323,7 +323,13 @@ def write_outputs(
         if rid in extra.get("cpu_s", {}):
             entry["cpu_s"] = extra["cpu_s"][rid]
         per_robot[rid] = entry
-    fused = _metrics(world.truth, wf, res)
+    # a fleet cut short by --duration or Ctrl-C left its map open: its cell error is no score either
+    covered = all(entry.get("finished") for entry in per_robot.values())
+    fused = _metrics(world.truth, wf, res, partial=not covered)
+    if not covered:
+        fused["cell_error_note"] = PARTIAL_CELL_ERROR.replace(
+            "one robot's partial map", "a fleet map cut short before every robot finished its route"
+        )
     fused.update({"vertices": wf.n_vertices, "edges": wf.n_edges, "bytes": len(raw), "version": msg.seq})
     fused["robots"] = robots
     report = {
