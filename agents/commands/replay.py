@@ -144,22 +144,29 @@ def run(args: argparse.Namespace) -> int:
             "a core even while idle; Ctrl-C stops it)",
             flush=True,
         )
-    try:
-        child = subprocess.Popen(cmd)
-    except OSError as exc:
-        raise UserError(f"cannot start {rerun}: {exc.strerror or exc}") from None
+    # the handlers first: a Ctrl-C that comes while the viewer starts still stops it cleanly
+    child: subprocess.Popen[bytes] | None = None
+    stopped = False
 
     def forward(signum: int, _frame: FrameType | None) -> None:
-        if child.poll() is None:
+        nonlocal stopped
+        stopped = True
+        if child is not None and child.poll() is None:
             child.send_signal(signum)
 
     old = {s: signal.signal(s, forward) for s in (signal.SIGINT, signal.SIGTERM)}
     try:
+        try:
+            child = subprocess.Popen(cmd)
+        except OSError as exc:
+            raise UserError(f"cannot start {rerun}: {exc.strerror or exc}") from None
+        if stopped:
+            child.send_signal(signal.SIGINT)
         rc = child.wait()
     finally:
         for s, h in old.items():
             signal.signal(s, h)
-        if child.poll() is None:
+        if child is not None and child.poll() is None:
             child.kill()
             child.wait()
     # Stopped by our signal: a clean stop, not a failure.
