@@ -63,7 +63,7 @@ def test_readme_usage_runs_pasted_into_a_shell(tmp_path: Path) -> None:
         ("--duration 30", "--duration 6 --rate 20"),
         ("--out out/small", "--out out/small --steps 100"),
         ("wiremap replay out/demo/recording.rrd --web",
-         f"timeout --preserve-status -s INT 10 wiremap replay out/demo/recording.rrd --web --port {web}"),
+         f"timeout --preserve-status -s INT 5 wiremap replay out/demo/recording.rrd --web --port {web}"),
     ]
     lines = [demo_line((REPO / "Makefile").read_text()), *usage_lines((REPO / "README.md").read_text())]
     script = []
@@ -75,7 +75,7 @@ def test_readme_usage_runs_pasted_into_a_shell(tmp_path: Path) -> None:
     env.update(RERUN_ANALYTICS="0", PYTHONUNBUFFERED="1")
     env.pop("DISPLAY", None)
     p = subprocess.run(
-        ["bash", "-c", "set -ex\n" + "\n".join(script)],
+        ["bash", "-c", "PS4='+ $SECONDS s: '\nset -ex\n" + "\n".join(script)],
         cwd=tmp_path, capture_output=True, text=True, timeout=180, env=env,
     )
     text = p.stdout + p.stderr
