@@ -365,3 +365,37 @@ def test_rosmap_yaml_numbers_are_short() -> None:
     grid = OccupancyGrid(np.zeros((2, 2), np.uint8), 0.05, (-0.17500000000000002, 0.1 + 0.2))
     text = map_yaml(grid, "map.pgm")
     assert "origin: [-0.175, 0.3, 0.0]" in text
+
+
+# ---------------------------------------------------------------------------- 16. the recording
+def test_recording_has_one_fleet_clock_trajectories_events_and_alive_series(tmp_path: Path) -> None:
+    from rerun.chunk import RrdReader
+
+    from agents.files.rerun_log import FleetRecorder
+    from mapping.se2 import Pose
+
+    rec = FleetRecorder(tmp_path / "r.rrd")
+    for k in range(5):  # r1 drives from sim time 0
+        rec.log_robot_pose("r1", 0.5 * k, Pose(1.0 + 0.2 * k, 1.0, 0.0), None)
+    time.sleep(1.1)
+    for k in range(5):  # r2 joins later, its own simulated clock from 0 again
+        rec.log_robot_pose("r2", 0.5 * k, Pose(5.0, 1.0 + 0.2 * k, 0.0), None)
+        rec.log_robot_pose("r1", 2.5 + 0.5 * k, Pose(2.0 + 0.2 * k, 1.0, 0.0), None)
+    rec.log_robot_status("r1", 5.0, stale=True)
+    rec.close()
+    first: dict[str, int] = {}
+    rows: dict[str, int] = {}
+    texts: list[str] = []
+    for c in RrdReader(str(tmp_path / "r.rrd")).stream().to_chunks():
+        b = c.to_record_batch()
+        p = str(c.entity_path)
+        rows[p] = rows.get(p, 0) + b.num_rows
+        if "fleet_time" in b.schema.names and b.num_rows:
+            col = b.column("fleet_time")
+            t = min(int(v) for v in col.cast("int64").to_pylist() if v is not None)
+            first[p] = min(first.get(p, t), t)
+        if p == "/log":
+            texts += [str(v) for v in b.column("TextLog:text").to_pylist()]
+    assert first["/robots/r2/pose"] - first["/robots/r1/pose"] >= 1_000_000_000  # r2 appears a second later
+    assert rows["/robots/r1/trajectory"] >= 2 and rows["/stats/robots/r1/alive"] >= 2
+    assert any("r2 joined" in t for t in texts) and any("r1 stale" in t for t in texts)

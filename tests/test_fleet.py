@@ -274,10 +274,11 @@ def test_run_three_robots_on_paper_small(tmp_path: Path):
     assert decode_png((out / "fused.png").read_bytes()).ndim == 3
     # the recording
     entities, timelines = read_recording(out / "recording.rrd")
-    assert "sim_time" in timelines
-    expected = {"/world/truth", "/fused/walls", "/fused/corners/nominal", "/fused/corners/frontier"}
+    assert {"sim_time", "fleet_time"} <= timelines
+    expected = {"/world/truth", "/fused/walls", "/fused/corners/nominal", "/fused/corners/frontier", "/log"}
     for rid in ("r1", "r2", "r3"):
-        expected |= {f"/robots/{rid}/{leaf}" for leaf in ("pose", "true_pose", "scan", "particles", "map")}
+        expected |= {f"/robots/{rid}/{leaf}" for leaf in ("pose", "true_pose", "scan", "particles", "map", "trajectory")}
+        expected.add(f"/stats/robots/{rid}/alive")
     assert expected <= entities, expected - entities
 
 
