@@ -634,8 +634,48 @@ def decode_body(data: bytes, resolution_mm: int, n_robots: int | None, limits: L
         return Wireframe.empty()
     if n > r.remaining:  # every vertex costs at least its class bit
         raise TruncatedError(f"body declares {n} vertices but has only {r.remaining} bits left")
+    points = _read_vertices(r, n, resolution_mm, limits)
 
-    # -- vertices
+    # -- labels
+    labels = _read_values(r, n, LABEL_BITS, 1, "label")
+    if np.any(labels == 3):
+        raise FormatError("body: a vertex label is 3 (only 0, 1, 2 exist)")
+
+    edges = _read_edges(r, n, limits)
+    m = int(edges.shape[0])
+
+    # -- likelihood
+    lq = np.zeros(0, dtype=np.int64)
+    if m:
+        lq = _read_values(r, m, LIKELIHOOD_BITS, LIKELIHOOD_BITS, "likelihood")
+        if np.any(lq > LIKELIHOOD_LEVELS):
+            raise FormatError("body: a likelihood code is above 15")
+
+    sources = np.zeros(m, dtype=np.uint64)
+    if n_robots is not None and m:
+        sources = _read_sources(r, m, n_robots)
+
+    _finish(r)
+    try:
+        return Wireframe(
+            points,  # validated and cast in __post_init__
+            labels.astype(np.uint8),
+            edges.astype(np.int32),
+            lq.astype(np.float64) / LIKELIHOOD_LEVELS,
+            sources,
+        )
+    except ValueError as exc:  # pragma: no cover - every case above is checked first
+        raise FormatError(f"body: {exc}") from None
+
+
+def _read_vertices(r: BitReader, n: int, resolution_mm: int, limits: Limits) -> NDArray[np.float64]:
+    """The vertex section (FORMAT.md 3, item 2) of ``n`` vertices, as points in metres.
+
+    Raises
+    ------
+    TruncatedError, FormatError, LimitError
+        Too few bits; moves adding up beyond the grid; a vertex beyond ``limits.max_coordinate``.
+    """
     k1 = r.scalar(4, "the move code orders")
     k2 = r.scalar(4, "the move code orders")
     k3 = r.scalar(4, "the move code orders")
@@ -670,14 +710,19 @@ def decode_body(data: bytes, resolution_mm: int, n_robots: int | None, limits: L
             f"body: a vertex lies {far * resolution_mm / 1e3:.6g} m from the origin, "
             f"the limit is {limits.max_coordinate:g} m"
         )
-    points = q.astype(np.float64) * resolution_mm / 1e3
+    return np.asarray(q.astype(np.float64) * resolution_mm / 1e3, dtype=np.float64)
 
-    # -- labels
-    labels = _read_values(r, n, LABEL_BITS, 1, "label")
-    if np.any(labels == 3):
-        raise FormatError("body: a vertex label is 3 (only 0, 1, 2 exist)")
 
-    # -- edges
+def _read_edges(r: BitReader, n: int, limits: Limits) -> I64:
+    """The edge section (FORMAT.md 3, item 4) over ``n`` vertices: ``(m, 2)`` vertex pairs,
+    chain, reverse, ring closing and explicit edges in that order.
+
+    Raises
+    ------
+    TruncatedError, LimitError, FormatError
+        Too few bits; more than ``limits.max_edges`` edges; an explicit edge that is a
+        self-loop or names a vertex that does not exist.
+    """
     next_bits = r.flags(n - 1, "the chain bits")
     starts, ends = chains(next_bits, n)
     ring = ends - starts >= 2
@@ -703,7 +748,7 @@ def decode_body(data: bytes, resolution_mm: int, n_robots: int | None, limits: L
         if int(first[-1]) >= n or int(second.min()) < 0 or int(second.max()) >= n or np.any(first == second):
             raise FormatError("body: an explicit edge is a self-loop or names a vertex that does not exist")
         pairs = np.stack((first, second), axis=1)
-    edges = np.concatenate(
+    return np.concatenate(
         (
             np.stack((nk, nk + 1), axis=1),
             np.stack((rk + 1, rk), axis=1),
@@ -712,38 +757,25 @@ def decode_body(data: bytes, resolution_mm: int, n_robots: int | None, limits: L
         )
     )
 
-    # -- likelihood
-    lq = np.zeros(0, dtype=np.int64)
-    if m:
-        lq = _read_values(r, m, LIKELIHOOD_BITS, LIKELIHOOD_BITS, "likelihood")
-        if np.any(lq > LIKELIHOOD_LEVELS):
-            raise FormatError("body: a likelihood code is above 15")
 
-    # -- sources
-    sources = np.zeros(m, dtype=np.uint64)
-    if n_robots is not None and m:
-        n_masks = r.eg(0, "the contributor mask count")
-        if not 1 <= n_masks <= m:
-            raise FormatError(f"body: {n_masks} distinct contributor masks for {m} edges")
-        masks = r.fixed(n_masks, n_robots, "the contributor masks")
-        if np.any(masks[1:] <= masks[:-1]):
-            raise FormatError("body: contributor masks are not strictly increasing")
-        index = r.fixed(m, ceil_log2(n_masks), "the contributor indices").astype(np.int64)
-        if np.any(index >= n_masks):
-            raise FormatError("body: a contributor index is out of range")
-        sources = masks[index]
+def _read_sources(r: BitReader, m: int, n_robots: int) -> NDArray[np.uint64]:
+    """The contributor masks of a fused map's ``m`` edges (FORMAT.md 3, item 6).
 
-    _finish(r)
-    try:
-        return Wireframe(
-            points,  # validated and cast in __post_init__
-            labels.astype(np.uint8),
-            edges.astype(np.int32),
-            lq.astype(np.float64) / LIKELIHOOD_LEVELS,
-            sources,
-        )
-    except ValueError as exc:  # pragma: no cover - every case above is checked first
-        raise FormatError(f"body: {exc}") from None
+    Raises
+    ------
+    TruncatedError, FormatError
+        Too few bits; a mask count, mask order or index the encoder never writes.
+    """
+    n_masks = r.eg(0, "the contributor mask count")
+    if not 1 <= n_masks <= m:
+        raise FormatError(f"body: {n_masks} distinct contributor masks for {m} edges")
+    masks = r.fixed(n_masks, n_robots, "the contributor masks")
+    if np.any(masks[1:] <= masks[:-1]):
+        raise FormatError("body: contributor masks are not strictly increasing")
+    index = r.fixed(m, ceil_log2(n_masks), "the contributor indices").astype(np.int64)
+    if np.any(index >= n_masks):
+        raise FormatError("body: a contributor index is out of range")
+    return np.asarray(masks[index], dtype=np.uint64)
 
 
 def _finish(r: BitReader) -> None:
