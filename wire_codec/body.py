@@ -213,12 +213,33 @@ def encode_body(wf: Wireframe, resolution: float, n_robots: int | None) -> Encod
     if n == 0:
         return EncodedBody(w.to_bytes(), np.zeros(0, np.int64), np.zeros(0, np.int64), w.n_bits)
 
-    # -- vertices: the major axis of every move is coded relative to the previous one
     q = quantise(wf.points, resolution)
     order = chain_order(n, wf.edges)
     inv = np.empty(n, dtype=np.int64)
     inv[order] = np.arange(n, dtype=np.int64)
-    d = np.diff(q[order], axis=0, prepend=np.zeros((1, 2), dtype=np.int64))
+    _write_vertices(w, q[order])
+
+    # -- labels
+    _write_values(w, wf.labels[order].astype(np.int64), LABEL_BITS, 1)
+
+    edge_order = _write_edges(w, inv[wf.edges[:, 0]], inv[wf.edges[:, 1]], n)
+
+    # -- likelihood
+    if m:
+        lq = np.rint(wf.likelihood[edge_order] * LIKELIHOOD_LEVELS).astype(np.int64)
+        _write_values(w, lq, LIKELIHOOD_BITS, LIKELIHOOD_BITS)
+
+    if n_robots is not None and m:
+        _write_sources(w, wf.sources[edge_order], n_robots)
+
+    return EncodedBody(w.to_bytes(), order, edge_order, w.n_bits)
+
+
+def _write_vertices(w: BitWriter, q: I64) -> None:
+    """The vertex section (FORMAT.md 3, item 2) of grid points ``q`` in their coded order: the
+    major axis of every move is coded relative to the previous one."""
+    n = q.shape[0]
+    d = np.diff(q, axis=0, prepend=np.zeros((1, 2), dtype=np.int64))
     ad = np.abs(d)
     axis = (ad[:, 1] > ad[:, 0]).astype(np.int64)  # major axis; ties (and zero moves): x
     toggle = axis != np.concatenate(([1], axis[:-1]))  # the axis before the first move is y
@@ -241,12 +262,12 @@ def encode_body(wf: Wireframe, resolution: float, n_robots: int | None) -> Encod
     w.flags(minor[general] < 0)
     w.eg_block(values, _orders((n_single, k1), (n_general, k2), (n_general, k3)))
 
-    # -- labels
-    _write_values(w, wf.labels[order].astype(np.int64), LABEL_BITS, 1)
 
-    # -- edges
-    ea = inv[wf.edges[:, 0]]
-    eb = inv[wf.edges[:, 1]]
+def _write_edges(w: BitWriter, ea: I64, eb: I64, n: int) -> I64:
+    """The edge section (FORMAT.md 3, item 4) of edges ``ea -> eb`` (in the coded vertex order,
+    ``n`` vertices): chain bits, ring bits, the reverse section when it is cheaper than those
+    edges as explicit ones, then the explicit edges. Returns the edges' decoded order."""
+    m = ea.size
     keys = ea * n + eb
     by_key = np.argsort(keys, kind="stable")
     sorted_keys = keys[by_key]
@@ -294,24 +315,24 @@ def encode_body(wf: Wireframe, resolution: float, n_robots: int | None) -> Encod
         slot[key[sel]] = sel
         return slot[slot >= 0]
 
-    edge_order = np.concatenate((by(is_next, ea), by(is_rev, eb), by(is_close, ca), rest)).astype(np.int64)
+    return np.concatenate((by(is_next, ea), by(is_rev, eb), by(is_close, ca), rest)).astype(np.int64)
 
-    # -- likelihood
-    if m:
-        lq = np.rint(wf.likelihood[edge_order] * LIKELIHOOD_LEVELS).astype(np.int64)
-        _write_values(w, lq, LIKELIHOOD_BITS, LIKELIHOOD_BITS)
 
-    # -- sources (fused maps)
-    if n_robots is not None and m:
-        src = wf.sources[edge_order]
-        if n_robots < MAX_ROBOTS and np.any(src >> np.uint64(n_robots)):
-            raise EncodeError(f"an edge has a contributor bit >= the number of robots ({n_robots})")
-        uniq, index = np.unique(src, return_inverse=True)
-        w.eg(int(uniq.size))
-        w.fixed(uniq, n_robots)
-        w.fixed(index.astype(np.int64), ceil_log2(int(uniq.size)))
+def _write_sources(w: BitWriter, src: NDArray[np.uint64], n_robots: int) -> None:
+    """A fused map's contributor masks (FORMAT.md 3, item 6), ``src`` in the edges' decoded
+    order: the sorted distinct masks of ``n_robots`` bits, then an index per edge.
 
-    return EncodedBody(w.to_bytes(), order, edge_order, w.n_bits)
+    Raises
+    ------
+    EncodeError
+        A contributor bit at or above ``n_robots``.
+    """
+    if n_robots < MAX_ROBOTS and np.any(src >> np.uint64(n_robots)):
+        raise EncodeError(f"an edge has a contributor bit >= the number of robots ({n_robots})")
+    uniq, index = np.unique(src, return_inverse=True)
+    w.eg(int(uniq.size))
+    w.fixed(uniq, n_robots)
+    w.fixed(index.astype(np.int64), ceil_log2(int(uniq.size)))
 
 
 # ---------------------------------------------------------------------------------------- decode
