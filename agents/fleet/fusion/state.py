@@ -25,8 +25,8 @@ from agents.fleet.bus import valid_name
 from agents.fleet.fusion.codec import decode_message, encode_message, order_key
 from agents.fleet.fusion.intake import InputLimits, implausible
 from agents.fleet.fusion.stats import MAX_LATENCIES, FusionStats
-from agents.fleet.fusion.tree import wire_snap
 from agents.fleet.fusion.store import LATENCY_LOG, StoreJob, read_latency_log, read_store
+from agents.fleet.fusion.tree import wire_snap
 from mapping.fleet import align_maps, close_frontiers, fold_split
 from mapping.se2 import Pose
 from mapping.wireframe import Wireframe
