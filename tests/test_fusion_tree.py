@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import time
 
 import numpy as np
@@ -61,7 +62,7 @@ def test_fold_nodes_are_subtrees_and_cover_the_fleet():
         for k in (1, 2, 3, 4):
             spans = fold_nodes(n, k)
             assert spans[0][0] == 0 and spans[-1][1] == n
-            assert all(a[1] == b[0] for a, b in zip(spans, spans[1:]))
+            assert all(a[1] == b[0] for a, b in itertools.pairwise(spans))
             assert all(is_fold_node(lo, hi, n) for lo, hi in spans)
     assert fold_nodes(64, 2) == [(0, 32), (32, 64)] and fold_nodes(48, 2) == [(0, 32), (32, 48)]
     assert not is_fold_node(0, 24, 48) and is_fold_node(32, 40, 48)
