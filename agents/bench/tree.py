@@ -34,7 +34,7 @@ from agents.fleet.fusion.tree import fold_groups
 def synthetic_recordings(world_spec: str, n: int, seed: int, cache: str | os.PathLike[str],
                          resolution: float, frames: int = 150) -> list[Path]:
     """Recordings (:func:`agents.bench.common.save_recording`) of ``n`` synthetic robots
-    ``r1..rn``: robot ``k`` walks a straight line from a random point of the world at 0.3 m per
+    ``r1..rn``: robot ``k`` walks a straight line from near a random corner of the world at 0.3 m per
     frame and its map is every true wall with both ends within 12 m of a point it has passed,
     each vertex with its own fixed noise (0.03 m), in its odometry frame; only frames whose map
     changed are kept."""
@@ -52,7 +52,7 @@ def synthetic_recordings(world_spec: str, n: int, seed: int, cache: str | os.Pat
     lo, hi = truth.points.min(axis=0), truth.points.max(axis=0)
     for k, path in enumerate(paths):
         rng = np.random.default_rng(seed * 1000 + k)
-        c0 = lo + (0.2 + 0.6 * rng.random(2)) * (hi - lo)
+        c0 = truth.points[int(rng.integers(truth.n_vertices))] + rng.uniform(-2.0, 2.0, 2)  # by a wall
         ang = rng.uniform(-np.pi, np.pi)
         step = 0.3 * np.array([np.cos(ang), np.sin(ang)])
         noise = rng.normal(0.0, 0.03, truth.points.shape)
