@@ -52,12 +52,15 @@ def synthetic_recordings(world_spec: str, n: int, seed: int, cache: str | os.Pat
     lo, hi = truth.points.min(axis=0), truth.points.max(axis=0)
     for k, path in enumerate(paths):
         rng = np.random.default_rng(seed * 1000 + k)
-        c0 = truth.points[int(rng.integers(truth.n_vertices))] + rng.uniform(-2.0, 2.0, 2)  # by a wall
+        v0 = int(truth.edges[int(rng.integers(truth.n_edges)), 0])
+        c0 = truth.points[v0] + rng.uniform(-2.0, 2.0, 2)  # by a wall
         ang = rng.uniform(-np.pi, np.pi)
         step = 0.3 * np.array([np.cos(ang), np.sin(ang)])
         noise = rng.normal(0.0, 0.03, truth.points.shape)
         origin = Pose(float(c0[0]), float(c0[1]), float(rng.uniform(-np.pi, np.pi)))
         seen = np.zeros(truth.n_vertices, dtype=bool)
+        at = (truth.edges[:, 0] == v0) | (truth.edges[:, 1] == v0)
+        seen[truth.edges[at].ravel()] = True  # the first wall, however long
         out: list[Frame] = []
         last = -1
         for i in range(frames):
