@@ -32,10 +32,10 @@ from agents.fleet.fusion.tree import fold_groups
 
 
 def synthetic_recordings(world_spec: str, n: int, seed: int, cache: str | os.PathLike[str],
-                         resolution: float, frames: int = 150) -> list[Path]:
+                         resolution: float, frames: int = 150, radius: float = 6.0) -> list[Path]:
     """Recordings (:func:`agents.bench.common.save_recording`) of ``n`` synthetic robots
     ``r1..rn``: robot ``k`` walks a straight line from near a random corner of the world at 0.3 m per
-    frame and its map is every true wall with both ends within 12 m of a point it has passed,
+    frame and its map is every true wall with both ends within ``radius`` (6 m) of a point it has passed,
     each vertex with its own fixed noise (0.03 m), in its odometry frame; only frames whose map
     changed are kept."""
     from agents.bench.common import Frame, Recording, save_recording
@@ -44,7 +44,7 @@ def synthetic_recordings(world_spec: str, n: int, seed: int, cache: str | os.Pat
     from mapping.wireframe import Label, Wireframe
 
     world = load_world(world_spec)
-    d = Path(cache) / f"synthetic-{world.name}-n{n}-s{seed}-r{resolution:g}-f{frames}"
+    d = Path(cache) / f"synthetic-{world.name}-n{n}-s{seed}-r{resolution:g}-f{frames}-R{radius:g}"
     paths = [d / f"r{k + 1}.wrp" for k in range(n)]
     if all(p.is_file() for p in paths):
         return paths
@@ -65,7 +65,7 @@ def synthetic_recordings(world_spec: str, n: int, seed: int, cache: str | os.Pat
         last = -1
         for i in range(frames):
             c = np.clip(c0 + i * step, lo, hi)
-            seen |= np.linalg.norm(truth.points - c, axis=1) <= 12.0
+            seen |= np.linalg.norm(truth.points - c, axis=1) <= radius
             keep = seen[truth.edges[:, 0]] & seen[truth.edges[:, 1]]
             count = int(keep.sum())
             if count == last or count == 0:
