@@ -148,6 +148,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--synthetic", action="store_true",
         help="replay robots from synthetic maps (views of the true walls, agents.bench.tree) instead of recorded filter runs",
     )
+    parser.add_argument(
+        "--kill-fuser", type=float, metavar="S",
+        help="with --fusers K >= 2: kill -9 the regional fuser g1 S seconds into the window; reports the longest "
+        "gap in g1's partial publishes (the takeover's stall, fuser_stall_s)",
+    )
     parser.add_argument("--json", action="store_true", help="print the JSON summary as the last line")
 
 
@@ -319,7 +324,18 @@ def run_size(n: int, args: argparse.Namespace, world: Any, workdir: Path, say: A
             t0, w0 = time.monotonic(), time.time_ns()
             obs.start_window(keep=True)
             links.on = True
+            killed_at = None
             while (left := t0 + args.duration - time.monotonic()) > 0:
+                if fusers > 1 and args.kill_fuser is not None and killed_at is None:
+                    due = t0 + args.kill_fuser - time.monotonic()
+                    if due <= 0:
+                        os.kill(procs.pid("g1"), signal.SIGKILL)
+                        killed_at = time.monotonic()
+                        say(f"killed g1 (pid {procs.pid('g1')}) with SIGKILL")
+                        procs.procs.pop("g1").wait()  # reaped: the run goes on without it
+                        fnames = [f for f in fnames if f != "g1"]
+                        continue
+                    left = min(left, due)
                 sleep_checked(procs, min(1.0, left))
                 harvest.poll()
             win = obs.end_window()
@@ -328,6 +344,7 @@ def run_size(n: int, args: argparse.Namespace, world: Any, workdir: Path, say: A
             transport = obs.fusion_stats().get("transport_ms") or {}
             c1, r1 = _cpu_total(procs, fnames), cpu_seconds(pid_r)
             f1 = {f: cpu_seconds(procs.pid(f)) for f in fnames}
+            stall = links.max_gap("g1", killed_at - 1.0, t1) if killed_at is not None else None
             root_stats = obs.fusion_stats() if fusers > 1 else {}
             b1 = _cpu_total(procs, names)
             kept = obs.kept
@@ -401,6 +418,7 @@ def run_size(n: int, args: argparse.Namespace, world: Any, workdir: Path, say: A
                       for f in fnames},
         "link_bytes_per_s": {h: rounded(b / wall, 1) for h, b in links.bytes.items()},
         "load_avg": [round(v, 2) for v in os.getloadavg()],
+        "fuser_stall_s": rounded(stall, 3) if fusers > 1 and args.kill_fuser is not None else None,
     })
     result.update({
         "maps_sent": _sent_counts(d, ids, mode),

@@ -21,6 +21,7 @@ for 64 robots; what the fleet benchmark measures at those sizes is transport and
 
 from __future__ import annotations
 
+import itertools
 import os
 import threading
 from pathlib import Path
@@ -112,6 +113,8 @@ class LinkCounter:
         self.lock = threading.Lock()
         self.bytes = {"robots->regional": 0, "regional->root": 0, "root->clients": 0}
         self.on = False
+        self.prefix = prefix
+        self.partial_times: dict[str, list[float]] = {}  # group -> arrival times (monotonic)
         self.subs = [
             session.declare_subscriber(f"{prefix}/robots/*/map", lambda s: self._add("robots->regional", s)),
             session.declare_subscriber(f"{prefix}/groups/*/map", lambda s: self._add("regional->root", s)),
@@ -119,10 +122,25 @@ class LinkCounter:
         ]
 
     def _add(self, hop: str, sample: Any) -> None:
+        if hop == "regional->root":
+            import time
+
+            g = str(sample.key_expr).split("/")[-2]
+            with self.lock:
+                self.partial_times.setdefault(g, []).append(time.monotonic())
         if self.on:
             n = len(sample.payload)
             with self.lock:
                 self.bytes[hop] += n
+
+    def max_gap(self, group: str, t0: float, t1: float) -> float | None:
+        """The longest time (s) without a partial of ``group`` over ``[t0, t1]``."""
+        with self.lock:
+            ts = [t for t in self.partial_times.get(group, []) if t0 <= t <= t1]
+        if not ts:
+            return None
+        ts = [t0, *ts, t1]
+        return max(b - a for a, b in itertools.pairwise(ts))
 
     def close(self) -> None:
         for s in self.subs:
