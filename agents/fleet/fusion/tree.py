@@ -297,6 +297,7 @@ class RootState:
         self.version = 0
         self.merges = 0
         self._cache: dict[tuple[int, int], tuple[Any, Wireframe]] = {}
+        self._leaves: dict[str, tuple[Any, Wireframe]] = {}
         self._pending: list[int] = []  # robot stamps newly included, not yet published
         self._group_pending: list[int] = []  # partial stamps newly included
 
@@ -331,10 +332,16 @@ class RootState:
         return min(res, default=DEFAULT_RESOLUTION)
 
     def _leaf(self, p: Partial, index: dict[str, int]) -> Wireframe:
+        """The partial with its sources in fleet-wide bits (cached per partial and positions)."""
         m = p.message
+        pos = tuple(index[r] for r in m.robots)
+        hit = self._leaves.get(p.group)
+        if hit is not None and hit[0] == (p.key, pos):
+            return hit[1]
         wf = m.wireframe
-        pos = [index[r] for r in m.robots]
-        return Wireframe(wf.points, wf.labels, wf.edges, wf.likelihood, remap_sources(wf.sources, pos))
+        out = Wireframe(wf.points, wf.labels, wf.edges, wf.likelihood, remap_sources(wf.sources, pos))
+        self._leaves[p.group] = ((p.key, pos), out)
+        return out
 
     def _merge(self, a: Wireframe, b: Wireframe, thr: float) -> Wireframe:
         if b.n_vertices == 0:
