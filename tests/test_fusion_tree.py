@@ -157,13 +157,15 @@ def test_two_regional_fusers_and_a_root_publish_the_one_process_map(tmp_path):
 def test_a_killed_regional_fuser_is_taken_over_and_no_map_is_lost(tmp_path):
     """kill -9 of a regional fuser: the root keeps serving its last partial (flagged in
     ``fusers_down``), the other fuser takes its robots over from the bytes it kept, and a map a
-    robot of the dead group sends after the kill reaches the fused map (timed)."""
+    robot of the dead group sends after the kill reaches the fused map (timed). Restarted from
+    its store, the fuser takes its group back (the takeover retires; newer boot at the root)."""
     msgs = robot_views("museum", 8, seed=4)
     keys = FleetKeys("tree2")
     with in_process_router() as ep, Fleet(tmp_path) as fleet, client(ep) as s:
         bus = ["--connect", ep, "--fleet", "tree2", "--threshold", repr(THR), "--no-refine"]
         fleet.start("g0", ["fuse", "--group", "g0", "--robots", "r0[1-4]", *bus])
-        fleet.start("g1", ["fuse", "--group", "g1", "--robots", "r0[5-8]", *bus])
+        g1 = ["fuse", "--group", "g1", "--robots", "r0[5-8]", "--store", str(tmp_path / "store-g1"), *bus]
+        fleet.start("g1", g1)
         fleet.start("root", ["fuse", "--of-groups", "*", *bus])
         for name in ("g0", "g1", "root"):
             fleet.wait_log(name, "ready", 60.0)
@@ -193,6 +195,19 @@ def test_a_killed_regional_fuser_is_taken_over_and_no_map_is_lost(tmp_path):
                 lambda m: m.wireframe.n_edges > full.wireframe.n_edges, 10.0, "r08's new wall", since
             )
             print(f"takeover: r08's map in the fused map {1000 * (t1 - t0):.0f} ms after its publish")
+            # g1 restarted: the takeover retires, the root follows the new g1 (newer boot)
+            boot_before = watcher.wait_for(lambda m: True, 1.0, "any").meta["group_versions"]["g1"][0]
+            fleet.start("g1", g1)  # resumes from its store
+            wait_until(lambda: "takeover retired" in fleet.log("g0"), 30.0, "the takeover retiring")
+            # the robots' heartbeats (each re-sends its latest map at least every 2 s)
+            for m in msgs[4:7]:
+                s.put(keys.robot_map(m.sender), encode_message(m))
+            s.put(keys.robot_map("r08"), encode_message(dataclasses.replace(m2, seq=3, stamp_ns=time.time_ns())))
+            back = watcher.wait_for(
+                lambda m: m.meta["group_versions"].get("g1", [0])[0] > boot_before and len(m.robots) == 8
+                and m.wireframe.n_edges > full.wireframe.n_edges, 30.0, "the new g1 with every map",
+            )
+            assert back.meta["fusers_down"] == []
         finally:
             watcher.close()
             for t in tokens:

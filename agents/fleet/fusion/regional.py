@@ -76,15 +76,17 @@ class RegionalService(FusionService):
         token: bool = True,
         seed: dict[str, bytes] | None = None,
     ) -> None:
-        super().__init__(session, GroupView(keys, group, selector), opts, log)
+        # before the service's own set-up: a resumed store publishes with _meta() at once
         self.group = group
         self.selector = selector
         self.fleet_keys = keys
         self.tree = GroupKeys(keys.prefix)
         self.boot = time.time_ns()
+        super().__init__(session, GroupView(keys, group, selector), opts, log)
         self.state.sender = group
         self.others = RootState(opts.config.threshold)
         self._others_raw: dict[str, bytes] = {}
+        self._decoded_at: dict[str, float] = {}
         self._base_ident: Any = None
         self._token = token
         self._seed = seed or {}
@@ -137,7 +139,16 @@ class RegionalService(FusionService):
             raws, self._others_raw = self._others_raw, {}
         if not raws:
             return
+        now = time.monotonic()
+        first = min(self.state.robots, default=None)
         for g, raw in raws.items():
+            # a group whose robots all come after ours is no part of our prefix: its partials
+            # are decoded every 2 s only (the standby's view of its pattern)
+            known = self.others.partials.get(g)
+            if (known is not None and first is not None and min(known.message.robots, default="") > first
+                    and now - self._decoded_at.get(g, -1e9) < 2.0):
+                continue
+            self._decoded_at[g] = now
             try:
                 msg = decode_message(raw)
             except ValueError:
@@ -184,6 +195,7 @@ class Standby:
         self.seen: set[str] = set()
         self.takeovers: dict[str, RegionalService] = {}
         self._events: list[tuple[str, bool]] = []
+        self.dead: dict[str, float] = {}  # groups gone whose takeover waits for their pattern
 
     def keep(self, key: str, payload: Any) -> None:
         data = payload.to_bytes() if hasattr(payload, "to_bytes") else bytes(payload)
@@ -215,6 +227,8 @@ class Standby:
     def step(self) -> None:
         with self.lock:
             events, self._events = self._events, []
+        if events:
+            self.owner._update_base()  # partials that came with the news: learn their patterns first
         for g, up in events:
             if g == self.owner.group:
                 continue
@@ -227,8 +241,19 @@ class Standby:
                     self.say(f"fuser {g} is back: takeover retired")
             else:
                 self.alive.discard(g)
-                if g in self.selects and g not in self.takeovers and self.designated(g):
-                    self._take_over(g)
+                if g not in self.takeovers:
+                    self.dead[g] = time.monotonic()
+        for g, since in list(self.dead.items()):
+            if g in self.alive or g in self.takeovers:
+                del self.dead[g]
+            elif not self.designated(g):
+                del self.dead[g]
+            elif g in self.selects:
+                del self.dead[g]
+                self._take_over(g)
+            elif time.monotonic() - since > 5.0:
+                del self.dead[g]
+                self.say(f"fuser {g} is gone and none of its partials told its robots: no takeover")
         for t in self.takeovers.values():
             t.poll(0.0)
 
