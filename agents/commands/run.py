@@ -225,6 +225,8 @@ def write_outputs(
     for rid in ids:
         entry: dict[str, Any] = {}
         f = store / "robots" / f"{rid}.wfm"
+        if not f.is_file():  # a fusion tree (--fusers K): the robot's regional fuser has it
+            f = next(iter(sorted(store.parent.glob(f"store-g*/robots/{rid}.wfm"))), f)
         if f.is_file():
             m = decode_message(f.read_bytes())
             rwf = m.wireframe.transformed(m.origin)
