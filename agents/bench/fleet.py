@@ -62,6 +62,16 @@ after every robot's first map has reached the bus:
   observer), ``maps_sent``: what the robots report they put, ``maps_merged``: what the fusion
   service took in (:func:`agents.bench.common.merge_counts`).
 
+**Fusion tree** (``--fusers K,K,...``, each count measured in turn for every size, in the same
+run): K >= 2 starts K regional fusers over the fold's subtrees and a root instead of one service
+(:mod:`agents.bench.tree`); the latency is then end to end through the root, and the entry adds
+``regional_ms_p50/p99`` (robot publish -> partial publish), ``root_ms_p50/p99`` (partial publish
+-> fused publish), ``fuser_cpu`` (each fuser's share of a core), ``link_bytes_per_s`` (payload
+bytes per hop: robots -> regional fusers, partials -> root, fused maps -> clients; the same hops
+are reported for one fuser), ``fused_exact`` and, with ``--kill-fuser S``, ``fuser_stall_s``.
+``load_avg`` is the machine's load average at the end of each window. ``--synthetic`` replays
+synthetic robots instead of recorded filter runs (cheap for 64 robots; see :mod:`agents.bench.tree`).
+
 Filter robots run with their visualisation stream off (``--viz-rate 0``), like replay robots.
 The fusion service runs without a Rerun recording unless ``--record``.
 """
