@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test lint typecheck bench fuzz certs clean venv
+.PHONY: demo test check lint typecheck bench fuzz certs clean venv
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PY) -m venv $(VENV)
@@ -22,13 +22,19 @@ test: $(STAMP)
 	$(BIN)/mypy
 	$(BIN)/python -m pytest -q
 
+# The edit-test loop (under a minute): lint and the pure tests, without the tests that start
+# processes or Zenoh sessions (marker `fleet`) or run long (`slow`). `make test` runs them all.
+check: $(STAMP)
+	$(BIN)/ruff check mapping wire_codec agents tests
+	$(BIN)/python -m pytest -q -m "not fleet and not slow"
+
 lint: $(STAMP)
 	$(BIN)/ruff check mapping wire_codec agents tests
 
 bench: $(STAMP)
 	$(BIN)/wiremap bench codec --json
 	$(BIN)/wiremap bench accuracy --world paper-small --seeds 3 --json
-	$(BIN)/wiremap bench speed --json
+	$(BIN)/wiremap bench speed --pieces --json
 
 fuzz: $(STAMP)
 	$(BIN)/python -m pip install -q atheris || { echo "atheris does not install here"; exit 1; }

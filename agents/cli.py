@@ -29,6 +29,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "replay": ("agents.commands.replay", "open the Rerun viewer on a recording"),
     "export": ("agents.commands.export", "export a map as GeoJSON, SVG, PNG or a ROS map"),
     "bench": ("agents.commands.bench", "benchmarks: accuracy, speed, codec, fleet, soak"),
+    "config": ("agents.commands.config_cmd", "show the particle filter's effective configuration"),
 }
 
 
@@ -68,7 +69,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         return int(args._module.run(args) or 0)
     except UserError as exc:
-        sys.stderr.write(f"wiremap {args.command}: {exc}\n")
+        sys.stderr.write(f"wiremap {getattr(args, '_label', None) or args.command}: {exc}\n")
         return 2
     except KeyboardInterrupt:
         sys.stderr.write("interrupted\n")

@@ -21,13 +21,14 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Iterable, Iterator, Sequence
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
+from mapping.config import with_overrides
 from mapping.filter import FilterConfig, StepInfo, WireframeFilter
 from mapping.se2 import Pose
 from mapping.wireframe import Wireframe
@@ -44,6 +45,7 @@ __all__ = [
     "run_filter",
     "scan_fov",
     "simulate",
+    "world_defaults",
 ]
 
 SENSORS = ("corners", "lidar")
@@ -162,11 +164,24 @@ def default_merge_threshold(world: Any) -> float:
     return 0.4 if max(w, h) > 100.0 else 0.2
 
 
+def world_defaults(world: Any) -> tuple[int, float]:
+    """The paper's ``(particles, merge threshold)`` for ``world``: 6 and 0.4 m for a large world
+    (a side over 100 m), else 10 and 0.2 m (``wiremap bench accuracy``, ``wiremap config show``)."""
+    thr = default_merge_threshold(world)
+    return (6 if max(world.size) > 100.0 else 10), thr
+
+
 def filter_config_for(
-    particles: int, merge_threshold: float, max_range: float, fov: float = 2.0 * math.pi, **overrides: Any
+    particles: int,
+    merge_threshold: float,
+    max_range: float,
+    fov: float = 2.0 * math.pi,
+    overrides: Mapping[str, Any] | None = None,
 ) -> FilterConfig:
-    """The filter configuration used by the commands; ``particles == 1`` gives the baseline
-    (single hypothesis, no mutation)."""
+    """The filter configuration used by the commands: these settings, then ``overrides``
+    (``{dotted key: value or its text}``, :func:`mapping.config.with_overrides`; raises its
+    ``ConfigError``). One particle gives the baseline (single hypothesis, no mutation):
+    ``mutate`` follows the final particle count unless ``overrides`` sets it."""
     cfg = FilterConfig(
         particles=particles,
         merge_threshold=merge_threshold,
@@ -174,7 +189,12 @@ def filter_config_for(
         fov=fov,
         mutate=particles > 1,
     )
-    return replace(cfg, **overrides) if overrides else cfg
+    if not overrides:
+        return cfg
+    cfg = with_overrides(cfg, overrides)
+    if "mutate" not in overrides and cfg.mutate != (cfg.particles > 1):
+        cfg = replace(cfg, mutate=cfg.particles > 1)
+    return cfg
 
 
 def seeds_for(seed: int) -> dict[str, np.random.Generator]:
@@ -337,35 +357,40 @@ def robot_steps(opts: Any) -> Iterator[RunStep]:
     ``opts.start`` along ``opts.route`` (planned from the start when None) and run a filter of
     ``opts.particles`` particles whose map frame is the robot's odometry frame (its first pose is
     the identity). ``opts.threshold`` is the merge threshold (``opts.resolution``, the wire
-    quantisation, for options without one). ``opts.extra`` may set
-    ``sensor`` and ``max_range``. ``RunStep.true_pose`` is in the world frame."""
+    quantisation, for options without one); ``opts.filter_overrides`` (dotted keys) go over
+    both. ``opts.extra`` may set ``sensor`` and ``max_range``; the sensor senses as far as the
+    filter's ``max_range``. ``RunStep.true_pose`` is in the world frame."""
     from agents.sim.world import load_world
 
     world = load_world(opts.world)
     extra = dict(getattr(opts, "extra", {}) or {})
+    threshold = float(getattr(opts, "threshold", opts.resolution))
+    max_range = float(extra.get("max_range", 8.0))
+    overrides = getattr(opts, "filter_overrides", None)
+    cfg = filter_config_for(int(opts.particles), threshold, max_range, overrides=overrides)
     options = SimOptions(
         sensor=str(extra.get("sensor", "corners")),
-        max_range=float(extra.get("max_range", 8.0)),
+        max_range=cfg.max_range,
         duration=getattr(opts, "duration", None),
     )
     start = getattr(opts, "start", None)
     route = getattr(opts, "route", None)
     start_xy = None if start is None else (start.x, start.y)
     inputs = simulate(world, options, int(opts.seed), route=route, start=start_xy)
-    threshold = float(getattr(opts, "threshold", opts.resolution))
-    cfg = filter_config_for(int(opts.particles), threshold, options.max_range)
     filt = WireframeFilter(cfg, seeds_for(int(opts.seed))["filter"], initial_pose=Pose.identity())
     return run_filter(inputs, filt)
 
 
 def sim_filter(
-    world: Any, options: SimOptions, seed: int, particles: int, merge_threshold: float
+    world: Any, options: SimOptions, seed: int, particles: int, merge_threshold: float,
+    config: FilterConfig | None = None,
 ) -> tuple[WireframeFilter, Iterator[ScanInput]]:
     """A filter whose map frame is the world frame (it starts at the first true pose) and the
-    scans to feed it."""
+    scans to feed it. ``config`` replaces ``filter_config_for(particles, merge_threshold,
+    options.max_range)``."""
     inputs = simulate(world, options, seed)
     first = next(inputs)
-    cfg = filter_config_for(particles, merge_threshold, options.max_range)
+    cfg = config if config is not None else filter_config_for(particles, merge_threshold, options.max_range)
     filt = WireframeFilter(cfg, seeds_for(seed)["filter"], initial_pose=first.true_pose)
 
     def chain() -> Iterator[ScanInput]:

@@ -268,7 +268,7 @@ def carve(wf: Wireframe, spans: dict[int, list[tuple[float, float]]]) -> tuple[W
     out = Wireframe(
         np.concatenate(pts),
         np.concatenate(labels),
-        edges,  # type: ignore[arg-type]
+        edges,
         np.concatenate([wf.likelihood[kept], wf.likelihood[org]]),
         np.concatenate([wf.sources[kept], wf.sources[org]]),
     ).compacted()

@@ -102,11 +102,8 @@ tell where they end. A wall whose whole length falls between two beams (a degree
 incidence) returns one beam or none: a single return between two walls is not joined to them
 (from one scan it cannot be told from a short wall seen along a line of sight).
 
-Measured along three ``paper-small`` routes (811 true poses, 720 beams, 1 cm noise, against
-the corner sensor's true scans, 10 cm matching): true corners detected 94.4 % (92.4 % before
-stubs, grazing chains, walls between two beams and the extrapolation cap), labels right for
-97.6 % of them (94.8 %), true nominal corners labelled nominal 96.0 % (89.7 %), occlusions
-detected 92.3 % (87.7 %); 99.99 % of the extracted wall length lies on true walls.
+Stubs, grazing chains, walls between two beams and the extrapolation cap are there because they
+raised corner detection and label accuracy on simulated lidar (docs/experiments.md).
 """
 
 from __future__ import annotations
@@ -426,6 +423,73 @@ def extract_corners(
         more than a turn, or ``max_range`` is not positive. Bad *ranges* never raise.
     """
     cfg = config if config is not None else ExtractConfig()
+    beams = _beams(ranges, angles, max_range, cfg)  # 1
+    if beams is None:
+        return Wireframe.empty()
+    sc = _runs(beams, cfg)  # 2
+    pieces = _split_and_merge(sc)  # 3, 4, 5
+    kept = [p for p in pieces if p.kept]
+    if not kept:
+        return Wireframe.empty()
+    owner = _absorb_continuations(sc, pieces, kept)  # 5a
+    kept = _add_sparse_walls(sc, kept, owner)
+    kept = _keep_corner_pieces(sc, pieces, kept, owner)  # 6, short walls in a corner
+    if cfg.stubs:
+        kept = _add_stubs(sc, kept, owner)  # 5c
+    _join_between_beams(sc, kept, owner)  # 5b
+    nk = len(kept)
+    corner_at: list[FloatArray | None] = [None] * nk  # corner between kept[i] and kept[i + 1]
+    pairs = range(nk) if beams.cyclic and nk > 1 else range(nk - 1)
+    for i in pairs:
+        corner_at[i] = _corner(sc, kept[i], kept[(i + 1) % nk])
+    verts, labs, start_v, end_v = _vertices(sc, pieces, kept, owner, corner_at)  # 6
+    return _scan_wireframe(sc, kept, verts, labs, start_v, end_v)  # 7
+
+
+@dataclass(frozen=True)
+class _Beams:
+    """A validated scan (step 1): ranges, bearings and which beams return; ``step`` is the mean
+    bearing step, ``cyclic`` whether the scan covers a whole turn."""
+
+    r_all: FloatArray
+    a_all: FloatArray
+    valid: NDArray[np.bool_]
+    max_range: float
+    step: float
+    cyclic: bool
+
+    @property
+    def n(self) -> int:
+        return int(self.r_all.shape[0])
+
+    def bearing(self, k: float) -> float:
+        """Bearing of (possibly fractional, possibly unwrapped) beam index ``k``."""
+        n, a_all = self.n, self.a_all
+        base = math.floor(k)
+        frac = k - base
+        wraps, b = divmod(int(base), n)
+        lo_a = a_all[b] + wraps * TWO_PI
+        if frac == 0.0:
+            return float(lo_a)
+        nb = b + 1
+        hi_a = a_all[nb] + wraps * TWO_PI if nb < n else a_all[0] + (wraps + 1) * TWO_PI
+        return float(lo_a + frac * (hi_a - lo_a))
+
+    def raw_range(self, k: int) -> float:
+        return float(self.r_all[k % self.n])
+
+    def raw_valid(self, k: int) -> bool:
+        return bool(self.valid[k % self.n])
+
+
+def _beams(ranges: FloatArray, angles: FloatArray, max_range: float, cfg: ExtractConfig) -> _Beams | None:
+    """Step 1 (points): the validated scan, or None when fewer than ``min_points`` beams return.
+
+    Raises
+    ------
+    ValueError
+        As :func:`extract_corners`.
+    """
     r_all = np.asarray(ranges, dtype=np.float64).reshape(-1)
     a_all = np.asarray(angles, dtype=np.float64).reshape(-1)
     if r_all.shape != a_all.shape:
@@ -440,25 +504,50 @@ def extract_corners(
     if n > 1 and a_all[-1] - a_all[0] > TWO_PI + 1e-9:
         raise ValueError("beam angles span more than a full turn")
     if n < 2:
-        return Wireframe.empty()
+        return None
 
     step = (a_all[-1] - a_all[0]) / (n - 1)
     cyclic = n >= 3 and a_all[-1] - a_all[0] + step >= TWO_PI - 0.5 * step
 
     with np.errstate(invalid="ignore"):
         valid = np.isfinite(r_all) & (r_all > cfg.min_range) & (r_all < max_range)
-    beam_idx = np.flatnonzero(valid)
-    if len(beam_idx) < cfg.min_points:
-        return Wireframe.empty()
+    if np.count_nonzero(valid) < cfg.min_points:
+        return None
+    return _Beams(r_all, a_all, valid, max_range, step, bool(cyclic))
 
-    # ---------------------------------------------------------------- runs
+
+@dataclass(frozen=True)
+class _Scan:
+    """The returning points cut into runs (step 2): ``pts`` in beam order starting at the
+    seam's cut, their (unwrapped) beam indices, ``brk[k]`` whether a run ends between points
+    ``k`` and ``k + 1``, whether the cyclic seam is a break, and the line fitter over ``pts``."""
+
+    beams: _Beams
+    cfg: ExtractConfig
+    pts: FloatArray
+    beam_idx: NDArray[np.intp]
+    brk: NDArray[np.bool_]
+    seam_break: bool
+    fitter: _Fitter
+
+    @property
+    def m(self) -> int:
+        return len(self.beam_idx)
+
+
+def _runs(beams: _Beams, cfg: ExtractConfig) -> _Scan:
+    """Step 2 (runs): cut the returning points wherever neighbours are more than ``jump`` apart
+    or more than ``max_gap`` no-return beams lie between them; a cyclic scan is cut at its
+    clearest break so that the seam splits no wall."""
+    r_all, a_all, n = beams.r_all, beams.a_all, beams.n
+    beam_idx = np.flatnonzero(beams.valid)
     r_ok, a_ok = r_all[beam_idx], a_all[beam_idx]
     pts = np.stack([r_ok * np.cos(a_ok), r_ok * np.sin(a_ok)], axis=1)
     gaps = np.diff(beam_idx)
     far = np.hypot(*(pts[1:] - pts[:-1]).T) > cfg.jump
     brk = far | (gaps > cfg.max_gap + 1)
     seam_break = True  # is the cyclic seam (last -> first compressed point) a break?
-    if cyclic and len(beam_idx) >= 4:
+    if beams.cyclic and len(beam_idx) >= 4:
         # Cut the ring at its clearest break so that the seam splits no wall: a no-return gap
         # first, else the widest jump that is not a grazing wall's sparse continuation.
         nxt = np.roll(pts, -1, axis=0)
@@ -484,30 +573,16 @@ def extract_corners(
             gaps = np.diff(beam_idx)
             far = np.hypot(*(pts[1:] - pts[:-1]).T) > cfg.jump
             brk = far | (gaps > cfg.max_gap + 1)
-    m = len(beam_idx)
+    return _Scan(beams, cfg, pts, beam_idx, brk, seam_break, _Fitter(pts))
 
-    def bearing(k: float) -> float:
-        """Bearing of (possibly fractional, possibly unwrapped) beam index ``k``."""
-        base = math.floor(k)
-        frac = k - base
-        wraps, b = divmod(int(base), n)
-        lo_a = a_all[b] + wraps * TWO_PI
-        if frac == 0.0:
-            return float(lo_a)
-        nb = b + 1
-        hi_a = a_all[nb] + wraps * TWO_PI if nb < n else a_all[0] + (wraps + 1) * TWO_PI
-        return float(lo_a + frac * (hi_a - lo_a))
 
-    def raw_range(k: int) -> float:
-        return float(r_all[k % n])
-
-    def raw_valid(k: int) -> bool:
-        return bool(valid[k % n])
-
-    run_start = np.concatenate([[0], np.flatnonzero(brk) + 1])
-    run_end = np.concatenate([np.flatnonzero(brk), [m - 1]])
-
-    fitter = _Fitter(pts)
+def _split_and_merge(sc: _Scan) -> list[_Piece]:
+    """Steps 3 to 5 (split, merge, fit): every run's pieces in order; those with fewer than
+    ``min_points`` points or shorter than ``min_length`` are marked not kept."""
+    cfg, pts, fitter, seam_break = sc.cfg, sc.pts, sc.fitter, sc.seam_break
+    m = sc.m
+    run_start = np.concatenate([[0], np.flatnonzero(sc.brk) + 1])
+    run_end = np.concatenate([np.flatnonzero(sc.brk), [m - 1]])
     pieces: list[_Piece] = []
     for run_id, (s, e) in enumerate(zip(run_start.tolist(), run_end.tolist())):
         if not seam_break:
@@ -534,21 +609,24 @@ def extract_corners(
     for p in pieces:
         if p.kept and (p.count < cfg.min_points or p.length < cfg.min_length):
             p.kept = False
-    kept = [p for p in pieces if p.kept]
-    if not kept:
-        return Wireframe.empty()
+    return pieces
 
-    # ---------------------------------------------------------------- absorb sparse continuations
+
+def _absorb_continuations(sc: _Scan, pieces: list[_Piece], kept: list[_Piece]) -> NDArray[np.int64]:
+    """Step 5a (grazing walls), first part: grow each kept piece by the points just beyond it
+    that lie on its line and further along it (a stray point at a time, or a whole dropped
+    piece of ``min_points`` or more at once when all of it fits), across short drop-outs,
+    never across the seam. Returns the owner (index into ``kept``, -1 none) of each point."""
+    cfg, pts, beam_idx, m = sc.cfg, sc.pts, sc.beam_idx, sc.m
     # A wall seen at a grazing angle returns points far apart (spacing ~ r dθ / sin α), so it
     # breaks into runs too short to keep. Whatever lies just beyond a kept piece on the piece's
     # line (within split_tol) and further along it is where the continued wall would be hit -- a
-    # beam crosses the line only once -- so it is absorbed into the piece: a stray point at a
-    # time, or a whole dropped piece of min_points or more at once when all of it fits (so a
-    # short wall at a corner keeps its points); across short drop-outs, never across the seam.
+    # beam crosses the line only once -- so it is absorbed into the piece (so a short wall at a
+    # corner keeps its points).
     owner = np.full(m, -1, dtype=np.int64)
     for i, p in enumerate(kept):
         owner[p.lo : p.hi + 1] = i
-    if not seam_break:
+    if not sc.seam_break:
         owner[0] = -2  # the corner beam at the seam of a closed ring belongs to no piece
     unit_hi = np.arange(m)  # compressed index range [unit_lo, unit_hi] absorbed as one unit
     unit_lo = np.arange(m)
@@ -583,68 +661,86 @@ def extract_corners(
         if grown:
             # Extend the piece but keep its line: the dense part fixes the line best, and a
             # point absorbed next to a corner may belong to the other wall.
-            fitter.extent(p)
+            sc.fitter.extent(p)
+    return owner
 
-    # ---------------------------------------------------------------- walls seen only sparsely
-    # What is left may hold a wall seen so obliquely that no two of its points are within
-    # ``jump``: chains of leftover points, each on the line through the chain's ends, become
-    # pieces when they pass the same tests as any other piece.
-    for piece in _sparse_pieces(pts, beam_idx, owner == -1, fitter, cfg):
+
+def _renumber(kept: list[_Piece], owner: NDArray[np.int64]) -> None:
+    """Point each kept piece's points at its index in ``kept``."""
+    for i, p in enumerate(kept):
+        owner[p.lo : p.hi + 1] = i
+
+
+def _add_sparse_walls(sc: _Scan, kept: list[_Piece], owner: NDArray[np.int64]) -> list[_Piece]:
+    """Step 5a, second part: what is left may hold a wall seen so obliquely that no two of its
+    points are within ``jump``: chains of leftover points, each on the line through the chain's
+    ends, become pieces (:func:`_sparse_pieces`) when they pass the same tests as any other
+    piece. Returns the kept pieces in scan order (``owner`` updated)."""
+    for piece in _sparse_pieces(sc.pts, sc.beam_idx, owner == -1, sc.fitter, sc.cfg):
         kept.append(piece)
         owner[piece.lo : piece.hi + 1] = len(kept) - 1
     if len(kept) > 1:
         order_k = sorted(range(len(kept)), key=lambda i: kept[i].lo)
         kept = [kept[i] for i in order_k]
-        for i, p in enumerate(kept):
-            owner[p.lo : p.hi + 1] = i
+        _renumber(kept, owner)
+    return kept
 
-    # ---------------------------------------------------------------- corners between pieces
-    def corner(p: _Piece, q: _Piece) -> FloatArray | None:
-        """Intersection of the lines of ``p`` and the next piece ``q`` when they meet there."""
-        between = (q.lo - p.hi - 1) % m
-        if between >= cfg.min_points:
-            return None
-        k_end, k_start = int(beam_idx[p.hi]), int(beam_idx[q.lo])
-        if k_start < k_end:
-            k_start += n  # across the seam of a cyclic scan
-        if k_start - k_end - 1 > cfg.max_gap + between:
-            return None  # a no-return gap between them: not a corner
-        x = _intersect(p, q)
-        if x is None:
-            return None
-        # The corner must lie between the two pieces' boundary beams, with one beam of slack
-        # and, close to the robot, the angle split_tol subtends (range noise moves the split).
-        slack = max(step, cfg.split_tol / max(float(np.hypot(x[0], x[1])), 1e-9))
-        b_lo, b_hi = bearing(k_end) - slack, bearing(k_start) + slack
-        bx = b_lo + (math.atan2(x[1], x[0]) - b_lo) % TWO_PI
-        if bx > b_hi:
-            return None
-        # ... and near both pieces' ends: within corner_tol plus the larger of the piece's own
-        # point spacing at that end (sparse at a grazing angle) and half its length, so that a
-        # short wall seen end-on is not stretched across the room.
-        sp_p = float(np.hypot(*(pts[p.hi] - pts[p.hi - 1]))) if p.count >= 2 else 0.0
-        sp_q = float(np.hypot(*(pts[q.lo + 1] - pts[q.lo]))) if q.count >= 2 else 0.0
-        reach_p = cfg.corner_tol + max(sp_p, 0.5 * p.length)
-        reach_q = cfg.corner_tol + max(sp_q, 0.5 * q.length)
-        near_p = within_extent(p, x) if p.stub else np.hypot(*(x - pts[p.hi])) <= reach_p
-        near_q = within_extent(q, x) if q.stub else np.hypot(*(x - pts[q.lo])) <= reach_q
-        if near_p and near_q:
-            return x
+
+def _corner(sc: _Scan, p: _Piece, q: _Piece) -> FloatArray | None:
+    """Step 6: the intersection of the lines of ``p`` and the next piece ``q`` when they meet
+    there in a corner (few points and no long no-return gap between them, the intersection
+    between their boundary beams and near both pieces' ends), else None."""
+    cfg, pts, beam_idx, m, n = sc.cfg, sc.pts, sc.beam_idx, sc.m, sc.beams.n
+    between = (q.lo - p.hi - 1) % m
+    if between >= cfg.min_points:
         return None
+    k_end, k_start = int(beam_idx[p.hi]), int(beam_idx[q.lo])
+    if k_start < k_end:
+        k_start += n  # across the seam of a cyclic scan
+    if k_start - k_end - 1 > cfg.max_gap + between:
+        return None  # a no-return gap between them: not a corner
+    x = _intersect(p, q)
+    if x is None:
+        return None
+    # The corner must lie between the two pieces' boundary beams, with one beam of slack
+    # and, close to the robot, the angle split_tol subtends (range noise moves the split).
+    slack = max(sc.beams.step, cfg.split_tol / max(float(np.hypot(x[0], x[1])), 1e-9))
+    b_lo, b_hi = sc.beams.bearing(k_end) - slack, sc.beams.bearing(k_start) + slack
+    bx = b_lo + (math.atan2(x[1], x[0]) - b_lo) % TWO_PI
+    if bx > b_hi:
+        return None
+    # ... and near both pieces' ends: within corner_tol plus the larger of the piece's own
+    # point spacing at that end (sparse at a grazing angle) and half its length, so that a
+    # short wall seen end-on is not stretched across the room.
+    sp_p = float(np.hypot(*(pts[p.hi] - pts[p.hi - 1]))) if p.count >= 2 else 0.0
+    sp_q = float(np.hypot(*(pts[q.lo + 1] - pts[q.lo]))) if q.count >= 2 else 0.0
+    reach_p = cfg.corner_tol + max(sp_p, 0.5 * p.length)
+    reach_q = cfg.corner_tol + max(sp_q, 0.5 * q.length)
+    near_p = _within_extent(sc, p, x) if p.stub else np.hypot(*(x - pts[p.hi])) <= reach_p
+    near_q = _within_extent(sc, q, x) if q.stub else np.hypot(*(x - pts[q.lo])) <= reach_q
+    if near_p and near_q:
+        return x
+    return None
 
-    def within_extent(p: _Piece, x: FloatArray) -> bool:
-        """A stub's extent runs from its corner through its returns: another corner must lie
-        on its line within corner_tol plus its point spacing at that end beyond it."""
-        t = float(np.dot(x - p.c, p.u))
-        sp_lo = float(np.hypot(*(pts[p.lo + 1] - pts[p.lo]))) if p.count >= 2 else 0.0
-        sp_hi = float(np.hypot(*(pts[p.hi] - pts[p.hi - 1]))) if p.count >= 2 else 0.0
-        return (
-            p.t0 - cfg.corner_tol - sp_lo <= t <= p.t1 + cfg.corner_tol + sp_hi
-            and float(_line_dist(x[None, :], p.c, p.u)[0]) <= cfg.corner_tol
-        )
 
-    # A short wall that meets a kept wall in a corner is structure (a door jamb, the end face of
-    # a thick wall), not clutter: keep it when it is at least min_corner_length long.
+def _within_extent(sc: _Scan, p: _Piece, x: FloatArray) -> bool:
+    """A stub's extent runs from its corner through its returns: another corner must lie
+    on its line within corner_tol plus its point spacing at that end beyond it."""
+    cfg, pts = sc.cfg, sc.pts
+    t = float(np.dot(x - p.c, p.u))
+    sp_lo = float(np.hypot(*(pts[p.lo + 1] - pts[p.lo]))) if p.count >= 2 else 0.0
+    sp_hi = float(np.hypot(*(pts[p.hi] - pts[p.hi - 1]))) if p.count >= 2 else 0.0
+    return (
+        p.t0 - cfg.corner_tol - sp_lo <= t <= p.t1 + cfg.corner_tol + sp_hi
+        and float(_line_dist(x[None, :], p.c, p.u)[0]) <= cfg.corner_tol
+    )
+
+
+def _keep_corner_pieces(sc: _Scan, pieces: list[_Piece], kept: list[_Piece], owner: NDArray[np.int64]) -> list[_Piece]:
+    """Step 5 exception: a short wall that meets a kept wall in a corner is structure (a door
+    jamb, the end face of a thick wall), not clutter: keep it when it is at least
+    ``min_corner_length`` long. Returns the kept pieces in scan order (``owner`` updated)."""
+    cfg, m = sc.cfg, sc.m
     grown_kept = False
     for d in pieces:
         if d.kept or d.count < cfg.min_points or d.length < cfg.min_corner_length:
@@ -653,8 +749,8 @@ def extract_corners(
             continue
         before = int(owner[d.lo - 1]) if d.lo > 0 else -1
         after = int(owner[d.hi + 1]) if d.hi + 1 < m else -1
-        if (before >= 0 and corner(kept[before], d) is not None) or (
-            after >= 0 and corner(d, kept[after]) is not None
+        if (before >= 0 and _corner(sc, kept[before], d) is not None) or (
+            after >= 0 and _corner(sc, d, kept[after]) is not None
         ):
             d.kept = True
             kept.append(d)
@@ -662,90 +758,109 @@ def extract_corners(
             grown_kept = True
     if grown_kept:
         kept.sort(key=lambda piece: piece.lo)
-        for i, p in enumerate(kept):
-            owner[p.lo : p.hi + 1] = i
+        _renumber(kept, owner)
+    return kept
 
-    # ---------------------------------------------------------------- stubs
-    # A short wall seen end-on -- the end face of a thick wall or a door jamb, viewed from the
-    # room at a grazing angle -- returns only one to min_points - 1 beams next to the end of
-    # the wall it meets, too few to fit or keep. The corner sensor (and the predicted scan of
-    # the filter) report it: the wall ends in a NOMINAL corner and the short wall runs on to
-    # its own end. Without it the wall would end in a FRONTIER or OCCLUSION on the boundary ray
-    # and a map's jamb would look seen-through. So: the unowned returns just beyond a free end
-    # of a kept wall, in the same run, off its line, followed by a break (a range jump, a
-    # no-return gap or the end of the run), become a stub wall from the corner (the wall's line
-    # on the boundary ray between the wall's last beam and the stub's first) through the
-    # stub's farthest return.
-    if cfg.stubs:
-        stubs: list[_Piece] = []
-        for p in kept:
-            if p.stub:
-                continue
-            for side in (1, -1):
-                ci = p.hi if side > 0 else p.lo
-                cn = ci + side
-                if not (0 <= cn < m and owner[cn] == -1):
-                    continue  # (most ends: a corner with the next kept wall, or nothing)
-                k = int(beam_idx[ci])
-                ext = min(0.75 * float(np.hypot(*(pts[ci] - pts[ci - side]))), cfg.max_extrapolation) if p.count >= 2 else 0.0
-                cpt = _on_ray(bearing(k + 0.5 * side), p, pts[ci], side, ext, cfg)
-                chain: list[int] = []
-                while 0 <= cn < m and owner[cn] == -1 and len(chain) < cfg.min_points:
-                    if abs(int(beam_idx[cn]) - int(beam_idx[cn - side])) - 1 > cfg.max_gap:
-                        break
-                    if brk[min(cn, cn - side)] and not (
-                        float(np.hypot(*(pts[cn] - pts[cn - side]))) <= 5.0 * cfg.jump
-                        and _grazing_next(pts, chain, cn, cpt, pts[ci], cfg.split_tol)
-                    ):
-                        break
-                    chain.append(cn)
-                    cn += side
-                if not chain or len(chain) >= cfg.min_points:
-                    continue
-                # followed by a break: a jump, a no-return gap, the run's end, or a kept wall
-                after = chain[-1] + side
-                if 0 <= after < m and owner[after] == -1 and not brk[min(after, after - side)] and (
-                    abs(int(beam_idx[after]) - int(beam_idx[after - side])) - 1 <= cfg.max_gap
+
+def _add_stubs(sc: _Scan, kept: list[_Piece], owner: NDArray[np.int64]) -> list[_Piece]:
+    """Step 5c (stubs): short walls seen end-on next to a kept wall's free end become walls
+    from a nominal corner. Returns the kept pieces in scan order (``owner`` updated).
+
+    A short wall seen end-on -- the end face of a thick wall or a door jamb, viewed from the
+    room at a grazing angle -- returns only one to min_points - 1 beams next to the end of the
+    wall it meets, too few to fit or keep. The corner sensor (and the predicted scan of the
+    filter) report it: the wall ends in a NOMINAL corner and the short wall runs on to its own
+    end. Without it the wall would end in a FRONTIER or OCCLUSION on the boundary ray and a
+    map's jamb would look seen-through. So: the unowned returns just beyond a free end of a
+    kept wall, in the same run, off its line, followed by a break (a range jump, a no-return
+    gap or the end of the run), become a stub wall from the corner (the wall's line on the
+    boundary ray between the wall's last beam and the stub's first) through the stub's
+    farthest return."""
+    cfg, pts, beam_idx, brk, m = sc.cfg, sc.pts, sc.beam_idx, sc.brk, sc.m
+    stubs: list[_Piece] = []
+    for p in kept:
+        if p.stub:
+            continue
+        for side in (1, -1):
+            ci = p.hi if side > 0 else p.lo
+            cn = ci + side
+            if not (0 <= cn < m and owner[cn] == -1):
+                continue  # (most ends: a corner with the next kept wall, or nothing)
+            k = int(beam_idx[ci])
+            ext = min(0.75 * float(np.hypot(*(pts[ci] - pts[ci - side]))), cfg.max_extrapolation) if p.count >= 2 else 0.0
+            cpt = _on_ray(sc.beams.bearing(k + 0.5 * side), p, pts[ci], side, ext, cfg)
+            chain: list[int] = []
+            while 0 <= cn < m and owner[cn] == -1 and len(chain) < cfg.min_points:
+                if abs(int(beam_idx[cn]) - int(beam_idx[cn - side])) - 1 > cfg.max_gap:
+                    break
+                if brk[min(cn, cn - side)] and not (
+                    float(np.hypot(*(pts[cn] - pts[cn - side]))) <= 5.0 * cfg.jump
+                    and _grazing_next(pts, chain, cn, cpt, pts[ci], cfg.split_tol)
                 ):
-                    continue
-                if (_line_dist(pts[chain], p.c, p.u) <= cfg.split_tol).any():
-                    continue  # (the wall itself going on: left to the sparse continuation)
-                if len(chain) >= 2:  # the corner: where the stub's line meets the wall's
-                    sc, su = _tls(pts[chain])
-                    x = _line_cross(p.c, p.u, sc, su)
-                    if x is not None and float(np.hypot(*(x - cpt))) <= cfg.corner_tol:
-                        cpt = x
-                far_pt = pts[chain[-1]]
-                d = far_pt - cpt
-                dn = float(np.hypot(d[0], d[1]))
-                if dn <= 1e-6:
-                    continue
-                lo, hi = (chain[0], chain[-1]) if side > 0 else (chain[-1], chain[0])
-                u = d / dn if side > 0 else -d / dn  # oriented from the first point to the last
-                q = _Piece(-1, lo, hi, np.asarray(cpt, dtype=np.float64), np.asarray(u, dtype=np.float64), stub=True)
-                fitter.extent(q)
-                if side > 0:  # its extent starts at its corner
-                    q.t0 = min(q.t0, 0.0)
-                else:
-                    q.t1 = max(q.t1, 0.0)
-                if (corner(p, q) if side > 0 else corner(q, p)) is None:
-                    continue
-                owner[lo : hi + 1] = -3  # taken (renumbered below)
-                stubs.append(q)
-        if stubs:
-            kept.extend(stubs)
-            kept.sort(key=lambda piece: piece.lo)
-            owner[owner == -3] = -1
-            for i, p in enumerate(kept):
-                owner[p.lo : p.hi + 1] = i
+                    break
+                chain.append(cn)
+                cn += side
+            if not chain or len(chain) >= cfg.min_points:
+                continue
+            # followed by a break: a jump, a no-return gap, the run's end, or a kept wall
+            after = chain[-1] + side
+            if 0 <= after < m and owner[after] == -1 and not brk[min(after, after - side)] and (
+                abs(int(beam_idx[after]) - int(beam_idx[after - side])) - 1 <= cfg.max_gap
+            ):
+                continue
+            if (_line_dist(pts[chain], p.c, p.u) <= cfg.split_tol).any():
+                continue  # (the wall itself going on: left to the sparse continuation)
+            q = _stub(sc, p, side, chain, cpt)
+            if q is None:
+                continue
+            owner[q.lo : q.hi + 1] = -3  # taken (renumbered below)
+            stubs.append(q)
+    if stubs:
+        kept.extend(stubs)
+        kept.sort(key=lambda piece: piece.lo)
+        owner[owner == -3] = -1
+        _renumber(kept, owner)
+    return kept
 
-    # ---------------------------------------------------------------- walls between two beams
-    # Two neighbouring kept pieces hit by *consecutive* beams (no ray passed between them) that
-    # lie on one line are one wall seen at a grazing angle: the range jumps between the two
-    # beams, but nothing was seen through the wall (a ray between them would have crossed it).
-    # Seen from a doorway almost in the plane of a wall, that wall returns a beam at each end
-    # and none in between; reporting it as two walls with a gap would tell the filter that the
-    # scan saw through it.
+
+def _stub(sc: _Scan, p: _Piece, side: int, chain: list[int], cpt: FloatArray) -> _Piece | None:
+    """The stub wall of returns ``chain`` beyond kept piece ``p``'s end (``side``) from its
+    corner (``cpt`` on the boundary ray, or where the stub's fitted line meets the wall's)
+    through its farthest return; None when it is degenerate or does not meet ``p`` there."""
+    cfg, pts = sc.cfg, sc.pts
+    if len(chain) >= 2:  # the corner: where the stub's line meets the wall's
+        stub_c, stub_u = _tls(pts[chain])
+        x = _line_cross(p.c, p.u, stub_c, stub_u)
+        if x is not None and float(np.hypot(*(x - cpt))) <= cfg.corner_tol:
+            cpt = x
+    far_pt = pts[chain[-1]]
+    d = far_pt - cpt
+    dn = float(np.hypot(d[0], d[1]))
+    if dn <= 1e-6:
+        return None
+    lo, hi = (chain[0], chain[-1]) if side > 0 else (chain[-1], chain[0])
+    u = d / dn if side > 0 else -d / dn  # oriented from the first point to the last
+    q = _Piece(-1, lo, hi, np.asarray(cpt, dtype=np.float64), np.asarray(u, dtype=np.float64), stub=True)
+    sc.fitter.extent(q)
+    if side > 0:  # its extent starts at its corner
+        q.t0 = min(q.t0, 0.0)
+    else:
+        q.t1 = max(q.t1, 0.0)
+    if (_corner(sc, p, q) if side > 0 else _corner(sc, q, p)) is None:
+        return None
+    return q
+
+
+def _join_between_beams(sc: _Scan, kept: list[_Piece], owner: NDArray[np.int64]) -> None:
+    """Step 5b (walls between two beams), in place: two neighbouring kept pieces hit by
+    *consecutive* beams (no ray passed between them) that lie on one line are one wall seen at
+    a grazing angle.
+
+    The range jumps between the two beams, but nothing was seen through the wall (a ray
+    between them would have crossed it). Seen from a doorway almost in the plane of a wall,
+    that wall returns a beam at each end and none in between; reporting it as two walls with a
+    gap would tell the filter that the scan saw through it."""
+    cfg, pts, beam_idx = sc.cfg, sc.pts, sc.beam_idx
     j = 0
     while j + 1 < len(kept):
         p, q = kept[j], kept[j + 1]
@@ -768,7 +883,7 @@ def extract_corners(
         if float(np.dot(pts[q.hi] - pts[p.lo], u)) < 0.0 or (p.lo == q.hi and float(np.dot(p.u, u)) < 0.0):
             u = -u
         joined = _Piece(p.run, p.lo, q.hi, mean, u)
-        fitter.extent(joined)
+        sc.fitter.extent(joined)
         # the extent includes a stub's corner
         for r_ in (p, q):
             if r_.stub:
@@ -776,107 +891,24 @@ def extract_corners(
                 joined.t0, joined.t1 = min(joined.t0, tc), max(joined.t1, tc)
         kept[j : j + 2] = [joined]
         owner[joined.lo : joined.hi + 1] = j
-        owner[owner > j] -= 0  # (renumbered below)
-        for i, piece in enumerate(kept):
-            owner[piece.lo : piece.hi + 1] = i
+        _renumber(kept, owner)
 
-    nk = len(kept)
-    corner_at: list[FloatArray | None] = [None] * nk  # corner between kept[i] and kept[i + 1]
-    pairs = range(nk) if cyclic and nk > 1 else range(nk - 1)
-    for i in pairs:
-        corner_at[i] = corner(kept[i], kept[(i + 1) % nk])
 
-    # ---------------------------------------------------------------- free ends
-    dropped_of = np.full(m, -1, dtype=np.int64)  # dropped piece of >= 3 points per point
+def _vertices(
+    sc: _Scan,
+    pieces: list[_Piece],
+    kept: list[_Piece],
+    owner: NDArray[np.int64],
+    corner_at: list[FloatArray | None],
+) -> tuple[list[FloatArray], list[int], list[int], list[int]]:
+    """Step 6 (corners): the vertices in scan order, the corners between kept pieces
+    (``corner_at``) and each other end labelled by :func:`_end_vertex`. Returns positions,
+    labels and each kept piece's start and end vertex."""
+    dropped_of = np.full(sc.m, -1, dtype=np.int64)  # dropped piece of >= 3 points per point
     for k, d in enumerate(pieces):
         if not d.kept and d.count >= 3:
             dropped_of[d.lo : d.hi + 1] = k
-
-    def dropped_corner(p: _Piece, cn: int, side: int) -> FloatArray | None:
-        """Corner of ``p`` with the dropped piece holding compressed point ``cn``, if any."""
-        k = int(dropped_of[cn])
-        if k < 0:
-            return None
-        q = pieces[k]
-        return corner(p, q) if side > 0 else corner(q, p)
-
-    def end_vertex(i: int, side: int) -> tuple[FloatArray, int]:
-        """Position and label of kept[i]'s free end: side +1 = last point, -1 = first point."""
-        p = kept[i]
-        ci = p.hi if side > 0 else p.lo  # compressed index of the extreme point
-        k = int(beam_idx[ci])  # its (unwrapped) beam index
-        last = pts[ci]
-        kn = k + side  # the raw beam just beyond it
-        if (not cyclic) and (kn < 0 or kn >= n):
-            # Edge of the field of view: the wall continues outside it.
-            b = bearing(k)
-            t = _ray_hit(b, p.c, p.u)
-            pos = t * np.array([math.cos(b), math.sin(b)]) if t else _foot(p, last)
-            return _checked(pos, p, last, cfg.corner_tol), int(Label.FRONTIER)
-        beta = bearing(k + 0.5 * side)
-        # The boundary ray is half a beam beyond the last point: on the line that is about half
-        # the piece's own point spacing at this end. Cap the extrapolation there (a grazing
-        # line would otherwise run far past a corner hidden between the beams).
-        if p.count >= 2 or (p.stub and 0 <= ci - side < m):
-            cap = min(0.75 * float(np.hypot(*(pts[ci] - pts[ci - side]))), cfg.max_extrapolation)
-        else:
-            cap = 0.0
-        cn = ci + side
-        if cyclic:
-            cn %= m
-        if 0 <= cn < m and cn != ci:
-            k_other = int(beam_idx[cn])
-            if side > 0 and k_other < k:
-                k_other += n  # unwrap across the seam
-            if side < 0 and k_other > k:
-                k_other -= n
-            if abs(k_other - k) - 1 <= cfg.max_gap:
-                j = int(owner[cn])
-                if j >= 0:
-                    # Two kept pieces side by side that do not meet: nearer along the ray occludes.
-                    q = kept[j]
-                    t_me, t_other = _ray_hit(beta, p.c, p.u), _ray_hit(beta, q.c, q.u)
-                    if t_me is not None and t_other is not None:
-                        near = t_me <= t_other
-                    else:
-                        near = raw_range(k) <= raw_range(k_other)
-                    label = Label.OCCLUSION if near else Label.FRONTIER
-                elif (x := dropped_corner(p, cn, side)) is not None:
-                    # A short wall (dropped) meets this one in a corner: a real corner, nominal.
-                    return x, int(Label.NOMINAL)
-                elif brk[min(ci, cn)] if abs(cn - ci) == 1 else seam_break:
-                    # A range jump: to a farther surface -> silhouette, to a nearer one -> hidden;
-                    # but a farther point on this wall's own line, further along, is the wall
-                    # itself continuing at a grazing angle -> frontier.
-                    farther = raw_range(k_other) > raw_range(k)
-                    on_line = (
-                        _line_dist(pts[cn][None, :], p.c, p.u)[0] <= cfg.split_tol
-                        and side * float(np.dot(pts[cn] - last, p.u)) > 0.0
-                    )
-                    label = Label.OCCLUSION if farther and not on_line else Label.FRONTIER
-                else:
-                    # Clutter against the wall: it may continue behind. Nothing occludes along
-                    # the boundary ray, so stop at the last point seen rather than guess.
-                    return _on_ray(bearing(k), p, last, side, cap, cfg), int(Label.FRONTIER)
-                return _on_ray(beta, p, last, side, cap, cfg), int(label)
-        # No return beyond this end: does the wall leave the range, or end here?
-        if not raw_valid(kn):
-            t_next = _ray_hit(bearing(kn), p.c, p.u)
-            if t_next is None or t_next >= max_range - cfg.range_tol:
-                exit_pt = _circle_exit(p, last, side, max_range)
-                if exit_pt is not None:
-                    # The exit lies between the last beam and the next: about one spacing on.
-                    if cfg.exit_on_circle:
-                        return _checked(exit_pt, p, last, cfg.corner_tol + 2.0 * cap), int(Label.FRONTIER)
-                    # ... or the wall ends just short of the range limit: no further than
-                    # max_extrapolation beyond the last return
-                    foot = _foot(p, last)
-                    along = float(np.dot(exit_pt - foot, side * p.u))
-                    along = min(max(along, 0.0), cfg.max_extrapolation, cfg.corner_tol + 2.0 * cap)
-                    return np.asarray(foot + along * side * p.u, dtype=np.float64), int(Label.FRONTIER)
-                return _on_ray(beta, p, last, side, cap, cfg), int(Label.FRONTIER)
-        return _on_ray(beta, p, last, side, cap, cfg), int(Label.OCCLUSION)
-
+    nk = len(kept)
     verts: list[FloatArray] = []
     labs: list[int] = []
     start_v = [-1] * nk
@@ -891,7 +923,7 @@ def extract_corners(
                 labs.append(int(Label.NOMINAL))
             start_v[i] = end_v[j]
         else:
-            pos, lab = end_vertex(i, -1)
+            pos, lab = _end_vertex(sc, pieces, kept, owner, dropped_of, i, -1)
             start_v[i] = len(verts)
             verts.append(pos)
             labs.append(lab)
@@ -902,11 +934,137 @@ def extract_corners(
                 verts.append(here)
                 labs.append(int(Label.NOMINAL))
         else:
-            pos, lab = end_vertex(i, +1)
+            pos, lab = _end_vertex(sc, pieces, kept, owner, dropped_of, i, +1)
             end_v[i] = len(verts)
             verts.append(pos)
             labs.append(lab)
+    return verts, labs, start_v, end_v
 
+
+def _end_vertex(
+    sc: _Scan,
+    pieces: list[_Piece],
+    kept: list[_Piece],
+    owner: NDArray[np.int64],
+    dropped_of: NDArray[np.int64],
+    i: int,
+    side: int,
+) -> tuple[FloatArray, int]:
+    """Step 6: position and label of kept[i]'s free end (side +1 = last point, -1 = first
+    point) from what the scanner saw next to it (the rules of the module notes)."""
+    cfg, pts, beam_idx, brk, m = sc.cfg, sc.pts, sc.beam_idx, sc.brk, sc.m
+    beams = sc.beams
+    n, cyclic = beams.n, beams.cyclic
+    p = kept[i]
+    ci = p.hi if side > 0 else p.lo  # compressed index of the extreme point
+    k = int(beam_idx[ci])  # its (unwrapped) beam index
+    last = pts[ci]
+    kn = k + side  # the raw beam just beyond it
+    if (not cyclic) and (kn < 0 or kn >= n):
+        # Edge of the field of view: the wall continues outside it.
+        b = beams.bearing(k)
+        t = _ray_hit(b, p.c, p.u)
+        pos = t * np.array([math.cos(b), math.sin(b)]) if t else _foot(p, last)
+        return _checked(pos, p, last, cfg.corner_tol), int(Label.FRONTIER)
+    beta = beams.bearing(k + 0.5 * side)
+    # The boundary ray is half a beam beyond the last point: on the line that is about half
+    # the piece's own point spacing at this end. Cap the extrapolation there (a grazing
+    # line would otherwise run far past a corner hidden between the beams).
+    if p.count >= 2 or (p.stub and 0 <= ci - side < m):
+        cap = min(0.75 * float(np.hypot(*(pts[ci] - pts[ci - side]))), cfg.max_extrapolation)
+    else:
+        cap = 0.0
+    cn = ci + side
+    if cyclic:
+        cn %= m
+    if 0 <= cn < m and cn != ci:
+        k_other = int(beam_idx[cn])
+        if side > 0 and k_other < k:
+            k_other += n  # unwrap across the seam
+        if side < 0 and k_other > k:
+            k_other -= n
+        if abs(k_other - k) - 1 <= cfg.max_gap:
+            j = int(owner[cn])
+            if j >= 0:
+                # Two kept pieces side by side that do not meet: nearer along the ray occludes.
+                q = kept[j]
+                t_me, t_other = _ray_hit(beta, p.c, p.u), _ray_hit(beta, q.c, q.u)
+                if t_me is not None and t_other is not None:
+                    near = t_me <= t_other
+                else:
+                    near = beams.raw_range(k) <= beams.raw_range(k_other)
+                label = Label.OCCLUSION if near else Label.FRONTIER
+            elif (x := _dropped_corner(sc, pieces, dropped_of, p, cn, side)) is not None:
+                # A short wall (dropped) meets this one in a corner: a real corner, nominal.
+                return x, int(Label.NOMINAL)
+            elif brk[min(ci, cn)] if abs(cn - ci) == 1 else sc.seam_break:
+                # A range jump: to a farther surface -> silhouette, to a nearer one -> hidden;
+                # but a farther point on this wall's own line, further along, is the wall
+                # itself continuing at a grazing angle -> frontier.
+                farther = beams.raw_range(k_other) > beams.raw_range(k)
+                on_line = (
+                    _line_dist(pts[cn][None, :], p.c, p.u)[0] <= cfg.split_tol
+                    and side * float(np.dot(pts[cn] - last, p.u)) > 0.0
+                )
+                label = Label.OCCLUSION if farther and not on_line else Label.FRONTIER
+            else:
+                # Clutter against the wall: it may continue behind. Nothing occludes along
+                # the boundary ray, so stop at the last point seen rather than guess.
+                return _on_ray(beams.bearing(k), p, last, side, cap, cfg), int(Label.FRONTIER)
+            return _on_ray(beta, p, last, side, cap, cfg), int(label)
+    # No return beyond this end: does the wall leave the range, or end here?
+    if not beams.raw_valid(kn):
+        return _range_exit(sc, p, last, side, kn, beta, cap)
+    return _on_ray(beta, p, last, side, cap, cfg), int(Label.OCCLUSION)
+
+
+def _range_exit(
+    sc: _Scan, p: _Piece, last: FloatArray, side: int, kn: int, beta: float, cap: float
+) -> tuple[FloatArray, int]:
+    """Step 6, no return beyond an end (raw beam ``kn``): a ``FRONTIER`` towards the range
+    circle when the wall's line reaches ``max_range - range_tol`` at that beam (at most
+    ``max_extrapolation`` past the last return, or on the circle with ``exit_on_circle``), else
+    an ``OCCLUSION`` on the boundary ray (the wall ends within range)."""
+    cfg, max_range = sc.cfg, sc.beams.max_range
+    t_next = _ray_hit(sc.beams.bearing(kn), p.c, p.u)
+    if t_next is None or t_next >= max_range - cfg.range_tol:
+        exit_pt = _circle_exit(p, last, side, max_range)
+        if exit_pt is not None:
+            # The exit lies between the last beam and the next: about one spacing on.
+            if cfg.exit_on_circle:
+                return _checked(exit_pt, p, last, cfg.corner_tol + 2.0 * cap), int(Label.FRONTIER)
+            # ... or the wall ends just short of the range limit: no further than
+            # max_extrapolation beyond the last return
+            foot = _foot(p, last)
+            along = float(np.dot(exit_pt - foot, side * p.u))
+            along = min(max(along, 0.0), cfg.max_extrapolation, cfg.corner_tol + 2.0 * cap)
+            return np.asarray(foot + along * side * p.u, dtype=np.float64), int(Label.FRONTIER)
+        return _on_ray(beta, p, last, side, cap, cfg), int(Label.FRONTIER)
+    return _on_ray(beta, p, last, side, cap, cfg), int(Label.OCCLUSION)
+
+
+def _dropped_corner(
+    sc: _Scan, pieces: list[_Piece], dropped_of: NDArray[np.int64], p: _Piece, cn: int, side: int
+) -> FloatArray | None:
+    """Corner of ``p`` with the dropped piece holding compressed point ``cn``, if any."""
+    k = int(dropped_of[cn])
+    if k < 0:
+        return None
+    q = pieces[k]
+    return _corner(sc, p, q) if side > 0 else _corner(sc, q, p)
+
+
+def _scan_wireframe(
+    sc: _Scan,
+    kept: list[_Piece],
+    verts: list[FloatArray],
+    labs: list[int],
+    start_v: list[int],
+    end_v: list[int],
+) -> Wireframe:
+    """Step 7 (budget): one edge per kept piece that still points along its line, at most
+    ``max_vertices`` vertices (longest walls first), a cyclic scan's vertices rotated to start
+    at the smallest bearing."""
     vp = np.asarray(verts, dtype=np.float64).reshape(-1, 2)
     lab_arr = np.asarray(labs, dtype=np.uint8)
     edges: list[tuple[int, int]] = []
@@ -921,14 +1079,13 @@ def extract_corners(
         edges.append((a, b))
         lengths.append(along)
 
-    # ---------------------------------------------------------------- vertex budget
     if edges:
-        keep_edges = _budget(edges, lengths, cfg.max_vertices)
+        keep_edges = _budget(edges, lengths, sc.cfg.max_vertices)
         edges = [edges[k] for k in keep_edges]
     if not edges:
         return Wireframe.empty()
     wf = Wireframe.build(vp, edges, lab_arr).compacted()
-    if cyclic and wf.n_vertices:
+    if sc.beams.cyclic and wf.n_vertices:
         # Rotate the (already counterclockwise) cyclic order to start at the smallest bearing.
         shift = int(np.argmin(np.arctan2(wf.points[:, 1], wf.points[:, 0])))
         if shift:

@@ -576,8 +576,9 @@ class WireframeFilter:
         return self._steps
 
     def memory_bytes(self) -> int:
-        """Particle-set storage by the paper's accounting (Sec. IV-G), every particle counted."""
-        return sum(p.paper_storage_bytes() for p in self._particles)
+        """Particle-set storage by the paper's accounting (Sec. IV-G), every particle counted
+        (:func:`particle_bytes` of :attr:`particles`)."""
+        return particle_bytes(self._particles)
 
     def distinct_particles(self) -> int:
         return len({id(p) for p in self._particles})
@@ -1230,9 +1231,8 @@ class WireframeFilter:
 
 
 def _content_key(wf: Wireframe) -> bytes:
-    return b"".join(
-        (wf.points.tobytes(), wf.labels.tobytes(), wf.edges.tobytes(), wf.likelihood.tobytes(), wf.sources.tobytes())
-    )
+    """Equal for particles whose arrays are byte for byte equal (:meth:`Wireframe.content_digest`)."""
+    return wf.content_digest()
 
 
 def particle_bytes(particles: Sequence[Wireframe]) -> int:

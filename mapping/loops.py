@@ -17,10 +17,7 @@ what the paper does not have, a back end (choices written down here, tested in
   (``(Q^-1 + H)^-1``, supplied by the filter to :meth:`LoopCloser.advance`). Tracking against
   walls in view keeps that small; a turn in an empty room, nothing within range, carries the
   odometry's full heading noise (degrees). The optimiser then bends the chain where the error
-  was made instead of spreading a closure evenly along it (museum, seeds 0-4: mean distance
-  to the truth 0.305/0.286/0.305/0.214/0.429 m without, 0.296/0.311/0.160/0.228/0.285 m with;
-  over seeds 0-7 together with the filter's ``partial_contradiction`` the median is no better,
-  0.308 against 0.305 m: each seed's run is chaotic, see the filter's docstring).
+  was made instead of spreading a closure evenly along it (measurements: docs/experiments.md).
 * **Birth of map corners.** Each corner of every particle is stamped with the keyframe current
   when it took its position (looked up by its exact coordinates: the merge never moves a corner
   it keeps, so a corner with coordinates not seen before has just been placed; a corner that
@@ -95,9 +92,7 @@ class LoopConfig:
     min_correction, min_rotation : float
         A match moving the pose by less than this (metres) and turning it by less than this
         (radians) is not worth a closure: the map is consistent there (defaults 0.05 m and
-        0.1 degree; museum seeds 1-3, mean distance to the truth: 0.34/0.35/0.76 m with these,
-        1.63/0.56/0.22 m with 0.1 m and 0.2 degree, 0.39/0.86/0.32 m with 0.03 m, 0.06 degree
-        and a check every metre -- closures late are worse than small ones early).
+        0.1 degree: closures late are worse than small ones early; docs/experiments.md).
     drift_xy, drift_theta : float
         Odometry-edge standard deviation per square-root metre driven (metres, radians); also the
         width of the detection prior (``drift * sqrt(metres since the old corners' birth)``,
@@ -120,11 +115,8 @@ class LoopConfig:
         Keep the filter's absolute heading measurements (:meth:`LoopCloser.heading`, the
         wall-direction compass of :mod:`mapping.compass`) as factors on the keyframes, so that
         a closure does not turn a keyframe away from a heading the walls measured (module
-        docstring, "Heading factors"). Museum seeds 0-7, mean wall distance / recall, compass
-        on: without 0.262/0.976, 0.200/0.999, 0.276/0.996, 0.188/0.966, 0.152/0.987,
-        0.217/0.995, 0.183/0.964, 0.309/0.942 (median 0.208 m, 0.982); with 0.077/1.0,
-        0.151/1.0, 0.131/1.0, 0.250/1.0, 0.197/0.990, 0.151/1.0, 0.192/0.997, 0.263/1.0
-        (median 0.172 m, 1.0).
+        docstring, "Heading factors"; on: better maps over museum seeds 0-7, see
+        docs/experiments.md).
     """
 
     enabled: bool = True
@@ -191,6 +183,10 @@ def optimize(
     ``edges[k, 0]``), each residual whitened by its ``sqrt_info`` (k, 3, 3) (upper triangular
     ``S`` with ``S^T S`` the information). Analytic sparse Jacobian, Levenberg-Marquardt steps
     solved directly (``scipy.sparse.linalg.spsolve``), at most ``max_iterations``.
+
+    Not ``scipy.optimize.least_squares``: with this sparse Jacobian (``trf``/``lsmr``) it is not
+    bit-identical (different steps) and was 6x and 90x slower where both converged (square loops
+    of tests/test_loops.py's kind, 41 and 401 keyframes: 187 vs 30 ms, 8.2 s vs 90 ms; medians).
     """
     n = len(poses)
     if n < 2 or len(edges) == 0:
@@ -205,7 +201,8 @@ def optimize(
         p = full(x)
         r = _rel(p[a], p[b]) - measurements
         r[:, 2] = wrap_angles(r[:, 2])
-        return np.einsum("kij,kj->ki", sqrt_info, r).reshape(-1)
+        out: FloatArray = np.einsum("kij,kj->ki", sqrt_info, r).reshape(-1)
+        return out
 
     m = len(edges)
     rows = np.repeat(np.arange(3 * m).reshape(m, 3), 6, axis=1).reshape(m, 3, 6)  # (edge, row, 6 cols)

@@ -155,7 +155,7 @@ def test_million_vertex_claim_is_refused_by_the_codec_limit_before_allocating() 
     assert len(data) < 200
     st_ = FusionState()
     assert not st_.offer(data, "r1")
-    assert "vertices" in st_.last_drop[2] and "20000" in st_.last_drop[2]  # type: ignore[index]
+    assert "vertices" in st_.last_drop[2] and "3000" in st_.last_drop[2]  # the per-robot budget  # type: ignore[index]
 
 
 def test_bad_key_and_future_boot() -> None:

@@ -3,9 +3,12 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 WORLD = str(Path(__file__).parent / "worlds" / "tiny.geojson")
 
 
+@pytest.mark.fleet
 def test_bench_sensor_reports_label_accuracy_and_lidar_corner_error():
     out = subprocess.run(
         [sys.executable, "-m", "agents", "bench", "sensor", "--worlds", WORLD, "--lidar-every", "3", "--json"],

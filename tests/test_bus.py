@@ -173,18 +173,21 @@ def test_viz_round_trip_and_garbage():
 
 
 # ---------------------------------------------------------------------- sessions
+@pytest.mark.fleet
 def test_no_router_fails_fast_without_wait():
     port = free_port()
     with pytest.raises(UserError, match="cannot open"):
         open_session(build_config("client", None, [tcp_endpoint(port)]), wait=False)
 
 
+@pytest.mark.fleet
 def test_stop_flag_interrupts_the_wait():
     stop = threading.Event()
     cfg = build_config("client", None, [tcp_endpoint(free_port())])
     assert open_session(cfg, stop, on_wait=lambda _text: stop.set()) is None
 
 
+@pytest.mark.fleet
 def test_client_waits_for_a_router_started_later():
     port = free_port()
     ep = tcp_endpoint(port)
@@ -208,6 +211,7 @@ def test_client_waits_for_a_router_started_later():
             r.close()  # type: ignore[attr-defined]
 
 
+@pytest.mark.fleet
 def test_pub_sub_and_liveliness_through_a_router():
     k = FleetKeys("t")
     with in_process_router() as ep, client(ep) as a, client(ep) as b:
@@ -270,6 +274,7 @@ def _roundtrip(pub_ep: str, sub_ep: str, key: str) -> bytes:
         return box[0] if box else b""
 
 
+@pytest.mark.fleet
 def test_router_process_routes_and_stops_on_sigterm(tmp_path: Path):
     port = free_port()
     ep = tcp_endpoint(port)
@@ -283,6 +288,7 @@ def test_router_process_routes_and_stops_on_sigterm(tmp_path: Path):
         assert f.stop("router2", signal.SIGINT, timeout=5) == 0
 
 
+@pytest.mark.fleet
 def test_port_in_use_is_a_one_line_error(tmp_path: Path):
     with in_process_router() as ep, Fleet(tmp_path) as f:
         p = f.start("router", ["router", "--listen", ep])
@@ -291,6 +297,7 @@ def test_port_in_use_is_a_one_line_error(tmp_path: Path):
         assert "Address already in use" in out and "Traceback" not in out
 
 
+@pytest.mark.fleet
 def test_two_routers_from_the_example_files(tmp_path: Path):
     """Router B (router-b.json5) connects to router A (router-a.json5); a client of B reaches a
     client of A. Ports are replaced by free ones on the command line."""

@@ -261,6 +261,7 @@ def test_gzip_is_recognised_by_content_not_name(tmp_path: Path) -> None:
     assert len(read_carmen_log(plain).scans) == len(read_carmen_log(packed).scans) == 1
 
 
+@pytest.mark.fleet  # --jobs 2 starts worker processes
 def test_bench_lidar_runs_logs_in_parallel(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     data = tmp_path / "data"
     data.mkdir()

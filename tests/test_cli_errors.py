@@ -137,7 +137,9 @@ def _argv(case: str, files: dict[str, str], busy: int) -> list[str]:
     return [a.format(**files, busy=busy) for a in CASES[case]]
 
 
-@pytest.mark.parametrize("case", sorted(CASES))
+# router-port-in-use opens a Zenoh router (which then fails to listen): fleet lane.
+@pytest.mark.parametrize("case", [pytest.param(c, marks=pytest.mark.fleet) if c == "router-port-in-use" else c
+                                  for c in sorted(CASES)])
 def test_one_line_error_and_nonzero_exit(case: str, files: dict[str, str], busy_port: int, capfd: pytest.CaptureFixture[str]) -> None:
     argv = _argv(case, files, busy_port)
     try:
@@ -163,6 +165,7 @@ BEFORE_THE_BUS: dict[str, list[str]] = {
 }  # fmt: skip
 
 
+@pytest.mark.fleet
 @pytest.mark.parametrize("case", ["robot-bad-pose", "fuse-store-is-a-file", "export-garbage", "run-bad-world", *BEFORE_THE_BUS])
 def test_real_processes_too(case: str, files: dict[str, str], busy_port: int) -> None:
     argv = CASES.get(case) or BEFORE_THE_BUS[case]

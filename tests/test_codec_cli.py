@@ -82,6 +82,7 @@ def test_usage_errors_exit_2(tmp_path: Path, capsys: pytest.CaptureFixture[str])
     assert "no such file" in capsys.readouterr().err
 
 
+@pytest.mark.fleet
 def test_module_entry_point_pipes(tmp_path: Path) -> None:
     src = _geojson(tmp_path, room())
     enc = subprocess.run(

@@ -8,7 +8,6 @@ must read the same map.
 
 from __future__ import annotations
 
-import time
 import tracemalloc
 from typing import Any
 
@@ -185,12 +184,11 @@ def test_huge_vertex_claims_are_rejected_before_allocating() -> None:
         body = _body(("eg", n)) + bytes(100)
         payload = with_body(SMALL_BYTES, body)
         tracemalloc.start()
-        t = time.perf_counter()
         assert outcome(payload) is error
-        elapsed = time.perf_counter() - t
         peak = tracemalloc.get_traced_memory()[1]
         tracemalloc.stop()
-        assert elapsed < 0.05 and peak < 200_000, (n, elapsed, peak)
+        # (how fast: `wiremap bench speed --pieces`, codec_reject_claim_us)
+        assert peak < 200_000, (n, peak)
     with pytest.raises(wire_codec.LimitError):
         wire_codec.decode(SMALL_BYTES, limits=Limits(max_vertices=5))
     with pytest.raises(wire_codec.LimitError):

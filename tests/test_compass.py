@@ -16,6 +16,7 @@ from mapping.loops import LoopConfig
 from mapping.se2 import Pose
 from mapping.visibility import visible_view
 from mapping.wireframe import Wireframe
+from tests.filter_util import set_state
 
 D = math.radians
 
@@ -98,8 +99,7 @@ def test_filter_fixes_the_heading_from_new_walls(err_deg):
     for on in (True, False):
         cfg = FilterConfig(particles=1, mutate=False, compass=CompassConfig(enabled=on), loops=LoopConfig(enabled=False))
         f = WireframeFilter(cfg, np.random.default_rng(0), initial_pose=est)
-        f._particles = [_world_map()]
-        f._cov = np.diag([0.05**2, 0.05**2, D(2.5) ** 2])
+        set_state(f, [_world_map()], np.diag([0.05**2, 0.05**2, D(2.5) ** 2]))
         info = f.step(Pose.identity(), scan)
         dth = math.degrees(f.pose.theta - true_pose.theta)
         new = f.best.subgraph_edges(f.best.edge_lengths() < 20.0)
@@ -119,8 +119,7 @@ def test_filter_covariance_shrinks_with_the_measurement():
     scan = visible_view(truth, Pose.identity(), 8.0, 2 * math.pi).scan
     cfg = FilterConfig(particles=1, mutate=False, loops=LoopConfig(enabled=False))
     f = WireframeFilter(cfg, np.random.default_rng(0), initial_pose=Pose(0, 0, D(1.0)))
-    f._particles = [_world_map()]
-    f._cov = np.diag([0.05**2, 0.05**2, D(2.5) ** 2])
+    set_state(f, [_world_map()], np.diag([0.05**2, 0.05**2, D(2.5) ** 2]))
     f.step(Pose.identity(), scan)
     assert math.degrees(math.sqrt(f.pose_covariance[2, 2])) < 0.5
     # Below compass.min_sigma the match is the better reference: the compass does not run at
@@ -131,8 +130,7 @@ def test_filter_covariance_shrinks_with_the_measurement():
     for w in (0.0, 0.05):
         f2 = WireframeFilter(dataclasses.replace(cfg, compass=CompassConfig(young_weight=w)), np.random.default_rng(0),
                              initial_pose=Pose(0, 0, D(0.3)))  # within the gate of a 0.1-degree sigma
-        f2._particles = [_world_map()]
-        f2._cov = np.diag([0.05**2, 0.05**2, D(0.1) ** 2])
+        set_state(f2, [_world_map()], np.diag([0.05**2, 0.05**2, D(0.1) ** 2]))
         infos[w] = f2.step(Pose.identity(), scan)
         poses[w] = f2.pose
     assert infos[0.0].compass is None
@@ -150,10 +148,9 @@ def test_filter_covariance_shrinks_with_the_measurement():
                            likelihood=[0.99] * 6)
     for driven, runs in ((20.0, True), (30.0, False)):
         f3 = WireframeFilter(cfg, np.random.default_rng(0), initial_pose=Pose(0, 0, D(0.3)))
-        f3._particles = [both]
-        f3._loops.stamp(f3._particles)
-        f3._loops.distance = driven
-        f3._cov = np.diag([0.05**2, 0.05**2, D(0.1) ** 2])
+        set_state(f3, [both], np.diag([0.05**2, 0.05**2, D(0.1) ** 2]))
+        f3.loops.stamp(f3.particles)
+        f3.loops.distance = driven
         assert (f3.step(Pose.identity(), scan).compass is not None) == runs, driven
 
 

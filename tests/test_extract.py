@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import math
-import time
 
 import numpy as np
 import pytest
@@ -443,15 +442,5 @@ def test_rotating_a_full_turn_scan_by_one_beam_changes_nothing() -> None:
     assert a.almost_equal(b, tol=1e-6)
 
 
-def test_fast_enough() -> None:
-    cfg = LidarConfig(sigma=0.01)
-    rng = np.random.default_rng(9)
-    scans = [raycast(L_WORLD.segments(), p, cfg, rng) for p in random_poses(20, seed=13)]
-    a = cfg.angles()
-    for r in scans:
-        extract_corners(r, a, cfg.max_range)
-    t0 = time.perf_counter()
-    for r in scans:
-        extract_corners(r, a, cfg.max_range)
-    per_scan = (time.perf_counter() - t0) / len(scans)
-    assert per_scan < 0.01  # about 1 ms on an idle core; generous for a shared machine
+# How fast corners are extracted is a benchmark figure, not a test:
+# `wiremap bench speed --pieces` (extract_ms).

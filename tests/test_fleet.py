@@ -365,3 +365,37 @@ def test_robot_options_split_quantisation_from_the_filter_threshold():
         ["--id", "r1", "--world", "museum", "--start", "1,1,0", "--resolution", "0.1", "--threshold", "0.4"]
     ))
     assert (opts.resolution, opts.threshold) == (0.1, 0.4)
+
+
+def test_run_unknown_starts_on_paper_small(tmp_path: Path):
+    """`wiremap run --unknown-starts`: robots start at random poses and publish in their own
+    frames; the fusion service registers them (no false merge: every registered pose is within
+    0.5 m / 2 degrees of the true relative start), the report lists `registered` and `islands`,
+    and every attempt is in the recording."""
+    import json
+
+    from agents.files.rerun_log import read_recording
+
+    out = tmp_path / "out"
+    with Fleet(tmp_path) as fleet:
+        fleet.start(
+            "run",
+            ["run", "--world", "paper-small", "--robots", "2", "--unknown-starts", "--duration", "25", "--seed", "3",
+             "--rate", "10", "--out", out, "--no-progress"],
+        )
+        p = fleet.procs["run"]
+        wait_until(lambda: p.poll() is not None, 180, "wiremap run to finish")
+        assert p.returncode == 0, fleet.log("run")
+    report = json.loads((out / "report.json").read_text())
+    assert report["unknown_starts"] is True
+    regs = set(report["registered"])
+    isl = {m for ms in report["islands"].values() for m in ms}
+    assert regs | isl == {"r1", "r2"} and not regs & isl
+    assert report["fleet_root"] in regs
+    for rid, err in report["registration_errors"].items():
+        assert err["trans_err_m"] <= 0.5 and err["rot_err_deg"] <= 2.0, (rid, err)
+    log = (out / "logs" / "fuse.log").read_text()
+    entities, _ = read_recording(out / "recording.rrd")
+    if "registration " in log:
+        assert "/registrations" in entities or "registrations" in entities
+    assert (out / "fused.png").is_file() and (out / "fused.geojson").is_file()

@@ -273,9 +273,11 @@ def test_store_tolerates_a_corrupt_robot_file_and_missing_store(tmp_path, capsys
     st_.save(tmp_path / "s")
     (tmp_path / "s" / "robots" / "r2.wfm").write_bytes(b"junk")
     back = FusionState.load(tmp_path / "s", FusionConfig())
-    assert set(back.robots) == {"r1"}
-    assert back.version == 2  # the map changed (r2 is gone): a new version
-    assert "skipping" in capsys.readouterr().err
+    # no silent loss: r2 comes back from the snapshot, the damage is reported and repaired
+    assert set(back.robots) == {"r1", "r2"}
+    assert back.version == st_.version and back.fused.almost_equal(st_.fused, tol=1e-9)
+    assert back.store_rewrite == {"r2"} and back.store_report
+    assert "r2.wfm is damaged" in capsys.readouterr().err
 
 
 # ---------------------------------------------------------------------- fast path and full path

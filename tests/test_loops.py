@@ -195,6 +195,7 @@ def test_config_rejects_bad_values():
         LoopConfig(min_constraints=0)
 
 
+@pytest.mark.slow
 def test_the_filter_closes_a_loop_around_a_ring_corridor():
     """An 80 m square ring of corridors (tests/worlds/bigring.geojson), driven once around:
     coming back, the scan sees walls mapped 300 m earlier off by the drift; the closure pulls
@@ -208,13 +209,12 @@ def test_the_filter_closes_a_loop_around_a_ring_corridor():
     from agents.sim.world import load_world
     from mapping.filter import WireframeFilter
     from mapping.metrics import evaluate
-    from mapping.refine import RefineConfig
 
     world = load_world(Path(__file__).parent / "worlds" / "bigring.geojson")
     inputs = list(simulate(world, SimOptions(), 1))
     out = {}
     for on in (False, True):
-        f = WireframeFilter(filter_config_for(5, 0.2, 8.0, loops=LoopConfig(enabled=on), refine=RefineConfig(enabled=False)), seeds_for(1)["filter"],
+        f = WireframeFilter(filter_config_for(5, 0.2, 8.0, overrides={"loops.enabled": on, "refine.enabled": False}), seeds_for(1)["filter"],
                             inputs[0].true_pose)
         closures = sum(f.step(inp.odometry, inp.scan).loop is not None for inp in inputs)
         out[on] = (closures, evaluate(world.truth, f.best, 0.2), f.pose.distance(inputs[-1].true_pose))

@@ -143,6 +143,7 @@ def test_bench_accuracy_wall_tolerance(tmp_path, capsys):
         assert "--wall-tol" in capsys.readouterr().err
 
 
+@pytest.mark.fleet
 def test_bench_accuracy_jobs_give_the_same_maps(tmp_path, capsys):
     """Seeds run in worker processes (--jobs 2) give the same figures as one after another,
     in seed order, and every map's PNG."""
@@ -162,6 +163,7 @@ def test_bench_accuracy_jobs_give_the_same_maps(tmp_path, capsys):
     assert main([*common, "--jobs", "0", "--out", str(tmp_path / "0")]) == 2
 
 
+@pytest.mark.fleet
 def test_bench_speed_medians_over_seeds(capsys):
     """--seeds K: one child per world and seed, a table row for each plus the median, and the
     JSON's figures are the medians (the ratio that of the two median step times)."""
@@ -187,6 +189,19 @@ def test_speed_measure_keys():
     r = measure(str(WORLDS / "tiny.geojson"), particles=3, steps=8, warmup=2, seed=0)
     assert r["steps"] == 8
     assert r["updates_per_s"] > 0 and r["step_ms_p95"] >= r["step_ms_p50"] > 0 and r["peak_rss_mb"] > 0
+
+
+@pytest.mark.slow
+def test_speed_pieces_keys():
+    """`wiremap bench speed --pieces`: the pieces whose speed tests no longer assert."""
+    from agents.bench.speed import pieces
+    from agents.sim.world import builtin_names
+
+    r = pieces()
+    assert set(r) == {"raycast_ms", "extract_ms", "evaluate_museum_ms", "render_museum_ms", "codec_reject_claim_us",
+                      "plan_route_s"}
+    assert set(r["plan_route_s"]) == set(builtin_names())
+    assert all(v > 0 for v in [*r.values(), *r.pop("plan_route_s").values()] if not isinstance(v, dict))
 
 
 def test_robot_steps_yield_the_robot_state():

@@ -298,9 +298,8 @@ def test_wall_metrics_are_invariant_under_rigid_motion(x: float, y: float, th: f
     assert 0.0 <= ce < 0.1
 
 
-def test_museum_scale_runs_well_under_a_second() -> None:
-    import time
-
+def test_museum_scale_map_evaluates() -> None:
+    """(How fast: `wiremap bench speed --pieces`, evaluate_museum_ms.)"""
     rng = np.random.default_rng(7)
     rings = [_rect_ring(0.0, 0.0, 200.0, 200.0)]
     for i in range(9):
@@ -309,10 +308,7 @@ def test_museum_scale_runs_well_under_a_second() -> None:
     truth = Wireframe.from_polylines(rings)
     assert truth.n_edges == 328
     noisy = truth.replace(points=truth.points + rng.normal(0.0, 0.15, truth.points.shape))
-    t0 = time.perf_counter()
     got = M.evaluate(truth, noisy, 0.4)
-    elapsed = time.perf_counter() - t0
-    assert elapsed < 2.0  # about 0.2 s measured; generous for a shared machine
     assert 0.0 < got["cell_error"] < 0.05
     assert got["wall_recall"] > 0.95 and got["wall_precision"] > 0.95
     assert 0.05 < got["mean_dist_m"] < 0.2

@@ -97,6 +97,7 @@ def test_refine_config_validates_the_cap():
         RefineConfig(max_count=0)
 
 
+@pytest.mark.slow
 def test_refinement_keeps_the_ring_corridor_pose_closer():
     """tests/worlds/bigring.geojson (80 m square ring, 4 m corridors), seed 1, the default
     filter with and without refinement. Measured (with the compass's young-map pull,
@@ -113,13 +114,12 @@ def test_refinement_keeps_the_ring_corridor_pose_closer():
     from agents.sim.world import load_world
     from mapping.filter import WireframeFilter
     from mapping.metrics import evaluate, wall_precision_recall
-    from mapping.refine import RefineConfig
 
     world = load_world(Path(__file__).parent / "worlds" / "bigring.geojson")
     inputs = list(simulate(world, SimOptions(), 1))
     out = {}
     for on in (False, True):
-        f = WireframeFilter(filter_config_for(10, 0.2, 8.0, refine=RefineConfig(enabled=on)), seeds_for(1)["filter"],
+        f = WireframeFilter(filter_config_for(10, 0.2, 8.0, overrides={"refine.enabled": on}), seeds_for(1)["filter"],
                             inputs[0].true_pose)
         errors = []
         for inp in inputs:

@@ -274,14 +274,11 @@ def test_wireframe_svg():
     assert root.find(f"{ns}polyline").get("class") == "trajectory"
 
 
-def test_render_builtin_world_quickly():
-    import time
-
+def test_render_builtin_world():
+    """(How fast: `wiremap bench speed --pieces`, render_museum_ms.)"""
     from agents.sim.world import load_world
 
     w = load_world("museum")
-    t0 = time.perf_counter()
     png = map_png(w.truth, truth=w.truth, max_px=1000)
-    assert time.perf_counter() - t0 < 10.0
     img = decode_png(png)
     assert img.shape[1] == 1000 or img.shape[0] == 1000

@@ -99,6 +99,7 @@ def test_viewer_command_and_rerun_lookup(rrd: Path) -> None:
     assert Path(found).read_bytes()[:4] == b"\x7fELF" or sys.platform != "linux"
 
 
+@pytest.mark.fleet
 def test_subprocess_no_display_and_missing_file(rrd: Path, tmp_path: Path) -> None:
     env = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "WAYLAND_DISPLAY")}
     env["PYTHONPATH"] = str(REPO)
@@ -116,6 +117,7 @@ def test_subprocess_no_display_and_missing_file(rrd: Path, tmp_path: Path) -> No
         assert len(p.stderr.strip().splitlines()) == 1
 
 
+@pytest.mark.fleet
 def test_web_viewer_serves_and_stops_on_sigterm(rrd: Path, tmp_path: Path) -> None:
     log = tmp_path / "web.log"
     p = spawn(["replay", str(rrd), "--web", "--port", "0"], log)

@@ -300,6 +300,7 @@ def _openssl(*args: str) -> str:
     return subprocess.run(["openssl", *args], check=True, capture_output=True, text=True).stdout
 
 
+@pytest.mark.fleet
 def test_generated_certificates(certs: CertSet, foreign_certs: CertSet) -> None:
     text = _openssl("x509", "-in", str(certs.server.cert), "-noout", "-ext", "subjectAltName")
     assert "DNS:localhost" in text and "IP Address:127.0.0.1" in text
@@ -388,6 +389,7 @@ def _refused(cfg: zenoh.Config) -> bool:
     return False
 
 
+@pytest.mark.fleet
 def test_usrpwd_wrong_or_missing_password_is_refused(usrpwd_router: tuple[str, dict[str, Credentials]]) -> None:
     ep, creds = usrpwd_router
     assert _refused(_client(ep, Credentials("r1", "wrong")))
@@ -464,11 +466,13 @@ def _check_fleet_acl(ep: str, creds: dict[str, Credentials]) -> None:
                 e.undeclare()
 
 
+@pytest.mark.fleet
 def test_usrpwd_acl_delivery(usrpwd_router: tuple[str, dict[str, Credentials]]) -> None:
     ep, creds = usrpwd_router
     _check_fleet_acl(ep, creds)
 
 
+@pytest.mark.fleet
 def test_usrpwd_liveliness_only_own_token_put_and_delete(
     usrpwd_router: tuple[str, dict[str, Credentials]],
 ) -> None:
@@ -489,6 +493,7 @@ def test_usrpwd_liveliness_only_own_token_put_and_delete(
             sub.undeclare()
 
 
+@pytest.mark.fleet
 def test_mtls_refuses_missing_or_foreign_certificate(mtls_router: str, certs: CertSet, foreign_certs: CertSet) -> None:
     ep = mtls_router
     assert _refused(_client(ep, Credentials(ca=certs.ca)))  # server verified, no client certificate
@@ -499,10 +504,12 @@ def test_mtls_refuses_missing_or_foreign_certificate(mtls_router: str, certs: Ce
     assert endpoint_reachable(ep)
 
 
+@pytest.mark.fleet
 def test_mtls_acl_by_certificate_common_name(mtls_router: str, certs: CertSet) -> None:
     _check_fleet_acl(mtls_router, {n: certs.client_credentials(n) for n in ("r1", "r2", "fusion", "viewer")})
 
 
+@pytest.mark.fleet
 def test_generated_secure_fleet_end_to_end(tmp_path: Path) -> None:
     """make_secure_fleet: usrpwd AND mTLS; the ACL needs user name = CN, so a robot with its own
     password but another robot's certificate gets nothing through."""
@@ -578,6 +585,7 @@ def test_check_private_without_strict_warns(tmp_path: Path) -> None:
         check_private(p, "key", strict=False)
 
 
+@pytest.mark.fleet
 def test_committed_secure_router_runs_with_init_output(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """router-secure.json5 reads broker_config/secure/... relative to the working directory:
     ``init`` there, start the committed file (on a free port), connect robot r1."""

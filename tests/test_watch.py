@@ -153,6 +153,7 @@ def test_watch_stops_on_sigterm_and_on_timeout(tmp_path: Path) -> None:
     assert rc_b == 1 and "timed out after 2 s with 0 of 1 versions" in text_b, text_b
 
 
+@pytest.mark.fleet
 def test_watch_without_router_is_one_error_line(tmp_path: Path) -> None:
     import os
     import sys

@@ -524,7 +524,7 @@ def _decode_small(data: bytes, resolution_mm: int, n_robots: int | None, limits:
         if nbits - pos >= 8 or "1" in bits[pos:]:
             return None
         return Wireframe(
-            np.array(q, dtype=np.float64) * resolution_mm / 1e3,  # type: ignore[arg-type]
+            np.array(q, dtype=np.float64) * resolution_mm / 1e3,
             np.array(labels, dtype=np.uint8),
             np.array(edges, dtype=np.int32).reshape(-1, 2),
             np.array(lq, dtype=np.float64) / LIKELIHOOD_LEVELS,
@@ -669,7 +669,7 @@ def decode_body(data: bytes, resolution_mm: int, n_robots: int | None, limits: L
     _finish(r)
     try:
         return Wireframe(
-            points,  # type: ignore[arg-type]  # validated and cast in __post_init__
+            points,  # validated and cast in __post_init__
             labels.astype(np.uint8),
             edges.astype(np.int32),
             lq.astype(np.float64) / LIKELIHOOD_LEVELS,

@@ -19,6 +19,13 @@ known, so the map's frame is the truth's). Each seed's map is written as a PNG (
 ``--wall-tol M`` scores wall precision and recall at ``M`` metres instead of twice the merge
 threshold (the paper's cell metric, the default); the JSON then also has ``"wall_tol_m"``.
 The issue's target for world files (95 % at 0.2 m) is ``--wall-tol 0.2``.
+
+``--params FILE`` and ``--set group.key=value`` change the filter's settings
+(:mod:`agents.params`; ``--particles`` and ``--merge-threshold`` are shorthands for ``--set
+particles=`` and ``--set merge_threshold=``, and the merge threshold in effect is also the metric
+resolution). The baseline runs the same configuration, then forced to one particle and no
+mutation. The JSON then also has ``"config_overrides"``: the settings from ``--params`` and
+``--set`` as applied (``{dotted key: value}``; pass each as ``--set`` to run it again).
 """
 
 from __future__ import annotations
@@ -29,12 +36,17 @@ import json
 import math
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from agents.errors import UserError
+from agents.params import ConfigArgs, add_config_arguments, resolve
+
+if TYPE_CHECKING:
+    from mapping.filter import FilterConfig
 
 HELP = "map quality over seeds, filter vs single-hypothesis baseline"
 
@@ -61,19 +73,20 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--jobs", type=int, default=1, metavar="N",
                         help="run N seeds at once in separate processes (default 1; the runs then "
                              "share the cores, so updates_per_s is lower than alone)")
+    add_config_arguments(parser, "--particles, --merge-threshold")
 
 
 def run_one(
-    world: Any, inputs: list[Any], particles: int, thr: float, max_range: float, seed: int,
-    tol: float | None = None,
+    world: Any, inputs: list[Any], cfg: FilterConfig, seed: int, tol: float | None = None,
 ) -> tuple[dict[str, Any], Any, list[tuple[float, float]]]:
-    """Run one filter over ``inputs``; returns (result row, best map, trajectory xy). Walls are
-    scored at ``tol`` metres (default ``2 * thr``, :func:`mapping.metrics.evaluate`)."""
-    from agents.mapping_run import filter_config_for, run_filter, seeds_for
+    """Run one filter of configuration ``cfg`` over ``inputs``; returns (result row, best map,
+    trajectory xy). The map is scored at ``cfg.merge_threshold`` as resolution, walls at ``tol``
+    metres (default twice that, :func:`mapping.metrics.evaluate`)."""
+    from agents.mapping_run import run_filter, seeds_for
     from mapping.filter import WireframeFilter
     from mapping.metrics import align_to_truth, distance_to_truth, evaluate
 
-    cfg = filter_config_for(particles, thr, max_range)
+    thr = cfg.merge_threshold
     filt = WireframeFilter(cfg, seeds_for(seed)["filter"], initial_pose=inputs[0].true_pose)
     busy = 0.0
     traj: list[tuple[float, float]] = []
@@ -140,11 +153,12 @@ def _fmt(v: Any, f: str) -> str:
 
 
 def run_seed(
-    world_arg: str, sensor: str, steps: int | None, seed: int, particles: int, thr: float,
+    world_arg: str, sensor: str, steps: int | None, seed: int, cfg: FilterConfig,
     baseline: bool, out: str, tol: float | None = None,
 ) -> list[tuple[str, dict[str, Any], float]]:
-    """One seed: simulate the scans once, run the filter (and the baseline on the same scans),
-    write each map's PNG to ``out``. Returns ``(method, row, seconds since start)`` per run.
+    """One seed: simulate the scans once (the sensor's range is ``cfg.max_range``), run the
+    filter of configuration ``cfg`` (and the baseline, the same with one particle and no
+    mutation, on the same scans), write each map's PNG to ``out``. Returns ``(method, row, seconds since start)`` per run.
     Loads the world itself, so that it can run in a worker process (``--jobs``)."""
     from agents import mapping_run as mr
     from agents.files.io import write_atomic
@@ -153,14 +167,15 @@ def run_seed(
 
     t0 = time.perf_counter()
     world = load_world(world_arg)
-    options = mr.SimOptions(sensor=sensor, steps=steps)
+    options = mr.SimOptions(sensor=sensor, steps=steps, max_range=cfg.max_range)
     try:
         inputs = list(mr.simulate(world, options, seed))
     except ValueError as exc:
         raise UserError(f"{world_arg}: {exc}") from None
     done = []
-    for method, p in [("filter", particles)] + ([("baseline", 1)] if baseline else []):
-        row, best, traj = run_one(world, inputs, p, thr, options.max_range, seed, tol)
+    configs = [("filter", cfg)] + ([("baseline", replace(cfg, particles=1, mutate=False))] if baseline else [])
+    for method, c in configs:
+        row, best, traj = run_one(world, inputs, c, seed, tol)
         png = Path(out) / f"{world.name}-{sensor}-seed{seed}-{method}.png"
         write_atomic(png, map_png(best, truth=world.truth, trajectory=np.asarray(traj)))
         done.append((method, row, time.perf_counter() - t0))
@@ -179,16 +194,22 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"--jobs must be >= 1, got {args.jobs}")
     if args.wall_tol is not None and not (math.isfinite(args.wall_tol) and args.wall_tol > 0):
         raise UserError(f"--wall-tol must be a positive number of metres, got {args.wall_tol}")
+    if args.particles is not None and args.particles < 1:
+        raise UserError(f"--particles must be >= 1, got {args.particles}")
+    cargs = ConfigArgs.from_args(args)
     world = load_world(args.world)
-    large = max(world.size) > 100.0
-    particles = args.particles if args.particles is not None else (6 if large else 10)
-    if particles < 1:
-        raise UserError(f"--particles must be >= 1, got {particles}")
-    thr = args.merge_threshold if args.merge_threshold is not None else mr.default_merge_threshold(world)
+    particles, thr = mr.world_defaults(world)
+    flags = {"particles": ("--particles", args.particles), "merge_threshold": ("--merge-threshold", args.merge_threshold)}
+    resolved = resolve(
+        cargs,
+        lambda ov: mr.filter_config_for(particles, thr, mr.SimOptions().max_range, overrides=ov),
+        {k: v for k, v in flags.items() if v[1] is not None},
+    )
+    cfg = resolved.config
     seeds = list(range(args.first_seed, args.first_seed + args.seeds))
     job = functools.partial(
         run_seed, str(args.world), args.sensor, args.steps,
-        particles=particles, thr=thr, baseline=bool(args.baseline), out=str(args.out), tol=args.wall_tol,
+        cfg=cfg, baseline=bool(args.baseline), out=str(args.out), tol=args.wall_tol,
     )
     results: dict[int, list[tuple[str, dict[str, Any], float]]] = {}
 
@@ -230,13 +251,15 @@ def run(args: argparse.Namespace) -> int:
         "world": world.name,
         "sensor": args.sensor,
         "seeds": args.seeds,
-        "particles": particles,
+        "particles": cfg.particles,
         **med,
     }
     if args.wall_tol is not None:
         summary["wall_tol_m"] = args.wall_tol
     if base_rows:
         summary["baseline"] = {"particles": 1, **_median(base_rows)}
+    if resolved.recorded:
+        summary["config_overrides"] = resolved.recorded
     if args.json:
         print(json.dumps(summary))
     return 0

@@ -240,6 +240,11 @@ def _sent_counts(d: Path, ids: list[str], mode: str) -> int:
     return total
 
 
+def _share(c0: float | None, c1: float | None, wall: float) -> float | None:
+    """CPU seconds between two readings over ``wall`` seconds (None when one is missing)."""
+    return None if c0 is None or c1 is None else rounded((c1 - c0) / wall, 4)
+
+
 def _cpu_total(procs: Procs, names: list[str]) -> float | None:
     """CPU seconds of the processes ``names`` together (None when one is gone)."""
     total = 0.0
@@ -424,8 +429,7 @@ def run_size(n: int, args: argparse.Namespace, world: Any, workdir: Path, say: A
         })
     result.update({
         "fusers": fusers,
-        "fuser_cpu": {f: rounded((f1[f] - f0[f]) / wall, 4) if f0[f] is not None and f1[f] is not None else None
-                      for f in fnames},
+        "fuser_cpu": {f: _share(f0[f], f1[f], wall) for f in fnames},
         "link_bytes_per_s": {h: rounded(b / wall, 1) for h, b in links.bytes.items()},
         "load_avg": [round(v, 2) for v in os.getloadavg()],
         "fuser_stall_s": rounded(stall, 3) if fusers > 1 and args.kill_fuser is not None else None,

@@ -261,7 +261,8 @@ def _read_log(path: Path, max_range: float = MAX_RANGE) -> Log:
                 continue
             n = int(tok[1])
             ranges = np.asarray(tok[2 : 2 + n], dtype=np.float64)
-            angles = -math.pi / 2 + np.arange(n) * (math.pi / max(1, n - 1)) if n > 1 else np.zeros(n)
+            angles = np.asarray(-math.pi / 2 + np.arange(n) * (math.pi / max(1, n - 1)) if n > 1 else np.zeros(n),
+                                dtype=np.float64)
             ranges = np.where(ranges >= max_range, np.inf, ranges)
             scans.append(extract_corners(ranges, angles, max_range))
     k = min(len(scans), len(poses))

@@ -23,6 +23,25 @@ each, one after another) and every figure is the median over them (the ratio is 
 two medians; ``"seeds": K`` is added to the JSON). The time per step follows how many distinct
 particles a run keeps in the timed stretch, which differs from seed to seed (museum
 ``step_ms_p50`` 5.4-9.0 ms over seeds 0-2 on one machine), so one seed is a noisy figure.
+
+With ``--pieces`` it also times, in this process, the pieces around the filter whose speed
+the tests used to assert (a test asserts what a piece does; how fast it does it is a figure
+here), and adds them to the JSON as ``"pieces"`` (the best of a few repeats of each)::
+
+    {"raycast_ms": ..., "extract_ms": ..., "evaluate_museum_ms": ..., "render_museum_ms": ...,
+     "codec_reject_claim_us": ..., "plan_route_s": {"<world>": ..., ...}}
+
+* ``raycast_ms``: one 361-beam lidar scan (:func:`agents.sim.lidar.raycast`) among 100 random
+  walls (about 1 ms on an idle core);
+* ``extract_ms``: split-and-merge corners (:func:`mapping.extract.extract_corners`) of one
+  ray-cast paper-small scan at 1 cm range noise (about 1 ms);
+* ``evaluate_museum_ms``: :func:`mapping.metrics.evaluate` of the museum's walls moved by
+  0.15 m noise against its truth (about 0.2 s);
+* ``render_museum_ms``: the museum as a 1000-pixel PNG (:func:`agents.files.render.map_png`);
+* ``codec_reject_claim_us``: rejecting a map body that claims a million vertices in 100
+  bytes (:class:`wire_codec.LimitError`, before anything is allocated);
+* ``plan_route_s``: planning the coverage route of each built-in world (a few seconds on an
+  idle machine for the largest).
 """
 
 from __future__ import annotations
@@ -56,6 +75,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seeds", type=int, default=1, metavar="K",
                         help="seeds per world; figures are medians over them (default 1)")
     parser.add_argument("--json", action="store_true", help="print the JSON summary as the last line")
+    parser.add_argument("--pieces", action="store_true",
+                        help="also time ray casting, corner extraction, metrics, rendering, the codec's "
+                             "rejection of a huge claim and route planning (\"pieces\" in the JSON)")
     parser.add_argument("--child", metavar="WORLD", help=argparse.SUPPRESS)
 
 
@@ -94,6 +116,78 @@ def measure(world_spec: str, particles: int, steps: int, warmup: int, seed: int)
         "map_vertices": filt.best.n_vertices,
         "particle_bytes": filt.memory_bytes(),
     }
+
+
+def _best_s(fn: Any, repeat: int, number: int = 1) -> float:
+    """The best over ``repeat`` runs of the mean wall time of ``number`` calls of ``fn``, in seconds."""
+    best = float("inf")
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        for _ in range(number):
+            fn()
+        best = min(best, (time.perf_counter() - t0) / number)
+    return best
+
+
+def pieces() -> dict[str, Any]:
+    """Time the pieces around the filter in this process (module docstring, ``--pieces``)."""
+    import wire_codec
+    from agents import mapping_run as mr
+    from agents.files.render import map_png
+    from agents.sim.lidar import LidarConfig, raycast
+    from agents.sim.route import plan_route
+    from agents.sim.world import builtin_names, load_world
+    from mapping.extract import extract_corners
+    from mapping.metrics import evaluate
+    from mapping.se2 import Pose
+    from wire_codec.bits import BitWriter
+    from wire_codec.body import decode_body
+    from wire_codec.errors import DEFAULT_LIMITS
+
+    out: dict[str, Any] = {}
+    rng = np.random.default_rng(0)
+    a = rng.uniform(-5, 5, (100, 2))
+    walls = np.stack([a, a + rng.uniform(-1, 1, (100, 2))], axis=1)
+    lidar = LidarConfig()
+    out["raycast_ms"] = round(_best_s(lambda: raycast(walls, Pose(0.1, 0.2, 0.3), lidar, rng), 5, 10) * 1e3, 3)
+
+    small = load_world("paper-small")
+    noisy = LidarConfig(sigma=0.01)
+    poses = [inp.true_pose for inp in mr.simulate(small, mr.SimOptions(steps=20), 0) if inp.true_pose is not None]
+    ranges = [raycast(small.truth.segments(), p, noisy, rng) for p in poses]
+    angles = noisy.angles()
+
+    def extract_all() -> None:
+        for r in ranges:
+            extract_corners(r, angles, noisy.max_range)
+
+    out["extract_ms"] = round(_best_s(extract_all, 3) / len(ranges) * 1e3, 3)
+
+    museum = load_world("museum")
+    moved = museum.truth.replace(points=museum.truth.points + rng.normal(0.0, 0.15, museum.truth.points.shape))
+    out["evaluate_museum_ms"] = round(_best_s(lambda: evaluate(museum.truth, moved, 0.4), 3) * 1e3, 1)
+    out["render_museum_ms"] = round(_best_s(lambda: map_png(museum.truth, truth=museum.truth, max_px=1000), 3) * 1e3, 1)
+
+    w = BitWriter()
+    w.eg(10**6)
+    claim = w.to_bytes() + bytes(100)
+
+    def reject() -> None:
+        try:
+            decode_body(claim, 200, None, DEFAULT_LIMITS)
+        except wire_codec.LimitError:
+            return
+        raise AssertionError("a million-vertex claim in 100 bytes was not rejected")
+
+    out["codec_reject_claim_us"] = round(_best_s(reject, 5, 100) * 1e6, 1)
+    routes: dict[str, float] = {}
+    for name in builtin_names():
+        world = load_world(name)
+        t0 = time.perf_counter()
+        plan_route(world, np.random.default_rng(7))
+        routes[name] = round(time.perf_counter() - t0, 2)
+    out["plan_route_s"] = routes
+    return out
 
 
 def _child(args: argparse.Namespace) -> int:
@@ -148,8 +242,8 @@ def run(args: argparse.Namespace) -> int:
             rows.append([spec, "median", f"{m['updates_per_s']:.1f}", f"{m['step_ms_p50']:.2f}",
                          f"{m['step_ms_p95']:.2f}", f"{m['peak_rss_mb']:.1f}", "-", "-", "-"])
     widths = [max(len(r[i]) for r in rows) for i in range(len(head))]
-    for r in rows:
-        print("  ".join(c.ljust(w) if i == 0 else c.rjust(w) for i, (c, w) in enumerate(zip(r, widths))))
+    for row in rows:
+        print("  ".join(c.ljust(w) if i == 0 else c.rjust(w) for i, (c, w) in enumerate(zip(row, widths))))
     print(f"museum / paper-small median step time: {ratio:.2f}")
     summary: dict[str, Any] = {  # with one seed, the medians are that seed's figures
         "paper_small": medians["paper_small"],
@@ -158,6 +252,14 @@ def run(args: argparse.Namespace) -> int:
     }
     if args.seeds > 1:
         summary["seeds"] = args.seeds
+    if args.pieces:
+        summary["pieces"] = pieces()
+        routes = summary["pieces"].pop("plan_route_s")
+        for key, value in summary["pieces"].items():
+            print(f"{key:<22} {value}")
+        for name, took in routes.items():
+            print(f"plan_route_s {name:<9} {took}")
+        summary["pieces"]["plan_route_s"] = routes
     if args.json:
         print(json.dumps(summary))
     return 0

@@ -79,7 +79,7 @@ def synthetic_recordings(world_spec: str, n: int, seed: int, cache: str | os.Pat
             labels = truth.labels[used].copy()
             deg = np.bincount(remap[edges].ravel(), minlength=len(used))
             labels[deg == 1] = Label.FRONTIER
-            wf = Wireframe(truth.points[used] + noise[used], labels, remap[edges],
+            wf = Wireframe(truth.points[used] + noise[used], labels, remap[edges].astype(np.int32),
                            np.full(len(edges), 0.6), np.zeros(len(edges), dtype=np.uint64))
             pose = origin.inverse().compose(Pose(float(c[0]), float(c[1]), origin.theta))
             out.append(Frame(0.1 * i, pose, None, wf.transformed(origin.inverse())))

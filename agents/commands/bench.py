@@ -28,7 +28,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         if name == chosen:
             module = importlib.import_module(module_name)
             module.add_arguments(p)
-            p.set_defaults(_bench=module)
+            p.set_defaults(_bench=module, _label=f"bench {name}")
 
 
 def run(args: argparse.Namespace) -> int:

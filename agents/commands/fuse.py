@@ -16,18 +16,26 @@ from agents.files.io import output_file
 from agents.fleet.bus import (
     StopFlag,
     add_bus_arguments,
+    check_name,
     config_from_args,
     fleet_keys,
     open_session,
     watch_parent,
 )
 from agents.fleet.fusion import InputLimits
+from agents.fleet.fusion.frames import FramesConfig
 
 HELP = "the fusion service"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--store", metavar="DIR", help="state directory: resume from it and keep it up to date")
+    parser.add_argument(
+        "--reset",
+        action="store_true",
+        help="when the --store cannot be recovered, move its files aside and start empty "
+        "(without it: one line and exit 2)",
+    )
     parser.add_argument("--rrd", metavar="FILE", help="write a Rerun recording to FILE")
     parser.add_argument(
         "--serve-viewer", metavar="PORT", type=int, help="also serve the recording to a live viewer on PORT"
@@ -38,6 +46,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--threshold", type=float, help="merge threshold in metres (default 0.2, or the coarsest robot-map resolution if larger)"
     )
     parser.add_argument("--no-refine", action="store_true", help="trust the start poses, no ICP refinement")
+    parser.add_argument(
+        "--anchor", metavar="ID",
+        help="robots of unknown start pose: the fleet frame is this robot's (default: the first registered)",
+    )
     parser.add_argument(
         "--heartbeat", type=float, default=3.0, metavar="S", help="re-publish the fused map every S s (default 3)"
     )
@@ -174,6 +186,10 @@ def run(args: argparse.Namespace) -> int:
             Path(args.store).mkdir(parents=True, exist_ok=True)
         except OSError as exc:
             raise UserError(f"--store {args.store}: cannot create it: {exc.strerror or exc}") from None
+        if not args.reset:
+            from agents.fleet.fusion import read_store
+
+            read_store(args.store)  # StoreDamaged (one line, exit 2) before waiting for a router
     if args.rrd:
         output_file("--rrd", args.rrd)
     if args.world:
@@ -192,9 +208,11 @@ def run(args: argparse.Namespace) -> int:
         heartbeat_s=max(0.1, args.heartbeat),
         min_interval_s=args.min_interval,
         save_interval_s=args.save_interval,
+        reset=args.reset,
         # a regional fuser publishes a node of the fold tree: frontiers are closed at the root
         config=FusionConfig(threshold=args.threshold, refine=not args.no_refine, close_frontiers=args.group is None),
         limits=limits,
+        frames=FramesConfig(anchor=check_name(args.anchor) if args.anchor else None),
     )
     keys = fleet_keys(args)
     cfg = config_from_args(args, "client")
@@ -203,7 +221,10 @@ def run(args: argparse.Namespace) -> int:
         from agents.fleet.fusion.tree import RobotSelector
 
         sel = RobotSelector.parse(args.robots)
-        say = (lambda text, _g=args.group: print(f"wiremap fuse [{_g}]: {text}", flush=True))  # noqa: E731
+        group_name = args.group
+
+        def say(text: str) -> None:
+            print(f"wiremap fuse [{group_name}]: {text}", flush=True)
     with StopFlag() as stop:
         watch_parent(args.parent_pid, stop)
         session = open_session(cfg, stop, on_wait=lambda t: say(f"waiting for a router ({t})"))
@@ -227,6 +248,9 @@ def run(args: argparse.Namespace) -> int:
         f"latency p50 {_ms(lat['p50'])} ms p99 {_ms(lat['p99'])} ms"
     )
     sys.stdout.flush()
+    if state.exit_error:
+        print(f"wiremap fuse: {state.exit_error}", file=sys.stderr, flush=True)
+        return 1
     return 0
 
 

@@ -16,6 +16,13 @@ alignment, relative error over 1 m, map precision and coverage at 0.2 m against 
 endpoints placed at the true poses) and ``map.png`` shows the map over those endpoints.
 
 A live progress line on stderr shows the step, the best map's size and the update rate.
+
+``--params FILE`` and ``--set group.key=value`` change the filter's settings
+(:mod:`agents.params`); ``--particles``, ``--merge-threshold`` and ``--max-range`` are shorthands
+for ``--set particles=``, ``merge_threshold=`` and ``max_range=`` (the sensor, or the log's
+ranges, then reach as far as the filter's ``max_range``, and maps are scored at its merge
+threshold). ``report.json`` records the settings from ``--params`` and ``--set`` as applied
+(``config_overrides``).
 """
 
 from __future__ import annotations
@@ -30,6 +37,7 @@ from typing import Any
 import numpy as np
 
 from agents.errors import UserError
+from agents.params import ConfigArgs, Resolved, add_config_arguments, resolve
 
 HELP = "run one robot (simulated or a CARMEN log) and write its map"
 MAX_ISSUES_SHOWN = 5  # unreadable CARMEN lines reported one by one on stderr
@@ -42,7 +50,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", required=True, metavar="DIR", help="output directory")
     parser.add_argument("--sensor", choices=("corners", "lidar"), default="corners",
                         help="simulated sensor: the corner sensor or a lidar + split-and-merge (default corners)")
-    parser.add_argument("--particles", type=int, default=10, help="number of particles (default 10)")
+    parser.add_argument("--particles", type=int, default=None, help="number of particles (default 10)")
     parser.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     parser.add_argument("--merge-threshold", type=float, default=None, metavar="M",
                         help="merge threshold in metres (default 0.2, or 0.4 for worlds over 100 m)")
@@ -53,6 +61,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--strict", action="store_true",
                         help="CARMEN: an unreadable line is an error (default: skip it and count it)")
     parser.add_argument("--quiet", action="store_true", help="no progress line")
+    add_config_arguments(parser, "--particles, --merge-threshold, --max-range")
 
 
 class Progress:
@@ -85,7 +94,7 @@ class Progress:
 
 
 def _check(args: argparse.Namespace) -> None:
-    if args.particles < 1:
+    if args.particles is not None and args.particles < 1:
         raise UserError(f"--particles must be >= 1, got {args.particles}")
     if args.steps is not None and args.steps < 1:
         raise UserError(f"--steps must be >= 1, got {args.steps}")
@@ -95,6 +104,27 @@ def _check(args: argparse.Namespace) -> None:
         raise UserError(f"--merge-threshold must be a positive number of metres, got {args.merge_threshold}")
     if args.max_range is not None and not (math.isfinite(args.max_range) and args.max_range > 0):
         raise UserError(f"--max-range must be a positive number of metres, got {args.max_range}")
+
+
+def _filter_config(
+    args: argparse.Namespace, cargs: ConfigArgs, thr: float, max_range: float, fov: float = 2.0 * math.pi,
+    range_cap: float = math.inf,
+) -> Resolved:
+    """The filter's configuration: 10 particles, ``thr``, ``max_range`` and ``fov`` under the
+    file, the flags (``--max-range`` at most ``range_cap``, a log's scanner range) and
+    ``--set``; a bad key or value is a one-line :class:`UserError`."""
+    from agents.mapping_run import filter_config_for
+
+    flags = {
+        "particles": ("--particles", args.particles),
+        "merge_threshold": ("--merge-threshold", args.merge_threshold),
+        "max_range": ("--max-range", None if args.max_range is None else min(args.max_range, range_cap)),
+    }
+    return resolve(
+        cargs,
+        lambda ov: filter_config_for(10, thr, max_range, fov, overrides=ov),
+        {k: v for k, v in flags.items() if v[1] is not None},
+    )
 
 
 def write_outputs(
@@ -127,6 +157,8 @@ def run(args: argparse.Namespace) -> int:
     from mapping.filter import WireframeFilter
 
     _check(args)
+    cargs = ConfigArgs.from_args(args)
+    _filter_config(args, cargs, 0.2, 8.0)  # the keys and values, before any work
     out = Path(args.out)
     truth = None
     world_name = None
@@ -136,16 +168,17 @@ def run(args: argparse.Namespace) -> int:
         world = load_world(args.world)
         truth = world.truth
         world_name = world.name
-        thr = args.merge_threshold if args.merge_threshold is not None else mr.default_merge_threshold(world)
+        resolved = _filter_config(args, cargs, mr.default_merge_threshold(world), 8.0)
+        cfg = resolved.config
         options = mr.SimOptions(
             sensor=args.sensor,
-            max_range=args.max_range if args.max_range is not None else 8.0,
+            max_range=cfg.max_range,
             steps=args.steps,
             duration=args.duration,
         )
         try:
             total: int | None = mr.count_sim_steps(world, options, args.seed)
-            filt, inputs = mr.sim_filter(world, options, args.seed, args.particles, thr)
+            filt, inputs = mr.sim_filter(world, options, args.seed, cfg.particles, cfg.merge_threshold, config=cfg)
         except ValueError as exc:
             raise UserError(f"{args.world}: {exc}") from None
         source: dict[str, Any] = {"world": world_name, "sensor": args.sensor}
@@ -162,15 +195,17 @@ def run(args: argparse.Namespace) -> int:
         if not scans:
             raise UserError(f"{args.carmen}: no laser scans in the log")
         true_scans = scan_truth(log)
-        thr = args.merge_threshold if args.merge_threshold is not None else 0.2
-        max_range = min(float(scans[0].max_range), args.max_range if args.max_range is not None else 20.0)
+        log_range = float(scans[0].max_range)
+        resolved = _filter_config(args, cargs, 0.2, min(log_range, 20.0), mr.scan_fov(scans[0].angles), log_range)
+        cfg = resolved.config
+        max_range = cfg.max_range
         inputs = mr.carmen_inputs(scans, max_range=max_range, steps=args.steps, truth=true_scans)
-        cfg = mr.filter_config_for(args.particles, thr, max_range, fov=mr.scan_fov(scans[0].angles))
         start = true_scans[0] if true_scans is not None else scans[0].odom
         filt = WireframeFilter(cfg, mr.seeds_for(args.seed)["filter"], initial_pose=start)
         total = len(scans) if args.steps is None else min(len(scans), args.steps)
         source = {"carmen": str(args.carmen), "sensor": "lidar", "laser": log.laser}
 
+    thr = cfg.merge_threshold
     progress = Progress(not args.quiet)
     trajectory: list[tuple[float, float, float, float]] = []
     pose_err: list[float] = []
@@ -198,8 +233,9 @@ def run(args: argparse.Namespace) -> int:
     report: dict[str, Any] = {
         **source,
         "seed": args.seed,
-        "particles": args.particles,
+        "particles": cfg.particles,
         "merge_threshold": thr,
+        "config_overrides": resolved.recorded,
         "steps": k,
         "time_s": round(wall, 3),
         "filter_time_s": round(busy, 3),
@@ -223,7 +259,7 @@ def run(args: argparse.Namespace) -> int:
         if true_scans is not None and k:
             lidar, png = _score_log(scans[:k], true_scans[:k], trajectory, best, max_range)
             report.update(lidar)
-    props = {**source, "steps": k, "seed": args.seed, "particles": args.particles, "merge_threshold": thr}
+    props = {**source, "steps": k, "seed": args.seed, "particles": cfg.particles, "merge_threshold": thr}
     write_outputs(out, best, trajectory, report, truth=truth, properties=props, png=png)
     msg = f"wrote {out}/map.geojson ({best.n_vertices} vertices, {best.n_edges} edges) after {k} steps"
     if report.get("skipped_lines"):

@@ -1,6 +1,8 @@
 """``wiremap robot --id ID --world NAME|FILE --start X,Y,THETA [--route ...] [--rate HZ] [--seed S]
-[--connect ...]``: one simulated robot with its own particle filter, publishing its map, pose
-and liveliness on the bus until SIGINT/SIGTERM. See :mod:`agents.fleet.robot`."""
+[--params FILE] [--set KEY=VALUE ...] [--connect ...]``: one simulated robot with its own particle
+filter, publishing its map, pose and liveliness on the bus until SIGINT/SIGTERM. See
+:mod:`agents.fleet.robot`; ``--params``/``--set``: :mod:`agents.params` (``--particles`` and
+``--threshold`` are shorthands for ``--set particles=`` and ``--set merge_threshold=``)."""
 
 from __future__ import annotations
 
@@ -22,6 +24,7 @@ from agents.fleet.bus import (
     watch_parent,
 )
 from agents.fleet.robot import DEFAULT_RESOLUTION, DEFAULT_THRESHOLD
+from agents.params import ConfigArgs, Resolved, add_config_arguments, resolve
 from mapping.se2 import Pose
 
 if TYPE_CHECKING:
@@ -32,7 +35,13 @@ HELP = "one robot agent process"
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--id", required=True, help="robot id (letters, digits, '_', '.', '-')")
-    parser.add_argument("--world", required=True, metavar="NAME|FILE", help="built-in world name or world file")
+    parser.add_argument("--world", metavar="NAME|FILE", help="built-in world name or world file (or give --carmen)")
+    parser.add_argument(
+        "--unknown-start", action="store_true",
+        help="publish the map in the robot's own frame with its origin marked unknown (fusion registers it)",
+    )
+    parser.add_argument("--carmen", metavar="LOG", help="replay this CARMEN log instead of simulating a world")
+    parser.add_argument("--scans", metavar="I0:I1", help="with --carmen: replay the log's scans I0 to I1-1")
     parser.add_argument(
         "--start", metavar="X,Y,THETA", help="start pose in the fleet frame (default: the route's start)"
     )
@@ -43,13 +52,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--rate", type=float, default=5.0, metavar="HZ", help="scans per second (default 5)")
     parser.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
-    parser.add_argument("--particles", type=int, default=5, help="particles of the filter (default 5)")
+    parser.add_argument("--particles", type=int, default=None, help="particles of the filter (default 5)")
     parser.add_argument(
         "--resolution", type=float, default=DEFAULT_RESOLUTION, metavar="M",
         help=f"quantisation step of the published map's coordinates (default {DEFAULT_RESOLUTION:g})",
     )
     parser.add_argument(
-        "--threshold", type=float, default=DEFAULT_THRESHOLD, metavar="M",
+        "--threshold", type=float, default=None, metavar="M",
         help=f"merge threshold of the particle filter (default {DEFAULT_THRESHOLD:g}; the paper: 0.4 in a large world)",
     )
     parser.add_argument(
@@ -58,6 +67,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--viz-rate", type=float, default=2.0, metavar="HZ", help="scan+particles for the recorder, Hz (0: off)")
     parser.add_argument("--duration", type=float, metavar="S", help="stop mapping after S simulated seconds")
     parser.add_argument("--status-file", metavar="FILE", help="write the final status as JSON to FILE on exit")
+    add_config_arguments(parser, "--particles, --threshold")
     add_bus_arguments(parser)
 
 
@@ -65,6 +75,10 @@ def options_from_args(args: argparse.Namespace) -> RobotOptions:
     from agents.fleet.robot import RobotOptions, parse_route, start_pose_of
 
     rid = check_name(args.id)
+    if args.carmen:
+        return _carmen_options(args, rid)
+    if not args.world:
+        raise UserError("give --world NAME|FILE (or --carmen LOG)")
     route = None
     if args.route:
         try:
@@ -84,10 +98,11 @@ def options_from_args(args: argparse.Namespace) -> RobotOptions:
         ("--rate", args.rate, 0.0), ("--resolution", args.resolution, 0.0), ("--threshold", args.threshold, 0.0),
         ("--heartbeat", args.heartbeat, 0.0),
     ):
-        if not (math.isfinite(v) and v > lo):
+        if v is not None and not (math.isfinite(v) and v > lo):
             raise UserError(f"{name} must be a positive number, got {v}")
-    if args.particles < 1:
+    if args.particles is not None and args.particles < 1:
         raise UserError(f"--particles must be >= 1, got {args.particles}")
+    resolved = _filter_config(args)
     if route is not None:
         gap = float(np.hypot(*(route[0] - np.array([start.x, start.y]))))
         if gap <= 0.05:  # the same point (rounding): start exactly at --start
@@ -102,12 +117,49 @@ def options_from_args(args: argparse.Namespace) -> RobotOptions:
         route=route,
         rate=args.rate,
         seed=args.seed,
-        particles=args.particles,
+        particles=resolved.config.particles,
         resolution=args.resolution,
-        threshold=args.threshold,
+        threshold=resolved.config.merge_threshold,
         heartbeat_s=args.heartbeat,
         viz_hz=max(0.0, args.viz_rate),
         duration=args.duration,
+        filter_overrides=resolved.overrides,
+        unknown_start=bool(args.unknown_start),
+    )
+
+
+def _filter_config(args: argparse.Namespace) -> Resolved:
+    """The filter's settings (checked now, so that a bad one is an error before the bus)."""
+    from agents.mapping_run import filter_config_for
+
+    flags = {"particles": ("--particles", args.particles), "merge_threshold": ("--threshold", args.threshold)}
+    return resolve(
+        ConfigArgs.from_args(args),
+        lambda ov: filter_config_for(5, DEFAULT_THRESHOLD, 8.0, overrides=ov),
+        {k: v for k, v in flags.items() if v[1] is not None},
+    )
+
+
+def _carmen_options(args: argparse.Namespace, rid: str) -> RobotOptions:
+    """A robot replaying (part of) a CARMEN log, always in its own frame (unknown start)."""
+    from agents.fleet.robot import RobotOptions
+
+    scans = None
+    if args.scans:
+        try:
+            a, b = (int(v) for v in args.scans.split(":"))
+        except ValueError:
+            raise UserError(f"--scans must be I0:I1, got {args.scans!r}") from None
+        if not 0 <= a < b:
+            raise UserError(f"--scans must be I0:I1 with 0 <= I0 < I1, got {args.scans!r}")
+        scans = (a, b)
+    resolved = _filter_config(args)
+    return RobotOptions(
+        robot=rid, world="", start=Pose.identity(), rate=args.rate, seed=args.seed,
+        particles=resolved.config.particles, resolution=args.resolution,
+        threshold=resolved.config.merge_threshold, heartbeat_s=args.heartbeat,
+        viz_hz=max(0.0, args.viz_rate), duration=args.duration, unknown_start=True, carmen=args.carmen, scans=scans,
+        filter_overrides=resolved.overrides,
     )
 
 

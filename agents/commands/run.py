@@ -17,7 +17,15 @@ service (which saves its state and closes the recording), and writes to DIR:
 * ``report.json``: metrics of the fused map and of each robot's map against the truth, bytes
   sent per robot, publish-to-fused latency p50/p99, CPU time per process;
 * ``routes/``, ``logs/``, ``store/``: the routes given to the robots, every process's output,
-  the fusion service's state.
+  the fusion service's state;
+* ``params.toml``: with ``--params``/``--set``, the filter settings they changed (as applied),
+  which every robot is started with (``--params``); ``report.json`` has them as
+  ``config_overrides``.
+
+``--params FILE`` and ``--set group.key=value`` (:mod:`agents.params`) set the robots' filter
+settings; ``--particles`` and ``--threshold`` are shorthands for ``--set particles=`` and ``--set
+merge_threshold=``, and the fusion service merges at the merge threshold in effect. They are
+checked before the router or any robot starts.
 
 The mapping clock starts when every robot has reported its first pose (process start-up is not
 counted), bounded by ``--startup-timeout``.
@@ -59,19 +67,32 @@ from agents.fleet.bus import (
     tcp_endpoint,
 )
 from agents.fleet.proc import cpu_seconds, stop_processes
+from agents.params import ConfigArgs, add_config_arguments, resolve, to_toml
 from wire_codec import MAX_ROBOTS
 
 HELP = "the main job: router, N robots and the fusion service"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--world", required=True, metavar="NAME|FILE", help="built-in world name or world file")
+    parser.add_argument("--world", metavar="NAME|FILE", help="built-in world name or world file (or give --carmen)")
+    parser.add_argument(
+        "--unknown-starts", action="store_true",
+        help="each robot starts at a random pose (seeded) and publishes in its own frame: fusion registers them",
+    )
+    parser.add_argument("--anchor", metavar="ID", help="with unknown starts: the fleet frame is this robot's")
+    parser.add_argument(
+        "--carmen", metavar="LOG",
+        help="split a real CARMEN log into --robots robots (overlapping stretches, each in its own frame)",
+    )
     parser.add_argument("--robots", required=True, type=int, metavar="N", help="number of robots (1-64)")
-    parser.add_argument("--duration", type=float, default=60.0, metavar="S", help="seconds of mapping (default 60)")
+    parser.add_argument(
+        "--duration", type=float, default=None, metavar="S",
+        help="seconds of mapping (default 60; with --carmen: until every robot has replayed its stretch)",
+    )
     parser.add_argument("--seed", type=int, default=0, help="random seed (routes; robot k gets seed + k)")
     parser.add_argument("--out", required=True, metavar="DIR", help="output directory")
     parser.add_argument("--rate", type=float, default=5.0, metavar="HZ", help="scans per second per robot (default 5)")
-    parser.add_argument("--particles", type=int, default=5, help="particles per robot (default 5)")
+    parser.add_argument("--particles", type=int, default=None, help="particles per robot (default 5)")
     parser.add_argument(
         "--fusers", type=int, default=1, metavar="K",
         help="fusion processes: 1 = one service; K >= 2 = K regional fusers over the fold's subtrees and a root",
@@ -85,7 +106,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="merge threshold of the robots' filters and of the fusion (default 0.2, 0.4 for worlds over 100 m)",
     )
     parser.add_argument(
-        "--overlap", type=float, default=0.15, help="fraction of a route piece shared with the next (default 0.15)"
+        "--overlap", type=float, default=None,
+        help="fraction of a route piece (or log stretch) shared with the next (default 0.15; 0.3 with --carmen)",
     )
     parser.add_argument("--serve-viewer", type=int, metavar="PORT", help="serve the recording live on PORT")
     parser.add_argument("--startup-timeout", type=float, default=60.0, metavar="S", help=argparse.SUPPRESS)
@@ -98,6 +120,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         action="store_true",
         help="authenticated fleet: TLS + passwords + access control, credentials generated in DIR/secure",
     )
+    add_config_arguments(parser, "--particles, --threshold")
     add_bus_arguments(parser, router=True)
 
 
@@ -268,15 +291,37 @@ def write_outputs(
 
 # ---------------------------------------------------------------------- the job
 def run(args: argparse.Namespace) -> int:
-    from agents.mapping_run import default_merge_threshold
+    from agents.mapping_run import default_merge_threshold, filter_config_for
     from agents.sim.world import load_world
 
     n = _check_arguments(args)
-    world = load_world(args.world)
-    threshold = float(args.threshold) if args.threshold is not None else default_merge_threshold(world)
+    cargs = ConfigArgs.from_args(args)
     out = Path(args.out)
     ids = [f"r{k + 1}" for k in range(n)]
-    routes = _prepare_output(out, world, ids, args)
+    if args.carmen:
+        from agents.fleet import unknown_run
+
+        world: Any = unknown_run.carmen_world(args)
+        default_threshold = 0.2
+    else:
+        world = load_world(args.world)
+        default_threshold = default_merge_threshold(world)
+    flags = {"particles": ("--particles", args.particles), "merge_threshold": ("--threshold", args.threshold)}
+    resolved = resolve(
+        cargs,
+        lambda ov: filter_config_for(5, default_threshold, 8.0, overrides=ov),
+        {k: v for k, v in flags.items() if v[1] is not None},
+    )
+    threshold = resolved.config.merge_threshold
+    if args.carmen:
+        routes: list[Any] = unknown_run.prepare_carmen(out, world, ids, args)
+        _clear_outputs(out)
+    else:
+        routes = _prepare_output(out, world, ids, args)
+    robot_args = ["--particles", str(resolved.config.particles)]
+    if resolved.recorded:
+        write_atomic(out / "params.toml", to_toml(resolved.recorded, header="filter settings of `wiremap run`'s robots"))
+        robot_args += ["--params", str(out / "params.toml")]
     keys = fleet_keys(args)
     cfg, listen, creds = _router_config(args, out, keys.fleet, ids)
     child_ep = listen[0].replace("0.0.0.0", "127.0.0.1").replace("[::]", "[::1]")
@@ -300,7 +345,7 @@ def run(args: argparse.Namespace) -> int:
             print(
                 f"wiremap run: router on {', '.join(listen)}; fleet {keys.fleet!r}; output in {out}{secure}", flush=True
             )
-            _start_fleet(procs, args, out, ids, routes, threshold, bus, creds)
+            _start_fleet(procs, args, out, ids, routes, threshold, bus, creds, robot_args)
             mapping_s = _watch_fleet(args, keys, procs, progress, sub_pose, sub_fused, stop, t_start, out / "logs")
             interrupted = stop.is_set()
         finally:
@@ -316,7 +361,12 @@ def run(args: argparse.Namespace) -> int:
             statuses[rid] = json.loads((out / "status" / f"{rid}.json").read_text())
         except (OSError, ValueError):
             statuses[rid] = progress.status.get(rid, {})
-    report = write_outputs(
+    writer = write_outputs
+    if args.carmen or args.unknown_starts:
+        from agents.fleet import unknown_run
+
+        writer = unknown_run.write_outputs_carmen if args.carmen else unknown_run.write_outputs_unknown
+    report = writer(
         out,
         world,
         ids,
@@ -327,19 +377,39 @@ def run(args: argparse.Namespace) -> int:
             "exit_codes": codes,
             "seed": args.seed,
             "rate_hz": args.rate,
-            "particles": args.particles,
+            "particles": resolved.config.particles,
+            "config_overrides": resolved.recorded,
             "interrupted": interrupted,
             "secure": bool(args.secure),
             "startup_s": round(max(0.0, time.monotonic() - t_start - mapping_s), 2),
         },
     )
     _print_summary(report, ids, out)
+    if args.carmen or args.unknown_starts:
+        isl = report.get("islands") or {}
+        print(
+            f"wiremap run: registered {' '.join(report.get('registered', [])) or '-'} (frame of "
+            f"{report.get('fleet_root')}); islands {' '.join('+'.join(m) for m in isl.values()) or 'none'}",
+            flush=True,
+        )
     return 0
 
 
 def _check_arguments(args: argparse.Namespace) -> int:
     """Refuse bad numbers before anything starts; returns the number of robots."""
     n = int(args.robots)
+    if bool(args.world) == bool(args.carmen):
+        raise UserError("give --world NAME|FILE or --carmen LOG (one of them)")
+    if args.carmen and not Path(args.carmen).is_file():
+        raise UserError(f"--carmen {args.carmen}: no such file")
+    if args.anchor is not None and args.anchor not in [f"r{k + 1}" for k in range(max(0, n))]:
+        raise UserError(f"--anchor must be one of the robot ids r1..r{n}, got {args.anchor!r}")
+    if args.overlap is None:
+        args.overlap = 0.3 if args.carmen else 0.15
+    if args.carmen:
+        args.stop_when_done = True
+    if args.duration is None:
+        args.duration = 1e9 if args.carmen else 60.0
     if not 1 <= n <= MAX_ROBOTS:
         raise UserError(f"--robots must be between 1 and {MAX_ROBOTS}, got {n}")
     for name, v in (("--duration", args.duration), ("--rate", args.rate)):
@@ -364,19 +434,29 @@ def _prepare_output(out: Path, world: Any, ids: list[str], args: argparse.Namesp
         raise UserError(f"--out {out}: cannot create the directory: {exc.strerror or exc}") from None
     rng = np.random.default_rng(args.seed)
     try:
-        routes = plan_routes(world, len(ids), rng, overlap=args.overlap)
+        if getattr(args, "unknown_starts", False):
+            from agents.fleet.unknown_run import random_routes
+
+            routes = random_routes(world, len(ids), rng)
+        else:
+            routes = plan_routes(world, len(ids), rng, overlap=args.overlap)
     except ValueError as exc:
         raise UserError(f"cannot plan routes in {world.name}: {exc}") from None
     for rid, r in zip(ids, routes):
         write_json(out / "routes" / f"{rid}.json", {"route": np.round(r, 9).tolist()})
-    for stale in ("fused.wfm", "fused.geojson", "fused.png", "report.json", "recording.rrd"):
+    _clear_outputs(out)
+    return list(routes)
+
+
+def _clear_outputs(out: Path) -> None:
+    """Remove what an earlier run left in ``out`` (its outputs and its fusion store)."""
+    for stale in ("fused.wfm", "fused.geojson", "fused.png", "report.json", "recording.rrd", "params.toml"):
         (out / stale).unlink(missing_ok=True)
     store = out / "store"
     if store.exists():  # a new run: do not resume an old fleet's state
         import shutil
 
         shutil.rmtree(store)
-    return list(routes)
 
 
 def _router_config(
@@ -408,9 +488,11 @@ def _start_fleet(
     threshold: float,
     bus: list[str],
     creds: dict[str, Path],
+    filter_args: list[str],
 ) -> None:
-    """Spawn the fusion service, then the robots, into ``procs`` (filled as they start, so that
-    a failure half-way still stops the ones already running)."""
+    """Spawn the fusion service, then the robots (their filter settings: ``filter_args``), into
+    ``procs`` (filled as they start, so that a failure half-way still stops the ones already
+    running)."""
     from agents.fleet.robot import start_pose_of
 
     def cred_args(who: str) -> list[str]:
@@ -420,7 +502,11 @@ def _start_fleet(
     store = out / "store"
     fuse_argv = ["fuse", *bus, *cred_args("fusion"), "--store", str(store), "--rrd", str(out / "recording.rrd")]
     fuse_argv += ["--threshold", repr(threshold)]
-    fuse_argv += ["--world", args.world, "--recording-id", str(uuid.uuid4())]
+    if args.world and not args.unknown_starts:  # the truth is in the world frame, the fleet's is a robot's
+        fuse_argv += ["--world", args.world]
+    if args.anchor:
+        fuse_argv += ["--anchor", args.anchor]
+    fuse_argv += ["--recording-id", str(uuid.uuid4())]
     if args.serve_viewer is not None:
         fuse_argv += ["--serve-viewer", str(args.serve_viewer)]
     if getattr(args, "fusers", 1) > 1:
@@ -440,7 +526,11 @@ def _start_fleet(
                      "--threshold", repr(threshold)]
     procs["fuse"] = _spawn("fuse", fuse_argv, logs)
     for k, (rid, r) in enumerate(zip(ids, routes)):
+        if args.carmen:
+            procs[rid] = _spawn(rid, _carmen_robot_argv(args, out, rid, k, r, threshold, bus + cred_args(rid)), logs)
+            continue
         s0 = start_pose_of(r)
+        unknown = ["--unknown-start"] if args.unknown_starts else []
         procs[rid] = _spawn(
             rid,
             [
@@ -448,13 +538,26 @@ def _start_fleet(
                 "--start", f"{s0.x:.9f},{s0.y:.9f},{s0.theta:.9f}",
                 "--route", str(out / "routes" / f"{rid}.json"),
                 "--rate", str(args.rate), "--seed", str(args.seed + k + 1),
-                "--particles", str(args.particles),
+                *filter_args,
                 "--resolution", repr(float(args.resolution)), "--threshold", repr(threshold),
                 "--status-file", str(out / "status" / f"{rid}.json"),
-                *bus, *cred_args(rid),
+                *unknown, *bus, *cred_args(rid),
             ],
             logs,
         )
+
+
+def _carmen_robot_argv(
+    args: argparse.Namespace, out: Path, rid: str, k: int, stretch: Any, threshold: float, bus: list[str]
+) -> list[str]:
+    """A robot replaying scans ``stretch = (i0, i1)`` of the log in its own frame."""
+    i0, i1 = stretch
+    return [
+        "robot", "--id", rid, "--carmen", str(args.carmen), "--scans", f"{i0}:{i1}",
+        "--rate", str(args.rate), "--seed", str(args.seed + k + 1), "--particles", str(args.particles),
+        "--resolution", repr(float(args.resolution)), "--threshold", repr(threshold),
+        "--status-file", str(out / "status" / f"{rid}.json"), *bus,
+    ]
 
 
 def _watch_fleet(
@@ -472,7 +575,7 @@ def _watch_fleet(
     of mapping have passed (the clock starts when every robot is up, or at the start-up
     timeout), every robot is done (``--stop-when-done``) or ``stop`` is set. Raises
     ``UserError`` when a fleet process stops early. Returns the seconds of mapping."""
-    from agents.fleet.fusion import decode_message
+    from agents.fleet import validate
 
     n = len(progress.ids)
     t_map: float | None = None
@@ -488,7 +591,7 @@ def _watch_fleet(
                 pass
         while (s := sub_fused.handler.try_recv()) is not None:
             try:
-                m = decode_message(s.payload.to_bytes())
+                m = validate.fused_map(s.payload.to_bytes())
                 progress.fused = (
                     f"fused v{m.seq}: {m.wireframe.n_vertices} vertices, {m.wireframe.n_edges} edges, "
                     f"{len(s.payload.to_bytes())} bytes from {' '.join(m.robots)}"

@@ -93,17 +93,16 @@ class Watcher:
     # main thread
     def handle(self, data: bytes) -> str | None:
         """Decode one payload; return the line shown, or None (duplicate or malformed)."""
-        from wire_codec import MessageKind, decode
+        from agents.fleet import validate
 
         try:
-            msg = decode(data)
-        except ValueError as exc:  # CodecError derives from ValueError
+            msg = validate.fused_map(data)  # every field checked (agents.fleet.validate)
+        except validate.Invalid as exc:
             self.malformed += 1
-            _eprint(f"skipped a malformed payload ({len(data)} bytes): {exc}")
-            return None
-        if msg.kind != MessageKind.FUSED_MAP:
-            self.malformed += 1
-            _eprint(f"skipped a {msg.kind.name.lower()} message from {msg.sender!r} on the fused key")
+            if exc.reason == "kind":
+                _eprint(f"skipped a {exc.detail}")
+            else:
+                _eprint(f"skipped a malformed payload ({len(data)} bytes): {exc.detail}")
             return None
         ident = (msg.sender, int(msg.seq), int(msg.stamp_ns))
         if ident in self._seen:
@@ -124,7 +123,7 @@ class Watcher:
         return (
             f"fused v{msg.seq}: {wf.n_vertices} vertices, {wf.n_edges} edges, {nbytes:,} bytes; "
             f"{len(alive)} robot{'' if len(alive) == 1 else 's'} alive"
-            f"{' (' + ' '.join(alive) + ')' if alive else ''}; from {contributors}"
+            f"{' (' + ' '.join(alive) + ')' if alive else ''}; from {contributors}{_frames(msg)}"
         )
 
     def save(self, msg: Any, nbytes: int) -> None:
@@ -143,6 +142,24 @@ class Watcher:
             save_wireframe_geojson(self.save_dir / "latest.geojson", msg.wireframe, props)
         except OSError as exc:
             raise UserError(f"cannot save into {self.save_dir}: {exc.strerror or exc}") from None
+
+
+def _frames(msg: Any) -> str:
+    """Robots of unknown start pose (the fused map's ``meta["frames"]``): the frame, the
+    islands and the registrations since the last version, with their scores."""
+    fr = msg.meta.get("frames") if isinstance(msg.meta, dict) else None
+    if not isinstance(fr, dict):
+        return ""
+    islands = fr.get("islands") or {}
+    text = f"; frame of {fr.get('fleet_root')}; islands {' '.join('+'.join(m) for m in islands.values()) or 'none'}"
+    for r in fr.get("registrations") or []:
+        if isinstance(r, dict):
+            what = "accepted" if r.get("accepted") else f"refused ({r.get('reason')})"
+            text += (
+                f"\n  registration {'+'.join(r.get('b_members', []))} -> {'+'.join(r.get('a_members', []))}: "
+                f"{what}, confidence {r.get('confidence')}, support {r.get('support_m')} m"
+            )
+    return text
 
 
 def _stale(msg: Any) -> list[str]:

@@ -405,7 +405,7 @@ def draw_wireframe(
             left = tip - u * s + np.array([-u[1], u[0]]) * s / 2
             right = tip - u * s - np.array([-u[1], u[0]]) * s / 2
             c = edge_color if edge_color is not None else tuple(int(v) for v in likelihood_colors(wf.likelihood[k])[0])
-            canvas.lines(np.array([[left, tip], [right, tip]]), c, width)  # type: ignore[arg-type]
+            canvas.lines(np.array([[left, tip], [right, tip]]), c, width)
     colors: Mapping[Label, Color | None] = LABEL_COLORS if label_colors is None else label_colors
     for lab in Label:
         col = colors.get(lab)

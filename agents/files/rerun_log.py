@@ -333,6 +333,34 @@ class FleetRecorder:
         if latency_ms is not None:
             self.rec.log("stats/latency_ms", rr.Scalars([float(latency_ms)]))
 
+    # ------------------------------------------------------------------ unknown start poses
+    def log_registration(
+        self, t: float, line: str, a: str, b: str, accepted: bool, confidence: float, support: float
+    ) -> None:
+        """A registration attempt (component ``b`` onto ``a``): a text entry under
+        ``registrations`` and in ``log``, its confidence and supporting wall length as series."""
+        rr = self._rr
+        self.set_time(t)
+        level = "INFO" if accepted else "DEBUG"
+        self.rec.log("registrations", rr.TextLog(line, level=level))
+        self.rec.log("log", rr.TextLog(line, level=level))
+        self.rec.log(f"stats/registration/{b}/confidence", rr.Scalars([float(confidence)]))
+        self.rec.log(f"stats/registration/{b}/support_m", rr.Scalars([float(support)]))
+
+    def log_island(self, t: float, root: str, members: Sequence[str], wf: Wireframe | None) -> None:
+        """An island's map in its root robot's frame (drawn under ``islands/<root>``, apart
+        from the fleet frame: its place in it is unknown); ``wf`` None clears it (it joined)."""
+        rr = self._rr
+        self.set_time(t)
+        if wf is None:
+            self.rec.log(f"islands/{root}", rr.Clear(recursive=True))
+            return
+        c = robot_colour(self.robot_index(root))
+        self.rec.log(
+            f"islands/{root}/map",
+            rr.LineStrips2D(_strips(wf), colors=[c], radii=[0.035], labels=["+".join(members)], draw_order=10.0),
+        )
+
     def log_text(self, t: float, text: str, level: str = "INFO") -> None:
         rr = self._rr
         self.set_time(t)

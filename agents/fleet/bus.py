@@ -453,21 +453,12 @@ def encode_pose(
 
 
 def decode_pose(data: bytes) -> dict[str, Any]:
-    """Inverse of :func:`encode_pose`; poses come back as :class:`Pose`. Raises ``ValueError``."""
-    try:
-        d = msgpack.unpackb(data, raw=False, max_bin_len=1 << 16, max_str_len=1 << 12)
-        out = {
-            "seq": int(d["seq"]),
-            "t": float(d["t"]),
-            "stamp_ns": int(d["stamp_ns"]),
-            "odom": Pose(*map(float, d["odom"])),
-            "fleet": Pose(*map(float, d["fleet"])),
-            "truth": None if d.get("truth") is None else Pose(*map(float, d["truth"])),
-            "status": dict(d.get("status") or {}),
-        }
-    except Exception as exc:
-        raise ValueError(f"bad pose message: {exc}") from None
-    return out
+    """Inverse of :func:`encode_pose`; poses come back as :class:`Pose`, every field checked by
+    :func:`agents.fleet.validate.pose`. Raises ``ValueError`` (:class:`~agents.fleet.validate.Invalid`,
+    with a ``reason``)."""
+    from agents.fleet import validate
+
+    return validate.pose(data)
 
 
 def pack_wireframe(wf: Wireframe) -> dict[str, Any]:
@@ -506,18 +497,11 @@ def encode_viz(
 
 
 def decode_viz(data: bytes) -> dict[str, Any]:
-    """Inverse of :func:`encode_viz`. Raises ``ValueError`` on a malformed payload."""
-    try:
-        d = msgpack.unpackb(data, raw=False, max_bin_len=1 << 24)
-        return {
-            "t": float(d["t"]),
-            "pose": Pose(*map(float, d["pose"])),
-            "scan": unpack_wireframe(d["scan"]),
-            "particles": [unpack_wireframe(p) for p in d["particles"]],
-            "weights": [float(w) for w in d["weights"]],
-        }
-    except Exception as exc:
-        raise ValueError(f"bad viz message: {exc}") from None
+    """Inverse of :func:`encode_viz`, every field checked by :func:`agents.fleet.validate.viz`.
+    Raises ``ValueError`` (:class:`~agents.fleet.validate.Invalid`, with a ``reason``)."""
+    from agents.fleet import validate
+
+    return validate.viz(data)
 
 
 # ---------------------------------------------------------------------- ports

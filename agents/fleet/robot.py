@@ -65,7 +65,8 @@ class RobotOptions:
     ``resolution`` is the quantisation step of the map's coordinates on the wire (the
     codec's ``resolution``); ``threshold`` is the particle filter's merge threshold. They
     are separate: a fine quantisation keeps the filter's centimetre accuracy while walls
-    still merge at the paper's threshold."""
+    still merge at the paper's threshold. ``filter_overrides`` are further filter settings
+    by dotted key (``{"compass.young_weight": 0.0}``, :func:`mapping.config.with_overrides`)."""
 
     robot: str
     world: str
@@ -81,6 +82,10 @@ class RobotOptions:
     viz_hz: float = 2.0
     duration: float | None = None
     extra: dict[str, Any] = field(default_factory=dict)
+    filter_overrides: dict[str, Any] = field(default_factory=dict)
+    unknown_start: bool = False  # publish in its own frame: origin identity, meta origin_unknown
+    carmen: str | None = None  # replay this CARMEN log instead of simulating (agents.fleet.carmen_fleet)
+    scans: tuple[int, int] | None = None  # the log's scans [i0, i1) this robot replays
 
 
 @dataclass
@@ -134,7 +139,12 @@ def robot_map_message(
 
 
 def map_message(opts: RobotOptions, wf: Wireframe, pose: Pose, seq: int, stamp_ns: int, meta: dict[str, Any]) -> MapMessage:
-    """The ``ROBOT_MAP`` the agent with options ``opts`` sends for ``wf``."""
+    """The ``ROBOT_MAP`` the agent with options ``opts`` sends for ``wf`` (with an unknown
+    start: origin the identity, ``meta["origin_unknown"] = True``)."""
+    if opts.unknown_start:
+        return robot_map_message(
+            opts.robot, Pose.identity(), opts.resolution, wf, pose, seq, stamp_ns, {**meta, "origin_unknown": True}
+        )
     return robot_map_message(opts.robot, opts.start, opts.resolution, wf, pose, seq, stamp_ns, meta)
 
 
@@ -172,8 +182,13 @@ def robot_puts(session: Any, keys: Any, robot: str) -> dict[str, KeyPut]:
 
 def default_steps(opts: RobotOptions) -> Iterator[StepLike]:
     """The simulation + filter loop of :mod:`agents.mapping_run` for this robot (merge
-    threshold ``opts.threshold``)."""
+    threshold ``opts.threshold``); with ``opts.carmen`` the replay of its stretch of the log."""
     from agents import mapping_run
+
+    if opts.carmen is not None:
+        from agents.fleet import carmen_fleet
+
+        return carmen_fleet.robot_steps(opts)
 
     return mapping_run.robot_steps(opts)
 
@@ -268,7 +283,7 @@ class RobotAgent:
             t=t,
             stamp_ns=time.time_ns(),
             odom=odom,
-            fleet=self.opts.start.compose(odom),
+            fleet=odom if self.opts.unknown_start else self.opts.start.compose(odom),
             truth=truth,
             status=self.status.as_dict(),
         )

@@ -97,7 +97,7 @@ def _check_id(name: object, what: str) -> str:
     # out of the password dictionary and '/' out of certificate file names
     if not valid_name(name):
         raise UserError(f"bad {what} {name!r}: use 1-63 letters, digits, '_', '.', '-'")
-    return name
+    return str(name)
 
 
 # ---------------------------------------------------------------------- private files
@@ -405,10 +405,16 @@ def acl_config(
         _rule("fusion-write", ["put", "delete", "declare_queryable", "reply"], "ingress", [f"{p}/fused/**"]),
         _rule("fusion-answer", ["query"], "egress", [f"{p}/fused/**"]),
     ]
-    subjects: list[dict[str, Any]] = [{"id": "any"}, subject("fusion", fusion_user)]
+    subjects: list[dict[str, Any]] = [subject("fusion", fusion_user)]
+    if identity != "both":
+        subjects.insert(0, {"id": "any"})
+    # "any" authenticated client: with identity "both", only the clients whose user name and
+    # certificate CN are one known identity (a subject with neither would also match r2's
+    # certificate logged in with r1's password, which must be able to do nothing at all)
+    everyone = ["fusion", *(f"observer-{o}" for o in observers), *(f"robot-{r}" for r in robots)]
     policies: list[dict[str, Any]] = [
         {"id": "any", "rules": ["any-read-fused-in", "any-read-fused-out", "any-alive-in", "any-alive-out"],
-         "subjects": ["any"]},
+         "subjects": everyone if identity == "both" else ["any"]},
         {"id": "fusion", "rules": ["fleet-read-in", "fleet-read-out", "fusion-write", "fusion-answer"],
          "subjects": ["fusion"]},
     ]
@@ -668,7 +674,9 @@ def make_secure_fleet(
     mtls : mutual TLS with generated certificates (CN = id).
 
     With both, the ACL identifies a client by user name *and* certificate CN
-    (``identity="both"``); with one, by that one. At least one must be on.
+    (``identity="both"``; a client whose two do not name one identity may do nothing); with
+    one, by that one. At least one must be on. The CA's private key is deleted once the
+    certificates are issued: it is never part of the written folder.
     """
     if not (usrpwd or mtls):
         raise UserError("a secure fleet needs user/password authentication, mutual TLS or both")
@@ -679,6 +687,11 @@ def make_secure_fleet(
     d = Path(directory).resolve()
     ids = [fusion_user, *observers, *robots]
     certs = generate_test_certs(d / "certs", ids) if mtls else None
+    if certs is not None:
+        # every certificate of the fleet is issued: the CA's private key would only let whoever
+        # reads this folder (a run's outputs) mint identities, so it is not kept (a new robot
+        # means new fleet credentials)
+        certs.ca_key.unlink()
     passwords = {i: make_password() for i in ids} if usrpwd else {}
     dictionary = write_password_dictionary(d / "passwords.txt", passwords) if usrpwd else None
     creds: dict[str, Path] = {}

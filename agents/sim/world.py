@@ -134,7 +134,7 @@ class World:
             idx = np.flatnonzero(inside)
             d = shapely.distance(walls, shapely.points(p[idx]))
             inside[idx] = d > THIN_WALL_CLEARANCE
-        return inside[0] if single else inside  # type: ignore[return-value]
+        return inside[0] if single else inside
 
     def walls(self) -> MultiLineString:
         """Every wall as lines: the free space's boundary and the thin walls."""

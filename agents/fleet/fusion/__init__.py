@@ -81,7 +81,7 @@ served.
 """
 
 from agents.fleet.fusion.codec import decode_message, encode_message, order_key
-from agents.fleet.fusion.intake import DropLog, InputLimits, Intake, implausible
+from agents.fleet.fusion.intake import DropLog, InputLimits, Intake, implausible, over_budget
 from agents.fleet.fusion.service import FusionService, ServeOptions, serve
 from agents.fleet.fusion.state import (
     DEFAULT_RESOLUTION,
@@ -99,6 +99,7 @@ from agents.fleet.fusion.store import (
     LATENCY_LOG,
     SNAPSHOT,
     StoreContents,
+    StoreDamaged,
     StoreJob,
     StoreWriter,
     append_latency_log,
@@ -125,6 +126,7 @@ __all__ = [
     "RobotEntry",
     "ServeOptions",
     "StoreContents",
+    "StoreDamaged",
     "StoreJob",
     "StoreWriter",
     "append_latency_log",
@@ -135,6 +137,7 @@ __all__ = [
     "latency_summary",
     "merge_threshold_of",
     "order_key",
+    "over_budget",
     "read_latency_log",
     "read_store",
     "serve",

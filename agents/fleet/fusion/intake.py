@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 
 import wire_codec
+from agents.fleet import validate
 from wire_codec import MAX_ROBOTS
 from wire_codec.message import MapMessage
 
@@ -34,12 +35,20 @@ class InputLimits:
     max_extent_m : largest ``|x|`` or ``|y|`` of the origin and of every vertex in the fleet
         frame ("kilometres away" is absurd for a building).
     max_resolution_m : largest map resolution (a coarser one raises the default merge threshold).
-    max_clock_skew_s : how far in the future a ``meta.boot`` may lie (wall clocks differ).
+    max_clock_skew_s : how far in the future a ``meta.boot`` or ``stamp_ns`` may lie (wall clocks
+        of one fleet differ by NTP's error; 2 minutes is generous, and a map from the future is
+        refused, not stored).
     rate_hz, burst : token bucket per key (robots send at most ~10 maps/s).
     queue_depth : payloads waiting per key (the oldest is dropped: maps are whole states).
     queue_bytes : bytes waiting over all keys.
     max_keys : keys tracked at once (rate buckets and side channels).
     pose_bytes, viz_bytes : largest pose / visualisation payload.
+    max_robot_vertices, max_robot_wall_m : a robot map's budget (vertices, total wall length):
+        the fusion's cost grows with them (ICP and merge), so one robot cannot buy more. The
+        largest built-in world's robot maps have a few hundred vertices.
+    sensor_range_m, max_speed_mps, reach_slack_m : a robot's map lies within ``sensor_range_m +
+        max_speed_mps * (time since its boot) + reach_slack_m`` of its start pose: it cannot
+        have seen further (a lidar's range, a fast robot; checked with the fusion's clock).
     """
 
     max_bytes: int = 256 * 1024
@@ -47,7 +56,7 @@ class InputLimits:
     max_edges: int = 40_000
     max_extent_m: float = 1000.0
     max_resolution_m: float = 2.0
-    max_clock_skew_s: float = 3600.0
+    max_clock_skew_s: float = 120.0
     rate_hz: float = 50.0
     burst: int = 100
     queue_depth: int = 64
@@ -55,12 +64,17 @@ class InputLimits:
     max_keys: int = 4 * MAX_ROBOTS
     pose_bytes: int = 16 * 1024
     viz_bytes: int = 4 * 1024 * 1024
+    max_robot_vertices: int = 3000
+    max_robot_wall_m: float = 5000.0
+    sensor_range_m: float = 40.0
+    max_speed_mps: float = 3.0
+    reach_slack_m: float = 10.0
 
     def codec_limits(self) -> wire_codec.Limits:
         """The :class:`wire_codec.Limits` the decoder enforces for robot maps."""
         return wire_codec.Limits(
             max_bytes=self.max_bytes,
-            max_vertices=self.max_vertices,
+            max_vertices=min(self.max_vertices, self.max_robot_vertices),
             max_edges=self.max_edges,
             max_coordinate=self.max_extent_m,
             max_string=128,
@@ -70,35 +84,45 @@ class InputLimits:
 def implausible(msg: MapMessage, limits: InputLimits, now_ns: int | None = None) -> tuple[str, str] | None:
     """``(reason, detail)`` when a decoded robot map's content is absurd, else None.
 
-    Reasons: ``resolution`` (not in ``(0, max_resolution_m]``), ``extent`` (origin or a vertex
-    beyond ``max_extent_m`` in the fleet frame), ``meta`` (``boot`` not a non-negative int,
-    ``t`` not a finite non-negative number, ``step`` not an int), ``future`` (``boot`` more than
-    ``max_clock_skew_s`` after ``now_ns``; only checked when ``now_ns`` is given).
+    The field checks are :func:`agents.fleet.validate.robot_map`'s (reasons ``resolution``,
+    ``extent``, ``meta``, ``seq``, ``stamp``); with ``now_ns`` also ``future``: ``meta.boot`` or
+    ``stamp_ns`` more than ``max_clock_skew_s`` after ``now_ns`` (a map from the future would
+    outrank every real one of its robot: it is refused, never stored).
     """
-    res = float(msg.resolution)
-    if not (0.0 < res <= limits.max_resolution_m):
-        return "resolution", f"resolution {res:g} m (limit {limits.max_resolution_m:g} m)"
-    ext = limits.max_extent_m
-    o = msg.origin
-    if max(abs(o.x), abs(o.y)) > ext:
-        return "extent", f"origin ({o.x:.1f}, {o.y:.1f}) is over {ext:g} m away"
+    bad = validate.robot_map(msg, limits.max_extent_m, limits.max_resolution_m)
+    if bad is not None:
+        return bad
+    if now_ns is not None:
+        meta = msg.meta if isinstance(msg.meta, dict) else {}
+        boot = int(meta.get("boot", 0))
+        skew = limits.max_clock_skew_s * 1e9
+        if boot > now_ns + skew:
+            return "future", f"meta.boot is {(boot - now_ns) / 1e9:.0f} s in the future"
+        if int(msg.stamp_ns) > now_ns + skew:
+            return "future", f"stamp_ns is {(int(msg.stamp_ns) - now_ns) / 1e9:.0f} s in the future"
+    return None
+
+
+def over_budget(msg: MapMessage, limits: InputLimits, now_ns: int | None = None) -> tuple[str, str] | None:
+    """``(reason, detail)`` when a robot map is beyond what one robot may cost or could have
+    seen, else None: ``budget_vertices``, ``budget_walls`` (total wall length), ``reach`` (a
+    vertex further from the start pose than the robot could have seen since its boot; only
+    checked with ``now_ns``). Cheap: one pass over the arrays."""
     wf = msg.wireframe
-    if wf.n_vertices:
-        far = float(np.abs(o.apply(wf.points)).max())
-        if not math.isfinite(far) or far > ext:
-            return "extent", f"a vertex is {far:.1f} m from the fleet origin (limit {ext:g} m)"
-    meta = msg.meta if isinstance(msg.meta, dict) else {}
-    boot = meta.get("boot", 0)
-    if isinstance(boot, bool) or not isinstance(boot, int) or boot < 0:
-        return "meta", f"meta.boot {boot!r} is not a non-negative integer"
-    if now_ns is not None and boot > now_ns + limits.max_clock_skew_s * 1e9:
-        return "future", f"meta.boot is {(boot - now_ns) / 1e9:.0f} s in the future"
-    t = meta.get("t", 0.0)
-    if isinstance(t, bool) or not isinstance(t, (int, float)) or not math.isfinite(t) or t < 0:
-        return "meta", f"meta.t {t!r} is not a finite non-negative number"
-    step = meta.get("step", 0)
-    if isinstance(step, bool) or not isinstance(step, int):
-        return "meta", f"meta.step {step!r} is not an integer"
+    if wf.n_vertices > limits.max_robot_vertices:
+        return "budget_vertices", f"{wf.n_vertices} vertices (budget {limits.max_robot_vertices})"
+    if wf.n_edges:
+        seg = wf.points[wf.edges]
+        length = float(np.hypot(*(seg[:, 1] - seg[:, 0]).T).sum())
+        if length > limits.max_robot_wall_m:
+            return "budget_walls", f"{length:.0f} m of walls (budget {limits.max_robot_wall_m:g} m)"
+    if now_ns is not None and wf.n_vertices:
+        meta = msg.meta if isinstance(msg.meta, dict) else {}
+        elapsed = max(0.0, (now_ns - int(meta.get("boot", 0))) / 1e9)
+        reach = limits.sensor_range_m + limits.max_speed_mps * elapsed + limits.reach_slack_m
+        far = float(np.hypot(wf.points[:, 0], wf.points[:, 1]).max())  # odometry frame: from the start
+        if far > reach:
+            return "reach", f"a vertex {far:.0f} m from the start, {elapsed:.0f} s after boot (reach {reach:.0f} m)"
     return None
 
 

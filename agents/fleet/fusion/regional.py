@@ -48,6 +48,7 @@ class GroupView:
 
     def __init__(self, keys: Any, group: str, selector: RobotSelector) -> None:
         self.fleet = keys
+        self.prefix = keys.prefix
         self.group = group
         self.selector = selector
         self.tree = GroupKeys(keys.prefix)

@@ -17,7 +17,9 @@ from typing import Any
 
 from agents.errors import UserError
 from agents.fleet.fusion.codec import encode_message
+from agents.fleet.fusion.frames import FramesConfig
 from agents.fleet.fusion.intake import DropLog, InputLimits, Intake
+from agents.fleet.fusion.islands import IslandShell, frames_section
 from agents.fleet.fusion.state import FusionConfig, FusionState
 from agents.fleet.fusion.stats import LatencyWindow
 from agents.fleet.fusion.store import StoreWriter
@@ -46,8 +48,11 @@ class ServeOptions:
     align_wait_s : an ICP re-alignment (the slow path) runs after a publish when no map is
         waiting, or when none has run for this long even though maps keep waiting.
     limits : :class:`InputLimits` (what is accepted from the bus).
+    reset : start empty when the store cannot be recovered (its files moved aside) instead of
+        refusing to start (:class:`~agents.fleet.fusion.store.StoreDamaged`).
     drop_log_s : at most one "dropped ..." line per this many seconds (:class:`DropLog`).
     config : :class:`FusionConfig`.
+    frames : :class:`FramesConfig` (robots of unknown start pose: anchor, retry schedule).
     """
 
     store: str | None = None
@@ -64,6 +69,8 @@ class ServeOptions:
     full_after_s: float = 0.5
     latency_summary_s: float = 1.0
     align_wait_s: float = 0.5
+    reset: bool = False
+    frames: FramesConfig = field(default_factory=FramesConfig)
 
 
 class FusionService:
@@ -78,10 +85,13 @@ class FusionService:
         self.opts = opts
         self.say = log or (lambda _s: None)
         self.state = (
-            FusionState.load(opts.store, opts.config, limits=opts.limits)
+            FusionState.load(opts.store, opts.config, limits=opts.limits, reset=opts.reset)
             if opts.store
             else FusionState(opts.config, limits=opts.limits)
         )
+        self.state.restart_by_token = True  # a robot's restart is learned from its liveliness token
+        self._came_alive: list[str] = []  # tokens that appeared (zenoh thread -> main thread)
+        self.state.frames.config = opts.frames
         self.recorder: Any = None
         if opts.rrd:
             from agents.files.rerun_log import FleetRecorder
@@ -101,6 +111,7 @@ class FusionService:
         self.drops = DropLog(self._say_drop, opts.drop_log_s)
         self._side: dict[str, dict[str, bytes]] = {"pose": {}, "viz": {}}
         self._side_dropped = 0
+        self._side_by: dict[str, int] = {}  # side_dropped by kind and reason
         self.alive: set[str] = set()
         self.seen_alive: set[str] = set()
         self._gone_during_query: set[str] = set()
@@ -123,11 +134,15 @@ class FusionService:
         self._timed = 0.0  # of this iteration's time, spent in _fuse
         self.transport_ms = LatencyWindow(10_000)  # robot publish -> inbox, of maps that changed
         self.writer = StoreWriter(self.say) if opts.store else None
+        self.unsaved.update(self.state.store_rewrite)  # damaged views found at start are written again
+        for line in self.state.store_report:
+            self.say(f"store: {line}")
         self.started = time.monotonic()
         self._stats_doc = b"{}"
         self._stats_at = -math.inf
         self._stats_version: tuple[int, tuple[str, ...]] = (-1, ())
         self._entities: list[Any] = []
+        self.islands = IslandShell(session, keys, self.recorder, self.say)
         if self.state.version > 0 and self.state.robots:
             self.version_stamp_ns = time.time_ns()
             self.current = encode_message(self.state.fused_message(self.version_stamp_ns, self._meta()))
@@ -152,8 +167,15 @@ class FusionService:
         rid = self.keys.robot_of(key)
         with self.lock:
             slot = self._side[kind]
-            if rid is None or len(payload) > max_bytes or (rid not in slot and len(slot) >= self.opts.limits.max_keys):
+            reason = (
+                "bad_key" if rid is None
+                else "oversized" if len(payload) > max_bytes
+                else "too_many_keys" if rid not in slot and len(slot) >= self.opts.limits.max_keys
+                else None
+            )
+            if reason is not None:
                 self._side_dropped += 1
+                self._side_by[f"{kind}_{reason}"] = self._side_by.get(f"{kind}_{reason}", 0) + 1
                 return
             slot[rid] = payload.to_bytes()  # only the latest per robot matters
 
@@ -180,6 +202,8 @@ class FusionService:
             return
         with self.lock:
             if sample.kind == self._zenoh.SampleKind.PUT:
+                if rid not in self.alive:
+                    self._came_alive.append(rid)
                 self.alive.add(rid)
                 self.seen_alive.add(rid)
                 self._gone_during_query.discard(rid)
@@ -239,6 +263,7 @@ class FusionService:
             self.current = data
         self._update_stats(force=True)  # before the put: whoever sees the map sees its counters
         self._put(data)
+        self.islands.publish(st, self.version_stamp_ns)
         lat = st.take_latencies(time.time_ns())
         if self.recorder is not None:
             self.recorder.log_fused(st.sim_time(), st.fused, st.fused_robots, st.version, max(lat) if lat else None)
@@ -252,6 +277,10 @@ class FusionService:
 
     def _take(self, items: list[tuple[str, bytes, int]]) -> None:
         st = self.state
+        with self.lock:
+            came, self._came_alive = self._came_alive, []
+        for rid in came:
+            st.note_alive(rid)
         now_ns = time.time_ns()
         for key, data, arrived_ns in items:
             rid = self.keys.robot_of(key)
@@ -313,12 +342,30 @@ class FusionService:
             },
             "stats": st.stats.as_dict(fresh),
             "converged": st.converged,
+            **({"frames": frames_section(st)} if st.frames.active else {}),
             "transport_ms": self.transport_ms.summary(fresh),
             "queued_bytes": self.intake.queued_bytes,
+            "store": self.store_health(),
             "drop_log_lines": self.drops.lines,
             "rss_kb": rss_kb(),
             "pid": os.getpid(),
             "uptime_s": round(time.monotonic() - self.started, 3),
+        }
+
+    def store_health(self) -> dict[str, Any]:
+        """The store's health for ``fused/stats`` and ``watch``: ``ok`` false while writes fail
+        (disk full, read-only), the last error, the version on disk, what start-up recovered."""
+        w = self.writer
+        if w is None:
+            return {"ok": True, "enabled": False}
+        return {
+            "ok": w.ok,
+            "enabled": True,
+            "errors": w.errors,
+            "error": w.last_error or None,
+            "written_version": w.written_version,
+            "behind": max(0, self.state.version - w.written_version),
+            "recovered": list(self.state.store_report),
         }
 
     def _fresh_latency(self) -> bool:
@@ -334,6 +381,12 @@ class FusionService:
         s.oversized, s.rate_limited, s.overflow = self.intake.oversized, self.intake.rate_limited, self.intake.overflow
         with self.lock:
             s.side_dropped = self._side_dropped
+            s.side_dropped_by = dict(self._side_by)
+
+    def _side_drop(self, reason: str) -> None:
+        with self.lock:
+            self._side_dropped += 1
+            self._side_by[reason] = self._side_by.get(reason, 0) + 1
 
     def _update_stats(self, force: bool = False) -> None:
         now = time.monotonic()
@@ -373,7 +426,7 @@ class FusionService:
             self.unsaved.update(changed)
             if self.recorder is not None:
                 for rid in changed:
-                    if rid in st.robots:
+                    if rid in st.robots and st.frames.in_fleet(rid):
                         t = float(st.robots[rid].message.meta.get("t", 0.0))
                         self.recorder.log_robot_map(rid, t, st.robot_in_fleet(rid))
         elif (
@@ -394,6 +447,17 @@ class FusionService:
             if st.realign(now=now, limit=1):
                 self.refuse = True  # fuse again even if no map arrives
             self.timing["align"] += time.perf_counter() - t
+            self._timed += time.perf_counter() - t
+        if self.writer is not None and not self.writer.ok and not self.save_due:
+            self.save_due = True  # a failed write (disk full, read-only) is retried with everything
+            self.unsaved.update(st.robots)
+        if st.frames.active:  # robots of unknown start pose: one registration attempt when idle
+            t = time.perf_counter()
+            if self.islands.step(st, now, idle=self.intake.empty and not self.dirty):
+                self.refuse = True
+                self.save_due = True
+            if time.monotonic() - self.islands.last_pub >= 1.0:
+                self.islands.publish(st, time.time_ns())
             self._timed += time.perf_counter() - t
         if (
             self.opts.store
@@ -451,6 +515,7 @@ class FusionService:
 
     def _poll_side_channels(self) -> None:
         from agents.fleet.bus import decode_pose, decode_viz
+        from agents.fleet.validate import Invalid
 
         st = self.state
         with self.lock:
@@ -458,20 +523,13 @@ class FusionService:
             self._side = {"pose": {}, "viz": {}}
         poses: dict[str, dict[str, Any]] = {}
         viz: dict[str, dict[str, Any]] = {}
-        bad = 0
-        for rid, data in raw_poses.items():
-            try:
-                poses[rid] = decode_pose(data)
-            except ValueError:
-                bad += 1
-        for rid, data in raw_viz.items():
-            try:
-                viz[rid] = decode_viz(data)
-            except ValueError:
-                bad += 1
-        if bad:
-            with self.lock:
-                self._side_dropped += bad
+        for kind, raw, out, decode in (("pose", raw_poses, poses, decode_pose), ("viz", raw_viz, viz, decode_viz)):
+            for rid, data in raw.items():
+                try:
+                    out[rid] = decode(data)  # every field checked (agents.fleet.validate)
+                except Invalid as exc:
+                    self._side_drop(f"{kind}_{exc.reason}")
+                    self.drops.note("side_dropped", f"robots/{rid}/{kind}", str(exc))
         if self.recorder is None:
             return
         for rid, p in sorted(poses.items()):
@@ -506,7 +564,11 @@ class FusionService:
             if self.writer is not None:
                 self.writer.close()
             if self.opts.store:
-                st.save(self.opts.store, None, self.version_stamp_ns)
+                try:
+                    st.save(self.opts.store, None, self.version_stamp_ns)
+                except OSError as exc:  # disk full, read-only: one line, a clean exit
+                    st.exit_error = f"cannot write the store {self.opts.store} at exit: {exc.strerror or exc}"
+                    self.say(st.exit_error)
             if self.recorder is not None:
                 self.recorder.close()
 

@@ -9,12 +9,14 @@ the tree's shape) and :mod:`mapping.merge`.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import os
 import sys
+import time
 from collections.abc import Callable, Iterable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -23,9 +25,16 @@ import numpy as np
 from agents.errors import UserError
 from agents.fleet.bus import valid_name
 from agents.fleet.fusion.codec import decode_message, encode_message, order_key
-from agents.fleet.fusion.intake import InputLimits, implausible
+from agents.fleet.fusion.frames import (
+    FleetFrames,
+    FramesConfig,
+    RegistrationRecord,
+    fold_maps,
+    origin_unknown,
+)
+from agents.fleet.fusion.intake import InputLimits, implausible, over_budget
 from agents.fleet.fusion.stats import MAX_LATENCIES, FusionStats
-from agents.fleet.fusion.store import LATENCY_LOG, StoreJob, read_latency_log, read_store
+from agents.fleet.fusion.store import LATENCY_LOG, StoreDamaged, StoreJob, read_latency_log, read_store
 from agents.fleet.fusion.tree import wire_snap
 from mapping.fleet import align_maps, close_frontiers, fold_split
 from mapping.se2 import Pose
@@ -88,6 +97,9 @@ class RobotEntry:
     raw: bytes
     key: tuple[int, int, str]
     rev: int = 0
+    gen: int = 0  # the robot's liveliness generation when this boot was first accepted
+    since_ns: int = 0  # when this boot was first accepted (the fusion's clock, ns; 0: unknown)
+    at_ns: int = 0  # when this map was accepted (0: unknown)
 
 
 @dataclass(frozen=True)
@@ -163,6 +175,7 @@ class FusionState:
         sender: str = FUSION_ID,
         merge_fn: MergeFn | None = None,
         limits: InputLimits | None = None,
+        frames: FramesConfig | None = None,
     ) -> None:
         self.config = config or FusionConfig()
         self.sender = sender
@@ -191,6 +204,18 @@ class FusionState:
         self._in_fleet: dict[str, tuple[int, Wireframe]] = {}  # robot -> (rev, map moved by its start pose)
         self._prepared: dict[str, tuple[tuple[Any, ...], Wireframe]] = {}  # robot -> (key, map ready to merge)
         self._lat_saved = 0  # latency_total already handed to a store job
+        self.store_report: list[str] = []  # what load found damaged and how it was recovered
+        # ordering that cannot be frozen from outside (see _add): a robot's restart is learned
+        # from the bus (note_alive), not from the boot number its maps claim
+        self.restart_by_token = False
+        self.token_gen: dict[str, int] = {}
+        self.forgotten: dict[str, str] = {}  # robot id -> why it was forgotten (kept in the store)
+        self._since: dict[str, int] = {}  # restored since_ns per robot (load)
+        self.store_rewrite: set[str] = set()  # views load found damaged (written again by the next save)
+        self.exit_error: str | None = None  # the final store write failed (the service's last line)
+        # robots of unknown start pose (meta origin_unknown): the registration graph (frames.py)
+        self.frames = FleetFrames(frames)
+        self._island_cache: dict[str, tuple[tuple[Any, ...], tuple[str, ...], Wireframe]] = {}
         # a regional fuser's (agents.fleet.fusion.regional): (identity, map) of the robots before
         # its group in the fleet-wide fold, the start of every alignment prefix; None: this
         # state's first robot is the anchor
@@ -221,9 +246,11 @@ class FusionState:
         if key_robot is not None and msg.sender != key_robot:
             return self._drop("rejected", "sender_mismatch", f"sender {msg.sender!r} on the key of {key_robot!r}")
         bad = implausible(msg, self.limits, now_ns)
+        if bad is None:
+            bad = over_budget(msg, self.limits, now_ns)
         if bad is not None:
             return self._drop("absurd", *bad)
-        return self._add(msg, raw)
+        return self._add(msg, raw, now_ns)
 
     def reject_key(self, key: str) -> bool:
         """Count a payload that arrived on a key whose id chunk is not a valid robot id."""
@@ -243,19 +270,58 @@ class FusionState:
         state holds exactly what would have travelled (the codec quantises coordinates)."""
         return self.offer(encode_message(msg), msg.sender)
 
-    def _add(self, msg: MapMessage, raw: bytes) -> bool:
+    def note_alive(self, rid: str) -> None:
+        """The robot's liveliness token appeared (a new session of it): its next map may come
+        from a new boot (see :meth:`_add`)."""
+        self.token_gen[rid] = self.token_gen.get(rid, 0) + 1
+
+    def forget(self, rid: str, why: str) -> bool:
+        """Remove every trace of a robot (its map, alignment, caches); the store records
+        ``why`` (:attr:`forgotten`). Returns whether it had a map."""
+        had = self.robots.pop(rid, None) is not None
+        for cache in (self.alignments, self.corrections, self._in_fleet, self._prepared, self._pending):
+            cache.pop(rid, None)
+        self.forgotten[rid] = why[:200]
+        return had
+
+    def _add(self, msg: MapMessage, raw: bytes, now_ns: int | None = None) -> bool:
         rid = msg.sender
         key = order_key(msg, raw)
+        if self.frames.active or origin_unknown(msg):
+            msg = self._place(msg, raw)
         old = self.robots.get(rid)
+        gen = self.token_gen.get(rid, 0)
+        since = now_ns or 0
         if old is not None:
             if key == old.key:
                 self.stats.duplicates += 1
                 return False
-            if key < old.key:
+            restarted = key[0] != old.key[0]
+            if restarted and self.restart_by_token:
+                # a different boot supersedes the robot's maps only after its liveliness token
+                # came back (a restart seen on the bus), whichever boot is larger: a map with a
+                # boot from the future cannot freeze the robot, nor one from the past
+                if gen <= old.gen:
+                    if key[0] < old.key[0]:
+                        self.stats.outdated += 1
+                        return False
+                    return self._drop("rejected", "boot_without_restart",
+                                      f"{rid!r} claims boot {key[0]} but its session did not restart")
+            elif key < old.key:
                 self.stats.outdated += 1
                 return False
+            else:
+                since = old.since_ns
+                if now_ns is not None and old.at_ns and not restarted:
+                    # a robot numbers its maps one by one: a seq far ahead of what it could
+                    # have sent since (rate limit x time) is a forged or corrupted map
+                    dt = max(0.0, (now_ns - old.at_ns) / 1e9)
+                    allowed = old.key[1] + self.limits.burst + self.limits.rate_hz * dt
+                    if key[1] > allowed:
+                        return self._drop("absurd", "seq_jump", f"seq {key[1]} after {old.key[1]} {dt:.1f} s ago")
         elif len(self.robots) >= MAX_ROBOTS:
             return self._drop("rejected", "too_many_robots", f"{rid!r} would be robot {MAX_ROBOTS + 1}")
+        self.forgotten.pop(rid, None)
         same = old is not None and _same_content(old.message, msg)
         if same:
             assert old is not None
@@ -263,11 +329,127 @@ class FusionState:
         else:
             self._rev += 1
             rev = self._rev
-        self.robots[rid] = RobotEntry(msg, raw, key, rev)
+        self.robots[rid] = RobotEntry(msg, raw, key, rev, gen, since, now_ns or 0)
         self.stats.accepted += 1
         if not same:
             self._pending.setdefault(rid, int(msg.stamp_ns))
         return not same
+
+    # ------------------------------------------------------------------ unknown start poses
+    def _place(self, msg: MapMessage, raw: bytes) -> MapMessage:
+        """A map of a robot of unknown origin gets its registered pose in the fleet frame as
+        ``origin`` (the identity while it is an island: it is not fused then); a robot that
+        now sends a known origin leaves the registration graph."""
+        rid = msg.sender
+        old = self.robots.get(rid)
+        if old is not None and order_key(msg, raw) <= old.key:
+            return msg  # a duplicate or an outdated map: _add drops it
+        fr = self.frames
+        if origin_unknown(msg):
+            fr.track(rid)
+            pose = fr.fleet_pose(rid) or Pose.identity()
+            msg = replace(msg, origin=pose)
+        else:
+            fr.forget(rid)
+        fr.has_known = any(r not in fr.root for r in (*self.robots, rid))
+        return msg
+
+    def _replace_origins(self) -> list[str]:
+        """After a change of the registration graph: every unknown robot's entry gets its new
+        fleet pose as ``origin`` (and a new revision when it changed). Returns the robots moved."""
+        moved = []
+        for rid in sorted(self.frames.root):
+            e = self.robots.get(rid)
+            if e is None:
+                continue
+            pose = self.frames.fleet_pose(rid) or Pose.identity()
+            if pose.as_tuple() != e.message.origin.as_tuple():
+                self._rev += 1
+                self.robots[rid] = RobotEntry(replace(e.message, origin=pose), e.raw, e.key, self._rev)
+                self._pending.setdefault(rid, int(e.message.stamp_ns))
+                moved.append(rid)
+        return moved
+
+    def fleet_ids(self) -> tuple[str, ...]:
+        """The robots fused into the fleet map, sorted: all of them, but for robots of unknown
+        origin that are not (yet) registered into the fleet frame (islands)."""
+        if not self.frames.active:
+            return tuple(sorted(self.robots))
+        return tuple(r for r in sorted(self.robots) if self.frames.in_fleet(r))
+
+    def _own_length(self, rid: str) -> float:
+        wf = self.robots[rid].message.wireframe
+        return float(wf.edge_lengths().sum()) if wf.n_edges else 0.0
+
+    def _component_length(self, members: tuple[str, ...], root: str | None) -> float:
+        if root is None or root == self.frames.fleet_component():
+            return sum(self._own_length(r) for r in self.fleet_ids())
+        return sum(self._own_length(r) for r in members if r in self.robots)
+
+    def _component_map(self, members: tuple[str, ...], root: str | None) -> Wireframe:
+        """A component's map in its root's frame; the fleet's is the fused map (in the fleet
+        frame), recomputed when the fused robots are not the fleet's present members."""
+        if root is None or root == self.frames.fleet_component():
+            ids = self.fleet_ids()
+            if ids == self.fused_robots:
+                return self.fused
+            thr = self.threshold
+            return fold_maps((self.robot_in_fleet(r) for r in ids), lambda a, b: self._merge(a, b, thr))
+        return self.island_map(root, members)
+
+    def island_map(self, root: str, members: tuple[str, ...] | None = None) -> Wireframe:
+        """An island's map in its root's frame: its members' maps moved by their poses in that
+        frame, merged in sorted order (cached until a member's map or pose changes)."""
+        fr = self.frames
+        ms = tuple(members) if members is not None else fr.components().get(root, ())
+        ms = tuple(m for m in ms if m in self.robots)
+        thr = self.threshold
+        key = (thr, *((m, self.robots[m].rev, fr.pose[m].as_tuple()) for m in ms))
+        hit = self._island_cache.get(root)
+        if hit is not None and hit[0] == key:
+            return hit[2]
+        wf = fold_maps(
+            (self.robots[m].message.wireframe.transformed(fr.pose[m]) for m in ms), lambda a, b: self._merge(a, b, thr)
+        )
+        if self.config.close_frontiers and len(ms) > 1:
+            wf = close_frontiers(wf, thr)
+        self._island_cache[root] = (key, ms, wf)
+        return wf
+
+    def island_key(self, root: str) -> Any:
+        """What an island's cached map was made from (changes exactly when it changes)."""
+        hit = self._island_cache.get(root)
+        return None if hit is None else hit[0]
+
+    def islands(self) -> dict[str, tuple[tuple[str, ...], Wireframe]]:
+        """Root -> (members, map in the root's frame) of every island (robots of unknown origin
+        not registered into the fleet frame)."""
+        out = {}
+        for root, ms in self.frames.islands().items():
+            ms = tuple(m for m in ms if m in self.robots)
+            if ms:
+                out[root] = (ms, self.island_map(root, ms))
+        for gone in [r for r in self._island_cache if r not in out]:
+            del self._island_cache[gone]
+        return out
+
+    def register_due(self) -> bool:
+        """Whether :meth:`register_step` has a pair of components to try."""
+        return self.frames.active and self.frames.next_pair(self._component_length) is not None
+
+    def register_step(self, t: float = 0.0) -> RegistrationRecord | None:
+        """One registration attempt of the registration graph (:mod:`.frames`), the pair it
+        finds due; on acceptance the moved robots get their fleet poses (the next :meth:`fuse`
+        includes them). None when no pair is due (and always for known-start fleets)."""
+        if not self.frames.active:
+            return None
+        pair = self.frames.next_pair(self._component_length)
+        if pair is None:
+            return None
+        rec = self.frames.attempt(pair, self._component_map, t)
+        if rec.accepted:
+            self._replace_origins()
+        return rec
 
     # ------------------------------------------------------------------ fusion
     @property
@@ -425,7 +607,7 @@ class FusionState:
         15 with 16 robots, against 8 on average for a left fold), and the nodes are cached.
         """
         cfg = self.config
-        ids = tuple(sorted(self.robots))
+        ids = self.fleet_ids()
         thr = self.threshold
         self._grid = self.resolution
         budget = len(ids) if full else (cfg.max_realign_per_fuse if max_realign is None else max_realign)
@@ -552,6 +734,8 @@ class FusionState:
         with ``version`` and the merge ``threshold`` (the scale its walls were merged at, and
         the grid its quality is scored on) plus ``meta``."""
         m: dict[str, Any] = {"version": self.version, "threshold": self.threshold}
+        if self.frames.active:  # robots of unknown origin: who is registered, the islands
+            m["frames"] = self.frames.summary()
         m.update(meta or {})
         return MapMessage(
             kind=MessageKind.FUSED_MAP,
@@ -609,9 +793,29 @@ class FusionState:
                 "latency_log": LATENCY_LOG,
             },
             latencies=[(first + i, v, t) for i, (v, t) in enumerate(zip(*(a.tolist() for a in lat.tail(new))))],
+            extra=self.extra_doc(),
+            forgotten=set(self.forgotten),
         )
         self._lat_saved = lat.total
         return job
+
+    def extra_doc(self) -> dict[str, Any]:
+        """What the snapshot keeps besides the maps: robots forgotten and why, when each robot's
+        boot was first accepted."""
+        return {
+            "forgotten": dict(sorted(self.forgotten.items())),
+            "since_ns": {r: e.since_ns for r, e in sorted(self.robots.items())},
+        }
+
+    def restore_extra(self, extra: dict[str, Any]) -> None:
+        """Inverse of :meth:`extra_doc` (values that are not what it writes are ignored)."""
+        f = extra.get("forgotten")
+        if isinstance(f, dict):
+            self.forgotten = {k: str(v)[:200] for k, v in f.items() if valid_name(k)}
+        since = extra.get("since_ns")
+        self._since = {
+            k: v for k, v in since.items() if isinstance(v, int) and not isinstance(v, bool) and 0 <= v < 1 << 63
+        } if isinstance(since, dict) else {}
 
     def save(self, store: str | os.PathLike[str], robots: Iterable[str] | None = None, stamp_ns: int = 0) -> None:
         """Write the state under ``store`` now (see :class:`StoreJob` for the files)."""
@@ -625,8 +829,20 @@ class FusionState:
         sender: str = FUSION_ID,
         merge_fn: MergeFn | None = None,
         limits: InputLimits | None = None,
+        reset: bool = False,
+        now_ns: int | None = None,
     ) -> FusionState:
         """Resume from :meth:`save`'s files (an absent or empty store gives a fresh state).
+
+        The files are checked and recovered from each other (:func:`read_store`; what was
+        damaged is in :attr:`store_report`, and the views to write again in
+        :attr:`store_rewrite`). A store that cannot be recovered raises
+        :class:`~agents.fleet.fusion.store.StoreDamaged`, unless ``reset``: then its files are
+        moved aside (``damaged-<ns>/``, nothing is deleted) and the state starts empty at a
+        version from the wall clock (milliseconds), above any version a fusion service could
+        have published, so that versions never go backwards for a subscriber.
+        Stored maps pass the checks of the bus at ``now_ns`` (default: now): a map from the
+        future is dropped and reported.
 
         The robot maps come from ``snapshot.msgpack`` (or, in a store without one, from
         ``robots/*.wfm``) and pass the same checks as maps from the bus. The fused map is
@@ -647,16 +863,40 @@ class FusionState:
         def warn(text: str) -> None:
             sys.stderr.write(f"wiremap fuse: {text}\n")
 
-        contents = read_store(d, warn=warn)
+        try:
+            contents = read_store(d, warn=warn)
+        except StoreDamaged as exc:
+            if not reset:
+                raise
+            aside = d / f"damaged-{time.time_ns()}"
+            aside.mkdir()
+            for f in list(d.iterdir()):
+                if f != aside and not f.name.startswith("damaged-"):
+                    os.replace(f, aside / f.name)
+            warn(f"{exc}; --reset: its files are in {aside}, starting empty")
+            st.version = time.time_ns() // 1_000_000
+            st.store_report = [f"reset: damaged files moved to {aside}"]
+            return st
+        st.store_report = list(contents.damaged)
+        st.store_rewrite = set(contents.rewrite)
+        st.restore_extra(contents.extra)
+        now = time.time_ns() if now_ns is None else now_ns
         for rid, raw in contents.raw_robots.items():
-            if not st.offer(raw, rid) and st.last_drop is not None:
-                sys.stderr.write(f"wiremap fuse: skipping stored map of {rid}: {st.last_drop[2]}\n")
+            if rid in st.forgotten:
+                continue
+            if not st.offer(raw, rid, now) and st.last_drop is not None:
+                line = f"stored map of {rid} refused: {st.last_drop[1]}: {st.last_drop[2]}"
+                st.store_report.append(line)
+                warn(line)
+            elif rid in st.robots:
+                e = st.robots[rid]
+                st.robots[rid] = dataclasses.replace(e, since_ns=st._since.get(rid, e.since_ns), at_ns=0)
         st.stats = FusionStats()
         total = 0
         try:
             state = json.loads((d / "state.json").read_text())
             total = int(state.get("latency_total", 0) or 0)
-        except (OSError, ValueError, TypeError, AttributeError):
+        except (OSError, ValueError, TypeError, AttributeError, OverflowError):
             pass
         tail = read_latency_log(d, MAX_LATENCIES)
         st.stats.latencies_ms.extend(v for _, v in tail)
@@ -677,7 +917,8 @@ class FusionState:
             # compare as stored: through the codec
             again = decode_message(encode_message(st.fused_message(0))).wireframe
             same = again.almost_equal(contents.fused.wireframe, tol=1e-9, likelihood_tol=1e-9)
-        st.version = contents.version if (same or not st.robots) else contents.version + 1
+        empty_before = contents.fused is None or contents.fused.wireframe.n_edges == 0
+        st.version = contents.version if (same or (not st.robots and empty_before)) else contents.version + 1
         return st
 
 

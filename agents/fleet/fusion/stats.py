@@ -87,7 +87,8 @@ class FusionStats:
     malformed / rejected / absurd : dropped in :meth:`~agents.fleet.fusion.state.FusionState.offer`; ``*_by`` break them
         down by codec error class or reason.
     oversized / rate_limited / overflow : dropped by :class:`~agents.fleet.fusion.intake.Intake` before decoding.
-    side_dropped : pose and visualisation payloads dropped (too big, bad key, undecodable).
+    side_dropped : pose and visualisation payloads dropped (too big, bad key, a field that fails
+        :mod:`agents.fleet.validate`); ``side_dropped_by`` by ``<kind>_<reason>``.
     published : fused versions published.
     fuses / full_fuses : fused maps computed (fast path) / of them, full recomputes.
     alignments : ICP alignments run (the slow path).
@@ -112,6 +113,7 @@ class FusionStats:
     malformed_by: dict[str, int] = field(default_factory=dict)
     rejected_by: dict[str, int] = field(default_factory=dict)
     absurd_by: dict[str, int] = field(default_factory=dict)
+    side_dropped_by: dict[str, int] = field(default_factory=dict)
     latencies_ms: LatencyWindow = field(default_factory=LatencyWindow)
 
     @property
@@ -146,6 +148,7 @@ class FusionStats:
             "malformed_by": dict(sorted(self.malformed_by.items())),
             "rejected_by": dict(sorted(self.rejected_by.items())),
             "absurd_by": dict(sorted(self.absurd_by.items())),
+            "side_dropped_by": dict(sorted(self.side_dropped_by.items())),
             "latency_ms": self.latencies_ms.summary(fresh_latency),
         }
 

@@ -8,16 +8,19 @@ Files under the store directory: ``snapshot.msgpack`` (authoritative), ``robots/
 
 from __future__ import annotations
 
+import hashlib
 import json
+import math
 import os
 import threading
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import msgpack
 
+from agents.errors import UserError
 from agents.files.io import write_atomic, write_json
 from agents.fleet.fusion.codec import decode_message, order_key
 from mapping.se2 import Pose
@@ -53,12 +56,15 @@ class StoreJob:
     alignments: dict[str, list[float] | None]
     state: dict[str, Any]
     latencies: list[tuple[int, float, int]]
+    extra: dict[str, Any] = field(default_factory=dict)
+    forgotten: set[str] = field(default_factory=set)
 
     def then(self, newer: StoreJob) -> StoreJob:
         """This job followed by ``newer`` as one: newer contents, the views and latencies of both."""
         return StoreJob(
             newer.store, newer.version, newer.stamp_ns, newer.robots, self.views | newer.views, newer.fused_raw,
-            newer.alignments, newer.state, self.latencies + newer.latencies,
+            newer.alignments, newer.state, self.latencies + newer.latencies, newer.extra,
+            (self.forgotten | newer.forgotten) - set(newer.robots),
         )
 
     def write(self) -> None:
@@ -73,13 +79,19 @@ class StoreJob:
             "robots": self.robots,
             "fused": self.fused_raw,
             "alignments": self.alignments,
+            "extra": self.extra,
         }
-        write_atomic(d / SNAPSHOT, bytes(msgpack.packb(snap, use_bin_type=True)))
+        write_atomic(d / SNAPSHOT, seal_snapshot(bytes(msgpack.packb(snap, use_bin_type=True))))
         for rid in sorted(self.views):
             if rid in self.robots:
                 write_atomic(d / "robots" / f"{rid}.wfm", self.robots[rid])
+        for name in self.forgotten:
+            try:
+                (d / "robots" / f"{name}.wfm").unlink()
+            except FileNotFoundError:
+                pass
         write_atomic(d / "fused.wfm", self.fused_raw)
-        write_json(d / "state.json", self.state)
+        write_json(d / "state.json", seal_json(self.state))
 
 
 def append_latency_log(store: str | os.PathLike[str], samples: list[tuple[int, float, int]]) -> None:
@@ -133,17 +145,67 @@ def read_latency_log(store: str | os.PathLike[str], last: int) -> list[tuple[int
     return out
 
 
+SNAPSHOT_MAGIC = b"WMSNAP3\n"  # then the sha256 of the body (32 bytes), then the msgpack body
+MAX_VERSION = (1 << 63) - 1
+
+
+class StoreDamaged(UserError):
+    """The store cannot give back what it held (no version, or a robot map lost):
+    ``wiremap fuse`` says so in one line and exits 2, unless ``--reset``."""
+
+
+def seal_snapshot(body: bytes) -> bytes:
+    """``SNAPSHOT_MAGIC``, the sha256 of ``body``, ``body``."""
+    return SNAPSHOT_MAGIC + hashlib.sha256(body).digest() + body
+
+
+def unseal_snapshot(data: bytes) -> bytes:
+    """The body of a sealed snapshot; raises ``ValueError`` when the checksum does not match.
+    A snapshot written before the seal (plain msgpack) is returned as it is."""
+    if not data.startswith(SNAPSHOT_MAGIC):
+        if data[:1] in (b"\x86", b"\x87", b"\xde"):  # a msgpack map: a format-2 snapshot from before
+            return data
+        raise ValueError("not a snapshot")
+    n = len(SNAPSHOT_MAGIC)
+    digest, body = data[n : n + 32], data[n + 32 :]
+    if hashlib.sha256(body).digest() != digest:
+        raise ValueError("checksum mismatch")
+    return body
+
+
+def seal_json(doc: dict[str, Any]) -> dict[str, Any]:
+    """``doc`` with ``"sha256"``: the digest of its canonical JSON without that field."""
+    body = {k: v for k, v in doc.items() if k != "sha256"}
+    return {**body, "sha256": hashlib.sha256(json.dumps(body, sort_keys=True).encode()).hexdigest()}
+
+
+def unseal_json(text: str) -> dict[str, Any]:
+    """A document written by :func:`seal_json`; ``ValueError`` when it is not one or the digest
+    does not match."""
+    doc = json.loads(text)
+    if not isinstance(doc, dict) or "sha256" not in doc:
+        raise ValueError("no checksum")
+    if seal_json(doc)["sha256"] != doc["sha256"]:
+        raise ValueError("checksum mismatch")
+    return doc
+
+
 @dataclass(frozen=True)
 class StoreContents:
     """What :func:`read_store` found: the stored version, the stored fused map (None if
     unreadable), each robot's stored bytes, and the alignments the stored map was fused with
-    (None when not stored: a format-1 snapshot or the views)."""
+    (None when not stored or not trusted). ``damaged`` lists what was wrong and how it was
+    recovered (one line each); ``rewrite`` the robots whose view file must be written again;
+    ``extra`` what the snapshot keeps besides the maps (per-robot history, forgotten ids)."""
 
     version: int
     fused: MapMessage | None
     raw_robots: dict[str, bytes]
     from_snapshot: bool
     alignments: dict[str, Pose | None] | None = None
+    damaged: tuple[str, ...] = ()
+    rewrite: frozenset[str] = frozenset()
+    extra: dict[str, Any] = field(default_factory=dict)
 
     def robots(self) -> dict[str, MapMessage]:
         """The stored robot maps, decoded (undecodable ones left out)."""
@@ -156,7 +218,8 @@ class StoreContents:
         return out
 
 
-def _read_alignments(doc: Any) -> dict[str, Pose | None] | None:
+def _read_alignments(doc: Any, max_m: float = 10.0, max_rad: float = 1.0) -> dict[str, Pose | None] | None:
+    """Stored ICP corrections; None (recompute them) unless each is finite and small."""
     if not isinstance(doc, dict):
         return None
     out: dict[str, Pose | None] = {}
@@ -166,93 +229,188 @@ def _read_alignments(doc: Any) -> dict[str, Pose | None] | None:
         if v is None:
             out[rid] = None
             continue
-        if not (isinstance(v, list) and len(v) == 3 and all(isinstance(x, (int, float)) for x in v)):
+        if not (
+            isinstance(v, list)
+            and len(v) == 3
+            and all(isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) for x in v)
+        ):
             return None
-        try:
-            out[rid] = Pose(float(v[0]), float(v[1]), float(v[2]))
-        except ValueError:
+        if math.hypot(v[0], v[1]) > max_m or abs(v[2]) > max_rad:
             return None
+        out[rid] = Pose(float(v[0]), float(v[1]), float(v[2]))
     return out
+
+
+def _version(v: Any) -> int:
+    if isinstance(v, bool) or not isinstance(v, int) or not 0 <= v <= MAX_VERSION:
+        raise ValueError(f"version {str(v)[:40]} is not in [0, 2^63)")
+    return int(v)
+
+
+def _valid_map(raw: bytes, rid: str) -> tuple[int, int, str] | None:
+    """The order key of a stored robot map that decodes and is from ``rid``, else None."""
+    from agents.fleet.bus import valid_name
+
+    if not valid_name(rid):
+        return None
+    try:
+        msg = decode_message(raw)
+    except (ValueError, TypeError):
+        return None
+    if msg.sender != rid:
+        return None
+    return order_key(msg, raw)
 
 
 def read_store(store: str | os.PathLike[str], warn: Callable[[str], None] | None = None) -> StoreContents:
     """Read a fusion store without fusing anything (for
     :meth:`~agents.fleet.fusion.state.FusionState.load`, tests and tools).
 
-    ``snapshot.msgpack`` is used when it is readable and the ``robots/*.wfm`` views agree
-    with it: every view file decodes and is the snapshot's map of that robot or an older one
-    of it (a save interrupted between the snapshot and the views leaves older views). A view
-    that is newer, unreadable or not in the snapshot was changed by hand, and then the views
-    win (``robots/*.wfm``, ``fused.wfm``, ``state.json``), unreadable files skipped with a
-    warning.
+    Every file is checked: ``snapshot.msgpack`` by its sha256 seal and its fields (version in
+    ``[0, 2^63)``, robots a map of id -> bytes, corrections finite and small), ``state.json``
+    by its sha256, each ``robots/<id>.wfm`` and ``fused.wfm`` by the codec's CRC and decoding.
+    For each robot the newest copy that passes (snapshot or view) is taken: a view older than
+    the snapshot is an interrupted save, a newer one an edit by hand; a damaged view is
+    recovered from the snapshot and written again. When the snapshot is damaged, the views are
+    used, and every robot ``state.json`` lists must be among them. The version is the largest
+    the snapshot, ``state.json`` and ``fused.wfm`` agree on.
+
+    Raises
+    ------
+    StoreDamaged
+        When the store held something but its version cannot be known (every file that holds
+        one is damaged), or a robot map it recorded is lost: starting would serve a map that
+        forgot walls, or versions going backwards.
     """
     d = Path(store)
     say = warn or (lambda _t: None)
-    views: dict[str, bytes] = {}
-    for f in sorted((d / "robots").glob("*.wfm")):
-        try:
-            views[f.stem] = f.read_bytes()
-        except OSError as exc:
-            views[f.stem] = b""
-            say(f"cannot read {f}: {exc}")
+    damaged: list[str] = []
+
+    def note(text: str) -> None:
+        damaged.append(text)
+        say(text)
+
+    # ---- the snapshot
+    snap: dict[str, Any] | None = None
     snap_path = d / SNAPSHOT
-    if snap_path.is_file():
+    present = snap_path.is_file()
+    if present:
         try:
-            snap = msgpack.unpackb(snap_path.read_bytes(), raw=False)
-            robots = snap["robots"]
+            doc = msgpack.unpackb(unseal_snapshot(snap_path.read_bytes()), raw=False, strict_map_key=False)
+            if not isinstance(doc, dict):
+                raise ValueError("not a map")
+            robots = doc["robots"]
             if not (isinstance(robots, dict) and all(isinstance(k, str) and isinstance(v, bytes) for k, v in robots.items())):
                 raise ValueError("robots is not a map of id -> bytes")
-            version = int(snap["version"])
-            fused: MapMessage | None = None
-            try:
-                fused = decode_message(snap["fused"])
-            except (ValueError, TypeError):
-                say(f"{snap_path}: the fused map in it is unreadable")
-            hand_edited = _views_disagree(robots, views)
-            if hand_edited is None:
-                al = _read_alignments(snap.get("alignments"))
-                return StoreContents(version, fused, dict(sorted(robots.items())), True, al)
-            say(f"{hand_edited}: using robots/*.wfm rather than {SNAPSHOT}")
+            doc["version"] = _version(doc["version"])
+            snap = doc
         except (OSError, ValueError, TypeError, KeyError, msgpack.UnpackException) as exc:
-            say(f"{snap_path} is unreadable ({type(exc).__name__}: {exc}); using robots/*.wfm")
-    raw: dict[str, bytes] = {}
-    for rid, data in views.items():
+            note(f"{snap_path} is damaged ({type(exc).__name__}: {exc}); recovering from the other files")
+
+    # ---- state.json and fused.wfm: versions, and the robots the store recorded
+    state: dict[str, Any] | None = None
+    state_path = d / "state.json"
+    if state_path.is_file():
+        present = True
         try:
-            decode_message(data)
-        except ValueError as exc:
-            say(f"skipping {d / 'robots' / (rid + '.wfm')}: {exc}")
+            state = unseal_json(state_path.read_text())
+            _version(state.get("version"))
+        except (OSError, ValueError, TypeError, UnicodeDecodeError) as exc:
+            state = None
+            note(f"{state_path} is damaged ({type(exc).__name__}: {exc})")
+    fused: MapMessage | None = None
+    fused_path = d / "fused.wfm"
+    if fused_path.is_file():
+        present = True
+        try:
+            fused = decode_message(fused_path.read_bytes())
+            _version(fused.seq)
+        except (OSError, ValueError, TypeError) as exc:
+            fused = None
+            note(f"{fused_path} is damaged ({type(exc).__name__}: {exc})")
+
+    # ---- the views
+    views: dict[str, bytes] = {}
+    rewrite: set[str] = set()
+    for f in sorted((d / "robots").glob("*.wfm")) if (d / "robots").is_dir() else []:
+        present = True
+        try:
+            data = f.read_bytes()
+        except OSError as exc:
+            data = b""
+            note(f"cannot read {f}: {exc}")
+        if _valid_map(data, f.stem) is None:
+            note(f"{f} is damaged or not a map of {f.stem!r}")
+            rewrite.add(f.stem)
+            continue
+        views[f.stem] = data
+
+    if not present:
+        return StoreContents(0, None, {}, False)
+
+    raw: dict[str, bytes] = {}
+    snap_robots: dict[str, bytes] = dict(snap["robots"]) if snap is not None else {}
+    for rid, data in snap_robots.items():
+        if _valid_map(data, rid) is None:
+            note(f"{SNAPSHOT}: the map of {rid!r} in it is damaged")
             continue
         raw[rid] = data
-    version = 0
-    try:
-        version = int(json.loads((d / "state.json").read_text()).get("version", 0))
-    except (OSError, ValueError, TypeError, AttributeError):
-        pass
-    fused = None
-    try:
-        fused = decode_message((d / "fused.wfm").read_bytes())
-        version = max(version, int(fused.seq))
-    except (OSError, ValueError):
-        pass
-    return StoreContents(version, fused, raw, False)
-
-
-def _views_disagree(snapshot: dict[str, bytes], views: dict[str, bytes]) -> str | None:
-    """Why the ``robots/*.wfm`` views cannot come from a (possibly interrupted) save of
-    ``snapshot``, or None when they can."""
     for rid, data in views.items():
-        if rid not in snapshot:
-            return f"robots/{rid}.wfm is not in the snapshot"
-        if data == snapshot[rid]:
-            continue
+        have = raw.get(rid)
+        if have is None or (have != data and (_valid_map(data, rid) or ()) > (_valid_map(have, rid) or ())):
+            if snap is not None:
+                say(f"robots/{rid}.wfm is newer than {SNAPSHOT} (edited by hand?): using it")
+            raw[rid] = data
+    for rid in rewrite:
+        if rid in raw:
+            say(f"robots/{rid}.wfm recovered from {SNAPSHOT}")
+    extra = snap.get("extra") if snap is not None else None
+    extra = extra if isinstance(extra, dict) else {}
+    got = extra.get("forgotten")
+    forgotten: dict[str, Any] = got if isinstance(got, dict) else {}
+
+    # ---- what must not be lost
+    versions: list[int] = []
+    if snap is not None:
+        versions.append(snap["version"])
+    if state is not None:
+        versions.append(int(state["version"]))
+    if fused is not None:
+        versions.append(int(fused.seq))
+    if not versions:
+        raise StoreDamaged(
+            f"the store {d} is damaged beyond recovery (no readable snapshot, state.json or fused.wfm: "
+            "the version would go backwards); move it aside or start with --reset"
+        )
+    recorded = state.get("robots") if state is not None else None
+    if snap is None and isinstance(recorded, dict):
+        lost = sorted(r for r in recorded if isinstance(r, str) and r not in raw and r not in forgotten)
+        if lost:
+            raise StoreDamaged(
+                f"the store {d} lost the maps of {' '.join(lost)} (snapshot and views damaged); "
+                "move it aside or start with --reset"
+            )
+    if snap is not None:
+        for rid in snap_robots:
+            if rid not in raw:
+                raise StoreDamaged(
+                    f"the store {d} lost the map of {rid} (damaged in the snapshot, no good view); "
+                    "move it aside or start with --reset"
+                )
+    al = None
+    if snap is not None and raw == snap_robots:
+        al = _read_alignments(snap.get("alignments"))
+        if al is None and snap.get("alignments") is not None:
+            note(f"{SNAPSHOT}: the stored alignments are out of range; recomputing them")
+    if snap is not None:  # the snapshot's fused map is the one its robots and alignments make
         try:
-            view_key = order_key(decode_message(data), data)
-            snap_key = order_key(decode_message(snapshot[rid]), snapshot[rid])
-        except ValueError:
-            return f"robots/{rid}.wfm is unreadable"
-        if view_key > snap_key:
-            return f"robots/{rid}.wfm is newer than the snapshot"
-    return None
+            fused = decode_message(snap["fused"])
+        except (ValueError, TypeError, KeyError):
+            note(f"{SNAPSHOT}: the fused map in it is damaged")
+    return StoreContents(
+        max(versions), fused, dict(sorted(raw.items())), snap is not None, al, tuple(damaged),
+        frozenset(r for r in rewrite if r in raw), extra,
+    )
 
 
 class StoreWriter:
@@ -274,6 +432,8 @@ class StoreWriter:
         self._stop = False
         self.errors = 0
         self.written = 0
+        self.written_version = 0  # the version of the last snapshot written
+        self.ok = True  # the last write succeeded
         self._last_error = ""
         self._thread = threading.Thread(target=self._run, name="fusion-store", daemon=True)
         self._thread.start()
@@ -296,8 +456,14 @@ class StoreWriter:
             try:
                 job.write()
                 self.written += 1
+                self.written_version = job.version
+                if not self.ok:
+                    self.say(f"the store {job.store} is written again (v{job.version})")
+                self.ok = True
+                self._last_error = ""
             except OSError as exc:
                 self.errors += 1
+                self.ok = False
                 text = f"cannot write the store {job.store}: {exc}"
                 if text != self._last_error:
                     self._last_error = text
@@ -306,6 +472,10 @@ class StoreWriter:
                 with self._cond:
                     self._busy = False
                     self._cond.notify_all()
+
+    @property
+    def last_error(self) -> str:
+        return self._last_error
 
     def flush(self, timeout: float | None = None) -> bool:
         """Wait until nothing is queued or being written; returns whether that happened."""

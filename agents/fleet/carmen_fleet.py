@@ -1,0 +1,111 @@
+"""Real logs as fleets: a CARMEN log split into N robots (``wiremap run --carmen LOG --robots N``).
+
+Robot ``k`` replays scans ``[i0, i1)`` of the log (:func:`split`: N stretches of equal length
+along the log, each running on into the next by ``overlap`` of a stretch, so that neighbours
+see common walls) through its own particle filter, in its own odometry frame starting at the
+origin (the first scan of its stretch is the identity), and publishes with an unknown origin:
+only global registration can put the robots together.
+
+Scoring (:func:`score_map`): a map in some robot's frame is placed in the log's truth frame by
+that robot's true first pose (``NAME.truth.tsv``, one row per laser line) -- no fitting -- and
+its *endpoint precision* is the fraction of points sampled every 5 cm along its walls that lie
+within 0.2 m of a real scan endpoint placed at its truth pose (the data README's measure).
+
+The log is read by :func:`agents.files.carmen.read_carmen_log` and scored with
+:mod:`mapping.lidar_metrics`.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from collections.abc import Iterator
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from mapping.se2 import Pose
+from mapping.wireframe import Wireframe
+
+FloatArray = NDArray[np.float64]
+
+MAX_RANGE = 20.0  # as `wiremap map --carmen`
+ENDPOINT_TOL = 0.2
+SAMPLE_STEP = 0.05
+
+
+def read_log(path: str | os.PathLike[str]) -> list[Any]:
+    """The log's laser scans (:func:`agents.files.carmen.read_carmen_log`; unreadable lines skipped)."""
+    from agents.files.carmen import read_carmen_log
+
+    return list(read_carmen_log(path).scans)
+
+
+def read_truth(log: str | os.PathLike[str]) -> list[Pose] | None:
+    """The true laser pose per scan (``NAME.truth.tsv`` beside the log, or its ``TRUEPOS``
+    track; :func:`agents.files.carmen.scan_truth`), None when the log has none."""
+    from agents.files.carmen import read_carmen_log, scan_truth
+
+    return scan_truth(read_carmen_log(log))
+
+
+def split(n_scans: int, robots: int, overlap: float = 0.3) -> list[tuple[int, int]]:
+    """``robots`` stretches ``[i0, i1)`` of equal length along ``n_scans`` scans, each running
+    on into the next by ``overlap`` of a stretch."""
+    if robots < 1 or n_scans < robots:
+        raise ValueError(f"cannot split {n_scans} scans among {robots} robots")
+    piece = n_scans / robots
+    out = []
+    for k in range(robots):
+        i0 = round(k * piece)
+        i1 = min(n_scans, round((k + 1) * piece + overlap * piece))
+        out.append((i0, i1))
+    return out
+
+
+def robot_steps(opts: Any) -> Iterator[Any]:
+    """The robot's loop (:func:`agents.mapping_run.run_filter`) over scans ``opts.scans`` of
+    ``opts.carmen``, its filter starting at the identity (its own odometry frame)."""
+    from agents import mapping_run as mr
+    from mapping.filter import WireframeFilter
+
+    scans = read_log(opts.carmen)
+    i0, i1 = opts.scans if opts.scans is not None else (0, len(scans))
+    part = scans[i0:i1]
+    if not part:
+        raise ValueError(f"no scans in {i0}:{i1} of {opts.carmen}")
+    max_range = min(float(part[0].max_range), MAX_RANGE)
+    cfg = mr.filter_config_for(int(opts.particles), float(opts.threshold), max_range, fov=mr.scan_fov(part[0].angles),
+                               overrides=getattr(opts, "filter_overrides", None) or None)
+    filt = WireframeFilter(cfg, mr.seeds_for(int(opts.seed))["filter"], initial_pose=Pose.identity())
+    return mr.run_filter(mr.carmen_inputs(part, max_range=max_range), filt, total=len(part))
+
+
+def endpoints(scans: list[Any], truth: list[Pose], max_range: float = MAX_RANGE) -> FloatArray:
+    """Every scan's endpoints (returns under ``max_range``) placed at its truth pose."""
+    from mapping.lidar_metrics import scan_endpoints
+
+    k = min(len(scans), len(truth))
+    return scan_endpoints(
+        [(p.x, p.y, p.theta) for p in truth[:k]],
+        [ls.ranges for ls in scans[:k]],
+        [ls.angles for ls in scans[:k]],
+        max_range=min([max_range] + [float(ls.max_range) for ls in scans[:1]]),
+    ) if k else np.zeros((0, 2))
+
+
+def endpoint_precision(wf: Wireframe, ends: FloatArray, tol: float = ENDPOINT_TOL, step: float = SAMPLE_STEP) -> float:
+    """Fraction of points every ``step`` along the walls within ``tol`` of an endpoint
+    (:func:`mapping.lidar_metrics.map_precision`)."""
+    from mapping.lidar_metrics import map_precision
+
+    return map_precision(wf, ends, tol, step)
+
+
+def pose_error(found: Pose, true: Pose) -> tuple[float, float]:
+    """Translation (m) and rotation (deg) error of a registered pose."""
+    return (
+        math.hypot(found.x - true.x, found.y - true.y),
+        math.degrees(abs(math.remainder(found.theta - true.theta, 2 * math.pi))),
+    )

@@ -1,0 +1,340 @@
+"""The registration graph: which robots of unknown start pose are in the fleet frame.
+
+A robot that does not know where it started relative to the others says so in its map
+message: ``meta["origin_unknown"] = True`` (:data:`ORIGIN_UNKNOWN`), with ``origin`` the
+identity (its map is in its own odometry frame). Such a robot enters the fused map only once
+global registration (:mod:`mapping.registration`) has placed it, and registration only runs
+for such robots: a fleet of known start poses never registers anything and fuses exactly as
+before.
+
+Components
+----------
+Robots of unknown origin are grouped in *components*: sets of robots registered to each
+other, each with its pose in the frame of the component's *root* (a member robot's odometry
+frame). Every robot starts as a component of its own. One component is the *fleet*: its root
+frame is the fleet frame and its members are fused into ``fused/map``; the others are
+*islands*, each published on its own (``fused/islands/<root>``).
+
+* With robots of known start pose, those robots are the fleet (the fleet frame is theirs);
+  each component of unknown robots registers against their fused map.
+* Otherwise, with an anchor (``wiremap fuse --anchor ID``) the fleet is the anchor's
+  component, in the anchor's frame; without one the fleet is the component that formed by
+  the first accepted registration, in the frame of its root. Until then the fused map is the
+  lowest-id robot on its own (a provisional fleet of one).
+
+Registration attempts (:meth:`FleetFrames.next_pair`): every pair of components, when it was
+never tried for the present memberships, or when the wall length of either side grew by
+``max(retry_growth_m, retry_growth_fraction * length)`` since the pair's last attempt (maps
+grow by a scan at a time: re-registering on every update would cost ~0.1 s per map). Pairs
+with the fleet first, then larger maps first. The caller runs at most one attempt at a time
+(the service: after a publish, when no map waits). An accepted registration joins the two
+components: the one holding the fleet (or anchor, or else the lower root id) keeps its root,
+the other's poses are composed with the registration's transform. Joins are never undone:
+registration is tuned to refuse rather than guess (no false merge in its benchmark), so the
+graph only grows.
+
+Everything here is pure (no zenoh, no clock of its own); :class:`FusionState` owns one
+:class:`FleetFrames`.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field
+from typing import Any
+
+from mapping.registration import RegistrationConfig, prepare, register_prepared
+from mapping.se2 import Pose
+from mapping.wireframe import Wireframe
+from wire_codec.message import MapMessage
+
+ORIGIN_UNKNOWN = "origin_unknown"
+FLEET = "fleet"  # the fleet component's name in records when it is the known-start robots
+
+
+def origin_unknown(msg: MapMessage) -> bool:
+    """Whether a robot map says its ``origin`` is not known (``meta["origin_unknown"] is True``)."""
+    return isinstance(msg.meta, dict) and msg.meta.get(ORIGIN_UNKNOWN) is True
+
+
+@dataclass(frozen=True)
+class FramesConfig:
+    """Settings of the registration graph.
+
+    anchor : robot whose frame is the fleet frame (None: the first registration decides).
+    retry_growth_m, retry_growth_fraction : a pair is tried again when a side's wall length
+        grew by ``max(retry_growth_m, retry_growth_fraction * length_at_last_attempt)``.
+    min_length_m : a component with less wall than this is not tried (registration needs
+        8 m of matched wall anyway).
+    registration : :class:`mapping.registration.RegistrationConfig`.
+    history : registration records kept (:attr:`FleetFrames.records`).
+    """
+
+    anchor: str | None = None
+    retry_growth_m: float = 6.0
+    retry_growth_fraction: float = 0.2
+    min_length_m: float = 10.0
+    registration: RegistrationConfig = field(default_factory=RegistrationConfig)
+    history: int = 200
+
+
+@dataclass(frozen=True)
+class RegistrationRecord:
+    """One registration attempt between two components (``b`` onto ``a``)."""
+
+    t: float
+    a: str
+    b: str
+    a_members: tuple[str, ...]
+    b_members: tuple[str, ...]
+    accepted: bool
+    confidence: float
+    support: float
+    support_fraction: float
+    reason: str
+    transform: tuple[float, float, float] | None
+    ms: float
+
+    def as_dict(self) -> dict[str, Any]:
+        return {
+            "t": round(self.t, 3),
+            "a": self.a,
+            "b": self.b,
+            "a_members": list(self.a_members),
+            "b_members": list(self.b_members),
+            "accepted": self.accepted,
+            "confidence": round(self.confidence, 4),
+            "support_m": round(self.support, 2),
+            "support_fraction": round(self.support_fraction, 4),
+            "reason": self.reason,
+            "transform": None if self.transform is None else [round(v, 6) for v in self.transform],
+            "ms": round(self.ms, 1),
+        }
+
+    def line(self) -> str:
+        """One line for logs and ``wiremap watch``."""
+        what = "accepted" if self.accepted else f"refused ({self.reason})"
+        return (
+            f"registration {'+'.join(self.b_members)} -> {'+'.join(self.a_members)}: {what}, "
+            f"confidence {self.confidence:.2f}, support {self.support:.1f} m ({self.support_fraction:.0%}), "
+            f"{self.ms:.0f} ms"
+        )
+
+
+class FleetFrames:
+    """The registration graph of the robots of unknown origin (module docstring)."""
+
+    def __init__(self, config: FramesConfig | None = None) -> None:
+        self.config = config or FramesConfig()
+        self.root: dict[str, str] = {}  # unknown robot -> its component's root
+        self.pose: dict[str, Pose] = {}  # unknown robot -> pose in its root's frame
+        self.fleet_root: str | None = None  # root of the fleet component once decided
+        self.has_known = False  # robots of known origin exist: they are the fleet
+        self.records: list[RegistrationRecord] = []
+        self.attempts = 0
+        self._tried: dict[tuple[tuple[str, ...], tuple[str, ...]], tuple[float, float]] = {}
+        self.epoch = 0  # bumps on every change of membership or pose
+        self._lengths: dict[tuple[str, ...], float] = {}  # of the last next_pair, by members
+
+    # ------------------------------------------------------------------ membership
+    @property
+    def active(self) -> bool:
+        """Whether any robot of unknown origin is tracked."""
+        return bool(self.root)
+
+    def track(self, rid: str) -> None:
+        """Start tracking a robot of unknown origin (a component of its own)."""
+        if rid not in self.root:
+            self.root[rid] = rid
+            self.pose[rid] = Pose.identity()
+            self.epoch += 1
+
+    def forget(self, rid: str) -> None:
+        """A robot that now knows its origin (or is gone): drop it; its component's other
+        members stay together, re-rooted at the lowest id when it was the root."""
+        if rid not in self.root:
+            return
+        r = self.root.pop(rid)
+        self.pose.pop(rid)
+        self.epoch += 1
+        if r == rid:
+            rest = sorted(m for m, rr in self.root.items() if rr == rid)
+            if rest:
+                new = rest[0]
+                inv = self.pose[new].inverse()
+                for m in rest:
+                    self.root[m] = new
+                    self.pose[m] = inv.compose(self.pose[m])
+                if self.fleet_root == rid:
+                    self.fleet_root = new
+            elif self.fleet_root == rid:
+                self.fleet_root = None
+
+    def components(self) -> dict[str, tuple[str, ...]]:
+        """Root -> sorted members, of the unknown robots."""
+        out: dict[str, list[str]] = {}
+        for m, r in self.root.items():
+            out.setdefault(r, []).append(m)
+        return {r: tuple(sorted(ms)) for r, ms in sorted(out.items())}
+
+    def fleet_component(self) -> str | None:
+        """Root of the unknown robots' component that is the fleet (None: the known robots are
+        the fleet and no unknown robot has joined them, or there is none)."""
+        if self.has_known:
+            return self.fleet_root  # set when a component joined the known robots
+        if self.fleet_root is not None:
+            return self.fleet_root
+        anchor = self.config.anchor
+        if anchor is not None and anchor in self.root:
+            return self.root[anchor]
+        if anchor is None and self.root:
+            return self.root[min(self.root)]  # provisional: the lowest id on its own
+        return None
+
+    def in_fleet(self, rid: str) -> bool:
+        """Whether a robot's map belongs in the fused map (robots of known origin always)."""
+        if rid not in self.root:
+            return True
+        fc = self.fleet_component()
+        return fc is not None and self.root[rid] == fc
+
+    def fleet_pose(self, rid: str) -> Pose | None:
+        """The pose of an unknown robot's odometry frame in the fleet frame (None: island)."""
+        if not self.in_fleet(rid) or rid not in self.root:
+            return None
+        return self.pose[rid]
+
+    def islands(self) -> dict[str, tuple[str, ...]]:
+        """Root -> members of the components that are not the fleet."""
+        fc = self.fleet_component()
+        return {r: ms for r, ms in self.components().items() if r != fc}
+
+    def summary(self) -> dict[str, Any]:
+        """For ``fused/stats``, the fused map's ``meta`` and ``report.json``."""
+        fc = self.fleet_component()
+        registered = sorted(m for m in self.root if self.in_fleet(m))
+        return {
+            "anchor": self.config.anchor if self.config.anchor is not None else fc,
+            "fleet_root": fc,
+            "registered": registered,
+            "islands": {r: list(ms) for r, ms in self.islands().items()},
+            "poses": {m: [round(v, 6) for v in self.pose[m].as_tuple()] for m in registered},
+            "attempts": self.attempts,
+            "accepted": sum(1 for r in self.records if r.accepted),
+            "registrations": [r.as_dict() for r in self.records[-4:]],
+        }
+
+    # ------------------------------------------------------------------ attempts
+    def next_pair(self, lengths: Callable[[tuple[str, ...], str | None], float]) -> tuple[str, str] | None:
+        """The pair of components to try next ``(a, b)`` (``b`` registers onto ``a``; ``a`` may
+        be :data:`FLEET`, the known robots' fused map), or None when none is due.
+
+        ``lengths(members, root)`` is the wall length of a component's map (``root`` None for
+        the known robots' fleet)."""
+        cfg = self.config
+        comps = self.components()
+        fc = self.fleet_component()
+        names: list[str] = list(comps)
+        if self.has_known and fc is None:
+            names.insert(0, FLEET)
+        length: dict[str, float] = {}
+        for n in names:
+            length[n] = lengths(self._members(n, comps), None if n == FLEET else n)
+        self._lengths = {self._members(n, comps): length[n] for n in names}
+        best: tuple[tuple[int, float], tuple[str, str]] | None = None
+        for i, x in enumerate(names):
+            for y in names[i + 1:]:
+                a, b = self._orient(x, y, fc)
+                la, lb = length[a], length[b]
+                if min(la, lb) < cfg.min_length_m:
+                    continue
+                key = (self._members(a, comps), self._members(b, comps))
+                last = self._tried.get(key)
+                if last is not None and not (_grew(la, last[0], cfg) or _grew(lb, last[1], cfg)):
+                    continue
+                fleet_pair = a in (fc, FLEET) or b in (fc, FLEET)
+                rank = (0 if fleet_pair else 1, -(la + lb))
+                if best is None or rank < best[0]:
+                    best = (rank, (a, b))
+        return None if best is None else best[1]
+
+    def _members(self, name: str, comps: dict[str, tuple[str, ...]]) -> tuple[str, ...]:
+        return (FLEET,) if name == FLEET else comps[name]
+
+    def _orient(self, x: str, y: str, fc: str | None) -> tuple[str, str]:
+        """``(a, b)``: ``a`` keeps its frame (the fleet, else the anchor's, else the lower root)."""
+        if y in (FLEET, fc):
+            return y, x
+        if x in (FLEET, fc):
+            return x, y
+        anchor = self.config.anchor
+        if anchor is not None and self.root.get(anchor) == y:
+            return y, x
+        return (x, y) if x < y else (y, x)
+
+    def attempt(
+        self,
+        pair: tuple[str, str],
+        maps: Callable[[tuple[str, ...], str | None], Wireframe],
+        t: float = 0.0,
+    ) -> RegistrationRecord:
+        """Register component ``b`` onto ``a`` (``maps(members, root)`` gives each one's map in
+        its root frame, or the fleet frame for :data:`FLEET`) and join them when accepted."""
+        a, b = pair
+        comps = self.components()
+        ma, mb = self._members(a, comps), self._members(b, comps)
+        wa = maps(ma, None if a == FLEET else a)
+        wb = maps(mb, b)
+        rc = self.config.registration
+        t0 = time.perf_counter()
+        res = register_prepared(prepare(wa, rc), prepare(wb, rc), rc)
+        ms = 1000.0 * (time.perf_counter() - t0)
+        self.attempts += 1
+        # the lengths next_pair measured (the same measure as the growth test's)
+        self._tried[(ma, mb)] = (self._lengths.get(ma, _length(wa)), self._lengths.get(mb, _length(wb)))
+        if res.accepted and res.transform is not None:
+            self._join(a, b, res.transform)
+        rec = RegistrationRecord(
+            t=float(t), a=a, b=b, a_members=ma, b_members=mb, accepted=bool(res.accepted and res.transform is not None),
+            confidence=float(res.confidence), support=float(res.support), support_fraction=float(res.support_fraction),
+            reason=res.reason, transform=None if res.transform is None else res.transform.as_tuple(), ms=ms,
+        )
+        self.records.append(rec)
+        del self.records[: max(0, len(self.records) - self.config.history)]
+        return rec
+
+    def _join(self, a: str, b: str, transform: Pose) -> None:
+        """Component ``b``'s root frame goes into ``a``'s by ``transform``."""
+        for m in [m for m, r in self.root.items() if r == b]:
+            self.pose[m] = transform.compose(self.pose[m])
+            self.root[m] = a if a != FLEET else b
+        if a == FLEET:
+            # the known robots are the fleet: b's members keep root b, now in the fleet frame
+            self.fleet_root = b
+        elif self.fleet_root is None and not self.has_known:
+            anchor = self.config.anchor
+            if anchor is None or self.root.get(anchor) == a:
+                self.fleet_root = a
+        self.epoch += 1
+
+
+def _length(wf: Wireframe) -> float:
+    return float(wf.edge_lengths().sum()) if wf.n_edges else 0.0
+
+
+def _grew(now: float, then: float, cfg: FramesConfig) -> bool:
+    return now - then >= max(cfg.retry_growth_m, cfg.retry_growth_fraction * then)
+
+
+def fold_maps(maps: Iterable[Wireframe], merge: Callable[[Wireframe, Wireframe], Wireframe]) -> Wireframe:
+    """A left fold of ``merge`` over ``maps`` (an island's map)."""
+    acc: Wireframe | None = None
+    for wf in maps:
+        acc = wf if acc is None else merge(acc, wf)
+    return acc if acc is not None else Wireframe.empty()
+
+
+def finite_pose(p: Pose) -> bool:
+    return all(math.isfinite(v) for v in p.as_tuple())

@@ -1,0 +1,283 @@
+"""``wiremap run --unknown-starts`` and ``wiremap run --carmen LOG``: fleets without a shared frame.
+
+* **Unknown starts** (:func:`random_routes`): each robot starts at a random free point of the
+  world (seeded by ``--seed``), drives its own coverage route from there and publishes its map
+  in its own frame with its origin marked unknown. The fused map is in the frame of the fleet's
+  root robot (the first registered, or ``--anchor``). ``report.json`` (:func:`write_outputs_unknown`)
+  scores it against the truth after one rigid alignment: the root robot's true start pose,
+  then :func:`mapping.metrics.align_to_truth`; it lists ``registered`` robots (with the error of
+  each registered pose against the true relative start) and ``islands``.
+* **CARMEN fleets** (:mod:`agents.fleet.carmen_fleet`): the log split into overlapping
+  stretches, one robot each, in its own odometry frame. ``report.json``
+  (:func:`write_outputs_carmen`) scores each robot's map and the fused map by endpoint precision
+  (placed by the true first pose of the robot whose frame they are in, no fitting) and each
+  registered pose against the truth.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from agents.errors import UserError
+from agents.files.io import write_atomic, write_json
+from mapping.se2 import Pose
+from mapping.wireframe import Wireframe
+
+
+def random_routes(world: Any, n: int, rng: np.random.Generator, clearance: float = 0.4) -> list[Any]:
+    """``n`` coverage routes, each planned from a random free start point (uniform over the
+    navigable region, at least 2 m apart when possible)."""
+    import shapely
+
+    from agents.sim.route import navigable_region, plan_route
+
+    region = navigable_region(world, clearance)
+    xmin, ymin, xmax, ymax = region.bounds
+    starts: list[tuple[float, float]] = []
+    tries = 0
+    while len(starts) < n:
+        tries += 1
+        x, y = float(rng.uniform(xmin, xmax)), float(rng.uniform(ymin, ymax))
+        if not region.contains(shapely.Point(x, y)):
+            continue
+        if tries < 10_000 and any(math.hypot(x - a, y - b) < 2.0 for a, b in starts):
+            continue
+        starts.append((x, y))
+    return [plan_route(world, rng, start=s, clearance=clearance, use_world_route=False) for s in starts]
+
+
+# ---------------------------------------------------------------------- CARMEN
+@dataclass
+class CarmenWorld:
+    """What ``wiremap run`` needs of a log: a name, the scans and the truth (or None)."""
+
+    name: str
+    path: str
+    scans: list[Any]
+    truth: list[Pose] | None
+
+
+def carmen_world(args: argparse.Namespace) -> CarmenWorld:
+    from agents.fleet.carmen_fleet import read_log, read_truth
+
+    scans = read_log(args.carmen)
+    if not scans:
+        raise UserError(f"{args.carmen}: no laser scans in the log")
+    truth = read_truth(args.carmen)
+    if truth is not None and len(truth) != len(scans):
+        truth = truth[: len(scans)] if len(truth) > len(scans) else None
+    name = Path(args.carmen).name.split(".")[0]
+    return CarmenWorld(name, str(args.carmen), scans, truth)
+
+
+def prepare_carmen(out: Path, world: CarmenWorld, ids: list[str], args: argparse.Namespace) -> list[tuple[int, int]]:
+    """The robots' stretches of the log (``routes/<id>.json`` records them)."""
+    from agents.fleet.carmen_fleet import split
+
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise UserError(f"--out {out}: cannot create the directory: {exc.strerror or exc}") from None
+    try:
+        parts = split(len(world.scans), len(ids), args.overlap)
+    except ValueError as exc:
+        raise UserError(str(exc)) from None
+    for rid, (i0, i1) in zip(ids, parts):
+        write_json(out / "routes" / f"{rid}.json", {"log": world.path, "scans": [i0, i1]})
+    return parts
+
+
+# ---------------------------------------------------------------------- reports
+def _fused(out: Path) -> tuple[bytes, Any]:
+    from agents.fleet.fusion import decode_message
+
+    store = out / "store"
+    fused_path = store / "fused.wfm"
+    if not fused_path.is_file():
+        raise UserError(f"the fusion service left no fused map in {store} (see {out / 'logs' / 'fuse.log'})")
+    raw = fused_path.read_bytes()
+    return raw, decode_message(raw)
+
+
+def _frames(msg: Any, robots: list[str]) -> dict[str, Any]:
+    fr = msg.meta.get("frames") if isinstance(msg.meta, dict) else None
+    if not isinstance(fr, dict):  # no registration graph: every robot is in the fleet frame
+        return {"fleet_root": robots[0] if robots else None, "registered": robots, "islands": {}, "poses": {}}
+    return fr
+
+
+def _robot_maps(out: Path, ids: list[str]) -> dict[str, Wireframe]:
+    from agents.fleet.fusion import decode_message
+
+    maps = {}
+    for rid in ids:
+        f = out / "store" / "robots" / f"{rid}.wfm"
+        if f.is_file():
+            maps[rid] = decode_message(f.read_bytes()).wireframe  # in the robot's own frame
+    return maps
+
+
+def _common(out: Path, ids: list[str], duration_s: float, extra: dict[str, Any], raw: bytes, msg: Any) -> dict[str, Any]:
+    from agents.fleet.fusion import merge_threshold_of
+
+    state: dict[str, Any] = {}
+    try:
+        state = json.loads((out / "store" / "state.json").read_text())
+    except (OSError, ValueError):
+        pass
+    lat = (state.get("stats") or {}).get("latency_ms") or {}
+    write_atomic(out / "fused.wfm", raw)
+    statuses = extra.get("robot_status", {})
+    return {
+        "robots": len(ids),
+        "duration_s": round(duration_s, 3),
+        "latency_ms": {"p50": lat.get("p50"), "p99": lat.get("p99"), "max": lat.get("max"), "n": lat.get("n", 0)},
+        "merge_threshold": merge_threshold_of(msg),
+        "map_resolution": float(msg.resolution),
+        "fusion": {k: v for k, v in (state.get("stats") or {}).items() if k != "latency_ms"},
+        "robot_status": {r: statuses.get(r, {}) for r in ids},
+        **{k: v for k, v in extra.items() if k != "robot_status"},
+    }
+
+
+def _pose_errors(fr: dict[str, Any], starts: dict[str, Pose]) -> dict[str, Any]:
+    """Each registered robot's pose in the fleet frame against the true relative start."""
+    from agents.fleet.carmen_fleet import pose_error
+
+    root = fr.get("fleet_root")
+    out: dict[str, Any] = {}
+    if root not in starts:
+        return out
+    for rid, p in (fr.get("poses") or {}).items():
+        if rid in starts:
+            true = starts[root].inverse().compose(starts[rid])
+            te, re = pose_error(Pose(*p), true)
+            out[rid] = {"trans_err_m": round(te, 4), "rot_err_deg": round(re, 3)}
+    return out
+
+
+def write_outputs_unknown(out: Path, world: Any, ids: list[str], duration_s: float, extra: dict[str, Any]) -> dict[str, Any]:
+    """``report.json`` (and ``fused.*``) of an unknown-starts run (module docstring)."""
+    from agents.commands.run import _metrics
+    from agents.files.render import map_png
+    from agents.fleet.robot import start_pose_of
+    from mapping.metrics import align_to_truth
+
+    raw, msg = _fused(out)
+    wf = msg.wireframe
+    robots = list(msg.robots)
+    fr = _frames(msg, robots)
+    starts: dict[str, Pose] = {}
+    for rid in ids:
+        try:
+            route = np.asarray(json.loads((out / "routes" / f"{rid}.json").read_text())["route"], dtype=np.float64)
+            starts[rid] = start_pose_of(route)
+        except (OSError, ValueError, KeyError):
+            continue
+    root = fr.get("fleet_root")
+    placed = wf.transformed(starts[root]) if root in starts else wf
+    res = float(_common(out, ids, duration_s, extra, raw, msg)["merge_threshold"])
+    align = align_to_truth(world.truth, placed, 0.1) if placed.n_edges else Pose.identity()
+    aligned = placed.transformed(align)
+    fused = _metrics(world.truth, aligned, res)
+    fused.update({"vertices": wf.n_vertices, "edges": wf.n_edges, "bytes": len(raw), "version": msg.seq,
+                  "robots": robots, "alignment": [round(v, 6) for v in align.as_tuple()],
+                  "placed_unaligned": _metrics(world.truth, placed, res)})
+    write_json(out / "fused.geojson", aligned.to_geojson({"kind": "fused_map", "world": world.name, "robots": robots,
+                                                           "frame": "truth (aligned)"}))
+    write_atomic(out / "fused.png", map_png(aligned, world.truth))
+    per_robot: dict[str, Any] = {}
+    for rid, rwf in _robot_maps(out, ids).items():
+        m = _metrics(world.truth, rwf.transformed(starts[rid]), res) if rid in starts else {}
+        m.update({"vertices": rwf.n_vertices, "edges": rwf.n_edges})
+        per_robot[rid] = m
+    report = {
+        "world": world.name,
+        "unknown_starts": True,
+        "fleet_root": root,
+        "registered": list(fr.get("registered", [])),
+        "islands": fr.get("islands", {}),
+        "registration_errors": _pose_errors(fr, starts),
+        "registrations": fr.get("registrations", []),
+        "fused": fused,
+        "per_robot": per_robot,
+        "resolution": res,
+    }
+    report.update(_common(out, ids, duration_s, extra, raw, msg))
+    write_json(out / "report.json", report)
+    return _summary_shape(report, ids)
+
+
+def write_outputs_carmen(out: Path, world: CarmenWorld, ids: list[str], duration_s: float, extra: dict[str, Any]) -> dict[str, Any]:
+    """``report.json`` (and ``fused.*``) of a CARMEN fleet run (module docstring)."""
+    from agents.files.render import map_png
+    from agents.fleet.carmen_fleet import endpoint_precision, endpoints
+
+    raw, msg = _fused(out)
+    wf = msg.wireframe
+    robots = list(msg.robots)
+    fr = _frames(msg, robots)
+    stretches: dict[str, tuple[int, int]] = {}
+    for rid in ids:
+        try:
+            i0, i1 = json.loads((out / "routes" / f"{rid}.json").read_text())["scans"]
+            stretches[rid] = (int(i0), int(i1))
+        except (OSError, ValueError, KeyError):
+            continue
+    truth = world.truth
+    starts = {r: truth[i0] for r, (i0, _) in stretches.items()} if truth is not None else {}
+    root = fr.get("fleet_root")
+    fused: dict[str, Any] = {"vertices": wf.n_vertices, "edges": wf.n_edges, "bytes": len(raw), "version": msg.seq,
+                             "robots": robots}
+    per_robot: dict[str, Any] = {}
+    if truth is not None:
+        ends = endpoints(world.scans, truth)
+        placed = wf.transformed(starts[root]) if root in starts else wf
+        fused["endpoint_precision"] = round(endpoint_precision(placed, ends), 4)
+        write_atomic(out / "fused.png", map_png(placed))
+        write_json(out / "fused.geojson", placed.to_geojson({"kind": "fused_map", "log": world.name, "robots": robots,
+                                                              "frame": "truth"}))
+        for rid, rwf in _robot_maps(out, ids).items():
+            i0, i1 = stretches[rid]
+            own = endpoints(world.scans[i0:i1], truth[i0:i1])
+            per_robot[rid] = {
+                "scans": [i0, i1], "vertices": rwf.n_vertices, "edges": rwf.n_edges,
+                "endpoint_precision": round(endpoint_precision(rwf.transformed(starts[rid]), ends), 4),
+                "endpoint_precision_own_scans": round(endpoint_precision(rwf.transformed(starts[rid]), own), 4),
+            }
+    report = {
+        "log": world.name,
+        "carmen": world.path,
+        "fleet_root": root,
+        "registered": list(fr.get("registered", [])),
+        "islands": fr.get("islands", {}),
+        "registration_errors": _pose_errors(fr, starts),
+        "registrations": fr.get("registrations", []),
+        "fused": fused,
+        "per_robot": per_robot,
+    }
+    report.update(_common(out, ids, duration_s, extra, raw, msg))
+    write_json(out / "report.json", report)
+    return _summary_shape(report, ids)
+
+
+def _summary_shape(report: dict[str, Any], ids: list[str]) -> dict[str, Any]:
+    """The keys ``run._print_summary`` reads, filled where a run of this kind has none."""
+    f = report["fused"]
+    for k in ("wall_recall", "wall_precision"):
+        f.setdefault(k, f.get("endpoint_precision", float("nan")) if k == "wall_precision" else float("nan"))
+    f.setdefault("cell_error", None)
+    for rid in ids:
+        r = report["per_robot"].setdefault(rid, {})
+        r.setdefault("wall_recall", float("nan"))
+        st = report.get("robot_status", {}).get(rid, {})
+        r.setdefault("maps_sent", int(st.get("maps_sent", 0)))
+        r.setdefault("bytes_sent", int(st.get("bytes_sent", 0)))
+    return report

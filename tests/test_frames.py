@@ -1,0 +1,170 @@
+"""Robots of unknown start pose: the registration graph (agents.fleet.fusion.frames) in the pure
+fusion core, without any network."""
+
+from __future__ import annotations
+
+import math
+from functools import cache
+
+import numpy as np
+
+from agents.fleet.fusion import FusionState
+from agents.fleet.fusion.frames import ORIGIN_UNKNOWN, FleetFrames, FramesConfig, origin_unknown
+from mapping.se2 import Pose
+from mapping.wireframe import Wireframe
+from wire_codec.message import MapMessage, MessageKind
+
+
+@cache
+def _truth(name: str) -> Wireframe:
+    from agents.sim.world import load_world
+
+    return load_world(name).truth
+
+
+def _crop(wf: Wireframe, xmin: float, xmax: float) -> Wireframe:
+    mid = wf.segments().mean(axis=1)
+    return wf.subgraph_edges((mid[:, 0] >= xmin) & (mid[:, 0] < xmax))
+
+
+def _msg(rid: str, wf_world: Wireframe, start: Pose, seq: int = 1, unknown: bool = True) -> MapMessage:
+    """The map of a robot that started at ``start`` (world frame), in its own frame."""
+    meta = {"boot": 1, "t": float(seq)}
+    if unknown:
+        meta[ORIGIN_UNKNOWN] = True
+    return MapMessage(
+        kind=MessageKind.ROBOT_MAP, sender=rid, seq=seq, stamp_ns=seq * 1_000_000, pose=Pose.identity(),
+        frame=f"odom/{rid}", origin=Pose.identity() if unknown else start, resolution=0.05,
+        wireframe=wf_world.transformed(start.inverse()), meta=meta,
+    )
+
+
+def _noisy(wf: Wireframe, seed: int, sigma: float = 0.01) -> Wireframe:
+    rng = np.random.default_rng(seed)
+    return wf.replace(points=wf.points + rng.normal(0.0, sigma, wf.points.shape))
+
+
+def _register_all(st: FusionState, limit: int = 10) -> list[object]:
+    out = []
+    for _ in range(limit):
+        rec = st.register_step()
+        if rec is None:
+            break
+        out.append(rec)
+    st.fuse(full=True)
+    return out
+
+
+def _halves(name: str) -> tuple[Wireframe, Wireframe]:
+    truth = _truth(name)
+    xmin, _, xmax, _ = truth.bounds()
+    w = xmax - xmin
+    return _noisy(_crop(truth, xmin, xmin + 0.7 * w), 1), _noisy(_crop(truth, xmin + 0.3 * w, xmax + 1), 2)
+
+
+def test_two_robots_in_unrelated_frames_form_one_fleet_map() -> None:
+    a, b = _halves("paper-small")
+    sa, sb = Pose(3.0, 2.0, 0.7), Pose(-20.0, 11.0, -2.4)
+    st = FusionState()
+    st.add(_msg("r1", a, sa))
+    st.add(_msg("r2", b, sb))
+    st.fuse(full=True)
+    # before registration: the fleet is r1 alone, r2 an island in its own frame
+    assert st.fused_robots == ("r1",)
+    assert set(st.islands()) == {"r2"}
+    recs = _register_all(st)
+    assert any(r.accepted for r in recs)  # type: ignore[attr-defined]
+    assert st.fused_robots == ("r1", "r2")
+    assert st.islands() == {}
+    # r2's pose in the fleet frame (r1's) is its true start relative to r1's
+    true = sa.inverse().compose(sb)
+    got = st.robots["r2"].message.origin
+    assert math.hypot(got.x - true.x, got.y - true.y) < 0.1
+    assert abs(math.remainder(got.theta - true.theta, 2 * math.pi)) < math.radians(1.0)
+    meta = st.fused_message(0).meta["frames"]
+    assert meta["registered"] == ["r1", "r2"] and meta["islands"] == {}
+    # the fused map in r1's frame lies on the truth moved into r1's frame
+    from mapping.metrics import evaluate
+
+    m = evaluate(_truth("paper-small").transformed(sa.inverse()), st.fused, 0.2)
+    assert m["wall_precision"] >= 0.95
+
+
+def test_islands_register_to_each_other_and_then_to_the_fleet() -> None:
+    truth = _truth("paper-small")
+    xmin, _, xmax, _ = truth.bounds()
+    w = xmax - xmin
+    parts = [_noisy(_crop(truth, xmin + f0 * w, xmin + f1 * w), k) for k, (f0, f1) in
+             enumerate([(0.0, 0.55), (0.25, 0.8), (0.5, 1.01)])]
+    starts = [Pose(1.0, 1.0, 0.3), Pose(40.0, -3.0, 1.9), Pose(-7.0, 25.0, -1.0)]
+    st = FusionState(frames=FramesConfig(anchor="r3"))
+    for k, (p, s) in enumerate(zip(parts, starts)):
+        st.add(_msg(f"r{k + 1}", p, s))
+    _register_all(st)
+    assert st.fused_robots == ("r1", "r2", "r3")
+    # the anchor's frame is the fleet frame
+    assert st.robots["r3"].message.origin.almost_equal(Pose.identity(), 1e-12, 1e-12)
+
+
+def test_an_island_stays_an_island_when_registration_refuses() -> None:
+    # a symmetric world: a robot's map of one side matches either side, registration refuses
+    a = _noisy(_truth("paper-small"), 3)
+    b = _noisy(_truth("office"), 4)
+    st = FusionState()
+    st.add(_msg("r1", a, Pose(1.0, 2.0, 0.1)))
+    st.add(_msg("r2", b, Pose(5.0, -2.0, 1.1)))
+    recs = _register_all(st)
+    assert recs and not any(r.accepted for r in recs)  # type: ignore[attr-defined]
+    assert st.fused_robots == ("r1",)
+    assert set(st.islands()) == {"r2"}
+    members, wf = st.islands()["r2"]
+    assert members == ("r2",) and wf.n_edges == st.robots["r2"].message.wireframe.n_edges
+    # no retry until a map grew
+    assert st.register_step() is None
+
+
+def test_cross_world_pairs_never_merge() -> None:
+    names = ["paper-small", "office", "warehouse", "museum"]
+    for i, x in enumerate(names):
+        for y in names[i + 1:]:
+            st = FusionState()
+            st.add(_msg("r1", _crop(_truth(x), -1e9, 1e9), Pose(0.0, 0.0, 0.0)))
+            st.add(_msg("r2", _crop(_truth(y), -1e9, 1e9), Pose(3.0, 1.0, 2.0)))
+            _register_all(st)
+            assert st.fused_robots == ("r1",), (x, y)
+
+
+def test_known_start_fleets_never_register() -> None:
+    a, b = _halves("paper-small")
+    st = FusionState()
+    st.add(_msg("r1", a, Pose(0.0, 0.0, 0.0), unknown=False))
+    st.add(_msg("r2", b, Pose(1.0, 0.0, 0.5), unknown=False))
+    assert not st.frames.active
+    assert st.register_step() is None
+    st.fuse(full=True)
+    assert st.fused_robots == ("r1", "r2")
+    assert "frames" not in st.fused_message(0).meta
+
+
+def test_origin_unknown_flag() -> None:
+    a, _ = _halves("paper-small")
+    assert origin_unknown(_msg("r1", a, Pose.identity()))
+    assert not origin_unknown(_msg("r1", a, Pose.identity(), unknown=False))
+
+
+def test_retry_only_after_growth() -> None:
+    fr = FleetFrames(FramesConfig(retry_growth_m=5.0, retry_growth_fraction=0.1, min_length_m=1.0))
+    fr.track("r1")
+    fr.track("r2")
+    lengths = {"r1": 20.0, "r2": 20.0}
+
+    def length(members: tuple[str, ...], root: str | None) -> float:
+        return sum(lengths[m] for m in members)
+
+    assert fr.next_pair(length) == ("r1", "r2")
+    fr._tried[(("r1",), ("r2",))] = (20.0, 20.0)
+    assert fr.next_pair(length) is None
+    lengths["r2"] = 24.0
+    assert fr.next_pair(length) is None
+    lengths["r2"] = 25.0
+    assert fr.next_pair(length) == ("r1", "r2")
