@@ -147,6 +147,23 @@ def test_two_regional_fusers_and_a_root_publish_the_one_process_map(tmp_path):
                 lambda: (d := query_stats(s, keys, 2.0)) and set(d["groups"]) == {"g0", "g1"} and d, 10.0, "root stats"
             )
             assert stats["role"] == "root" and stats["exact"]
+            # a takeover of g1 started while g1 was only cut off (its partial with a newer boot):
+            # g1, alive, takes a newer boot still and the root follows it again
+            import dataclasses
+
+            forged_boot = time.time_ns()
+            forged = dataclasses.replace(got, sender="g1", robots=("r05",), seq=1,
+                                         wireframe=got.wireframe.subgraph_edges(np.zeros(got.wireframe.n_edges, bool)),
+                                         meta={"boot": forged_boot, "group": "g1", "select": "r0[5-8]"})
+            since = watcher.count()
+            s.put("wiremap/tree/groups/g1/map",
+                  encode_message(forged))
+            back = watcher.wait_for(
+                lambda m: m.meta["group_versions"].get("g1", [0])[0] > forged_boot and len(m.robots) == 8, 20.0,
+                "g1 taking its group back", since,
+            )
+            _same_map(ref, back)
+            assert "taking it back" in fleet.log("g1")
         finally:
             watcher.close()
             for t in tokens:

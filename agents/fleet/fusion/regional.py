@@ -28,12 +28,13 @@ It is a :class:`~agents.fleet.fusion.service.FusionService` with other keys:
 
 from __future__ import annotations
 
+import collections
 import threading
 import time
 from collections.abc import Callable
 from typing import Any
 
-from agents.fleet.fusion.codec import decode_message
+from agents.fleet.fusion.codec import decode_message, encode_message
 from agents.fleet.fusion.service import FusionService, ServeOptions
 from agents.fleet.fusion.tree import GroupKeys, RobotSelector, RootState
 from agents.fleet.proc import freeze_heap
@@ -87,6 +88,8 @@ class RegionalService(FusionService):
         self.state.sender = group
         self.others = RootState(opts.config.threshold)
         self._others_raw: dict[str, bytes] = {}
+        self._own_raw: bytes | None = None
+        self._sent: collections.deque[bytes] = collections.deque(maxlen=8)  # our latest puts
         self._decoded_at: dict[str, float] = {}
         self._base_ident: Any = None
         self._token = token
@@ -106,7 +109,12 @@ class RegionalService(FusionService):
 
     def _on_partial(self, sample: Any) -> None:
         g = self.tree.group_of(str(sample.key_expr))
-        if g is None or g == self.group:
+        if g is None:
+            return
+        if g == self.group:
+            if self._token:  # the owner: is someone else publishing our group (a takeover)?
+                with self.lock:
+                    self._own_raw = sample.payload.to_bytes()
             return
         with self.lock:
             self._others_raw[g] = sample.payload.to_bytes()
@@ -115,7 +123,7 @@ class RegionalService(FusionService):
         s = self.session
         if self._token:
             self._entities.append(s.liveliness().declare_token(self.tree.fuser_token(self.group)))
-        if self.opts.config.refine or self.standby is not None:
+        if self.opts.config.refine or self.standby is not None or self._token:
             self._entities.append(s.declare_subscriber(self.tree.all_groups, self._on_partial))
         if self.standby is not None and self.keys.all_maps != self.fleet_keys.all_maps:
             # the standby needs every robot's bytes: one subscription for all, filtered in _on_map
@@ -123,6 +131,10 @@ class RegionalService(FusionService):
         super().start()
         for key, raw in self._seed.items():
             self.intake.put(key, raw)
+
+    def _put(self, data: bytes) -> None:
+        self._sent.append(data)
+        super()._put(data)
 
     def _meta(self) -> dict[str, Any]:
         m = super()._meta()
@@ -134,8 +146,33 @@ class RegionalService(FusionService):
         self._update_base()
         super().poll(timeout)
 
+    def _check_takeover(self) -> None:
+        """A partial of our group with a newer boot than ours comes from a takeover that started
+        while we were cut off (our token lost, we alive): take a newer boot ourselves and
+        re-publish, so that the root follows us again (the takeover retires when it sees our
+        token)."""
+        with self.lock:
+            raw, self._own_raw = self._own_raw, None
+        if raw is None or raw in self._sent:
+            return  # our own (the common case: no decoding)
+        try:
+            msg = decode_message(raw)
+        except ValueError:
+            return
+        meta = msg.meta if isinstance(msg.meta, dict) else {}
+        boot = meta.get("boot")
+        if isinstance(boot, int) and boot > self.boot:
+            self.boot = time.time_ns()
+            self.say(f"another fuser published group {self.group} (boot {boot}): taking it back")
+            if self.current is not None:
+                data = encode_message(self.state.fused_message(self.version_stamp_ns, self._meta()))
+                with self.lock:
+                    self.current = data
+                self._put(data)
+
     def _update_base(self) -> None:
         """Take the other groups' new partials; the alignment prefix follows them."""
+        self._check_takeover()
         with self.lock:
             raws, self._others_raw = self._others_raw, {}
         if not raws:
