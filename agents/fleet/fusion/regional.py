@@ -95,7 +95,6 @@ class RegionalService(FusionService):
         self._token = token
         self._seed = seed or {}
         self.standby: Standby | None = None
-        self.cpu_at_start = time.process_time()
 
     # zenoh threads
     def _on_map(self, sample: Any) -> None:
@@ -113,8 +112,10 @@ class RegionalService(FusionService):
             return
         if g == self.group:
             if self._token:  # the owner: is someone else publishing our group (a takeover)?
+                data = sample.payload.to_bytes()
                 with self.lock:
-                    self._own_raw = sample.payload.to_bytes()
+                    if data not in self._sent:
+                        self._own_raw = data
             return
         with self.lock:
             self._others_raw[g] = sample.payload.to_bytes()
@@ -133,7 +134,8 @@ class RegionalService(FusionService):
             self.intake.put(key, raw)
 
     def _put(self, data: bytes) -> None:
-        self._sent.append(data)
+        with self.lock:
+            self._sent.append(data)
         super()._put(data)
 
     def _meta(self) -> dict[str, Any]:
@@ -153,8 +155,8 @@ class RegionalService(FusionService):
         token)."""
         with self.lock:
             raw, self._own_raw = self._own_raw, None
-        if raw is None or raw in self._sent:
-            return  # our own (the common case: no decoding)
+        if raw is None:
+            return
         try:
             msg = decode_message(raw)
         except ValueError:
