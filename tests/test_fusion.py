@@ -283,8 +283,9 @@ def test_store_tolerates_a_corrupt_robot_file_and_missing_store(tmp_path, capsys
 # ---------------------------------------------------------------------- fast path and full path
 def _fake_refine(source: Wireframe, target: Wireframe, max_shift: float, max_turn: float) -> Pose:
     """A stand-in for ICP whose correction depends on the reference (its edge count and extent)
-    and on the map aligned (its extent), so that a stale alignment shows in the result."""
-    return Pose(0.001 * target.n_edges, 0.0005 * float(np.ptp(target.points[:, 0]) + np.ptp(source.points[:, 0])), 0.0)
+    and on the map aligned (its extent), so that a stale alignment shows in the result (by
+    several steps of the fold's 0.05 m grid, ``agents.fleet.fusion.tree.wire_snap``)."""
+    return Pose(0.05 * target.n_edges, 0.025 * float(np.ptp(target.points[:, 0]) + np.ptp(source.points[:, 0])), 0.0)
 
 
 class _Counting:
@@ -529,7 +530,10 @@ def test_realign_after_publishing_then_the_next_fuse_applies_it():
         st_.fuse(now=10.0, max_realign=0)
         assert st_.wanted == ["r3"]  # r3 was aligned onto a fold without r2's correction
         st_.realign(now=10.0)
-        assert st_.fuse(now=10.5, max_realign=0) and st_.converged and st_.wanted == []
+        # the new correction differs from the old by less than the fold's grid step (wire_snap):
+        # the map need not change, but the fold is now the full path's
+        st_.fuse(now=10.5, max_realign=0)
+        assert st_.converged and st_.wanted == []
         ref = _full_of({r: e.raw for r, e in st_.robots.items()})
         assert _arrays(st_.fused) == _arrays(ref.fused)
 
@@ -611,7 +615,8 @@ def test_robot_maps_quantised_at_5_cm_fuse_to_the_same_walls_at_a_20_cm_threshol
     def error(wf: Wireframe) -> float:
         return float(max(np.min(np.hypot(*(wf.points - c).T)) for c in corners))
 
-    assert error(fine.fused) <= 0.05 < error(coarse.fused)
+    # (the coarse fold's nodes sit on its 0.2 m grid, wire_snap, which holds these corners)
+    assert error(fine.fused) <= 0.05
     msg = decode_message(encode_message(fine.fused_message(1)))
     assert msg.resolution == 0.05 and msg.meta["threshold"] == 0.2 and merge_threshold_of(msg) == 0.2
     old = decode_message(encode_message(coarse.fused_message(1)))

@@ -35,6 +35,7 @@ from agents.fleet.fusion.frames import (
 from agents.fleet.fusion.intake import InputLimits, implausible, over_budget
 from agents.fleet.fusion.stats import MAX_LATENCIES, FusionStats
 from agents.fleet.fusion.store import LATENCY_LOG, StoreDamaged, StoreJob, read_latency_log, read_store
+from agents.fleet.fusion.tree import wire_snap
 from mapping.fleet import align_maps, close_frontiers, fold_split
 from mapping.se2 import Pose
 from mapping.wireframe import Wireframe
@@ -215,6 +216,11 @@ class FusionState:
         # robots of unknown start pose (meta origin_unknown): the registration graph (frames.py)
         self.frames = FleetFrames(frames)
         self._island_cache: dict[str, tuple[tuple[Any, ...], tuple[str, ...], Wireframe]] = {}
+        # a regional fuser's (agents.fleet.fusion.regional): (identity, map) of the robots before
+        # its group in the fleet-wide fold, the start of every alignment prefix; None: this
+        # state's first robot is the anchor
+        self.base: tuple[Any, Wireframe] | None = None
+        self._grid = DEFAULT_RESOLUTION  # the fold's grid (wire_snap) in the current compute
 
     # ------------------------------------------------------------------ input
     def offer(self, data: bytes, key_robot: str | None = None, now_ns: int | None = None) -> bool:
@@ -485,7 +491,7 @@ class FusionState:
     def _ready(self, rid: str, corr: Pose | None, k: int) -> Wireframe:
         """The robot's map in the fleet frame with its correction, contributor bit ``k`` set."""
         e = self.robots[rid]
-        key = (e.rev, corr, k)
+        key = (e.rev, corr, k, self._grid)
         hit = self._prepared.get(rid)
         if hit is not None and hit[0] == key:
             return hit[1]
@@ -497,6 +503,7 @@ class FusionState:
             pose.apply(src.points), src.labels, src.edges, src.likelihood,
             np.full(src.n_edges, np.uint64(1) << np.uint64(k), dtype=np.uint64),
         )
+        wf = wire_snap(wf, self._grid)
         self._prepared[rid] = (key, wf)
         return wf
 
@@ -527,7 +534,9 @@ class FusionState:
         if base.n_vertices == 0:
             return new
         self.merges += 1
-        return self.merge_fn(base, new, thr)
+        # every node as it would travel (agents.fleet.fusion.tree.wire_snap): a subtree can be
+        # a regional fuser's partial map without changing the fold above it
+        return wire_snap(self.merge_fn(base, new, thr), self._grid)
 
     def _node(self, lo: int, hi: int, leaves: list[tuple[Any, Wireframe]], thr: float) -> tuple[Wireframe, Any]:
         """The fold of ``leaves[lo:hi]`` (see :meth:`compute`) and its identity: a leaf's item,
@@ -566,6 +575,8 @@ class FusionState:
             else:
                 parts.append(self._node(lo, mid, leaves, thr))
                 lo = mid
+        if self.base is not None:
+            parts.insert(0, (self.base[1], self.base[0]))
         key = (thr, *(ident for _, ident in parts))
         hit = self._prefix_maps.get(k)
         if hit is not None and hit[0] == key:
@@ -598,8 +609,9 @@ class FusionState:
         cfg = self.config
         ids = self.fleet_ids()
         thr = self.threshold
+        self._grid = self.resolution
         budget = len(ids) if full else (cfg.max_realign_per_fuse if max_realign is None else max_realign)
-        prefix: tuple[Any, ...] = (thr,)
+        prefix: tuple[Any, ...] = (thr,) if self.base is None else (thr, self.base[0])
         exact = True
         corrections: dict[str, Pose] = {}
         alignments: dict[str, Alignment] = {}
@@ -611,7 +623,7 @@ class FusionState:
             al = self.alignments.get(rid)
             n = e.message.wireframe.n_vertices
             references.append(prefix)
-            if k == 0 or not cfg.refine:
+            if (k == 0 and self.base is None) or not cfg.refine:
                 # the anchor (and everyone without refinement): the start pose alone, by definition current
                 if al is None or al.rev != e.rev or al.reference != prefix or al.correction is not None:
                     al = Alignment(None, e.rev, n, _origin_of(e.message), now, prefix)
@@ -674,7 +686,7 @@ class FusionState:
             self.wanted.remove(rid)
             k = position.get(rid, 0)
             e = self.robots.get(rid)
-            if e is None or k == 0:
+            if e is None or (k == 0 and self.base is None):
                 continue
             reference = self._references[k]
             if reference[0] != thr:
@@ -702,6 +714,10 @@ class FusionState:
         else:
             self._pending.clear()
         return changed
+
+    def pending_stamps(self) -> list[int]:
+        """The publish stamps (ns) of the robot maps fused since the last publish."""
+        return list(self._pending.values())
 
     def take_latencies(self, published_ns: int) -> list[float]:
         """Latency (ms) from each robot map that changed since the last fused publish to this
