@@ -672,3 +672,30 @@ def test_quick_difference_test_never_contradicts_almost_equal(n, seed, change):
     assert _same_wireframe(a, b) == equal
     if change in ("same", "permuted"):  # the same graph: never reported as surely different
         assert not _surely_differ(a, b, 1e-9)
+
+
+def test_a_restart_whose_map_comes_before_its_token_loses_nothing() -> None:
+    """A restarted robot's first map can arrive before its liveliness token (they travel
+    apart): it is refused while the token has not come back, held, and taken once the token
+    shows within the hold time; a claimed restart whose token never comes stays refused."""
+    import time
+
+    from agents.fleet.fusion.state import RESTART_HOLD_S
+
+    st = FusionState()
+    st.restart_by_token = True
+    st.note_alive("r1", 0)
+    first = robot_msg("r1", 1, boot=1)
+    assert st.add(first)
+    reboot = robot_msg("r1", 1, boot=2)
+    assert not st.add(reboot)
+    assert st.stats.rejected_by.get("boot_without_restart") == 1
+    st.note_alive("r1")  # the token of the new session arrives
+    assert st.robots["r1"].key[0] == 2
+    assert st.stats.rejected == 0 and "boot_without_restart" not in st.stats.rejected_by
+    # a restart claimed without the token, then a token far too late: stays refused
+    again = robot_msg("r1", 1, boot=3)
+    assert not st.add(again)
+    st.note_alive("r1", time.time_ns() + int((RESTART_HOLD_S + 1) * 1e9))
+    assert st.robots["r1"].key[0] == 2
+    assert st.stats.rejected_by.get("boot_without_restart") == 1

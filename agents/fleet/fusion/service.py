@@ -280,7 +280,7 @@ class FusionService:
         with self.lock:
             came, self._came_alive = self._came_alive, []
         for rid in came:
-            st.note_alive(rid)
+            st.note_alive(rid, time.time_ns())
         now_ns = time.time_ns()
         for key, data, arrived_ns in items:
             rid = self.keys.robot_of(key)

@@ -42,6 +42,9 @@ from mapping.wireframe import Wireframe
 from wire_codec import MAX_ROBOTS
 from wire_codec.message import MapMessage, MessageKind
 
+#: How long (seconds) a map claiming a restart waits for its robot's liveliness token.
+RESTART_HOLD_S = 5.0
+
 DEFAULT_THRESHOLD = 0.2  # merge threshold (m) unless configured
 DEFAULT_RESOLUTION = 0.05  # the fused map's quantisation step (m) while no robot map sets it
 FUSION_ID = "fusion"
@@ -209,6 +212,8 @@ class FusionState:
         # from the bus (note_alive), not from the boot number its maps claim
         self.restart_by_token = False
         self.token_gen: dict[str, int] = {}
+        # the latest map per robot refused as boot_without_restart, for a token still on its way
+        self._held_restart: dict[str, tuple[bytes, MapMessage, int]] = {}
         self.forgotten: dict[str, str] = {}  # robot id -> why it was forgotten (kept in the store)
         self._since: dict[str, int] = {}  # restored since_ns per robot (load)
         self.store_rewrite: set[str] = set()  # views load found damaged (written again by the next save)
@@ -270,10 +275,31 @@ class FusionState:
         state holds exactly what would have travelled (the codec quantises coordinates)."""
         return self.offer(encode_message(msg), msg.sender)
 
-    def note_alive(self, rid: str) -> None:
+    def note_alive(self, rid: str, now_ns: int | None = None) -> None:
         """The robot's liveliness token appeared (a new session of it): its next map may come
-        from a new boot (see :meth:`_add`)."""
+        from a new boot (see :meth:`_add`).
+
+        A restarted robot's first map can arrive before its token does (they travel apart). Such
+        a map was refused as ``boot_without_restart`` and held; if the token now appears within
+        :data:`RESTART_HOLD_S` of that map, the map is taken after all (and leaves the
+        ``rejected`` count), so an honest restart loses nothing while a map claiming a restart
+        that never shows on the bus stays refused."""
         self.token_gen[rid] = self.token_gen.get(rid, 0) + 1
+        held = self._held_restart.pop(rid, None)
+        if held is None:
+            return
+        raw, msg, at_ns = held
+        now = time.time_ns() if now_ns is None else now_ns
+        if now - at_ns > RESTART_HOLD_S * 1e9:
+            return
+        accepted = self.stats.accepted
+        self._add(msg, raw, now)
+        if self.stats.accepted > accepted:
+            self.stats.rejected -= 1
+            by = self.stats.rejected_by
+            by["boot_without_restart"] -= 1
+            if by["boot_without_restart"] <= 0:
+                del by["boot_without_restart"]
 
     def forget(self, rid: str, why: str) -> bool:
         """Remove every trace of a robot (its map, alignment, caches); the store records
@@ -287,6 +313,7 @@ class FusionState:
     def _add(self, msg: MapMessage, raw: bytes, now_ns: int | None = None) -> bool:
         rid = msg.sender
         key = order_key(msg, raw)
+        given = msg
         if self.frames.active or origin_unknown(msg):
             msg = self._place(msg, raw)
         old = self.robots.get(rid)
@@ -305,6 +332,7 @@ class FusionState:
                     if key[0] < old.key[0]:
                         self.stats.outdated += 1
                         return False
+                    self._held_restart[rid] = (raw, given, now_ns if now_ns is not None else time.time_ns())
                     return self._drop("rejected", "boot_without_restart",
                                       f"{rid!r} claims boot {key[0]} but its session did not restart")
             elif key < old.key:
