@@ -124,6 +124,7 @@ def write_outputs(
 
 def run(args: argparse.Namespace) -> int:
     from agents import mapping_run as mr
+    from mapping.config import with_overrides
     from mapping.filter import WireframeFilter
 
     _check(args)
@@ -164,8 +165,12 @@ def run(args: argparse.Namespace) -> int:
         true_scans = scan_truth(log)
         thr = args.merge_threshold if args.merge_threshold is not None else 0.2
         max_range = min(float(scans[0].max_range), args.max_range if args.max_range is not None else 20.0)
-        inputs = mr.carmen_inputs(scans, max_range=max_range, steps=args.steps, truth=true_scans)
-        cfg = mr.filter_config_for(args.particles, thr, max_range, fov=mr.scan_fov(scans[0].angles))
+        # A real lidar: the real-lidar profile (odometry noise, point match, extractor).
+        filter_overrides, extract_cfg, frontend_cfg = mr.split_profile(mr.lidar_profile())
+        inputs = mr.carmen_inputs(scans, max_range=max_range, steps=args.steps, truth=true_scans,
+                                  extract=extract_cfg, frontend=frontend_cfg)
+        cfg = with_overrides(mr.filter_config_for(args.particles, thr, max_range, fov=mr.scan_fov(scans[0].angles)),
+                             filter_overrides)
         start = true_scans[0] if true_scans is not None else scans[0].odom
         filt = WireframeFilter(cfg, mr.seeds_for(args.seed)["filter"], initial_pose=start)
         total = len(scans) if args.steps is None else min(len(scans), args.steps)
