@@ -858,7 +858,7 @@ class WireframeFilter:
             again = self._icp(scan, ref, self._cov + self._drift)
             if again.accepted and again.constrained == 3 and again.rmse <= 0.5 * cfg.icp.max_rmse:
                 icp_res = again
-        if ctx.points is not None:
+        if ctx.points is not None and cfg.point_match.local:
             icp_res = self._match_points(icp_res, ctx.points, ref, self._cov, reanchor=cfg.gating.reanchor)
         ctx.icp = icp_res
         if icp_res.consistent and cfg.snapping.frontiers:

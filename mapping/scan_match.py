@@ -68,6 +68,9 @@ class PointMatchConfig:
         ``points``) and in its loop closer; off by default: the simulator's corner sensor has
         no raw points, and the real-lidar profile (:func:`agents.mapping_run.lidar_profile`)
         turns it on.
+    local : bool
+        With ``enabled``: also in the step's own scan match (default True); False matches the
+        points only in the loop closer's match against the old map.
     max_iterations : int
         Gauss-Newton iterations at most (default 12).
     anneal_iterations : int
@@ -105,6 +108,7 @@ class PointMatchConfig:
     """
 
     enabled: bool = False
+    local: bool = True
     max_iterations: int = 12
     anneal_iterations: int = 4
     gate_end: float = 0.3

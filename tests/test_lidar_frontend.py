@@ -88,3 +88,30 @@ def test_lidar_profile_splits_into_filter_extract_and_frontend() -> None:
     assert cfg.odometry.rot_per_m == prof["odometry.rot_per_m"]
     # The simulator's defaults are not the profile's.
     assert FilterConfig().odometry.rot_per_m < cfg.odometry.rot_per_m
+
+
+def room_ranges(pose: Pose) -> np.ndarray:
+    """A 180-degree scan from ``pose`` inside the room [-2, 6] x [-4, 4] (walls only)."""
+    from agents.sim.lidar import LidarConfig, raycast
+
+    room = np.array([[[-2.0, -4.0], [6.0, -4.0]], [[6.0, -4.0], [6.0, 4.0]], [[6.0, 4.0], [-2.0, 4.0]],
+                     [[-2.0, 4.0], [-2.0, -4.0]], [[3.0, 1.0], [3.0, 2.5]]])
+    cfg = LidarConfig(beams=181, fov=math.pi + math.radians(1.0), max_range=20.0, sigma=0.0)
+    return raycast(room, pose, cfg, None)
+
+
+def test_scan_increment_recovers_the_turn_the_wheels_got_wrong() -> None:
+    from mapping.lidar_frontend import scan_increment
+
+    cfg = FrontendConfig(scan_odometry=True)
+    a = np.linspace(-(math.pi + math.radians(1.0)) / 2, (math.pi + math.radians(1.0)) / 2, 181)
+    true = Pose(0.5, 0.05, math.radians(8.0))
+    p0 = scan_points(room_ranges(Pose.identity()), a, cfg)
+    p1 = scan_points(room_ranges(true), a, cfg)
+    wheels = Pose(0.55, 0.0, math.radians(6.0))  # 2 degrees and 5 cm off
+    inc, matched = scan_increment(p0, p1, wheels, cfg)
+    assert matched
+    err = true.inverse().compose(inc)
+    assert math.hypot(err.x, err.y) < 0.01 and abs(err.theta) < math.radians(0.2)
+    # Nothing to match: the wheels' increment as it was.
+    assert scan_increment(p0[:2], p1, wheels, cfg) == (wheels, False)
