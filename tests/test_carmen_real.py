@@ -74,7 +74,8 @@ def test_bench_lidar_json_on_the_excerpt(tmp_path: Path, capsys: pytest.CaptureF
     assert main(args) == 0
     lines = capsys.readouterr().out.strip().splitlines()
     summary = json.loads(lines[-1])
-    assert set(summary) == {"logs", "median"}
+    assert set(summary) == {"logs", "median", "profile", "settings"}
+    assert summary["profile"] == "lidar" and summary["settings"]["odometry.rot_per_m"] == 0.05
     row = summary["logs"]["freiburg-101-head"]
     for key in ("scans", "ate_rmse_m", "ate_max_m", "rpe_1m_m", "map_precision", "map_coverage",
                 "best_map_bytes", "particle_bytes", "time_s", "ms_per_scan", "odometry_ate_rmse_m"):
@@ -84,6 +85,19 @@ def test_bench_lidar_json_on_the_excerpt(tmp_path: Path, capsys: pytest.CaptureF
     assert summary["median"]["ate_rmse_m"] == row["ate_rmse_m"]  # one log: the median is it
     assert any(line.startswith("freiburg-101-head  odometry") for line in lines)
     assert (tmp_path / "freiburg-101-head.png").is_file() and (tmp_path / "freiburg-101-head-baseline.png").is_file()
+
+
+def test_bench_lidar_profile_and_set(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    args = ["bench", "lidar", str(EXCERPT), "--steps", "5", "--particles", "2", "--json", "--quiet",
+            "--out", str(tmp_path), "--profile", "none", "--set", "odometry.rot_per_m=0.02",
+            "--set", "extract.jump_beams=3"]
+    assert main(args) == 0
+    summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert summary["profile"] == "none"
+    assert summary["settings"] == {"odometry.rot_per_m": "0.02", "extract.jump_beams": "3"}
+    for bad in ("odometry.nope=1", "odometry.rot_per_m=-1", "extract.jump=0", "novalue"):
+        assert main(["bench", "lidar", str(EXCERPT), "--steps", "2", "--quiet", "--set", bad]) == 2
+        assert "--set" in capsys.readouterr().err
 
 
 def test_bench_lidar_needs_logs(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

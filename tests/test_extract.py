@@ -444,3 +444,20 @@ def test_rotating_a_full_turn_scan_by_one_beam_changes_nothing() -> None:
 
 # How fast corners are extracted is a benchmark figure, not a test:
 # `wiremap bench speed --pieces` (extract_ms).
+
+
+def test_jump_beams_grows_the_run_break_with_range() -> None:
+    """Neighbouring returns 1 degree apart on a wall seen at 30 degrees are 0.35 m apart at
+    10 m: a break for the fixed ``jump`` (0.3 m), not with ``jump_beams = 3`` (0.52 m there);
+    a range step of 0.35 m at 1 m is a break either way."""
+    from mapping.extract import _far
+
+    a = np.radians(1.0)
+    far_p = np.array([[10.0, 0.0]])
+    far_q = 10.3 * np.array([[math.cos(a), math.sin(a)]])  # 0.35 m from far_p
+    near_p, near_q = np.array([[1.0, 0.0]]), 1.35 * np.array([[math.cos(a), math.sin(a)]])
+    assert _far(far_p, far_q, ExtractConfig()).tolist() == [True]
+    assert _far(far_p, far_q, ExtractConfig(jump_beams=3.0)).tolist() == [False]
+    assert _far(near_p, near_q, ExtractConfig(jump_beams=3.0)).tolist() == [True]
+    with pytest.raises(ValueError):
+        ExtractConfig(jump_beams=-1.0)

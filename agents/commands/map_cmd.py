@@ -129,7 +129,7 @@ def _check(args: argparse.Namespace) -> None:
 
 def _filter_config(
     args: argparse.Namespace, cargs: ConfigArgs, thr: float, max_range: float, fov: float = 2.0 * math.pi,
-    range_cap: float = math.inf,
+    range_cap: float = math.inf, base: dict[str, Any] | None = None,
 ) -> Resolved:
     """The filter's configuration: 10 particles, ``thr``, ``max_range`` and ``fov`` under the
     file, the flags (``--max-range`` at most ``range_cap``, a log's scanner range) and
@@ -143,7 +143,7 @@ def _filter_config(
     }
     return resolve(
         cargs,
-        lambda ov: filter_config_for(10, thr, max_range, fov, overrides=ov),
+        lambda ov: filter_config_for(10, thr, max_range, fov, overrides={**(base or {}), **ov}),
         {k: v for k, v in flags.items() if v[1] is not None},
     )
 
@@ -222,10 +222,15 @@ def run(args: argparse.Namespace) -> int:
             raise UserError(f"{args.carmen}: no laser scans in the log")
         true_scans = scan_truth(log)
         log_range = float(scans[0].max_range)
-        resolved = _filter_config(args, cargs, 0.2, min(log_range, 20.0), mr.scan_fov(scans[0].angles), log_range)
+        # A real lidar: the real-lidar profile (odometry noise, point match, extractor) under
+        # the user's --params and --set.
+        filter_overrides, extract_cfg, frontend_cfg = mr.split_profile(mr.lidar_profile())
+        resolved = _filter_config(args, cargs, 0.2, min(log_range, 20.0), mr.scan_fov(scans[0].angles), log_range,
+                                  base=filter_overrides)
         cfg = resolved.config
         max_range = cfg.max_range
-        inputs = mr.carmen_inputs(scans, max_range=max_range, steps=args.steps, truth=true_scans)
+        inputs = mr.carmen_inputs(scans, max_range=max_range, steps=args.steps, truth=true_scans,
+                                  extract=extract_cfg, frontend=frontend_cfg)
         start = true_scans[0] if true_scans is not None else scans[0].odom
         filt = WireframeFilter(cfg, mr.seeds_for(args.seed)["filter"], initial_pose=start)
         total = len(scans) if args.steps is None else min(len(scans), args.steps)
