@@ -1,4 +1,5 @@
-"""``wiremap bench {accuracy,speed,codec,fleet,soak,sensor,register,lidar}``: dispatches to :mod:`agents.bench`."""
+"""``wiremap bench {accuracy,speed,codec,fleet,soak,sensor,register,lidar}``: dispatches to
+:mod:`agents.bench`."""
 
 from __future__ import annotations
 
