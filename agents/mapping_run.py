@@ -302,7 +302,9 @@ def simulate(
         yield ScanInput(s.t, s.odometry, scan_fn(s.true_pose, srng), s.true_pose)
 
 
-def count_sim_steps(world: Any, options: SimOptions, seed: int, route: NDArray[np.float64] | None = None) -> int:
+def count_sim_steps(
+    world: Any, options: SimOptions, seed: int, route: NDArray[np.float64] | None = None
+) -> int:
     """How many scans :func:`simulate` yields (without simulating the sensor)."""
     from agents.sim.motion import drive
     from agents.sim.route import plan_route
@@ -336,7 +338,8 @@ def _scanner(world: Any, options: SimOptions) -> Any:
     from agents.sim.lidar import LidarConfig, raycast
     from mapping.extract import extract_corners
 
-    lcfg = LidarConfig(beams=options.lidar_beams, fov=2.0 * math.pi, max_range=options.max_range, sigma=options.lidar_sigma)
+    lcfg = LidarConfig(beams=options.lidar_beams, fov=2.0 * math.pi, max_range=options.max_range,
+                       sigma=options.lidar_sigma)
     segments = world.truth.segments()
     angles = lcfg.angles()
 

@@ -576,7 +576,9 @@ def _runs(beams: _Beams, cfg: ExtractConfig) -> _Scan:
         brk_c = _far(pts, nxt, cfg) | (gap_c > cfg.max_gap + 1)
         if brk_c.any():
             prv, nxt2 = np.roll(pts, 1, axis=0), np.roll(pts, -2, axis=0)
-            cont = (_pair_dist(nxt, prv, pts) <= cfg.split_tol) & (_pair_dist(pts, nxt2, nxt) <= cfg.split_tol)
+            cont = (_pair_dist(nxt, prv, pts) <= cfg.split_tol) & (
+                _pair_dist(pts, nxt2, nxt) <= cfg.split_tol
+            )
             score = np.where(gap_c > cfg.max_gap + 1, np.inf, np.where(cont, 1e-3 * step_c, step_c))
             score = np.where(brk_c, score, -1.0)
             k0 = (int(np.argmax(score)) + 1) % len(beam_idx)
@@ -756,7 +758,9 @@ def _within_extent(sc: _Scan, p: _Piece, x: FloatArray) -> bool:
     )
 
 
-def _keep_corner_pieces(sc: _Scan, pieces: list[_Piece], kept: list[_Piece], owner: NDArray[np.int64]) -> list[_Piece]:
+def _keep_corner_pieces(
+    sc: _Scan, pieces: list[_Piece], kept: list[_Piece], owner: NDArray[np.int64]
+) -> list[_Piece]:
     """Step 5 exception: a short wall that meets a kept wall in a corner is structure (a door
     jamb, the end face of a thick wall), not clutter: keep it when it is at least
     ``min_corner_length`` long. Returns the kept pieces in scan order (``owner`` updated)."""
@@ -807,7 +811,11 @@ def _add_stubs(sc: _Scan, kept: list[_Piece], owner: NDArray[np.int64]) -> list[
             if not (0 <= cn < m and owner[cn] == -1):
                 continue  # (most ends: a corner with the next kept wall, or nothing)
             k = int(beam_idx[ci])
-            ext = min(0.75 * float(np.hypot(*(pts[ci] - pts[ci - side]))), cfg.max_extrapolation) if p.count >= 2 else 0.0
+            ext = (
+                min(0.75 * float(np.hypot(*(pts[ci] - pts[ci - side]))), cfg.max_extrapolation)
+                if p.count >= 2
+                else 0.0
+            )
             cpt = _on_ray(sc.beams.bearing(k + 0.5 * side), p, pts[ci], side, ext, cfg)
             chain: list[int] = []
             while 0 <= cn < m and owner[cn] == -1 and len(chain) < cfg.min_points:
@@ -1123,7 +1131,9 @@ def _checked(pos: FloatArray, p: _Piece, last: FloatArray, tol: float) -> FloatA
     return np.asarray(pos, dtype=np.float64)
 
 
-def _on_ray(beta: float, p: _Piece, last: FloatArray, side: int, cap: float, cfg: ExtractConfig) -> FloatArray:
+def _on_ray(
+    beta: float, p: _Piece, last: FloatArray, side: int, cap: float, cfg: ExtractConfig
+) -> FloatArray:
     """The piece's line where the ray at bearing ``beta`` meets it, at most ``cap`` metres
     beyond the foot of ``last`` (outwards, ``side * u``) and never behind it; the foot of
     ``last`` when the ray misses the line."""

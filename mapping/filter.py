@@ -55,20 +55,22 @@ Choices where the paper is silent or that differ from it
   :attr:`GatingConfig.max_sigma_theta` (a sharp turn the scan could not fix), or the match
   failed while the position is uncertain by more than :attr:`GatingConfig.max_sigma_xy`
   (lost track), the step only predicts (``StepInfo.mapped`` is False).
-* **Frontiers continue established walls** (:func:`mapping.snapping.snap_frontiers`): before the merge, a scan
-  frontier that extends a longer map wall is moved onto that wall's line; a wall growing at its
-  frontier would otherwise follow the pose's error and the pose would follow the wall.
-* **Walls continue across doorways** (:func:`mapping.snapping.snap_collinear`): a new scan wall in the line of an
-  established map wall, past its end, is put onto that line; door by door a corridor would
-  otherwise bend by the pose's heading error at each new wall.
+* **Frontiers continue established walls** (:func:`mapping.snapping.snap_frontiers`): before
+  the merge, a scan frontier that extends a longer map wall is moved onto that wall's line; a
+  wall growing at its frontier would otherwise follow the pose's error and the pose would
+  follow the wall.
+* **Walls continue across doorways** (:func:`mapping.snapping.snap_collinear`): a new scan
+  wall in the line of an established map wall, past its end, is put onto that line; door by
+  door a corridor would otherwise bend by the pose's heading error at each new wall.
 * **Corners are averaged** (:mod:`mapping.refine`): a scan whose match fixed the whole pose
   moves every map corner it observes to the running mean of its observations, until the corner
   has had ``refine.max_count`` of them, before the merge (the merge itself
   keeps the map's position); otherwise the first sighting's pose error stays in the corner for
   good and the pose inherits it.
-* **Carving** (:func:`mapping.evidence.seen_through_spans`, :func:`mapping.evidence.carve`): stretches of a map wall that a scan
-  saw through while it saw the rest of the wall are cut out (a false-positive edge that the
-  merge joined to a real collinear wall cannot be removed by mutation, whose unit is the edge).
+* **Carving** (:func:`mapping.evidence.seen_through_spans`, :func:`mapping.evidence.carve`):
+  stretches of a map wall that a scan saw through while it saw the rest of the wall are cut
+  out (a false-positive edge that the merge joined to a real collinear wall cannot be removed
+  by mutation, whose unit is the edge).
 * **Evidence and merge scans.** Likelihoods and contradictions use the whole scan (short
   frontier fragments included: a fragment is evidence that the wall is there, and dropping it
   would make the wall look seen through); ICP and the merge use the scan without them.
@@ -165,7 +167,8 @@ FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 BoolArray = NDArray[np.bool_]
 
-__all__ = ["FilterConfig", "GatingConfig", "OdometryConfig", "StepInfo", "WireframeFilter", "budget_map", "particle_bytes"]
+__all__ = ["FilterConfig", "GatingConfig", "OdometryConfig", "StepInfo", "WireframeFilter", "budget_map",
+           "particle_bytes"]
 
 
 class ViewLike(Protocol):
@@ -365,8 +368,8 @@ class FilterConfig:
         check_number("max_scan_vertices", self.max_scan_vertices, 2, integer=True)
         groups = {"odometry": OdometryConfig, "gating": GatingConfig, "cleanup": CleanupConfig,
                   "snapping": SnappingConfig, "compass": CompassConfig, "evidence": EvidenceConfig,
-                  "refine": RefineConfig, "likelihood": LikelihoodConfig, "icp": ICPConfig, "loops": LoopConfig,
-                  "point_match": PointMatchConfig}
+                  "refine": RefineConfig, "likelihood": LikelihoodConfig, "icp": ICPConfig,
+                  "loops": LoopConfig, "point_match": PointMatchConfig}
         for name, kind in groups.items():
             if not isinstance(getattr(self, name), kind):
                 raise ValueError(f"{name} must be a {kind.__name__}, got {getattr(self, name)!r}")
@@ -723,7 +726,9 @@ class WireframeFilter:
         correspondence gate is three standard deviations (the rotation's taken at half the
         range), within the ICP config's ``gate_end``..``gate_start``."""
         cfg = self.config
-        reach = 3.0 * (math.sqrt(max(prior[0, 0], prior[1, 1])) + math.sqrt(prior[2, 2]) * 0.5 * cfg.max_range)
+        reach = 3.0 * (
+            math.sqrt(max(prior[0, 0], prior[1, 1])) + math.sqrt(prior[2, 2]) * 0.5 * cfg.max_range
+        )
         icfg = dataclasses.replace(cfg.icp, gate_start=min(cfg.icp.gate_start, max(cfg.icp.gate_end, reach)))
         return icp(scan, ref, icfg, prior_covariance=prior)
 
@@ -826,7 +831,8 @@ class WireframeFilter:
         self._drift = self._drift + np.diag(
             [cfg.gating.drift_xy**2 * d, cfg.gating.drift_xy**2 * d, cfg.gating.drift_theta**2 * d]
         )
-        return _StepContext(cleaned.evidence, cleaned.scan, cleaned.scan, cleaned.kept, predicted, predicted, best, fault)
+        return _StepContext(cleaned.evidence, cleaned.scan, cleaned.scan, cleaned.kept, predicted, predicted,
+                            best, fault)
 
     def _match_scan(self, ctx: _StepContext) -> None:
         """Match the scan against the best particle's predicted scan (paper Sec. IV-C).
@@ -1094,7 +1100,9 @@ class WireframeFilter:
             best_parent = int(np.argmax(w))
         return w, best_parent, loglik
 
-    def _resample(self, evals: dict[int, _Eval], weights: FloatArray, best_parent: int) -> tuple[ResampleResult, int]:
+    def _resample(
+        self, evals: dict[int, _Eval], weights: FloatArray, best_parent: int
+    ) -> tuple[ResampleResult, int]:
         """Resample with mutation (Sec. IV-F, :func:`mapping.resample.resample_with_mutation`).
 
         Particles the scan cannot tell apart (equal ``_Eval.group``) count as copies of one;
@@ -1183,7 +1191,8 @@ class WireframeFilter:
         covariance and verdict replace the ICP's; a failed point match leaves ``res`` as it was.
         With ``reanchor`` a failure is retried with the map's drift added to the prior."""
         drift = self._drift if reanchor else None
-        return refine_match(res, points, ref.segments(), prior, drift, self.config.point_match, self.config.max_range)
+        return refine_match(res, points, ref.segments(), prior, drift, self.config.point_match,
+                            self.config.max_range)
 
     def _loop_closure(
         self, odometry: Pose, info: StepInfo, scan: Wireframe, points: FloatArray | None = None

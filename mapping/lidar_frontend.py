@@ -44,7 +44,8 @@ from mapping.wireframe import Wireframe
 
 FloatArray = NDArray[np.float64]
 
-__all__ = ["FrontendConfig", "LidarFrontend", "odometry_overrides", "scan_increment", "scan_points", "scan_polyline"]
+__all__ = ["FrontendConfig", "LidarFrontend", "odometry_overrides", "scan_increment", "scan_points",
+           "scan_polyline"]
 
 
 @dataclass(frozen=True)
@@ -95,7 +96,8 @@ class FrontendConfig:
 
 
 def odometry_overrides(trans_per_m: float = 0.05, rot_per_m: float = math.radians(2.0)) -> dict[str, float]:
-    """:class:`mapping.filter.FilterConfig` overrides (dotted keys, :func:`mapping.config.with_overrides`) whose odometry noise model covers a robot
+    """:class:`mapping.filter.FilterConfig` overrides (dotted keys,
+    :func:`mapping.config.with_overrides`) whose odometry noise model covers a robot
     whose odometry errs by ``trans_per_m`` of the distance and ``rot_per_m`` radians per metre
     (defaults: the CARMEN development logs' 5 % and 2 degrees per metre), with the filter's
     usual margin of about 1.4 (it should not trust its odometry more than it deserves).
@@ -106,7 +108,8 @@ def odometry_overrides(trans_per_m: float = 0.05, rot_per_m: float = math.radian
     Mahalanobis test then rejected the right correction, and the pose ran on odometry. This
     alone took the seven logs' median ATE from 1.59 m to 0.42 m (docs/experiments.md, "Real
     lidar")."""
-    return {"odometry.trans_per_m": round(1.4 * trans_per_m, 3), "odometry.rot_per_m": round(1.43 * rot_per_m, 3)}
+    return {"odometry.trans_per_m": round(1.4 * trans_per_m, 3),
+            "odometry.rot_per_m": round(1.43 * rot_per_m, 3)}
 
 
 #: The scan odometry's matcher: the usual point matcher with a wider first gate and a looser

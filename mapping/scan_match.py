@@ -129,8 +129,8 @@ class PointMatchConfig:
     def __post_init__(self) -> None:
         if self.max_iterations < 1 or self.anneal_iterations < 0 or self.normal_window < 1:
             raise ValueError("max_iterations and normal_window must be >= 1, anneal_iterations >= 0")
-        for name in ("gate_end", "kernel", "sigma", "information_scale", "max_normal_angle", "inlier_distance",
-                     "max_rmse", "max_mahalanobis", "tol"):
+        for name in ("gate_end", "kernel", "sigma", "information_scale", "max_normal_angle",
+                     "inlier_distance", "max_rmse", "max_mahalanobis", "tol"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
                 raise ValueError(f"PointMatchConfig.{name} must be a positive number, got {v!r}")
@@ -216,7 +216,8 @@ def _segment_distance(points: FloatArray, segs: FloatArray) -> tuple[FloatArray,
 
 
 def assign(
-    points: FloatArray, normals: FloatArray, segs: FloatArray, gate: float, max_normal_angle: float, end_margin: float
+    points: FloatArray, normals: FloatArray, segs: FloatArray, gate: float, max_normal_angle: float,
+    end_margin: float
 ) -> IntArray:
     """The segment of each point: the nearest one within ``gate`` whose normal is within
     ``max_normal_angle`` of the point's (points without a normal match on distance alone) and
@@ -366,7 +367,8 @@ def refine_match(
     constrained directions and verdict; a point match that fails leaves ``res`` as it was.
     """
     def gate(P: FloatArray) -> float:
-        return float(min(2.0, 3.0 * (math.sqrt(max(P[0, 0], P[1, 1])) + math.sqrt(P[2, 2]) * 0.5 * max_range)))
+        return float(min(2.0,
+                         3.0 * (math.sqrt(max(P[0, 0], P[1, 1])) + math.sqrt(P[2, 2]) * 0.5 * max_range)))
 
     start = res.correction if res.accepted else None
     pm = match_points(points, ref, prior, config, gate_start=gate(prior), initial=start)

@@ -138,7 +138,9 @@ def in_process_router(port: int | None = None) -> Iterator[str]:
 
 
 @contextmanager
-def client(endpoint: str, timeout: float = 10.0, credentials: str | Path | None = None) -> Iterator[zenoh.Session]:
+def client(
+    endpoint: str, timeout: float = 10.0, credentials: str | Path | None = None
+) -> Iterator[zenoh.Session]:
     """A client session connected to ``endpoint`` (with a credentials file, if given); closed
     on exit."""
     cfg = build_config("client", None, [endpoint])
@@ -182,7 +184,9 @@ class FusedWatcher:
         """The newest message (from index ``since`` on) that satisfies ``pred``."""
         return self._wait(pred, timeout, what, since, newest=True)[0]
 
-    def wait_for_timed(self, pred: Callable[[Any], bool], timeout: float, what: str, since: int = 0) -> tuple[Any, float]:
+    def wait_for_timed(
+        self, pred: Callable[[Any], bool], timeout: float, what: str, since: int = 0
+    ) -> tuple[Any, float]:
         """The *first* message (from index ``since`` on) that satisfies ``pred``, with its
         arrival time."""
         return self._wait(pred, timeout, what, since, newest=False)

@@ -103,9 +103,11 @@ def bad_payloads() -> dict[str, tuple[bytes, str, str]]:
         "nan_in_pose": (resealed(nan_pose), "malformed", "FormatError"),
         "old_version": (resealed(old), "malformed", "VersionError"),
         "million_vertices": (resealed(huge), "malformed", "LimitError"),
-        "kilometres_away": (encode_message(robot_msg(origin=Pose(5000.0, 0.0, 0.0))), "malformed", "LimitError"),
+        "kilometres_away": (encode_message(robot_msg(origin=Pose(5000.0, 0.0, 0.0))), "malformed",
+                            "LimitError"),
         "far_in_fleet_frame": (
-            encode_message(robot_msg(origin=Pose(800.0, 0.0, 0.0), wf=ROOM.transformed(Pose(400.0, 0.0, 0.0)))),
+            encode_message(robot_msg(origin=Pose(800.0, 0.0, 0.0),
+                                     wf=ROOM.transformed(Pose(400.0, 0.0, 0.0)))),
             "absurd",
             "extent",
         ),
@@ -178,7 +180,9 @@ def test_implausible_reasons_directly() -> None:
     lim = InputLimits(max_extent_m=100.0, max_resolution_m=1.0)
     assert implausible(robot_msg(), lim) is None
     assert implausible(robot_msg(origin=Pose(150.0, 0, 0)), lim)[0] == "extent"  # type: ignore[index]
-    assert implausible(robot_msg(origin=Pose(90.0, 0, 0), wf=ROOM.transformed(Pose(20, 0, 0))), lim)[0] == "extent"  # type: ignore[index]
+    assert implausible(  # type: ignore[index]
+        robot_msg(origin=Pose(90.0, 0, 0), wf=ROOM.transformed(Pose(20, 0, 0))), lim
+    )[0] == "extent"
     assert implausible(robot_msg(resolution=1.5), lim)[0] == "resolution"  # type: ignore[index]
     for meta in ({"boot": -1}, {"boot": True}, {"t": math.inf}, {"t": -1.0}, {"step": 1.5}, {"t": "now"}):
         assert implausible(robot_msg(meta=meta), lim)[0] == "meta", meta  # type: ignore[index]
@@ -198,18 +202,28 @@ def test_random_bytes_never_raise_and_never_change_the_map(data: bytes) -> None:
 
 
 @settings(max_examples=60, deadline=None)
-@given(cut=st.integers(min_value=0, max_value=len(GOOD) - 1), flip=st.integers(min_value=0, max_value=8 * len(GOOD) - 1))
+@given(cut=st.integers(min_value=0, max_value=len(GOOD) - 1),
+       flip=st.integers(min_value=0, max_value=8 * len(GOOD) - 1))
 def test_truncated_or_bit_flipped_good_payloads_are_dropped(cut: int, flip: int) -> None:
     st_ = good_state()
     assert not st_.offer(GOOD[:cut], "r1")
     flipped = bytearray(GOOD)
     flipped[flip // 8] ^= 0x80 >> (flip % 8)
     assert not st_.offer(bytes(flipped), "r1")
-    assert st_.stats.malformed + st_.stats.rejected + st_.stats.absurd + st_.stats.outdated + st_.stats.duplicates == 2
+    assert (
+        st_.stats.malformed
+        + st_.stats.rejected
+        + st_.stats.absurd
+        + st_.stats.outdated
+        + st_.stats.duplicates
+        == 2
+    )
     assert st_.robots["r1"].raw == GOOD
 
 
-def test_store_refuses_absurd_maps_written_into_it(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+def test_store_refuses_absurd_maps_written_into_it(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     """A store edited by hand is read through the same checks as the bus."""
     st_ = good_state()
     st_.save(tmp_path / "s")
@@ -290,7 +304,9 @@ def test_drop_log_is_rate_limited() -> None:
 
 # ---------------------------------------------------------------------- a real fusion process
 @pytest.mark.fleet
-def test_fusion_process_drops_bad_input_keeps_serving_and_stays_bounded(tmp_path: Path, record_property) -> None:
+def test_fusion_process_drops_bad_input_keeps_serving_and_stays_bounded(
+    tmp_path: Path, record_property
+) -> None:
     from tests.fleet_util import (
         Fleet,
         FusedWatcher,
@@ -330,7 +346,10 @@ def test_fusion_process_drops_bad_input_keeps_serving_and_stays_bounded(tmp_path
             assert {k: stats[k] for k in expect} == expect, stats
             assert stats["rejected_by"] == {"bad_key": 1, "not_robot_map": 1, "sender_mismatch": 1}
             assert stats["absurd_by"] == {"extent": 1, "meta": 2, "resolution": 1}
-            assert stats["malformed_by"].get("VersionError") == 1 and stats["malformed_by"].get("LimitError") == 2
+            assert (
+                stats["malformed_by"].get("VersionError") == 1
+                and stats["malformed_by"].get("LimitError") == 2
+            )
             record(record_property, "bad_input_counters", {k: stats[k] for k in (*expect, "accepted")})
             q = query_fused(s, keys)
             assert q is not None and q.seq == version and q.wireframe.almost_equal(good.wireframe)
@@ -349,7 +368,12 @@ def test_fusion_process_drops_bad_input_keeps_serving_and_stays_bounded(tmp_path
                 d = query_stats(s, keys)
                 if not d:
                     return None
-                n = d["stats"]["received"] + d["stats"]["oversized"] + d["stats"]["rate_limited"] + d["stats"]["overflow"]
+                n = (
+                    d["stats"]["received"]
+                    + d["stats"]["oversized"]
+                    + d["stats"]["rate_limited"]
+                    + d["stats"]["overflow"]
+                )
                 same, last[0] = n == last[0], n
                 return d if same and d["queued_bytes"] == 0 else None
 
@@ -369,8 +393,10 @@ def test_fusion_process_drops_bad_input_keeps_serving_and_stays_bounded(tmp_path
                 after = wait_until(settled, 30, "the flood to drain", step=0.5)
                 rss.append(rss_kb(p.pid))
             st2 = after["stats"]
-            record(record_property, "flood", {"sent": sent, "seconds": round(flood_s, 2), "queries_served": served,
-                                              "rate_limited": st2["rate_limited"], "oversized": st2["oversized"],
+            record(record_property, "flood",
+                   {"sent": sent, "seconds": round(flood_s, 2), "queries_served": served,
+                                              "rate_limited": st2["rate_limited"],
+                                              "oversized": st2["oversized"],
                                               "overflow": st2["overflow"], "malformed": st2["malformed"],
                                               "accepted": st2["accepted"]})  # fmt: skip
             record(record_property, "fusion_rss_kb_start_flood1_flood2_flood3_peak", (*rss, peak))

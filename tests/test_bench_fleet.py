@@ -46,7 +46,8 @@ def square(side: float = 2.0) -> Wireframe:
 def message(wf: Wireframe, seq: int = 1) -> bytes:
     return encode(
         MapMessage(
-            kind=MessageKind.ROBOT_MAP, sender="r1", seq=seq, stamp_ns=123, pose=Pose.identity(), frame="odom/r1",
+            kind=MessageKind.ROBOT_MAP, sender="r1", seq=seq, stamp_ns=123, pose=Pose.identity(),
+            frame="odom/r1",
             origin=Pose(1.0, 2.0, 0.5), resolution=0.2, wireframe=wf, meta={"boot": 7, "t": 1.5},
         )
     )
@@ -144,7 +145,9 @@ def test_recording_round_trip(tmp_path: Path) -> None:
     assert (back.robot, back.world, back.steps, len(back.frames)) == ("r1", "tiny", 3, 2)
     assert back.start.almost_equal(rec.start, 1e-3, 1e-6)
     assert back.frames[1].truth is None
-    assert back.frames[0].truth is not None and back.frames[0].truth.almost_equal(Pose(1.0, 2.0, 0.5), 1e-9, 1e-9)
+    assert back.frames[0].truth is not None and back.frames[0].truth.almost_equal(
+        Pose(1.0, 2.0, 0.5), 1e-9, 1e-9
+    )
     assert back.frames[1].wireframe.almost_equal(square(2.0), tol=1e-9)
     (tmp_path / "bad.wrp").write_bytes(b"\x01\x02")
     with pytest.raises(UserError):
@@ -153,7 +156,8 @@ def test_recording_round_trip(tmp_path: Path) -> None:
 
 def test_sent_log_and_rss_slope(tmp_path: Path) -> None:
     p = tmp_path / "r1.log"
-    p.write_text("B 100 1\nM 100 1 1 50\nM 100 2 0 10\nB 200 2\nM 200 1 1 60\nM 200 2")  # last line cut by a kill
+    # last line cut by a kill
+    p.write_text("B 100 1\nM 100 1 1 50\nM 100 2 0 10\nB 200 2\nM 200 1 1 60\nM 200 2")
     assert read_sent_log(p) == {"boots": [100, 200], "valid": 2, "corrupt": 1}
     assert read_sent_log(tmp_path / "absent.log") == {"boots": [], "valid": 0, "corrupt": 0}
     samples = [(60.0 * k, int((100 + 2 * k) * 1024 * 1024)) for k in range(5)]
@@ -183,17 +187,18 @@ def _bench(args: list[str], timeout: float) -> dict:
 SIZE_KEYS = {
     "robots_mode", "latency_ms_p50", "latency_ms_p99", "fusion_cpu_share", "bytes_per_s_per_robot",
     "grid_bytes_per_s_per_robot", "grid_ratio", "fused_recall", "fused_mean_dist_m", "maps_published",
-    "maps_merged", "grid_ratio_msg", "grid_ratio_body", "mean_map_body_bytes", "transport_ms_p50", "transport_ms_p99",
-    "grid_ratio_at_merge_threshold", "replay_processes", "robot_processes", "robots_cpu_share", "map_resolution_m",
-    "merge_threshold_m",
+    "maps_merged", "grid_ratio_msg", "grid_ratio_body", "mean_map_body_bytes", "transport_ms_p50",
+    "transport_ms_p99",
+    "grid_ratio_at_merge_threshold", "replay_processes", "robot_processes", "robots_cpu_share",
+    "map_resolution_m", "merge_threshold_m",
 }
 
 
 @pytest.mark.fleet
 def test_bench_fleet_short(tmp_path: Path) -> None:
     out = _bench(
-        ["fleet", "--robots", "1,2", "--duration", "5", "--filter-upto", "1", "--warmup", "1", "--world", TINY,
-         "--cache", str(tmp_path / "cache"), "--out", str(tmp_path / "out")],
+        ["fleet", "--robots", "1,2", "--duration", "5", "--filter-upto", "1", "--warmup", "1",
+         "--world", TINY, "--cache", str(tmp_path / "cache"), "--out", str(tmp_path / "out")],
         timeout=120,
     )
     assert set(out) >= {"world", "rate_hz", "sizes"}
@@ -215,7 +220,9 @@ def test_bench_fleet_short(tmp_path: Path) -> None:
         assert r["grid_ratio"] > 1.0
         # the grid at the robots' 0.05 m quantisation has 16 times the cells of one at the 0.2 m
         # merge threshold (up to the rounding of each bounding box)
-        assert 8 * r["grid_ratio_at_merge_threshold"] < r["grid_ratio"] < 20 * r["grid_ratio_at_merge_threshold"], r
+        assert (
+            8 * r["grid_ratio_at_merge_threshold"] < r["grid_ratio"] < 20 * r["grid_ratio_at_merge_threshold"]
+        ), r
         # the same maps compared message to message, and cells to the wireframe part alone
         assert r["grid_ratio"] < r["grid_ratio_msg"] < r["grid_ratio_body"], r
         assert 0 < r["mean_map_body_bytes"] < r["mean_map_bytes"]
@@ -232,7 +239,8 @@ def test_bench_fleet_short(tmp_path: Path) -> None:
 @pytest.mark.fleet
 def test_bench_soak_short(tmp_path: Path) -> None:
     out = _bench(
-        ["soak", "--robots", "3", "--minutes", "0.3", "--corrupt", "0.05", "--kill-every", "6", "--warmup", "1",
+        ["soak", "--robots", "3", "--minutes", "0.3", "--corrupt", "0.05", "--kill-every", "6",
+         "--warmup", "1",
          "--world", TINY, "--cache", str(tmp_path / "cache"), "--out", str(tmp_path / "out")],
         timeout=120,
     )
@@ -270,7 +278,8 @@ def test_one_replay_process_publishes_for_each_robot_with_its_own_token(tmp_path
     ids = ["ra", "rb", "rc"]
     for k, rid in enumerate(ids):
         frames = tuple(Frame(0.5 * i, Pose.identity(), None, square(1.0 + 0.5 * i + k)) for i in range(4))
-        save_recording(tmp_path / f"{rid}.wrp", Recording(rid, "tiny", Pose(float(k), 0.0, 0.0), 0.05, frames, 4))
+        save_recording(tmp_path / f"{rid}.wrp",
+                       Recording(rid, "tiny", Pose(float(k), 0.0, 0.0), 0.05, frames, 4))
     keys = FleetKeys("t")
     maps: dict[str, list] = {r: [] for r in ids}
     alive: set[str] = set()
@@ -293,7 +302,8 @@ def test_one_replay_process_publishes_for_each_robot_with_its_own_token(tmp_path
         argv = ["-m", "agents.bench.replay_robot"]
         for rid in ids:
             argv += ["--id", rid, "--recording", str(tmp_path / f"{rid}.wrp")]
-        argv += ["--rate", "20", "--log", str(tmp_path / "sent" / "{id}.log"), "--connect", ep, "--fleet", "t"]
+        argv += ["--rate", "20", "--log", str(tmp_path / "sent" / "{id}.log"), "--connect", ep,
+                 "--fleet", "t"]
         fh = open(tmp_path / "replay.log", "wb")
         proc = subprocess.Popen([sys.executable, *argv], stdout=fh, stderr=subprocess.STDOUT, cwd=str(REPO))
         try:
@@ -325,7 +335,9 @@ def test_replay_robot_refuses_unpaired_or_untemplated_arguments(tmp_path: Path) 
     from agents.bench.replay_robot import main
 
     rec = tmp_path / "r.wrp"
-    save_recording(rec, Recording("r1", "tiny", Pose.identity(), 0.05, (Frame(0.0, Pose.identity(), None, square()),), 1))
+    save_recording(rec,
+                   Recording("r1", "tiny", Pose.identity(), 0.05,
+                             (Frame(0.0, Pose.identity(), None, square()),), 1))
     assert main(["--id", "a", "--id", "b", "--recording", str(rec)]) == 2
     assert main(["--id", "a", "--id", "a", "--recording", str(rec), "--recording", str(rec)]) == 2
     assert main(["--id", "a", "--id", "b", "--recording", str(rec), "--recording", str(rec),

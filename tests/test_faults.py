@@ -127,13 +127,15 @@ def test_robot_kill9_marks_stale_keeps_its_walls_and_a_restart_replaces_them(tmp
             # both routes done (a map of every step is out), fused with both robots
             wait_until(lambda: tap.finished("r1", "r2"), 60, "both robots at the end of their routes")
             w.wait_for(lambda m: m.robots == ("r1", "r2") and not m.meta.get("stale"), 30, "r1 and r2")
-            wait_until(lambda: (d := query_stats(s, keys)) and stats_robot_keys(d).get("r1") == tap.snapshot().get("r1"),
+            wait_until(lambda: (d := query_stats(s, keys))
+                       and stats_robot_keys(d).get("r1") == tap.snapshot().get("r1"),
                        10, "the fusion service has r1's latest map")  # fmt: skip
             before = query_fused(s, keys)
             r1_map = tap.maps["r1"]
             n0 = w.count()
             t_kill = fleet.kill9("r1")
-            stale, t_stale = w.wait_for_timed(lambda m: "r1" in m.meta.get("stale", []), 10, "r1 stale", since=n0)
+            stale, t_stale = w.wait_for_timed(lambda m: "r1" in m.meta.get("stale", []), 10,
+                                              "r1 stale", since=n0)
             detect_s = t_stale - t_kill
             record(record_property, "robot_token_loss_detection_s", round(detect_s, 3))
             assert detect_s < 1.0
@@ -222,7 +224,8 @@ def test_fusion_kill9_restarts_from_its_store_with_the_same_map(tmp_path: Path, 
                 fleet.start(rid, robot_args(rid, ep, keys.fleet, LOOP[rid], tmp_path, rate=6, heartbeat=1.0))
             w.wait_for(lambda m: m.robots == ("r1", "r2") and m.seq >= 4, 90, "r1 and r2, version 4")
             wait_until(lambda: (store / "snapshot.msgpack").is_file() and read_store(store).fused is not None
-                       and read_store(store).fused.robots == ("r1", "r2"), 20, "a stored fused map of both")  # fmt: skip
+                       and read_store(store).fused.robots == ("r1", "r2"),
+                       20, "a stored fused map of both")  # fmt: skip
             fleet.kill9("fuse")
             stored = read_store(store)
             assert stored.from_snapshot and stored.fused is not None
@@ -233,12 +236,14 @@ def test_fusion_kill9_restarts_from_its_store_with_the_same_map(tmp_path: Path, 
             n0 = w.count()
             t_restart = time.monotonic()
             fleet.start("fuse2", fuse_args)
-            first, t_first = w.wait_for_timed(lambda m: True, 30, "the restarted service's first map", since=n0)
+            first, t_first = w.wait_for_timed(lambda m: True, 30,
+                                              "the restarted service's first map", since=n0)
             record(record_property, "fusion_restart_first_map_s", round(t_first - t_restart, 3))
             assert first.seq == stored.version
             assert first.robots == stored.fused.robots
             assert first.wireframe.almost_equal(stored.fused.wireframe, tol=1e-9, likelihood_tol=1e-9)
-            record(record_property, "fusion_restart_equal_edges", f"{first.wireframe.n_edges}/{stored.fused.wireframe.n_edges}")
+            record(record_property, "fusion_restart_equal_edges",
+                   f"{first.wireframe.n_edges}/{stored.fused.wireframe.n_edges}")
             # it catches up: every robot's map as new as what the robots had sent at the restart
             def caught_up() -> bool:
                 have = stats_robot_keys(query_stats(s, keys))
@@ -256,7 +261,9 @@ def test_fusion_kill9_restarts_from_its_store_with_the_same_map(tmp_path: Path, 
 
 
 # ---------------------------------------------------------------------- the router dies
-def test_router_kill9_and_restart_every_process_reconnects_and_nothing_is_lost(tmp_path: Path, record_property):
+def test_router_kill9_and_restart_every_process_reconnects_and_nothing_is_lost(
+    tmp_path: Path, record_property
+):
     """The router (a `wiremap router` process) is killed with SIGKILL and restarted on the same
     port while two robots map: the robots and the fusion service reconnect by themselves, the
     fused map updates again (new versions, nobody stale), and after the robots stop the fusion
@@ -273,7 +280,8 @@ def test_router_kill9_and_restart_every_process_reconnects_and_nothing_is_lost(t
         with client(ep, timeout=30) as s:
             w = FusedWatcher(s, keys)
             try:
-                before = w.wait_for(lambda m: m.robots == ("r1", "r2") and not m.meta.get("stale"), 90, "r1 and r2")
+                before = w.wait_for(lambda m: m.robots == ("r1", "r2") and not m.meta.get("stale"), 90,
+                                    "r1 and r2")
                 pre = stats_robot_keys(wait_until(lambda: query_stats(s, keys), 10, "stats"))
                 t_kill = fleet.kill9("router")
                 fleet.start("router2", router_args)
@@ -301,7 +309,8 @@ def test_router_kill9_and_restart_every_process_reconnects_and_nothing_is_lost(t
                 wait_until(lambda: {r: k[1] for r, k in stats_robot_keys(query_stats(s, keys)).items()}
                            == {r: st["maps_sent"] for r, st in sent.items()}, 20,
                            "the fusion service to hold each robot's last map")  # fmt: skip
-                record(record_property, "router_restart_last_seq", {r: st["maps_sent"] for r, st in sent.items()})
+                record(record_property, "router_restart_last_seq",
+                       {r: st["maps_sent"] for r, st in sent.items()})
             finally:
                 w.close()
         assert fleet.stop("fuse", signal.SIGTERM, timeout=20) == 0, fleet.log("fuse")

@@ -41,7 +41,8 @@ WORLDS = Path(__file__).parent / "worlds"
 def run(world_name: str, steps: int, seed: int = 0, particles: int = 5, faults: dict | None = None):
     world = load_world(WORLDS / f"{world_name}.geojson")
     inputs = list(simulate(world, SimOptions(steps=steps), seed))
-    f = WireframeFilter(filter_config_for(particles, 0.2, 8.0), seeds_for(seed)["filter"], inputs[0].true_pose)
+    f = WireframeFilter(filter_config_for(particles, 0.2, 8.0), seeds_for(seed)["filter"],
+                        inputs[0].true_pose)
     trace = []
     for k, inp in enumerate(inputs):
         info = f.step(inp.odometry, inp.scan, fault=(faults or {}).get(k))
@@ -116,7 +117,8 @@ def test_recovers_from_a_scan_matching_failure():
     best particle's wall precision must come back to its level before the fault within 5 steps
     (measured: 1 step on this world and seed) while the pose estimate is unaffected."""
     fault_at = 30
-    _, _f, trace = run("lshape", fault_at + 12, seed=0, particles=10, faults={fault_at: Pose(0.9, -0.6, 0.15)})
+    _, _f, trace = run("lshape", fault_at + 12, seed=0, particles=10,
+                       faults={fault_at: Pose(0.9, -0.6, 0.15)})
     before = trace[fault_at - 1][1]
     assert trace[fault_at][1] < before - 0.1  # the fault did corrupt the map
     recovered = [k for k in range(fault_at + 1, fault_at + 6) if trace[k][1] >= before - 0.01]
@@ -179,7 +181,8 @@ def test_a_long_wall_seen_through_in_part_loses_only_that_part_of_its_likelihood
     view = visible_view(m, Pose.identity(), 8.0, 2 * math.pi)
     frac = seen_fraction(m, view.scan, view.edge_source)
     assert frac[0] == pytest.approx(2 * math.sqrt(64 - 4) / 100, abs=1e-6) and frac[1] == 1.0
-    scan = visible_view(Wireframe.build([(50, 3.5), (-50, 3.5)], [(0, 1)]), Pose.identity(), 8.0, 2 * math.pi).scan
+    scan = visible_view(Wireframe.build([(50, 3.5), (-50, 3.5)], [(0, 1)]), Pose.identity(), 8.0,
+                        2 * math.pi).scan
     out = {}
     for partial in (True, False):
         cfg = FilterConfig(particles=1, mutate=False, use_icp=False,
@@ -306,7 +309,11 @@ def test_a_wall_seen_through_in_part_is_carved():
     carved, origin = carve(wall, spans)
     segs = carved.segments()
     kept = [s for s in segs if abs(s[0, 1]) < 1e-9]
-    assert len(kept) == 1 and kept[0][0, 0] == pytest.approx(3.8, abs=0.05) and kept[0][1, 0] == pytest.approx(6.2, abs=0.05)
+    assert (
+        len(kept) == 1
+        and kept[0][0, 0] == pytest.approx(3.8, abs=0.05)
+        and kept[0][1, 0] == pytest.approx(6.2, abs=0.05)
+    )
     assert origin.tolist().count(0) >= 1 and 1 in origin.tolist()  # the far wall is untouched
     assert carved.likelihood[origin == 0].tolist() == [1.0] * int((origin == 0).sum())
     # its cut ends are frontiers; nothing is carved when the scan sees the whole wall
@@ -352,7 +359,8 @@ def test_a_new_wall_beyond_a_doorway_continues_the_established_line():
     over = Wireframe.build([(3.0, 0.05), (9.0, 0.02)], [(0, 1)])
     assert np.allclose(snap_collinear(over.points, over, ref, none, np.array([5.0]), *args), over.points)
     # matched to a reference edge, or a short map wall: nothing moves
-    assert np.allclose(snap_collinear(scan.points, scan, ref, np.array([[0, 0]]), np.array([5.0]), *args), scan.points)
+    assert np.allclose(snap_collinear(scan.points, scan, ref, np.array([[0, 0]]), np.array([5.0]), *args),
+                       scan.points)
     assert np.allclose(snap_collinear(scan.points, scan, ref, none, np.array([1.5]), *args), scan.points)
     # a wall a degree and a half off is not the same line
     tilt = Wireframe.build([(6.0, -0.04), (9.0, 0.05)], [(0, 1)])  # both ends within 0.08 m
@@ -360,8 +368,16 @@ def test_a_new_wall_beyond_a_doorway_continues_the_established_line():
 
 
 # ------------------------------------------------------------------ any world file
-@pytest.mark.parametrize("name", ["angled", "corridor", *(pytest.param(n, marks=pytest.mark.slow) for n in ("hall",)),
-                                  "lshape", *(pytest.param(n, marks=pytest.mark.slow) for n in ("longhall", "bigring"))])
+@pytest.mark.parametrize(
+    "name",
+    [
+        "angled",
+        "corridor",
+        *(pytest.param(n, marks=pytest.mark.slow) for n in ("hall",)),
+        "lshape",
+        *(pytest.param(n, marks=pytest.mark.slow) for n in ("longhall", "bigring")),
+    ],
+)
 def test_maps_every_test_world(name):
     """Issue 3: any world given as a file is mapped with wall precision and recall >= 95 % at
     0.2 m (the whole coverage route, 10 particles; seed 0). The 80 m ring corridor passes on 6
@@ -389,13 +405,17 @@ def test_compass_takes_the_drift_out_of_a_young_corridor():
     err = []
     for inp in inputs:
         f.step(inp.odometry, inp.scan)
-        err.append(abs(math.degrees((f.pose.theta - inp.true_pose.theta + math.pi) % (2 * math.pi) - math.pi)))
+        err.append(
+            abs(math.degrees((f.pose.theta - inp.true_pose.theta + math.pi) % (2 * math.pi) - math.pi))
+        )
     mean_err = float(np.mean(err[60:]))  # degrees, after the first 15 m
     end = f.pose.distance(inputs[-1].true_pose)
     assert mean_err < 0.15 and end < 0.2, (mean_err, end)  # measured 0.066 degrees, 0.125 m
 
 
-def _recessed_wall(y: float, depth: float, spans: list[tuple[float, float, float]]) -> list[tuple[float, float]]:
+def _recessed_wall(
+    y: float, depth: float, spans: list[tuple[float, float, float]]
+) -> list[tuple[float, float]]:
     """A wall along +x at ``y``, as pieces of the given length each followed by a 0.5 m recess
     ``depth`` deep (corners for the scan match to pin the heading on): ``spans`` of
     ``(x0, x1, piece)``."""
@@ -460,7 +480,8 @@ def _bridged(scan: Wireframe) -> Wireframe:
     ahead = np.flatnonzero(scan.points[:, 0] > 0)
     a, b = sorted(ahead.tolist(), key=lambda i: scan.points[i, 1])
     edges = np.concatenate([scan.edges, [[a, b]]])
-    return Wireframe.build(scan.points, edges, scan.labels, np.ones(len(edges)), np.zeros(len(edges), np.uint64))
+    return Wireframe.build(scan.points, edges, scan.labels, np.ones(len(edges)),
+                           np.zeros(len(edges), np.uint64))
 
 
 def test_drop_gap_bridges_drops_only_edges_between_loose_ends():

@@ -207,7 +207,9 @@ def test_robot_agent_shell_publishes_map_pose_and_token():
     assert maps[-1].wireframe.almost_equal(maps[-2].wireframe, tol=1e-9)
     assert agent.status.step == 12 and agent.status.finished
     assert agent.status.maps_sent >= len(maps)
-    distinct = {round(float(m.wireframe.points[:, 0].max() - m.wireframe.points[:, 0].min()), 1) for m in maps}
+    distinct = {
+        round(float(m.wireframe.points[:, 0].max() - m.wireframe.points[:, 0].min()), 1) for m in maps
+    }
     assert len(distinct) >= 10  # one map per change (the very first may precede the subscription)
     assert sum(1 for m in maps if m.meta["step"] == 11) == 1
     assert poses and poses[-1]["status"]["step"] == 12
@@ -269,7 +271,9 @@ def test_run_three_robots_on_paper_small(tmp_path: Path):
     doc = json.loads((out / "fused.geojson").read_text())
     walls = [f for f in doc["features"] if f["properties"]["kind"] == "wall"]
     assert len(walls) == msg.wireframe.n_edges == fused["edges"]
-    assert all(w["properties"]["robots"] and set(w["properties"]["robots"]) <= {"r1", "r2", "r3"} for w in walls)
+    assert all(
+        w["properties"]["robots"] and set(w["properties"]["robots"]) <= {"r1", "r2", "r3"} for w in walls
+    )
     assert {r for w in walls for r in w["properties"]["robots"]} == {"r1", "r2", "r3"}
     assert decode_png((out / "fused.png").read_bytes()).ndim == 3
     # the recording
@@ -277,7 +281,8 @@ def test_run_three_robots_on_paper_small(tmp_path: Path):
     assert {"sim_time", "fleet_time"} <= timelines
     expected = {"/world/truth", "/fused/walls", "/fused/corners/nominal", "/fused/corners/frontier", "/log"}
     for rid in ("r1", "r2", "r3"):
-        expected |= {f"/robots/{rid}/{leaf}" for leaf in ("pose", "true_pose", "scan", "particles", "map", "trajectory")}
+        expected |= {f"/robots/{rid}/{leaf}" for leaf in ("pose", "true_pose", "scan", "particles", "map",
+                                                          "trajectory")}
         expected.add(f"/stats/robots/{rid}/alive")
     assert expected <= entities, expected - entities
 
@@ -294,12 +299,17 @@ def test_two_routers_fusion_on_a_includes_robots_on_b(tmp_path: Path):
         fleet.start("A", ["router", "--config", cfg / "router-a.json5", "--listen", ea])
         fleet.start("B", ["router", "--config", cfg / "router-b.json5", "--listen", eb, "--connect", ea])
         fleet.start("fuse", ["fuse", "--connect", ea, "--fleet", "two"])
-        fleet.start("ra", ["robot", "--id", "ra", "--start", "2,2,0", "--route", "2,2;6,2", "--connect", ea, *common])
-        fleet.start("rb", ["robot", "--id", "rb", "--start", "12,12,3.14159", "--route", "12,12;9,12", "--connect", eb, *common])
+        fleet.start("ra",
+                    ["robot", "--id", "ra", "--start", "2,2,0", "--route", "2,2;6,2", "--connect",
+                     ea, *common])
+        fleet.start("rb",
+                    ["robot", "--id", "rb", "--start", "12,12,3.14159", "--route", "12,12;9,12", "--connect",
+                     eb, *common])
         with client(ea) as s:
             w = FusedWatcher(s, keys)
             try:
-                m = w.wait_for(lambda m: set(m.robots) == {"ra", "rb"} and m.wireframe.n_edges > 0, 60, "ra and rb")
+                m = w.wait_for(lambda m: set(m.robots) == {"ra", "rb"} and m.wireframe.n_edges > 0, 60,
+                               "ra and rb")
             finally:
                 w.close()
         bits = np.bitwise_or.reduce(m.wireframe.sources.astype(np.uint64))
@@ -337,7 +347,8 @@ def test_robot_and_fusion_exit_on_signal_even_without_router(tmp_path: Path, sig
     """Processes waiting for a router that never comes still stop at once on a signal."""
     ep = tcp_endpoint(free_port())
     with Fleet(tmp_path) as fleet:
-        fleet.start("r", ["robot", "--id", "r1", "--world", "paper-small", "--start", "2,2,0", "--connect", ep])
+        fleet.start("r",
+                    ["robot", "--id", "r1", "--world", "paper-small", "--start", "2,2,0", "--connect", ep])
         fleet.start("f", ["fuse", "--connect", ep])
         fleet.wait_log("r", "waiting for a router", 30)
         fleet.wait_log("f", "waiting for a router", 30)
@@ -382,8 +393,8 @@ def test_run_unknown_starts_on_paper_small(tmp_path: Path):
     with Fleet(tmp_path) as fleet:
         fleet.start(
             "run",
-            ["run", "--world", "paper-small", "--robots", "2", "--unknown-starts", "--duration", "25", "--seed", "3",
-             "--rate", "10", "--out", out, "--no-progress"],
+            ["run", "--world", "paper-small", "--robots", "2", "--unknown-starts", "--duration", "25",
+             "--seed", "3", "--rate", "10", "--out", out, "--no-progress"],
         )
         p = fleet.procs["run"]
         wait_until(lambda: p.poll() is not None, 180, "wiremap run to finish")

@@ -144,7 +144,8 @@ def test_two_regional_fusers_and_a_root_publish_the_one_process_map(tmp_path):
             got = watcher.wait_for(same, 60.0, "the one-process map")
             assert got.meta["exact"] and got.meta["stale"] == []
             stats = wait_until(
-                lambda: (d := query_stats(s, keys, 2.0)) and set(d["groups"]) == {"g0", "g1"} and d, 10.0, "root stats"
+                lambda: (d := query_stats(s, keys, 2.0)) and set(d["groups"]) == {"g0", "g1"} and d, 10.0,
+                "root stats"
             )
             assert stats["role"] == "root" and stats["exact"]
             # a takeover of g1 started while g1 was only cut off (its partial with a newer boot):
@@ -152,15 +153,20 @@ def test_two_regional_fusers_and_a_root_publish_the_one_process_map(tmp_path):
             import dataclasses
 
             forged_boot = time.time_ns()
-            forged = dataclasses.replace(got, sender="g1", robots=("r05",), seq=1,
-                                         wireframe=got.wireframe.subgraph_edges(np.zeros(got.wireframe.n_edges, bool)),
-                                         meta={"boot": forged_boot, "group": "g1", "select": "r0[5-8]"})
+            forged = dataclasses.replace(
+                got,
+                sender="g1",
+                robots=("r05",),
+                seq=1,
+                wireframe=got.wireframe.subgraph_edges(np.zeros(got.wireframe.n_edges, bool)),
+                meta={"boot": forged_boot, "group": "g1", "select": "r0[5-8]"},
+            )
             since = watcher.count()
             s.put("wiremap/tree/groups/g1/map",
                   encode_message(forged))
             back = watcher.wait_for(
-                lambda m: m.meta["group_versions"].get("g1", [0])[0] > forged_boot and len(m.robots) == 8, 20.0,
-                "g1 taking its group back", since,
+                lambda m: m.meta["group_versions"].get("g1", [0])[0] > forged_boot and len(m.robots) == 8,
+                20.0, "g1 taking its group back", since,
             )
             _same_map(ref, back)
             assert "taking it back" in fleet.log("g1")
@@ -219,7 +225,8 @@ def test_a_killed_regional_fuser_is_taken_over_and_no_map_is_lost(tmp_path):
             # the robots' heartbeats (each re-sends its latest map at least every 2 s)
             for m in msgs[4:7]:
                 s.put(keys.robot_map(m.sender), encode_message(m))
-            s.put(keys.robot_map("r08"), encode_message(dataclasses.replace(m2, seq=3, stamp_ns=time.time_ns())))
+            s.put(keys.robot_map("r08"),
+                  encode_message(dataclasses.replace(m2, seq=3, stamp_ns=time.time_ns())))
             back = watcher.wait_for(
                 lambda m: m.meta["group_versions"].get("g1", [0])[0] > boot_before and len(m.robots) == 8
                 and m.wireframe.n_edges > full.wireframe.n_edges, 30.0, "the new g1 with every map",

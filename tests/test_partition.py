@@ -54,7 +54,8 @@ def _ip(*args: str, ns: str | None = None, check: bool = True) -> subprocess.Com
 
 def _free_subnet() -> tuple[str, str]:
     """Host and namespace addresses of a /30 in 169.254.100-249.x not used on this host."""
-    used = subprocess.run(["ip", "-o", "-4", "addr", "show"], capture_output=True, text=True, check=False).stdout
+    used = subprocess.run(["ip", "-o", "-4", "addr", "show"], capture_output=True, text=True,
+                          check=False).stdout
     rnd = random.Random(uuid.uuid4().int)
     for _ in range(100):
         a, b = rnd.randint(100, 249), 4 * rnd.randint(0, 63)
@@ -104,7 +105,8 @@ class Observer:
         self.lock = threading.Lock()
         self.maps: list[tuple[float, int]] = []  # (arrival, seq)
         self.poses: list[tuple[float, int]] = []  # (arrival, maps_sent)
-        self.fused: list[tuple[float, int, tuple[str, ...], list[str]]] = []  # (arrival, version, robots, stale)
+        # (arrival, version, robots, stale)
+        self.fused: list[tuple[float, int, tuple[str, ...], list[str]]] = []
         self.session = open_session(build_config("client", None, [endpoint]), timeout=30)
         assert self.session is not None
         self.subs = [
@@ -150,7 +152,9 @@ def wait(cond: Any, timeout: float, what: str, procs: Procs) -> Any:
             return v
         dead = procs.dead()
         if dead:
-            raise AssertionError(f"{dead} exited while waiting for {what}: " + "".join(procs.log(d)[-2000:] for d in dead))
+            raise AssertionError(
+                f"{dead} exited while waiting for {what}: " + "".join(procs.log(d)[-2000:] for d in dead)
+            )
         if time.monotonic() > deadline:
             raise AssertionError(f"timed out after {timeout:g} s waiting for {what}")
         time.sleep(0.05)
@@ -175,15 +179,19 @@ def test_robot_cut_off_then_healed_reaches_the_fused_map(tmp_path: Path) -> None
             procs.start("router", ["-m", "agents", "router", "--listen", ep_veth, "--listen", ep_lo])
             obs = Observer(ep_lo)
             try:
-                procs.start("fuse", ["-m", "agents", "fuse", "--connect", ep_lo, "--fleet", FLEET, "--store", str(store)])
+                procs.start("fuse",
+                            ["-m", "agents", "fuse", "--connect", ep_lo, "--fleet", FLEET, "--store",
+                             str(store)])
                 procs.wait_log("fuse", "fusion service ready", 60)
                 procs.start(
                     "r1",
-                    ["-m", "agents", "robot", "--id", "r1", "--world", "paper-small", "--route", str(tmp_path / "route.json"),
+                    ["-m", "agents", "robot", "--id", "r1", "--world", "paper-small", "--route",
+                     str(tmp_path / "route.json"),
                      "--rate", "4", "--viz-rate", "0", "--connect", ep_veth, "--fleet", FLEET],
                     prefix=["ip", "netns", "exec", net["ns"]],
                 )
-                wait(lambda: obs.first("fused", 0.0, lambda f: "r1" in f[2]), 60, "r1 in the fused map", procs)
+                wait(lambda: obs.first("fused", 0.0, lambda f: "r1" in f[2]), 60,
+                     "r1 in the fused map", procs)
                 time.sleep(1.0)
 
                 # --- cut
@@ -201,20 +209,25 @@ def test_robot_cut_off_then_healed_reaches_the_fused_map(tmp_path: Path) -> None
                 # --- heal
                 _ip("link", "set", net["veth_ns"], "up", ns=net["ns"])
                 t_heal = time.monotonic()
-                pose = wait(lambda: obs.first("poses", t_heal), HEAL_LIMIT_S, "r1's first pose after the heal", procs)
+                pose = wait(lambda: obs.first("poses", t_heal), HEAL_LIMIT_S,
+                            "r1's first pose after the heal", procs)
                 newest = int(pose[1])
                 assert newest > seq_at_cut, "r1 did not map while cut off"
                 arrived = wait(
-                    lambda: obs.first("maps", t_heal, lambda m: m[1] >= newest), HEAL_LIMIT_S, "r1's newest map", procs
+                    lambda: obs.first("maps", t_heal, lambda m: m[1] >= newest), HEAL_LIMIT_S,
+                    "r1's newest map", procs
                 )
-                fused = wait(lambda: obs.first("fused", arrived[0]), HEAL_LIMIT_S, "a fused map after it", procs)
-                wait(lambda: store_seq(store) >= newest, HEAL_LIMIT_S, f"seq {newest} of r1 in the store", procs)
+                fused = wait(lambda: obs.first("fused", arrived[0]), HEAL_LIMIT_S,
+                             "a fused map after it", procs)
+                wait(lambda: store_seq(store) >= newest, HEAL_LIMIT_S,
+                     f"seq {newest} of r1 in the store", procs)
                 t_store = time.monotonic()
                 back_s = arrived[0] - t_heal
                 heal_s = fused[0] - t_heal
                 print(
                     f"\npartition {PARTITION_S:g} s: r1 reconnected and its newest map (seq {newest}, "
-                    f"{newest - seq_at_cut} maps made while cut) reached the host {back_s:.2f} s after the heal, "
+                    f"{newest - seq_at_cut} maps made while cut) reached the host {back_s:.2f} s "
+                    f"after the heal, "
                     f"the fused map {heal_s:.2f} s after, the store {t_store - t_heal:.2f} s after; "
                     f"r1 marked stale during the cut: {stale_seen}"
                 )

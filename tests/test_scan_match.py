@@ -113,7 +113,8 @@ def test_refine_match_replaces_a_rejected_correction() -> None:
     assert out.accepted and out.consistent and out.constrained == 3
     assert abs(out.correction.x - 0.2) < 0.01
     far = scan_of(CORRIDOR, Pose.identity())
-    assert refine_match(rejected, far, ROOM, np.diag([0.01, 0.01, 1e-4]), None, PointMatchConfig(), 8.0) is rejected
+    assert refine_match(rejected, far, ROOM, np.diag([0.01, 0.01, 1e-4]), None, PointMatchConfig(),
+                        8.0) is rejected
 
 
 def test_config_checks() -> None:

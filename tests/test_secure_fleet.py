@@ -36,7 +36,8 @@ from wire_codec.message import MapMessage, MessageKind
 
 pytestmark = [
     pytest.mark.fleet,
-    pytest.mark.skipif(shutil.which("openssl") is None, reason="the openssl command generates the test certificates"),
+    pytest.mark.skipif(shutil.which("openssl") is None,
+                       reason="the openssl command generates the test certificates"),
 ]
 
 
@@ -81,8 +82,9 @@ def test_run_secure_fleet_two_robots(tmp_path: Path, record_property) -> None:
             q = wait_until(lambda: (f := query_fused(s, keys)) is not None and len(f.robots) == 2 and f, 90,
                            "a fused map of both robots")  # fmt: skip
             assert q.robots == ("r1", "r2")
-            doc = wait_until(lambda: (d := query_stats(s, keys)) and sorted(d["robots"]) == ["r1", "r2"] and d, 10,
-                             "the fusion counters")  # fmt: skip
+            doc = wait_until(lambda: (d := query_stats(s, keys))
+                             and sorted(d["robots"]) == ["r1", "r2"] and d,
+                             10, "the fusion counters")  # fmt: skip
             assert doc["stats"]["dropped"] == 0 and doc["stale"] == []
         # no credentials: refused at connect (the bus reports it in one line, without waiting)
         from agents.errors import UserError
@@ -124,9 +126,14 @@ def test_fusion_checks_sender_against_key_over_the_secure_bus(tmp_path: Path) ->
     keys = FleetKeys("sec")
     with secure_router(tmp_path, keys.fleet, ["r1", "r2"]) as fl, Fleet(tmp_path) as fleet:
         ep = fl.endpoint
-        fleet.start("fuse", ["fuse", "--connect", ep, "--fleet", keys.fleet, "--credentials", fl.credentials["fusion"]])
+        fleet.start("fuse",
+                    ["fuse", "--connect", ep, "--fleet", keys.fleet, "--credentials",
+                     fl.credentials["fusion"]])
         fleet.wait_log("fuse", "fusion service ready", 30)
-        with client(ep, credentials=fl.credentials["r1"]) as r1, client(ep, credentials=fl.credentials["monitor"]) as mon:
+        with (
+            client(ep, credentials=fl.credentials["r1"]) as r1,
+            client(ep, credentials=fl.credentials["monitor"]) as mon,
+        ):
 
             def r1_seq() -> int:
                 d = query_stats(mon, keys)
@@ -166,11 +173,13 @@ def test_refused_login_is_a_one_line_error(tmp_path: Path, record_property) -> N
         for name, (ep, cred) in cases.items():
             t0 = time.monotonic()
             r = subprocess.run(
-                [sys.executable, "-m", "agents", "robot", "--id", "r1", "--world", "paper-small", "--start", "2,2,0",
-                 "--fleet", "sec", "--connect", ep, "--credentials", str(cred)],
+                [sys.executable, "-m", "agents", "robot", "--id", "r1", "--world", "paper-small",
+                 "--start", "2,2,0", "--fleet", "sec", "--connect", ep, "--credentials", str(cred)],
                 capture_output=True, text=True, cwd=REPO, timeout=60,
             )  # fmt: skip
             took = time.monotonic() - t0
             record(record_property, f"refused_{name.replace(' ', '_')}_s", round(took, 2))
             assert r.returncode == 2, (name, r.stderr)
-            assert r.stderr.count("\n") == 1 and "refused us" in r.stderr and "Traceback" not in r.stderr, r.stderr
+            assert r.stderr.count("\n") == 1 and "refused us" in r.stderr and "Traceback" not in r.stderr, (
+                r.stderr
+            )

@@ -69,7 +69,9 @@ def _wait(cond: Any, timeout: float, what: str, procs: Procs) -> Any:
             return v
         dead = procs.dead()
         if dead:
-            raise AssertionError(f"{dead} exited while waiting for {what}: " + "".join(procs.log(d)[-2000:] for d in dead))
+            raise AssertionError(
+                f"{dead} exited while waiting for {what}: " + "".join(procs.log(d)[-2000:] for d in dead)
+            )
         if time.monotonic() > deadline:
             raise AssertionError(f"timed out after {timeout:g} s waiting for {what}")
         time.sleep(0.05)
@@ -99,29 +101,36 @@ def test_tree_across_two_sites_survives_a_cut_link(tmp_path: Path) -> None:
         bus_b = ["--connect", ep_b, "--fleet", FLEET]
         with Procs(tmp_path / "logs") as procs:
             procs.start("router-a", ["-m", "agents", "router", "--listen", ep_a, "--listen", ep_a_veth])
-            procs.start("router-b", ["-m", "agents", "router", "--listen", ep_b, "--connect", ep_a_veth], prefix=in_ns)
+            procs.start("router-b", ["-m", "agents", "router", "--listen", ep_b, "--connect", ep_a_veth],
+                        prefix=in_ns)
             obs = FusedLog(ep_a)
             try:
                 common = ["--threshold", "0.4", "--no-standby"]
-                procs.start("site-b", ["-m", "agents", "fuse", *bus_b, "--group", "site-b", "--robots", "r[1-4]",
+                procs.start("site-b",
+                            ["-m", "agents", "fuse", *bus_b, "--group", "site-b", "--robots", "r[1-4]",
                                        "--store", str(tmp_path / "store-b"), *common], prefix=in_ns)
-                procs.start("site-a", ["-m", "agents", "fuse", *bus_a, "--group", "site-a", "--robots", "r[5-8]",
+                procs.start("site-a",
+                            ["-m", "agents", "fuse", *bus_a, "--group", "site-a", "--robots", "r[5-8]",
                                        "--store", str(tmp_path / "store-a"), *common])
-                procs.start("root", ["-m", "agents", "fuse", *bus_a, "--of-groups", "site-a,site-b", "--threshold", "0.4"])
+                procs.start("root",
+                            ["-m", "agents", "fuse", *bus_a, "--of-groups", "site-a,site-b",
+                             "--threshold", "0.4"])
                 for name in ("site-a", "site-b", "root"):
                     procs.wait_log(name, "ready", 90)
                 for k, rec in enumerate(recs):
                     rid = f"r{k + 1}"
-                    argv = ["-m", "agents.bench.replay_robot", "--id", rid, "--recording", str(rec), "--rate", "5",
-                            "--log", str(tmp_path / "sent" / f"{rid}.log")]
+                    argv = ["-m", "agents.bench.replay_robot", "--id", rid, "--recording", str(rec),
+                            "--rate", "5", "--log", str(tmp_path / "sent" / f"{rid}.log")]
                     if k < 4:
                         procs.start(rid, [*argv, *bus_b], prefix=in_ns)
                     else:
                         procs.start(rid, [*argv, *bus_a])
                 ids = tuple(f"r{k + 1}" for k in range(8))
-                _wait(lambda: obs.first(0.0, lambda m: m.robots == ids), 90, "all 8 robots in the fused map", procs)
+                _wait(lambda: obs.first(0.0, lambda m: m.robots == ids), 90,
+                      "all 8 robots in the fused map", procs)
                 t_before = time.monotonic()
-                got = _wait(lambda: obs.first(t_before, lambda m: "site-b" in m.meta.get("group_versions", {})), 10,
+                got = _wait(lambda: obs.first(t_before,
+                                              lambda m: "site-b" in m.meta.get("group_versions", {})), 10,
                             "a fused map", procs)
                 vb_cut = got[1].meta["group_versions"]["site-b"]
 
@@ -130,16 +139,25 @@ def test_tree_across_two_sites_survives_a_cut_link(tmp_path: Path) -> None:
                 t_cut = time.monotonic()
                 time.sleep(CUT_S)
                 last = obs.first(t_cut, lambda m: True)
-                assert last is None or last[1].robots == ids, "the fused map lost site B's robots during the cut"
+                assert last is None or last[1].robots == ids, (
+                    "the fused map lost site B's robots during the cut"
+                )
 
                 # --- heal
                 _ip("link", "set", net["veth_ns"], "up", ns=net["ns"])
                 t_heal = time.monotonic()
                 sent_at_heal = {f"r{k}": _sent(tmp_path / "sent" / f"r{k}.log") for k in range(1, 5)}
                 back = _wait(
-                    lambda: obs.first(t_heal, lambda m: m.meta.get("group_versions", {}).get("site-b", vb_cut) > vb_cut
-                                      and m.robots == ids),
-                    HEAL_LIMIT_S, "site B's partial in the fused map again", procs,
+                    lambda: obs.first(
+                        t_heal,
+                        lambda m: (
+                            m.meta.get("group_versions", {}).get("site-b", vb_cut) > vb_cut
+                            and m.robots == ids
+                        ),
+                    ),
+                    HEAL_LIMIT_S,
+                    "site B's partial in the fused map again",
+                    procs,
                 )
 
                 def held() -> bool:
@@ -147,8 +165,9 @@ def test_tree_across_two_sites_survives_a_cut_link(tmp_path: Path) -> None:
                     return all((robots.get(r) or {}).get("seq", 0) >= s for r, s in sent_at_heal.items())
 
                 _wait(held, HEAL_LIMIT_S, "site B's fuser holding every map sent up to the heal", procs)
-                print(f"\nsite cut {CUT_S:g} s: site B's partial back in the fused map {back[0] - t_heal:.2f} s "
-                      f"after the heal; fused versions during the cut served site B's last partial")
+                print(f"\nsite cut {CUT_S:g} s: site B's partial back in the fused map "
+                      f"{back[0] - t_heal:.2f} s after the heal; fused versions during the cut served "
+                      f"site B's last partial")
             finally:
                 names = [f"r{k + 1}" for k in range(8)]
                 procs.stop(names, 10)

@@ -36,7 +36,8 @@ def robot_views(world: str, n: int, seed: int = 0, radius: float = 25.0, noise: 
         labels = truth.labels[used].copy()
         deg = np.bincount(remap[edges].ravel(), minlength=len(used))
         labels[deg == 1] = Label.FRONTIER
-        wf = Wireframe(pts, labels, remap[edges], np.full(len(edges), 0.6), np.zeros(len(edges), dtype=np.uint64))
+        wf = Wireframe(pts, labels, remap[edges], np.full(len(edges), 0.6),
+                       np.zeros(len(edges), dtype=np.uint64))
         origin = Pose(float(c[0]), float(c[1]), float(rng.uniform(-np.pi, np.pi)))
         err = Pose(*rng.uniform(-start_error, start_error, 2), float(np.radians(rng.uniform(-1, 1))))
         sent = origin.compose(err)

@@ -124,19 +124,29 @@ ROS_GRID_OVERHEAD = 4 + 8 + 4 + 3 + 8 + 4 + 4 + 4 + 7 * 8 + 4
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--robots", default="1,2,4,8,16", metavar="N,N,...", help="fleet sizes (default 1,2,4,8,16)")
-    parser.add_argument("--duration", type=float, default=20.0, metavar="S", help="measured seconds per size (default 20)")
-    parser.add_argument("--rate", type=float, default=10.0, metavar="HZ", help="maps (scans) per second per robot (default 10)")
-    parser.add_argument("--world", default="paper-small", metavar="NAME|FILE", help="world (default paper-small)")
+    parser.add_argument("--robots", default="1,2,4,8,16", metavar="N,N,...",
+                        help="fleet sizes (default 1,2,4,8,16)")
+    parser.add_argument("--duration", type=float, default=20.0, metavar="S",
+                        help="measured seconds per size (default 20)")
+    parser.add_argument("--rate", type=float, default=10.0, metavar="HZ",
+                        help="maps (scans) per second per robot (default 10)")
+    parser.add_argument("--world", default="paper-small", metavar="NAME|FILE",
+                        help="world (default paper-small)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the routes and filters (default 0)")
     parser.add_argument(
-        "--filter-upto", type=int, default=2, metavar="N", help="sizes up to N run real filter robots (default 2)"
+        "--filter-upto", type=int, default=2, metavar="N",
+        help="sizes up to N run real filter robots (default 2)"
     )
-    parser.add_argument("--particles", type=int, default=DEFAULT_PARTICLES, help="particles per filter (default 5)")
-    parser.add_argument("--warmup", type=float, default=2.0, metavar="S", help="seconds before the window (default 2)")
-    parser.add_argument("--cache", default=str(DEFAULT_CACHE), metavar="DIR", help="recordings cache (default out/bench-cache)")
-    parser.add_argument("--out", metavar="DIR", help="keep logs and stores here (default: a temporary directory)")
-    parser.add_argument("--record", action="store_true", help="the fusion service also writes a Rerun recording")
+    parser.add_argument("--particles", type=int, default=DEFAULT_PARTICLES,
+                        help="particles per filter (default 5)")
+    parser.add_argument("--warmup", type=float, default=2.0, metavar="S",
+                        help="seconds before the window (default 2)")
+    parser.add_argument("--cache", default=str(DEFAULT_CACHE), metavar="DIR",
+                        help="recordings cache (default out/bench-cache)")
+    parser.add_argument("--out", metavar="DIR",
+                        help="keep logs and stores here (default: a temporary directory)")
+    parser.add_argument("--record", action="store_true",
+                        help="the fusion service also writes a Rerun recording")
     parser.add_argument(
         "--resolution", type=float, default=DEFAULT_RESOLUTION, metavar="M",
         help=f"quantisation step of the robots' maps (default {DEFAULT_RESOLUTION:g})",
@@ -156,12 +166,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--synthetic", action="store_true",
-        help="replay robots from synthetic maps (views of the true walls, agents.bench.tree) instead of recorded filter runs",
+        help="replay robots from synthetic maps (views of the true walls, agents.bench.tree) "
+        "instead of recorded filter runs",
     )
     parser.add_argument(
         "--kill-fuser", type=float, metavar="S",
-        help="with --fusers K >= 2: kill -9 the regional fuser g1 S seconds into the window; reports the longest "
-        "gap in g1's partial publishes (the takeover's stall, fuser_stall_s)",
+        help="with --fusers K >= 2: kill -9 the regional fuser g1 S seconds into the window; "
+        "reports the longest gap in g1's partial publishes (the takeover's stall, fuser_stall_s)",
     )
     parser.add_argument("--json", action="store_true", help="print the JSON summary as the last line")
 
@@ -229,7 +240,9 @@ def _sent_counts(d: Path, ids: list[str], mode: str) -> int:
     for rid in ids:
         if mode == "replay":
             try:
-                total += sum(1 for ln in (d / "sent" / f"{rid}.log").read_text().splitlines() if ln.startswith("M "))
+                total += sum(
+                    1 for ln in (d / "sent" / f"{rid}.log").read_text().splitlines() if ln.startswith("M ")
+                )
             except OSError:
                 pass
         else:
@@ -258,7 +271,9 @@ def _cpu_total(procs: Procs, names: list[str]) -> float | None:
 
 # Over 120 lines: one fleet size measured top to bottom (start, warm up, measure, stop, score),
 # its phases sharing the process table and the counters; not yet split into steps.
-def run_size(n: int, args: argparse.Namespace, world: Any, workdir: Path, say: Any, fusers: int = 1) -> dict[str, Any]:
+def run_size(
+    n: int, args: argparse.Namespace, world: Any, workdir: Path, say: Any, fusers: int = 1
+) -> dict[str, Any]:
     """One fleet of ``n`` robots: start, measure, stop; returns the size's JSON entry.
     ``fusers`` >= 2: a fusion tree (:mod:`agents.bench.tree`) instead of one service."""
     from agents.bench.tree import LinkCounter, level_latencies, start_tree, synthetic_recordings
@@ -462,7 +477,9 @@ def run(args: argparse.Namespace) -> int:
     world = load_world(args.world)
     from agents.mapping_run import default_merge_threshold
 
-    args.merge_threshold = float(args.threshold) if args.threshold is not None else default_merge_threshold(world)
+    args.merge_threshold = (
+        float(args.threshold) if args.threshold is not None else default_merge_threshold(world)
+    )
 
     def say(text: str) -> None:
         print(f"bench fleet: {text}", flush=True)
@@ -484,15 +501,17 @@ def run(args: argparse.Namespace) -> int:
     try:
         for n in sizes:
             for k in fuser_counts:
-                say(f"{n} robot(s), {k} fuser(s) for {args.duration:g} s at {args.rate:g} Hz in {world.name} ...")
+                say(f"{n} robot(s), {k} fuser(s) for {args.duration:g} s at {args.rate:g} Hz "
+                    f"in {world.name} ...")
                 results[str(n) if k == 1 else f"{n}/f{k}"] = run_size(n, args, world, workdir, say, k)
     finally:
         if tmp is not None:
             shutil.rmtree(tmp, ignore_errors=True)
-    head = ["robots", "fusers", "mode", "p50_ms", "p99_ms", "in_p99", "fuse_cpu", "B/s/robot", "grid_B/s", "ratio", "r_msg",
-            "r_body", "r_thr", "recall", "mean_m", "published", "merged"]
+    head = ["robots", "fusers", "mode", "p50_ms", "p99_ms", "in_p99", "fuse_cpu", "B/s/robot", "grid_B/s",
+            "ratio", "r_msg", "r_body", "r_thr", "recall", "mean_m", "published", "merged"]
     rows = [
-        [n.split("/")[0], r["fusers"], r["robots_mode"], r["latency_ms_p50"], r["latency_ms_p99"], r["transport_ms_p99"], r["fusion_cpu_share"],
+        [n.split("/")[0], r["fusers"], r["robots_mode"], r["latency_ms_p50"], r["latency_ms_p99"],
+         r["transport_ms_p99"], r["fusion_cpu_share"],
          r["bytes_per_s_per_robot"], r["grid_bytes_per_s_per_robot"], r["grid_ratio"], r["grid_ratio_msg"],
          r["grid_ratio_body"], r["grid_ratio_at_merge_threshold"], r["fused_recall"], r["fused_mean_dist_m"],
          r["maps_published"], r["maps_merged"]]
@@ -525,10 +544,18 @@ def run(args: argparse.Namespace) -> int:
             "latency_met": None if p99 is None else bool(p99 <= LATENCY_TARGET_MS),
             "grid_ratio_min": GRID_RATIO_TARGET,
             "grid_ratio_met": bool(ratios) and bool(min(ratios) >= GRID_RATIO_TARGET),
-            "grid_ratio_msg_min": min((r["grid_ratio_msg"] for r in results.values() if r["grid_ratio_msg"]), default=None),
-            "grid_ratio_body_min": min((r["grid_ratio_body"] for r in results.values() if r["grid_ratio_body"]), default=None),
+            "grid_ratio_msg_min": min(
+                (r["grid_ratio_msg"] for r in results.values() if r["grid_ratio_msg"]), default=None
+            ),
+            "grid_ratio_body_min": min(
+                (r["grid_ratio_body"] for r in results.values() if r["grid_ratio_body"]), default=None
+            ),
             "grid_ratio_at_merge_threshold_min": min(
-                (r["grid_ratio_at_merge_threshold"] for r in results.values() if r["grid_ratio_at_merge_threshold"]),
+                (
+                    r["grid_ratio_at_merge_threshold"]
+                    for r in results.values()
+                    if r["grid_ratio_at_merge_threshold"]
+                ),
                 default=None,
             ),
         },

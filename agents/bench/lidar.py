@@ -63,7 +63,8 @@ RUN_KEYS = (
     "best_map_bytes", "particle_bytes", "vertices", "edges", "time_s", "ms_per_scan",
 )
 ODOMETRY_KEYS = ("odometry_ate_rmse_m", "odometry_ate_max_m", "odometry_rpe_1m_m")
-INT_KEYS = ("scans", "best_map_bytes", "particle_bytes", "vertices", "edges", "skipped_lines", "particles", "seed")
+INT_KEYS = ("scans", "best_map_bytes", "particle_bytes", "vertices", "edges", "skipped_lines",
+            "particles", "seed")
 WIRE_RESOLUTION = 0.05  # the robot agent's map resolution (agents.fleet.robot.DEFAULT_RESOLUTION)
 TOL = 0.2  # metres, precision and coverage
 SPACING = 0.05  # metres between wall samples
@@ -75,7 +76,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--data", metavar="DIR", help="take every *.log and *.log.gz in DIR")
     parser.add_argument("--seed", type=int, default=1, help="random seed of the filter (default 1)")
     parser.add_argument("--particles", type=int, default=10, help="particles (default 10)")
-    parser.add_argument("--steps", type=int, default=None, metavar="N", help="only the first N scans of each log")
+    parser.add_argument("--steps", type=int, default=None, metavar="N",
+                        help="only the first N scans of each log")
     parser.add_argument("--max-range", type=float, default=20.0, metavar="M",
                         help="range cap given to the mapper, metres (default 20, as wiremap map)")
     parser.add_argument("--merge-threshold", type=float, default=0.2, metavar="M",
@@ -142,7 +144,9 @@ def find_logs(logs: list[str], data: str | None) -> list[Path]:
         d = Path(data)
         if not d.is_dir():
             raise UserError(f"--data {data}: no such folder")
-        paths = sorted(p for p in d.iterdir() if p.is_file() and (p.name.endswith(".log") or p.name.endswith(".log.gz")))
+        paths = sorted(
+            p for p in d.iterdir() if p.is_file() and (p.name.endswith(".log") or p.name.endswith(".log.gz"))
+        )
         if not paths:
             raise UserError(f"--data {data}: no *.log or *.log.gz files there")
     else:
@@ -244,7 +248,8 @@ def run_log(
     cap = min(float(scans[0].max_range), max_range)
     t0 = time.perf_counter()
     filter_overrides, extract_cfg, frontend_cfg = mr.split_profile(dict(settings or {}))
-    inputs = list(mr.carmen_inputs(scans, max_range=cap, truth=truth, extract=extract_cfg, frontend=frontend_cfg))
+    inputs = list(mr.carmen_inputs(scans, max_range=cap, truth=truth, extract=extract_cfg,
+                                   frontend=frontend_cfg))
     extract_s = time.perf_counter() - t0
     true_xyt = _poses(truth)
     odom_xyt = _poses([s.odom for s in scans])
@@ -295,7 +300,8 @@ def run_log(
         "max_range_m": cap,
     })
     title = f"{name}: ate {result['ate_rmse_m']:.2f} m, precision {result['map_precision']:.2f}, seed {seed}"
-    write_atomic(Path(out) / f"{name}.png", lidar_png(best, endpoints, true_xyt[:, :2], est_xyt[:, :2], title=title))
+    write_atomic(Path(out) / f"{name}.png",
+                 lidar_png(best, endpoints, true_xyt[:, :2], est_xyt[:, :2], title=title))
     if baseline:
         brow, bbest, best_xyt = one("baseline", 1)
         result["baseline"] = brow
@@ -329,7 +335,9 @@ def median(rows: list[dict[str, Any]]) -> dict[str, Any]:
     return out
 
 
-def format_table(logs: dict[str, dict[str, Any]], med: dict[str, Any], base_med: dict[str, Any] | None) -> str:
+def format_table(
+    logs: dict[str, dict[str, Any]], med: dict[str, Any], base_med: dict[str, Any] | None
+) -> str:
     """One line per log and method (filter, baseline, odometry), then the medians."""
     head = ["log", "method", "scans", "ate_m", "ate_max_m", "rpe_1m_m", "precision", "coverage",
             "map_B", "particle_B", "time_s", "ms/scan"]
@@ -346,7 +354,8 @@ def format_table(logs: dict[str, dict[str, Any]], med: dict[str, Any], base_med:
 
     def odometry(name: str, r: dict[str, Any]) -> None:
         add(name, "odometry", {"scans": r.get("scans"), "ate_rmse_m": r.get("odometry_ate_rmse_m"),
-                               "ate_max_m": r.get("odometry_ate_max_m"), "rpe_1m_m": r.get("odometry_rpe_1m_m")})
+                               "ate_max_m": r.get("odometry_ate_max_m"),
+                               "rpe_1m_m": r.get("odometry_rpe_1m_m")})
 
     for name, r in logs.items():
         add(name, "filter", r)
@@ -359,7 +368,8 @@ def format_table(logs: dict[str, dict[str, Any]], med: dict[str, Any], base_med:
     odometry("median", med)
     widths = [max(len(row[i]) for row in lines) for i in range(len(head))]
     return "\n".join(
-        "  ".join(c.ljust(w) if i < 2 else c.rjust(w) for i, (c, w) in enumerate(zip(row, widths))) for row in lines
+        "  ".join(c.ljust(w) if i < 2 else c.rjust(w) for i, (c, w) in enumerate(zip(row, widths)))
+        for row in lines
     )
 
 

@@ -29,7 +29,8 @@ HELP = "the fusion service"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--store", metavar="DIR", help="state directory: resume from it and keep it up to date")
+    parser.add_argument("--store", metavar="DIR",
+                        help="state directory: resume from it and keep it up to date")
     parser.add_argument(
         "--reset",
         action="store_true",
@@ -43,7 +44,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--world", metavar="NAME|FILE", help="draw this world's true walls in the recording")
     parser.add_argument("--recording-id", help="Rerun recording id (default: a new one)")
     parser.add_argument(
-        "--threshold", type=float, help="merge threshold in metres (default 0.2, or the coarsest robot-map resolution if larger)"
+        "--threshold", type=float,
+        help="merge threshold in metres (default 0.2, or the coarsest robot-map resolution if larger)"
     )
     parser.add_argument("--no-refine", action="store_true", help="trust the start poses, no ICP refinement")
     parser.add_argument(
@@ -51,10 +53,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="robots of unknown start pose: the fleet frame is this robot's (default: the first registered)",
     )
     parser.add_argument(
-        "--heartbeat", type=float, default=3.0, metavar="S", help="re-publish the fused map every S s (default 3)"
+        "--heartbeat", type=float, default=3.0, metavar="S",
+        help="re-publish the fused map every S s (default 3)"
     )
     parser.add_argument(
-        "--min-interval", type=float, default=0.0, metavar="S", help="fuse at most every S seconds (default 0)"
+        "--min-interval", type=float, default=0.0, metavar="S",
+        help="fuse at most every S seconds (default 0)"
     )
     parser.add_argument(
         "--save-interval",
@@ -83,7 +87,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         type=float,
         default=d.max_extent_m,
         metavar="M",
-        help=f"drop maps with a vertex further than M metres from the fleet origin (default {d.max_extent_m:g})",
+        help=f"drop maps with a vertex further than M metres from the fleet origin "
+        f"(default {d.max_extent_m:g})",
     )
     add_tree_arguments(parser)
     add_bus_arguments(parser)
@@ -92,16 +97,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def add_tree_arguments(parser: argparse.ArgumentParser) -> None:
     """The fusion tree's flags (:mod:`agents.fleet.fusion.regional`, :mod:`agents.fleet.fusion.root`)."""
     g = parser.add_argument_group("fusion tree")
-    g.add_argument("--group", metavar="NAME", help="be a regional fuser: publish the partial map of --robots on groups/NAME/map")
+    g.add_argument("--group", metavar="NAME",
+                   help="be a regional fuser: publish the partial map of --robots on groups/NAME/map")
     g.add_argument(
         "--robots", metavar="PATTERN",
-        help="the regional fuser's robots: glob patterns over ids, comma-separated (r0[1-8],r1*), or hash:I/K",
+        help="the regional fuser's robots: glob patterns over ids, comma-separated (r0[1-8],r1*), "
+        "or hash:I/K",
     )
     g.add_argument(
         "--of-groups", metavar="NAME,NAME|*",
         help="be the root fuser: merge these groups' partial maps (* = every group) into fused/map",
     )
-    g.add_argument("--no-standby", action="store_true", help="a regional fuser does not take over a dead one's robots")
+    g.add_argument("--no-standby", action="store_true",
+                   help="a regional fuser does not take over a dead one's robots")
 
 
 def run_tree(args: argparse.Namespace, say: Any) -> int | None:
@@ -115,7 +123,11 @@ def run_tree(args: argparse.Namespace, say: Any) -> int | None:
     if args.of_groups is not None and (args.group is not None or args.robots is not None):
         raise UserError("--of-groups (the root) does not take --group or --robots")
     if args.of_groups is not None:
-        names = None if args.of_groups.strip() == "*" else [g.strip() for g in args.of_groups.split(",") if g.strip()]
+        names = (
+            None
+            if args.of_groups.strip() == "*"
+            else [g.strip() for g in args.of_groups.split(",") if g.strip()]
+        )
         for n in names or []:
             if not valid_name(n) or n == "root":
                 raise UserError(f"--of-groups: {n!r} is not a group name")
@@ -170,7 +182,8 @@ def run(args: argparse.Namespace) -> int:
         raise UserError("--serve-viewer needs --rrd FILE (the recording always goes to a file)")
     if args.threshold is not None and not (math.isfinite(args.threshold) and args.threshold > 0):
         raise UserError(f"--threshold must be a positive number of metres, got {args.threshold}")
-    for name, v in (("--rate-limit", args.rate_limit), ("--max-extent", args.max_extent), ("--heartbeat", args.heartbeat)):
+    for name, v in (("--rate-limit", args.rate_limit), ("--max-extent", args.max_extent),
+                    ("--heartbeat", args.heartbeat)):
         if not (math.isfinite(v) and v > 0):
             raise UserError(f"{name} must be a positive number, got {v}")
     for name, v in (("--save-interval", args.save_interval), ("--min-interval", args.min_interval)):
@@ -211,7 +224,8 @@ def run(args: argparse.Namespace) -> int:
         save_interval_s=args.save_interval,
         reset=args.reset,
         # a regional fuser publishes a node of the fold tree: frontiers are closed at the root
-        config=FusionConfig(threshold=args.threshold, refine=not args.no_refine, close_frontiers=args.group is None),
+        config=FusionConfig(threshold=args.threshold, refine=not args.no_refine,
+                            close_frontiers=args.group is None),
         limits=limits,
         frames=FramesConfig(anchor=check_name(args.anchor) if args.anchor else None),
     )

@@ -74,10 +74,12 @@ HELP = "the main job: router, N robots and the fusion service"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--world", metavar="NAME|FILE", help="built-in world name or world file (or give --carmen)")
+    parser.add_argument("--world", metavar="NAME|FILE",
+                        help="built-in world name or world file (or give --carmen)")
     parser.add_argument(
         "--unknown-starts", action="store_true",
-        help="each robot starts at a random pose (seeded) and publishes in its own frame: fusion registers them",
+        help="each robot starts at a random pose (seeded) and publishes in its own frame: "
+        "fusion registers them",
     )
     parser.add_argument("--anchor", metavar="ID", help="with unknown starts: the fleet frame is this robot's")
     parser.add_argument(
@@ -87,16 +89,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--robots", required=True, type=int, metavar="N", help="number of robots (1-64)")
     parser.add_argument(
         "--duration", type=float, default=None, metavar="S",
-        help="wall-clock seconds of mapping at most (default 60; with --carmen: until every robot has replayed "
-        "its stretch; simulated time runs 2.5x faster at --rate 5, each scan being 0.5 s of driving)",
+        help="wall-clock seconds of mapping at most (default 60; with --carmen: until every robot "
+        "has replayed its stretch; simulated time runs 2.5x faster at --rate 5, each scan being "
+        "0.5 s of driving)",
     )
     parser.add_argument("--seed", type=int, default=0, help="random seed (routes; robot k gets seed + k)")
     parser.add_argument("--out", required=True, metavar="DIR", help="output directory")
-    parser.add_argument("--rate", type=float, default=5.0, metavar="HZ", help="scans per second per robot (default 5)")
+    parser.add_argument("--rate", type=float, default=5.0, metavar="HZ",
+                        help="scans per second per robot (default 5)")
     parser.add_argument("--particles", type=int, default=None, help="particles per robot (default 5)")
     parser.add_argument(
         "--fusers", type=int, default=1, metavar="K",
-        help="fusion processes: 1 = one service; K >= 2 = K regional fusers over the fold's subtrees and a root",
+        help="fusion processes: 1 = one service; K >= 2 = K regional fusers over the fold's subtrees "
+        "and a root",
     )
     parser.add_argument(
         "--resolution", type=float, default=0.05, metavar="M",
@@ -104,11 +109,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--threshold", type=float, metavar="M",
-        help="merge threshold of the robots' filters and of the fusion (default 0.2, 0.4 for worlds over 100 m)",
+        help="merge threshold of the robots' filters and of the fusion (default 0.2, 0.4 for worlds "
+        "over 100 m)",
     )
     parser.add_argument(
         "--overlap", type=float, default=None,
-        help="fraction of a route piece (or log stretch) shared with the next (default 0.15; 0.3 with --carmen)",
+        help="fraction of a route piece (or log stretch) shared with the next (default 0.15; "
+        "0.3 with --carmen)",
     )
     parser.add_argument("--serve-viewer", type=int, metavar="PORT", help="serve the recording live on PORT")
     parser.add_argument("--startup-timeout", type=float, default=60.0, metavar="S", help=argparse.SUPPRESS)
@@ -196,7 +203,9 @@ class Progress:
     def set_fused(self, raw: bytes, version: int, vertices: int, edges: int, robots: list[str]) -> None:
         """The latest fused map seen on the bus; its size is the payload's (what fused.wfm holds)."""
         self.fused_raw = raw
-        self.fused = f"fused v{version}: {vertices} corners, {edges} walls, {len(raw)} bytes, from {' '.join(robots)}"
+        self.fused = (
+            f"fused v{version}: {vertices} corners, {edges} walls, {len(raw)} bytes, from {' '.join(robots)}"
+        )
 
     def add_pose(self, rid: str, pose: dict[str, Any]) -> None:
         """A robot's pose message: its status, and its estimated position in the fleet frame
@@ -214,7 +223,8 @@ class Progress:
         state = "done" if s.get("finished") else ""
         return (
             f"{rid:>5}  {s.get('step', 0):5d}  {s.get('t', 0.0):6.1f} s  {s.get('vertices', 0):7d}  "
-            f"{s.get('edges', 0):5d}  {s.get('maps_sent', 0):4d}  {s.get('bytes_sent', 0) / 1024:6.1f} KiB  {state}"
+            f"{s.get('edges', 0):5d}  {s.get('maps_sent', 0):4d}  "
+            f"{s.get('bytes_sent', 0) / 1024:6.1f} KiB  {state}"
         ).rstrip()
 
     def lines(self, elapsed: float, total: float, rows: int | None = None) -> list[str]:
@@ -264,7 +274,8 @@ def _metrics(truth: Any, wf: Any, resolution: float, partial: bool = False) -> d
 
     if wf.n_edges == 0:
         m: dict[str, Any] = {
-            "cell_error": None, "wall_precision": 0.0, "wall_recall": 0.0, "mean_dist_m": None, "p95_dist_m": None,
+            "cell_error": None, "wall_precision": 0.0, "wall_recall": 0.0, "mean_dist_m": None,
+            "p95_dist_m": None,
         }
     else:
         m = {k: (None if isinstance(v, float) and not math.isfinite(v) else v)
@@ -336,7 +347,8 @@ def write_outputs(
             entry.update(_metrics(world.truth, rwf, res, partial=True))
             entry.update({"vertices": rwf.n_vertices, "edges": rwf.n_edges, "bytes": len(f.read_bytes())})
         else:
-            entry.update(_metrics(world.truth, wf.subgraph_edges(np.zeros(wf.n_edges, bool)), res, partial=True))
+            entry.update(_metrics(world.truth, wf.subgraph_edges(np.zeros(wf.n_edges, bool)), res,
+                                  partial=True))
             entry.update({"vertices": 0, "edges": 0, "bytes": 0})
         st = statuses.get(rid, {})
         entry["bytes_sent"] = int(st.get("bytes_sent", 0))
@@ -364,7 +376,8 @@ def write_outputs(
         "duration_s": round(duration_s, 3),
         "fused": fused,
         "per_robot": per_robot,
-        "latency_ms": {"p50": lat.get("p50"), "p99": lat.get("p99"), "max": lat.get("max"), "n": lat.get("n", 0)},
+        "latency_ms": {"p50": lat.get("p50"), "p99": lat.get("p99"), "max": lat.get("max"),
+                       "n": lat.get("n", 0)},
         "resolution": res,
         "merge_threshold": res,
         "map_resolution": float(msg.resolution),
@@ -408,7 +421,8 @@ def run(args: argparse.Namespace) -> int:
         routes = _prepare_output(out, world, ids, args)
     robot_args = ["--particles", str(resolved.config.particles)]
     if resolved.recorded:
-        write_atomic(out / "params.toml", to_toml(resolved.recorded, header="filter settings of `wiremap run`'s robots"))
+        write_atomic(out / "params.toml",
+                     to_toml(resolved.recorded, header="filter settings of `wiremap run`'s robots"))
         robot_args += ["--params", str(out / "params.toml")]
     keys = fleet_keys(args)
     cfg, listen, creds = _router_config(args, out, keys.fleet, ids)
@@ -431,10 +445,12 @@ def run(args: argparse.Namespace) -> int:
         try:
             secure = f"; secure (credentials in {out / 'secure'})" if args.secure else ""
             print(
-                f"wiremap run: router on {', '.join(listen)}; fleet {keys.fleet!r}; output in {out}{secure}", flush=True
+                f"wiremap run: router on {', '.join(listen)}; fleet {keys.fleet!r}; output in {out}{secure}",
+                flush=True
             )
             _start_fleet(procs, args, out, ids, routes, threshold, bus, creds, robot_args)
-            mapping_s = _watch_fleet(args, keys, procs, progress, sub_pose, sub_fused, stop, t_start, out / "logs")
+            mapping_s = _watch_fleet(args, keys, procs, progress, sub_pose, sub_fused, stop, t_start,
+                                     out / "logs")
             interrupted = stop.is_set()
         finally:
             _stop_fleet(procs, ids, cpu, codes)
@@ -573,7 +589,8 @@ def _router_config(
         return config_from_args(argparse.Namespace(**{**vars(args), "listen": listen}), "router"), listen, {}
     from agents.fleet.secure import make_secure_fleet, to_zenoh_config
 
-    given = [f for f, v in (("--config", args.config), ("--listen", args.listen), ("--connect", args.connect)) if v]
+    given = [f for f, v in (("--config", args.config), ("--listen", args.listen),
+                            ("--connect", args.connect)) if v]
     if given:
         raise UserError(f"--secure makes its own router configuration: drop {', '.join(given)}")
     if args.credentials:
@@ -604,7 +621,8 @@ def _start_fleet(
 
     logs = out / "logs"
     store = out / "store"
-    fuse_argv = ["fuse", *bus, *cred_args("fusion"), "--store", str(store), "--rrd", str(out / "recording.rrd")]
+    fuse_argv = ["fuse", *bus, *cred_args("fusion"), "--store", str(store), "--rrd",
+                 str(out / "recording.rrd")]
     fuse_argv += ["--threshold", repr(threshold)]
     if args.world and not args.unknown_starts:  # the truth is in the world frame, the fleet's is a robot's
         fuse_argv += ["--world", args.world]
@@ -626,12 +644,14 @@ def _start_fleet(
             if g == 0:
                 argv += fuse_argv[fuse_argv.index("--rrd"):]
             procs[f"fuser-{name}"] = _spawn(f"fuser-{name}", argv, logs)
-        fuse_argv = ["fuse", *bus, *cred_args("fusion"), "--of-groups", ",".join(names), "--store", str(store),
-                     "--threshold", repr(threshold)]
+        fuse_argv = ["fuse", *bus, *cred_args("fusion"), "--of-groups", ",".join(names),
+                     "--store", str(store), "--threshold", repr(threshold)]
     procs["fuse"] = _spawn("fuse", fuse_argv, logs)
     for k, (rid, r) in enumerate(zip(ids, routes)):
         if args.carmen:
-            procs[rid] = _spawn(rid, _carmen_robot_argv(args, out, rid, k, r, threshold, bus + cred_args(rid)), logs)
+            procs[rid] = _spawn(rid,
+                                _carmen_robot_argv(args, out, rid, k, r, threshold,
+                                                   bus + cred_args(rid)), logs)
             continue
         s0 = start_pose_of(r)
         unknown = ["--unknown-start"] if args.unknown_starts else []
@@ -716,7 +736,9 @@ def _watch_fleet(
                 break
         dead = [k for k, p in procs.items() if p.poll() is not None]
         if dead:
-            tails = "; ".join(f"{k} exited with {procs[k].returncode} (see {logs / (k + '.log')})" for k in dead)
+            tails = "; ".join(
+                f"{k} exited with {procs[k].returncode} (see {logs / (k + '.log')})" for k in dead
+            )
             raise UserError(f"a fleet process stopped early: {tails}")
         stop.wait(0.1)
     mapping_s = 0.0 if t_map is None else time.monotonic() - t_map
@@ -780,7 +802,8 @@ def _print_summary(report: dict[str, Any], ids: list[str], out: Path) -> None:
     lines = [
         f"wiremap run: {report['duration_s']:.1f} s of mapping ({why})",
         f"  fused map   v{f['version']}: {f['vertices']} corners, {f['edges']} walls, {f['bytes']} bytes",
-        f"  vs truth    wall recall {_num(f['wall_recall'], '.3f')}, precision {_num(f['wall_precision'], '.3f')}, "
+        f"  vs truth    wall recall {_num(f['wall_recall'], '.3f')}, "
+        f"precision {_num(f['wall_precision'], '.3f')}, "
         f"cell error {_num(f['cell_error'], '.2%')}",
         f"  latency     p50 {_ms(lat.get('p50'))}, p99 {_ms(lat.get('p99'))} (robot publish to fused map)",
         "  robot  steps  sim time  recall  precision  maps  bytes sent",
