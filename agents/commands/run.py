@@ -793,26 +793,30 @@ def _stop_fleet(
 
 def _print_summary(report: dict[str, Any], ids: list[str], out: Path) -> None:
     """The closing lines (under 80 columns): the fused map, its quality and latency, a table of
-    the robots, the files. The same figures are in ``report.json``."""
-    f = report["fused"]
-    lat = report["latency_ms"]
+    the robots, the files. The same figures are in ``report.json``; a figure a kind of run does
+    not report (a fleet of unknown starts, a CARMEN fleet) shows as ``-``."""
+    f = report.get("fused") or {}
+    lat = report.get("latency_ms") or {}
+    per_robot = report.get("per_robot") or {}
     why = "interrupted" if report.get("interrupted") else (
-        "every robot finished its route" if all(r.get("finished") for r in report["per_robot"].values())
+        "every robot finished its route" if all(r.get("finished") for r in per_robot.values())
         else "--duration reached")
     lines = [
-        f"wiremap run: {report['duration_s']:.1f} s of mapping ({why})",
-        f"  fused map   v{f['version']}: {f['vertices']} corners, {f['edges']} walls, {f['bytes']} bytes",
-        f"  vs truth    wall recall {_num(f['wall_recall'], '.3f')}, "
-        f"precision {_num(f['wall_precision'], '.3f')}, "
-        f"cell error {_num(f['cell_error'], '.2%')}",
+        f"wiremap run: {report.get('duration_s', 0.0):.1f} s of mapping ({why})",
+        f"  fused map   v{f.get('version', '-')}: {f.get('vertices', '-')} corners, {f.get('edges', '-')} walls, "
+        f"{f.get('bytes', '-')} bytes",
+        f"  vs truth    wall recall {_num(f.get('wall_recall'), '.3f')}, "
+        f"precision {_num(f.get('wall_precision'), '.3f')}, "
+        f"cell error {_num(f.get('cell_error'), '.2%')}",
         f"  latency     p50 {_ms(lat.get('p50'))}, p99 {_ms(lat.get('p99'))} (robot publish to fused map)",
         "  robot  steps  sim time  recall  precision  maps  bytes sent",
     ]
     for rid in ids:
-        r = report["per_robot"][rid]
+        r = per_robot.get(rid) or {}
         lines.append(
-            f"  {rid:>5}  {r['steps']:5d}  {r['sim_time_s']:6.1f} s  {_num(r['wall_recall'], '6.3f')}  "
-            f"{_num(r['wall_precision'], '9.3f')}  {r['maps_sent']:4d}  {r['bytes_sent']:10,d}"
+            f"  {rid:>5}  {_num(r.get('steps'), '5d')}  {_num(r.get('sim_time_s'), '6.1f')} s  "
+            f"{_num(r.get('wall_recall'), '6.3f')}  {_num(r.get('wall_precision'), '9.3f')}  "
+            f"{_num(r.get('maps_sent'), '4d')}  {_num(r.get('bytes_sent'), '10,d')}"
         )
     lines.append(f"  wrote       in {out}: fused.geojson fused.wfm fused.png")
     lines.append("              recording.rrd report.json")
@@ -820,8 +824,11 @@ def _print_summary(report: dict[str, Any], ids: list[str], out: Path) -> None:
 
 
 def _num(v: object, spec: str) -> str:
-    """A figure for the summary, or "n/a" when there is none."""
-    return format(float(v), spec) if isinstance(v, (int, float)) else "n/a"
+    """A figure for the summary (an integer spec takes the value as an integer), or "n/a" when
+    there is none."""
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        return "n/a"
+    return format(int(v), spec) if spec.endswith("d") else format(float(v), spec)
 
 
 def _ms(v: object) -> str:
