@@ -35,6 +35,7 @@ import argparse
 import math
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -182,142 +183,185 @@ def write_outputs(
     write_json(out / "report.json", report)
 
 
-def run(args: argparse.Namespace) -> int:
+@dataclass
+class _Source:
+    """What one ``wiremap map`` maps: the filter and its scans, with what scores them."""
+
+    filt: Any
+    inputs: Any
+    total: int | None
+    source: dict[str, Any]
+    resolved: Resolved
+    name: str
+    truth: Any = None  # the world's true walls (a simulated world)
+    free: Any = None  # the world's free space (shaded outside in the picture)
+    log: Any = None  # the CARMEN log, its scans' true poses and the range mapped
+    true_scans: Any = None
+    max_range: float = 0.0
+
+
+def _world_source(args: argparse.Namespace, cargs: ConfigArgs) -> _Source:
+    """A simulated robot driving its coverage route through ``--world``."""
     from agents import mapping_run as mr
+    from agents.sim.world import load_world
+
+    world = load_world(args.world)
+    resolved = _filter_config(args, cargs, mr.default_merge_threshold(world), 8.0)
+    cfg = resolved.config
+    options = mr.SimOptions(sensor=args.sensor, max_range=cfg.max_range, steps=args.steps, duration=args.duration)
+    try:
+        total: int | None = mr.count_sim_steps(world, options, args.seed)
+        filt, inputs = mr.sim_filter(world, options, args.seed, cfg.particles, cfg.merge_threshold, config=cfg)
+    except ValueError as exc:
+        raise UserError(f"{args.world}: {exc}") from None
+    return _Source(filt, inputs, total, {"world": world.name, "sensor": args.sensor}, resolved, world.name,
+                   truth=world.truth, free=world.free_space)
+
+
+def _log_source(args: argparse.Namespace, cargs: ConfigArgs) -> _Source:
+    """A CARMEN log through the real-lidar profile (odometry noise, point match, extractor)
+    under the user's ``--params`` and ``--set``; the filter starts at the true first pose when
+    the log has a truth."""
+    from agents import mapping_run as mr
+    from agents.files.carmen import read_carmen_log, scan_truth
     from mapping.filter import WireframeFilter
 
-    _check(args)
-    cargs = ConfigArgs.from_args(args)
-    _filter_config(args, cargs, 0.2, 8.0)  # the keys and values, before any work
-    out = Path(args.out)
-    truth = None
-    world_name = None
-    free = None
-    if args.world is not None:
-        from agents.sim.world import load_world
+    # CarmenError (a UserError) names the bad line; without --strict such lines are skipped.
+    log = read_carmen_log(args.carmen, strict=args.strict)
+    for msg in log.issues[:MAX_ISSUES_SHOWN]:
+        print(f"wiremap: skipped {msg}", file=sys.stderr)
+    if len(log.issues) > MAX_ISSUES_SHOWN:
+        print(f"wiremap: skipped {len(log.issues) - MAX_ISSUES_SHOWN} more unreadable lines", file=sys.stderr)
+    scans = log.scans
+    if not scans:
+        raise UserError(f"{args.carmen}: no laser scans in the log")
+    true_scans = scan_truth(log)
+    log_range = float(scans[0].max_range)
+    filter_overrides, extract_cfg, frontend_cfg = mr.split_profile(mr.lidar_profile())
+    resolved = _filter_config(args, cargs, 0.2, min(log_range, 20.0), mr.scan_fov(scans[0].angles),
+                              log_range, base=filter_overrides)
+    cfg = resolved.config
+    inputs = mr.carmen_inputs(scans, max_range=cfg.max_range, steps=args.steps, truth=true_scans,
+                              extract=extract_cfg, frontend=frontend_cfg)
+    start = true_scans[0] if true_scans is not None else scans[0].odom
+    filt = WireframeFilter(cfg, mr.seeds_for(args.seed)["filter"], initial_pose=start)
+    total = len(scans) if args.steps is None else min(len(scans), args.steps)
+    source = {"carmen": str(args.carmen), "sensor": "lidar", "laser": log.laser}
+    return _Source(filt, inputs, total, source, resolved, Path(args.carmen).name, log=log,
+                   true_scans=true_scans, max_range=cfg.max_range)
 
-        world = load_world(args.world)
-        truth = world.truth
-        world_name = world.name
-        resolved = _filter_config(args, cargs, mr.default_merge_threshold(world), 8.0)
-        cfg = resolved.config
-        free = world.free_space
-        options = mr.SimOptions(
-            sensor=args.sensor,
-            max_range=cfg.max_range,
-            steps=args.steps,
-            duration=args.duration,
-        )
-        try:
-            total: int | None = mr.count_sim_steps(world, options, args.seed)
-            filt, inputs = mr.sim_filter(world, options, args.seed, cfg.particles,
-                                         cfg.merge_threshold, config=cfg)
-        except ValueError as exc:
-            raise UserError(f"{args.world}: {exc}") from None
-        source: dict[str, Any] = {"world": world_name, "sensor": args.sensor}
-    else:
-        from agents.files.carmen import read_carmen_log, scan_truth
 
-        # CarmenError (a UserError) names the bad line; without --strict such lines are skipped.
-        log = read_carmen_log(args.carmen, strict=args.strict)
-        for msg in log.issues[:MAX_ISSUES_SHOWN]:
-            print(f"wiremap: skipped {msg}", file=sys.stderr)
-        if len(log.issues) > MAX_ISSUES_SHOWN:
-            print(f"wiremap: skipped {len(log.issues) - MAX_ISSUES_SHOWN} more unreadable lines",
-                  file=sys.stderr)
-        scans = log.scans
-        if not scans:
-            raise UserError(f"{args.carmen}: no laser scans in the log")
-        true_scans = scan_truth(log)
-        log_range = float(scans[0].max_range)
-        # A real lidar: the real-lidar profile (odometry noise, point match, extractor) under
-        # the user's --params and --set.
-        filter_overrides, extract_cfg, frontend_cfg = mr.split_profile(mr.lidar_profile())
-        resolved = _filter_config(args, cargs, 0.2, min(log_range, 20.0), mr.scan_fov(scans[0].angles),
-                                  log_range, base=filter_overrides)
-        cfg = resolved.config
-        max_range = cfg.max_range
-        inputs = mr.carmen_inputs(scans, max_range=max_range, steps=args.steps, truth=true_scans,
-                                  extract=extract_cfg, frontend=frontend_cfg)
-        start = true_scans[0] if true_scans is not None else scans[0].odom
-        filt = WireframeFilter(cfg, mr.seeds_for(args.seed)["filter"], initial_pose=start)
-        total = len(scans) if args.steps is None else min(len(scans), args.steps)
-        source = {"carmen": str(args.carmen), "sensor": "lidar", "laser": log.laser}
+@dataclass
+class _Drive:
+    """What feeding the scans to the filter left: the trajectory, the pose errors (simulated
+    worlds), the filter's own time, the steps done and whether Ctrl-C cut it short."""
 
-    thr = cfg.merge_threshold
-    progress = Progress(not args.quiet)
-    trajectory: list[tuple[float, float, float, float]] = []
-    pose_err: list[float] = []
-    busy = 0.0
+    trajectory: list[tuple[float, float, float, float]]
+    pose_err: list[float]
+    busy: float
+    steps: int
+    interrupted: bool
+    wall: float
+
+
+def _drive(src: _Source, quiet: bool) -> _Drive:
+    """Feed every scan to the filter, with a progress line; Ctrl-C stops it (what is mapped
+    stays), a malformed log line is a :class:`UserError`."""
+    from agents import mapping_run as mr
+
+    filt = src.filt
+    progress = Progress(not quiet)
+    run = _Drive([], [], 0.0, 0, False, 0.0)
     t_start = time.perf_counter()
-    k = 0
-    interrupted = False
     try:
-        for st in mr.run_filter(inputs, filt, total):
-            k = st.index + 1
-            busy += st.step_s
+        for st in mr.run_filter(src.inputs, filt, src.total):
+            run.steps = st.index + 1
+            run.busy += st.step_s
             p = st.pose
-            trajectory.append((st.t, p.x, p.y, p.theta))
+            run.trajectory.append((st.t, p.x, p.y, p.theta))
             if st.true_pose is not None:
-                pose_err.append(p.distance(st.true_pose))
+                run.pose_err.append(p.distance(st.true_pose))
             best = filt.best
-            progress.update(k, total, best.n_vertices, best.n_edges, k / busy if busy > 0 else 0.0)
+            progress.update(run.steps, src.total, best.n_vertices, best.n_edges, _rate(run))
     except ValueError as exc:  # a malformed log line surfaces here
         progress.close()
         raise UserError(str(exc)) from None
     except KeyboardInterrupt:  # Ctrl-C: write the map as it stands (exit INTERRUPTED)
-        interrupted = True
+        run.interrupted = True
     best = filt.best
-    progress.update(k, total, best.n_vertices, best.n_edges, k / busy if busy > 0 else 0.0, force=True)
+    progress.update(run.steps, src.total, best.n_vertices, best.n_edges, _rate(run), force=True)
     progress.close()
-    wall = time.perf_counter() - t_start
-    if interrupted:
-        print(f"wiremap map: interrupted after {k} steps; writing the map as it stands",
+    run.wall = time.perf_counter() - t_start
+    if run.interrupted:
+        print(f"wiremap map: interrupted after {run.steps} steps; writing the map as it stands",
               file=sys.stderr, flush=True)
+    return run
 
+
+def _rate(run: _Drive) -> float:
+    return run.steps / run.busy if run.busy > 0 else 0.0
+
+
+def run(args: argparse.Namespace) -> int:
+    _check(args)
+    cargs = ConfigArgs.from_args(args)
+    _filter_config(args, cargs, 0.2, 8.0)  # the keys and values, before any work
+    out = Path(args.out)
+    src = _world_source(args, cargs) if args.world is not None else _log_source(args, cargs)
+    done = _drive(src, args.quiet)
+    filt, cfg, k = src.filt, src.resolved.config, done.steps
+    thr = cfg.merge_threshold
+    best = filt.best
     report: dict[str, Any] = {
-        **source,
+        **src.source,
         "seed": args.seed,
         "particles": cfg.particles,
         "merge_threshold": thr,
-        "config_overrides": resolved.recorded,
+        "config_overrides": src.resolved.recorded,
         "steps": k,
-        "time_s": round(wall, 3),
-        "filter_time_s": round(busy, 3),
-        "updates_per_s": round(k / busy, 2) if busy > 0 else None,
+        "time_s": round(done.wall, 3),
+        "filter_time_s": round(done.busy, 3),
+        "updates_per_s": round(k / done.busy, 2) if done.busy > 0 else None,
         "particle_bytes": filt.memory_bytes(),
         "best_bytes": best.paper_storage_bytes(),
         "vertices": best.n_vertices,
         "edges": best.n_edges,
         "metrics": None,
-        "interrupted": interrupted,
+        "interrupted": done.interrupted,
     }
-    if truth is not None:
-        from mapping.metrics import evaluate
-
-        metrics = evaluate(truth, best, thr) if best.n_edges else None
-        report["metrics"] = None if metrics is None else {k2: _num(v) for k2, v in metrics.items()}
-        if interrupted and report["metrics"] is not None:  # an unfinished map is partial
-            from agents.commands.run import PARTIAL_CELL_ERROR
-
-            report["metrics"]["cell_error"] = None
-            report["metrics"]["cell_error_note"] = PARTIAL_CELL_ERROR.replace(
-                "one robot's partial map", "a map cut short"
-            )
-        report["pose_error_mean_m"] = round(float(np.mean(pose_err)), 4) if pose_err else None
-        report["pose_error_max_m"] = round(float(np.max(pose_err)), 4) if pose_err else None
+    if src.truth is not None:
+        report.update(_score_world(src.truth, best, thr, done))
     png = None
-    if args.carmen is not None:
-        report["skipped_lines"] = len(log.issues)
-        if true_scans is not None and k:
-            lidar, png = _score_log(scans[:k], true_scans[:k], trajectory, best, max_range)
+    if src.log is not None:
+        report["skipped_lines"] = len(src.log.issues)
+        if src.true_scans is not None and k:
+            lidar, png = _score_log(src.log.scans[:k], src.true_scans[:k], done.trajectory, best, src.max_range)
             report.update(lidar)
-    props = {**source, "steps": k, "seed": args.seed, "particles": cfg.particles, "merge_threshold": thr}
-    title = f"{world_name or Path(args.carmen).name}: one robot, {k} steps, {cfg.particles} particles"
-    write_outputs(out, best, trajectory, report, truth=truth, properties=props, png=png,
-                  title=title, free=free)
+    props = {**src.source, "steps": k, "seed": args.seed, "particles": cfg.particles, "merge_threshold": thr}
+    title = f"{src.name}: one robot, {k} steps, {cfg.particles} particles"
+    write_outputs(out, best, done.trajectory, report, truth=src.truth, properties=props, png=png,
+                  title=title, free=src.free)
     _print_summary(report, out)
-    return INTERRUPTED if interrupted else 0
+    return INTERRUPTED if done.interrupted else 0
+
+
+def _score_world(truth: Any, best: Any, thr: float, done: _Drive) -> dict[str, Any]:
+    """The map against a simulated world's truth, and the pose errors along the way."""
+    from mapping.metrics import evaluate
+
+    metrics = evaluate(truth, best, thr) if best.n_edges else None
+    scored = None if metrics is None else {k2: _num(v) for k2, v in metrics.items()}
+    if done.interrupted and scored is not None:  # an unfinished map is partial
+        from agents.commands.run import PARTIAL_CELL_ERROR
+
+        scored["cell_error"] = None
+        scored["cell_error_note"] = PARTIAL_CELL_ERROR.replace("one robot's partial map", "a map cut short")
+    err = done.pose_err
+    return {
+        "metrics": scored,
+        "pose_error_mean_m": round(float(np.mean(err)), 4) if err else None,
+        "pose_error_max_m": round(float(np.max(err)), 4) if err else None,
+    }
 
 
 def _print_summary(report: dict[str, Any], out: Path) -> None:
