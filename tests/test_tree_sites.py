@@ -25,7 +25,7 @@ import pytest
 from agents.bench.common import Procs, read_state
 from agents.bench.tree import synthetic_recordings
 from agents.fleet.bus import FleetKeys, build_config, free_port, open_session
-from tests.test_partition import _ip, namespace
+from tests.test_partition import _ip, namespace, wait
 from wire_codec import decode
 
 pytestmark = pytest.mark.fleet
@@ -59,22 +59,6 @@ class FusedLog:
     def close(self) -> None:
         self.sub.undeclare()
         self.session.close()
-
-
-def _wait(cond: Any, timeout: float, what: str, procs: Procs) -> Any:
-    deadline = time.monotonic() + timeout
-    while True:
-        v = cond()
-        if v:
-            return v
-        dead = procs.dead()
-        if dead:
-            raise AssertionError(
-                f"{dead} exited while waiting for {what}: " + "".join(procs.log(d)[-2000:] for d in dead)
-            )
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out after {timeout:g} s waiting for {what}")
-        time.sleep(0.05)
 
 
 def _sent(log: Path) -> int:
@@ -126,10 +110,10 @@ def test_tree_across_two_sites_survives_a_cut_link(tmp_path: Path) -> None:
                     else:
                         procs.start(rid, [*argv, *bus_a])
                 ids = tuple(f"r{k + 1}" for k in range(8))
-                _wait(lambda: obs.first(0.0, lambda m: m.robots == ids), 90,
+                wait(lambda: obs.first(0.0, lambda m: m.robots == ids), 90,
                       "all 8 robots in the fused map", procs)
                 t_before = time.monotonic()
-                got = _wait(lambda: obs.first(t_before,
+                got = wait(lambda: obs.first(t_before,
                                               lambda m: "site-b" in m.meta.get("group_versions", {})), 10,
                             "a fused map", procs)
                 vb_cut = got[1].meta["group_versions"]["site-b"]
@@ -147,7 +131,7 @@ def test_tree_across_two_sites_survives_a_cut_link(tmp_path: Path) -> None:
                 _ip("link", "set", net["veth_ns"], "up", ns=net["ns"])
                 t_heal = time.monotonic()
                 sent_at_heal = {f"r{k}": _sent(tmp_path / "sent" / f"r{k}.log") for k in range(1, 5)}
-                back = _wait(
+                back = wait(
                     lambda: obs.first(
                         t_heal,
                         lambda m: (
@@ -164,7 +148,7 @@ def test_tree_across_two_sites_survives_a_cut_link(tmp_path: Path) -> None:
                     robots = read_state(tmp_path / "store-b").get("robots") or {}
                     return all((robots.get(r) or {}).get("seq", 0) >= s for r, s in sent_at_heal.items())
 
-                _wait(held, HEAL_LIMIT_S, "site B's fuser holding every map sent up to the heal", procs)
+                wait(held, HEAL_LIMIT_S, "site B's fuser holding every map sent up to the heal", procs)
                 print(f"\nsite cut {CUT_S:g} s: site B's partial back in the fused map "
                       f"{back[0] - t_heal:.2f} s after the heal; fused versions during the cut served "
                       f"site B's last partial")

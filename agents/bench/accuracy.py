@@ -42,6 +42,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from agents.bench.common import aligned_rows, fmt_cell
 from agents.errors import UserError
 from agents.params import ConfigArgs, add_config_arguments, resolve
 
@@ -132,27 +133,18 @@ def format_table(rows: list[tuple[str, str, dict[str, Any]]]) -> str:
         lines.append([
             seed,
             method,
-            _fmt(r["cell_error"], "{:.2%}"),
-            _fmt(r["wall_precision"], "{:.3f}"),
-            _fmt(r["wall_recall"], "{:.3f}"),
-            _fmt(r["mean_dist_m"], "{:.3f}"),
-            _fmt(r["p95_dist_m"], "{:.3f}"),
-            _fmt(r.get("mean_dist_aligned_m"), "{:.3f}"),
+            fmt_cell(r["cell_error"], "{:.2%}"),
+            fmt_cell(r["wall_precision"], "{:.3f}"),
+            fmt_cell(r["wall_recall"], "{:.3f}"),
+            fmt_cell(r["mean_dist_m"], "{:.3f}"),
+            fmt_cell(r["p95_dist_m"], "{:.3f}"),
+            fmt_cell(r.get("mean_dist_aligned_m"), "{:.3f}"),
             str(r["particle_bytes"]),
             str(r["steps"]),
-            _fmt(r["updates_per_s"], "{:.1f}"),
+            fmt_cell(r["updates_per_s"], "{:.1f}"),
         ])
-    widths = [max(len(row[i]) for row in lines) for i in range(len(head))]
-    return "\n".join(
-        "  ".join(c.ljust(w) if i < 2 else c.rjust(w) for i, (c, w) in enumerate(zip(row, widths)))
-        for row in lines
-    )
+    return aligned_rows(lines, left=2)
 
-
-def _fmt(v: Any, f: str) -> str:
-    if v is None or (isinstance(v, float) and not math.isfinite(v)):
-        return "-"
-    return f.format(v)
 
 
 def run_seed(

@@ -658,5 +658,22 @@ def print_table(head: Sequence[str], rows: Sequence[Sequence[Any]]) -> None:
     sys.stdout.flush()
 
 
+def aligned_rows(rows: Sequence[Sequence[str]], left: int = 1) -> str:
+    """``rows`` (the head first) as text columns: the first ``left`` columns flush left, the
+    others flush right, two spaces apart."""
+    widths = [max(len(row[i]) for row in rows) for i in range(len(rows[0]))]
+    return "\n".join(
+        "  ".join(c.ljust(w) if i < left else c.rjust(w) for i, (c, w) in enumerate(zip(row, widths)))
+        for row in rows
+    )
+
+
+def fmt_cell(v: Any, f: str) -> str:
+    """``v`` formatted by ``f`` (``"{:.3f}"``), or ``-`` when there is none or it is not finite."""
+    if v is None or (isinstance(v, float) and not math.isfinite(v)):
+        return "-"
+    return f.format(v)
+
+
 def rounded(v: float | None, nd: int = 3) -> float | None:
     return None if v is None or not math.isfinite(v) else round(float(v), nd)

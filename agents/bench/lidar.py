@@ -53,6 +53,7 @@ from typing import Any
 
 import numpy as np
 
+from agents.bench.common import aligned_rows, fmt_cell
 from agents.errors import UserError
 
 HELP = "the mapper on real CARMEN lidar logs against their truth (ATE, map precision, bytes)"
@@ -345,11 +346,11 @@ def format_table(
 
     def add(name: str, method: str, r: dict[str, Any]) -> None:
         lines.append([
-            name, method, _fmt(r.get("scans"), "{}"), _fmt(r.get("ate_rmse_m"), "{:.3f}"),
-            _fmt(r.get("ate_max_m"), "{:.3f}"), _fmt(r.get("rpe_1m_m"), "{:.3f}"),
-            _fmt(r.get("map_precision"), "{:.3f}"), _fmt(r.get("map_coverage"), "{:.3f}"),
-            _fmt(r.get("best_map_bytes"), "{}"), _fmt(r.get("particle_bytes"), "{}"),
-            _fmt(r.get("time_s"), "{:.1f}"), _fmt(r.get("ms_per_scan"), "{:.0f}"),
+            name, method, fmt_cell(r.get("scans"), "{}"), fmt_cell(r.get("ate_rmse_m"), "{:.3f}"),
+            fmt_cell(r.get("ate_max_m"), "{:.3f}"), fmt_cell(r.get("rpe_1m_m"), "{:.3f}"),
+            fmt_cell(r.get("map_precision"), "{:.3f}"), fmt_cell(r.get("map_coverage"), "{:.3f}"),
+            fmt_cell(r.get("best_map_bytes"), "{}"), fmt_cell(r.get("particle_bytes"), "{}"),
+            fmt_cell(r.get("time_s"), "{:.1f}"), fmt_cell(r.get("ms_per_scan"), "{:.0f}"),
         ])
 
     def odometry(name: str, r: dict[str, Any]) -> None:
@@ -366,17 +367,8 @@ def format_table(
     if base_med is not None:
         add("median", "baseline", base_med)
     odometry("median", med)
-    widths = [max(len(row[i]) for row in lines) for i in range(len(head))]
-    return "\n".join(
-        "  ".join(c.ljust(w) if i < 2 else c.rjust(w) for i, (c, w) in enumerate(zip(row, widths)))
-        for row in lines
-    )
+    return aligned_rows(lines, left=2)
 
-
-def _fmt(v: Any, f: str) -> str:
-    if v is None or (isinstance(v, float) and not math.isfinite(v)):
-        return "-"
-    return f.format(v)
 
 
 def run(args: argparse.Namespace) -> int:
