@@ -171,6 +171,15 @@ class RegistrationConfig:
         A wall sample this close to a free probe of the other map is in conflict.
     conflict_weight : float
         Weight of conflicting wall length in the score.
+    conflict_min_wall : float
+        Walls shorter than this never conflict (clutter and the filter's spurious slivers).
+    frontier_margin : float
+        Wall within this of a frontier end of its edge never conflicts: a frontier is where
+        sight of the wall ended, and a filter-built map's wall runs on there by up to its drift.
+    displaced_dist, displaced_weight : float
+        A conflicting wall sample with a wall of the other map of its direction (within twice
+        ``match_angle``) within ``displaced_dist`` is a *displaced* copy of that wall (the drift
+        of a filter-built map), not a foreign wall: it counts ``displaced_weight`` of its length.
     refine_iterations : int
         Point-to-line iterations of the refinement.
     huber : float
@@ -193,7 +202,13 @@ class RegistrationConfig:
         Largest accepted conflict: ``max_conflict + max_conflict_fraction * support`` (the
         constant absorbs clutter and corner noise of real maps).
     max_runner_up_ratio : float
-        Largest accepted ratio of the best distinct runner-up's score to the best score.
+        Largest accepted runner-up ratio: over the distinct hypotheses, the smaller of its score
+        ratio and its corner ratio (module docstring, step 6).
+    rival_refine : int
+        Distinct runner-ups (by score) refined before their corners are counted.
+    rival_corner_dist : float
+        Distance within which a runner-up's corners count as matched (looser than
+        ``corner_match_dist``: an error here errs towards refusing).
     min_cross_support : float
         Least wall length constraining the weaker translation direction.
     max_rmse : float
@@ -241,6 +256,10 @@ class RegistrationConfig:
     match_angle: float = math.radians(15.0)
     conflict_radius: float = 0.2
     conflict_weight: float = 3.0
+    conflict_min_wall: float = 0.5
+    frontier_margin: float = 0.5
+    displaced_dist: float = 1.2
+    displaced_weight: float = 0.25
     refine_iterations: int = 6
     huber: float = 0.05
     use_icp: bool = True
@@ -252,6 +271,8 @@ class RegistrationConfig:
     max_conflict: float = 0.5
     max_conflict_fraction: float = 0.05
     max_runner_up_ratio: float = 0.7
+    rival_refine: int = 3
+    rival_corner_dist: float = 0.5
     min_cross_support: float = 1.5
     max_rmse: float = 0.08
     min_corners: int = 4
@@ -262,12 +283,12 @@ class RegistrationConfig:
         for name in ("sample_spacing", "free_clearance", "direction_smooth", "feature_angle_tol",
                      "vote_cell", "vote_weight_cap", "peak_separation", "coarse_match_dist",
                      "match_dist", "match_angle", "conflict_radius", "huber", "distinct_translation",
-                     "distinct_rotation", "max_rmse"):
+                     "distinct_rotation", "max_rmse", "displaced_dist", "rival_corner_dist"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
                 raise ValueError(f"RegistrationConfig.{name} must be a positive number, got {v!r}")
         for name in ("min_wall", "probe_end_margin", "conflict_weight", "min_support", "max_conflict",
-                     "max_conflict_fraction", "min_cross_support"):
+                     "max_conflict_fraction", "min_cross_support", "conflict_min_wall", "frontier_margin"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0):
                 raise ValueError(f"RegistrationConfig.{name} must be >= 0, got {v!r}")
@@ -275,7 +296,9 @@ class RegistrationConfig:
                      "refine_candidates", "refine_iterations"):
             if int(getattr(self, name)) < 1:
                 raise ValueError(f"RegistrationConfig.{name} must be >= 1")
-        for name in ("rotation_peak_ratio", "min_support_fraction", "max_runner_up_ratio"):
+        if int(self.rival_refine) < 0:
+            raise ValueError("RegistrationConfig.rival_refine must be >= 0")
+        for name in ("rotation_peak_ratio", "min_support_fraction", "max_runner_up_ratio", "displaced_weight"):
             v = getattr(self, name)
             if not 0.0 <= v <= 1.0:
                 raise ValueError(f"RegistrationConfig.{name} must be within [0, 1], got {v!r}")
@@ -320,6 +343,9 @@ class MapFeatures:
         Index of each sample's edge in ``wireframe``.
     corner_points : (c, 2)
         Vertices at real corners (nominal or occlusion) that end an edge of at least ``min_wall``.
+    conflict_weights : (k,)
+        Wall length per sample as it counts in a conflict: times its edge's likelihood, 0 on
+        edges shorter than ``conflict_min_wall`` and within ``frontier_margin`` of a frontier.
     """
 
     wireframe: Wireframe
@@ -339,6 +365,7 @@ class MapFeatures:
     length: float
     owner: IntArray
     corner_points: FloatArray
+    conflict_weights: FloatArray
 
 
 @dataclass(frozen=True)
@@ -476,6 +503,12 @@ def prepare(wf: Wireframe, config: RegistrationConfig | None = None) -> MapFeatu
     end_angles = np.concatenate([ang[s_ok], ang[e_ok]])
     end_starts = np.concatenate([np.ones(int(s_ok.sum()), bool), np.zeros(int(e_ok.sum()), bool)])
     end_weights = np.concatenate([ln[s_ok], ln[e_ok]])
+    # What a sample weighs in a conflict (likelihood, short walls, frontier ends).
+    front = int(Label.FRONTIER)
+    s_fr = wf.labels[edges[:, 0]] == front if len(edges) else np.zeros(0, bool)
+    e_fr = wf.labels[edges[:, 1]] == front if len(edges) else np.zeros(0, bool)
+    near_fr = (s_fr[owner] & (along < cfg.frontier_margin)) | (e_fr[owner] & (ln[owner] - along < cfg.frontier_margin))
+    cw = w * wf.likelihood[kept][owner] * (ln[owner] >= cfg.conflict_min_wall) * ~near_fr
     used = np.unique(np.concatenate([edges[s_ok, 0], edges[e_ok, 1]]))
     corner_points = np.asarray(wf.points[used], dtype=np.float64).reshape(-1, 2)
     # Direction histogram, circularly smoothed.
@@ -495,6 +528,7 @@ def prepare(wf: Wireframe, config: RegistrationConfig | None = None) -> MapFeatu
         weights=w, tree=tree, probes=probes, probe_tree=probe_tree, end_points=end_points,
         end_angles=end_angles, end_starts=end_starts, end_weights=end_weights, histogram=hist, length=total,
         owner=kept[owner].astype(np.int64), corner_points=corner_points,
+        conflict_weights=np.asarray(cw, dtype=np.float64),
     )
 
 
@@ -639,18 +673,37 @@ def _match(
     return sel[has], idx_c[np.arange(len(sel)), first][has]
 
 
+def _conflict_one(fp: MapFeatures, fw: MapFeatures, T: Pose, cfg: RegistrationConfig, stride: int) -> float:
+    """Wall length of ``fw`` (moved by ``T`` into ``fp``'s frame) on ``fp``'s free probes."""
+    if fp.probe_tree is None or len(fw.points) == 0:
+        return 0.0
+    sel = np.arange(0, len(fw.points), stride)
+    sel = sel[fw.conflict_weights[sel] > 0]
+    if len(sel) == 0:
+        return 0.0
+    q = T.apply(fw.points[sel])
+    d, _ = fp.probe_tree.query(q, k=1, distance_upper_bound=cfg.conflict_radius)
+    hit = np.isfinite(d)
+    if not hit.any():
+        return 0.0
+    sel, q = sel[hit], q[hit]
+    w = fw.conflict_weights[sel].copy()
+    # A displaced copy of one of fp's walls (same direction, near): drift, not a foreign wall.
+    dist, idx = fp.tree.query(q, k=8, distance_upper_bound=cfg.displaced_dist)
+    ok = np.isfinite(dist)
+    idx_c = np.where(ok, idx, 0)
+    dirs = fw.directions[sel] @ _rot(T.theta).T
+    cosang = np.einsum("ijk,ik->ij", fp.directions[idx_c], dirs)
+    displaced = np.any(ok & (cosang >= math.cos(2.0 * cfg.match_angle)), axis=1)
+    w[displaced] *= cfg.displaced_weight
+    return float(w.sum()) * stride
+
+
 def _conflict(fa: MapFeatures, fb: MapFeatures, T: Pose, cfg: RegistrationConfig, stride: int = 1) -> float:
-    """Wall length of each map on the other's free probes, B moved by ``T``."""
-    total = 0.0
-    if fa.probe_tree is not None and len(fb.points):
-        sel = np.arange(0, len(fb.points), stride)
-        d, _ = fa.probe_tree.query(T.apply(fb.points[sel]), k=1, distance_upper_bound=cfg.conflict_radius)
-        total += float(fb.weights[sel][np.isfinite(d)].sum()) * stride
-    if fb.probe_tree is not None and len(fa.points):
-        sel = np.arange(0, len(fa.points), stride)
-        d, _ = fb.probe_tree.query(T.inverse().apply(fa.points[sel]), k=1, distance_upper_bound=cfg.conflict_radius)
-        total += float(fa.weights[sel][np.isfinite(d)].sum()) * stride
-    return total
+    """Wall length of each map on the other's free probes, B moved by ``T`` (both directions:
+    B's walls on A's seen-free space and A's on B's), weighted as in
+    :attr:`MapFeatures.conflict_weights` and discounted where displaced."""
+    return _conflict_one(fa, fb, T, cfg, stride) + _conflict_one(fb, fa, T.inverse(), cfg, stride)
 
 
 def _residuals(fa: MapFeatures, fb: MapFeatures, T: Pose, ib: IntArray, ia: IntArray) -> FloatArray:
@@ -743,11 +796,14 @@ def _distinct(a: Pose, b: Pose, fb: MapFeatures, cfg: RegistrationConfig) -> boo
     )
 
 
-def _matched_corners(fa: MapFeatures, fb: MapFeatures, T: Pose, cfg: RegistrationConfig) -> int:
-    """B's real corners within ``corner_match_dist`` of one of A's, B moved by ``T``."""
+def _matched_corners(
+    fa: MapFeatures, fb: MapFeatures, T: Pose, cfg: RegistrationConfig, dist: float | None = None
+) -> int:
+    """B's real corners within ``dist`` (default ``corner_match_dist``) of one of A's, B moved by ``T``."""
     if len(fa.corner_points) == 0 or len(fb.corner_points) == 0:
         return 0
-    d, _ = cKDTree(fa.corner_points).query(T.apply(fb.corner_points), k=1, distance_upper_bound=cfg.corner_match_dist)
+    gate = cfg.corner_match_dist if dist is None else dist
+    d, _ = cKDTree(fa.corner_points).query(T.apply(fb.corner_points), k=1, distance_upper_bound=gate)
     return int(np.isfinite(d).sum())
 
 
@@ -784,6 +840,41 @@ def _self_ratio(f: MapFeatures, samples: IntArray, cfg: RegistrationConfig) -> f
         if h.conflict <= cfg.max_conflict + cfg.max_conflict_fraction * h.support:
             best = n
     return best / len(region.corner_points)
+
+
+def _runner_up(
+    fa: MapFeatures, fb: MapFeatures, best: Hypothesis, rivals: list[Hypothesis], cfg: RegistrationConfig
+) -> tuple[Hypothesis | None, float, float]:
+    """The best distinct runner-up and its ratio (step 6): ``(runner, ratio, corner_ratio)``.
+
+    A rival's *score ratio* is its score over the best's; its *corner ratio* is the number of
+    B's real corners it lands within ``rival_corner_dist`` of A's (looser than the best's
+    ``corner_match_dist``) over the best's count. The ratio of a rival is the smaller of the
+    two: a rival sliding along a long wall keeps most of the wall length but loses the corners
+    around it, and is no rival; repeated structure keeps both and is. The ``rival_refine``
+    strongest rivals (by score) are refined first, so that an unrefined rival's corners are not
+    missed for want of a few centimetres; the others are only counted by score ratio.
+    """
+    if not rivals or best.score <= 0:
+        top = rivals[0] if rivals else None
+        return top, (1.0 if top is not None and top.score > 0 else 0.0), 0.0
+    n_best = max(1, _matched_corners(fa, fb, best.transform, cfg))
+    runner, ratio, corner_ratio = None, 0.0, 0.0
+    for k, h in enumerate(rivals):
+        score_ratio = max(0.0, h.score / best.score)
+        if score_ratio <= ratio:
+            break  # sorted by score: no later rival can do better
+        c = 1.0
+        if k < cfg.rival_refine:
+            if not h.refined:
+                h = _score(fa, fb, _refine(fa, fb, h.transform, cfg), cfg.match_dist, cfg, h.votes, refined=True)
+                if not _distinct(h.transform, best.transform, fb, cfg):
+                    continue  # it was the best hypothesis, voted off its cell
+            c = _matched_corners(fa, fb, h.transform, cfg, cfg.rival_corner_dist) / n_best
+        r = min(max(0.0, h.score / best.score), c, 1.0)
+        if r > ratio or runner is None:
+            runner, ratio, corner_ratio = h, r, c
+    return runner, ratio, corner_ratio
 
 
 # ------------------------------------------------------------------------------ entry points
@@ -840,11 +931,8 @@ def register_prepared(fa: MapFeatures, fb: MapFeatures, config: RegistrationConf
     # refined score; a coarse score at the coarse gate is an overestimate, which errs on the
     # side of refusing).
     pool = refined[1:] + scored[cfg.refine_candidates:]
-    rivals = [h for h in pool if _distinct(h.transform, best.transform, fb, cfg)]
-    runner = max(rivals, key=lambda h: h.score) if rivals else None
-    ratio = 0.0
-    if runner is not None and runner.score > 0:
-        ratio = runner.score / best.score if best.score > 0 else 1.0
+    rivals = sorted((h for h in pool if _distinct(h.transform, best.transform, fb, cfg)), key=lambda h: -h.score)
+    runner, ratio, corner_ratio = _runner_up(fa, fb, best, rivals, cfg)
     smaller = min(fa.length, fb.length)
     frac = best.support / smaller if smaller > 0 else 0.0
     reason = ""
@@ -875,5 +963,6 @@ def register_prepared(fa: MapFeatures, fb: MapFeatures, config: RegistrationConf
         accepted=reason == "", transform=best.transform, reason=reason, confidence=float(conf),
         support=best.support, support_fraction=float(frac), conflict=best.conflict, rmse=best.rmse,
         cross_support=best.cross_support, runner_up_ratio=float(ratio), best=best, runner_up=runner,
-        hypotheses=n_cands, extra={"corners": float(corners), "self_a": self_a, "self_b": self_b},
+        hypotheses=n_cands,
+        extra={"corners": float(corners), "self_a": self_a, "self_b": self_b, "runner_up_corner_ratio": corner_ratio},
     )
