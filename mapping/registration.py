@@ -217,6 +217,13 @@ class RegistrationConfig:
         Least number of B's real corners that land within ``corner_match_dist`` of a real
         corner of A. One room corner (an L of two walls) looks like every other corner of
         its kind: four were needed to keep the corners of a symmetric ring apart.
+    min_corners_unique : int
+        Least matched corners when the hypothesis is *unique*: its runner-up ratio (corner
+        based, step 6) at most ``unique_runner_up_ratio`` and its support at least twice
+        ``min_support``. Long-walled buildings (halls, museums) have few corners, but a long
+        wall with a corner at each end fixes the translation once no rival keeps its corners.
+    unique_runner_up_ratio : float
+        See ``min_corners_unique``.
     corner_match_dist : float
         Distance within which two real corners match.
     max_self_ratio : float
@@ -276,6 +283,8 @@ class RegistrationConfig:
     min_cross_support: float = 1.5
     max_rmse: float = 0.08
     min_corners: int = 4
+    min_corners_unique: int = 2
+    unique_runner_up_ratio: float = 0.5
     corner_match_dist: float = 0.25
     max_self_ratio: float = 0.75
 
@@ -298,7 +307,8 @@ class RegistrationConfig:
                 raise ValueError(f"RegistrationConfig.{name} must be >= 1")
         if int(self.rival_refine) < 0:
             raise ValueError("RegistrationConfig.rival_refine must be >= 0")
-        for name in ("rotation_peak_ratio", "min_support_fraction", "max_runner_up_ratio", "displaced_weight"):
+        for name in ("rotation_peak_ratio", "min_support_fraction", "max_runner_up_ratio", "displaced_weight",
+                     "unique_runner_up_ratio"):
             v = getattr(self, name)
             if not 0.0 <= v <= 1.0:
                 raise ValueError(f"RegistrationConfig.{name} must be within [0, 1], got {v!r}")
@@ -950,8 +960,10 @@ def register_prepared(fa: MapFeatures, fb: MapFeatures, config: RegistrationConf
         reason = f"residual too large ({best.rmse:.3f} m)"
     corners = _matched_corners(fa, fb, best.transform, cfg)
     self_a = self_b = 0.0
-    if not reason and corners < cfg.min_corners:
-        reason = f"too few matched corners ({corners} < {cfg.min_corners})"
+    unique = ratio <= cfg.unique_runner_up_ratio and best.support >= 2.0 * cfg.min_support
+    need = min(cfg.min_corners, cfg.min_corners_unique) if unique else cfg.min_corners
+    if not reason and corners < need:
+        reason = f"too few matched corners ({corners} < {need})"
     if not reason:
         ib, ia = _match(fa, fb, best.transform, cfg.match_dist, cfg)
         self_a = _self_ratio(fa, ia, cfg)
