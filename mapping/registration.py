@@ -155,6 +155,10 @@ class RegistrationConfig:
         Translation vote grid cell.
     vote_weight_cap : float
         Largest vote of one wall-end pair (metres of wall).
+    coarse_vote_pairs, coarse_vote_factor, coarse_vote_cells : int
+        A rotation with more wall-end pairs than ``coarse_vote_pairs`` votes first on cells
+        ``coarse_vote_factor`` times larger; only the proposals in the ``coarse_vote_cells``
+        strongest coarse cells and their neighbours vote on the fine grid (cost).
     peaks_per_rotation : int
         Candidate translations kept per rotation hypothesis.
     peak_separation : float
@@ -254,6 +258,9 @@ class RegistrationConfig:
     feature_angle_tol: float = math.radians(6.0)
     vote_cell: float = 0.3
     vote_weight_cap: float = 4.0
+    coarse_vote_pairs: int = 4000
+    coarse_vote_factor: int = 4
+    coarse_vote_cells: int = 48
     peaks_per_rotation: int = 6
     peak_separation: float = 1.0
     verify_candidates: int = 16
@@ -301,7 +308,7 @@ class RegistrationConfig:
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0):
                 raise ValueError(f"RegistrationConfig.{name} must be >= 0, got {v!r}")
-        for name in ("max_samples", "direction_bins", "max_rotations", "peaks_per_rotation", "verify_candidates",
+        for name in ("coarse_vote_pairs", "coarse_vote_factor", "coarse_vote_cells", "max_samples", "direction_bins", "max_rotations", "peaks_per_rotation", "verify_candidates",
                      "refine_candidates", "refine_iterations"):
             if int(getattr(self, name)) < 1:
                 raise ValueError(f"RegistrationConfig.{name} must be >= 1")
@@ -602,6 +609,35 @@ def _angle_pairs(
     return ia[ok], ib[ok]
 
 
+def _coarse_select(
+    tx: FloatArray, ty: FloatArray, wv: FloatArray, cfg: RegistrationConfig
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """The proposals in the strongest cells of a coarse vote (and their neighbours).
+
+    Large maps propose tens of thousands of translations per rotation over a grid of millions of
+    cells. A vote on cells ``coarse_vote_factor`` times larger (a grid that many squared times
+    smaller, no bilinear split) finds where the peaks are: a fine peak's votes all fall in its
+    coarse cell or a neighbour, so keeping the proposals of the ``coarse_vote_cells`` strongest
+    coarse cells and their eight neighbours loses no peak that could be among the strongest.
+    """
+    size = cfg.vote_cell * cfg.coarse_vote_factor
+    cx = np.floor(tx / size).astype(np.int64)
+    cy = np.floor(ty / size).astype(np.int64)
+    cx -= cx.min() - 1
+    cy -= cy.min() - 1
+    ny = int(cy.max()) + 2
+    key = cx * ny + cy
+    grid = np.bincount(key, weights=wv, minlength=(int(cx.max()) + 2) * ny)
+    k = min(cfg.coarse_vote_cells, len(grid) - 1)
+    strong = np.argpartition(-grid, k)[:k]
+    keep = np.zeros(len(grid), dtype=bool)
+    for dx in (-1, 0, 1):
+        for dy in (-1, 0, 1):
+            keep[np.clip(strong + dx * ny + dy, 0, len(grid) - 1)] = True
+    sel = keep[key]
+    return tx[sel], ty[sel], wv[sel]
+
+
 def _vote(
     fa: MapFeatures, fb: MapFeatures, theta: float, cfg: RegistrationConfig
 ) -> list[tuple[FloatArray, float]]:
@@ -620,6 +656,8 @@ def _vote(
     tx = pa[:, 0] - (c * pb[:, 0] - s * pb[:, 1])
     ty = pa[:, 1] - (s * pb[:, 0] + c * pb[:, 1])
     wv = np.minimum(np.minimum(fa.end_weights[ia], fb.end_weights[ib]), cfg.vote_weight_cap)
+    if len(wv) > cfg.coarse_vote_pairs:
+        tx, ty, wv = _coarse_select(tx, ty, wv, cfg)
     gx, gy = tx / cfg.vote_cell, ty / cfg.vote_cell
     x0, y0 = np.floor(gx).astype(np.int64), np.floor(gy).astype(np.int64)
     fx, fy = gx - x0, gy - y0
@@ -630,7 +668,7 @@ def _vote(
     vals = np.concatenate([wv * (1 - fx) * (1 - fy), wv * fx * (1 - fy), wv * (1 - fx) * fy, wv * fx * fy])
     nx = int(x0.max()) - xmin + 2
     top = 50 * cfg.peaks_per_rotation
-    if nx * ny <= 4_000_000:
+    if nx * ny <= min(4_000_000, 16 * len(keys)):
         # Dense accumulation (a bincount is much cheaper than sorting the keys).
         grid = np.bincount(keys, weights=vals, minlength=nx * ny)
         uk = np.flatnonzero(grid)
@@ -699,7 +737,7 @@ def _conflict_one(fp: MapFeatures, fw: MapFeatures, T: Pose, cfg: RegistrationCo
     sel, q = sel[hit], q[hit]
     w = fw.conflict_weights[sel].copy()
     # A displaced copy of one of fp's walls (same direction, near): drift, not a foreign wall.
-    dist, idx = fp.tree.query(q, k=8, distance_upper_bound=cfg.displaced_dist)
+    dist, idx = fp.tree.query(q, k=4, distance_upper_bound=cfg.displaced_dist)
     ok = np.isfinite(dist)
     idx_c = np.where(ok, idx, 0)
     dirs = fw.directions[sel] @ _rot(T.theta).T
