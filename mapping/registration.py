@@ -855,15 +855,34 @@ def _matched_corners(
     return int(np.isfinite(d).sum())
 
 
+def _matched_ends(fa: MapFeatures, fb: MapFeatures, T: Pose, cfg: RegistrationConfig, dist: float) -> int:
+    """B's wall ends (at real corners) that land, B moved by ``T``, within ``dist`` of a wall end
+    of A of the same role (start or end of its wall) and direction (within twice
+    ``feature_angle_tol``): a corner matched *with its type*. A shift that takes a wall's start
+    corner onto another wall's end corner (sliding along a long wall) matches corners but no
+    ends."""
+    if len(fa.end_points) == 0 or len(fb.end_points) == 0:
+        return 0
+    d, idx = cKDTree(fa.end_points).query(T.apply(fb.end_points), k=4, distance_upper_bound=dist)
+    ok = np.isfinite(d)
+    idx_c = np.where(ok, idx, 0)
+    ok &= fa.end_starts[idx_c] == fb.end_starts[:, None]
+    ang = _wrap(fb.end_angles + T.theta)
+    ok &= np.abs(_wrap(fa.end_angles[idx_c] - ang[:, None])) <= 2.0 * cfg.feature_angle_tol
+    return int(ok.any(axis=1).sum())
+
+
 def _self_ratio(f: MapFeatures, samples: IntArray, cfg: RegistrationConfig) -> float:
     """Self-similarity of the part of ``f``'s map whose wall samples are ``samples``.
 
     The part (its edges) is registered onto the whole map by the same rotation and vote steps;
     each hypothesis distinct from the identity that puts no wall on seen-free space is counted by
-    the part's real corners that land on real corners of the map. Corners, not wall length:
-    sliding a long wall along itself keeps most of its length matched in any rectilinear
-    building, while a shift that maps most corners onto corners means a repeated structure.
-    Returns the best count over the part's corner count (0 when the part has no corner).
+    the part's wall ends that land on wall ends of the map of the same role and direction
+    (:func:`_matched_ends`). Typed corners, not wall length: sliding a long wall along itself
+    keeps most of its length matched in any rectilinear building (and takes a start corner onto
+    some end corner), while a shift that maps most corners onto corners of their own kind means
+    a repeated structure. Returns the best count over the part's wall-end count (0 when the
+    part has no real corner).
     """
     mask = np.zeros(f.wireframe.n_edges, dtype=bool)
     mask[f.owner[samples]] = True
@@ -881,13 +900,13 @@ def _self_ratio(f: MapFeatures, samples: IntArray, cfg: RegistrationConfig) -> f
     cands.sort(key=lambda c: -c[0])
     best = 0
     for v, T in cands[: cfg.verify_candidates]:
-        n = _matched_corners(f, region, T, cfg)
+        n = _matched_ends(f, region, T, cfg, cfg.corner_match_dist)
         if n <= best:
             continue
         h = _score(f, region, T, cfg.match_dist, cfg, v)
         if h.conflict <= cfg.max_conflict + cfg.max_conflict_fraction * h.support:
             best = n
-    return best / len(region.corner_points)
+    return best / len(region.end_points)
 
 
 def _runner_up(
@@ -896,8 +915,9 @@ def _runner_up(
     """The best distinct runner-up and its ratio (step 6): ``(runner, ratio, corner_ratio)``.
 
     A rival's *score ratio* is its score over the best's; its *corner ratio* is the number of
-    B's real corners it lands within ``rival_corner_dist`` of A's (looser than the best's
-    ``corner_match_dist``) over the best's count. The ratio of a rival is the smaller of the
+    B's wall ends it lands within ``rival_corner_dist`` of A's wall ends of the same role and
+    direction (:func:`_matched_ends`; looser than the best's ``corner_match_dist``) over the
+    best's count. The ratio of a rival is the smaller of the
     two: a rival sliding along a long wall keeps most of the wall length but loses the corners
     around it, and is no rival; repeated structure keeps both and is. The ``rival_refine``
     strongest rivals (by score) are refined first, so that an unrefined rival's corners are not
@@ -906,7 +926,7 @@ def _runner_up(
     if not rivals or best.score <= 0:
         top = rivals[0] if rivals else None
         return top, (1.0 if top is not None and top.score > 0 else 0.0), 0.0
-    n_best = max(1, _matched_corners(fa, fb, best.transform, cfg))
+    n_best = max(1, _matched_ends(fa, fb, best.transform, cfg, cfg.corner_match_dist))
     runner, ratio, corner_ratio = None, 0.0, 0.0
     for k, h in enumerate(rivals):
         score_ratio = max(0.0, h.score / best.score)
@@ -918,7 +938,7 @@ def _runner_up(
                 h = _score(fa, fb, _refine(fa, fb, h.transform, cfg), cfg.match_dist, cfg, h.votes, refined=True)
                 if not _distinct(h.transform, best.transform, fb, cfg):
                     continue  # it was the best hypothesis, voted off its cell
-            c = _matched_corners(fa, fb, h.transform, cfg, cfg.rival_corner_dist) / n_best
+            c = _matched_ends(fa, fb, h.transform, cfg, cfg.rival_corner_dist) / n_best
         r = min(max(0.0, h.score / best.score), c, 1.0)
         if r > ratio or runner is None:
             runner, ratio, corner_ratio = h, r, c
