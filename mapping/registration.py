@@ -917,29 +917,35 @@ def _runner_up(
     A rival's *score ratio* is its score over the best's; its *corner ratio* is the number of
     B's wall ends it lands within ``rival_corner_dist`` of A's wall ends of the same role and
     direction (:func:`_matched_ends`; looser than the best's ``corner_match_dist``) over the
-    best's count. The ratio of a rival is the smaller of the
-    two: a rival sliding along a long wall keeps most of the wall length but loses the corners
-    around it, and is no rival; repeated structure keeps both and is. The ``rival_refine``
-    strongest rivals (by score) are refined first, so that an unrefined rival's corners are not
-    missed for want of a few centimetres; the others are only counted by score ratio.
+    best's count. The ratio of a rival is the smaller of its corner ratio and the larger of its
+    score ratio and, when it matches more wall than the best, its *support ratio* (conflict
+    ignored: a rival that matches more wall than the best is one, whatever the free-space conflict that
+    lowered its score -- the drift of a filter-built map puts walls on seen-free space). A rival
+    sliding along a long wall keeps most of the wall length but loses the corners around it,
+    and is no rival; repeated structure keeps both and is. The ``rival_refine`` rivals of most
+    support are refined first, so that an unrefined rival's corners are not missed for want of
+    a few centimetres; the others count corners within twice ``rival_corner_dist``.
     """
     if not rivals or best.score <= 0:
         top = rivals[0] if rivals else None
         return top, (1.0 if top is not None and top.score > 0 else 0.0), 0.0
     n_best = max(1, _matched_ends(fa, fb, best.transform, cfg, cfg.corner_match_dist))
     runner, ratio, corner_ratio = None, 0.0, 0.0
-    for k, h in enumerate(rivals):
-        score_ratio = max(0.0, h.score / best.score)
-        if score_ratio <= ratio:
-            break  # sorted by score: no later rival can do better
-        c = 1.0
+    # Strongest rivals by matched wall first: those are refined before their corners count.
+    for k, h in enumerate(sorted(rivals, key=lambda h: -h.support)):
         if k < cfg.rival_refine:
             if not h.refined:
                 h = _score(fa, fb, _refine(fa, fb, h.transform, cfg), cfg.match_dist, cfg, h.votes, refined=True)
                 if not _distinct(h.transform, best.transform, fb, cfg):
                     continue  # it was the best hypothesis, voted off its cell
             c = _matched_ends(fa, fb, h.transform, cfg, cfg.rival_corner_dist) / n_best
-        r = min(max(0.0, h.score / best.score), c, 1.0)
+        else:  # unrefined: a gate twice as loose
+            c = _matched_ends(fa, fb, h.transform, cfg, 2.0 * cfg.rival_corner_dist) / n_best
+        # A rival that matches more wall than the best counts even when its score is low: the
+        # free-space conflict that lowers it may be the drift of a filter-built map, and then
+        # the rival is the truth and the best a coincidence.
+        sup = h.support / best.support if best.support > 0 else 1.0
+        r = min(max(0.0, h.score / best.score, sup if sup >= 1.0 else 0.0), c, 1.0)
         if r > ratio or runner is None:
             runner, ratio, corner_ratio = h, r, c
     return runner, ratio, corner_ratio

@@ -304,3 +304,24 @@ def test_coarse_vote_finds_the_peaks_of_the_full_vote() -> None:
     assert fast.accepted == full.accepted
     assert fast.transform is not None and full.transform is not None
     assert _error(fast.transform, full.transform, b.points.mean(axis=0))[0] <= 0.02
+
+
+def test_a_rival_with_more_wall_is_ambiguous_even_when_it_conflicts() -> None:
+    """A drifted filter map puts the true hypothesis's walls on seen-free space (a low score); a
+    coincidence elsewhere with less wall and no conflict must not win by default."""
+    from mapping.registration import Hypothesis, _runner_up, _score
+
+    rng = np.random.default_rng(15)
+    f = prepare(_noisy(_truth("paper-small"), rng))
+    cfg = RegistrationConfig()
+    true = _score(f, f, Pose.identity(), cfg.match_dist, cfg, 0.0)
+    coincidence = Hypothesis(Pose(30.0, 0.0, 0.0), 0.0, 0.3 * true.support, 0.0, 0.3 * true.support, 0.01, 5.0, True)
+    drifted = Hypothesis(true.transform, 0.0, true.support, 0.5 * true.support, -0.5 * true.support, 0.05, 5.0, True)
+    # The conflicting rival matches more wall and every typed corner: refuse.
+    _, ratio, _ = _runner_up(f, f, coincidence, [drifted], cfg)
+    assert ratio > cfg.max_runner_up_ratio
+    # A conflicting rival with less wall than the best is no rival.
+    weak = Hypothesis(true.transform, 0.0, 0.9 * true.support, 0.5 * true.support, -0.6 * true.support, 0.05, 5.0, True)
+    best = Hypothesis(Pose(30.0, 0.0, 0.0), 0.0, true.support, 0.0, true.support, 0.01, 5.0, True)
+    _, ratio, _ = _runner_up(f, f, best, [weak], cfg)
+    assert ratio < cfg.max_runner_up_ratio
