@@ -213,6 +213,10 @@ class RegistrationConfig:
     rival_corner_dist : float
         Distance within which a runner-up's corners count as matched (looser than
         ``corner_match_dist``: an error here errs towards refusing).
+    rival_min_ends : int
+        The corner ratio of a runner-up is trusted only when the best hypothesis matches at least
+        this many typed wall ends (four full corners): with fewer, one corner more or less swings
+        the ratio, and the score ratio alone decides.
     min_cross_support : float
         Least wall length constraining the weaker translation direction.
     max_rmse : float
@@ -287,6 +291,7 @@ class RegistrationConfig:
     max_runner_up_ratio: float = 0.7
     rival_refine: int = 3
     rival_corner_dist: float = 0.5
+    rival_min_ends: int = 8
     min_cross_support: float = 1.5
     max_rmse: float = 0.08
     min_corners: int = 4
@@ -312,7 +317,7 @@ class RegistrationConfig:
                      "refine_candidates", "refine_iterations"):
             if int(getattr(self, name)) < 1:
                 raise ValueError(f"RegistrationConfig.{name} must be >= 1")
-        if int(self.rival_refine) < 0:
+        if int(self.rival_refine) < 0 or int(self.rival_min_ends) < 0:
             raise ValueError("RegistrationConfig.rival_refine must be >= 0")
         for name in ("rotation_peak_ratio", "min_support_fraction", "max_runner_up_ratio", "displaced_weight",
                      "unique_runner_up_ratio"):
@@ -924,12 +929,15 @@ def _runner_up(
     sliding along a long wall keeps most of the wall length but loses the corners around it,
     and is no rival; repeated structure keeps both and is. The ``rival_refine`` rivals of most
     support are refined first, so that an unrefined rival's corners are not missed for want of
-    a few centimetres; the others count corners within twice ``rival_corner_dist``.
+    a few centimetres; the others count corners within twice ``rival_corner_dist``. When the
+    best matches fewer than ``rival_min_ends`` typed wall ends, the corner ratio is not trusted
+    (one corner swings it) and is taken as 1.
     """
     if not rivals or best.score <= 0:
         top = rivals[0] if rivals else None
         return top, (1.0 if top is not None and top.score > 0 else 0.0), 0.0
     n_best = max(1, _matched_ends(fa, fb, best.transform, cfg, cfg.corner_match_dist))
+    few = n_best < cfg.rival_min_ends
     runner, ratio, corner_ratio = None, 0.0, 0.0
     # Strongest rivals by matched wall first: those are refined before their corners count.
     for k, h in enumerate(sorted(rivals, key=lambda h: -h.support)):
@@ -944,6 +952,8 @@ def _runner_up(
         # A rival that matches more wall than the best counts even when its score is low: the
         # free-space conflict that lowers it may be the drift of a filter-built map, and then
         # the rival is the truth and the best a coincidence.
+        if few:
+            c = 1.0
         sup = h.support / best.support if best.support > 0 else 1.0
         r = min(max(0.0, h.score / best.score, sup if sup >= 1.0 else 0.0), c, 1.0)
         if r > ratio or runner is None:
