@@ -276,7 +276,7 @@ class RegistrationConfig:
     conflict_weight: float = 3.0
     conflict_min_wall: float = 0.5
     frontier_margin: float = 0.5
-    displaced_dist: float = 1.2
+    displaced_dist: float = 0.6
     displaced_weight: float = 0.25
     refine_iterations: int = 6
     huber: float = 0.05
