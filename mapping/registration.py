@@ -39,13 +39,22 @@ Pipeline
    grid; a nominal corner votes twice (once per wall), which favours full corners. The strongest
    cells, at least ``peak_separation`` apart, are the candidate translations
    (``peaks_per_rotation`` per rotation). Both maps are centred on their wall centroid first, so
-   that a small rotation error spreads the votes as little as possible.
+   that a small rotation error spreads the votes as little as possible. With more than
+   ``coarse_vote_pairs`` proposals (large maps), a vote on cells ``coarse_vote_factor`` times
+   larger first picks the ``coarse_vote_cells`` strongest regions; only their proposals vote on
+   the fine grid.
 
 4. **Verification.** The ``verify_candidates`` strongest candidates are scored: B's wall samples
    are moved by the candidate and matched to A's (within ``coarse_match_dist``, same direction
    within ``match_angle``): *support* is the matched wall length. *Conflict* is the wall length of
-   each map that falls onto the other's free probes (within ``conflict_radius``): a wall where the
-   other robot has seen free space, the false-merge guard. The score is ``support -
+   each map that falls onto the other's free probes (within ``conflict_radius``), in both
+   directions (B's walls on A's seen-free space and A's on B's): a wall where the other robot has
+   seen free space, the false-merge guard. What a wall sample weighs in a conflict is made for
+   filter-built maps: its edge's likelihood times its length, nothing for an edge shorter than
+   ``conflict_min_wall`` (clutter, spurious slivers) or within ``frontier_margin`` of a frontier
+   end (where sight of the wall ended, the wall runs on by the filter's drift), and
+   ``displaced_weight`` of it when a wall of the other map of the same direction lies within
+   ``displaced_dist`` (a drifted copy of that wall, not a foreign one). The score is ``support -
    conflict_weight * conflict``.
 
 5. **Refinement.** The ``refine_candidates`` best are refined by iteratively re-matched
@@ -62,18 +71,28 @@ Pipeline
 
    * ``support >= min_support`` metres and ``support >= min_support_fraction`` of the smaller map;
    * ``conflict <= max_conflict + max_conflict_fraction * support``;
-   * ``runner_up_ratio <= max_runner_up_ratio`` (runner-up score over best score, 0 when the
-     runner-up's score is not positive);
+   * ``runner_up_ratio <= max_runner_up_ratio``. A distinct rival's ratio is the smaller of
+     its *corner ratio* (B's wall ends it lands on A's wall ends of the same role and direction,
+     over the best's count; the rivals of most support refined first) and the larger of its
+     score ratio and, when it matches more wall than the best, its support ratio. Corners, not
+     wall length, because a rival sliding along long walls keeps much of their length but not
+     the corners around them; support beyond the best's counts whatever its conflict, because
+     a filter's drift can put the true hypothesis's walls on seen-free space and leave a
+     coincidence the best score. The corner ratio is trusted only when the best matches at
+     least ``rival_min_ends`` typed wall ends;
    * the matched walls constrain translation in every direction: the smaller eigenvalue of
      ``sum(length * n n^T)`` over matched samples (``n`` the wall normal) is at least
      ``min_cross_support`` metres (a corridor seen as two parallel walls does not say where
      along it the other map lies);
    * the RMS point-to-line residual of the matched samples is at most ``max_rmse``;
    * at least ``min_corners`` real corners of B land on real corners of A (one L of two walls
-     looks like every other corner of its kind);
+     looks like every other corner of its kind), or ``min_corners_unique`` when the hypothesis
+     is unique (runner-up ratio at most ``unique_runner_up_ratio``, support at least twice
+     ``min_support``): long-walled halls have few corners;
    * the overlap is not *self-similar*: the part of each map that the other matched, registered
      against its own map, has no hypothesis distinct from the identity that lands more than
-     ``max_self_ratio`` of its corners on corners without conflict. A robot that has itself seen
+     ``max_self_ratio`` of its wall ends on wall ends of the same role and direction without
+     conflict. A robot that has itself seen
      the overlap's structure repeated (identical offices, pillar rows, the sides of a symmetric
      ring) is in a building where the other robot may have seen a *different* copy, which no
      agreement between the two maps can rule out.
@@ -87,9 +106,12 @@ uses the individual gates above, all reported in :class:`Registration`.
 
 Determinism: no randomness at all (exhaustive voting, not RANSAC); ties are broken by index.
 
-Cost (one core, a shared machine): 30-100 ms for maps of 20-80 corners; about 185 ms for two
-220-corner halves of the museum (2.5 km of wall each), most of it in the translation vote (every
-same-direction corner pair of a rectilinear map votes) -- over the 50 ms target for 300 corners.
+Cost (CPU time of one process on a shared 2-core machine, ``time.process_time``): about 30 ms
+(median) for the bench's map pairs; about 100 ms for two 228-corner halves of the museum and
+170-180 ms for two 281-corner halves (2.5 km of wall each) -- over the 50 ms target for 300
+corners. The time goes to the translation vote (every same-direction wall-end pair of a
+rectilinear map votes; the coarse vote bounds the fine grid), the self-similarity check of an
+accepted match (step 6, a vote of the overlap against each whole map) and the scoring.
 :func:`prepare` is a small part and can be cached per map.
 """
 

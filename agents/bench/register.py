@@ -18,6 +18,18 @@ Map pairs
   merged at the *true* poses (``*.truth.tsv``) with :func:`mapping.merge.merge`. A small loader
   reads the FLASER lines only (the project reader rejects these logs' ``PARAM`` lines for now).
   Their overlap is measured on the maps themselves (matched wall length at the true transform).
+* **Filter-built maps** (``--maps filter``): per world (and per CARMEN log), ``--stretches``
+  stretches in overlapping pairs; each robot's map is built by a :class:`mapping.filter.WireframeFilter`
+  (the world's paper settings; 6 particles and 0.2 m on a log) fed by
+  :func:`agents.mapping_run.simulate` along the stretch (:func:`agents.mapping_run.carmen_inputs`
+  on a log), starting at the identity, exactly as a fleet robot. The maps are built once per
+  world, seed and count and cached as JSON (``--cache``; building all of them takes tens of
+  minutes on a loaded machine, ``--jobs`` builds in parallel); a pair is two of them turned by
+  random headings. A filter map drifts, so the transform between the two start poses misplaces
+  the far walls: the truth is the *local truth* (:func:`local_truth`, the start-pose truth
+  refined on the two maps' walls with a gate from 1.5 m down), and ``false_merges_start_truth``
+  counts against the start poses too. Overlap: on the true walls seen from the stretch's true
+  poses (simulated), on the maps at the start-pose truth within 0.3 m (logs).
 * **Cross pairs**: two maps from two different worlds (or logs). Any acceptance is a false merge.
 
 Measures
@@ -29,6 +41,11 @@ Measures
 * *false merge*: accepted and (a cross pair, or an error above 0.5 m or 2 degrees). Accepted
   within those but outside 0.10 m / 1 degree is counted as *imprecise*.
 * time per attempt: :func:`mapping.registration.register` including the per-map preparation.
+* *ambiguous by geometry* (simulated pairs of at least 30 % overlap, :func:`truth_ambiguous`):
+  the true walls both robots saw recur, noise-free, elsewhere in what one robot saw (the sides
+  of a symmetric ring, a featureless hall). No registration can tell the copies apart, so these
+  pairs are reported apart: ``success_rate_overlap_ge_30_unambiguous`` leaves them out (and
+  ``success_rate_overlap_ge_30`` keeps them); a wrong acceptance of one is still a false merge.
 
 Prints a table by overlap band and, with ``--json``, one JSON object on the last line.
 """
