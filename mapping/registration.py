@@ -88,7 +88,7 @@ Pipeline
    * at least ``min_corners`` real corners of B land on real corners of A (one L of two walls
      looks like every other corner of its kind), or ``min_corners_unique`` when the hypothesis
      is unique (runner-up ratio at most ``unique_runner_up_ratio``, support at least twice
-     ``min_support``): long-walled halls have few corners;
+     ``min_support``; off by default, see :class:`RegistrationConfig`);
    * the overlap is not *self-similar*: the part of each map that the other matched, registered
      against its own map, has no hypothesis distinct from the identity that lands more than
      ``max_self_ratio`` of its wall ends on wall ends of the same role and direction without
@@ -252,6 +252,9 @@ class RegistrationConfig:
         based, step 6) at most ``unique_runner_up_ratio`` and its support at least twice
         ``min_support``. Long-walled buildings (halls, museums) have few corners, but a long
         wall with a corner at each end fixes the translation once no rival keeps its corners.
+        Off by default (equal to ``min_corners``): at 2 the benchmark merged two disjoint,
+        congruent quarters of a symmetric ring (each robot saw one copy, so nothing in either
+        map is ambiguous), the false merge that ``min_corners`` is there for.
     unique_runner_up_ratio : float
         See ``min_corners_unique``.
     corner_match_dist : float
@@ -317,7 +320,7 @@ class RegistrationConfig:
     min_cross_support: float = 1.5
     max_rmse: float = 0.08
     min_corners: int = 4
-    min_corners_unique: int = 2
+    min_corners_unique: int = 4
     unique_runner_up_ratio: float = 0.5
     corner_match_dist: float = 0.25
     max_self_ratio: float = 0.75

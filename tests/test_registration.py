@@ -325,3 +325,24 @@ def test_a_rival_with_more_wall_is_ambiguous_even_when_it_conflicts() -> None:
     best = Hypothesis(Pose(30.0, 0.0, 0.0), 0.0, true.support, 0.0, true.support, 0.01, 5.0, True)
     _, ratio, _ = _runner_up(f, f, best, [weak], cfg)
     assert ratio < cfg.max_runner_up_ratio
+
+
+def _ring_corner(turn: float) -> Wireframe:
+    """The north-east corner of a square ring corridor (80 m outer, 4 m wide) seen 35 m down
+    both arms, turned by ``turn`` about the ring's centre: two real corners, four frontiers."""
+    fr, no = Label.FRONTIER, Label.NOMINAL
+    pts = [(80, 45), (80, 80), (45, 80), (45, 76), (76, 76), (76, 45)]
+    wf = Wireframe.build(pts, [(0, 1), (1, 2), (3, 4), (4, 5)], labels=[fr, no, fr, fr, no, fr])
+    centre = Pose(40.0, 40.0, 0.0)
+    return wf.transformed(centre.compose(Pose(0.0, 0.0, turn)).compose(centre.inverse()))
+
+
+def test_disjoint_congruent_parts_of_a_symmetric_ring_are_refused() -> None:
+    """Two robots in opposite, congruent corners of a symmetric ring share no wall: 70 m of wall
+    match perfectly with two corners, which must not be enough (each robot saw one copy, so no
+    self-similarity shows). Accepted with ``min_corners_unique=2``: why it is off by default."""
+    rng = np.random.default_rng(16)
+    a = _noisy(_ring_corner(0.0), rng)
+    b = _noisy(_ring_corner(math.pi), rng).transformed(Pose(4.0, -2.0, 0.3))
+    assert not register(a, b).accepted
+    assert register(a, b, RegistrationConfig(min_corners_unique=2)).accepted
