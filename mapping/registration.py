@@ -95,7 +95,8 @@ Pipeline
      conflict. A robot that has itself seen
      the overlap's structure repeated (identical offices, pillar rows, the sides of a symmetric
      ring) is in a building where the other robot may have seen a *different* copy, which no
-     agreement between the two maps can rule out.
+     agreement between the two maps can rule out. With a runner-up ratio above
+     ``contested_runner_up_ratio`` the limit is ``contested_self_ratio``.
 
 Confidence
 ----------
@@ -267,6 +268,12 @@ class RegistrationConfig:
         sides of a symmetric ring) lives in a repetitive building, where the other robot may
         well have seen a *different* copy: no amount of agreement between the two maps can
         tell which (step 6 of the module docstring).
+    contested_self_ratio, contested_runner_up_ratio : float
+        When the runner-up ratio exceeds ``contested_runner_up_ratio`` (a rival half as good),
+        the largest accepted self-similarity is ``contested_self_ratio`` instead: two
+        half-strength signs of repetition together refuse (the benchmark's filter-built maps of
+        two identical offices matched at 97 % of the smaller map, the rival at 58 %, the
+        overlap recurring within each map at 59 %).
 
     Raises
     ------
@@ -324,6 +331,8 @@ class RegistrationConfig:
     unique_runner_up_ratio: float = 0.5
     corner_match_dist: float = 0.25
     max_self_ratio: float = 0.75
+    contested_self_ratio: float = 0.5
+    contested_runner_up_ratio: float = 0.5
 
     def __post_init__(self) -> None:
         for name in ("sample_spacing", "free_clearance", "direction_smooth", "feature_angle_tol",
@@ -345,7 +354,7 @@ class RegistrationConfig:
         if int(self.rival_refine) < 0 or int(self.rival_min_ends) < 0:
             raise ValueError("RegistrationConfig.rival_refine must be >= 0")
         for name in ("rotation_peak_ratio", "min_support_fraction", "max_runner_up_ratio", "displaced_weight",
-                     "unique_runner_up_ratio"):
+                     "unique_runner_up_ratio", "contested_self_ratio", "contested_runner_up_ratio"):
             v = getattr(self, name)
             if not 0.0 <= v <= 1.0:
                 raise ValueError(f"RegistrationConfig.{name} must be within [0, 1], got {v!r}")
@@ -1067,7 +1076,8 @@ def register_prepared(fa: MapFeatures, fb: MapFeatures, config: RegistrationConf
         ib, ia = _match(fa, fb, best.transform, cfg.match_dist, cfg)
         self_a = _self_ratio(fa, ia, cfg)
         self_b = _self_ratio(fb, ib, cfg)
-        if max(self_a, self_b) > cfg.max_self_ratio:
+        limit = cfg.contested_self_ratio if ratio > cfg.contested_runner_up_ratio else cfg.max_self_ratio
+        if max(self_a, self_b) > limit:
             reason = f"repetitive: the overlap recurs within one map ({max(self_a, self_b):.0%})"
     conf = max(0.0, 1.0 - ratio) * best.support / (best.support + cfg.min_support) if best.support > 0 else 0.0
     return Registration(
