@@ -346,3 +346,24 @@ def test_disjoint_congruent_parts_of_a_symmetric_ring_are_refused() -> None:
     b = _noisy(_ring_corner(math.pi), rng).transformed(Pose(4.0, -2.0, 0.3))
     assert not register(a, b).accepted
     assert register(a, b, RegistrationConfig(min_corners_unique=2)).accepted
+
+
+def test_contested_matches_refuse_at_half_the_self_similarity() -> None:
+    """Identical offices: whenever a rival is more than half as good, an accepted match has an
+    overlap that recurs within neither map at more than ``contested_self_ratio``; a distinctive
+    map (paper-small) still registers."""
+    rng = np.random.default_rng(17)
+    office = _truth("office")
+    cfg = RegistrationConfig()
+    move = Pose(-3.0, 40.0, -1.0)
+    for lo_a, hi_a, lo_b, hi_b in [(0, 16, 9, 26), (0, 30, 6, 19), (5, 21, 0, 14), (0, 22, 0, 22)]:
+        res = register(_noisy(_crop(office, lo_a, hi_a), rng), _noisy(_crop(office, lo_b, hi_b), rng).transformed(move))
+        if res.accepted and res.runner_up_ratio > cfg.contested_runner_up_ratio:
+            assert max(res.extra["self_a"], res.extra["self_b"]) <= cfg.contested_self_ratio
+    # Every match contested: paper-small's overlap recurs at about 10 % (a room corner or two).
+    a = _noisy(_truth("paper-small"), rng)
+    b = _noisy(_truth("paper-small"), rng).transformed(move)
+    res = register(a, b, RegistrationConfig(contested_self_ratio=0.2, contested_runner_up_ratio=0.0))
+    assert res.accepted, res.reason
+    res = register(a, b, RegistrationConfig(contested_self_ratio=0.05, contested_runner_up_ratio=0.0))
+    assert not res.accepted and res.reason.startswith("repetitive")
