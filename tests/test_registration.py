@@ -263,10 +263,10 @@ def test_a_drifted_copy_of_a_wall_is_discounted_a_foreign_wall_is_not() -> None:
     from mapping.registration import _conflict
 
     room = Wireframe.from_polylines([[(0, 0), (10, 0), (10, 8), (0, 8)]])
-    fa = prepare(room)
-    cfg = RegistrationConfig()
-    drifted = prepare(Wireframe.build([(2.0, 0.5), (8.0, 0.5)], [(0, 1)]))
-    foreign = prepare(Wireframe.build([(2.0, 0.5), (8.0, 0.5)], [(1, 0)]))  # reversed: faces the wall
+    cfg = RegistrationConfig(displaced_weight=0.25)  # off by default (see RegistrationConfig)
+    fa = prepare(room, cfg)
+    drifted = prepare(Wireframe.build([(2.0, 0.5), (8.0, 0.5)], [(0, 1)]), cfg)
+    foreign = prepare(Wireframe.build([(2.0, 0.5), (8.0, 0.5)], [(1, 0)]), cfg)  # reversed: faces the wall
     d, f = _conflict(fa, drifted, Pose.identity(), cfg), _conflict(fa, foreign, Pose.identity(), cfg)
     assert f >= 5.0
     assert d <= cfg.displaced_weight * f + 1e-9
