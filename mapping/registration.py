@@ -39,13 +39,22 @@ Pipeline
    grid; a nominal corner votes twice (once per wall), which favours full corners. The strongest
    cells, at least ``peak_separation`` apart, are the candidate translations
    (``peaks_per_rotation`` per rotation). Both maps are centred on their wall centroid first, so
-   that a small rotation error spreads the votes as little as possible.
+   that a small rotation error spreads the votes as little as possible. With more than
+   ``coarse_vote_pairs`` proposals (large maps), a vote on cells ``coarse_vote_factor`` times
+   larger first picks the ``coarse_vote_cells`` strongest regions; only their proposals vote on
+   the fine grid.
 
 4. **Verification.** The ``verify_candidates`` strongest candidates are scored: B's wall samples
    are moved by the candidate and matched to A's (within ``coarse_match_dist``, same direction
    within ``match_angle``): *support* is the matched wall length. *Conflict* is the wall length of
-   each map that falls onto the other's free probes (within ``conflict_radius``): a wall where the
-   other robot has seen free space, the false-merge guard. The score is ``support -
+   each map that falls onto the other's free probes (within ``conflict_radius``), in both
+   directions (B's walls on A's seen-free space and A's on B's): a wall where the other robot has
+   seen free space, the false-merge guard. What a wall sample weighs in a conflict is made for
+   filter-built maps: its edge's likelihood times its length, nothing for an edge shorter than
+   ``conflict_min_wall`` (clutter, spurious slivers) or within ``frontier_margin`` of a frontier
+   end (where sight of the wall ended, the wall runs on by the filter's drift), and
+   ``displaced_weight`` of it when a wall of the other map of the same direction lies within
+   ``displaced_dist`` (a drifted copy of that wall, not a foreign one). The score is ``support -
    conflict_weight * conflict``.
 
 5. **Refinement.** The ``refine_candidates`` best are refined by iteratively re-matched
@@ -62,21 +71,32 @@ Pipeline
 
    * ``support >= min_support`` metres and ``support >= min_support_fraction`` of the smaller map;
    * ``conflict <= max_conflict + max_conflict_fraction * support``;
-   * ``runner_up_ratio <= max_runner_up_ratio`` (runner-up score over best score, 0 when the
-     runner-up's score is not positive);
+   * ``runner_up_ratio <= max_runner_up_ratio``. A distinct rival's ratio is the smaller of
+     its *corner ratio* (B's wall ends it lands on A's wall ends of the same role and direction,
+     over the best's count; the rivals of most support refined first) and the larger of its
+     score ratio and, when it matches more wall than the best, its support ratio. Corners, not
+     wall length, because a rival sliding along long walls keeps much of their length but not
+     the corners around them; support beyond the best's counts whatever its conflict, because
+     a filter's drift can put the true hypothesis's walls on seen-free space and leave a
+     coincidence the best score. The corner ratio is trusted only when the best matches at
+     least ``rival_min_ends`` typed wall ends;
    * the matched walls constrain translation in every direction: the smaller eigenvalue of
      ``sum(length * n n^T)`` over matched samples (``n`` the wall normal) is at least
      ``min_cross_support`` metres (a corridor seen as two parallel walls does not say where
      along it the other map lies);
    * the RMS point-to-line residual of the matched samples is at most ``max_rmse``;
    * at least ``min_corners`` real corners of B land on real corners of A (one L of two walls
-     looks like every other corner of its kind);
+     looks like every other corner of its kind), or ``min_corners_unique`` when the hypothesis
+     is unique (runner-up ratio at most ``unique_runner_up_ratio``, support at least twice
+     ``min_support``; off by default, see :class:`RegistrationConfig`);
    * the overlap is not *self-similar*: the part of each map that the other matched, registered
      against its own map, has no hypothesis distinct from the identity that lands more than
-     ``max_self_ratio`` of its corners on corners without conflict. A robot that has itself seen
+     ``max_self_ratio`` of its corners on corners (or of its wall ends on wall ends of the same
+     role and direction) without conflict. A robot that has itself seen
      the overlap's structure repeated (identical offices, pillar rows, the sides of a symmetric
      ring) is in a building where the other robot may have seen a *different* copy, which no
-     agreement between the two maps can rule out.
+     agreement between the two maps can rule out. With a runner-up ratio above
+     ``contested_runner_up_ratio`` the limit is ``contested_self_ratio``.
 
 Confidence
 ----------
@@ -87,9 +107,12 @@ uses the individual gates above, all reported in :class:`Registration`.
 
 Determinism: no randomness at all (exhaustive voting, not RANSAC); ties are broken by index.
 
-Cost (one core, a shared machine): 30-100 ms for maps of 20-80 corners; about 185 ms for two
-220-corner halves of the museum (2.5 km of wall each), most of it in the translation vote (every
-same-direction corner pair of a rectilinear map votes) -- over the 50 ms target for 300 corners.
+Cost (CPU time of one process on a shared 2-core machine, ``time.process_time``): about 30 ms
+(median) for the bench's map pairs; about 100 ms for two 228-corner halves of the museum and
+170-180 ms for two 281-corner halves (2.5 km of wall each) -- over the 50 ms target for 300
+corners. The time goes to the translation vote (every same-direction wall-end pair of a
+rectilinear map votes; the coarse vote bounds the fine grid), the self-similarity check of an
+accepted match (step 6, a vote of the overlap against each whole map) and the scoring.
 :func:`prepare` is a small part and can be cached per map.
 """
 
@@ -155,6 +178,10 @@ class RegistrationConfig:
         Translation vote grid cell.
     vote_weight_cap : float
         Largest vote of one wall-end pair (metres of wall).
+    coarse_vote_pairs, coarse_vote_factor, coarse_vote_cells : int
+        A rotation with more wall-end pairs than ``coarse_vote_pairs`` votes first on cells
+        ``coarse_vote_factor`` times larger; only the proposals in the ``coarse_vote_cells``
+        strongest coarse cells and their neighbours vote on the fine grid (cost).
     peaks_per_rotation : int
         Candidate translations kept per rotation hypothesis.
     peak_separation : float
@@ -171,6 +198,18 @@ class RegistrationConfig:
         A wall sample this close to a free probe of the other map is in conflict.
     conflict_weight : float
         Weight of conflicting wall length in the score.
+    conflict_min_wall : float
+        Walls shorter than this never conflict (clutter and the filter's spurious slivers).
+    frontier_margin : float
+        Wall within this of a frontier end of its edge never conflicts: a frontier is where
+        sight of the wall ended, and a filter-built map's wall runs on there by up to its drift.
+    displaced_dist, displaced_weight : float
+        A conflicting wall sample with a wall of the other map of its direction (within twice
+        ``match_angle``) within ``displaced_dist`` is a *displaced* copy of that wall (the drift
+        of a filter-built map), not a foreign wall: it counts ``displaced_weight`` of its length.
+        Off by default (1.0): at 0.25 the benchmark merged a warehouse map with a CARMEN
+        seattle map (cross-world) and two edmonton filter maps 0.9 m off, a corridor shifted
+        along itself looks like drift.
     refine_iterations : int
         Point-to-line iterations of the refinement.
     huber : float
@@ -193,7 +232,17 @@ class RegistrationConfig:
         Largest accepted conflict: ``max_conflict + max_conflict_fraction * support`` (the
         constant absorbs clutter and corner noise of real maps).
     max_runner_up_ratio : float
-        Largest accepted ratio of the best distinct runner-up's score to the best score.
+        Largest accepted runner-up ratio: over the distinct hypotheses, the smaller of its score
+        ratio and its corner ratio (module docstring, step 6).
+    rival_refine : int
+        Distinct runner-ups (by score) refined before their corners are counted.
+    rival_corner_dist : float
+        Distance within which a runner-up's corners count as matched (looser than
+        ``corner_match_dist``: an error here errs towards refusing).
+    rival_min_ends : int
+        The corner ratio of a runner-up is trusted only when the best hypothesis matches at least
+        this many typed wall ends (four full corners): with fewer, one corner more or less swings
+        the ratio, and the score ratio alone decides.
     min_cross_support : float
         Least wall length constraining the weaker translation direction.
     max_rmse : float
@@ -202,6 +251,16 @@ class RegistrationConfig:
         Least number of B's real corners that land within ``corner_match_dist`` of a real
         corner of A. One room corner (an L of two walls) looks like every other corner of
         its kind: four were needed to keep the corners of a symmetric ring apart.
+    min_corners_unique : int
+        Least matched corners when the hypothesis is *unique*: its runner-up ratio (corner
+        based, step 6) at most ``unique_runner_up_ratio`` and its support at least twice
+        ``min_support``. Long-walled buildings (halls, museums) have few corners, but a long
+        wall with a corner at each end fixes the translation once no rival keeps its corners.
+        Off by default (equal to ``min_corners``): at 2 the benchmark merged two disjoint,
+        congruent quarters of a symmetric ring (each robot saw one copy, so nothing in either
+        map is ambiguous), the false merge that ``min_corners`` is there for.
+    unique_runner_up_ratio : float
+        See ``min_corners_unique``.
     corner_match_dist : float
         Distance within which two real corners match.
     max_self_ratio : float
@@ -212,6 +271,12 @@ class RegistrationConfig:
         sides of a symmetric ring) lives in a repetitive building, where the other robot may
         well have seen a *different* copy: no amount of agreement between the two maps can
         tell which (step 6 of the module docstring).
+    contested_self_ratio, contested_runner_up_ratio : float
+        When the runner-up ratio exceeds ``contested_runner_up_ratio`` (a rival half as good),
+        the largest accepted self-similarity is ``contested_self_ratio`` instead: two
+        half-strength signs of repetition together refuse (the benchmark's filter-built maps of
+        two identical offices matched at 97 % of the smaller map, the rival at 58 %, the
+        overlap recurring within each map at 59 %).
 
     Raises
     ------
@@ -232,6 +297,9 @@ class RegistrationConfig:
     feature_angle_tol: float = math.radians(6.0)
     vote_cell: float = 0.3
     vote_weight_cap: float = 4.0
+    coarse_vote_pairs: int = 4000
+    coarse_vote_factor: int = 4
+    coarse_vote_cells: int = 48
     peaks_per_rotation: int = 6
     peak_separation: float = 1.0
     verify_candidates: int = 16
@@ -241,6 +309,10 @@ class RegistrationConfig:
     match_angle: float = math.radians(15.0)
     conflict_radius: float = 0.2
     conflict_weight: float = 3.0
+    conflict_min_wall: float = 0.5
+    frontier_margin: float = 0.5
+    displaced_dist: float = 0.6
+    displaced_weight: float = 1.0
     refine_iterations: int = 6
     huber: float = 0.05
     use_icp: bool = True
@@ -252,30 +324,40 @@ class RegistrationConfig:
     max_conflict: float = 0.5
     max_conflict_fraction: float = 0.05
     max_runner_up_ratio: float = 0.7
+    rival_refine: int = 3
+    rival_corner_dist: float = 0.5
+    rival_min_ends: int = 8
     min_cross_support: float = 1.5
     max_rmse: float = 0.08
     min_corners: int = 4
+    min_corners_unique: int = 4
+    unique_runner_up_ratio: float = 0.5
     corner_match_dist: float = 0.25
     max_self_ratio: float = 0.75
+    contested_self_ratio: float = 0.55
+    contested_runner_up_ratio: float = 0.55
 
     def __post_init__(self) -> None:
         for name in ("sample_spacing", "free_clearance", "direction_smooth", "feature_angle_tol",
                      "vote_cell", "vote_weight_cap", "peak_separation", "coarse_match_dist",
                      "match_dist", "match_angle", "conflict_radius", "huber", "distinct_translation",
-                     "distinct_rotation", "max_rmse"):
+                     "distinct_rotation", "max_rmse", "displaced_dist", "rival_corner_dist"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
                 raise ValueError(f"RegistrationConfig.{name} must be a positive number, got {v!r}")
         for name in ("min_wall", "probe_end_margin", "conflict_weight", "min_support", "max_conflict",
-                     "max_conflict_fraction", "min_cross_support"):
+                     "max_conflict_fraction", "min_cross_support", "conflict_min_wall", "frontier_margin"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0):
                 raise ValueError(f"RegistrationConfig.{name} must be >= 0, got {v!r}")
-        for name in ("max_samples", "direction_bins", "max_rotations", "peaks_per_rotation", "verify_candidates",
+        for name in ("coarse_vote_pairs", "coarse_vote_factor", "coarse_vote_cells", "max_samples", "direction_bins", "max_rotations", "peaks_per_rotation", "verify_candidates",
                      "refine_candidates", "refine_iterations"):
             if int(getattr(self, name)) < 1:
                 raise ValueError(f"RegistrationConfig.{name} must be >= 1")
-        for name in ("rotation_peak_ratio", "min_support_fraction", "max_runner_up_ratio"):
+        if int(self.rival_refine) < 0 or int(self.rival_min_ends) < 0:
+            raise ValueError("RegistrationConfig.rival_refine must be >= 0")
+        for name in ("rotation_peak_ratio", "min_support_fraction", "max_runner_up_ratio", "displaced_weight",
+                     "unique_runner_up_ratio", "contested_self_ratio", "contested_runner_up_ratio"):
             v = getattr(self, name)
             if not 0.0 <= v <= 1.0:
                 raise ValueError(f"RegistrationConfig.{name} must be within [0, 1], got {v!r}")
@@ -320,6 +402,9 @@ class MapFeatures:
         Index of each sample's edge in ``wireframe``.
     corner_points : (c, 2)
         Vertices at real corners (nominal or occlusion) that end an edge of at least ``min_wall``.
+    conflict_weights : (k,)
+        Wall length per sample as it counts in a conflict: times its edge's likelihood, 0 on
+        edges shorter than ``conflict_min_wall`` and within ``frontier_margin`` of a frontier.
     """
 
     wireframe: Wireframe
@@ -339,6 +424,7 @@ class MapFeatures:
     length: float
     owner: IntArray
     corner_points: FloatArray
+    conflict_weights: FloatArray
 
 
 @dataclass(frozen=True)
@@ -476,6 +562,12 @@ def prepare(wf: Wireframe, config: RegistrationConfig | None = None) -> MapFeatu
     end_angles = np.concatenate([ang[s_ok], ang[e_ok]])
     end_starts = np.concatenate([np.ones(int(s_ok.sum()), bool), np.zeros(int(e_ok.sum()), bool)])
     end_weights = np.concatenate([ln[s_ok], ln[e_ok]])
+    # What a sample weighs in a conflict (likelihood, short walls, frontier ends).
+    front = int(Label.FRONTIER)
+    s_fr = wf.labels[edges[:, 0]] == front if len(edges) else np.zeros(0, bool)
+    e_fr = wf.labels[edges[:, 1]] == front if len(edges) else np.zeros(0, bool)
+    near_fr = (s_fr[owner] & (along < cfg.frontier_margin)) | (e_fr[owner] & (ln[owner] - along < cfg.frontier_margin))
+    cw = w * wf.likelihood[kept][owner] * (ln[owner] >= cfg.conflict_min_wall) * ~near_fr
     used = np.unique(np.concatenate([edges[s_ok, 0], edges[e_ok, 1]]))
     corner_points = np.asarray(wf.points[used], dtype=np.float64).reshape(-1, 2)
     # Direction histogram, circularly smoothed.
@@ -495,6 +587,7 @@ def prepare(wf: Wireframe, config: RegistrationConfig | None = None) -> MapFeatu
         weights=w, tree=tree, probes=probes, probe_tree=probe_tree, end_points=end_points,
         end_angles=end_angles, end_starts=end_starts, end_weights=end_weights, histogram=hist, length=total,
         owner=kept[owner].astype(np.int64), corner_points=corner_points,
+        conflict_weights=np.asarray(cw, dtype=np.float64),
     )
 
 
@@ -558,6 +651,35 @@ def _angle_pairs(
     return ia[ok], ib[ok]
 
 
+def _coarse_select(
+    tx: FloatArray, ty: FloatArray, wv: FloatArray, cfg: RegistrationConfig
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """The proposals in the strongest cells of a coarse vote (and their neighbours).
+
+    Large maps propose tens of thousands of translations per rotation over a grid of millions of
+    cells. A vote on cells ``coarse_vote_factor`` times larger (a grid that many squared times
+    smaller, no bilinear split) finds where the peaks are: a fine peak's votes all fall in its
+    coarse cell or a neighbour, so keeping the proposals of the ``coarse_vote_cells`` strongest
+    coarse cells and their eight neighbours loses no peak that could be among the strongest.
+    """
+    size = cfg.vote_cell * cfg.coarse_vote_factor
+    cx = np.floor(tx / size).astype(np.int64)
+    cy = np.floor(ty / size).astype(np.int64)
+    cx -= cx.min() - 1
+    cy -= cy.min() - 1
+    ny = int(cy.max()) + 2
+    key = cx * ny + cy
+    grid = np.bincount(key, weights=wv, minlength=(int(cx.max()) + 2) * ny)
+    k = min(cfg.coarse_vote_cells, len(grid) - 1)
+    strong = np.argpartition(-grid, k)[:k]
+    keep = np.zeros(len(grid), dtype=bool)
+    for dx in (-1, 0, 1):
+        for dy in (-1, 0, 1):
+            keep[np.clip(strong + dx * ny + dy, 0, len(grid) - 1)] = True
+    sel = keep[key]
+    return tx[sel], ty[sel], wv[sel]
+
+
 def _vote(
     fa: MapFeatures, fb: MapFeatures, theta: float, cfg: RegistrationConfig
 ) -> list[tuple[FloatArray, float]]:
@@ -576,6 +698,8 @@ def _vote(
     tx = pa[:, 0] - (c * pb[:, 0] - s * pb[:, 1])
     ty = pa[:, 1] - (s * pb[:, 0] + c * pb[:, 1])
     wv = np.minimum(np.minimum(fa.end_weights[ia], fb.end_weights[ib]), cfg.vote_weight_cap)
+    if len(wv) > cfg.coarse_vote_pairs:
+        tx, ty, wv = _coarse_select(tx, ty, wv, cfg)
     gx, gy = tx / cfg.vote_cell, ty / cfg.vote_cell
     x0, y0 = np.floor(gx).astype(np.int64), np.floor(gy).astype(np.int64)
     fx, fy = gx - x0, gy - y0
@@ -586,7 +710,7 @@ def _vote(
     vals = np.concatenate([wv * (1 - fx) * (1 - fy), wv * fx * (1 - fy), wv * (1 - fx) * fy, wv * fx * fy])
     nx = int(x0.max()) - xmin + 2
     top = 50 * cfg.peaks_per_rotation
-    if nx * ny <= 4_000_000:
+    if nx * ny <= min(4_000_000, 16 * len(keys)):
         # Dense accumulation (a bincount is much cheaper than sorting the keys).
         grid = np.bincount(keys, weights=vals, minlength=nx * ny)
         uk = np.flatnonzero(grid)
@@ -639,18 +763,37 @@ def _match(
     return sel[has], idx_c[np.arange(len(sel)), first][has]
 
 
+def _conflict_one(fp: MapFeatures, fw: MapFeatures, T: Pose, cfg: RegistrationConfig, stride: int) -> float:
+    """Wall length of ``fw`` (moved by ``T`` into ``fp``'s frame) on ``fp``'s free probes."""
+    if fp.probe_tree is None or len(fw.points) == 0:
+        return 0.0
+    sel = np.arange(0, len(fw.points), stride)
+    sel = sel[fw.conflict_weights[sel] > 0]
+    if len(sel) == 0:
+        return 0.0
+    q = T.apply(fw.points[sel])
+    d, _ = fp.probe_tree.query(q, k=1, distance_upper_bound=cfg.conflict_radius)
+    hit = np.isfinite(d)
+    if not hit.any():
+        return 0.0
+    sel, q = sel[hit], q[hit]
+    w = fw.conflict_weights[sel].copy()
+    # A displaced copy of one of fp's walls (same direction, near): drift, not a foreign wall.
+    dist, idx = fp.tree.query(q, k=4, distance_upper_bound=cfg.displaced_dist)
+    ok = np.isfinite(dist)
+    idx_c = np.where(ok, idx, 0)
+    dirs = fw.directions[sel] @ _rot(T.theta).T
+    cosang = np.einsum("ijk,ik->ij", fp.directions[idx_c], dirs)
+    displaced = np.any(ok & (cosang >= math.cos(2.0 * cfg.match_angle)), axis=1)
+    w[displaced] *= cfg.displaced_weight
+    return float(w.sum()) * stride
+
+
 def _conflict(fa: MapFeatures, fb: MapFeatures, T: Pose, cfg: RegistrationConfig, stride: int = 1) -> float:
-    """Wall length of each map on the other's free probes, B moved by ``T``."""
-    total = 0.0
-    if fa.probe_tree is not None and len(fb.points):
-        sel = np.arange(0, len(fb.points), stride)
-        d, _ = fa.probe_tree.query(T.apply(fb.points[sel]), k=1, distance_upper_bound=cfg.conflict_radius)
-        total += float(fb.weights[sel][np.isfinite(d)].sum()) * stride
-    if fb.probe_tree is not None and len(fa.points):
-        sel = np.arange(0, len(fa.points), stride)
-        d, _ = fb.probe_tree.query(T.inverse().apply(fa.points[sel]), k=1, distance_upper_bound=cfg.conflict_radius)
-        total += float(fa.weights[sel][np.isfinite(d)].sum()) * stride
-    return total
+    """Wall length of each map on the other's free probes, B moved by ``T`` (both directions:
+    B's walls on A's seen-free space and A's on B's), weighted as in
+    :attr:`MapFeatures.conflict_weights` and discounted where displaced."""
+    return _conflict_one(fa, fb, T, cfg, stride) + _conflict_one(fb, fa, T.inverse(), cfg, stride)
 
 
 def _residuals(fa: MapFeatures, fb: MapFeatures, T: Pose, ib: IntArray, ia: IntArray) -> FloatArray:
@@ -743,12 +886,32 @@ def _distinct(a: Pose, b: Pose, fb: MapFeatures, cfg: RegistrationConfig) -> boo
     )
 
 
-def _matched_corners(fa: MapFeatures, fb: MapFeatures, T: Pose, cfg: RegistrationConfig) -> int:
-    """B's real corners within ``corner_match_dist`` of one of A's, B moved by ``T``."""
+def _matched_corners(
+    fa: MapFeatures, fb: MapFeatures, T: Pose, cfg: RegistrationConfig, dist: float | None = None
+) -> int:
+    """B's real corners within ``dist`` (default ``corner_match_dist``) of one of A's, B moved by ``T``."""
     if len(fa.corner_points) == 0 or len(fb.corner_points) == 0:
         return 0
-    d, _ = cKDTree(fa.corner_points).query(T.apply(fb.corner_points), k=1, distance_upper_bound=cfg.corner_match_dist)
+    gate = cfg.corner_match_dist if dist is None else dist
+    d, _ = cKDTree(fa.corner_points).query(T.apply(fb.corner_points), k=1, distance_upper_bound=gate)
     return int(np.isfinite(d).sum())
+
+
+def _matched_ends(fa: MapFeatures, fb: MapFeatures, T: Pose, cfg: RegistrationConfig, dist: float) -> int:
+    """B's wall ends (at real corners) that land, B moved by ``T``, within ``dist`` of a wall end
+    of A of the same role (start or end of its wall) and direction (within twice
+    ``feature_angle_tol``): a corner matched *with its type*. A shift that takes a wall's start
+    corner onto another wall's end corner (sliding along a long wall) matches corners but no
+    ends."""
+    if len(fa.end_points) == 0 or len(fb.end_points) == 0:
+        return 0
+    d, idx = cKDTree(fa.end_points).query(T.apply(fb.end_points), k=4, distance_upper_bound=dist)
+    ok = np.isfinite(d)
+    idx_c = np.where(ok, idx, 0)
+    ok &= fa.end_starts[idx_c] == fb.end_starts[:, None]
+    ang = _wrap(fb.end_angles + T.theta)
+    ok &= np.abs(_wrap(fa.end_angles[idx_c] - ang[:, None])) <= 2.0 * cfg.feature_angle_tol
+    return int(ok.any(axis=1).sum())
 
 
 def _self_ratio(f: MapFeatures, samples: IntArray, cfg: RegistrationConfig) -> float:
@@ -756,10 +919,13 @@ def _self_ratio(f: MapFeatures, samples: IntArray, cfg: RegistrationConfig) -> f
 
     The part (its edges) is registered onto the whole map by the same rotation and vote steps;
     each hypothesis distinct from the identity that puts no wall on seen-free space is counted by
-    the part's real corners that land on real corners of the map. Corners, not wall length:
-    sliding a long wall along itself keeps most of its length matched in any rectilinear
-    building, while a shift that maps most corners onto corners means a repeated structure.
-    Returns the best count over the part's corner count (0 when the part has no corner).
+    the larger of the fraction of the part's real corners that land on real corners of the map
+    and the fraction of its wall ends that land on wall ends of the same role and direction
+    (:func:`_matched_ends`). Corners, not wall length: sliding a long wall along itself keeps
+    most of its length matched in any rectilinear building, while a shift that maps most
+    corners onto corners means a repeated structure. (Typed ends alone let two museum maps of
+    four corners each merge 45 m apart: the larger of the two is kept.) Returns 0 when the part
+    has no real corner.
     """
     mask = np.zeros(f.wireframe.n_edges, dtype=bool)
     mask[f.owner[samples]] = True
@@ -775,15 +941,63 @@ def _self_ratio(f: MapFeatures, samples: IntArray, cfg: RegistrationConfig) -> f
             if _distinct(T, Pose.identity(), region, cfg):
                 cands.append((v, T))
     cands.sort(key=lambda c: -c[0])
-    best = 0
+    best = 0.0
     for v, T in cands[: cfg.verify_candidates]:
-        n = _matched_corners(f, region, T, cfg)
+        n = max(_matched_ends(f, region, T, cfg, cfg.corner_match_dist) / len(region.end_points),
+                _matched_corners(f, region, T, cfg) / len(region.corner_points))
         if n <= best:
             continue
         h = _score(f, region, T, cfg.match_dist, cfg, v)
         if h.conflict <= cfg.max_conflict + cfg.max_conflict_fraction * h.support:
             best = n
-    return best / len(region.corner_points)
+    return best
+
+
+def _runner_up(
+    fa: MapFeatures, fb: MapFeatures, best: Hypothesis, rivals: list[Hypothesis], cfg: RegistrationConfig
+) -> tuple[Hypothesis | None, float, float]:
+    """The best distinct runner-up and its ratio (step 6): ``(runner, ratio, corner_ratio)``.
+
+    A rival's *score ratio* is its score over the best's; its *corner ratio* is the number of
+    B's wall ends it lands within ``rival_corner_dist`` of A's wall ends of the same role and
+    direction (:func:`_matched_ends`; looser than the best's ``corner_match_dist``) over the
+    best's count. The ratio of a rival is the smaller of its corner ratio and the larger of its
+    score ratio and, when it matches more wall than the best, its *support ratio* (conflict
+    ignored: a rival that matches more wall than the best is one, whatever the free-space conflict that
+    lowered its score -- the drift of a filter-built map puts walls on seen-free space). A rival
+    sliding along a long wall keeps most of the wall length but loses the corners around it,
+    and is no rival; repeated structure keeps both and is. The ``rival_refine`` rivals of most
+    support are refined first, so that an unrefined rival's corners are not missed for want of
+    a few centimetres; the others count corners within twice ``rival_corner_dist``. When the
+    best matches fewer than ``rival_min_ends`` typed wall ends, the corner ratio is not trusted
+    (one corner swings it) and is taken as 1.
+    """
+    if not rivals or best.score <= 0:
+        top = rivals[0] if rivals else None
+        return top, (1.0 if top is not None and top.score > 0 else 0.0), 0.0
+    n_best = max(1, _matched_ends(fa, fb, best.transform, cfg, cfg.corner_match_dist))
+    few = n_best < cfg.rival_min_ends
+    runner, ratio, corner_ratio = None, 0.0, 0.0
+    # Strongest rivals by matched wall first: those are refined before their corners count.
+    for k, h in enumerate(sorted(rivals, key=lambda h: -h.support)):
+        if k < cfg.rival_refine:
+            if not h.refined:
+                h = _score(fa, fb, _refine(fa, fb, h.transform, cfg), cfg.match_dist, cfg, h.votes, refined=True)
+                if not _distinct(h.transform, best.transform, fb, cfg):
+                    continue  # it was the best hypothesis, voted off its cell
+            c = _matched_ends(fa, fb, h.transform, cfg, cfg.rival_corner_dist) / n_best
+        else:  # unrefined: a gate twice as loose
+            c = _matched_ends(fa, fb, h.transform, cfg, 2.0 * cfg.rival_corner_dist) / n_best
+        # A rival that matches more wall than the best counts even when its score is low: the
+        # free-space conflict that lowers it may be the drift of a filter-built map, and then
+        # the rival is the truth and the best a coincidence.
+        if few:
+            c = 1.0
+        sup = h.support / best.support if best.support > 0 else 1.0
+        r = min(max(0.0, h.score / best.score, sup if sup >= 1.0 else 0.0), c, 1.0)
+        if r > ratio or runner is None:
+            runner, ratio, corner_ratio = h, r, c
+    return runner, ratio, corner_ratio
 
 
 # ------------------------------------------------------------------------------ entry points
@@ -840,11 +1054,8 @@ def register_prepared(fa: MapFeatures, fb: MapFeatures, config: RegistrationConf
     # refined score; a coarse score at the coarse gate is an overestimate, which errs on the
     # side of refusing).
     pool = refined[1:] + scored[cfg.refine_candidates:]
-    rivals = [h for h in pool if _distinct(h.transform, best.transform, fb, cfg)]
-    runner = max(rivals, key=lambda h: h.score) if rivals else None
-    ratio = 0.0
-    if runner is not None and runner.score > 0:
-        ratio = runner.score / best.score if best.score > 0 else 1.0
+    rivals = sorted((h for h in pool if _distinct(h.transform, best.transform, fb, cfg)), key=lambda h: -h.score)
+    runner, ratio, corner_ratio = _runner_up(fa, fb, best, rivals, cfg)
     smaller = min(fa.length, fb.length)
     frac = best.support / smaller if smaller > 0 else 0.0
     reason = ""
@@ -862,18 +1073,22 @@ def register_prepared(fa: MapFeatures, fb: MapFeatures, config: RegistrationConf
         reason = f"residual too large ({best.rmse:.3f} m)"
     corners = _matched_corners(fa, fb, best.transform, cfg)
     self_a = self_b = 0.0
-    if not reason and corners < cfg.min_corners:
-        reason = f"too few matched corners ({corners} < {cfg.min_corners})"
+    unique = ratio <= cfg.unique_runner_up_ratio and best.support >= 2.0 * cfg.min_support
+    need = min(cfg.min_corners, cfg.min_corners_unique) if unique else cfg.min_corners
+    if not reason and corners < need:
+        reason = f"too few matched corners ({corners} < {need})"
     if not reason:
         ib, ia = _match(fa, fb, best.transform, cfg.match_dist, cfg)
         self_a = _self_ratio(fa, ia, cfg)
         self_b = _self_ratio(fb, ib, cfg)
-        if max(self_a, self_b) > cfg.max_self_ratio:
+        limit = cfg.contested_self_ratio if ratio > cfg.contested_runner_up_ratio else cfg.max_self_ratio
+        if max(self_a, self_b) > limit:
             reason = f"repetitive: the overlap recurs within one map ({max(self_a, self_b):.0%})"
     conf = max(0.0, 1.0 - ratio) * best.support / (best.support + cfg.min_support) if best.support > 0 else 0.0
     return Registration(
         accepted=reason == "", transform=best.transform, reason=reason, confidence=float(conf),
         support=best.support, support_fraction=float(frac), conflict=best.conflict, rmse=best.rmse,
         cross_support=best.cross_support, runner_up_ratio=float(ratio), best=best, runner_up=runner,
-        hypotheses=n_cands, extra={"corners": float(corners), "self_a": self_a, "self_b": self_b},
+        hypotheses=n_cands,
+        extra={"corners": float(corners), "self_a": self_a, "self_b": self_b, "runner_up_corner_ratio": corner_ratio},
     )

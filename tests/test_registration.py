@@ -176,3 +176,194 @@ def test_config_rejects_bad_values() -> None:
         RegistrationConfig(match_dist=1.0, coarse_match_dist=0.5)
     with pytest.raises(ValueError):
         RegistrationConfig(free_depths=(0.5, -1.0))
+
+
+# ------------------------------------------------------------------------------ guards of filter-built maps
+def _hall(notches: list[float], length: float = 40.0, width: float = 5.0, depth: float = 1.0,
+          notch: float = 1.2) -> Wireframe:
+    """A long hall (free space inside, counter-clockwise) with alcoves into its north wall."""
+    pts: list[tuple[float, float]] = [(0, 0), (length, 0), (length, width)]
+    for x in sorted(notches, reverse=True):
+        pts += [(x + notch, width), (x + notch, width + depth), (x, width + depth), (x, width)]
+    pts.append((0, width))
+    return Wireframe.from_polylines([pts])
+
+
+def _west(wf: Wireframe, xmax: float) -> Wireframe:
+    return wf.subgraph_edges(wf.segments().mean(axis=1)[:, 0] < xmax)
+
+
+def test_long_walls_do_not_mask_a_distinctive_corner_constellation() -> None:
+    """Alcoves at irregular spacing along a long hall: a rival sliding along the long walls keeps
+    much wall length but not the corners, and must not make the match ambiguous."""
+    rng = np.random.default_rng(10)
+    hall = _hall([5.0, 13.0, 27.0])
+    move = Pose(3.0, 4.0, 1.0)
+    res = register(_noisy(hall, rng), _noisy(_west(hall, 30.0), rng).transformed(move))
+    assert res.accepted, res.reason
+    assert res.transform is not None
+    te, re = _error(res.transform, move.inverse(), np.array([15.0, 2.5]))
+    assert te <= 0.1 and re <= math.radians(1.0)
+
+
+def test_periodic_alcoves_are_refused() -> None:
+    """The same hall with alcoves every 8 m: a rival one period away keeps the corners too."""
+    rng = np.random.default_rng(11)
+    hall = _hall([4.0, 12.0, 20.0, 28.0, 36.0])
+    res = register(_noisy(hall, rng), _noisy(_west(hall, 30.0), rng).transformed(Pose(3.0, 4.0, 1.0)))
+    assert not res.accepted
+    assert "ambiguous" in res.reason or "repetitive" in res.reason
+
+
+def _with_wall(wf: Wireframe, a: tuple[float, float], b: tuple[float, float], likelihood: float,
+               labels: tuple[Label, Label] = (Label.NOMINAL, Label.NOMINAL)) -> Wireframe:
+    n = wf.n_vertices
+    return Wireframe.build(
+        np.vstack([wf.points, [a, b]]), np.vstack([wf.edges, [[n, n + 1]]]),
+        labels=np.concatenate([wf.labels, [int(labels[0]), int(labels[1])]]),
+        likelihood=np.concatenate([wf.likelihood, [likelihood]]),
+    )
+
+
+def test_unlikely_spurious_wall_does_not_conflict_but_a_likely_one_does() -> None:
+    """A filter's spurious wall across the other robot's free space: at low likelihood it is no
+    evidence against the match; the same wall at full likelihood is."""
+    from mapping.registration import _conflict
+
+    rng = np.random.default_rng(12)
+    hall = _hall([5.0, 13.0, 27.0])
+    a = _noisy(hall, rng)
+    fa = prepare(a)
+    cfg = RegistrationConfig()
+    across = ((20.0, 0.6), (20.0, 4.4))
+    weak = prepare(_with_wall(a, *across, likelihood=0.05))
+    strong = prepare(_with_wall(a, *across, likelihood=1.0))
+    assert _conflict(fa, weak, Pose.identity(), cfg) < 0.1
+    assert _conflict(fa, strong, Pose.identity(), cfg) >= 0.9
+    # Short slivers never conflict, nor do walls near a frontier end.
+    sliver = prepare(_with_wall(a, (20.0, 1.0), (20.0, 1.4), likelihood=1.0))
+    assert _conflict(fa, sliver, Pose.identity(), cfg) == 0.0
+    open_end = prepare(_with_wall(a, (20.0, 0.3), (20.0, 0.9), likelihood=1.0,
+                                  labels=(Label.FRONTIER, Label.FRONTIER)))
+    assert _conflict(fa, open_end, Pose.identity(), cfg) == 0.0
+    # Many likely foreign walls: refused; the same walls unlikely: accepted.
+    many_strong, many_weak = a, a
+    for x in (8.0, 17.0, 22.0, 33.0):
+        many_strong = _with_wall(many_strong, (x, 0.6), (x, 4.4), likelihood=1.0)
+        many_weak = _with_wall(many_weak, (x, 0.6), (x, 4.4), likelihood=0.05)
+    move = Pose(-2.0, 7.0, 2.5)
+    assert not register(a, many_strong.transformed(move)).accepted
+    res = register(a, many_weak.transformed(move))
+    assert res.accepted, res.reason
+
+
+def test_a_drifted_copy_of_a_wall_is_discounted_a_foreign_wall_is_not() -> None:
+    """A wall 0.5 m in front of the other map's wall, same direction, is the drift of a
+    filter-built map (``displaced_weight``); a wall across the free space counts in full."""
+    from mapping.registration import _conflict
+
+    room = Wireframe.from_polylines([[(0, 0), (10, 0), (10, 8), (0, 8)]])
+    cfg = RegistrationConfig(displaced_weight=0.25)  # off by default (see RegistrationConfig)
+    fa = prepare(room, cfg)
+    drifted = prepare(Wireframe.build([(2.0, 0.5), (8.0, 0.5)], [(0, 1)]), cfg)
+    foreign = prepare(Wireframe.build([(2.0, 0.5), (8.0, 0.5)], [(1, 0)]), cfg)  # reversed: faces the wall
+    d, f = _conflict(fa, drifted, Pose.identity(), cfg), _conflict(fa, foreign, Pose.identity(), cfg)
+    assert f >= 5.0
+    assert d <= cfg.displaced_weight * f + 1e-9
+
+
+def test_few_corners_suffice_only_for_a_unique_long_match() -> None:
+    """A long hall's west end with one alcove: fewer matched corners than ``min_corners`` (here
+    raised to 6), accepted because no rival keeps its corners; refused when
+    ``min_corners_unique`` is raised too, and refused for the alcove-less (symmetric) hall."""
+    rng = np.random.default_rng(13)
+    hall = _hall([11.0], length=30.0)
+    a = _noisy(hall, rng)
+    b = _noisy(_west(hall, 11.7), rng).transformed(Pose(1.0, 1.0, 0.4))
+    res = register(a, b, RegistrationConfig(min_corners=6))
+    assert res.extra["corners"] < 6
+    assert res.accepted, res.reason
+    strict = register(a, b, RegistrationConfig(min_corners=6, min_corners_unique=6))
+    assert not strict.accepted and "corners" in strict.reason
+    plain = _hall([], length=30.0)
+    sym = register(_noisy(plain, rng), _noisy(_west(plain, 11.7), rng).transformed(Pose(1.0, 1.0, 0.4)))
+    assert not sym.accepted
+
+
+def test_coarse_vote_finds_the_peaks_of_the_full_vote() -> None:
+    """Large maps vote coarse first (cost): the same registration as the full vote."""
+    rng = np.random.default_rng(14)
+    museum = _truth("museum")
+    mid = museum.segments().mean(axis=1)
+    cut = float(np.median(mid[:, 0]))
+    a = _noisy(museum.subgraph_edges(mid[:, 0] < cut + 10.0), rng)
+    move = Pose(5.0, -3.0, 1.0)
+    b = _noisy(museum.subgraph_edges(mid[:, 0] > cut - 10.0), rng).transformed(move)
+    fast = register(a, b)
+    full = register(a, b, RegistrationConfig(coarse_vote_pairs=10**9))
+    assert fast.accepted == full.accepted
+    assert fast.transform is not None and full.transform is not None
+    assert _error(fast.transform, full.transform, b.points.mean(axis=0))[0] <= 0.02
+
+
+def test_a_rival_with_more_wall_is_ambiguous_even_when_it_conflicts() -> None:
+    """A drifted filter map puts the true hypothesis's walls on seen-free space (a low score); a
+    coincidence elsewhere with less wall and no conflict must not win by default."""
+    from mapping.registration import Hypothesis, _runner_up, _score
+
+    rng = np.random.default_rng(15)
+    f = prepare(_noisy(_truth("paper-small"), rng))
+    cfg = RegistrationConfig()
+    true = _score(f, f, Pose.identity(), cfg.match_dist, cfg, 0.0)
+    coincidence = Hypothesis(Pose(30.0, 0.0, 0.0), 0.0, 0.3 * true.support, 0.0, 0.3 * true.support, 0.01, 5.0, True)
+    drifted = Hypothesis(true.transform, 0.0, true.support, 0.5 * true.support, -0.5 * true.support, 0.05, 5.0, True)
+    # The conflicting rival matches more wall and every typed corner: refuse.
+    _, ratio, _ = _runner_up(f, f, coincidence, [drifted], cfg)
+    assert ratio > cfg.max_runner_up_ratio
+    # A conflicting rival with less wall than the best is no rival.
+    weak = Hypothesis(true.transform, 0.0, 0.9 * true.support, 0.5 * true.support, -0.6 * true.support, 0.05, 5.0, True)
+    best = Hypothesis(Pose(30.0, 0.0, 0.0), 0.0, true.support, 0.0, true.support, 0.01, 5.0, True)
+    _, ratio, _ = _runner_up(f, f, best, [weak], cfg)
+    assert ratio < cfg.max_runner_up_ratio
+
+
+def _ring_corner(turn: float) -> Wireframe:
+    """The north-east corner of a square ring corridor (80 m outer, 4 m wide) seen 35 m down
+    both arms, turned by ``turn`` about the ring's centre: two real corners, four frontiers."""
+    fr, no = Label.FRONTIER, Label.NOMINAL
+    pts = [(80, 45), (80, 80), (45, 80), (45, 76), (76, 76), (76, 45)]
+    wf = Wireframe.build(pts, [(0, 1), (1, 2), (3, 4), (4, 5)], labels=[fr, no, fr, fr, no, fr])
+    centre = Pose(40.0, 40.0, 0.0)
+    return wf.transformed(centre.compose(Pose(0.0, 0.0, turn)).compose(centre.inverse()))
+
+
+def test_disjoint_congruent_parts_of_a_symmetric_ring_are_refused() -> None:
+    """Two robots in opposite, congruent corners of a symmetric ring share no wall: 70 m of wall
+    match perfectly with two corners, which must not be enough (each robot saw one copy, so no
+    self-similarity shows). Accepted with ``min_corners_unique=2``: why it is off by default."""
+    rng = np.random.default_rng(16)
+    a = _noisy(_ring_corner(0.0), rng)
+    b = _noisy(_ring_corner(math.pi), rng).transformed(Pose(4.0, -2.0, 0.3))
+    assert not register(a, b).accepted
+    assert register(a, b, RegistrationConfig(min_corners_unique=2)).accepted
+
+
+def test_contested_matches_refuse_at_half_the_self_similarity() -> None:
+    """Identical offices: whenever a rival is more than half as good, an accepted match has an
+    overlap that recurs within neither map at more than ``contested_self_ratio``; a distinctive
+    map (paper-small) still registers."""
+    rng = np.random.default_rng(17)
+    office = _truth("office")
+    cfg = RegistrationConfig()
+    move = Pose(-3.0, 40.0, -1.0)
+    for lo_a, hi_a, lo_b, hi_b in [(0, 16, 9, 26), (0, 30, 6, 19), (5, 21, 0, 14), (0, 22, 0, 22)]:
+        res = register(_noisy(_crop(office, lo_a, hi_a), rng), _noisy(_crop(office, lo_b, hi_b), rng).transformed(move))
+        if res.accepted and res.runner_up_ratio > cfg.contested_runner_up_ratio:
+            assert max(res.extra["self_a"], res.extra["self_b"]) <= cfg.contested_self_ratio
+    # Every match contested: paper-small's overlap recurs at about 10 % (a room corner or two).
+    a = _noisy(_truth("paper-small"), rng)
+    b = _noisy(_truth("paper-small"), rng).transformed(move)
+    res = register(a, b, RegistrationConfig(contested_self_ratio=0.2, contested_runner_up_ratio=0.0))
+    assert res.accepted, res.reason
+    res = register(a, b, RegistrationConfig(contested_self_ratio=0.05, contested_runner_up_ratio=0.0))
+    assert not res.accepted and res.reason.startswith("repetitive")

@@ -18,6 +18,18 @@ Map pairs
   merged at the *true* poses (``*.truth.tsv``) with :func:`mapping.merge.merge`. A small loader
   reads the FLASER lines only (the project reader rejects these logs' ``PARAM`` lines for now).
   Their overlap is measured on the maps themselves (matched wall length at the true transform).
+* **Filter-built maps** (``--maps filter``): per world (and per CARMEN log), ``--stretches``
+  stretches in overlapping pairs; each robot's map is built by a :class:`mapping.filter.WireframeFilter`
+  (the world's paper settings; 6 particles and 0.2 m on a log) fed by
+  :func:`agents.mapping_run.simulate` along the stretch (:func:`agents.mapping_run.carmen_inputs`
+  on a log), starting at the identity, exactly as a fleet robot. The maps are built once per
+  world, seed and count and cached as JSON (``--cache``; building all of them takes tens of
+  minutes on a loaded machine, ``--jobs`` builds in parallel); a pair is two of them turned by
+  random headings. A filter map drifts, so the transform between the two start poses misplaces
+  the far walls: the truth is the *local truth* (:func:`local_truth`, the start-pose truth
+  refined on the two maps' walls with a gate from 1.5 m down), and ``false_merges_start_truth``
+  counts against the start poses too. Overlap: on the true walls seen from the stretch's true
+  poses (simulated), on the maps at the start-pose truth within 0.3 m (logs).
 * **Cross pairs**: two maps from two different worlds (or logs). Any acceptance is a false merge.
 
 Measures
@@ -29,6 +41,11 @@ Measures
 * *false merge*: accepted and (a cross pair, or an error above 0.5 m or 2 degrees). Accepted
   within those but outside 0.10 m / 1 degree is counted as *imprecise*.
 * time per attempt: :func:`mapping.registration.register` including the per-map preparation.
+* *ambiguous by geometry* (simulated pairs of at least 30 % overlap, :func:`truth_ambiguous`):
+  the true walls both robots saw recur, noise-free, elsewhere in what one robot saw (the sides
+  of a symmetric ring, a featureless hall). No registration can tell the copies apart, so these
+  pairs are reported apart: ``success_rate_overlap_ge_30_unambiguous`` leaves them out (and
+  ``success_rate_overlap_ge_30`` keeps them); a wrong acceptance of one is still a false merge.
 
 Prints a table by overlap band and, with ``--json``, one JSON object on the last line.
 """
@@ -39,8 +56,10 @@ import argparse
 import gzip
 import json
 import math
+import os
 import sys
 import time
+import zlib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -59,6 +78,9 @@ POSE_STEP = 0.5
 BANDS = ((0.0, 0.0), (0.0, 0.1), (0.1, 0.2), (0.2, 0.3), (0.3, 0.5), (0.5, 0.7), (0.7, 1.01))
 SUCCESS_T, SUCCESS_R = 0.10, math.radians(1.0)
 FALSE_T, FALSE_R = 0.5, math.radians(2.0)
+FILTER_STRETCHES = 12
+FILTER_CACHE_VERSION = 1
+AMBIGUOUS_SUPPORT, AMBIGUOUS_CORNERS = 0.9, 0.9
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -71,6 +93,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="worlds (default the built-ins and tests/worlds/*.geojson)")
     parser.add_argument("--carmen", type=int, default=None, metavar="N",
                         help="CARMEN stretch pairs (default a tenth of --pairs; 0 for none)")
+    parser.add_argument("--maps", choices=("truth", "filter"), default="truth",
+                        help="truth: cropped true walls plus noise (default); filter: maps built by the "
+                             "particle filter over route stretches and CARMEN log stretches (cached)")
+    parser.add_argument("--stretches", type=int, default=FILTER_STRETCHES, metavar="K",
+                        help=f"--maps filter: filter maps per world or log (default {FILTER_STRETCHES})")
+    parser.add_argument("--cache", default=None, metavar="DIR",
+                        help="--maps filter: cache of the filter maps (default $WIREMAP_CACHE or "
+                             "~/.cache/wiremap, subdirectory bench-register)")
+    parser.add_argument("--jobs", type=int, default=1, metavar="N",
+                        help="--maps filter: processes that build missing filter maps (default 1)")
     parser.add_argument("--quick", action="store_true", help="100 pairs, 30 cross, 10 CARMEN")
     parser.add_argument("--json", action="store_true", help="print the JSON summary as the last line")
     parser.add_argument("--quiet", action="store_true", help="no progress on stderr")
@@ -289,7 +321,7 @@ def _true_transform(sa: Sample, sb: Sample) -> Any:
     return sa.start.inverse().compose(sb.start)
 
 
-def _map_overlap(sa: Sample, sb: Sample) -> float:
+def _map_overlap(sa: Sample, sb: Sample, gate: float = 0.2) -> float:
     """Overlap measured on the maps: B's wall length on A's walls at the true transform."""
     from mapping.registration import RegistrationConfig, _match, prepare
 
@@ -297,7 +329,7 @@ def _map_overlap(sa: Sample, sb: Sample) -> float:
     fa, fb = prepare(sa.wf, cfg), prepare(sb.wf, cfg)
     if len(fa.points) == 0 or len(fb.points) == 0:
         return 0.0
-    ib, _ = _match(fa, fb, _true_transform(sa, sb), 0.2, cfg)
+    ib, _ = _match(fa, fb, _true_transform(sa, sb), gate, cfg)
     smaller = min(fa.length, fb.length)
     return float(fb.weights[ib].sum()) / smaller if smaller > 0 else 0.0
 
@@ -313,9 +345,240 @@ def log_pair(log: Log, rng: np.random.Generator) -> tuple[Sample, Sample, float]
     return sa, sb, _map_overlap(sa, sb)
 
 
+# ------------------------------------------------------------------------------ filter-built maps
+@dataclass
+class FilterMap:
+    """One robot's filter-built map over a stretch (its own start frame) and what is true of it."""
+
+    wf: Any
+    start: Any  # true pose of the map frame's origin (the stretch's first true pose)
+    xy: np.ndarray  # true positions every ~POSE_STEP metres (simulated worlds; empty for logs)
+    source: str
+
+
+def cache_dir(arg: str | None) -> Path:
+    base = Path(arg) if arg else Path(os.environ.get("WIREMAP_CACHE", Path.home() / ".cache" / "wiremap"))
+    return base / "bench-register"
+
+
+def _sub_route(w: SimWorld, s0: float, s1: float) -> np.ndarray:
+    inner = (w.cum > s0) & (w.cum < s1)
+    ends = [np.interp(s, w.cum, w.route[:, k]) for s in (s0, s1) for k in (0, 1)]
+    return np.vstack([[ends[0], ends[1]], w.route[inner], [ends[2], ends[3]]])
+
+
+def _filter_stretches(w: SimWorld, k: int, rng: np.random.Generator) -> list[tuple[float, float]]:
+    """``k`` stretches in pairs that overlap like :func:`sim_pair`'s (full to disjoint)."""
+    out: list[tuple[float, float]] = []
+    while len(out) < k:
+        a0, a1 = _stretch(w, rng)
+        out.append((a0, a1))
+        if len(out) < k:
+            lb = min(0.6 * float(w.cum[-1]), float(rng.uniform(10.0, 50.0)))
+            out.append(_stretch(w, rng, a0 + float(rng.uniform(-lb, a1 - a0))))
+    return out
+
+
+def _build_world_maps(name: str, seed: int, k: int) -> list[dict[str, Any]]:
+    """Filter maps of ``k`` stretches of world ``name``'s route (:func:`agents.mapping_run.simulate`
+    along each stretch, a :class:`mapping.filter.WireframeFilter` with the world's paper
+    settings starting at the identity), as JSON-ready dicts."""
+    from agents import mapping_run as mr
+    from agents.sim.world import load_world
+    from mapping.filter import WireframeFilter
+    from mapping.se2 import Pose
+
+    rng = np.random.default_rng([seed, zlib.crc32(Path(name).stem.encode())])
+    w = _load_worlds([name], rng)[0]
+    world = load_world(name)
+    particles, thr = mr.world_defaults(world)
+    cfg = mr.filter_config_for(particles, thr, MAX_RANGE)
+    out = []
+    for s0, s1 in _filter_stretches(w, k, rng):
+        run_seed = int(rng.integers(0, 2**31))
+        inputs = list(mr.simulate(world, mr.SimOptions(max_range=MAX_RANGE), run_seed, route=_sub_route(w, s0, s1)))
+        filt = WireframeFilter(cfg, mr.seeds_for(run_seed)["filter"], initial_pose=Pose.identity())
+        for inp in inputs:
+            filt.step(inp.odometry, inp.scan)
+        true = [inp.true_pose for inp in inputs if inp.true_pose is not None]
+        every = max(1, round(POSE_STEP / 0.25))
+        out.append({"wf": filt.best.to_geojson(), "start": list(true[0].as_tuple()),
+                    "xy": [[p.x, p.y] for p in true[::every]], "source": w.name, "stretch": [s0, s1]})
+    return out
+
+
+def _build_log_maps(path: Path, seed: int, k: int) -> list[dict[str, Any]]:
+    """Filter maps of ``k`` stretches of a CARMEN log (as ``wiremap run --carmen`` robots)."""
+    from agents import mapping_run as mr
+    from agents.files.carmen import read_carmen_log, scan_truth
+    from mapping.filter import WireframeFilter
+    from mapping.se2 import Pose
+
+    log = read_carmen_log(str(path))
+    scans = list(log.scans)
+    truth = scan_truth(log)
+    if truth is None or len(scans) < 40:
+        return []
+    rng = np.random.default_rng([seed, zlib.crc32(path.name.encode())])
+    n = len(scans)
+    stretches: list[tuple[int, int]] = []
+    while len(stretches) < k:
+        la, lb = int(rng.integers(60, 160)), int(rng.integers(60, 160))
+        a0 = int(rng.integers(0, max(1, n - la)))
+        stretches.append((a0, min(n, a0 + la)))
+        if len(stretches) < k:
+            b0 = int(np.clip(a0 + int(rng.integers(-lb, la)), 0, max(0, n - lb)))
+            stretches.append((b0, min(n, b0 + lb)))
+    out = []
+    for i0, i1 in stretches:
+        part = scans[i0:i1]
+        max_range = min(float(part[0].max_range), MAX_RANGE)
+        cfg = mr.filter_config_for(6, 0.2, max_range, fov=mr.scan_fov(part[0].angles))
+        run_seed = int(rng.integers(0, 2**31))
+        filt = WireframeFilter(cfg, mr.seeds_for(run_seed)["filter"], initial_pose=Pose.identity())
+        for inp in mr.carmen_inputs(part, max_range=max_range):
+            filt.step(inp.odometry, inp.scan)
+        out.append({"wf": filt.best.to_geojson(), "start": list(truth[i0].as_tuple()), "xy": [],
+                    "source": path.name.replace(".log.gz", ""), "stretch": [i0, i1]})
+    return out
+
+
+def _cached(cache: Path, key: str, build: Any) -> list[FilterMap]:
+    from mapping.se2 import Pose
+    from mapping.wireframe import Wireframe
+
+    f = cache / f"{key}-v{FILTER_CACHE_VERSION}.json"
+    if f.is_file():
+        rows = json.loads(f.read_text())
+    else:
+        rows = build()
+        cache.mkdir(parents=True, exist_ok=True)
+        tmp = f.with_suffix(".tmp")
+        tmp.write_text(json.dumps(rows))
+        tmp.replace(f)
+    return [FilterMap(Wireframe.from_geojson(r["wf"]), Pose(*r["start"]), np.asarray(r["xy"], dtype=np.float64).reshape(-1, 2),
+                      r["source"]) for r in rows]
+
+
+def _jobs_map(fn: Any, items: list[Any], jobs: int) -> list[Any]:
+    if jobs <= 1 or len(items) <= 1:
+        return [fn(it) for it in items]
+    from concurrent.futures import ProcessPoolExecutor
+
+    with ProcessPoolExecutor(max_workers=jobs) as ex:
+        return list(ex.map(fn, items))
+
+
+def _world_job(item: tuple[str, int, int, str]) -> list[FilterMap]:
+    name, seed, k, cache = item
+    return _cached(Path(cache), f"{Path(name).stem}-s{seed}-k{k}", lambda: _build_world_maps(name, seed, k))
+
+
+def _log_job(item: tuple[str, int, int, str]) -> list[FilterMap]:
+    path, seed, k, cache = item
+    return _cached(Path(cache), f"carmen-{Path(path).name.replace('.log.gz', '')}-s{seed}-k{k}",
+                   lambda: _build_log_maps(Path(path), seed, k))
+
+
+def _as_sample(fm: FilterMap, truth: Any, rng: np.random.Generator) -> Sample:
+    """``fm`` in a fresh frame (a random turn about its origin), with its seen truth."""
+    from mapping.se2 import Pose
+
+    turn = Pose(0.0, 0.0, float(rng.uniform(-math.pi, math.pi)))
+    seen = _seen_intervals(truth, fm.xy) if truth is not None and len(fm.xy) else None
+    length = _seen_length(truth, seen) if seen is not None else fm.wf.total_length()
+    return Sample(fm.wf.transformed(turn.inverse()), fm.start.compose(turn), seen, length, fm.source)
+
+
+def filter_pair(maps: list[FilterMap], truth: Any, rng: np.random.Generator) -> tuple[Sample, Sample, float]:
+    """Two filter maps of one world or log: 80 % a stretch and its partner, else any two."""
+    n = len(maps)
+    if rng.random() < 0.8:
+        i = 2 * int(rng.integers(0, n // 2))
+        i, j = (i, i + 1) if rng.random() < 0.5 else (i + 1, i)
+    else:
+        i = int(rng.integers(0, n))
+        j = (i + 1 + int(rng.integers(0, n - 1))) % n
+    sa, sb = _as_sample(maps[i], truth, rng), _as_sample(maps[j], truth, rng)
+    if sa.seen is not None and sb.seen is not None:
+        smaller = min(sa.length, sb.length)
+        return sa, sb, _shared(truth, sa.seen, sb.seen) / smaller if smaller > 0 else 0.0
+    return sa, sb, _map_overlap(sa, sb, gate=0.3)
+
+
+# ------------------------------------------------------------------------------ ambiguity of the truth
+def _shared_intervals(sa: dict[int, list[tuple[float, float]]],
+                      sb: dict[int, list[tuple[float, float]]]) -> dict[int, list[tuple[float, float]]]:
+    out: dict[int, list[tuple[float, float]]] = {}
+    for e in set(sa) & set(sb):
+        iv = [(max(a0, b0), min(a1, b1)) for a0, a1 in sa[e] for b0, b1 in sb[e] if min(a1, b1) > max(a0, b0)]
+        if iv:
+            out[e] = sorted(iv)
+    return out
+
+
+def truth_ambiguous(truth: Any, sa: dict[int, list[tuple[float, float]]], sb: dict[int, list[tuple[float, float]]]) -> bool:
+    """Whether the pair's true transform is not unique by geometry alone.
+
+    The *overlap* (the true walls both robots saw, noise-free, in the world frame) is registered
+    onto each robot's seen true walls by the registration's own rotation and vote steps; a
+    hypothesis distinct from the identity that matches at least ``AMBIGUOUS_SUPPORT`` of the
+    overlap's wall length and ``AMBIGUOUS_CORNERS`` of its real corners, without conflict, means
+    that the overlap recurs in what one robot saw (the sides of a symmetric ring, a long featureless
+    hall): no registration can tell which copy the other robot saw. Such pairs are reported apart.
+    """
+    from mapping import registration as rg
+    from mapping.se2 import Pose
+
+    cfg = rg.RegistrationConfig()
+    quiet = np.random.default_rng(0)
+    ov = _crop(truth, _shared_intervals(sa, sb), 0.0, quiet)
+    if ov.n_edges == 0:
+        return False
+    fo = rg.prepare(ov, cfg)
+    if len(fo.points) == 0 or len(fo.end_points) == 0:
+        return True  # walls without a real corner: nothing fixes the translation along them
+    n_corners = len(fo.corner_points)
+    for seen in (sa, sb):
+        fs = rg.prepare(_crop(truth, seen, 0.0, quiet), cfg)
+        for theta in rg.rotation_candidates(fs, fo, cfg).tolist():
+            R = rg._rot(theta)
+            for t, v in rg._vote(fs, fo, theta, cfg):
+                tt = fs.centre + t - R @ fo.centre
+                T = rg._refine(fs, fo, Pose(float(tt[0]), float(tt[1]), theta), cfg)
+                if not rg._distinct(T, Pose.identity(), fo, cfg):
+                    continue
+                h = rg._score(fs, fo, T, cfg.match_dist, cfg, v)
+                if (h.support >= AMBIGUOUS_SUPPORT * fo.length
+                        and rg._matched_corners(fs, fo, T, cfg) >= AMBIGUOUS_CORNERS * n_corners
+                        and h.conflict <= cfg.max_conflict + cfg.max_conflict_fraction * h.support):
+                    return True
+    return False
+
+
 # ------------------------------------------------------------------------------ scoring
-def attempt(sa: Sample, sb: Sample, same: bool) -> dict[str, Any]:
-    """Register B onto A; the row of the result table."""
+def local_truth(sa: Sample, sb: Sample) -> Any:
+    """The true transform of two filter-built maps *at their overlap*.
+
+    A filter-built map drifts: the transform between the two start poses (the truth of a
+    cropped map) misplaces the other map's far walls by the drift of both filters, up to a metre
+    over a CARMEN stretch. The local truth starts there and is refined by the registration's
+    own point-to-line least squares with a gate annealed from 1.5 m to 0.15 m: the alignment of
+    the walls both maps hold that is nearest the start-pose truth. Returns the start-pose truth
+    when fewer than three samples match."""
+    from mapping import registration as rg
+
+    cfg = rg.RegistrationConfig(coarse_match_dist=1.5, refine_iterations=15)
+    start = _true_transform(sa, sb)
+    fa, fb = rg.prepare(sa.wf, cfg), rg.prepare(sb.wf, cfg)
+    if len(fa.points) < 3 or len(fb.points) < 3:
+        return start
+    return rg._refine(fa, fb, start, cfg)
+
+
+def attempt(sa: Sample, sb: Sample, same: bool, true: Any = None) -> dict[str, Any]:
+    """Register B onto A; the row of the result table (``true``: the true transform, default
+    the one between the two start poses)."""
     from mapping.registration import register
 
     t0 = time.perf_counter()
@@ -326,7 +589,8 @@ def attempt(sa: Sample, sb: Sample, same: bool) -> dict[str, Any]:
         "trans_err": math.nan, "rot_err": math.nan, "corners": (sa.wf.n_vertices, sb.wf.n_vertices),
     }
     if res.transform is not None and same:
-        true = _true_transform(sa, sb)
+        start_truth = _true_transform(sa, sb)
+        true = start_truth if true is None else true
         c = res.best.transform.inverse().apply(np.zeros((1, 2)))[0] if res.best else np.zeros(2)
         # Error at B's wall centroid (B frame), and in heading.
         from mapping.registration import prepare
@@ -335,6 +599,9 @@ def attempt(sa: Sample, sb: Sample, same: bool) -> dict[str, Any]:
         pe = res.transform.apply(cb[None, :])[0] - true.apply(cb[None, :])[0]
         row["trans_err"] = float(math.hypot(*pe))
         row["rot_err"] = abs(math.remainder(res.transform.theta - true.theta, 2 * math.pi))
+        ps = res.transform.apply(cb[None, :])[0] - start_truth.apply(cb[None, :])[0]
+        row["trans_err_start"] = float(math.hypot(*ps))
+        row["rot_err_start"] = abs(math.remainder(res.transform.theta - start_truth.theta, 2 * math.pi))
     if res.accepted:
         if not same:
             row["false_merge"] = True
@@ -364,6 +631,7 @@ def summarise(rows: list[dict[str, Any]]) -> dict[str, Any]:
     same = [r for r in rows if r["same"]]
     cross = [r for r in rows if not r["same"]]
     ge30 = [r for r in same if r["overlap"] >= 0.3]
+    clear = [r for r in ge30 if not r.get("ambiguous")]
     acc = [r for r in same if r["accepted"] and not r["false_merge"]]
     by: dict[str, dict[str, Any]] = {}
     for label in ["0"] + [f"{int(lo * 100)}-{min(100, int(hi * 100))}%" for lo, hi in BANDS[1:]]:
@@ -383,9 +651,16 @@ def summarise(rows: list[dict[str, Any]]) -> dict[str, Any]:
         "carmen_pairs": sum(r["source"] == "carmen" for r in rows),
         "false_merges": sum(r["false_merge"] for r in rows),
         "false_merges_cross": sum(r["false_merge"] for r in cross),
+        "false_merges_start_truth": sum(
+            bool(r["accepted"] and r["same"] and (r.get("trans_err_start", 0.0) > FALSE_T or r.get("rot_err_start", 0.0) > FALSE_R))
+            for r in rows),
         "imprecise_accepts": sum(r["accepted"] and not r["false_merge"] and not r["success"] for r in same),
         "pairs_overlap_ge_30": len(ge30),
         "success_rate_overlap_ge_30": round(sum(r["success"] for r in ge30) / len(ge30), 4) if ge30 else None,
+        "pairs_overlap_ge_30_ambiguous": len(ge30) - len(clear),
+        "accepted_overlap_ge_30_ambiguous": sum(r["accepted"] for r in ge30 if r.get("ambiguous")),
+        "pairs_overlap_ge_30_unambiguous": len(clear),
+        "success_rate_overlap_ge_30_unambiguous": round(sum(r["success"] for r in clear) / len(clear), 4) if clear else None,
         "trans_err_m_p50": _pct([r["trans_err"] for r in acc], 50),
         "trans_err_m_p95": _pct([r["trans_err"] for r in acc], 95),
         "rot_err_deg_p50": _pct([math.degrees(r["rot_err"]) for r in acc], 50),
@@ -399,6 +674,12 @@ def summarise(rows: list[dict[str, Any]]) -> dict[str, Any]:
             for rs in [[r for r in ge30 if r["worlds"][0] == name]]
         },
         "refusal_reasons_overlap_ge_30": _reasons([r for r in ge30 if not r["accepted"]]),
+        "by_world_overlap_ge_30_unambiguous": {
+            name: {"pairs": len(rs), "success_rate": round(sum(r["success"] for r in rs) / len(rs), 4)}
+            for name in sorted({r["worlds"][0] for r in clear})
+            for rs in [[r for r in clear if r["worlds"][0] == name]]
+        },
+        "refusal_reasons_overlap_ge_30_unambiguous": _reasons([r for r in clear if not r["accepted"]]),
     }
 
 
@@ -442,54 +723,86 @@ def run(args: argparse.Namespace) -> int:
     log(f"planning routes in {len(names)} worlds")
     worlds = _load_worlds(names, rng)
     logs: list[Log] = []
-    if n_carmen:
+    if n_carmen and args.maps == "truth":
         paths = sorted(CARMEN_DIR.glob("*.log.gz"))
         if not paths:
             log(f"no CARMEN logs in {CARMEN_DIR}: skipped")
         for p in paths:
             logs.append(_read_log(p))
             log(f"read {p.name}: {len(logs[-1].scans)} scans")
+    fworlds: list[list[FilterMap]] = []
+    flogs: list[list[FilterMap]] = []
+    if args.maps == "filter":
+        k = max(2, 6 if args.quick else int(args.stretches))
+        cache = str(cache_dir(args.cache))
+        log(f"filter maps: {k} per world and log (cache {cache}; building what is missing)")
+        fworlds = _jobs_map(_world_job, [(n, int(args.seed), k, cache) for n in names], int(args.jobs))
+        if n_carmen:
+            paths = sorted(CARMEN_DIR.glob("*.log.gz"))
+            flogs = [m for m in _jobs_map(_log_job, [(str(p), int(args.seed), k, cache) for p in paths], int(args.jobs))
+                     if len(m) >= 2]
     rows: list[dict[str, Any]] = []
     t_start = time.perf_counter()
-    total = n_pairs + n_cross + (n_carmen if logs else 0)
+    have_logs = bool(flogs) if args.maps == "filter" else bool(logs)
+    total = n_pairs + n_cross + (n_carmen if have_logs else 0)
 
-    def record(source: str, same: bool, sa: Sample, sb: Sample, overlap: float) -> None:
-        row = attempt(sa, sb, same)
+    def record(source: str, same: bool, sa: Sample, sb: Sample, overlap: float, truth: Any = None) -> None:
+        row = attempt(sa, sb, same, local_truth(sa, sb) if same and args.maps == "filter" else None)
+        ambiguous = bool(same and truth is not None and overlap >= 0.3 and sa.seen is not None and sb.seen is not None
+                         and truth_ambiguous(truth, sa.seen, sb.seen))
         row.update(source=source, same=same, overlap=overlap if same else 0.0, band=_band(overlap) if same else "cross",
-                   worlds=(sa.world, sb.world))
+                   worlds=(sa.world, sb.world), ambiguous=ambiguous)
         rows.append(row)
         if len(rows) % 25 == 0 or row["false_merge"]:
             fm = sum(r["false_merge"] for r in rows)
             log(f"[{len(rows)}/{total}] {time.perf_counter() - t_start:.0f} s, false merges {fm}"
                 + (f"  FALSE MERGE {sa.world}/{sb.world} overlap {overlap:.2f} err {row['trans_err']:.2f} m" if row["false_merge"] else ""))
 
-    for k in range(n_pairs):
-        w = worlds[k % len(worlds)]
-        sa, sb, ov = sim_pair(w, rng, args.noise)
-        record("sim", True, sa, sb, ov)
-    for k in range(n_carmen if logs else 0):
-        lg = logs[k % len(logs)]
-        sa, sb, ov = log_pair(lg, rng)
-        record("carmen", True, sa, sb, ov)
-    sources: list[tuple[str, Any]] = [("sim", w) for w in worlds] + [("carmen", lg) for lg in logs]
-    for k in range(n_cross):
-        i = k % len(sources)
-        j = (i + 1 + int(rng.integers(0, len(sources) - 1))) % len(sources)
-        maps = []
-        for kind, src in (sources[i], sources[j]):
-            if kind == "sim":
-                s0, s1 = _stretch(src, rng)
-                maps.append(_sim_map(src, s0, s1, args.noise, rng))
-            else:
-                n = len(src.scans)
-                ln = int(rng.integers(20, 60))
-                i0 = int(rng.integers(0, max(1, n - ln)))
-                maps.append(_log_map(src, i0, min(n, i0 + ln), rng))
-        record("cross", False, maps[0], maps[1], 0.0)
+    if args.maps == "filter":
+        for k_pair in range(n_pairs):
+            i = k_pair % len(worlds)
+            sa, sb, ov = filter_pair(fworlds[i], worlds[i].truth, rng)
+            record("sim", True, sa, sb, ov, worlds[i].truth)
+        for k_pair in range(n_carmen if flogs else 0):
+            sa, sb, ov = filter_pair(flogs[k_pair % len(flogs)], None, rng)
+            record("carmen", True, sa, sb, ov)
+        fsources = [(w.truth, m) for w, m in zip(worlds, fworlds)] + [(None, m) for m in flogs]
+        for k_pair in range(n_cross):
+            i = k_pair % len(fsources)
+            j = (i + 1 + int(rng.integers(0, len(fsources) - 1))) % len(fsources)
+            pa, pb = (fsources[x][1][int(rng.integers(0, len(fsources[x][1])))] for x in (i, j))
+            record("cross", False, _as_sample(pa, None, rng), _as_sample(pb, None, rng), 0.0)
+    else:
+        for k_pair in range(n_pairs):
+            w = worlds[k_pair % len(worlds)]
+            sa, sb, ov = sim_pair(w, rng, args.noise)
+            record("sim", True, sa, sb, ov, w.truth)
+        for k_pair in range(n_carmen if logs else 0):
+            lg = logs[k_pair % len(logs)]
+            sa, sb, ov = log_pair(lg, rng)
+            record("carmen", True, sa, sb, ov)
+        sources: list[tuple[str, Any]] = [("sim", w) for w in worlds] + [("carmen", lg) for lg in logs]
+        for k_pair in range(n_cross):
+            i = k_pair % len(sources)
+            j = (i + 1 + int(rng.integers(0, len(sources) - 1))) % len(sources)
+            maps = []
+            for kind, src in (sources[i], sources[j]):
+                if kind == "sim":
+                    s0, s1 = _stretch(src, rng)
+                    maps.append(_sim_map(src, s0, s1, args.noise, rng))
+                else:
+                    n = len(src.scans)
+                    ln = int(rng.integers(20, 60))
+                    i0 = int(rng.integers(0, max(1, n - ln)))
+                    maps.append(_log_map(src, i0, min(n, i0 + ln), rng))
+            record("cross", False, maps[0], maps[1], 0.0)
     summary = summarise(rows)
+    summary["maps"] = args.maps
     _print_table(summary, rows)
     print(f"false merges {summary['false_merges']} (cross {summary['false_merges_cross']}), "
-          f"success at >= 30 % overlap {summary['success_rate_overlap_ge_30']}, "
+          f"success at >= 30 % overlap {summary['success_rate_overlap_ge_30']} "
+          f"(unambiguous {summary['success_rate_overlap_ge_30_unambiguous']} of "
+          f"{summary['pairs_overlap_ge_30_unambiguous']}), "
           f"p95 error {summary['trans_err_m_p95']} m / {summary['rot_err_deg_p95']} deg, "
           f"{summary['ms_per_attempt_p50']} ms per attempt (p50)")
     if args.json:
