@@ -350,7 +350,8 @@ class RegistrationConfig:
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0):
                 raise ValueError(f"RegistrationConfig.{name} must be >= 0, got {v!r}")
-        for name in ("coarse_vote_pairs", "coarse_vote_factor", "coarse_vote_cells", "max_samples", "direction_bins", "max_rotations", "peaks_per_rotation", "verify_candidates",
+        for name in ("coarse_vote_pairs", "coarse_vote_factor", "coarse_vote_cells", "max_samples",
+                     "direction_bins", "max_rotations", "peaks_per_rotation", "verify_candidates",
                      "refine_candidates", "refine_iterations"):
             if int(getattr(self, name)) < 1:
                 raise ValueError(f"RegistrationConfig.{name} must be >= 1")
@@ -547,7 +548,11 @@ def prepare(wf: Wireframe, config: RegistrationConfig | None = None) -> MapFeatu
     # Free probes in front of the inner part of every wall.
     along = t * ln[owner]
     inner = (along >= cfg.probe_end_margin) & (ln[owner] - along >= cfg.probe_end_margin)
-    probes = np.concatenate([pts[inner] + dep * nor[inner] for dep in cfg.free_depths]) if len(pts) else np.zeros((0, 2))
+    probes = (
+        np.concatenate([pts[inner] + dep * nor[inner] for dep in cfg.free_depths])
+        if len(pts)
+        else np.zeros((0, 2))
+    )
     if len(probes) and len(pts):
         dist, _ = tree.query(probes, k=1, distance_upper_bound=cfg.free_clearance)
         probes = probes[~np.isfinite(dist)]
@@ -566,7 +571,9 @@ def prepare(wf: Wireframe, config: RegistrationConfig | None = None) -> MapFeatu
     front = int(Label.FRONTIER)
     s_fr = wf.labels[edges[:, 0]] == front if len(edges) else np.zeros(0, bool)
     e_fr = wf.labels[edges[:, 1]] == front if len(edges) else np.zeros(0, bool)
-    near_fr = (s_fr[owner] & (along < cfg.frontier_margin)) | (e_fr[owner] & (ln[owner] - along < cfg.frontier_margin))
+    near_fr = (s_fr[owner] & (along < cfg.frontier_margin)) | (
+        e_fr[owner] & (ln[owner] - along < cfg.frontier_margin)
+    )
     cw = w * wf.likelihood[kept][owner] * (ln[owner] >= cfg.conflict_min_wall) * ~near_fr
     used = np.unique(np.concatenate([edges[s_ok, 0], edges[e_ok, 1]]))
     corner_points = np.asarray(wf.points[used], dtype=np.float64).reshape(-1, 2)
@@ -577,8 +584,8 @@ def prepare(wf: Wireframe, config: RegistrationConfig | None = None) -> MapFeatu
     pos = (ang + math.pi) / width - 0.5
     b0 = np.floor(pos).astype(np.int64)
     fr = pos - b0
-    hist = np.bincount(np.concatenate([b0 % nb, (b0 + 1) % nb]), weights=np.concatenate([ln * (1 - fr), ln * fr]),
-                       minlength=nb).astype(np.float64)
+    hist = np.bincount(np.concatenate([b0 % nb, (b0 + 1) % nb]),
+                       weights=np.concatenate([ln * (1 - fr), ln * fr]), minlength=nb).astype(np.float64)
     k = np.fft.rfftfreq(nb, d=1.0 / nb)
     sig = cfg.direction_smooth / width
     hist = np.fft.irfft(np.fft.rfft(hist) * np.exp(-2.0 * (math.pi * sig * k / nb) ** 2), n=nb)
@@ -592,7 +599,9 @@ def prepare(wf: Wireframe, config: RegistrationConfig | None = None) -> MapFeatu
 
 
 # ------------------------------------------------------------------------------ rotation
-def rotation_candidates(fa: MapFeatures, fb: MapFeatures, config: RegistrationConfig | None = None) -> FloatArray:
+def rotation_candidates(
+    fa: MapFeatures, fb: MapFeatures, config: RegistrationConfig | None = None
+) -> FloatArray:
     """Rotations (radians) that turn B's wall directions onto A's, best first (step 2).
 
     The circular cross-correlation ``c[k] = sum_i hist_A[i + k] hist_B[i]`` is computed by FFT;
@@ -732,7 +741,11 @@ def _vote(
         # Sub-cell position: weighted mean of the proposals near the peak cell.
         near = (np.abs(tx - cx) <= cfg.vote_cell) & (np.abs(ty - cy) <= cfg.vote_cell)
         wn = wv[near]
-        t = np.array([np.dot(tx[near], wn), np.dot(ty[near], wn)]) / wn.sum() if wn.sum() > 0 else np.array([cx, cy])
+        t = (
+            np.array([np.dot(tx[near], wn), np.dot(ty[near], wn)]) / wn.sum()
+            if wn.sum() > 0
+            else np.array([cx, cy])
+        )
         out.append((t, float(acc[o])))
         if len(out) >= cfg.peaks_per_rotation:
             break
@@ -817,7 +830,8 @@ def _score(
         cross = float(np.linalg.eigvalsh(M)[0])
     else:
         rmse, cross = math.inf, 0.0
-    return Hypothesis(T, votes, support, conflict, support - cfg.conflict_weight * conflict, rmse, cross, refined)
+    return Hypothesis(T, votes, support, conflict, support - cfg.conflict_weight * conflict, rmse,
+                      cross, refined)
 
 
 def _refine(fa: MapFeatures, fb: MapFeatures, T: Pose, cfg: RegistrationConfig) -> Pose:
@@ -982,7 +996,8 @@ def _runner_up(
     for k, h in enumerate(sorted(rivals, key=lambda h: -h.support)):
         if k < cfg.rival_refine:
             if not h.refined:
-                h = _score(fa, fb, _refine(fa, fb, h.transform, cfg), cfg.match_dist, cfg, h.votes, refined=True)
+                h = _score(fa, fb, _refine(fa, fb, h.transform, cfg), cfg.match_dist, cfg, h.votes,
+                           refined=True)
                 if not _distinct(h.transform, best.transform, fb, cfg):
                     continue  # it was the best hypothesis, voted off its cell
             c = _matched_ends(fa, fb, h.transform, cfg, cfg.rival_corner_dist) / n_best
@@ -1020,7 +1035,9 @@ def register(a: Wireframe, b: Wireframe, config: RegistrationConfig | None = Non
     return register_prepared(prepare(a, cfg), prepare(b, cfg), cfg)
 
 
-def register_prepared(fa: MapFeatures, fb: MapFeatures, config: RegistrationConfig | None = None) -> Registration:
+def register_prepared(
+    fa: MapFeatures, fb: MapFeatures, config: RegistrationConfig | None = None
+) -> Registration:
     """:func:`register` on features from :func:`prepare` (computed once per map and reused for
     every pair, as the fusion service would), with the same ``config``."""
     cfg = config or RegistrationConfig()
@@ -1040,7 +1057,9 @@ def register_prepared(fa: MapFeatures, fb: MapFeatures, config: RegistrationConf
     cands.sort(key=lambda c: -c[0])
     n_cands = len(cands)
     stride = 2 if len(fb.points) + len(fa.points) > 2000 else 1
-    scored = [_score(fa, fb, T, cfg.coarse_match_dist, cfg, v, stride) for v, T in cands[: cfg.verify_candidates]]
+    scored = [
+        _score(fa, fb, T, cfg.coarse_match_dist, cfg, v, stride) for v, T in cands[: cfg.verify_candidates]
+    ]
     scored.sort(key=lambda h: -h.score)
     refined = []
     for h in scored[: cfg.refine_candidates]:
@@ -1054,7 +1073,8 @@ def register_prepared(fa: MapFeatures, fb: MapFeatures, config: RegistrationConf
     # refined score; a coarse score at the coarse gate is an overestimate, which errs on the
     # side of refusing).
     pool = refined[1:] + scored[cfg.refine_candidates:]
-    rivals = sorted((h for h in pool if _distinct(h.transform, best.transform, fb, cfg)), key=lambda h: -h.score)
+    rivals = sorted((h for h in pool if _distinct(h.transform, best.transform, fb, cfg)),
+                    key=lambda h: -h.score)
     runner, ratio, corner_ratio = _runner_up(fa, fb, best, rivals, cfg)
     smaller = min(fa.length, fb.length)
     frac = best.support / smaller if smaller > 0 else 0.0
@@ -1084,11 +1104,14 @@ def register_prepared(fa: MapFeatures, fb: MapFeatures, config: RegistrationConf
         limit = cfg.contested_self_ratio if ratio > cfg.contested_runner_up_ratio else cfg.max_self_ratio
         if max(self_a, self_b) > limit:
             reason = f"repetitive: the overlap recurs within one map ({max(self_a, self_b):.0%})"
-    conf = max(0.0, 1.0 - ratio) * best.support / (best.support + cfg.min_support) if best.support > 0 else 0.0
+    conf = (
+        max(0.0, 1.0 - ratio) * best.support / (best.support + cfg.min_support) if best.support > 0 else 0.0
+    )
     return Registration(
         accepted=reason == "", transform=best.transform, reason=reason, confidence=float(conf),
         support=best.support, support_fraction=float(frac), conflict=best.conflict, rmse=best.rmse,
         cross_support=best.cross_support, runner_up_ratio=float(ratio), best=best, runner_up=runner,
         hypotheses=n_cands,
-        extra={"corners": float(corners), "self_a": self_a, "self_b": self_b, "runner_up_corner_ratio": corner_ratio},
+        extra={"corners": float(corners), "self_a": self_a, "self_b": self_b,
+               "runner_up_corner_ratio": corner_ratio},
     )

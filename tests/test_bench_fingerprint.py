@@ -28,7 +28,9 @@ def test_same_seed_same_hashes_and_a_difference_is_located() -> None:
     assert compare(moved, a_long) == "DIFFERENT: poses differ within steps 1-500"
 
 
-def test_against_an_earlier_run_exits_1_on_a_difference(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+def test_against_an_earlier_run_exits_1_on_a_difference(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     assert main(["bench", "fingerprint", "--world", "paper-small", "--seeds", "1", "--steps", "40", "--json",
                  "--quiet"]) == 0
     line = capsys.readouterr().out.strip().splitlines()[-1]

@@ -46,7 +46,8 @@ def _error(found: Pose, true: Pose, at: np.ndarray) -> tuple[float, float]:
 def test_invariant_to_a_random_rigid_transform(seed: int) -> None:
     rng = np.random.default_rng(seed)
     a = _noisy(_truth("paper-small"), rng)
-    move = Pose(float(rng.uniform(-50, 50)), float(rng.uniform(-50, 50)), float(rng.uniform(-math.pi, math.pi)))
+    move = Pose(float(rng.uniform(-50, 50)), float(rng.uniform(-50, 50)),
+                float(rng.uniform(-math.pi, math.pi)))
     b = _noisy(_truth("paper-small"), rng).transformed(move)
     res = register(a, b)
     assert res.accepted, res.reason
@@ -315,13 +316,16 @@ def test_a_rival_with_more_wall_is_ambiguous_even_when_it_conflicts() -> None:
     f = prepare(_noisy(_truth("paper-small"), rng))
     cfg = RegistrationConfig()
     true = _score(f, f, Pose.identity(), cfg.match_dist, cfg, 0.0)
-    coincidence = Hypothesis(Pose(30.0, 0.0, 0.0), 0.0, 0.3 * true.support, 0.0, 0.3 * true.support, 0.01, 5.0, True)
-    drifted = Hypothesis(true.transform, 0.0, true.support, 0.5 * true.support, -0.5 * true.support, 0.05, 5.0, True)
+    coincidence = Hypothesis(Pose(30.0, 0.0, 0.0), 0.0, 0.3 * true.support, 0.0, 0.3 * true.support,
+                             0.01, 5.0, True)
+    drifted = Hypothesis(true.transform, 0.0, true.support, 0.5 * true.support, -0.5 * true.support,
+                         0.05, 5.0, True)
     # The conflicting rival matches more wall and every typed corner: refuse.
     _, ratio, _ = _runner_up(f, f, coincidence, [drifted], cfg)
     assert ratio > cfg.max_runner_up_ratio
     # A conflicting rival with less wall than the best is no rival.
-    weak = Hypothesis(true.transform, 0.0, 0.9 * true.support, 0.5 * true.support, -0.6 * true.support, 0.05, 5.0, True)
+    weak = Hypothesis(true.transform, 0.0, 0.9 * true.support, 0.5 * true.support, -0.6 * true.support,
+                      0.05, 5.0, True)
     best = Hypothesis(Pose(30.0, 0.0, 0.0), 0.0, true.support, 0.0, true.support, 0.01, 5.0, True)
     _, ratio, _ = _runner_up(f, f, best, [weak], cfg)
     assert ratio < cfg.max_runner_up_ratio
@@ -357,7 +361,8 @@ def test_contested_matches_refuse_at_half_the_self_similarity() -> None:
     cfg = RegistrationConfig()
     move = Pose(-3.0, 40.0, -1.0)
     for lo_a, hi_a, lo_b, hi_b in [(0, 16, 9, 26), (0, 30, 6, 19), (5, 21, 0, 14), (0, 22, 0, 22)]:
-        res = register(_noisy(_crop(office, lo_a, hi_a), rng), _noisy(_crop(office, lo_b, hi_b), rng).transformed(move))
+        res = register(_noisy(_crop(office, lo_a, hi_a), rng),
+                       _noisy(_crop(office, lo_b, hi_b), rng).transformed(move))
         if res.accepted and res.runner_up_ratio > cfg.contested_runner_up_ratio:
             assert max(res.extra["self_a"], res.extra["self_b"]) <= cfg.contested_self_ratio
     # Every match contested: paper-small's overlap recurs at about 10 % (a room corner or two).

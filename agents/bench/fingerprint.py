@@ -93,7 +93,9 @@ def fingerprint(world: Any, seed: int, steps: int | None) -> dict[str, Any]:
     return {
         "steps": len(poses),
         "poses": hashlib.sha256(arr.tobytes()).hexdigest()[:16],
-        "pose_blocks": [hashlib.sha256(arr[:k].tobytes()).hexdigest()[:16] for k in range(BLOCK, len(arr) + 1, BLOCK)],
+        "pose_blocks": [
+            hashlib.sha256(arr[:k].tobytes()).hexdigest()[:16] for k in range(BLOCK, len(arr) + 1, BLOCK)
+        ],
         "checkpoints": checkpoints,
         "best": _wireframe_hash(filt.best)[:16],
         "seconds": round(time.perf_counter() - t0, 1),
@@ -116,7 +118,8 @@ def compare(new: dict[str, Any], old: dict[str, Any]) -> str:
             return "DIFFERENT: final particle set"
         return "IDENTICAL"
     common = min(new["steps"], old["steps"])
-    return f"IDENTICAL over the first {common // BLOCK * BLOCK} steps (runs of {new['steps']} and {old['steps']})"
+    return (f"IDENTICAL over the first {common // BLOCK * BLOCK} steps "
+            f"(runs of {new['steps']} and {old['steps']})")
 
 
 def _earlier(path: str) -> dict[str, Any]:

@@ -84,11 +84,13 @@ AMBIGUOUS_SUPPORT, AMBIGUOUS_CORNERS = 0.9, 0.9
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--pairs", type=int, default=1000, metavar="N", help="same-world pairs (default 1000)")
+    parser.add_argument("--pairs", type=int, default=1000, metavar="N",
+                        help="same-world pairs (default 1000)")
     parser.add_argument("--cross", type=int, default=None, metavar="N",
                         help="cross-world pairs (default a quarter of --pairs)")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--noise", type=float, default=0.03, metavar="M", help="vertex noise, metres (default 0.03)")
+    parser.add_argument("--noise", type=float, default=0.03, metavar="M",
+                        help="vertex noise, metres (default 0.03)")
     parser.add_argument("--worlds", default=None, metavar="A,B,...",
                         help="worlds (default the built-ins and tests/worlds/*.geojson)")
     parser.add_argument("--carmen", type=int, default=None, metavar="N",
@@ -158,7 +160,9 @@ def _seen_intervals(truth: Any, xy: np.ndarray) -> dict[int, list[tuple[float, f
     return out
 
 
-def _crop(truth: Any, seen: dict[int, list[tuple[float, float]]], noise: float, rng: np.random.Generator) -> Any:
+def _crop(
+    truth: Any, seen: dict[int, list[tuple[float, float]]], noise: float, rng: np.random.Generator
+) -> Any:
     """The truth's seen pieces as a wireframe (frontier vertices where a piece ends inside a wall)."""
     from mapping.wireframe import Label, Wireframe
 
@@ -196,7 +200,9 @@ def _crop(truth: Any, seen: dict[int, list[tuple[float, float]]], noise: float, 
     return Wireframe.build(p, edges, labels)
 
 
-def _shared(truth: Any, sa: dict[int, list[tuple[float, float]]], sb: dict[int, list[tuple[float, float]]]) -> float:
+def _shared(
+    truth: Any, sa: dict[int, list[tuple[float, float]]], sb: dict[int, list[tuple[float, float]]]
+) -> float:
     lengths = truth.edge_lengths()
     total = 0.0
     for e in set(sa) & set(sb):
@@ -208,7 +214,9 @@ def _shared(truth: Any, sa: dict[int, list[tuple[float, float]]], sb: dict[int, 
 
 def _seen_length(truth: Any, s: dict[int, list[tuple[float, float]]]) -> float:
     lengths = truth.edge_lengths()
-    return float(sum((b - a) * lengths[e] for e, iv in s.items() for a, b in iv if (b - a) * lengths[e] >= 0.1))
+    return float(
+        sum((b - a) * lengths[e] for e, iv in s.items() for a, b in iv if (b - a) * lengths[e] >= 0.1)
+    )
 
 
 def _stretch(w: SimWorld, rng: np.random.Generator, s0: float | None = None) -> tuple[float, float]:
@@ -277,7 +285,10 @@ def _read_log(path: Path, max_range: float = MAX_RANGE) -> Log:
     from mapping.extract import extract_corners
     from mapping.se2 import Pose
 
-    truth_rows = [ln.split() for ln in path.with_name(path.name.replace(".log.gz", ".truth.tsv")).read_text().splitlines()]
+    truth_rows = [
+        ln.split()
+        for ln in path.with_name(path.name.replace(".log.gz", ".truth.tsv")).read_text().splitlines()
+    ]
     truth_rows = [r for r in truth_rows if r and not r[0].startswith("#")]
     poses = []
     for r in truth_rows:
@@ -293,8 +304,10 @@ def _read_log(path: Path, max_range: float = MAX_RANGE) -> Log:
                 continue
             n = int(tok[1])
             ranges = np.asarray(tok[2 : 2 + n], dtype=np.float64)
-            angles = np.asarray(-math.pi / 2 + np.arange(n) * (math.pi / max(1, n - 1)) if n > 1 else np.zeros(n),
-                                dtype=np.float64)
+            angles = np.asarray(
+                -math.pi / 2 + np.arange(n) * (math.pi / max(1, n - 1)) if n > 1 else np.zeros(n),
+                dtype=np.float64,
+            )
             ranges = np.where(ranges >= max_range, np.inf, ranges)
             scans.append(extract_corners(ranges, angles, max_range))
     k = min(len(scans), len(poses))
@@ -396,7 +409,8 @@ def _build_world_maps(name: str, seed: int, k: int) -> list[dict[str, Any]]:
     out = []
     for s0, s1 in _filter_stretches(w, k, rng):
         run_seed = int(rng.integers(0, 2**31))
-        inputs = list(mr.simulate(world, mr.SimOptions(max_range=MAX_RANGE), run_seed, route=_sub_route(w, s0, s1)))
+        inputs = list(mr.simulate(world, mr.SimOptions(max_range=MAX_RANGE), run_seed,
+                                  route=_sub_route(w, s0, s1)))
         filt = WireframeFilter(cfg, mr.seeds_for(run_seed)["filter"], initial_pose=Pose.identity())
         for inp in inputs:
             filt.step(inp.odometry, inp.scan)
@@ -456,8 +470,8 @@ def _cached(cache: Path, key: str, build: Any) -> list[FilterMap]:
         tmp = f.with_suffix(".tmp")
         tmp.write_text(json.dumps(rows))
         tmp.replace(f)
-    return [FilterMap(Wireframe.from_geojson(r["wf"]), Pose(*r["start"]), np.asarray(r["xy"], dtype=np.float64).reshape(-1, 2),
-                      r["source"]) for r in rows]
+    return [FilterMap(Wireframe.from_geojson(r["wf"]), Pose(*r["start"]),
+                      np.asarray(r["xy"], dtype=np.float64).reshape(-1, 2), r["source"]) for r in rows]
 
 
 def _jobs_map(fn: Any, items: list[Any], jobs: int) -> list[Any]:
@@ -517,7 +531,9 @@ def _shared_intervals(sa: dict[int, list[tuple[float, float]]],
     return out
 
 
-def truth_ambiguous(truth: Any, sa: dict[int, list[tuple[float, float]]], sb: dict[int, list[tuple[float, float]]]) -> bool:
+def truth_ambiguous(
+    truth: Any, sa: dict[int, list[tuple[float, float]]], sb: dict[int, list[tuple[float, float]]]
+) -> bool:
     """Whether the pair's true transform is not unique by geometry alone.
 
     The *overlap* (the true walls both robots saw, noise-free, in the world frame) is registered
@@ -609,7 +625,9 @@ def attempt(sa: Sample, sb: Sample, same: bool, true: Any = None) -> dict[str, A
             row["false_merge"] = row["trans_err"] > FALSE_T or row["rot_err"] > FALSE_R
     else:
         row["false_merge"] = False
-    row["success"] = bool(res.accepted and same and row["trans_err"] <= SUCCESS_T and row["rot_err"] <= SUCCESS_R)
+    row["success"] = bool(
+        res.accepted and same and row["trans_err"] <= SUCCESS_T and row["rot_err"] <= SUCCESS_R
+    )
     return row
 
 
@@ -652,15 +670,22 @@ def summarise(rows: list[dict[str, Any]]) -> dict[str, Any]:
         "false_merges": sum(r["false_merge"] for r in rows),
         "false_merges_cross": sum(r["false_merge"] for r in cross),
         "false_merges_start_truth": sum(
-            bool(r["accepted"] and r["same"] and (r.get("trans_err_start", 0.0) > FALSE_T or r.get("rot_err_start", 0.0) > FALSE_R))
-            for r in rows),
+            bool(
+                r["accepted"]
+                and r["same"]
+                and (r.get("trans_err_start", 0.0) > FALSE_T or r.get("rot_err_start", 0.0) > FALSE_R)
+            )
+            for r in rows
+        ),
         "imprecise_accepts": sum(r["accepted"] and not r["false_merge"] and not r["success"] for r in same),
         "pairs_overlap_ge_30": len(ge30),
         "success_rate_overlap_ge_30": round(sum(r["success"] for r in ge30) / len(ge30), 4) if ge30 else None,
         "pairs_overlap_ge_30_ambiguous": len(ge30) - len(clear),
         "accepted_overlap_ge_30_ambiguous": sum(r["accepted"] for r in ge30 if r.get("ambiguous")),
         "pairs_overlap_ge_30_unambiguous": len(clear),
-        "success_rate_overlap_ge_30_unambiguous": round(sum(r["success"] for r in clear) / len(clear), 4) if clear else None,
+        "success_rate_overlap_ge_30_unambiguous": round(sum(r["success"] for r in clear) / len(clear), 4)
+        if clear
+        else None,
         "trans_err_m_p50": _pct([r["trans_err"] for r in acc], 50),
         "trans_err_m_p95": _pct([r["trans_err"] for r in acc], 95),
         "rot_err_deg_p50": _pct([math.degrees(r["rot_err"]) for r in acc], 50),
@@ -699,12 +724,16 @@ def _print_table(summary: dict[str, Any], rows: list[dict[str, Any]]) -> None:
         for band, v in summary["by_overlap"].items()
     ]
     cross = [r for r in rows if not r["same"]]
-    table.append(["cross-world", len(cross), sum(r["accepted"] for r in cross), "-", sum(r["false_merge"] for r in cross)])
+    table.append(["cross-world", len(cross), sum(r["accepted"] for r in cross), "-",
+                  sum(r["false_merge"] for r in cross)])
     print_table(["overlap", "pairs", "accepted", "success", "false merges"], table)
     for src in ("sim", "carmen"):
         rs = [r for r in rows if r["source"] == src and r["same"] and r["overlap"] >= 0.3]
         if rs:
-            print(f"{src}: overlap >= 30 %: {sum(r['success'] for r in rs)}/{len(rs)} registered within 0.10 m / 1 deg")
+            print(
+                f"{src}: overlap >= 30 %: {sum(r['success'] for r in rs)}/{len(rs)} registered "
+                "within 0.10 m / 1 deg"
+            )
 
 
 # ------------------------------------------------------------------------------ main
@@ -718,7 +747,11 @@ def run(args: argparse.Namespace) -> int:
     if n_pairs < 0 or n_cross < 0 or n_carmen < 0:
         raise UserError("pair counts must be >= 0")
     rng = np.random.default_rng(args.seed)
-    names = args.worlds.split(",") if args.worlds else [*WORLDS, *sorted(str(p) for p in TEST_WORLDS.glob("*.geojson"))]
+    names = (
+        args.worlds.split(",")
+        if args.worlds
+        else [*WORLDS, *sorted(str(p) for p in TEST_WORLDS.glob("*.geojson"))]
+    )
     log = (lambda msg: None) if args.quiet else (lambda msg: sys.stderr.write(msg + "\n"))
     log(f"planning routes in {len(names)} worlds")
     worlds = _load_worlds(names, rng)
@@ -739,7 +772,8 @@ def run(args: argparse.Namespace) -> int:
         fworlds = _jobs_map(_world_job, [(n, int(args.seed), k, cache) for n in names], int(args.jobs))
         if n_carmen:
             paths = sorted(CARMEN_DIR.glob("*.log.gz"))
-            flogs = [m for m in _jobs_map(_log_job, [(str(p), int(args.seed), k, cache) for p in paths], int(args.jobs))
+            flogs = [m for m in _jobs_map(_log_job, [(str(p), int(args.seed), k, cache) for p in paths],
+                                          int(args.jobs))
                      if len(m) >= 2]
     rows: list[dict[str, Any]] = []
     t_start = time.perf_counter()
@@ -748,15 +782,27 @@ def run(args: argparse.Namespace) -> int:
 
     def record(source: str, same: bool, sa: Sample, sb: Sample, overlap: float, truth: Any = None) -> None:
         row = attempt(sa, sb, same, local_truth(sa, sb) if same and args.maps == "filter" else None)
-        ambiguous = bool(same and truth is not None and overlap >= 0.3 and sa.seen is not None and sb.seen is not None
-                         and truth_ambiguous(truth, sa.seen, sb.seen))
-        row.update(source=source, same=same, overlap=overlap if same else 0.0, band=_band(overlap) if same else "cross",
-                   worlds=(sa.world, sb.world), ambiguous=ambiguous)
+        ambiguous = bool(
+            same
+            and truth is not None
+            and overlap >= 0.3
+            and sa.seen is not None
+            and sb.seen is not None
+            and truth_ambiguous(truth, sa.seen, sb.seen)
+        )
+        row.update(source=source, same=same, overlap=overlap if same else 0.0,
+                   band=_band(overlap) if same else "cross", worlds=(sa.world, sb.world), ambiguous=ambiguous)
         rows.append(row)
         if len(rows) % 25 == 0 or row["false_merge"]:
             fm = sum(r["false_merge"] for r in rows)
-            log(f"[{len(rows)}/{total}] {time.perf_counter() - t_start:.0f} s, false merges {fm}"
-                + (f"  FALSE MERGE {sa.world}/{sb.world} overlap {overlap:.2f} err {row['trans_err']:.2f} m" if row["false_merge"] else ""))
+            log(
+                f"[{len(rows)}/{total}] {time.perf_counter() - t_start:.0f} s, false merges {fm}"
+                + (
+                    f"  FALSE MERGE {sa.world}/{sb.world} overlap {overlap:.2f} err {row['trans_err']:.2f} m"
+                    if row["false_merge"]
+                    else ""
+                )
+            )
 
     if args.maps == "filter":
         for k_pair in range(n_pairs):

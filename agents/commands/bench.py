@@ -16,7 +16,8 @@ BENCHES: dict[str, tuple[str, str]] = {
     "sensor": ("agents.bench.sensor", "corner-sensor label accuracy and split-and-merge corner error"),
     "register": ("agents.bench.register", "global registration of map pairs in unrelated frames"),
     "lidar": ("agents.bench.lidar", "the mapper on real CARMEN lidar logs against their truth"),
-    "fingerprint": ("agents.bench.fingerprint", "hash the filter's poses and particle sets (bit-identity check)"),
+    "fingerprint": ("agents.bench.fingerprint",
+                    "hash the filter's poses and particle sets (bit-identity check)"),
 }
 
 

@@ -208,10 +208,12 @@ def _world_source(args: argparse.Namespace, cargs: ConfigArgs) -> _Source:
     world = load_world(args.world)
     resolved = _filter_config(args, cargs, mr.default_merge_threshold(world), 8.0)
     cfg = resolved.config
-    options = mr.SimOptions(sensor=args.sensor, max_range=cfg.max_range, steps=args.steps, duration=args.duration)
+    options = mr.SimOptions(sensor=args.sensor, max_range=cfg.max_range, steps=args.steps,
+                            duration=args.duration)
     try:
         total: int | None = mr.count_sim_steps(world, options, args.seed)
-        filt, inputs = mr.sim_filter(world, options, args.seed, cfg.particles, cfg.merge_threshold, config=cfg)
+        filt, inputs = mr.sim_filter(world, options, args.seed, cfg.particles,
+                                     cfg.merge_threshold, config=cfg)
     except ValueError as exc:
         raise UserError(f"{args.world}: {exc}") from None
     return _Source(filt, inputs, total, {"world": world.name, "sensor": args.sensor}, resolved, world.name,
@@ -335,7 +337,8 @@ def run(args: argparse.Namespace) -> int:
     if src.log is not None:
         report["skipped_lines"] = len(src.log.issues)
         if src.true_scans is not None and k:
-            lidar, png = _score_log(src.log.scans[:k], src.true_scans[:k], done.trajectory, best, src.max_range)
+            lidar, png = _score_log(src.log.scans[:k], src.true_scans[:k], done.trajectory, best,
+                                    src.max_range)
             report.update(lidar)
     props = {**src.source, "steps": k, "seed": args.seed, "particles": cfg.particles, "merge_threshold": thr}
     title = f"{src.name}: one robot, {k} steps, {cfg.particles} particles"

@@ -803,8 +803,8 @@ def _print_summary(report: dict[str, Any], ids: list[str], out: Path) -> None:
         else "--duration reached")
     lines = [
         f"wiremap run: {report.get('duration_s', 0.0):.1f} s of mapping ({why})",
-        f"  fused map   v{f.get('version', '-')}: {f.get('vertices', '-')} corners, {f.get('edges', '-')} walls, "
-        f"{f.get('bytes', '-')} bytes",
+        f"  fused map   v{f.get('version', '-')}: {f.get('vertices', '-')} corners, "
+        f"{f.get('edges', '-')} walls, {f.get('bytes', '-')} bytes",
         f"  vs truth    wall recall {_num(f.get('wall_recall'), '.3f')}, "
         f"precision {_num(f.get('wall_precision'), '.3f')}, "
         f"cell error {_num(f.get('cell_error'), '.2%')}",
