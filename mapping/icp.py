@@ -93,11 +93,11 @@ __all__ = [
     "correspond",
     "edge_overlap",
     "edge_overlap_pairs",
-    "near_segment_pairs",
     "icp",
     "information_split",
     "match_edges",
     "match_vertices",
+    "near_segment_pairs",
     "project_onto_segments",
 ]
 

@@ -22,8 +22,8 @@ import numpy as np
 
 import wire_codec
 from agents.fleet import validate
-from wire_codec import MAX_ROBOTS
 from mapping.wireframe import Wireframe
+from wire_codec import MAX_ROBOTS
 from wire_codec.message import MapMessage
 
 

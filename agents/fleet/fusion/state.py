@@ -33,6 +33,14 @@ from agents.fleet.fusion.frames import (
     origin_unknown,
 )
 from agents.fleet.fusion.intake import InputLimits, implausible, over_budget
+from agents.fleet.fusion.quarantine import (
+    FleetView,
+    Quarantine,
+    QuarantineConfig,
+    against_fleet,
+    against_history,
+    others_walls,
+)
 from agents.fleet.fusion.stats import MAX_LATENCIES, FusionStats
 from agents.fleet.fusion.store import LATENCY_LOG, StoreDamaged, StoreJob, read_latency_log, read_store
 from mapping.fleet import align_maps, close_frontiers, fold_split
@@ -175,6 +183,7 @@ class FusionState:
         merge_fn: MergeFn | None = None,
         limits: InputLimits | None = None,
         frames: FramesConfig | None = None,
+        quarantine: QuarantineConfig | None = None,
     ) -> None:
         self.config = config or FusionConfig()
         self.sender = sender
@@ -215,6 +224,12 @@ class FusionState:
         # robots of unknown start pose (meta origin_unknown): the registration graph (frames.py)
         self.frames = FleetFrames(frames)
         self._island_cache: dict[str, tuple[tuple[Any, ...], tuple[str, ...], Wireframe]] = {}
+        # consistency (quarantine.py; None: off): maps that contradict their robot's history or
+        # the fleet are kept aside, never merged; ids that never sent a plausible map are forgotten
+        self.quarantine_config = quarantine
+        self.quarantine = Quarantine()
+        self._fleet_view: tuple[tuple[int, int | None], FleetView] | None = None
+        self._first_seen: dict[str, int] = {}  # robot id -> first map (ns) while none was accepted
 
     # ------------------------------------------------------------------ input
     def offer(self, data: bytes, key_robot: str | None = None, now_ns: int | None = None) -> bool:
@@ -229,6 +244,8 @@ class FusionState:
         self.stats.received += 1
         self.last_drop = None
         raw = bytes(data)
+        if now_ns is not None and key_robot is not None and key_robot not in self.robots:
+            self._note_unproven(key_robot, now_ns)
         try:
             msg = decode_message(raw, self._codec_limits)
         except ValueError as exc:
@@ -270,13 +287,55 @@ class FusionState:
         self.token_gen[rid] = self.token_gen.get(rid, 0) + 1
 
     def forget(self, rid: str, why: str) -> bool:
-        """Remove every trace of a robot (its map, alignment, caches); the store records
-        ``why`` (:attr:`forgotten`). Returns whether it had a map."""
+        """Remove every trace of a robot (its map, alignment, caches, quarantined map); the store
+        records ``why`` (:attr:`forgotten`). Returns whether it had a map."""
         had = self.robots.pop(rid, None) is not None
-        for cache in (self.alignments, self.corrections, self._in_fleet, self._prepared, self._pending):
+        for cache in (self.alignments, self.corrections, self._in_fleet, self._prepared, self._pending,
+                      self.quarantine.maps, self._first_seen, self.token_gen):  # fmt: skip
             cache.pop(rid, None)
         self.forgotten[rid] = why[:200]
         return had
+
+    # ------------------------------------------------------------------ consistency (quarantine.py)
+    def _note_unproven(self, rid: str, now_ns: int) -> None:
+        """Remember when a robot id without an accepted map first sent one (bounded)."""
+        if rid not in self._first_seen:
+            if len(self._first_seen) >= 4 * MAX_ROBOTS:
+                del self._first_seen[min(self._first_seen, key=self._first_seen.__getitem__)]
+            self._first_seen[rid] = now_ns
+
+    def forget_implausible(self, now_ns: int) -> list[str]:
+        """Forget the robot ids none of whose maps was accepted (each refused or quarantined)
+        for ``forget_after_s`` since their first. Returns them."""
+        cfg = self.quarantine_config
+        if cfg is None:
+            return []
+        due = [r for r, t in self._first_seen.items() if r not in self.robots and now_ns - t >= cfg.forget_after_s * 1e9]
+        for rid in due:
+            self.forget(rid, f"never plausible: no map accepted in {cfg.forget_after_s:.0f} s")
+        return due
+
+    def _inconsistent(self, msg: MapMessage, old: RobotEntry | None, now_ns: int | None) -> tuple[str, str] | None:
+        """Why ``msg`` contradicts its robot's last accepted map of the same boot or the other
+        robots' walls (:mod:`agents.fleet.fusion.quarantine`), else None."""
+        cfg = self.quarantine_config
+        if cfg is None or now_ns is None:
+            return None
+        wf = msg.wireframe
+        if old is not None and old.at_ns and _origin_of(old.message) == _origin_of(msg):  # same boot and start
+            seconds = (now_ns - old.at_ns) / 1e9
+            lim = self.limits
+            bad = against_history(wf, old.message.wireframe, seconds, lim.max_speed_mps, lim.sensor_range_m, cfg)
+            if bad is not None:
+                return bad
+        if origin_unknown(msg) or self.fused.n_edges == 0:
+            return None
+        rid = msg.sender
+        bit = self.fused_robots.index(rid) if rid in self.fused_robots else None
+        key = (self.version, bit)
+        if self._fleet_view is None or self._fleet_view[0] != key:
+            self._fleet_view = (key, FleetView.of(others_walls(self.fused, bit), cfg))
+        return against_fleet(wf.transformed(msg.origin), self._fleet_view[1], cfg)
 
     def _add(self, msg: MapMessage, raw: bytes, now_ns: int | None = None) -> bool:
         rid = msg.sender
@@ -315,6 +374,12 @@ class FusionState:
                         return self._drop("absurd", "seq_jump", f"seq {key[1]} after {old.key[1]} {dt:.1f} s ago")
         elif len(self.robots) >= MAX_ROBOTS:
             return self._drop("rejected", "too_many_robots", f"{rid!r} would be robot {MAX_ROBOTS + 1}")
+        bad = self._inconsistent(msg, old, now_ns)
+        if bad is not None:
+            self.quarantine.put(rid, raw, *bad, now_ns or 0)
+            return self._drop("quarantined", *bad)
+        self.quarantine.maps.pop(rid, None)
+        self._first_seen.pop(rid, None)
         self.forgotten.pop(rid, None)
         same = old is not None and _same_content(old.message, msg)
         if same:
