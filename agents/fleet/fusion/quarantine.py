@@ -9,7 +9,7 @@ Both tests compare *where the maps overlap*, on points sampled along the walls:
   more than the robot could have seen since (``extent_jump``: sensor range + speed x seconds
   between the two maps + slack), and where the new walls lie inside the old map's box most of
   them must lie near an old wall (``history_walls``). A robot's best particle changes, and
-  loop closures move walls, by decimetres to a metre; ``far_m`` is 3 m.
+  loop closures move walls, by decimetres to a metre; ``far_m`` is 2 m (2-5.8 m on its grid).
 * **fleet** (:func:`against_fleet`), the new map in the fleet frame against the walls the
   *other* robots contributed to the fused map: in the cells (``cell_m``) where the fleet has
   walls -- the space the fleet has seen, walls and the free space between them -- most of the
@@ -26,11 +26,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.spatial import cKDTree
 
 from mapping.wireframe import Wireframe
 
 FloatArray = NDArray[np.float64]
+MAX_JUDGED = 1000  # wall points whose distance is tested per map, at most (every k-th)
 
 
 @dataclass(frozen=True)
@@ -38,7 +38,8 @@ class QuarantineConfig:
     """Thresholds of the consistency tests (choices, see the module's docstring).
 
     sample_m : walls are compared on points this far apart.
-    far_m : a wall point further than this from the other map's walls disagrees.
+    far_m : a wall point further than this (up to 2.9 times this: a grid's neighbourhood) from
+        the other map's walls disagrees.
     min_overlap_m : metres of new walls in the overlap below which a test does not judge.
     max_disagree : the largest fraction of disagreeing wall points in the overlap.
     cell_m : the grid of the fleet's seen space (cells holding a wall of another robot).
@@ -47,8 +48,8 @@ class QuarantineConfig:
         refused or quarantined) is forgotten (:meth:`FusionState.forget_implausible`).
     """
 
-    sample_m: float = 0.5
-    far_m: float = 3.0
+    sample_m: float = 1.0
+    far_m: float = 2.0
     min_overlap_m: float = 20.0
     max_disagree: float = 0.5
     cell_m: float = 4.0
@@ -98,32 +99,36 @@ def wall_samples(wf: Wireframe, step: float) -> FloatArray:
     return out
 
 
-def _disagreement(points: FloatArray, ref: cKDTree | None, cfg: QuarantineConfig) -> tuple[float, float]:
-    """(metres of ``points`` judged, fraction of them further than ``far_m`` from ``ref``)."""
+def _near_cells(points: FloatArray, cell: float) -> NDArray[np.int64]:
+    """The codes of the cells (side ``cell``) holding a point and of their 8 neighbours."""
+    c = np.unique(_cell_codes(points, cell))
+    ring = np.array([(dx << 32) + dy for dx in (-1, 0, 1) for dy in (-1, 0, 1)], dtype=np.int64)
+    out: NDArray[np.int64] = np.unique((c[:, None] + ring[None, :]).reshape(-1))
+    return out
+
+
+def _disagreement(points: FloatArray, near: NDArray[np.int64], cfg: QuarantineConfig) -> tuple[float, float]:
+    """(metres of walls at ``points`` judged, fraction of them not near the other map's walls:
+    no wall point of it in their ``far_m`` cell or the 8 around it, so further than ``far_m``
+    surely, and than ``2.9 far_m`` at most)."""
     if len(points) == 0:
         return 0.0, 0.0
-    if ref is None:
-        return len(points) * cfg.sample_m, 1.0
-    d, _ = ref.query(points, distance_upper_bound=cfg.far_m)
-    return len(points) * cfg.sample_m, float(np.mean(~np.isfinite(d)))
-
-
-def _tree(points: FloatArray) -> cKDTree | None:
-    return cKDTree(points) if len(points) else None
+    judged = points[:: -(-len(points) // MAX_JUDGED)]  # an even subsample: the fraction is what counts
+    return len(points) * cfg.sample_m, float(np.mean(~np.isin(_cell_codes(judged, cfg.far_m), near)))
 
 
 @dataclass(frozen=True)
 class FleetView:
-    """The other robots' walls, prepared once per fused version: a k-d tree of their wall
-    points and the codes of the cells they occupy."""
+    """The other robots' walls, prepared once per fused version: the cells near them
+    (:func:`_near_cells`) and the cells of ``cell_m`` they occupy (the space they have seen)."""
 
-    tree: cKDTree | None
+    near: NDArray[np.int64]
     cells: NDArray[np.int64]
 
     @classmethod
     def of(cls, fleet: Wireframe, cfg: QuarantineConfig) -> FleetView:
         ref = wall_samples(fleet, cfg.sample_m)
-        return cls(_tree(ref), np.unique(_cell_codes(ref, cfg.cell_m)))
+        return cls(_near_cells(ref, cfg.far_m), np.unique(_cell_codes(ref, cfg.cell_m)))
 
 
 def _cell_codes(xy: FloatArray, cell: float) -> NDArray[np.int64]:
@@ -146,7 +151,7 @@ def against_history(
         return "extent_jump", f"walls {beyond:.0f} m beyond what {seconds:.1f} s could add to its last map"
     pts = wall_samples(new, cfg.sample_m)
     inside = pts[np.all((pts >= lo) & (pts <= hi), axis=1)]
-    metres, frac = _disagreement(inside, _tree(wall_samples(old, cfg.sample_m)), cfg)
+    metres, frac = _disagreement(inside, _near_cells(wall_samples(old, cfg.sample_m), cfg.far_m), cfg)
     if metres >= cfg.min_overlap_m and frac > cfg.max_disagree:
         return "history_walls", f"{100 * frac:.0f} % of {metres:.0f} m of walls over {cfg.far_m:g} m from its last map"
     return None
@@ -155,11 +160,11 @@ def against_history(
 def against_fleet(new: Wireframe, fleet: FleetView, cfg: QuarantineConfig) -> tuple[str, str] | None:
     """``(reason, detail)`` when ``new`` (a robot's map, fleet frame) puts walls where the
     other robots (``fleet``, :meth:`FleetView.of` their walls) have seen free space, else None."""
-    if new.n_edges == 0 or fleet.tree is None:
+    if new.n_edges == 0 or len(fleet.cells) == 0:
         return None
     pts = wall_samples(new, cfg.sample_m)
     inside = pts[np.isin(_cell_codes(pts, cfg.cell_m), fleet.cells)]
-    metres, frac = _disagreement(inside, fleet.tree, cfg)
+    metres, frac = _disagreement(inside, fleet.near, cfg)
     if metres >= cfg.min_overlap_m and frac > cfg.max_disagree:
         return "fleet_walls", f"{100 * frac:.0f} % of {metres:.0f} m of walls in the fleet's free space"
     return None
