@@ -8,7 +8,7 @@ import numpy as np
 
 from agents.fleet.fusion import FusionConfig, FusionState, encode_message
 from agents.fleet.fusion.intake import InputLimits, too_dense
-from agents.fleet.fusion.quarantine import QuarantineConfig
+from agents.fleet.fusion.quarantine import FleetView, QuarantineConfig, _cell_codes
 from agents.sim.world import load_world
 from mapping.se2 import Pose
 from mapping.wireframe import Wireframe
@@ -90,16 +90,27 @@ def test_an_extent_jump_is_quarantined() -> None:
     assert st.stats.quarantined_by == {"extent_jump": 1}
 
 
+def beside_walls(st: FusionState) -> Wireframe:
+    """2 m walls 2.5 m beside the fleet's walls, in the cells the fleet has seen well (where it
+    saw free space)."""
+    cfg = QuarantineConfig()
+    view = FleetView.of(st.fused, cfg)
+    seg = st.fused.segments()
+    seg = seg[np.hypot(*(seg[:, 1] - seg[:, 0]).T) > 3.0]
+    d = (seg[:, 1] - seg[:, 0]) / np.hypot(*(seg[:, 1] - seg[:, 0]).T)[:, None]
+    a = seg.mean(axis=1) + 2.5 * np.stack([-d[:, 1], d[:, 0]], axis=1)
+    keep = np.isin(_cell_codes(a, cfg.cell_m), view.cells)
+    a, d = a[keep], d[keep]
+    n = len(a)
+    return Wireframe.build(np.concatenate([a, a + 2.0 * d]), np.stack([np.arange(n), np.arange(n, 2 * n)], axis=1))
+
+
 def test_walls_in_the_fleets_free_space_are_quarantined() -> None:
     st, truth = fleet()
     for rid, c in (("r1", (50.0, 50.0)), ("r2", (100.0, 100.0))):
         assert st.offer(raw_map(rid, part(truth, c, 60.0), Pose(c[0], c[1], 0.0), 1), rid, BOOT + 100 * S)
     st.fuse()
-    rng = np.random.default_rng(1)
-    # a new robot reporting 80 walls of 2 m across the rooms the fleet has mapped
-    a = rng.uniform(30.0, 120.0, size=(80, 2))
-    pts = np.concatenate([a, a + [2.0, 0.0]])
-    junk = Wireframe.build(pts, np.stack([np.arange(80), np.arange(80, 160)], axis=1))
+    junk = beside_walls(st)
     assert not st.offer(raw_map("r3", junk, Pose(75.0, 75.0, 0.0), 1), "r3", BOOT + 100 * S)
     assert st.stats.quarantined_by == {"fleet_walls": 1}
     assert "r3" not in st.robots and "r3" in st.quarantine.summary()
@@ -109,11 +120,9 @@ def test_walls_in_the_fleets_free_space_are_quarantined() -> None:
 
 def test_an_id_that_never_sends_a_plausible_map_is_forgotten() -> None:
     st, truth = fleet()
-    st.offer(raw_map("r1", part(truth, (50.0, 50.0), 60.0), Pose(50.0, 50.0, 0.0), 1), "r1", BOOT + 100 * S)
+    st.offer(raw_map("r1", part(truth, (100.0, 100.0), 80.0), Pose(100.0, 100.0, 0.0), 1), "r1", BOOT + 100 * S)
     st.fuse()
-    rng = np.random.default_rng(2)
-    a = rng.uniform(30.0, 70.0, size=(80, 2))
-    junk = Wireframe.build(np.concatenate([a, a + [0.0, 2.0]]), np.stack([np.arange(80), np.arange(80, 160)], axis=1))
+    junk = beside_walls(st)
     t = BOOT + 100 * S
     for seq in range(1, 5):
         st.offer(raw_map("evil", junk, Pose(50.0, 50.0, 0.0), seq), "evil", t + seq * S)

@@ -11,10 +11,11 @@ Both tests compare *where the maps overlap*, on points sampled along the walls:
   them must lie near an old wall (``history_walls``). A robot's best particle changes, and
   loop closures move walls, by decimetres to a metre; ``far_m`` is 1 m (1-2.9 m on its grid).
 * **fleet** (:func:`against_fleet`), the new map in the fleet frame against the walls the
-  *other* robots contributed to the fused map: in the space the fleet has seen (cells of
-  ``cell_m`` holding a fleet wall or enclosed by fleet walls along their row and column: the
-  rooms it mapped) most of the robot's walls must lie near a fleet wall (``fleet_walls``:
-  walls in the fleet's free space).
+  *other* robots contributed to the fused map: in the space the fleet has seen well (cells of
+  ``cell_m`` holding a fleet wall: the wall and the free space beside it) most of the robot's
+  walls must lie near a fleet wall (``fleet_walls``: walls in the fleet's free space). Rooms
+  between the fleet's walls are not counted as seen: the fleet may not have entered them
+  (with 16 robots in the museum, counting them quarantined an honest robot's new rooms).
   Robots of unknown start pose are not tested against the fleet (their frame is their own).
 
 Each test judges only when at least ``min_overlap_m`` of the new walls lie in the overlap, so
@@ -121,7 +122,8 @@ def _disagreement(points: FloatArray, near: NDArray[np.int64], cfg: QuarantineCo
 @dataclass(frozen=True)
 class FleetView:
     """The other robots' walls, prepared once per fused version: the cells near them
-    (:func:`_near_cells`) and the space they have seen (:func:`_enclosed_cells`)."""
+    (:func:`_near_cells`) and the cells of ``cell_m`` that hold one (the space they have seen
+    well: a wall and the free space beside it)."""
 
     near: NDArray[np.int64]
     cells: NDArray[np.int64]
@@ -129,26 +131,7 @@ class FleetView:
     @classmethod
     def of(cls, fleet: Wireframe, cfg: QuarantineConfig) -> FleetView:
         ref = wall_samples(fleet, cfg.sample_m)
-        return cls(_near_cells(ref, cfg.far_m), _enclosed_cells(ref, cfg.cell_m))
-
-
-def _enclosed_cells(points: FloatArray, cell: float) -> NDArray[np.int64]:
-    """The codes of the cells (side ``cell``) that hold a wall point or have one on all four
-    sides along their row and column: the walls and the rooms they enclose."""
-    if len(points) == 0:
-        return np.zeros(0, dtype=np.int64)
-    c = np.floor(points / cell).astype(np.int64)
-    lo = c.min(axis=0)
-    shape = c.max(axis=0) - lo + 1
-    wall = np.zeros((int(shape[0]), int(shape[1])), dtype=bool)
-    wall[c[:, 0] - lo[0], c[:, 1] - lo[1]] = True
-    a = np.maximum.accumulate
-    inside = (
-        a(wall, axis=0) & a(wall[::-1], axis=0)[::-1] & a(wall, axis=1) & a(wall[:, ::-1], axis=1)[:, ::-1]
-    )
-    i, j = np.nonzero(wall | inside)
-    out: NDArray[np.int64] = ((i + lo[0]) << 32) + (j + lo[1])
-    return np.sort(out)
+        return cls(_near_cells(ref, cfg.far_m), np.unique(_cell_codes(ref, cfg.cell_m)))
 
 
 def _cell_codes(xy: FloatArray, cell: float) -> NDArray[np.int64]:
