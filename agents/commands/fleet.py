@@ -1,6 +1,7 @@
 """``wiremap fleet forget ID [--connect ...] [--credentials FILE]``: administer a running fleet.
 
-``forget ID`` asks the fusion service (a query on ``wiremap/<fleet>/admin/forget``) to remove
+``forget ID`` asks the fusion service (a query on ``wiremap/<fleet>/admin/forget``, payload
+``forget=ID``, checked by :func:`agents.fleet.validate.admin_request`) to remove
 robot ``ID`` with no trace: its map, alignment, quarantined map; the store records why. In a
 secure fleet only the fusion (admin) identity may ask (:func:`agents.fleet.secure.acl_config`):
 pass its credentials. A robot still running comes back with its next map.
@@ -42,7 +43,7 @@ def run(args: argparse.Namespace) -> int:
         if session is None:
             return 1
         try:
-            replies = list(session.get(keys.admin_forget, payload=args.robot.encode(), timeout=args.timeout))
+            replies = list(session.get(keys.admin_forget, payload=f"forget={args.robot}".encode(), timeout=args.timeout))
         finally:
             session.close()
     for reply in replies:

@@ -123,7 +123,7 @@ class FleetKeys:
 
     @property
     def admin_forget(self) -> str:
-        """``wiremap fleet forget ID``: a query (payload: the robot id) the fusion service
+        """``wiremap fleet forget ID``: a query (payload ``forget=ID``) the fusion service
         answers; in a secure fleet only the admin identity may ask
         (:func:`agents.fleet.secure.acl_config`)."""
         return f"{self.prefix}/admin/forget"

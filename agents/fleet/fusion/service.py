@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from agents.errors import UserError
-from agents.fleet.bus import valid_name
+from agents.fleet import validate
 from agents.fleet.fusion.codec import decode_message, encode_message
 from agents.fleet.fusion.frames import FramesConfig
 from agents.fleet.fusion.intake import DropLog, InputLimits, Intake
@@ -74,6 +74,9 @@ class ServeOptions:
     reset: bool = False
     frames: FramesConfig = field(default_factory=FramesConfig)
     quarantine: QuarantineConfig | None = field(default_factory=QuarantineConfig)
+
+
+MAX_ADMIN_BYTES = 256  # an admin query's payload (``forget=ID``), at most
 
 
 class FusionService:
@@ -203,9 +206,9 @@ class FusionService:
         query.reply(self.keys.fusion_stats, data, encoding=self._zenoh.Encoding.APPLICATION_JSON)
 
     def _on_forget(self, query: Any) -> None:
-        """``admin/forget`` (payload: a robot id): answered by the main thread (:meth:`_forget`)."""
+        """``admin/forget`` (payload ``forget=ID``): answered by the main thread (:meth:`_forget`)."""
         payload = query.payload
-        rid = payload.to_bytes().decode("utf-8", "replace").strip() if payload is not None else ""
+        rid = payload.to_bytes()[:MAX_ADMIN_BYTES].decode("utf-8", "replace") if payload is not None else ""
         with self.lock:
             if len(self._forget_requests) < 16:
                 self._forget_requests.append((rid, query))
@@ -218,9 +221,11 @@ class FusionService:
         st = self.state
         with self.lock:
             requests, self._forget_requests = self._forget_requests, []
-        for rid, query in requests:
-            if not valid_name(rid):
-                answer = {"ok": False, "error": f"{rid[:80]!r} is no robot id"}
+        for text, query in requests:
+            try:
+                _, rid = validate.admin_request(text)
+            except validate.Invalid as exc:
+                answer = {"ok": False, "error": exc.detail}
             else:
                 had = st.forget(rid, "forgotten by the fleet's admin")
                 answer = {"ok": True, "robot": rid, "had_map": had}
