@@ -17,6 +17,7 @@ from typing import Any
 
 from agents.errors import UserError
 from agents.fleet import validate
+from agents.fleet.fusion.budget import BudgetConfig, WorkBudget
 from agents.fleet.fusion.codec import decode_message, encode_message
 from agents.fleet.fusion.frames import FramesConfig
 from agents.fleet.fusion.intake import DropLog, InputLimits, Intake
@@ -55,6 +56,9 @@ class ServeOptions:
     drop_log_s : at most one "dropped ..." line per this many seconds (:class:`DropLog`).
     config : :class:`FusionConfig`.
     frames : :class:`FramesConfig` (robots of unknown start pose: anchor, retry schedule).
+    quarantine : :class:`QuarantineConfig` (maps inconsistent with their robot's history or the
+        fleet are kept aside; None: off).
+    budget : :class:`BudgetConfig` (a robot's maps may cost this much fusion CPU; None: off).
     """
 
     store: str | None = None
@@ -74,6 +78,7 @@ class ServeOptions:
     reset: bool = False
     frames: FramesConfig = field(default_factory=FramesConfig)
     quarantine: QuarantineConfig | None = field(default_factory=QuarantineConfig)
+    budget: BudgetConfig | None = field(default_factory=BudgetConfig)
 
 
 MAX_ADMIN_BYTES = 256  # an admin query's payload (``forget=ID``), at most
@@ -96,6 +101,7 @@ class FusionService:
             else FusionState(opts.config, limits=opts.limits)
         )
         self.state.quarantine_config = opts.quarantine
+        self.state.budget = WorkBudget(opts.budget) if opts.budget is not None else None
         self.state.restart_by_token = True  # a robot's restart is learned from its liveliness token
         self._came_alive: list[str] = []  # tokens that appeared (zenoh thread -> main thread)
         self._forget_requests: list[tuple[str, Any]] = []  # admin/forget queries (zenoh thread -> main thread)
@@ -333,6 +339,9 @@ class FusionService:
         for rid in came:
             st.note_alive(rid)
         now_ns = time.time_ns()
+        for rid in st.release_held(now_ns):  # maps that waited for their robot's work budget
+            self.dirty.add(rid)
+            self.last_change = time.monotonic()
         for key, data, arrived_ns in items:
             rid = self.keys.robot_of(key)
             if rid is None:

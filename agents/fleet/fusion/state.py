@@ -24,6 +24,7 @@ import numpy as np
 
 from agents.errors import UserError
 from agents.fleet.bus import valid_name
+from agents.fleet.fusion.budget import WorkBudget
 from agents.fleet.fusion.codec import decode_message, encode_message, order_key
 from agents.fleet.fusion.frames import (
     FleetFrames,
@@ -230,6 +231,11 @@ class FusionState:
         self.quarantine = Quarantine()
         self._fleet_view: tuple[tuple[int, int | None], FleetView] | None = None
         self._first_seen: dict[str, int] = {}  # robot id -> first map (ns) while none was accepted
+        # a work budget per robot (budget.py; None: off): maps of a robot whose fusion CPU
+        # budget is spent wait in `held` (the latest only) until release_held
+        self.budget: WorkBudget | None = None
+        self.held: dict[str, tuple[MapMessage, bytes]] = {}
+        self._aligning = 0.0  # CPU seconds of alignments in the running compute (charged apart)
 
     # ------------------------------------------------------------------ input
     def offer(self, data: bytes, key_robot: str | None = None, now_ns: int | None = None) -> bool:
@@ -291,8 +297,10 @@ class FusionState:
         records ``why`` (:attr:`forgotten`). Returns whether it had a map."""
         had = self.robots.pop(rid, None) is not None
         for cache in (self.alignments, self.corrections, self._in_fleet, self._prepared, self._pending,
-                      self.quarantine.maps, self._first_seen, self.token_gen):  # fmt: skip
+                      self.quarantine.maps, self._first_seen, self.token_gen, self.held):  # fmt: skip
             cache.pop(rid, None)
+        if self.budget is not None:
+            self.budget.forget(rid)
         self.forgotten[rid] = why[:200]
         return had
 
@@ -303,6 +311,23 @@ class FusionState:
             if len(self._first_seen) >= 4 * MAX_ROBOTS:
                 del self._first_seen[min(self._first_seen, key=self._first_seen.__getitem__)]
             self._first_seen[rid] = now_ns
+
+    def _charge(self, rid: str, seconds: float) -> None:
+        if self.budget is not None:
+            self.budget.charge(rid, seconds, time.monotonic())
+
+    def release_held(self, now_ns: int) -> list[str]:
+        """Take the held maps of robots whose work budget has refilled (:meth:`_add` again,
+        every check included). Returns the robots whose latest map changed."""
+        changed: list[str] = []
+        if self.budget is None:
+            return changed
+        now = time.monotonic()
+        for rid in [r for r in self.held if self.budget.allowed(r, now)]:
+            msg, raw = self.held.pop(rid)
+            if self._add(msg, raw, now_ns):
+                changed.append(rid)
+        return changed
 
     def forget_implausible(self, now_ns: int) -> list[str]:
         """Forget the robot ids none of whose maps was accepted (each refused or quarantined)
@@ -374,7 +399,14 @@ class FusionState:
                         return self._drop("absurd", "seq_jump", f"seq {key[1]} after {old.key[1]} {dt:.1f} s ago")
         elif len(self.robots) >= MAX_ROBOTS:
             return self._drop("rejected", "too_many_robots", f"{rid!r} would be robot {MAX_ROBOTS + 1}")
+        if self.budget is not None and now_ns is not None and not self.budget.allowed(rid, time.monotonic()):
+            self.held[rid] = (msg, raw)  # its fusion budget is spent: fused later (release_held)
+            self.stats.held += 1
+            return False
+        self.held.pop(rid, None)
+        t0 = time.thread_time()
         bad = self._inconsistent(msg, old, now_ns)
+        self._charge(rid, time.thread_time() - t0)
         if bad is not None:
             self.quarantine.put(rid, raw, *bad, now_ns or 0)
             return self._drop("quarantined", *bad)
@@ -689,7 +721,10 @@ class FusionState:
                     budget -= 1
                     wf0 = self._fleet_map(rid)
                     ref = self._prefix_map(k, leaves, thr)
+                    t_align = time.thread_time()
                     corr_new = self._align(wf0, ref) if ref.n_edges and wf0.n_edges else None
+                    self._charge(rid, time.thread_time() - t_align)
+                    self._aligning += time.thread_time() - t_align
                     al = Alignment(corr_new, e.rev, n, _origin_of(e.message), now, prefix)
                     self.stats.alignments += 1
                     current = exact
@@ -746,7 +781,9 @@ class FusionState:
                 continue  # the threshold changed since that fold: the next fuse decides
             acc = self._prefix_map(k, self._leaves, thr)
             wf0 = self._fleet_map(rid)
+            t_align = time.thread_time()
             corr = self._align(wf0, acc) if acc.n_edges and wf0.n_edges else None
+            self._charge(rid, time.thread_time() - t_align)
             n = e.message.wireframe.n_vertices
             self.alignments[rid] = Alignment(corr, e.rev, n, _origin_of(e.message), now, reference)
             self.stats.alignments += 1
@@ -756,7 +793,14 @@ class FusionState:
     def fuse(self, full: bool = False, now: float | None = None, max_realign: int | None = None) -> bool:
         """Recompute the fused map (:meth:`compute`); bump ``version`` and return True when it
         changed."""
+        who = [r for r in self._pending if r in self.robots]  # the robots whose new maps this fuse takes
+        t0 = time.thread_time()
+        self._aligning = 0.0
         wf, ids, corr = self.compute(full, now, max_realign)
+        if who:  # the fuse's cost besides alignments (charged to their robots), shared
+            share = max(0.0, time.thread_time() - t0 - self._aligning) / len(who)
+            for rid in who:
+                self._charge(rid, share)
         self.stats.fuses += 1
         self.stats.full_fuses += int(full)
         self.corrections = corr

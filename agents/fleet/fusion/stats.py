@@ -86,6 +86,8 @@ class FusionStats:
         than, the latest (not errors: maps are re-sent).
     quarantined : kept aside as inconsistent with the robot's history or the fleet, not merged
         (:mod:`agents.fleet.fusion.quarantine`); ``quarantined_by`` by reason.
+    held : maps that waited because their robot's fusion work budget was spent
+        (:mod:`agents.fleet.fusion.budget`; fused later, the latest one per robot).
     malformed / rejected / absurd : dropped in :meth:`~agents.fleet.fusion.state.FusionState.offer`; ``*_by`` break them
         down by codec error class or reason.
     oversized / rate_limited / overflow : dropped by :class:`~agents.fleet.fusion.intake.Intake` before decoding.
@@ -105,6 +107,7 @@ class FusionStats:
     rejected: int = 0
     absurd: int = 0
     quarantined: int = 0
+    held: int = 0
     oversized: int = 0
     rate_limited: int = 0
     overflow: int = 0
@@ -141,6 +144,7 @@ class FusionStats:
             "rejected": self.rejected,
             "absurd": self.absurd,
             "quarantined": self.quarantined,
+            "held": self.held,
             "oversized": self.oversized,
             "rate_limited": self.rate_limited,
             "overflow": self.overflow,
