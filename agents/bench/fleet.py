@@ -229,8 +229,15 @@ def _cpu_total(procs: Procs, names: list[str]) -> float | None:
 
 # Over 120 lines: one fleet size measured top to bottom (start, warm up, measure, stop, score),
 # its phases sharing the process table and the counters; not yet split into steps.
-def run_size(n: int, args: argparse.Namespace, world: Any, workdir: Path, say: Any) -> dict[str, Any]:
-    """One fleet of ``n`` robots: start, measure, stop; returns the size's JSON entry."""
+def run_size(
+    n: int, args: argparse.Namespace, world: Any, workdir: Path, say: Any, extra: list[str] | None = None
+) -> dict[str, Any]:
+    """One fleet of ``n`` robots: start, measure, stop; returns the size's JSON entry.
+
+    ``extra``: the argv of one more process (``bench hostile``'s attacker; the bus flags are
+    appended), started once every robot's first map is on the bus; latency samples of 0 ms
+    (its maps, stamped ahead) are then left out, and the entry also gets the fusion service's
+    ``rss_kb`` at the window's start and end and its counters."""
     from agents.files.io import write_json
     from agents.fleet.bus import free_port, tcp_endpoint
     from agents.fleet.robot import start_pose_of
@@ -292,7 +299,10 @@ def run_size(n: int, args: argparse.Namespace, world: Any, workdir: Path, say: A
                             "--viz-rate", "0", "--status-file", str(d / "status" / f"{rid}.json"), *bus]
                 procs.start(gname[group[0]], argv)
             wait_for(procs, lambda: set(ids) <= obs.seen(), 60.0 + 2.0 * n, "every robot's first map")
+            if extra is not None:
+                procs.start("extra", [*extra, *bus])
             sleep_checked(procs, args.warmup)
+            rss0 = obs.fusion_stats().get("rss_kb") if extra is not None else None
             harvest = LatencyHarvest(store)
             pid_f, pid_r = procs.pid("fuse"), procs.pid("router")
             c0, r0 = cpu_seconds(pid_f), cpu_seconds(pid_r)
@@ -304,7 +314,10 @@ def run_size(n: int, args: argparse.Namespace, world: Any, workdir: Path, say: A
                 harvest.poll()
             win = obs.end_window()
             t1, w1 = time.monotonic(), time.time_ns()
-            transport = obs.fusion_stats().get("transport_ms") or {}
+            end_stats = obs.fusion_stats()
+            if extra is not None:
+                procs.stop(["extra"], 10.0)
+            transport = end_stats.get("transport_ms") or {}
             c1, r1 = cpu_seconds(pid_f), cpu_seconds(pid_r)
             b1 = _cpu_total(procs, names)
             kept = obs.kept
@@ -326,6 +339,9 @@ def run_size(n: int, args: argparse.Namespace, world: Any, workdir: Path, say: A
     state = read_state(store)
     stats = state.get("stats") or {}
     lat = harvest.between(w0, w1)  # fused publishes within the window
+    if extra is not None:
+        lat = [v for v in lat if v > 0.0]
+        result.update({"rss_kb_start": rss0, "rss_kb_end": end_stats.get("rss_kb"), "fusion_counters": stats})
     wall = max(t1 - t0, 1e-9)
     map_bytes = sum(c.map_bytes for c in win.values())
     pose_bytes = sum(c.pose_bytes for c in win.values())
