@@ -161,11 +161,15 @@ def _grid_totals(kept: list[tuple[str, bytes]], threshold: float) -> dict[str, i
     envelope) and ``maps``."""
     from mapping.wireframe import Wireframe
     from wire_codec import decode, encode
+    from wire_codec.errors import CodecError
 
     out = {"grid": 0, "grid_thr": 0, "grid_msg": 0, "body": 0, "maps": 0}
     empty = Wireframe.empty()
     for _rid, data in kept:
-        m = decode(data)
+        try:
+            m = decode(data)
+        except CodecError:  # a CRC-valid payload can still be forged (bench hostile's attacker)
+            continue
         g = grid_bytes(m.wireframe, m.resolution)
         out["grid"] += g
         out["grid_thr"] += grid_bytes(m.wireframe, threshold)
