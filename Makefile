@@ -15,7 +15,7 @@ $(STAMP): pyproject.toml
 venv: $(STAMP)
 
 demo: $(STAMP)
-	$(BIN)/wiremap run --world paper-small --robots 3 --duration 60 --seed 1 --out out/demo
+	$(BIN)/wiremap run --world paper-small --robots 3 --duration 60 --stop-when-done --seed 1 --out out/demo
 
 test: $(STAMP)
 	$(BIN)/ruff check mapping wire_codec agents tests

@@ -3,7 +3,9 @@
 Each subcommand lives in its own module under :mod:`agents.commands` (``HELP``,
 ``add_arguments``, ``run``); only the chosen one is imported, so ``wiremap worlds`` does not pay
 for importing zenoh or rerun. Errors a user can fix (:class:`agents.errors.UserError`, bad
-files, bad flags) print one line and exit non-zero; Ctrl-C exits 130.
+files, bad flags, output paths that cannot be written) print one line and exit 2, before any
+work where the arguments allow it; Ctrl-C exits 130 (:data:`agents.errors.INTERRUPTED`; ``map``
+and ``run`` first write what they have).
 """
 
 from __future__ import annotations
@@ -13,7 +15,7 @@ import importlib
 import sys
 from collections.abc import Sequence
 
-from agents.errors import UserError
+from agents.errors import INTERRUPTED, UserError
 
 # command name -> (module, one-line help). The help text is repeated here so that
 # `wiremap --help` can list every command without importing any of them.
@@ -29,7 +31,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "fleet": ("agents.commands.fleet", "administer a running fleet: forget a robot"),
     "replay": ("agents.commands.replay", "open the Rerun viewer on a recording"),
     "export": ("agents.commands.export", "export a map as GeoJSON, SVG, PNG or a ROS map"),
-    "bench": ("agents.commands.bench", "benchmarks: accuracy, speed, codec, fleet, soak"),
+    "bench": ("agents.commands.bench", "benchmarks: accuracy, speed, codec, fleet, soak, sensor, register, lidar"),
     "config": ("agents.commands.config_cmd", "show the particle filter's effective configuration"),
 }
 
@@ -73,8 +75,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         sys.stderr.write(f"wiremap {getattr(args, '_label', None) or args.command}: {exc}\n")
         return 2
     except KeyboardInterrupt:
-        sys.stderr.write("interrupted\n")
-        return 130
+        sys.stderr.write("\nwiremap: interrupted\n")  # on a line of its own, after any progress line
+        return INTERRUPTED
     except BrokenPipeError:
         return 0
 

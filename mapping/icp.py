@@ -772,7 +772,11 @@ def icp(
     Each iteration re-computes the vertex and edge correspondences at the current alignment and
     gate, builds point-to-point and point-to-line constraints (see the module docstring), weighs
     them (Huber), splits the directions into well-constrained and degenerate ones against the
-    prior, and takes the MAP Gauss-Newton step on the well-constrained ones.
+    prior, and takes the MAP Gauss-Newton step on the well-constrained ones
+    (:func:`_map_iterations`). At the correction found, the constraints are linearised once more
+    at the final gate for the posterior (:func:`_posterior_covariance`), the consistency with
+    the prior (:func:`_prior_mahalanobis`), the fit (:func:`_fit_quality`) and the acceptance
+    tests (:func:`_rejection_reason`).
 
     Parameters
     ----------
@@ -797,41 +801,140 @@ def icp(
         When ``prior_covariance`` is not a symmetric positive definite 3 x 3 matrix.
     """
     cfg = config or ICPConfig()
-    if prior_covariance is None:
-        P = np.diag([cfg.prior_sigma_xy**2, cfg.prior_sigma_xy**2, cfg.prior_sigma_theta**2])
-    else:
-        P = np.asarray(prior_covariance, dtype=np.float64)
-        if P.shape != (3, 3) or not np.all(np.isfinite(P)) or not np.allclose(P, P.T, atol=1e-12):
-            raise ValueError("prior_covariance must be a finite symmetric 3 x 3 matrix")
-        try:
-            np.linalg.cholesky(P)
-        except np.linalg.LinAlgError:
-            raise ValueError("prior_covariance must be positive definite") from None
+    P = _checked_prior(cfg, prior_covariance)
     T = initial or Pose.identity()
     t = np.array([T.x, T.y, T.theta])
     empty = Correspondences(np.zeros((0, 2), np.int64), np.zeros(0), np.zeros((0, 2), np.int64), np.zeros(0))
     if scan.n_vertices == 0 or ref.n_vertices == 0:
         return ICPResult(T, False, empty, math.inf, 0, 0, "empty scan or reference", covariance=P.copy())
     scale = cfg.information_scale / cfg.sigma**2
+    t, it = _map_iterations(scan, ref, cfg, P, scale, t)
+    T = Pose(float(t[0]), float(t[1]), float(t[2]))
+    t = np.array([T.x, T.y, T.theta])
+    corr, r, H, g, L, lam, V, good = _linearise(scan, ref, cfg, P, scale, T, cfg.gate_end)
+    cov = _posterior_covariance(L, lam, V, good)
+    maha = _prior_mahalanobis(t, g, L, lam, V)
+    n_c, rmse, frac_matched, cost0, cost1 = _fit_quality(scan, ref, cfg, corr, r)
+    reason = _rejection_reason(cfg, P, T, good, maha, n_c, rmse, frac_matched, cost0, cost1)
+    consistent = reason == "" or (reason.startswith("degenerate") and maha <= cfg.max_mahalanobis)
+    if reason:
+        cov = P.copy()
+    return ICPResult(
+        T, reason == "", corr, rmse, n_c, it, reason,
+        information=H, covariance=cov, constrained=int(good.sum()), mahalanobis=maha,
+        consistent=consistent,
+    )
 
-    def linearise(at: Pose, gate: float) -> tuple[Correspondences, FloatArray, FloatArray, FloatArray,
-                                                    FloatArray, FloatArray, FloatArray, BoolArray]:
-        """Scan moved by ``at``: correspondences within ``gate``, residuals, Huber-weighted
-        information ``H`` and gradient ``g``, and the split against the prior."""
-        sp = at.apply(scan.points)
-        corr = correspond(scan, ref, gate, cfg.max_angle, cfg.min_overlap, cfg.frontier_penalty, scan_points=sp)
-        J, r = constraints(scan, ref, sp, corr, cfg.corner_labels)
-        Jw = J * (_huber_weights(r, cfg.huber) * scale)[:, None]
-        H, g = Jw.T @ J, Jw.T @ r
-        L, lam, V, good = information_split(H, P, cfg.min_information_ratio)
-        return corr, r, H, g, L, lam, V, good
 
+def _checked_prior(cfg: ICPConfig, prior_covariance: ArrayLike | None) -> FloatArray:
+    """The prior covariance of the correction (paper Sec. IV-C: the odometry prediction).
+
+    Parameters
+    ----------
+    cfg : ICPConfig
+    prior_covariance : (3, 3) array_like or None
+        As given to :func:`icp`; ``None`` for the diagonal from ``cfg.prior_sigma_xy`` and
+        ``cfg.prior_sigma_theta``.
+
+    Returns
+    -------
+    P : (3, 3)
+        The covariance of ``(x, y, theta)``.
+
+    Raises
+    ------
+    ValueError
+        When ``prior_covariance`` is not a finite, symmetric, positive definite 3 x 3 matrix.
+    """
+    if prior_covariance is None:
+        return np.diag([cfg.prior_sigma_xy**2, cfg.prior_sigma_xy**2, cfg.prior_sigma_theta**2])
+    P = np.asarray(prior_covariance, dtype=np.float64)
+    if P.shape != (3, 3) or not np.all(np.isfinite(P)) or not np.allclose(P, P.T, atol=1e-12):
+        raise ValueError("prior_covariance must be a finite symmetric 3 x 3 matrix")
+    try:
+        np.linalg.cholesky(P)
+    except np.linalg.LinAlgError:
+        raise ValueError("prior_covariance must be positive definite") from None
+    return P
+
+
+def _linearise(
+    scan: Wireframe, ref: Wireframe, cfg: ICPConfig, P: FloatArray, scale: float, at: Pose, gate: float,
+) -> tuple[Correspondences, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray, BoolArray]:
+    """Linearise the constraints with the scan moved by ``at`` (paper Sec. IV-C).
+
+    Parameters
+    ----------
+    scan, ref : Wireframe
+        The measured and the predicted scan, robot frame.
+    cfg : ICPConfig
+    P : (3, 3)
+        The prior covariance of the correction.
+    scale : float
+        ``cfg.information_scale / cfg.sigma**2``.
+    at : Pose
+        The current correction.
+    gate : float
+        The correspondence gate in metres.
+
+    Returns
+    -------
+    corr : Correspondences
+        Correspondences within ``gate``.
+    r : (m,)
+        Constraint residuals.
+    H : (3, 3)
+        Huber-weighted information ``J^T W J * scale``.
+    g : (3,)
+        Gradient ``J^T W r * scale``.
+    L, lam, V, good
+        The split against the prior (:func:`information_split`).
+    """
+    sp = at.apply(scan.points)
+    corr = correspond(scan, ref, gate, cfg.max_angle, cfg.min_overlap, cfg.frontier_penalty, scan_points=sp)
+    J, r = constraints(scan, ref, sp, corr, cfg.corner_labels)
+    Jw = J * (_huber_weights(r, cfg.huber) * scale)[:, None]
+    H, g = Jw.T @ J, Jw.T @ r
+    L, lam, V, good = information_split(H, P, cfg.min_information_ratio)
+    return corr, r, H, g, L, lam, V, good
+
+
+def _map_iterations(
+    scan: Wireframe, ref: Wireframe, cfg: ICPConfig, P: FloatArray, scale: float, t: FloatArray,
+) -> tuple[FloatArray, int]:
+    """Iteratively reweighted MAP Gauss-Newton with a shrinking gate (paper Sec. IV-C).
+
+    The gate shrinks linearly from ``cfg.gate_start`` to ``cfg.gate_end`` over
+    ``cfg.anneal_iterations``; each step solves, in whitened coordinates on the constrained
+    directions, ``(I + diag(lam)) a = diag(lam) a0 - Vg^T L^T g`` (module docstring), the
+    degenerate directions going back to zero. It stops when a step at the final gate is
+    shorter than ``cfg.tol`` or after ``cfg.max_iterations``.
+
+    Parameters
+    ----------
+    scan, ref : Wireframe
+        The measured and the predicted scan, robot frame.
+    cfg : ICPConfig
+    P : (3, 3)
+        The prior covariance of the correction.
+    scale : float
+        ``cfg.information_scale / cfg.sigma**2``.
+    t : (3,)
+        The starting correction ``(x, y, theta)``.
+
+    Returns
+    -------
+    t : (3,)
+        The correction reached.
+    it : int
+        Iterations taken (0 when ``cfg.max_iterations`` is 0).
+    """
     it = 0
     anneal = cfg.anneal_iterations if cfg.gate_start > cfg.gate_end else 0
     for it in range(1, cfg.max_iterations + 1):
         frac = min(1.0, (it - 1) / anneal) if anneal else 1.0
         gate = cfg.gate_start + (cfg.gate_end - cfg.gate_start) * frac
-        _, _, _, g, L, lam, V, good = linearise(Pose(*t), gate)
+        _, _, _, g, L, lam, V, good = _linearise(scan, ref, cfg, P, scale, Pose(*t), gate)
         Vg = V[:, good]
         z0 = np.linalg.solve(L, t)
         a0 = Vg.T @ z0
@@ -843,21 +946,84 @@ def icp(
         t = t_new
         if frac >= 1.0 and math.hypot(step[0], step[1]) + abs(step[2]) < cfg.tol:
             break
-    T = Pose(float(t[0]), float(t[1]), float(t[2]))
-    t = np.array([T.x, T.y, T.theta])
-    corr, r, H, g, L, lam, V, good = linearise(T, cfg.gate_end)
-    Vg = V[:, good]
+    return t, it
+
+
+def _posterior_covariance(L: FloatArray, lam: FloatArray, V: FloatArray, good: BoolArray) -> FloatArray:
+    """Posterior covariance of the correction (paper Sec. IV-C; the prior where degenerate).
+
+    Parameters
+    ----------
+    L, lam, V, good
+        The split of the final information against the prior (:func:`information_split`).
+
+    Returns
+    -------
+    (3, 3)
+        ``L V diag(post) V^T L^T``, symmetrised, with ``post = 1 / (1 + lam)`` on the
+        well-constrained directions and 1 on the degenerate ones.
+    """
     post = np.ones(3)
     post[good] = 1.0 / (1.0 + lam[good])
     cov = L @ (V * post[None, :]) @ V.T @ L.T
-    cov = 0.5 * (cov + cov.T)
-    # Consistency with the prior, every direction the constraints say anything about (also the
-    # degenerate ones, held at the prediction): the constraints-only optimum along direction i
-    # is m_i = a_i - v_i^T L^T g / lambda_i (whitened), its innovation variance 1 + 1/lambda_i.
+    return np.asarray(0.5 * (cov + cov.T), dtype=np.float64)
+
+
+def _prior_mahalanobis(t: FloatArray, g: FloatArray, L: FloatArray, lam: FloatArray, V: FloatArray) -> float:
+    """Squared Mahalanobis distance of the constraints' own optimum from the prediction.
+
+    Consistency with the prior (paper Sec. IV-C, the gate ``max_mahalanobis``), over every
+    direction the constraints say anything about (also the degenerate ones, held at the
+    prediction): the constraints-only optimum along direction i is
+    ``m_i = a_i - v_i^T L^T g / lambda_i`` (whitened), its innovation variance
+    ``1 + 1/lambda_i``.
+
+    Parameters
+    ----------
+    t : (3,)
+        The correction.
+    g : (3,)
+        The gradient at ``t``.
+    L, lam, V
+        The split of the information at ``t`` against the prior (:func:`information_split`).
+
+    Returns
+    -------
+    float
+        ``sum_i m_i^2 lambda_i / (1 + lambda_i)`` over the informed directions.
+    """
     informed = lam > 1e-6
     a_all = V.T @ np.linalg.solve(L, t)
     m = a_all[informed] - (V[:, informed].T @ (L.T @ g)) / lam[informed]
-    maha = float(np.sum(m**2 * lam[informed] / (1.0 + lam[informed])))
+    return float(np.sum(m**2 * lam[informed] / (1.0 + lam[informed])))
+
+
+def _fit_quality(
+    scan: Wireframe, ref: Wireframe, cfg: ICPConfig, corr: Correspondences, r: FloatArray,
+) -> tuple[int, float, float, float, float]:
+    """How well the final correspondences fit (the quantities of the gates, paper Sec. IV-C).
+
+    Parameters
+    ----------
+    scan, ref : Wireframe
+        The measured and the predicted scan, robot frame.
+    cfg : ICPConfig
+    corr : Correspondences
+        The correspondences at the final gate.
+    r : (m,)
+        Their residuals at the correction.
+
+    Returns
+    -------
+    n_c : int
+        Inlier constraint rows (``|r| <= cfg.gate_end``).
+    rmse : float
+        Inlier RMS residual (``inf`` without inliers).
+    frac_matched : float
+        Fraction of the scan's edge length that has a correspondence.
+    cost0, cost1 : float
+        Huber cost of the same correspondences at the prediction and at the correction.
+    """
     inl = np.abs(r) <= cfg.gate_end
     n_c = int(inl.sum())
     rmse = float(np.sqrt(np.mean(r[inl] ** 2))) if n_c else math.inf
@@ -869,6 +1035,34 @@ def icp(
     _, r0 = constraints(scan, ref, scan.points, corr, cfg.corner_labels)
     cost0 = _huber_cost(r0, cfg.huber)
     cost1 = _huber_cost(r, cfg.huber)
+    return n_c, rmse, frac_matched, cost0, cost1
+
+
+def _rejection_reason(
+    cfg: ICPConfig, P: FloatArray, T: Pose, good: BoolArray, maha: float,
+    n_c: int, rmse: float, frac_matched: float, cost0: float, cost1: float,
+) -> str:
+    """The first acceptance gate the correction fails (module docstring, "Gates").
+
+    Parameters
+    ----------
+    cfg : ICPConfig
+    P : (3, 3)
+        The prior covariance of the correction.
+    T : Pose
+        The correction.
+    good : (3,) bool
+        Well-constrained directions.
+    maha : float
+        :func:`_prior_mahalanobis`.
+    n_c, rmse, frac_matched, cost0, cost1
+        :func:`_fit_quality`.
+
+    Returns
+    -------
+    str
+        ``""`` when every gate passes, else why the correction is rejected.
+    """
     moved = math.hypot(T.x, T.y) > 1e-4 or abs(T.theta) > 1e-5
     reason = ""
     if n_c < cfg.min_constraints:
@@ -887,11 +1081,4 @@ def icp(
         reason = "residual does not drop"
     elif math.hypot(T.x, T.y) > cfg.max_translation or abs(T.theta) > cfg.max_rotation:
         reason = "correction too large"
-    consistent = reason == "" or (reason.startswith("degenerate") and maha <= cfg.max_mahalanobis)
-    if reason:
-        cov = P.copy()
-    return ICPResult(
-        T, reason == "", corr, rmse, n_c, it, reason,
-        information=H, covariance=cov, constrained=int(good.sum()), mahalanobis=maha,
-        consistent=consistent,
-    )
+    return reason

@@ -79,7 +79,7 @@ CASES: dict[str, list[str]] = {
     "run-out-is-a-file": ["run", "--world", "paper-small", "--robots", "1", "--out", "{a_file}"],
     # robot
     "robot-bad-world": ["robot", "--id", "r1", "--world", "no-such-world", "--start", "2,2,0"],
-    "robot-bad-pose": [*ROBOT, "--start", "2,2"],
+    "robot-bad-pose": [*ROBOT, "--start", "2"],
     "robot-bad-pose-numbers": [*ROBOT, "--start", "a,b,c"],
     "robot-nan-pose": [*ROBOT, "--start", "nan,1,0"],
     "robot-no-pose": ROBOT,

@@ -361,8 +361,10 @@ def test_export_wfm_to_each_format(tmp_path: Path) -> None:
     doc = json.loads((tmp_path / "m.geojson").read_text())
     back = Wireframe.from_geojson(doc)
     assert back.almost_equal(wf, tol=1e-3)  # the codec quantises to its resolution
-    assert doc["properties"]["seq"] == 7 and doc["properties"]["robots"] == ["r1", "r2"]
-    assert doc["properties"]["kind"] == "fused_map" and doc["properties"]["meta"] == {"stale": ["r2"]}
+    assert doc["properties"]["version"] == 7 and doc["properties"]["robots"] == ["r1", "r2"]
+    assert doc["properties"]["kind"] == "fused_map" and doc["properties"]["stale"] == ["r2"]
+    walls = [f["properties"] for f in doc["features"] if f["properties"]["kind"] == "wall"]
+    assert all(set(w["robots"]) <= {"r1", "r2"} for w in walls)  # as in `wiremap run`'s fused.geojson
     # GeoJSON in, GeoJSON out: the same map and properties again.
     assert run_cli(str(tmp_path / "m.geojson"), "--out", str(tmp_path / "again.json")) == 0
     again = json.loads((tmp_path / "again.json").read_text())

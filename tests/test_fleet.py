@@ -256,7 +256,8 @@ def test_run_three_robots_on_paper_small(tmp_path: Path):
     fused, per = rep["fused"], rep["per_robot"]
     assert fused["wall_recall"] >= 0.90, rep
     assert fused["wall_recall"] >= max(r["wall_recall"] for r in per.values())
-    assert fused["cell_error"] <= min(r["cell_error"] for r in per.values()) + 1e-9
+    assert fused["cell_error"] <= 0.01  # every robot finished: the fused map is closed and scored
+    assert all(r["cell_error"] is None and "partial" in r["cell_error_note"] for r in per.values())
     assert set(per) == {"r1", "r2", "r3"}
     for r in per.values():
         assert r["maps_sent"] > 0 and r["bytes_sent"] > 0
@@ -273,10 +274,11 @@ def test_run_three_robots_on_paper_small(tmp_path: Path):
     assert decode_png((out / "fused.png").read_bytes()).ndim == 3
     # the recording
     entities, timelines = read_recording(out / "recording.rrd")
-    assert "sim_time" in timelines
-    expected = {"/world/truth", "/fused/walls", "/fused/corners/nominal", "/fused/corners/frontier"}
+    assert {"sim_time", "fleet_time"} <= timelines
+    expected = {"/world/truth", "/fused/walls", "/fused/corners/nominal", "/fused/corners/frontier", "/log"}
     for rid in ("r1", "r2", "r3"):
-        expected |= {f"/robots/{rid}/{leaf}" for leaf in ("pose", "true_pose", "scan", "particles", "map")}
+        expected |= {f"/robots/{rid}/{leaf}" for leaf in ("pose", "true_pose", "scan", "particles", "map", "trajectory")}
+        expected.add(f"/stats/robots/{rid}/alive")
     assert expected <= entities, expected - entities
 
 
@@ -322,7 +324,7 @@ def test_run_stops_cleanly_on_sigterm_and_sigint(tmp_path: Path):
         # wait until the fleet works (a fused map on disk), then stop it
         wait_until(lambda: (out / "store" / "fused.wfm").is_file(), 60, "a fused map in the store")
         t0 = time.monotonic()
-        assert fleet.stop("run", signal.SIGTERM, timeout=20) == 0, fleet.log("run")
+        assert fleet.stop("run", signal.SIGTERM, timeout=20) == 130, fleet.log("run")  # INTERRUPTED
         assert time.monotonic() - t0 < 10
         assert not [k for k in kids if alive(k)]
     log = (tmp_path / "run.log").read_text()

@@ -38,7 +38,7 @@ def test_map_paper_small_short_route(tmp_path, capsys):
     assert report["pose_error_max_m"] < 0.15
     captured = capsys.readouterr()
     assert "wrote" in captured.out
-    assert "step 25/25" in captured.err  # the live progress line
+    assert "step 25 of 25" in captured.err  # the live progress line
 
 
 def test_map_world_file_with_lidar(tmp_path):

@@ -67,8 +67,8 @@ def test_watcher_lines_duplicates_and_malformed(tmp_path: Path, capsys: pytest.C
     w.liveliness(_Sample("wiremap/other/alive/r9", zenoh.SampleKind.PUT))  # another fleet: ignored
     data = message(3, stale=["r2"])
     line = w.handle(data)
-    assert line == (
-        f"fused v3: 7 vertices, 7 edges, {len(data):,} bytes; 2 robots alive (r1 r2); from r1 r2(stale)"
+    assert line == (  # r2's token is still here, but the fusion service says it is stale: not alive
+        f"fused v3: 7 vertices, 7 edges, {len(data):,} bytes; 1 robot alive (r1); from r1 r2(stale)"
     )
     assert w.handle(data) is None  # the same version again (query answer + subscription)
     w.liveliness(_Sample(KEYS.alive("r2"), zenoh.SampleKind.DELETE))
@@ -78,10 +78,12 @@ def test_watcher_lines_duplicates_and_malformed(tmp_path: Path, capsys: pytest.C
     assert (w.shown, w.malformed) == (2, 2)
     err = capsys.readouterr().err
     assert "skipped a malformed payload (16 bytes)" in err and "skipped a robot_map message" in err
+    w.flush(force=True)  # v4 came within a second of v3: saved at the next flush (or at exit)
     saved = sorted(p.name for p in (tmp_path / "out").iterdir())
-    assert saved == ["fused-v3.geojson", "fused-v3.png", "fused-v4.geojson", "fused-v4.png", "latest.geojson"]
+    # bounded: latest.* always, a numbered copy at most every --save-every seconds (v3 only here)
+    assert saved == ["fused-v3.geojson", "fused-v3.png", "latest.geojson", "latest.png"]
     latest = json.loads((tmp_path / "out" / "latest.geojson").read_text())
-    assert latest["properties"]["seq"] == 4 and latest["properties"]["robots_alive"] == ["r1"]
+    assert latest["properties"]["version"] == 4 and latest["properties"]["robots_alive"] == ["r1"]
     assert Wireframe.from_geojson(latest).almost_equal(room(4), tol=1e-3)
     assert (tmp_path / "out" / "fused-v3.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
@@ -125,12 +127,14 @@ def test_watch_process_query_subscription_and_save(tmp_path: Path) -> None:
         assert int(m.group(4).replace(",", "")) == len(message(v))
         assert int(m.group(5)) == 2, text
     assert "2 malformed payloads skipped" in text and "Traceback" not in text
-    for v in (1, 2, 3):
-        doc = json.loads((save / f"fused-v{v}.geojson").read_text())
-        assert doc["properties"]["seq"] == v
-        assert Wireframe.from_geojson(doc).almost_equal(room(v), tol=1e-3)
-        assert (save / f"fused-v{v}.png").read_bytes()[:4] == b"\x89PNG"
-    assert json.loads((save / "latest.geojson").read_text())["properties"]["seq"] == 3
+    # the first version numbered, the others within --save-every (30 s): latest only
+    assert sorted(p.name for p in save.iterdir()) == ["fused-v1.geojson", "fused-v1.png", "latest.geojson", "latest.png"]
+    doc = json.loads((save / "fused-v1.geojson").read_text())
+    assert doc["properties"]["version"] == 1
+    assert Wireframe.from_geojson(doc).almost_equal(room(1), tol=1e-3)
+    assert (save / "latest.png").read_bytes()[:4] == b"\x89PNG"
+    latest = json.loads((save / "latest.geojson").read_text())
+    assert latest["properties"]["version"] == 3 and Wireframe.from_geojson(latest).almost_equal(room(3), tol=1e-3)
 
 
 @pytest.mark.fleet

@@ -35,5 +35,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     module = getattr(args, "_bench", None)
     if module is None:
-        raise SystemExit("wiremap bench: choose one of " + ", ".join(BENCHES))
+        from agents.errors import UserError
+
+        raise UserError("choose a benchmark: " + ", ".join(BENCHES))
     return int(module.run(args) or 0)

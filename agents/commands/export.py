@@ -65,6 +65,11 @@ def run(args: argparse.Namespace) -> int:
     fmt = args.format or format_from_suffix(args.out)
     if fmt is None:
         raise UserError(f"cannot tell the format from {args.out!r}: give --format ({'|'.join(FORMATS)})")
+    from agents.files.export import rosmap_paths
+    from agents.files.io import check_output_file
+
+    for path in rosmap_paths(args.out) if fmt == "rosmap" else (args.out,):
+        check_output_file("--out", path)
     loaded = load_map(args.map)
     try:
         written = export_map(

@@ -106,8 +106,9 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"--max-map-bytes must be at least 64, got {args.max_map_bytes}")
     # files and the world are checked before waiting for a router: a typo is one line at once
     if args.store:
-        if Path(args.store).exists() and not Path(args.store).is_dir():
-            raise UserError(f"--store {args.store}: not a directory")
+        from agents.files.io import check_output_dir
+
+        check_output_dir("--store", args.store)
         try:
             Path(args.store).mkdir(parents=True, exist_ok=True)
         except OSError as exc:

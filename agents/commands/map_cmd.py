@@ -23,6 +23,10 @@ for ``--set particles=``, ``merge_threshold=`` and ``max_range=`` (the sensor, o
 ranges, then reach as far as the filter's ``max_range``, and maps are scored at its merge
 threshold). ``report.json`` records the settings from ``--params`` and ``--set`` as applied
 (``config_overrides``).
+
+The progress line is cut
+to the terminal's width; not on a terminal, one line every 10 s). Ctrl-C stops the mapping,
+writes the files for the steps done (``"interrupted": true`` in the report) and exits 130.
 """
 
 from __future__ import annotations
@@ -36,7 +40,7 @@ from typing import Any
 
 import numpy as np
 
-from agents.errors import UserError
+from agents.errors import INTERRUPTED, UserError
 from agents.params import ConfigArgs, Resolved, add_config_arguments, resolve
 
 HELP = "run one robot (simulated or a CARMEN log) and write its map"
@@ -57,7 +61,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--max-range", type=float, default=None, metavar="M",
                         help="sensing range in metres (default 8 in simulation; CARMEN: the log's, at most 20)")
     parser.add_argument("--steps", type=int, default=None, metavar="N", help="stop after N scans")
-    parser.add_argument("--duration", type=float, default=None, metavar="S", help="stop after S simulated seconds")
+    parser.add_argument("--duration", type=float, default=None, metavar="S",
+                        help="stop after S simulated seconds (the simulation does not wait for the clock)")
     parser.add_argument("--strict", action="store_true",
                         help="CARMEN: an unreadable line is an error (default: skip it and count it)")
     parser.add_argument("--quiet", action="store_true", help="no progress line")
@@ -71,6 +76,7 @@ class Progress:
         self.enabled = enabled
         self.stream = stream or sys.stderr
         self._last = 0.0
+        self._logged = -math.inf
         self._width = 0
 
     def update(self, k: int, total: int | None, vertices: int, edges: int, ups: float, force: bool = False) -> None:
@@ -80,20 +86,35 @@ class Progress:
         if not force and now - self._last < 0.1:
             return
         self._last = now
-        of = f"/{total}" if total else ""
-        line = f"step {k}{of}  vertices {vertices}  edges {edges}  {ups:.1f} ups"
-        pad = max(0, self._width - len(line))
+        of = f" of {total}" if total else ""
+        line = f"step {k}{of}  {vertices} corners  {edges} walls  {ups:.1f} scans/s"
+        if getattr(self.stream, "isatty", lambda: False)():
+            from agents.commands.run import fit, terminal_width
+
+            line = fit(line, terminal_width(self.stream))
+            self.stream.write("\r\x1b[2K" + line)
+        else:  # a log file: one line now and then, not a carriage-return storm
+            if not force and now - self._logged < 10.0:
+                return
+            self._logged = now
+            self.stream.write(line + "\n")
         self._width = len(line)
-        self.stream.write("\r" + line + " " * pad)
         self.stream.flush()
 
     def close(self) -> None:
-        if self.enabled and self._width:
+        """End the progress line, so that what follows starts on a line of its own."""
+        if self.enabled and self._width and getattr(self.stream, "isatty", lambda: False)():
             self.stream.write("\n")
             self.stream.flush()
+        self._width = 0
 
 
 def _check(args: argparse.Namespace) -> None:
+    from agents.files.io import check_output_dir
+
+    check_output_dir("--out", args.out)
+    if args.carmen is not None and not Path(args.carmen).is_file():
+        raise UserError(f"--carmen {args.carmen}: no such file")
     if args.particles is not None and args.particles < 1:
         raise UserError(f"--particles must be >= 1, got {args.particles}")
     if args.steps is not None and args.steps < 1:
@@ -135,11 +156,13 @@ def write_outputs(
     truth: Any = None,
     properties: dict[str, Any] | None = None,
     png: bytes | None = None,
+    title: str = "map",
+    free: Any = None,
 ) -> None:
     """Write ``map.geojson``, ``trajectory.tsv``, ``map.png`` (``png`` when given, else the map
     over ``truth``) and ``report.json`` atomically."""
     from agents.files.io import save_wireframe_geojson, write_atomic, write_json
-    from agents.files.render import map_png
+    from agents.files.render import map_figure
 
     out.mkdir(parents=True, exist_ok=True)
     save_wireframe_geojson(out / "map.geojson", best, properties)
@@ -147,7 +170,8 @@ def write_outputs(
     write_atomic(out / "trajectory.tsv", "".join(lines))
     xy = np.array([(x, y) for _, x, y, _ in trajectory], dtype=np.float64).reshape(-1, 2)
     if png is None:
-        png = map_png(best, truth=truth, trajectory=xy if len(xy) else None)
+        tracks = {"estimated path": xy} if len(xy) else None
+        png = map_figure(best, truth, title=title, trajectories=tracks, free=free)
     write_atomic(out / "map.png", png)
     write_json(out / "report.json", report)
 
@@ -162,6 +186,7 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.out)
     truth = None
     world_name = None
+    free = None
     if args.world is not None:
         from agents.sim.world import load_world
 
@@ -170,6 +195,7 @@ def run(args: argparse.Namespace) -> int:
         world_name = world.name
         resolved = _filter_config(args, cargs, mr.default_merge_threshold(world), 8.0)
         cfg = resolved.config
+        free = world.free_space
         options = mr.SimOptions(
             sensor=args.sensor,
             max_range=cfg.max_range,
@@ -212,6 +238,7 @@ def run(args: argparse.Namespace) -> int:
     busy = 0.0
     t_start = time.perf_counter()
     k = 0
+    interrupted = False
     try:
         for st in mr.run_filter(inputs, filt, total):
             k = st.index + 1
@@ -225,10 +252,14 @@ def run(args: argparse.Namespace) -> int:
     except ValueError as exc:  # a malformed log line surfaces here
         progress.close()
         raise UserError(str(exc)) from None
+    except KeyboardInterrupt:  # Ctrl-C: write the map as it stands (exit INTERRUPTED)
+        interrupted = True
     best = filt.best
     progress.update(k, total, best.n_vertices, best.n_edges, k / busy if busy > 0 else 0.0, force=True)
     progress.close()
     wall = time.perf_counter() - t_start
+    if interrupted:
+        print(f"wiremap map: interrupted after {k} steps; writing the map as it stands", file=sys.stderr, flush=True)
 
     report: dict[str, Any] = {
         **source,
@@ -245,12 +276,18 @@ def run(args: argparse.Namespace) -> int:
         "vertices": best.n_vertices,
         "edges": best.n_edges,
         "metrics": None,
+        "interrupted": interrupted,
     }
     if truth is not None:
         from mapping.metrics import evaluate
 
         metrics = evaluate(truth, best, thr) if best.n_edges else None
         report["metrics"] = None if metrics is None else {k2: _num(v) for k2, v in metrics.items()}
+        if interrupted and report["metrics"] is not None:  # an unfinished map is partial
+            from agents.commands.run import PARTIAL_CELL_ERROR
+
+            report["metrics"]["cell_error"] = None
+            report["metrics"]["cell_error_note"] = PARTIAL_CELL_ERROR.replace("one robot's partial map", "a map cut short")
         report["pose_error_mean_m"] = round(float(np.mean(pose_err)), 4) if pose_err else None
         report["pose_error_max_m"] = round(float(np.max(pose_err)), 4) if pose_err else None
     png = None
@@ -260,19 +297,41 @@ def run(args: argparse.Namespace) -> int:
             lidar, png = _score_log(scans[:k], true_scans[:k], trajectory, best, max_range)
             report.update(lidar)
     props = {**source, "steps": k, "seed": args.seed, "particles": cfg.particles, "merge_threshold": thr}
-    write_outputs(out, best, trajectory, report, truth=truth, properties=props, png=png)
-    msg = f"wrote {out}/map.geojson ({best.n_vertices} vertices, {best.n_edges} edges) after {k} steps"
+    title = f"{world_name or Path(args.carmen).name}: one robot, {k} steps, {cfg.particles} particles"
+    write_outputs(out, best, trajectory, report, truth=truth, properties=props, png=png, title=title, free=free)
+    _print_summary(report, out)
+    return INTERRUPTED if interrupted else 0
+
+
+def _print_summary(report: dict[str, Any], out: Path) -> None:
+    """Aligned closing lines (the same figures as ``report.json``)."""
+    m = report.get("metrics")
+    ups = report.get("updates_per_s")
+    lines = [
+        f"wiremap map: {report['steps']} steps in {report['time_s']:.1f} s"
+        + (f" ({ups:.1f} scans/s)" if ups else "") + (", interrupted" if report.get("interrupted") else ""),
+        f"  map         {report['vertices']} corners, {report['edges']} walls",
+    ]
     if report.get("skipped_lines"):
-        msg += f"; skipped {report['skipped_lines']} unreadable lines"
+        lines.append(f"  log         skipped {report['skipped_lines']} unreadable lines")
+    if m:
+        lines.append(
+            f"  vs truth    cell error {_pct(m['cell_error'])}, wall precision {m['wall_precision']:.3f}, "
+            f"recall {m['wall_recall']:.3f}"
+        )
     if report.get("ate_rmse_m") is not None:
-        msg += f"; ATE {report['ate_rmse_m']:.3f} m (odometry {report['odometry_ate_rmse_m']:.3f} m)"
+        line = f"  vs truth    ATE {report['ate_rmse_m']:.3f} m (odometry {report['odometry_ate_rmse_m']:.3f} m)"
         if report.get("map_precision") is not None:
-            msg += f", map precision {report['map_precision']:.3f}, coverage {report['map_coverage']:.3f}"
-    if report["metrics"]:
-        m = report["metrics"]
-        msg += f"; cell error {m['cell_error']:.2%}, precision {m['wall_precision']:.3f}, recall {m['wall_recall']:.3f}"
-    print(msg)
-    return 0
+            line += f", map precision {report['map_precision']:.3f}, coverage {report['map_coverage']:.3f}"
+        lines.append(line)
+    if report.get("pose_error_mean_m") is not None:
+        lines.append(f"  pose error  mean {report['pose_error_mean_m']:.3f} m, max {report['pose_error_max_m']:.3f} m")
+    lines.append(f"  wrote       in {out}: map.geojson map.png trajectory.tsv report.json")
+    print("\n".join(lines), flush=True)
+
+
+def _pct(v: Any) -> str:
+    return "n/a (map cut short)" if v is None else f"{float(v):.2%}"
 
 
 def _score_log(

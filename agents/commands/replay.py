@@ -37,10 +37,12 @@ DEFAULT_WEB_PORT = 9090
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
-        "file", metavar="FILE.rrd", help="a Rerun recording (e.g. from `wiremap run --record`)"
+        "file", metavar="FILE.rrd", help="a Rerun recording (e.g. DIR/recording.rrd of `wiremap run --out DIR`)"
     )
     parser.add_argument(
-        "--web", action="store_true", help="serve it with Rerun's web viewer instead of opening a window"
+        "--web", action="store_true",
+        help="serve it with Rerun's web viewer instead of opening a window (the server keeps about "
+        "one core busy even while idle: stop it with Ctrl-C when done)",
     )
     parser.add_argument(
         "--bind", default="127.0.0.1", metavar="IP", help="--web: address to serve on (default 127.0.0.1)"
@@ -136,22 +138,35 @@ def run(args: argparse.Namespace) -> int:
     if rerun is None:
         raise UserError("the `rerun` viewer is not installed (pip install rerun-sdk)")
     cmd = viewer_command(rerun, path, args.web, args.bind, args.port)
-    try:
-        child = subprocess.Popen(cmd)
-    except OSError as exc:
-        raise UserError(f"cannot start {rerun}: {exc.strerror or exc}") from None
+    if args.web:
+        print(
+            f"wiremap replay: serving {path} on http://{args.bind}:{args.port} (Rerun's server uses about "
+            "a core even while idle; Ctrl-C stops it)",
+            flush=True,
+        )
+    # the handlers first: a Ctrl-C that comes while the viewer starts still stops it cleanly
+    child: subprocess.Popen[bytes] | None = None
+    stopped = False
 
     def forward(signum: int, _frame: FrameType | None) -> None:
-        if child.poll() is None:
+        nonlocal stopped
+        stopped = True
+        if child is not None and child.poll() is None:
             child.send_signal(signum)
 
     old = {s: signal.signal(s, forward) for s in (signal.SIGINT, signal.SIGTERM)}
     try:
+        try:
+            child = subprocess.Popen(cmd)
+        except OSError as exc:
+            raise UserError(f"cannot start {rerun}: {exc.strerror or exc}") from None
+        if stopped:
+            child.send_signal(signal.SIGINT)
         rc = child.wait()
     finally:
         for s, h in old.items():
             signal.signal(s, h)
-        if child.poll() is None:
+        if child is not None and child.poll() is None:
             child.kill()
             child.wait()
     # Stopped by our signal: a clean stop, not a failure.

@@ -43,7 +43,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--carmen", metavar="LOG", help="replay this CARMEN log instead of simulating a world")
     parser.add_argument("--scans", metavar="I0:I1", help="with --carmen: replay the log's scans I0 to I1-1")
     parser.add_argument(
-        "--start", metavar="X,Y,THETA", help="start pose in the fleet frame (default: the route's start)"
+        "--start", metavar="X,Y[,THETA]",
+        help="start position in the fleet frame, metres (default: the route's start); the simulated robot "
+        "starts facing along its route, so a THETA (radians) that differs is reported and replaced",
     )
     parser.add_argument(
         "--route",
@@ -65,7 +67,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--heartbeat", type=float, default=2.0, metavar="S", help="re-send the map at least every S s (default 2)"
     )
     parser.add_argument("--viz-rate", type=float, default=2.0, metavar="HZ", help="scan+particles for the recorder, Hz (0: off)")
-    parser.add_argument("--duration", type=float, metavar="S", help="stop mapping after S simulated seconds")
+    parser.add_argument(
+        "--duration", type=float, metavar="S",
+        help="stop mapping after S simulated seconds (simulated time runs 2.5x the wall clock at --rate 5: "
+        "each scan is 0.5 s of driving)",
+    )
+    parser.add_argument(
+        "--router-timeout", type=float, metavar="S",
+        help="give up (exit 2) when no router answers within S seconds (default: wait; "
+        "says what it tries every 10 s)",
+    )
     parser.add_argument("--status-file", metavar="FILE", help="write the final status as JSON to FILE on exit")
     add_config_arguments(parser, "--particles, --threshold")
     add_bus_arguments(parser)
@@ -85,11 +96,15 @@ def options_from_args(args: argparse.Namespace) -> RobotOptions:
             route = parse_route(args.route)
         except ValueError as exc:
             raise UserError(str(exc)) from None
+    heading_given = True
     if args.start:
+        text = args.start
+        if text.count(",") == 1:  # X,Y: the heading comes from the route
+            text, heading_given = text + ",0", False
         try:
-            start = Pose.parse(args.start)
+            start = Pose.parse(text)
         except ValueError as exc:
-            raise UserError(str(exc)) from None
+            raise UserError(f"--start {args.start}: {exc}") from None
     elif route is not None:
         start = start_pose_of(route)
     else:
@@ -125,6 +140,7 @@ def options_from_args(args: argparse.Namespace) -> RobotOptions:
         duration=args.duration,
         filter_overrides=resolved.overrides,
         unknown_start=bool(args.unknown_start),
+        heading_given=heading_given,
     )
 
 
@@ -190,7 +206,11 @@ def run(args: argparse.Namespace) -> int:
     steps = itertools.chain([first], steps) if first is not None else iter(())
     with StopFlag() as stop:
         watch_parent(args.parent_pid, stop)
-        session = open_session(cfg, stop, on_wait=lambda t: say(f"waiting for a router ({t})"))
+        if args.router_timeout is not None and not (math.isfinite(args.router_timeout) and args.router_timeout > 0):
+            raise UserError(f"--router-timeout must be a positive number of seconds, got {args.router_timeout}")
+        session = open_session(
+            cfg, stop, timeout=args.router_timeout, on_wait=lambda t: say(f"waiting for a router ({t})")
+        )
         if session is None:
             return 0
         agent = RobotAgent(session, keys, opts, steps, say)

@@ -54,7 +54,7 @@ from typing import Any
 
 import numpy as np
 
-from agents.errors import UserError
+from agents.errors import INTERRUPTED, UserError
 from agents.files.io import write_atomic, write_json
 from agents.fleet.bus import (
     StopFlag,
@@ -87,7 +87,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--robots", required=True, type=int, metavar="N", help="number of robots (1-64)")
     parser.add_argument(
         "--duration", type=float, default=None, metavar="S",
-        help="seconds of mapping (default 60; with --carmen: until every robot has replayed its stretch)",
+        help="wall-clock seconds of mapping at most (default 60; with --carmen: until every robot has replayed "
+        "its stretch; simulated time runs 2.5x faster at --rate 5, each scan being 0.5 s of driving)",
     )
     parser.add_argument("--seed", type=int, default=0, help="random seed (routes; robot k gets seed + k)")
     parser.add_argument("--out", required=True, metavar="DIR", help="output directory")
@@ -109,7 +110,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--startup-timeout", type=float, default=60.0, metavar="S", help=argparse.SUPPRESS)
     parser.add_argument("--no-progress", action="store_true", help="no live progress lines")
     parser.add_argument(
-        "--stop-when-done", action="store_true", help="end as soon as every robot has finished its route"
+        "--stop-when-done", action="store_true",
+        help="end as soon as every robot has finished its route (--duration stays the upper bound)"
     )
     parser.add_argument(
         "--secure",
@@ -138,28 +140,86 @@ def _spawn(name: str, argv: list[str], logs: Path) -> subprocess.Popen[bytes]:
         fh.close()  # the child has its own descriptor
 
 
-class Progress:
-    """One live line per robot (and one for the fused map)."""
+def terminal_width(stream: Any = None) -> int:
+    """Columns of the terminal ``stream`` writes to (80 when it is not a terminal)."""
+    import shutil
 
-    def __init__(self, ids: list[str], enabled: bool) -> None:
+    stream = stream or sys.stdout
+    try:
+        return os.get_terminal_size(stream.fileno()).columns
+    except (AttributeError, OSError, ValueError):
+        return shutil.get_terminal_size((80, 24)).columns
+
+
+def terminal_rows(stream: Any = None) -> int:
+    stream = stream or sys.stdout
+    try:
+        return os.get_terminal_size(stream.fileno()).lines
+    except (AttributeError, OSError, ValueError):
+        return 24
+
+
+def fit(line: str, width: int) -> str:
+    """``line`` cut to ``width - 1`` columns (the last column left free, so that no terminal
+    wraps it), with ``~`` where it was cut."""
+    room = max(8, width - 1)
+    return line if len(line) <= room else line[: room - 1] + "~"
+
+
+class Progress:
+    """The live block: a clock line with the fused map, a column header and one line per robot.
+
+    On a terminal the block is redrawn in place every 0.5 s, every line cut to the terminal's
+    width (measured at each redraw) so that none wraps and the cursor-up redraw lands right;
+    with more robots than rows the last line says how many are not shown. Not on a terminal
+    (a pipe, a log file) the block is printed every 10 s as plain lines.
+    """
+
+    HEADER = "robot  steps  sim time  corners  walls  maps        sent"
+
+    def __init__(self, ids: list[str], enabled: bool, stream: Any = None) -> None:
         self.ids = ids
         self.enabled = enabled
-        self.tty = enabled and sys.stdout.isatty()
+        self.stream = stream or sys.stdout
+        self.tty = enabled and bool(getattr(self.stream, "isatty", lambda: False)())
         self.status: dict[str, dict[str, Any]] = {}
         self.fused = ""
+        self.fused_raw: bytes | None = None
+        self.tracks: dict[str, list[tuple[float, float]]] = {}
         self._drawn = 0
         self._last = 0.0
+
+    def set_fused(self, raw: bytes, version: int, vertices: int, edges: int, robots: list[str]) -> None:
+        """The latest fused map seen on the bus; its size is the payload's (what fused.wfm holds)."""
+        self.fused_raw = raw
+        self.fused = f"fused v{version}: {vertices} corners, {edges} walls, {len(raw)} bytes, from {' '.join(robots)}"
+
+    def add_pose(self, rid: str, pose: dict[str, Any]) -> None:
+        """A robot's pose message: its status, and its estimated position in the fleet frame
+        for the trajectory (a point every 5 cm)."""
+        self.status[rid] = pose["status"]
+        p = pose["fleet"]
+        track = self.tracks.setdefault(rid, [])
+        if not track or math.hypot(p.x - track[-1][0], p.y - track[-1][1]) >= 0.05:
+            track.append((p.x, p.y))
 
     def line(self, rid: str) -> str:
         s = self.status.get(rid)
         if not s:
-            return f"{rid:>4}  waiting"
-        done = "  done" if s.get("finished") else ""
+            return f"{rid:>5}  waiting"
+        state = "done" if s.get("finished") else ""
         return (
-            f"{rid:>4}  step {s.get('step', 0):5d}  t {s.get('t', 0.0):6.1f}s  "
-            f"vertices {s.get('vertices', 0):4d}  edges {s.get('edges', 0):4d}  "
-            f"maps sent {s.get('maps_sent', 0):5d}  {s.get('bytes_sent', 0) / 1024:7.1f} KiB{done}"
-        )
+            f"{rid:>5}  {s.get('step', 0):5d}  {s.get('t', 0.0):6.1f} s  {s.get('vertices', 0):7d}  "
+            f"{s.get('edges', 0):5d}  {s.get('maps_sent', 0):4d}  {s.get('bytes_sent', 0) / 1024:6.1f} KiB  {state}"
+        ).rstrip()
+
+    def lines(self, elapsed: float, total: float, rows: int | None = None) -> list[str]:
+        head = f"[{elapsed:5.1f} of {total:g} s] {self.fused or 'fused map: none yet'}"
+        body = [self.line(r) for r in self.ids]
+        if rows is not None and len(body) + 2 > rows - 1:
+            keep = max(1, rows - 4)
+            body = [*body[:keep], f"  ... and {len(self.ids) - keep} more robots"]
+        return [head, self.HEADER, *body]
 
     def draw(self, elapsed: float, total: float, force: bool = False) -> None:
         if not self.enabled:
@@ -169,26 +229,46 @@ class Progress:
         if not force and now - self._last < period:
             return
         self._last = now
-        lines = [f"[{elapsed:5.1f}/{total:.0f} s] {self.fused or 'fused map: none yet'}"]
-        lines += [self.line(r) for r in self.ids]
+        out = self.stream
         if self.tty:
+            width = terminal_width(out)
+            lines = [fit(ln, width) for ln in self.lines(elapsed, total, terminal_rows(out))]
             if self._drawn:
-                sys.stdout.write(f"\x1b[{self._drawn}F")
-            sys.stdout.write("".join(f"\x1b[2K{ln}\n" for ln in lines))
+                out.write(f"\x1b[{self._drawn}F")
+            out.write("".join(f"\x1b[2K{ln}\n" for ln in lines))
+            if self._drawn > len(lines):  # fewer lines than last time: clear the rest
+                out.write("\x1b[0J")
             self._drawn = len(lines)
         else:
-            sys.stdout.write("\n".join(lines) + "\n")
-        sys.stdout.flush()
+            out.write("\n".join(self.lines(elapsed, total)) + "\n")
+        out.flush()
 
 
 # ---------------------------------------------------------------------- outputs
-def _metrics(truth: Any, wf: Any, resolution: float) -> dict[str, Any]:
+#: Why a robot's own map has no cell error in ``report.json``.
+PARTIAL_CELL_ERROR = (
+    "not applicable to one robot's partial map: the cell error counts unexplored area as "
+    "obstacle (it would be the free share of the world it did not see); see wall_precision "
+    "and mean_dist_m for what it saw, wall_recall for how much"
+)
+
+
+def _metrics(truth: Any, wf: Any, resolution: float, partial: bool = False) -> dict[str, Any]:
+    """Metrics of ``wf`` against the truth (``mapping.metrics.evaluate``). A ``partial`` map (one
+    robot's) gets ``cell_error: null`` and ``cell_error_note`` saying why."""
     from mapping.metrics import evaluate
 
     if wf.n_edges == 0:
-        return {"cell_error": None, "wall_precision": 0.0, "wall_recall": 0.0, "mean_dist_m": None, "p95_dist_m": None}
-    m = evaluate(truth, wf, resolution)
-    return {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in m.items()}
+        m: dict[str, Any] = {
+            "cell_error": None, "wall_precision": 0.0, "wall_recall": 0.0, "mean_dist_m": None, "p95_dist_m": None,
+        }
+    else:
+        m = {k: (None if isinstance(v, float) and not math.isfinite(v) else v)
+             for k, v in evaluate(truth, wf, resolution).items()}
+    if partial:
+        m["cell_error"] = None
+        m["cell_error_note"] = PARTIAL_CELL_ERROR
+    return m
 
 
 def write_outputs(
@@ -197,11 +277,16 @@ def write_outputs(
     ids: list[str],
     duration_s: float,
     extra: dict[str, Any],
+    published: bytes | None = None,
+    tracks: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
-    """Write ``fused.*`` and ``report.json`` from the fusion service's store. Maps are scored
-    on a grid of the merge threshold (``resolution`` in the report; ``map_resolution`` is the
-    fused map's quantisation step)."""
-    from agents.files.render import map_png
+    """Write ``fused.*`` and ``report.json`` from the fusion service's store. ``fused.wfm`` is
+    the fusion service's last published message (``published``, the payload seen on the bus)
+    when it is the stored version, else the stored map; its size is the ``bytes`` of the report,
+    the progress line and the summary. Maps are scored on a grid of the merge threshold
+    (``resolution`` in the report; ``map_resolution`` is the fused map's quantisation step)."""
+    from agents.files.export import message_properties, wireframe_geojson
+    from agents.files.render import map_figure
     from agents.fleet.fusion import decode_message, merge_threshold_of
 
     store = out / "store"
@@ -210,27 +295,22 @@ def write_outputs(
         raise UserError(f"the fusion service left no fused map in {store} (see {out / 'logs' / 'fuse.log'})")
     raw = fused_path.read_bytes()
     msg = decode_message(raw)
+    if published is not None:
+        try:
+            pub = decode_message(published)
+        except ValueError:
+            pub = None
+        if pub is not None and pub.seq == msg.seq:
+            raw, msg = published, pub
     wf = msg.wireframe
     robots = list(msg.robots)
     write_atomic(out / "fused.wfm", raw)
-    doc = wf.to_geojson(
-        {
-            "kind": "fused_map",
-            "world": world.name,
-            "frame": msg.frame,
-            "version": msg.seq,
-            "resolution": msg.resolution,
-            "merge_threshold": merge_threshold_of(msg),
-            "robots": robots,
-        }
+    write_json(out / "fused.geojson", wireframe_geojson(wf, message_properties(msg, world.name)))
+    title = f"{world.name}: fused map v{msg.seq} from {', '.join(robots) or 'no robot'}"
+    write_atomic(
+        out / "fused.png",
+        map_figure(wf, world.truth, title=title, trajectories=tracks, free=world.free_space),
     )
-    for f in doc["features"]:
-        p = f["properties"]
-        if p.get("kind") == "wall":
-            mask = int(p.get("sources", 0))
-            p["robots"] = [r for k, r in enumerate(robots) if (mask >> k) & 1]
-    write_json(out / "fused.geojson", doc)
-    write_atomic(out / "fused.png", map_png(wf, world.truth))
 
     res = merge_threshold_of(msg)  # the scoring grid: the merge threshold, as the paper scores maps
     state: dict[str, Any] = {}
@@ -247,10 +327,10 @@ def write_outputs(
         if f.is_file():
             m = decode_message(f.read_bytes())
             rwf = m.wireframe.transformed(m.origin)
-            entry.update(_metrics(world.truth, rwf, res))
+            entry.update(_metrics(world.truth, rwf, res, partial=True))
             entry.update({"vertices": rwf.n_vertices, "edges": rwf.n_edges, "bytes": len(f.read_bytes())})
         else:
-            entry.update(_metrics(world.truth, wf.subgraph_edges(np.zeros(wf.n_edges, bool)), res))
+            entry.update(_metrics(world.truth, wf.subgraph_edges(np.zeros(wf.n_edges, bool)), res, partial=True))
             entry.update({"vertices": 0, "edges": 0, "bytes": 0})
         st = statuses.get(rid, {})
         entry["bytes_sent"] = int(st.get("bytes_sent", 0))
@@ -263,7 +343,13 @@ def write_outputs(
         if rid in extra.get("cpu_s", {}):
             entry["cpu_s"] = extra["cpu_s"][rid]
         per_robot[rid] = entry
-    fused = _metrics(world.truth, wf, res)
+    # a fleet cut short by --duration or Ctrl-C left its map open: its cell error is no score either
+    covered = all(entry.get("finished") for entry in per_robot.values())
+    fused = _metrics(world.truth, wf, res, partial=not covered)
+    if not covered:
+        fused["cell_error_note"] = PARTIAL_CELL_ERROR.replace(
+            "one robot's partial map", "a fleet map cut short before every robot finished its route"
+        )
     fused.update({"vertices": wf.n_vertices, "edges": wf.n_edges, "bytes": len(raw), "version": msg.seq})
     fused["robots"] = robots
     report = {
@@ -289,6 +375,8 @@ def run(args: argparse.Namespace) -> int:
     from agents.sim.world import load_world
 
     n = _check_arguments(args)
+    if args.serve_viewer is not None and not 0 < args.serve_viewer < 65536:
+        raise UserError(f"--serve-viewer must be a port within 1..65535, got {args.serve_viewer}")
     cargs = ConfigArgs.from_args(args)
     out = Path(args.out)
     ids = [f"r{k + 1}" for k in range(n)]
@@ -308,8 +396,8 @@ def run(args: argparse.Namespace) -> int:
     )
     threshold = resolved.config.merge_threshold
     if args.carmen:
+        clear_previous_run(out)
         routes: list[Any] = unknown_run.prepare_carmen(out, world, ids, args)
-        _clear_outputs(out)
     else:
         routes = _prepare_output(out, world, ids, args)
     robot_args = ["--particles", str(resolved.config.particles)]
@@ -344,6 +432,7 @@ def run(args: argparse.Namespace) -> int:
             interrupted = stop.is_set()
         finally:
             _stop_fleet(procs, ids, cpu, codes)
+            _last_version(progress, sub_fused)
             sub_pose.undeclare()
             sub_fused.undeclare()
             router.close()
@@ -377,6 +466,8 @@ def run(args: argparse.Namespace) -> int:
             "secure": bool(args.secure),
             "startup_s": round(max(0.0, time.monotonic() - t_start - mapping_s), 2),
         },
+        published=progress.fused_raw,
+        tracks={rid: np.asarray(xy) for rid, xy in progress.tracks.items()},
     )
     _print_summary(report, ids, out)
     if args.carmen or args.unknown_starts:
@@ -386,11 +477,14 @@ def run(args: argparse.Namespace) -> int:
             f"{report.get('fleet_root')}); islands {' '.join('+'.join(m) for m in isl.values()) or 'none'}",
             flush=True,
         )
-    return 0
+    return INTERRUPTED if interrupted else 0
 
 
 def _check_arguments(args: argparse.Namespace) -> int:
     """Refuse bad numbers before anything starts; returns the number of robots."""
+    from agents.files.io import check_output_dir
+
+    check_output_dir("--out", args.out)
     n = int(args.robots)
     if bool(args.world) == bool(args.carmen):
         raise UserError("give --world NAME|FILE or --carmen LOG (one of them)")
@@ -404,6 +498,8 @@ def _check_arguments(args: argparse.Namespace) -> int:
         args.stop_when_done = True
     if args.duration is None:
         args.duration = 1e9 if args.carmen else 60.0
+    if args.particles is not None and args.particles < 1:
+        raise UserError(f"--particles must be >= 1, got {args.particles}")
     if not 1 <= n <= MAX_ROBOTS:
         raise UserError(f"--robots must be between 1 and {MAX_ROBOTS}, got {n}")
     for name, v in (("--duration", args.duration), ("--rate", args.rate)):
@@ -436,21 +532,29 @@ def _prepare_output(out: Path, world: Any, ids: list[str], args: argparse.Namesp
             routes = plan_routes(world, len(ids), rng, overlap=args.overlap)
     except ValueError as exc:
         raise UserError(f"cannot plan routes in {world.name}: {exc}") from None
+    clear_previous_run(out)
     for rid, r in zip(ids, routes):
         write_json(out / "routes" / f"{rid}.json", {"route": np.round(r, 9).tolist()})
-    _clear_outputs(out)
     return list(routes)
 
 
-def _clear_outputs(out: Path) -> None:
-    """Remove what an earlier run left in ``out`` (its outputs and its fusion store)."""
-    for stale in ("fused.wfm", "fused.geojson", "fused.png", "report.json", "recording.rrd", "params.toml"):
-        (out / stale).unlink(missing_ok=True)
-    store = out / "store"
-    if store.exists():  # a new run: do not resume an old fleet's state
-        import shutil
+#: What ``wiremap run`` writes into its output directory; a new run removes all of it first.
+RUN_FILES = ("fused.wfm", "fused.geojson", "fused.png", "report.json", "recording.rrd", "params.toml")
+RUN_DIRS = ("store", "logs", "status", "routes", "secure")
 
-        shutil.rmtree(store)
+
+def clear_previous_run(out: Path) -> None:
+    """Remove what an earlier run left in ``out`` (its outputs, logs, routes, statuses,
+    credentials and fusion store: a new run does not resume, and no file of the old fleet stays
+    beside the new ones). Other files in ``out`` are left alone."""
+    import shutil
+
+    for name in RUN_FILES:
+        (out / name).unlink(missing_ok=True)
+    for name in RUN_DIRS:
+        d = out / name
+        if d.is_dir() and not d.is_symlink():
+            shutil.rmtree(d)
 
 
 def _router_config(
@@ -565,16 +669,14 @@ def _watch_fleet(
             who = keys.robot_of(str(s.key_expr))
             try:
                 if who is not None and who in progress.ids:
-                    progress.status[who] = decode_pose(s.payload.to_bytes())["status"]
+                    progress.add_pose(who, decode_pose(s.payload.to_bytes()))
             except ValueError:
                 pass
         while (s := sub_fused.handler.try_recv()) is not None:
             try:
-                m = validate.fused_map(s.payload.to_bytes())
-                progress.fused = (
-                    f"fused v{m.seq}: {m.wireframe.n_vertices} vertices, {m.wireframe.n_edges} edges, "
-                    f"{len(s.payload.to_bytes())} bytes from {' '.join(m.robots)}"
-                )
+                raw = s.payload.to_bytes()
+                m = validate.fused_map(raw)
+                progress.set_fused(raw, m.seq, m.wireframe.n_vertices, m.wireframe.n_edges, list(m.robots))
             except ValueError:
                 pass
         if t_map is None and (
@@ -601,6 +703,28 @@ def _watch_fleet(
     return mapping_s
 
 
+def _last_version(progress: Progress, sub_fused: Any) -> None:
+    """After the fleet stopped: a fused map of a newer version published while stopping
+    replaces the last one seen. Re-publications of the same version (the stale list changes as
+    the robots exit) do not: the map's size is that of the version as the fleet had it."""
+    from agents.fleet.fusion import decode_message
+
+    seen = None
+    if progress.fused_raw is not None:
+        try:
+            seen = decode_message(progress.fused_raw).seq
+        except ValueError:
+            seen = None
+    while (smp := sub_fused.handler.try_recv()) is not None:
+        raw = smp.payload.to_bytes()
+        try:
+            v = decode_message(raw).seq
+        except ValueError:
+            continue
+        if seen is None or v > seen:
+            progress.fused_raw, seen = raw, v
+
+
 def _stop_fleet(
     procs: dict[str, subprocess.Popen[bytes]],
     ids: list[str],
@@ -621,22 +745,35 @@ def _stop_fleet(
 
 
 def _print_summary(report: dict[str, Any], ids: list[str], out: Path) -> None:
-    """The closing lines: the fused map's size, quality and latency, then one line per robot."""
+    """The closing lines (under 80 columns): the fused map, its quality and latency, a table of
+    the robots, the files. The same figures are in ``report.json``."""
     f = report["fused"]
     lat = report["latency_ms"]
-    print(
-        f"wiremap run: fused v{f['version']}: {f['vertices']} vertices, {f['edges']} edges, {f['bytes']} bytes; "
-        f"wall recall {f['wall_recall']:.3f}, precision {f['wall_precision']:.3f}, cell error {f['cell_error']}; "
-        f"latency p50 {_ms(lat.get('p50'))}, p99 {_ms(lat.get('p99'))}",
-        flush=True,
-    )
+    why = "interrupted" if report.get("interrupted") else (
+        "every robot finished its route" if all(r.get("finished") for r in report["per_robot"].values())
+        else "--duration reached")
+    lines = [
+        f"wiremap run: {report['duration_s']:.1f} s of mapping ({why})",
+        f"  fused map   v{f['version']}: {f['vertices']} corners, {f['edges']} walls, {f['bytes']} bytes",
+        f"  vs truth    wall recall {_num(f['wall_recall'], '.3f')}, precision {_num(f['wall_precision'], '.3f')}, "
+        f"cell error {_num(f['cell_error'], '.2%')}",
+        f"  latency     p50 {_ms(lat.get('p50'))}, p99 {_ms(lat.get('p99'))} (robot publish to fused map)",
+        "  robot  steps  sim time  recall  precision  maps  bytes sent",
+    ]
     for rid in ids:
         r = report["per_robot"][rid]
-        print(
-            f"  {rid}: wall recall {r['wall_recall']:.3f}, {r['maps_sent']} maps, {r['bytes_sent']} bytes sent",
-            flush=True,
+        lines.append(
+            f"  {rid:>5}  {r['steps']:5d}  {r['sim_time_s']:6.1f} s  {_num(r['wall_recall'], '6.3f')}  "
+            f"{_num(r['wall_precision'], '9.3f')}  {r['maps_sent']:4d}  {r['bytes_sent']:10,d}"
         )
-    print(f"wiremap run: wrote {out}/fused.geojson fused.wfm fused.png recording.rrd report.json", flush=True)
+    lines.append(f"  wrote       in {out}: fused.geojson fused.wfm fused.png")
+    lines.append("              recording.rrd report.json")
+    print("\n".join(lines), flush=True)
+
+
+def _num(v: object, spec: str) -> str:
+    """A figure for the summary, or "n/a" when there is none."""
+    return format(float(v), spec) if isinstance(v, (int, float)) else "n/a"
 
 
 def _ms(v: object) -> str:

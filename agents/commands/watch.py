@@ -18,9 +18,15 @@ A version is shown once: the query's answer and the subscription may both delive
 copies with the same sender, version and stamp are dropped. A payload that does not decode (or
 is not a fused map) is counted, reported on stderr and skipped.
 
-``--save DIR`` writes, per version, ``DIR/fused-v<version>.geojson`` (the message's metadata in
-the collection's ``properties``) and ``DIR/fused-v<version>.png``, then ``DIR/latest.geojson``,
-each atomically.
+"robots alive" are the robots whose token is alive and that the fusion service does not list as
+stale in that map.
+
+``--save DIR`` keeps ``DIR/latest.geojson`` (the message's metadata in the collection's
+``properties``, the schema of ``wiremap run``'s ``fused.geojson``) and ``DIR/latest.png`` (the
+picture every command draws) up to date, rewritten at most once a second and once more at exit,
+and keeps a numbered copy ``DIR/fused-v<version>.geojson`` + ``.png`` at most every
+``--save-every S`` seconds (default 30; 0: latest only), so a long watch stays small. Every
+file is written atomically.
 
 Stopping: after ``--count N`` versions (exit 0); at ``--timeout S`` seconds (exit 0, or 1 when
 fewer than ``--count`` versions came); on SIGINT/SIGTERM (exit 0). The session is always closed.
@@ -52,7 +58,13 @@ HEALTH_EVERY_S = 2.0  # fused/stats asked this often for the store flag and quar
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_bus_arguments(parser)
-    parser.add_argument("--save", metavar="DIR", help="write each version as GeoJSON and PNG into DIR")
+    parser.add_argument(
+        "--save", metavar="DIR", help="keep DIR/latest.geojson and DIR/latest.png up to date (at most once a second)"
+    )
+    parser.add_argument(
+        "--save-every", type=float, default=30.0, metavar="S",
+        help="with --save, also keep a numbered copy fused-v<N> at most every S seconds (default 30; 0: latest only)",
+    )
     parser.add_argument("--count", type=argtypes.positive_int, metavar="N", help="exit after N versions")
     parser.add_argument(
         "--timeout",
@@ -70,9 +82,16 @@ class Watcher:
     """The state of one watch: robots alive, versions seen, counters, and what each payload
     becomes (a line, files). Thread-safe where zenoh callbacks touch it (:meth:`liveliness`)."""
 
-    def __init__(self, keys: Any, save_dir: Path | None) -> None:
+    #: Seconds between two writes of ``latest.*``.
+    LATEST_EVERY = 1.0
+
+    def __init__(self, keys: Any, save_dir: Path | None, save_every: float = 30.0) -> None:
         self.keys = keys
         self.save_dir = save_dir
+        self.save_every = save_every
+        self._pending: tuple[Any, int] | None = None
+        self._latest_at = -math.inf
+        self._numbered_at = -math.inf
         self.alive: set[str] = set()
         self._lock = threading.Lock()
         self.shown = 0
@@ -119,13 +138,31 @@ class Watcher:
         line = self.describe(msg, len(data))
         print(line, flush=True)
         if self.save_dir is not None:
-            self.save(msg, len(data))
+            self._pending = (msg, len(data))
+            self.flush()
         return line
+
+    def flush(self, force: bool = False) -> None:
+        """Save the newest version not saved yet: ``latest.*`` at most every
+        :attr:`LATEST_EVERY` seconds (``force``: now), a numbered copy at most every
+        ``save_every`` seconds."""
+        if self._pending is None:
+            return
+        now = time.monotonic()
+        if not force and now - self._latest_at < self.LATEST_EVERY:
+            return
+        msg, nbytes = self._pending
+        self._pending = None
+        self._latest_at = now
+        numbered = self.save_every > 0 and now - self._numbered_at >= self.save_every
+        if numbered:
+            self._numbered_at = now
+        self.save(msg, nbytes, numbered)
 
     def describe(self, msg: Any, nbytes: int) -> str:
         wf = msg.wireframe
-        alive = self.alive_now()
         stale = set(_stale(msg))
+        alive = [r for r in self.alive_now() if r not in stale]  # the fusion service's word wins
         contributors = " ".join(f"{r}(stale)" if r in stale else r for r in msg.robots) or "-"
         return (
             f"fused v{msg.seq}: {wf.n_vertices} vertices, {wf.n_edges} edges, {nbytes:,} bytes; "
@@ -149,20 +186,23 @@ class Watcher:
         print(line, flush=True)
         return line
 
-    def save(self, msg: Any, nbytes: int) -> None:
-        from agents.files.export import message_properties
-        from agents.files.io import save_wireframe_geojson, write_atomic
-        from agents.files.render import map_png
+    def save(self, msg: Any, nbytes: int, numbered: bool = True) -> None:
+        from agents.files.export import message_properties, wireframe_geojson
+        from agents.files.io import write_atomic, write_json
+        from agents.files.render import map_figure
 
         assert self.save_dir is not None
         props = message_properties(msg)
         props["bytes"] = int(nbytes)
-        props["robots_alive"] = self.alive_now()
-        stem = self.save_dir / f"fused-v{msg.seq}"
+        stale = set(_stale(msg))
+        props["robots_alive"] = [r for r in self.alive_now() if r not in stale]
+        doc = wireframe_geojson(msg.wireframe, props)
+        title = f"fused map v{msg.seq} from {', '.join(msg.robots) or 'no robot'}"
+        png = map_figure(msg.wireframe, title=title)
         try:
-            save_wireframe_geojson(stem.with_suffix(".geojson"), msg.wireframe, props)
-            write_atomic(stem.with_suffix(".png"), map_png(msg.wireframe))
-            save_wireframe_geojson(self.save_dir / "latest.geojson", msg.wireframe, props)
+            for stem in [self.save_dir / "latest", *([self.save_dir / f"fused-v{msg.seq}"] if numbered else [])]:
+                write_json(stem.with_suffix(".geojson"), doc)
+                write_atomic(stem.with_suffix(".png"), png)
         except OSError as exc:
             raise UserError(f"cannot save into {self.save_dir}: {exc.strerror or exc}") from None
 
@@ -216,15 +256,19 @@ def run(args: argparse.Namespace) -> int:
     keys = fleet_keys(args)
     cfg = config_from_args(args, "client")
     save_dir: Path | None = None
+    if not (math.isfinite(args.save_every) and args.save_every >= 0):
+        raise UserError(f"--save-every must be a number of seconds >= 0, got {args.save_every}")
     if args.save:
-        save_dir = Path(args.save)
+        from agents.files.io import check_output_dir
+
+        save_dir = check_output_dir("--save", args.save)
         try:
             save_dir.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
-            raise UserError(f"cannot create {save_dir}: {exc.strerror or exc}") from None
+            raise UserError(f"--save {save_dir}: cannot create it: {exc.strerror or exc}") from None
     t0 = time.monotonic()
     deadline = None if args.timeout is None else t0 + args.timeout
-    watcher = Watcher(keys, save_dir)
+    watcher = Watcher(keys, save_dir, args.save_every)
     inbox: queue.Queue[bytes] = queue.Queue()
     timed_out = False
 
@@ -273,10 +317,12 @@ def run(args: argparse.Namespace) -> int:
                 try:
                     data = inbox.get(timeout=wait)
                 except queue.Empty:
+                    watcher.flush()
                     continue
                 watcher.handle(data)
         finally:
             session.close()
+            watcher.flush(force=True)
 
     _eprint(
         f"{watcher.shown} version{'' if watcher.shown == 1 else 's'} shown, "

@@ -35,9 +35,28 @@ HELP = "draw a world or write it out as a world file"
 _ROUTE_COLORS = [(0, 160, 60), (30, 110, 230), (230, 120, 0), (170, 40, 190), (0, 170, 170), (200, 30, 90)]
 
 
+SHOW_DESCRIPTION = """\
+Draw a world (PNG or SVG, outside the free space shaded) or write it out as a world file.
+
+examples:
+  wiremap world show paper-small --png paper-small.png
+  wiremap world show museum --png museum.png --plan --seed 3
+  wiremap world show office --geojson office.geojson     # a world file to edit
+  wiremap world show my-floor.geojson --svg floor.svg
+
+Without an output flag it prints the world's summary. --plan draws a coverage route planned
+from the world (--robots N splits it into N robot routes, each in its own colour); a route
+given in the world file is drawn in any case."""
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     sub = parser.add_subparsers(dest="action", metavar="ACTION", parser_class=type(parser))
-    show = sub.add_parser("show", help="draw a world or write it out", description=__doc__.splitlines()[0])
+    show = sub.add_parser(
+        "show",
+        help="draw a world or write it out",
+        description=SHOW_DESCRIPTION,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     show.add_argument("world", metavar="NAME|FILE", help="built-in world name or a .geojson world file")
     show.add_argument("--png", metavar="PATH", help="write a PNG picture")
     show.add_argument("--svg", metavar="PATH", help="write an SVG picture")
@@ -56,12 +75,16 @@ def run(args: argparse.Namespace) -> int:
     import numpy as np
     import shapely
 
-    from agents.files.io import write_atomic, write_json
+    from agents.files.io import check_output_file, write_atomic, write_json
     from agents.sim.world import load_world
 
-    world = load_world(args.world)
+    for flag in ("--png", "--svg", "--geojson"):
+        path = getattr(args, flag[2:])
+        if path:
+            check_output_file(flag, path)
     if args.robots < 1:
         raise UserError("--robots must be at least 1")
+    world = load_world(args.world)
     routes = []
     if args.plan:
         from agents.sim.route import plan_routes, route_length

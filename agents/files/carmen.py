@@ -366,22 +366,42 @@ def read_carmen_log(
     """
     if laser is not None and laser not in LASERS:
         raise CarmenError(f"unknown laser message type {laser!r}; one of {', '.join(LASERS)}")
-    where = str(path)
-    params: dict[str, tuple[int, str]] = {}
-    raws: list[_Raw] = []
-    counts: dict[str, int] = {}
-    truepos: list[tuple[float, Pose]] = []
-    issues: list[str] = []
+    log = _Collected(str(path), strict, laser)
+    _read_lines(Path(path), log)
+    laser, raws = _choose_stream(log)
+    geometry = _stream_geometry(log, laser or "FLASER", raws, fov, max_range)
+    scans = [_to_scan(raw, geometry, max_range) for raw in raws]
+    return _summary(log, scans, laser)
+
+
+@dataclass
+class _Collected:
+    """What one pass over a log's lines collects, before a stream is chosen and its parameters
+    applied; ``issue`` keeps (or, with ``strict``, raises) an unreadable line or parameter."""
+
+    where: str
+    strict: bool
+    laser: str | None  # the stream asked for; None: every laser line is kept until the choice
+    params: dict[str, tuple[int, str]] = field(default_factory=dict)  # name -> (line, value)
+    raws: list[_Raw] = field(default_factory=list)
+    counts: dict[str, int] = field(default_factory=dict)
+    truepos: list[tuple[float, Pose]] = field(default_factory=list)
+    issues: list[str] = field(default_factory=list)
     last_odom: Pose | None = None
-    seen_message = False
+    seen_message: bool = False
 
-    def issue(err: CarmenError) -> None:
-        if strict:
+    def issue(self, err: CarmenError) -> None:
+        if self.strict:
             raise err
-        issues.append(str(err))
+        self.issues.append(str(err))
 
+
+def _read_lines(path: Path, log: _Collected) -> None:
+    """Open the log and read every line into ``log``; opening and reading errors become
+    :class:`CarmenError` naming the file."""
+    where = log.where
     try:
-        fh = _open_text(Path(path))
+        fh = _open_text(path)
     except FileNotFoundError:
         raise CarmenError(f"{where}: no such file") from None
     except IsADirectoryError:
@@ -391,103 +411,146 @@ def read_carmen_log(
     try:
         with fh:
             for number, text in enumerate(fh, start=1):
-                tokens = text.split()
-                if not tokens or tokens[0].startswith("#"):
-                    continue
-                kind = tokens[0]
-                if not seen_message:
-                    if not _MESSAGE_TYPE.match(kind) or "\ufffd" in text:
-                        raise CarmenError(
-                            f"{where}: not a CARMEN log (line {number} does not start with a message type)"
-                        )
-                    seen_message = True
-                if kind == "PARAM":
-                    if len(tokens) >= 3:
-                        params.setdefault(tokens[1], (number, _param_value(tokens)))
-                    continue
-                if kind not in MESSAGES:
-                    continue
-                ln = _Line(where, number, tokens, truncated=not text.endswith("\n"))
-                if kind in LASERS:
-                    index = counts.get(kind, 0)
-                    counts[kind] = index + 1
-                    if laser is not None and kind != laser:
-                        continue
-                try:
-                    if kind == "ODOM":
-                        ln.need(8)
-                        last_odom = ln.pose(1)
-                    elif kind == "TRUEPOS":
-                        ln.need(8)
-                        truepos.append((ln.stamp(7), ln.pose(1)))
-                    else:
-                        raw = _parse_laser(ln, index, last_odom)
-                        if raw is not None:
-                            raws.append(raw)
-                except CarmenError as err:
-                    issue(err)
+                _read_line(log, number, text)
     except (EOFError, gzip.BadGzipFile, zlib.error) as exc:
         raise CarmenError(f"{where}: corrupt or truncated gzip file: {exc}") from None
     except OSError as exc:
         raise CarmenError(f"{where}: cannot read: {exc}") from None
 
+
+def _read_line(log: _Collected, number: int, text: str) -> None:
+    """One line: comments and blank lines skipped, the first message line checked for a message
+    type, ``PARAM`` kept (the first line of a name wins), laser lines counted per type and those
+    of other streams than ``log.laser`` skipped, the rest parsed (:func:`_read_message`)."""
+    tokens = text.split()
+    if not tokens or tokens[0].startswith("#"):
+        return
+    kind = tokens[0]
+    if not log.seen_message:
+        if not _MESSAGE_TYPE.match(kind) or "\ufffd" in text:
+            raise CarmenError(
+                f"{log.where}: not a CARMEN log (line {number} does not start with a message type)"
+            )
+        log.seen_message = True
+    if kind == "PARAM":
+        if len(tokens) >= 3:
+            log.params.setdefault(tokens[1], (number, _param_value(tokens)))
+        return
+    if kind not in MESSAGES:
+        return
+    ln = _Line(log.where, number, tokens, truncated=not text.endswith("\n"))
+    index = 0  # the line's number among its type's (laser lines only)
+    if kind in LASERS:
+        index = log.counts.get(kind, 0)
+        log.counts[kind] = index + 1
+        if log.laser is not None and kind != log.laser:
+            return
+    try:
+        _read_message(log, ln, index)
+    except CarmenError as err:
+        log.issue(err)
+
+
+def _read_message(log: _Collected, ln: _Line, index: int) -> None:
+    """Parse an ``ODOM``, ``TRUEPOS`` or laser line into ``log`` (raises :class:`CarmenError`
+    for an unreadable one); a laser line's ``index`` is its number among its type's lines."""
+    if ln.kind == "ODOM":
+        ln.need(8)
+        log.last_odom = ln.pose(1)
+    elif ln.kind == "TRUEPOS":
+        ln.need(8)
+        log.truepos.append((ln.stamp(7), ln.pose(1)))
+    else:
+        raw = _parse_laser(ln, index, log.last_odom)
+        if raw is not None:
+            log.raws.append(raw)
+
+
+def _choose_stream(log: _Collected) -> tuple[str | None, list[_Raw]]:
+    """The stream mapped (``log.laser``, else the first of :data:`LASERS` present; None without
+    laser lines) and its lines."""
+    laser = log.laser
     if laser is None:
-        laser = next((k for k in LASERS if counts.get(k)), None)
-    raws = [r for r in raws if r.kind == laser]
+        laser = next((k for k in LASERS if log.counts.get(k)), None)
+    return laser, [r for r in log.raws if r.kind == laser]
 
-    def param(names: tuple[str, ...]) -> float | None:
-        for name in names:
-            if name in params:
-                number, value = params[name]
-                try:
-                    v = float(value)
-                except ValueError:
-                    issue(CarmenError(f"{where}:{number}: PARAM {name} is not a number: {value!r}"))
-                    continue
-                if not math.isfinite(v):
-                    issue(CarmenError(f"{where}:{number}: PARAM {name} is not finite: {value!r}"))
-                    continue
-                return v
-        return None
 
-    kind = laser or "FLASER"
-    fov_deg = param(_names(FOV_PARAMS, kind))
-    res_deg = param(_names(RESOLUTION_PARAMS, kind)) if fov_deg is None else None
+def _param(log: _Collected, names: tuple[str, ...]) -> float | None:
+    """The first of ``names`` among the log's parameters that is a finite number; one that is
+    not is an issue and is passed over."""
+    for name in names:
+        if name in log.params:
+            number, value = log.params[name]
+            try:
+                v = float(value)
+            except ValueError:
+                log.issue(CarmenError(f"{log.where}:{number}: PARAM {name} is not a number: {value!r}"))
+                continue
+            if not math.isfinite(v):
+                log.issue(CarmenError(f"{log.where}:{number}: PARAM {name} is not finite: {value!r}"))
+                continue
+            return v
+    return None
+
+
+@dataclass(frozen=True)
+class _Geometry:
+    """A stream's scanner geometry from the parameters and the arguments."""
+
+    fov_deg: float | None  # field of view, degrees
+    res_deg: float | None  # angular resolution, degrees (only without a field of view)
+    log_max: float  # maximum range, metres
+    mount: Pose  # mounting offset on the robot
+
+
+def _stream_geometry(
+    log: _Collected, kind: str, raws: list[_Raw], fov: float | None, max_range: float | None
+) -> _Geometry:
+    """The parameters honoured for the stream ``kind`` (module notes), ``fov`` and ``max_range``
+    overriding them; without a maximum range, the largest finite reading of ``raws``."""
+    where = log.where
+    fov_deg = _param(log, _names(FOV_PARAMS, kind))
+    res_deg = _param(log, _names(RESOLUTION_PARAMS, kind)) if fov_deg is None else None
     if fov is not None:
         fov_deg = math.degrees(fov)
     if fov_deg is not None and not (0.0 < fov_deg <= 360.0 + 1e-7):
         raise CarmenError(f"{where}: laser field of view {fov_deg:g} degrees is outside (0, 360]")
-    log_max = max_range if max_range is not None else param(_names(MAX_RANGE_PARAMS, kind))
+    log_max = max_range if max_range is not None else _param(log, _names(MAX_RANGE_PARAMS, kind))
     if log_max is None:
         finite = [float(np.max(r.ranges[np.isfinite(r.ranges)])) for r in raws if np.isfinite(r.ranges).any()]
         log_max = max(finite) if finite else math.inf
     if not log_max > 0.0:
         raise CarmenError(f"{where}: maximum laser range {log_max:g} m is not positive")
-    fwd, side, ang = (param((name,)) or 0.0 for name in _names(OFFSET_PARAMS, kind))
+    fwd, side, ang = (_param(log, (name,)) or 0.0 for name in _names(OFFSET_PARAMS, kind))
     stream_mount = Pose(fwd, side, ang + (math.pi if kind == "RLASER" else 0.0))
+    return _Geometry(fov_deg, res_deg, log_max, stream_mount)
 
-    scans: list[LaserScan] = []
-    for raw in raws:
-        angles = raw.angles
-        if angles is None:
-            n = raw.ranges.size
-            if fov_deg is not None:
-                width = math.radians(fov_deg)
-            elif res_deg is not None and 0.0 < res_deg * (n - 1) <= 360.0:
-                width = math.radians(res_deg * (n - 1))
-            else:
-                width = DEFAULT_FOV
-            angles = flaser_angles(n, width)
-        rmax = max_range if max_range is not None else (raw.max_range or log_max)
-        ranges = raw.ranges.copy()
-        with np.errstate(invalid="ignore"):
-            ranges[~(ranges > 0.0) | (ranges >= rmax)] = np.inf
-        mount = raw.mount if raw.mount is not None else stream_mount
-        scans.append(
-            LaserScan(raw.t, ranges, angles, float(rmax), raw.odom.compose(mount), mount, raw.kind, raw.index)
-        )
-    values = {name: value for name, (_, value) in params.items()}
-    return CarmenLog(where, scans, laser, counts, truepos, issues, values)
+
+def _to_scan(raw: _Raw, geometry: _Geometry, max_range: float | None) -> LaserScan:
+    """A laser line as a :class:`LaserScan`: bearings from the line or the stream's geometry,
+    no-return readings as ``inf``, the odometry composed with the mounting offset."""
+    angles = raw.angles
+    if angles is None:
+        n = raw.ranges.size
+        if geometry.fov_deg is not None:
+            width = math.radians(geometry.fov_deg)
+        elif geometry.res_deg is not None and 0.0 < geometry.res_deg * (n - 1) <= 360.0:
+            width = math.radians(geometry.res_deg * (n - 1))
+        else:
+            width = DEFAULT_FOV
+        angles = flaser_angles(n, width)
+    rmax = max_range if max_range is not None else (raw.max_range or geometry.log_max)
+    ranges = raw.ranges.copy()
+    with np.errstate(invalid="ignore"):
+        ranges[~(ranges > 0.0) | (ranges >= rmax)] = np.inf
+    mount = raw.mount if raw.mount is not None else geometry.mount
+    return LaserScan(raw.t, ranges, angles, float(rmax), raw.odom.compose(mount), mount, raw.kind, raw.index)
+
+
+def _summary(log: _Collected, scans: list[LaserScan], laser: str | None) -> CarmenLog:
+    """The :class:`CarmenLog` of the chosen stream's scans and what the pass collected."""
+    values = {name: value for name, (_, value) in log.params.items()}
+    return CarmenLog(log.where, scans, laser, log.counts, log.truepos, log.issues, values)
 
 
 def read_carmen(

@@ -41,7 +41,7 @@ import shapely
 from numpy.typing import NDArray
 
 from agents.errors import UserError
-from agents.files.io import load_wireframe_geojson, save_wireframe_geojson, write_atomic
+from agents.files.io import load_wireframe_geojson, write_atomic, write_json
 from mapping.wireframe import Wireframe
 
 FREE = 254
@@ -81,20 +81,60 @@ class LoadedMap:
     properties: dict[str, Any]
 
 
-def message_properties(msg: Any) -> dict[str, Any]:
-    """The JSON-able metadata of a :class:`wire_codec.MapMessage` (everything but the map)."""
+def message_properties(msg: Any, world: str | None = None) -> dict[str, Any]:
+    """The JSON-able metadata of a :class:`wire_codec.MapMessage` (everything but the map): the
+    one schema of every map GeoJSON wiremap writes (``wiremap run``'s ``fused.geojson``,
+    ``wiremap export``, ``wiremap watch --save``).
+
+    Every map: ``kind`` (``fused_map`` / ``robot_map``), ``sender``, ``stamp_ns``, ``frame``,
+    ``resolution`` (the quantisation step, m), ``robots``. A fused map adds ``version``,
+    ``merge_threshold`` (m), ``stale`` (robots whose token is gone) and, when known,
+    ``sim_time_s`` and ``world``; a robot map adds ``seq``. Other metadata goes under ``meta``.
+    """
+    from wire_codec import MessageKind
+
+    meta = dict(msg.meta) if isinstance(msg.meta, dict) else {}
     props: dict[str, Any] = {
         "kind": getattr(msg.kind, "name", str(msg.kind)).lower(),
         "sender": msg.sender,
-        "seq": int(msg.seq),
-        "stamp_ns": int(msg.stamp_ns),
-        "frame": msg.frame,
-        "resolution": float(msg.resolution),
-        "robots": list(msg.robots),
     }
-    if msg.meta:
-        props["meta"] = _jsonable(msg.meta)
+    if world is not None:
+        props["world"] = world
+    if msg.kind == MessageKind.FUSED_MAP:
+        from agents.fleet.fusion.state import merge_threshold_of
+
+        props["version"] = int(msg.seq)
+        props["merge_threshold"] = merge_threshold_of(msg)
+        stale = meta.pop("stale", [])
+        props["stale"] = [str(r) for r in stale] if isinstance(stale, (list, tuple)) else []
+        t = meta.pop("t", None)
+        if isinstance(t, (int, float)) and not isinstance(t, bool):
+            props["sim_time_s"] = float(t)
+        meta.pop("threshold", None)
+        meta.pop("version", None)
+    else:
+        props["seq"] = int(msg.seq)
+    props.update(
+        {"stamp_ns": int(msg.stamp_ns), "frame": msg.frame, "resolution": float(msg.resolution), "robots": list(msg.robots)}
+    )
+    if meta:
+        props["meta"] = _jsonable(meta)
     return props
+
+
+def wireframe_geojson(wf: Wireframe, properties: dict[str, Any] | None = None) -> dict[str, Any]:
+    """The map GeoJSON: :meth:`Wireframe.to_geojson` with ``properties`` on the collection and,
+    when they list the map's ``robots``, each wall's contributing ``robots`` (bit ``k`` of its
+    ``sources`` is ``robots[k]``)."""
+    doc = wf.to_geojson(properties)
+    robots = (properties or {}).get("robots")
+    if isinstance(robots, list) and robots:
+        for f in doc["features"]:
+            p = f["properties"]
+            if p.get("kind") == "wall":
+                mask = int(p.get("sources", 0))
+                p["robots"] = [r for k, r in enumerate(robots) if (mask >> k) & 1]
+    return doc
 
 
 def _jsonable(obj: Any) -> Any:
@@ -433,7 +473,7 @@ def read_pgm(data: bytes) -> Uint8Array:
 
 
 def _num(v: float) -> str:
-    text = repr(float(v))
+    text = repr(round(float(v), 9))  # no binary noise: -0.175, not -0.17500000000000002
     return "0.0" if text == "-0.0" else text
 
 
@@ -496,11 +536,24 @@ def svg_text(wf: Wireframe) -> str:
     return str(render.wireframe_svg(wf))
 
 
-def png_bytes(wf: Wireframe) -> bytes:
-    """The map as PNG (drawn by :func:`agents.files.render.map_png`)."""
+def png_bytes(wf: Wireframe, title: str = "map") -> bytes:
+    """The map as PNG: the figure every command draws (:func:`agents.files.render.map_figure`)."""
     from agents.files import render
 
-    return bytes(render.map_png(wf))
+    return bytes(render.map_figure(wf, title=title))
+
+
+def _title(props: dict[str, Any]) -> str:
+    """A picture's title from a map's properties: what map it is and whose."""
+    kind = str(props.get("kind", "map")).replace("_", " ")
+    version = props.get("version", props.get("seq"))
+    robots = props.get("robots") or []
+    text = kind + (f" v{version}" if version is not None else "")
+    if robots:
+        text += " from " + ", ".join(str(r) for r in robots)
+    if props.get("world"):
+        text = f"{props['world']}: {text}"
+    return text
 
 
 def format_from_suffix(path: str | os.PathLike[str]) -> str | None:
@@ -539,13 +592,14 @@ def export_map(
     if fmt != "rosmap" and min_likelihood > 0.0 and wf.n_edges:
         wf = wf.subgraph_edges(wf.likelihood >= min_likelihood)
     if fmt == "geojson":
-        save_wireframe_geojson(out, wf, loaded.properties or None)
+
+        write_json(out, wireframe_geojson(wf, loaded.properties or None))
         return [Path(out)]
     if fmt == "svg":
         write_atomic(out, svg_text(wf))
         return [Path(out)]
     if fmt == "png":
-        write_atomic(out, png_bytes(wf))
+        write_atomic(out, png_bytes(wf, title=_title(loaded.properties)))
         return [Path(out)]
     if fmt == "rosmap":
         pgm, yaml, _ = write_rosmap(wf, out, resolution, min_likelihood=min_likelihood)

@@ -46,12 +46,41 @@ def write_atomic(path: str | os.PathLike[str], data: bytes | str, mode: int | No
         raise
 
 
-def output_file(flag: str, path: str | os.PathLike[str]) -> Path:
-    """Check a command's output file option before anything runs: ``path`` is not a directory,
-    and its directory exists (made if needed). Else a one-line ``UserError`` naming ``flag``."""
+def check_output_dir(flag: str, path: str | os.PathLike[str]) -> Path:
+    """Check, before any work and without creating anything, that directory ``path`` exists or
+    can be made: the nearest existing ancestor is a writable directory (not a file). Else a
+    one-line ``UserError`` naming ``flag``, e.g. ``--out afile/sub: afile is a file, not a
+    directory``."""
+    p = Path(path)
+    probe = p
+    while not probe.exists():
+        if probe.parent == probe:
+            break
+        probe = probe.parent
+    if probe.exists() and not probe.is_dir():
+        what = "is a file, not a directory" if probe == p else f"cannot create it: {probe} is a file, not a directory"
+        raise UserError(f"{flag} {p}: {what}")
+    if probe.exists() and not os.access(probe, os.W_OK | os.X_OK):
+        raise UserError(f"{flag} {p}: {probe} is not writable")
+    return p
+
+
+def check_output_file(flag: str, path: str | os.PathLike[str]) -> Path:
+    """Check, before any work and without creating anything, that file ``path`` can be written:
+    it is not a directory and its directory exists or can be made (:func:`check_output_dir`)."""
     p = Path(path)
     if p.is_dir():
         raise UserError(f"{flag} {p}: is a directory")
+    check_output_dir(flag, p.parent if str(p.parent) else ".")
+    if p.parent.is_dir() and not os.access(p.parent, os.W_OK | os.X_OK):
+        raise UserError(f"{flag} {p}: {p.parent} is not writable")
+    return p
+
+
+def output_file(flag: str, path: str | os.PathLike[str]) -> Path:
+    """Check a command's output file option before anything runs (:func:`check_output_file`)
+    and make its directory. Else a one-line ``UserError`` naming ``flag``."""
+    p = check_output_file(flag, path)
     try:
         p.parent.mkdir(parents=True, exist_ok=True)
     except OSError as exc:

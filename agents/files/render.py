@@ -33,6 +33,7 @@ __all__ = [
     "draw_wireframe",
     "encode_png",
     "likelihood_colors",
+    "map_figure",
     "map_png",
     "wireframe_svg",
 ]
@@ -49,6 +50,24 @@ LABEL_COLORS: dict[Label, Color] = {
 LABEL_SHAPES: dict[Label, str] = {Label.NOMINAL: "circle", Label.OCCLUSION: "triangle", Label.FRONTIER: "square"}
 
 TRUTH_COLOR: Color = (200, 200, 200)
+#: The truth in :func:`map_figure`: wider than the map's walls and darker than
+#: :data:`OUTSIDE_COLOR`, so it shows on both sides of a mapped wall.
+FIGURE_TRUTH_COLOR: Color = (165, 175, 190)
+#: Outside the world's free space (as ``wiremap world show`` shades it, lighter).
+OUTSIDE_COLOR: Color = (222, 222, 222)
+#: One colour per robot (robot ``k`` of a map's ``robots``), shared with the Rerun recording.
+ROBOT_COLORS: tuple[Color, ...] = (
+    (31, 119, 180),
+    (255, 127, 14),
+    (44, 160, 44),
+    (214, 39, 40),
+    (148, 103, 189),
+    (140, 86, 75),
+    (227, 119, 194),
+    (188, 189, 34),
+    (23, 190, 207),
+    (127, 127, 127),
+)
 TRAJECTORY_COLOR: Color = (0, 160, 60)
 _LOW: Color = (255, 160, 40)  # likelihood 0
 _HIGH: Color = (20, 70, 200)  # likelihood 1
@@ -550,3 +569,135 @@ def wireframe_svg(
 
 def _xml_escape(text: str) -> str:
     return text.replace("&", "&amp;").replace("<", "&lt;").replace(">", "&gt;").replace('"', "&quot;")
+
+
+# ---------------------------------------------------------------------- figures
+def _nice_length(span_m: float) -> float:
+    """A round length (1, 2 or 5 times a power of ten) of about a fifth of ``span_m``."""
+    target = max(span_m / 5.0, 1e-6)
+    p = 10.0 ** math.floor(math.log10(target))
+    for f in (5.0, 2.0, 1.0):
+        if f * p <= target:
+            return f * p
+    return p
+
+
+def _fmt_m(v: float) -> str:
+    return f"{v:g} m" if v >= 1 else f"{v * 100:g} cm"
+
+
+def _font(size: int) -> Any:
+    from PIL import ImageFont
+
+    return ImageFont.load_default(size=size)
+
+
+def map_figure(
+    wf: Wireframe,
+    truth: Wireframe | None = None,
+    *,
+    title: str = "map",
+    trajectories: Mapping[str, ArrayLike] | None = None,
+    free: Any = None,
+    max_px: int = 1000,
+) -> bytes:
+    """The picture every command writes (``wiremap map``, ``run``, ``watch --save``,
+    ``export --format png``), as PNG bytes: a self-explanatory figure.
+
+    From the top: the ``title``; the map (outside the world's ``free`` space shaded, the
+    ``truth`` underneath as wide blue-grey lines, each robot's trajectory in its colour, then
+    the map's walls coloured by likelihood and its corners by label); below it the legend (the
+    corner symbols, the wall colours, the truth, the shading, one line per trajectory), a scale
+    bar and a north arrow (north is +y, up).
+    """
+    tracks = {str(k): np.asarray(v, dtype=np.float64).reshape(-1, 2) for k, v in (trajectories or {}).items()}
+    tracks = {k: v for k, v in tracks.items() if len(v)}
+    items: list[Any] = [wf, truth, *tracks.values()]
+    if free is not None and not getattr(free, "is_empty", True):
+        xmin, ymin, xmax, ymax = free.bounds
+        items.append(np.array([[xmin, ymin], [xmax, ymax]]))
+    bounds = _auto_bounds(*items)
+    span = max(bounds[2] - bounds[0], bounds[3] - bounds[1], 1e-9)
+    # leave room for the legend: the map is at most max_px wide and tall
+    canvas = Canvas(bounds, max_px=max_px, margin_px=24)
+    if free is not None and not getattr(free, "is_empty", True):
+        canvas.image[:] = np.asarray(OUTSIDE_COLOR, dtype=np.uint8)
+        canvas.polygon_fill(free, (255, 255, 255))
+    w = max(1.5, min(3.0, canvas.scale * 0.08))
+    if truth is not None:
+        draw_wireframe(canvas, truth, edge_color=FIGURE_TRUTH_COLOR, label_colors={}, width=w + 5.0)
+    colours: dict[str, Color] = {}
+    for k, (name, xy) in enumerate(sorted(tracks.items())):
+        colours[name] = ROBOT_COLORS[k % len(ROBOT_COLORS)] if len(tracks) > 1 else TRAJECTORY_COLOR
+        canvas.polyline(xy, colours[name], 1.5)
+    draw_wireframe(canvas, wf, edge_color=None, width=w, point_radius=w + 1.5)
+
+    # ---- legend rows (pixels; y grows downwards here)
+    width = max(canvas.width, 560)
+    row_h, title_h = 22, 34
+    legend_rows = 3 + (1 if tracks else 0)
+    height = title_h + canvas.height + row_h * legend_rows + 12
+    img = np.full((height, width, 3), 255, dtype=np.uint8)
+    x0 = (width - canvas.width) // 2
+    img[title_h : title_h + canvas.height, x0 : x0 + canvas.width] = canvas.image
+    texts: list[tuple[int, int, str, int]] = [(12, 8, title, 18)]
+    panel = Canvas((0.0, 0.0, float(width), float(height)), px_per_m=1.0, margin_px=0)
+    panel.image = img
+
+    def at(x: float, row_y: float) -> tuple[float, float]:  # panel pixel -> panel "world" (y up)
+        return (x, height - row_y)
+
+    top = title_h + canvas.height + 6
+    r = w + 1.5
+    y = top + row_h / 2
+    x = 16.0
+    for lab, name in ((Label.NOMINAL, "nominal corner"), (Label.OCCLUSION, "occlusion corner"),
+                      (Label.FRONTIER, "frontier corner")):
+        panel.point(at(x, y), LABEL_COLORS[lab], r, LABEL_SHAPES[lab])
+        texts.append((int(x + 10), int(y - 7), name, 13))
+        x += 150
+    y += row_h
+    x = 16.0
+    for t in np.linspace(0.0, 1.0, 8):
+        c = likelihood_colors([t])[0]
+        panel.line(at(x + 5 * t * 7, y), at(x + 5 * t * 7 + 5, y), (int(c[0]), int(c[1]), int(c[2])), w)
+    texts.append((int(x + 46), int(y - 7), "wall, likelihood low to high", 13))
+    x += 250
+    panel.line(at(x, y), at(x + 30, y), FIGURE_TRUTH_COLOR, w + 5.0)
+    texts.append((int(x + 38), int(y - 7), "truth", 13))
+    if free is not None:
+        x += 90
+        panel.image[int(y - 7) : int(y + 7), int(x) : int(x + 24)] = np.asarray(OUTSIDE_COLOR, dtype=np.uint8)
+        texts.append((int(x + 30), int(y - 7), "outside the world", 13))
+    if tracks:
+        y += row_h
+        x = 16.0
+        for name, col in colours.items():
+            panel.line(at(x, y), at(x + 24, y), col, 2.0)
+            label = f"{name}: path" if len(tracks) > 1 else f"{name}"
+            texts.append((int(x + 30), int(y - 7), label, 13))
+            x += 40 + 8 * len(label)
+            if x > width - 80:
+                break
+    # scale bar and north arrow
+    y += row_h
+    length = _nice_length(span)
+    px = length * canvas.scale
+    x = 16.0
+    panel.line(at(x, y), at(x + px, y), (0, 0, 0), 2.0)
+    for tick in (x, x + px):
+        panel.line(at(tick, y - 5), at(tick, y + 5), (0, 0, 0), 1.5)
+    texts.append((int(x + px + 8), int(y - 7), _fmt_m(length), 13))
+    nx = width - 40.0
+    panel.line(at(nx, y + 6), at(nx, y - 12), (0, 0, 0), 2.0)
+    panel.line(at(nx - 5, y - 6), at(nx, y - 12), (0, 0, 0), 2.0)
+    panel.line(at(nx + 5, y - 6), at(nx, y - 12), (0, 0, 0), 2.0)
+    texts.append((int(nx + 9), int(y - 9), "N", 14))
+
+    from PIL import Image, ImageDraw
+
+    pil = Image.fromarray(panel.image)
+    draw = ImageDraw.Draw(pil)
+    for tx, ty, text, size in texts:
+        draw.text((tx, ty), text, fill=(0, 0, 0), font=_font(size))
+    return encode_png(np.asarray(pil, dtype=np.uint8))

@@ -8,21 +8,28 @@ Entity tree (all coordinates in the fleet frame, metres)::
     robots/<id>/scan                    the current scan, placed at the estimated pose
     robots/<id>/particles               every particle's wireframe, faded
     robots/<id>/map                     the robot's best wireframe (grey while it is stale)
-    robots/<id>/status                  "stale" / "alive" text entries when that changes
+    robots/<id>/trajectory              the estimated path so far, a line (every 5 cm, sent at most once a second)
+    robots/<id>/status                  "joined" / "stale" / "alive again" text entries
     fused/walls                         fused walls, coloured by contributing robot(s)
     fused/corners/{nominal,occlusion,frontier}
                                         circles, triangles and squares (the paper's Fig. 2)
     stats/fused/{vertices,edges}, stats/latency_ms, stats/robots/<id>/edges,
-    stats/robots/<id>/alive             time series (alive: 1 while the robot's token lives, 0 stale)
-    log                                 text: dropped payloads, stale robots
+    stats/robots/<id>/alive             time series (alive: 1 while the robot's token lives, 0 stale),
+                                        a sample a second for every robot seen
+    log                                 text events: robots joining, going stale, coming back; dropped payloads
 
-Timeline: ``sim_time`` (seconds of simulated time). A file sink always; optionally a gRPC
+Timelines: ``fleet_time`` (seconds since the recording started, by the recorder's clock: one
+clock for every robot, so a robot started later appears later) and ``sim_time`` (the
+robots' simulated seconds, each robot's own clock from its start; the fused map's is the
+latest). The blueprint opens on ``fleet_time`` with the fleet view, one view per robot, the
+time series and the event log. A file sink always; optionally a gRPC
 server sink that a viewer attaches to later (``rerun --connect
 rerun+http://127.0.0.1:PORT/proxy``). The algorithm never imports this module.
 """
 
 from __future__ import annotations
 
+import time
 import uuid
 from collections.abc import Sequence
 from pathlib import Path
@@ -30,22 +37,14 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
+from agents.files.render import ROBOT_COLORS
 from mapping.se2 import Pose
 from mapping.wireframe import Label, Wireframe
 
-# A qualitative palette (RGB), robot k gets PALETTE[k % len(PALETTE)].
-PALETTE: tuple[tuple[int, int, int], ...] = (
-    (31, 119, 180),
-    (255, 127, 14),
-    (44, 160, 44),
-    (214, 39, 40),
-    (148, 103, 189),
-    (140, 86, 75),
-    (227, 119, 194),
-    (188, 189, 34),
-    (23, 190, 207),
-    (127, 127, 127),
-)
+# A qualitative palette (RGB), robot k gets PALETTE[k % len(PALETTE)] (the pictures' colours).
+PALETTE: tuple[tuple[int, int, int], ...] = ROBOT_COLORS
+#: Seconds between two sends of a robot's trajectory line and of the ``alive`` samples.
+TRACK_EVERY_S = 1.0
 STALE_COLOUR = (150, 150, 150)
 LABEL_COLOURS = {
     Label.NOMINAL: (220, 30, 30),
@@ -102,13 +101,27 @@ class FleetRecorder:
         self.rec.set_sinks(*sinks)  # type: ignore[arg-type]
         self.robots: list[str] = []
         self._blueprint_robots: tuple[str, ...] | None = None
+        self._t0 = time.monotonic()
+        self._tracks: dict[str, list[tuple[float, float]]] = {}
+        self._track_sent: dict[str, float] = {}
+        self._stale: set[str] = set()
+        self._alive_sent = -1.0
         self.send_blueprint()
+
+    def fleet_time(self) -> float:
+        """Seconds since the recording started (the ``fleet_time`` timeline)."""
+        return time.monotonic() - self._t0
 
     # ------------------------------------------------------------------ layout
     def robot_index(self, robot: str) -> int:
         if robot not in self.robots:
             self.robots.append(robot)
             self.robots.sort()
+            text = f"{robot} joined"
+            self.rec.set_time("fleet_time", duration=self.fleet_time())
+            self.rec.log(f"robots/{robot}/status", self._rr.TextLog(text, level="INFO"))
+            self.rec.log("log", self._rr.TextLog(text, level="INFO"))
+            self.rec.log(f"stats/robots/{robot}/alive", self._rr.Scalars([1.0]))
         return self.robots.index(robot)
 
     def send_blueprint(self) -> None:
@@ -132,6 +145,7 @@ class FleetRecorder:
         if per_robot:
             right.append(rrb.Grid(*per_robot))
         right.append(rrb.TimeSeriesView(name="stats", origin="stats"))
+        right.append(rrb.TextLogView(name="events", origin="log"))
         bp = rrb.Blueprint(
             rrb.Horizontal(
                 rrb.Spatial2DView(
@@ -143,17 +157,21 @@ class FleetRecorder:
                         "robots/*/true_pose",
                         "robots/*/pose",
                         "robots/*/scan",
+                        "robots/*/trajectory",
                     ],
                 ),
                 rrb.Vertical(*right),  # type: ignore[arg-type]
                 column_shares=[3, 2],
             ),
+            rrb.TimePanel(timeline="fleet_time", expanded=True),
             collapse_panels=False,
         )
         self.rec.send_blueprint(bp)
 
     def set_time(self, t: float) -> None:
+        """Both clocks: ``sim_time`` = ``t`` (simulated seconds), ``fleet_time`` = now."""
         self.rec.set_time("sim_time", duration=float(max(t, 0.0)))
+        self.rec.set_time("fleet_time", duration=self.fleet_time())
 
     # ------------------------------------------------------------------ world
     def log_truth(self, truth: Wireframe) -> None:
@@ -184,6 +202,16 @@ class FleetRecorder:
                 draw_order=30.0,
             ),
         )
+        track = self._tracks.setdefault(robot, [])
+        if not track or np.hypot(estimate.x - track[-1][0], estimate.y - track[-1][1]) >= 0.05:
+            track.append((estimate.x, estimate.y))
+        now = self.fleet_time()
+        if now - self._track_sent.get(robot, -TRACK_EVERY_S) >= TRACK_EVERY_S:
+            self._log_track(robot)
+        if now - self._alive_sent >= TRACK_EVERY_S:  # every robot's alive series, once a second
+            self._alive_sent = now
+            for r in self.robots:
+                self.rec.log(f"stats/robots/{r}/alive", rr.Scalars([0.0 if r in self._stale else 1.0]))
         if truth is not None:
             dt = 0.4 * np.array([np.cos(truth.theta), np.sin(truth.theta)])
             self.rec.log(
@@ -196,6 +224,17 @@ class FleetRecorder:
                     draw_order=29.0,
                 ),
             )
+
+    def _log_track(self, robot: str) -> None:
+        track = self._tracks.get(robot)
+        if not track or len(track) < 2:
+            return
+        self._track_sent[robot] = self.fleet_time()
+        c = robot_colour(self.robot_index(robot))
+        self.rec.log(
+            f"robots/{robot}/trajectory",
+            self._rr.LineStrips2D([np.asarray(track)], colors=[c], radii=[0.025], labels=[robot], draw_order=8.0),
+        )
 
     def log_robot_viz(
         self,
@@ -258,6 +297,10 @@ class FleetRecorder:
         rr = self._rr
         k = self.robot_index(robot)
         self.set_time(t)
+        if stale:
+            self._stale.add(robot)
+        else:
+            self._stale.discard(robot)
         text = f"{robot} stale: liveliness token gone, last map kept" if stale else f"{robot} alive again"
         level = "WARN" if stale else "INFO"
         self.rec.log(f"robots/{robot}/status", rr.TextLog(text, level=level))
@@ -385,7 +428,13 @@ class FleetRecorder:
         self.rec.flush(timeout_sec=timeout)
 
     def close(self) -> None:
-        """Flush and detach the sinks (the file gets its footer)."""
+        """Send the trajectories' last points, flush and detach the sinks (the file gets its
+        footer)."""
+        try:
+            for robot in list(self._tracks):
+                self._log_track(robot)
+        except Exception:  # a closing recorder never raises
+            pass
         try:
             self.rec.flush(timeout_sec=5.0)
         finally:

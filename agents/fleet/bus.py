@@ -312,6 +312,10 @@ def refused_endpoint(cfg: zenoh.Config) -> str | None:
     return None
 
 
+#: Seconds between two "waiting for a router" reports of :func:`open_session`.
+WAIT_REPORT_S = 10.0
+
+
 def open_session(
     cfg: zenoh.Config,
     stop: threading.Event | StopFlag | None = None,
@@ -327,8 +331,9 @@ def open_session(
     stop : when set while waiting, give up and return None (SIGTERM during the wait).
     wait : False: fail at once when no router answers.
     timeout : give up after this many seconds (None: wait until ``stop``).
-    on_wait : called once with the error text when the first attempt fails (to print
-        "waiting for router ...").
+    on_wait : called with the error text (which names the endpoints tried) when the first
+        attempt fails and every 10 s after that, with the seconds waited (to print "waiting for
+        a router ...").
 
     Raises
     ------
@@ -343,6 +348,7 @@ def open_session(
     t0 = time.monotonic()
     delay = 0.05
     told = False
+    told_at = 0.0
     refusals = 0
     while True:
         try:
@@ -361,9 +367,10 @@ def open_session(
                 raise UserError(f"cannot open Zenoh session: {text}") from None
             if timeout is not None and time.monotonic() - t0 > timeout:
                 raise UserError(f"no router after {timeout:g} s: {text}") from None
-            if not told and on_wait is not None:
-                on_wait(text)
-                told = True
+            waited = time.monotonic() - t0
+            if on_wait is not None and (not told or waited - told_at >= WAIT_REPORT_S):
+                on_wait(text if not told else f"{waited:.0f} s so far: {text}")
+                told, told_at = True, waited
         if stop is not None:
             if stop.wait(delay):
                 return None

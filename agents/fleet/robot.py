@@ -86,6 +86,9 @@ class RobotOptions:
     unknown_start: bool = False  # publish in its own frame: origin identity, meta origin_unknown
     carmen: str | None = None  # replay this CARMEN log instead of simulating (agents.fleet.carmen_fleet)
     scans: tuple[int, int] | None = None  # the log's scans [i0, i1) this robot replays
+    #: False when ``--start`` gave no heading: the simulated robot's heading (along its route)
+    #: is taken without a word.
+    heading_given: bool = True
 
 
 @dataclass
@@ -332,8 +335,16 @@ class RobotAgent:
         route's) would rotate the whole map in the fleet frame. The true pose wins, with a
         warning when they differ by more than 1 cm or 0.01 rad."""
         s = self.opts.start
-        if not s.almost_equal(first, 0.01, 0.01):
-            self.say(f"start pose {s.as_tuple()} differs from the simulated start {first.as_tuple()}; using the latter")
+        if math.hypot(s.x - first.x, s.y - first.y) > 0.01:
+            self.say(
+                f"--start {s.x:.2f},{s.y:.2f} differs from where the simulation starts the robot "
+                f"({first.x:.2f},{first.y:.2f}, heading {math.degrees(first.theta):.0f} deg); using the latter"
+            )
+        elif self.opts.heading_given and abs(math.remainder(s.theta - first.theta, math.tau)) > 0.01:
+            self.say(
+                f"start heading {math.degrees(s.theta):.0f} deg replaced by {math.degrees(first.theta):.0f} deg "
+                f"(a simulated robot starts facing along its route)"
+            )
         if not s.almost_equal(first, 1e-9, 1e-9):
             self.opts.start = first
             self._last_body = None

@@ -163,8 +163,13 @@ def _pose_errors(fr: dict[str, Any], starts: dict[str, Pose]) -> dict[str, Any]:
     return out
 
 
-def write_outputs_unknown(out: Path, world: Any, ids: list[str], duration_s: float, extra: dict[str, Any]) -> dict[str, Any]:
-    """``report.json`` (and ``fused.*``) of an unknown-starts run (module docstring)."""
+def write_outputs_unknown(
+    out: Path, world: Any, ids: list[str], duration_s: float, extra: dict[str, Any],
+    published: bytes | None = None, tracks: dict[str, Any] | None = None,
+) -> dict[str, Any]:
+    """``report.json`` (and ``fused.*``) of an unknown-starts run (module docstring); ``published``
+    and ``tracks`` (what :func:`agents.commands.run.write_outputs` also takes) are not used: the
+    fused map is read from the store, and the robots' tracks are in their own frames."""
     from agents.commands.run import _metrics
     from agents.files.render import map_png
     from agents.fleet.robot import start_pose_of
@@ -215,8 +220,12 @@ def write_outputs_unknown(out: Path, world: Any, ids: list[str], duration_s: flo
     return _summary_shape(report, ids)
 
 
-def write_outputs_carmen(out: Path, world: CarmenWorld, ids: list[str], duration_s: float, extra: dict[str, Any]) -> dict[str, Any]:
-    """``report.json`` (and ``fused.*``) of a CARMEN fleet run (module docstring)."""
+def write_outputs_carmen(
+    out: Path, world: Any, ids: list[str], duration_s: float, extra: dict[str, Any],
+    published: bytes | None = None, tracks: dict[str, Any] | None = None,
+) -> dict[str, Any]:
+    """``report.json`` (and ``fused.*``) of a CARMEN fleet run (module docstring); ``published``
+    and ``tracks`` as :func:`write_outputs_unknown`."""
     from agents.files.render import map_png
     from agents.fleet.carmen_fleet import endpoint_precision, endpoints
 
