@@ -41,7 +41,9 @@ def raw_map(rid: str, wf_fleet: Wireframe, origin: Pose, seq: int, boot: int = B
 
 def fleet() -> tuple[FusionState, Wireframe]:
     truth = load_world("museum").truth
-    st = FusionState(FusionConfig(threshold=0.4, refine=False), quarantine=QuarantineConfig(), limits=InputLimits())
+    # first maps of up to 150 m (a robot the fleet has heard of for a while; see test_a_first_map...)
+    cfg = QuarantineConfig(growth_slack_m=100.0)
+    st = FusionState(FusionConfig(threshold=0.4, refine=False), quarantine=cfg, limits=InputLimits())
     return st, truth
 
 
@@ -80,7 +82,8 @@ def test_a_map_shifted_from_its_own_history_is_quarantined_and_not_merged() -> N
 
 
 def test_an_extent_jump_is_quarantined() -> None:
-    st, truth = fleet()
+    truth = load_world("museum").truth
+    st = FusionState(FusionConfig(threshold=0.4, refine=False), quarantine=QuarantineConfig())
     origin = Pose(50.0, 50.0, 0.0)
     small = part(truth, (50.0, 50.0), 30.0)
     assert st.offer(raw_map("r1", small, origin, 1), "r1", BOOT + 100 * S)  # within its reach after 100 s
@@ -143,3 +146,14 @@ def test_stacked_walls_are_over_the_density_budget() -> None:
     assert bad is not None and "walls" in bad[1]
     truth = load_world("museum").truth
     assert too_dense(truth, InputLimits()) is None
+
+
+def test_a_first_map_reaches_no_further_than_since_the_fusion_heard_of_the_robot() -> None:
+    truth = load_world("museum").truth
+    st = FusionState(FusionConfig(threshold=0.4, refine=False), quarantine=QuarantineConfig())
+    t = BOOT + 3600 * S  # it claims to have been up for an hour (reach 10.9 km by its boot)
+    big = part(truth, (100.0, 100.0), 70.0)
+    assert not st.offer(raw_map("r1", big, Pose(30.0, 30.0, 0.0), 1), "r1", t)
+    assert st.stats.quarantined_by == {"extent_jump": 1} and st.last_drop is not None
+    assert "first map" in st.last_drop[2]
+    assert st.offer(raw_map("r1", big, Pose(30.0, 30.0, 0.0), 2), "r1", t + 60 * S)  # 60 s later: 230 m

@@ -10,6 +10,9 @@ Both tests compare *where the maps overlap*, on points sampled along the walls:
   between the two maps + slack), and where the new walls lie inside the old map's box most of
   them must lie near an old wall (``history_walls``). A robot's best particle changes, and
   loop closures move walls, by decimetres to a metre; ``far_m`` is 1 m (1-2.9 m on its grid).
+* **first map** (in :meth:`FusionState._inconsistent`): a robot's first accepted map may reach
+  no further from its start than sensor range + speed x seconds since the fusion service first
+  heard of the id + slack (``extent_jump``): its claimed boot may be as old as it likes.
 * **fleet** (:func:`against_fleet`), the new map in the fleet frame against the walls the
   *other* robots contributed to the fused map: in the space the fleet has seen well (cells of
   ``cell_m`` holding a fleet wall: the wall and the free space beside it) most of the robot's

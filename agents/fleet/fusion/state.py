@@ -53,6 +53,7 @@ from wire_codec.message import MapMessage, MessageKind
 DEFAULT_THRESHOLD = 0.2  # merge threshold (m) unless configured
 DEFAULT_RESOLUTION = 0.05  # the fused map's quantisation step (m) while no robot map sets it
 FUSION_ID = "fusion"
+MAX_TRANSPORT_NS = 60 * 10**9  # a map's latency sample is at most this plus the fuse (forged stamps)
 
 
 MergeFn = Callable[[Wireframe, Wireframe, float], Wireframe]
@@ -347,12 +348,20 @@ class FusionState:
         if cfg is None or now_ns is None:
             return None
         wf = msg.wireframe
+        lim = self.limits
         if old is not None and old.at_ns and _origin_of(old.message) == _origin_of(msg):  # same boot and start
             seconds = (now_ns - old.at_ns) / 1e9
-            lim = self.limits
             bad = against_history(wf, old.message.wireframe, seconds, lim.max_speed_mps, lim.sensor_range_m, cfg)
             if bad is not None:
                 return bad
+        elif old is None and wf.n_vertices:
+            # a robot's first map: no further from its start than it could have gone since the
+            # fusion first heard of it (its claimed boot may be as old as it likes)
+            heard = (now_ns - self._first_seen.get(msg.sender, now_ns)) / 1e9
+            reach = lim.sensor_range_m + lim.max_speed_mps * heard + cfg.growth_slack_m
+            far = float(np.hypot(wf.points[:, 0], wf.points[:, 1]).max())
+            if far > reach:
+                return "extent_jump", f"a first map reaching {far:.0f} m from the start, heard of {heard:.0f} s ago"
         if origin_unknown(msg) or self.fused.n_edges == 0:
             return None
         rid = msg.sender
@@ -423,7 +432,10 @@ class FusionState:
         self.robots[rid] = RobotEntry(msg, raw, key, rev, gen, since, now_ns or 0)
         self.stats.accepted += 1
         if not same:
-            self._pending.setdefault(rid, int(msg.stamp_ns))
+            # a stamp over MAX_TRANSPORT_S old counts as that old: a forged stamp from the past
+            # cannot fill the latency summary with centuries
+            stamp = int(msg.stamp_ns) if now_ns is None else max(int(msg.stamp_ns), now_ns - MAX_TRANSPORT_NS)
+            self._pending.setdefault(rid, stamp)
         return not same
 
     # ------------------------------------------------------------------ unknown start poses
