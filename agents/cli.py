@@ -31,7 +31,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "fleet": ("agents.commands.fleet", "administer a running fleet: forget a robot"),
     "replay": ("agents.commands.replay", "open the Rerun viewer on a recording"),
     "export": ("agents.commands.export", "export a map as GeoJSON, SVG, PNG or a ROS map"),
-    "bench": ("agents.commands.bench", "benchmarks: accuracy, speed, codec, fleet, soak, sensor, register, lidar"),
+    "bench": ("agents.commands.bench",
+              "benchmarks: accuracy, speed, codec, fleet, soak, sensor, register, lidar"),
     "config": ("agents.commands.config_cmd", "show the particle filter's effective configuration"),
 }
 

@@ -66,7 +66,8 @@ def add_config_arguments(parser: argparse.ArgumentParser, flags: str = "") -> No
     )
     g.add_argument(
         "--params", metavar="FILE",
-        help="TOML file of filter settings: top-level keys and [group] tables, as `wiremap config show` prints",
+        help="TOML file of filter settings: top-level keys and [group] tables, "
+             "as `wiremap config show` prints",
     )
     g.add_argument(
         "--set", dest="set", metavar="GROUP.KEY=VALUE", action="append", default=[], type=_key_value,

@@ -60,7 +60,8 @@ from mapping.wireframe import Wireframe
 
 FloatArray = NDArray[np.float64]
 
-__all__ = ["CompassConfig", "Directions", "Heading", "compass_heading", "direction_clusters", "wall_directions"]
+__all__ = ["CompassConfig", "Directions", "Heading", "compass_heading", "direction_clusters",
+           "wall_directions"]
 
 
 @dataclass(frozen=True)
@@ -143,7 +144,9 @@ class Heading:
     length: float
 
 
-def wall_directions(wf: Wireframe, min_length: float, min_likelihood: float = 0.0) -> tuple[FloatArray, FloatArray]:
+def wall_directions(
+    wf: Wireframe, min_length: float, min_likelihood: float = 0.0
+) -> tuple[FloatArray, FloatArray]:
     """Directions (radians, in ``[0, pi)``) and lengths of the edges of ``wf`` at least
     ``min_length`` long with likelihood at least ``min_likelihood``."""
     if wf.n_edges == 0:
@@ -193,7 +196,8 @@ def direction_clusters(
     tot = np.bincount(labels, weights=w, minlength=n)
     mean = np.bincount(labels, weights=w * d, minlength=n) / np.maximum(tot, 1e-12)
     order = np.argsort(-tot, kind="stable")
-    return np.asarray(np.mod(mean[order], math.pi), dtype=np.float64), np.asarray(tot[order], dtype=np.float64)
+    return (np.asarray(np.mod(mean[order], math.pi), dtype=np.float64),
+            np.asarray(tot[order], dtype=np.float64))
 
 
 class Directions:
@@ -259,7 +263,8 @@ class Directions:
         self.settled = True
         order = np.argsort([self._rank(x) for x in dirs[ok].tolist()], kind="stable")
         for x, s in zip(dirs[ok][order].tolist(), support[ok][order].tolist()):
-            if not self.frozen or np.abs(_wrap_half(np.array([x - y for y, _ in self.frozen]))).min() > self.max_gate:
+            if (not self.frozen
+                    or np.abs(_wrap_half(np.array([x - y for y, _ in self.frozen]))).min() > self.max_gate):
                 self.frozen.append((self._square(x), s))
         self._live = (np.zeros(0), np.zeros(0))
 
@@ -348,4 +353,5 @@ def compass_heading(
     if not ok.all():
         r, w, ln = r[ok], w[ok], ln[ok]
         z = float(np.sum(w * r) / np.sum(w))
-    return Heading(offset=z, variance=float(1.0 / np.sum(w)) + model_sigma**2, walls=len(r), length=float(ln.sum()))
+    return Heading(offset=z, variance=float(1.0 / np.sum(w)) + model_sigma**2, walls=len(r),
+                   length=float(ln.sum()))

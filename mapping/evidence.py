@@ -26,8 +26,8 @@ FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 BoolArray = NDArray[np.bool_]
 
-__all__ = ["MAX_LIKELIHOOD", "EvidenceConfig", "carve", "contradiction_update", "edge_log_odds", "edge_states",
-           "seen_fraction", "seen_through_spans"]
+__all__ = ["MAX_LIKELIHOOD", "EvidenceConfig", "carve", "contradiction_update", "edge_log_odds",
+           "edge_states", "seen_fraction", "seen_through_spans"]
 
 
 @dataclass(frozen=True)
@@ -95,7 +95,9 @@ def seen_fraction(wf: Wireframe, view: Wireframe, edge_source: IntArray) -> Floa
     return np.asarray(np.where(seen > 0, frac, 1.0), dtype=np.float64)
 
 
-def edge_states(n_edges: int, edge_source: IntArray, state: NDArray[np.int8]) -> tuple[BoolArray, BoolArray, BoolArray]:
+def edge_states(
+    n_edges: int, edge_source: IntArray, state: NDArray[np.int8]
+) -> tuple[BoolArray, BoolArray, BoolArray]:
     """Per source edge: in sight, observed (any piece), contradicted (some piece, none observed)."""
     in_sight = np.zeros(n_edges, dtype=bool)
     observed = np.zeros(n_edges, dtype=bool)

@@ -156,6 +156,7 @@ from mapping.loops import Closure, LoopCloser, LoopConfig
 from mapping.refine import RefineConfig, refine_corners
 from mapping.resample import ResampleResult, resample_with_mutation
 from mapping.scan_cleanup import CleanScan, CleanupConfig, clean_scan
+from mapping.scan_match import PointMatchConfig, refine_match
 from mapping.se2 import Pose
 from mapping.snapping import SnappingConfig, snap_collinear, snap_frontiers
 from mapping.wireframe import Wireframe
@@ -319,6 +320,10 @@ class FilterConfig:
         The scan matcher (Sec. IV-C).
     loops : mapping.loops.LoopConfig
         Loop closure (not in the paper; ``enabled=False`` is the paper's filter).
+    point_match : mapping.scan_match.PointMatchConfig
+        Real lidar (not in the paper): with ``enabled`` and a step given the scan's raw points,
+        every point is matched against the walls in view (:meth:`WireframeFilter._match_points`).
+        Off by default (the simulator's corner sensor has no points).
 
     Raises
     ------
@@ -347,6 +352,7 @@ class FilterConfig:
     likelihood: LikelihoodConfig = field(default_factory=LikelihoodConfig)
     icp: ICPConfig = field(default_factory=ICPConfig)
     loops: LoopConfig = field(default_factory=LoopConfig)
+    point_match: PointMatchConfig = field(default_factory=PointMatchConfig)
 
     def __post_init__(self) -> None:
         check_number("particles", self.particles, 1, integer=True)
@@ -359,7 +365,8 @@ class FilterConfig:
         check_number("max_scan_vertices", self.max_scan_vertices, 2, integer=True)
         groups = {"odometry": OdometryConfig, "gating": GatingConfig, "cleanup": CleanupConfig,
                   "snapping": SnappingConfig, "compass": CompassConfig, "evidence": EvidenceConfig,
-                  "refine": RefineConfig, "likelihood": LikelihoodConfig, "icp": ICPConfig, "loops": LoopConfig}
+                  "refine": RefineConfig, "likelihood": LikelihoodConfig, "icp": ICPConfig, "loops": LoopConfig,
+                  "point_match": PointMatchConfig}
         for name, kind in groups.items():
             if not isinstance(getattr(self, name), kind):
                 raise ValueError(f"{name} must be a {kind.__name__}, got {getattr(self, name)!r}")
@@ -460,6 +467,8 @@ class _StepContext:
         Edges of ``best`` in the predicted scan the scan was matched against.
     heading : Heading or None
         The compass measurement fused.
+    points : (n, 2) float64 or None
+        The scan's raw points (robot frame, bearing order) when the point match is on.
     """
 
     evidence: Wireframe
@@ -473,6 +482,7 @@ class _StepContext:
     icp: ICPResult | None = None
     matched_edges: IntArray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
     heading: Heading | None = None
+    points: FloatArray | None = None
 
     @property
     def place(self) -> Pose:
@@ -723,7 +733,9 @@ class WireframeFilter:
         """The loop-closure back end (keyframes, closures so far)."""
         return self._loops
 
-    def step(self, odometry: Pose, scan: Wireframe, *, fault: Pose | None = None) -> StepInfo:
+    def step(
+        self, odometry: Pose, scan: Wireframe, *, fault: Pose | None = None, points: FloatArray | None = None
+    ) -> StepInfo:
         """One filter iteration (paper Fig. 7), then the loop-closure check (:mod:`mapping.loops`).
 
         The phases, each a method: clean the scan up (:func:`mapping.scan_cleanup.clean_scan`),
@@ -743,6 +755,9 @@ class WireframeFilter:
             Fault injection (paper Fig. 8): place this scan at ``pose (+) fault`` instead of the
             estimated pose for this step's likelihood and merge, as a scan-matching failure
             would. The pose estimate itself is not changed.
+        points : (n, 2) float64, optional
+            The raw scan's points (robot frame, bearing order), for the point match
+            (:attr:`FilterConfig.point_match`); ignored while that is off.
 
         Returns
         -------
@@ -751,6 +766,8 @@ class WireframeFilter:
         cfg = self.config
         self._steps += 1
         ctx = self._predict(odometry, clean_scan(scan, cfg.cleanup, cfg.max_scan_vertices), fault)
+        if cfg.point_match.enabled and points is not None:
+            ctx.points = np.asarray(points, dtype=np.float64).reshape(-1, 2)
         self._match_scan(ctx)
         self._fuse_compass(ctx)
         self._pose = ctx.pose
@@ -762,7 +779,7 @@ class WireframeFilter:
             info = self._info(ctx, loglik, int(resampled.mutated.sum()), mapped=True)
         else:
             info = self._info(ctx, np.zeros(len(self._particles)), 0, mapped=False)
-        return self._loop_closure(odometry, info, ctx.matched_scan)
+        return self._loop_closure(odometry, info, ctx.matched_scan, ctx.points)
 
     def _info(self, ctx: _StepContext, loglik: FloatArray, mutated: int, mapped: bool) -> StepInfo:
         """The step's :class:`StepInfo`, after its last phase."""
@@ -842,6 +859,8 @@ class WireframeFilter:
             again = self._icp(scan, ref, self._cov + self._drift)
             if again.accepted and again.constrained == 3 and again.rmse <= 0.5 * cfg.icp.max_rmse:
                 icp_res = again
+        if ctx.points is not None and cfg.point_match.local:
+            icp_res = self._match_points(icp_res, ctx.points, ref, self._cov, reanchor=cfg.gating.reanchor)
         ctx.icp = icp_res
         if icp_res.consistent and cfg.snapping.frontiers:
             # Also a scan that only confirms the prediction (ICPResult.consistent): its
@@ -1155,7 +1174,20 @@ class WireframeFilter:
         self._particles = new
         self._weights = np.full(len(new), 1.0 / len(new))
 
-    def _loop_closure(self, odometry: Pose, info: StepInfo, scan: Wireframe) -> StepInfo:
+    def _match_points(
+        self, res: ICPResult, points: FloatArray, ref: Wireframe, prior: FloatArray, *, reanchor: bool
+    ) -> ICPResult:
+        """The point match (:func:`mapping.scan_match.refine_match`; real lidar, not in the
+        paper): every raw point of the scan against the walls of ``ref`` (the predicted scan),
+        starting from the wireframe ICP's correction in ``res`` when accepted. Its correction,
+        covariance and verdict replace the ICP's; a failed point match leaves ``res`` as it was.
+        With ``reanchor`` a failure is retried with the map's drift added to the prior."""
+        drift = self._drift if reanchor else None
+        return refine_match(res, points, ref.segments(), prior, drift, self.config.point_match, self.config.max_range)
+
+    def _loop_closure(
+        self, odometry: Pose, info: StepInfo, scan: Wireframe, points: FloatArray | None = None
+    ) -> StepInfo:
         """Loop-closure bookkeeping and check after the filter step (:mod:`mapping.loops`).
 
         Keyframes, births and observation counts advance with the step; with ``loops.enabled``
@@ -1169,14 +1201,15 @@ class WireframeFilter:
         if self._steps % 500 == 0:
             lc.prune(self._particles)
         if self.config.loops.enabled:
-            closed = self._close_loops(scan)
+            closed = self._close_loops(scan, points)
             if closed is not None:
                 info = dataclasses.replace(info, pose=self._pose, loop=closed)
         return info
 
-    def _close_loops(self, scan: Wireframe) -> Closure | None:
+    def _close_loops(self, scan: Wireframe, points: FloatArray | None = None) -> Closure | None:
         """After a step: every ``check_every`` metres, the scan matched against the old part of
-        the best map, and a closure when it is off."""
+        the best map, and a closure when it is off. With the raw ``points`` (the point match
+        on) the match against the old map is refined by them (:meth:`_match_points`)."""
         lc = self._loops
         lcfg = lc.config
         if not lc.due() or scan.n_edges < 2:
@@ -1200,6 +1233,8 @@ class WireframeFilter:
                         and r.n_constraints >= lcfg.min_constraints and r.rmse <= lcfg.max_rmse)
 
         res = self._icp(scan, ref, prior)
+        if points is not None:
+            res = self._match_points(res, points, ref, prior, reanchor=False)
         if not good(res):
             return None
         here = self._pose  # where the young chain puts the robot

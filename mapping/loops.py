@@ -31,9 +31,10 @@ what the paper does not have, a back end (choices written down here, tested in
   alone, and the loop's discrepancy is between the two poses: the tracking match uses the
   whole map, so by the time of the check it may already have pulled the pose onto the old
   walls (a corridor coming back to its start), while the young walls still sit where the
-  drifted chain put them. A match that constrains at least ``min_constrained`` directions with a small residual and
-  moves the pose by more than ``min_correction`` is a loop closure: a constraint between the
-  keyframe where the matched corners were born (the median) and the current one.
+  drifted chain put them. A match that constrains at least ``min_constrained`` directions with a
+  small residual and moves the pose by more than ``min_correction`` is a loop closure: a
+  constraint between the keyframe where the matched corners were born (the median) and the
+  current one.
 * **Heading factors.** The filter's wall-direction compass (:mod:`mapping.compass`) measures
   the heading against the building's wall directions, an absolute reference. Each measurement
   (the part the filter's own update did not apply, :meth:`LoopCloser.heading`) becomes a factor
@@ -208,7 +209,11 @@ def optimize(
     rows = np.repeat(np.arange(3 * m).reshape(m, 3), 6, axis=1).reshape(m, 3, 6)  # (edge, row, 6 cols)
     cols = np.concatenate([3 * (a - 1)[:, None] + np.arange(3), 3 * (b - 1)[:, None] + np.arange(3)], axis=1)
     cols3 = np.broadcast_to(cols[:, None, :], (m, 3, 6))
-    keep = np.broadcast_to(np.concatenate([np.repeat(a > 0, 3).reshape(m, 3), np.repeat(b > 0, 3).reshape(m, 3)], axis=1)[:, None, :], (m, 3, 6))
+    keep = np.broadcast_to(
+        np.concatenate([np.repeat(a > 0, 3).reshape(m, 3), np.repeat(b > 0, 3).reshape(m, 3)],
+                       axis=1)[:, None, :],
+        (m, 3, 6)
+    )
 
     def jacobian(x: FloatArray) -> csr_matrix:
         # d rel / d (pose a, pose b): rel_xy = R(-th_a) (t_b - t_a), rel_th = th_b - th_a.
@@ -389,7 +394,8 @@ class LoopCloser:
         if not self._pending:
             return
         keys = np.concatenate([self._known] + [k for k, _ in self._pending])
-        births = np.concatenate([self._birth] + [np.full(len(k), b, dtype=np.int64) for k, b in self._pending])
+        births = np.concatenate([self._birth]
+                                + [np.full(len(k), b, dtype=np.int64) for k, b in self._pending])
         cnt = np.concatenate([self._count] + [np.ones(len(k), dtype=np.int64) for k, _ in self._pending])
         self._pending = []
         keys, first = np.unique(keys, return_index=True)  # keeps the first stamp of a key
@@ -472,14 +478,16 @@ class LoopCloser:
             local = _rel(kf[b], np.column_stack([p.points, np.zeros(len(b))]))[:, :2]
             c, s = np.cos(new_kf[b, 2]), np.sin(new_kf[b, 2])
             pts = np.column_stack(
-                [new_kf[b, 0] + c * local[:, 0] - s * local[:, 1], new_kf[b, 1] + s * local[:, 0] + c * local[:, 1]]
+                [new_kf[b, 0] + c * local[:, 0] - s * local[:, 1],
+                 new_kf[b, 1] + s * local[:, 0] + c * local[:, 1]]
             )
             moved = p.replace(points=pts)
             moved_keys.append((_keys(pts), b, self.counts(p.points)))
             # Young walls (a corner born within the last min_travel metres: the walls mapped
             # again on coming back) merged into the old ones.
             young_v = kd[b] > split
-            young_e = young_v[moved.edges[:, 0]] | young_v[moved.edges[:, 1]] if moved.n_edges else np.zeros(0, bool)
+            young_e = (young_v[moved.edges[:, 0]] | young_v[moved.edges[:, 1]] if moved.n_edges
+                       else np.zeros(0, bool))
             if young_e.any() and (~young_e).any():
                 moved = merge(moved.subgraph_edges(~young_e), moved.subgraph_edges(young_e))
             out[id(p)] = moved
@@ -499,7 +507,8 @@ class LoopCloser:
         cfg = self.config
         n = len(kf)
         edges = [(i, i + 1) for i in range(n - 1)] + [(c.old, c.new) for c in self.closures]
-        meas = list(self.odom) + [np.array([c.relative.x, c.relative.y, c.relative.theta]) for c in self.closures]
+        meas = list(self.odom) + [np.array([c.relative.x, c.relative.y, c.relative.theta])
+                                  for c in self.closures]
         d = np.maximum(np.asarray(self.odom_length, dtype=np.float64), 0.1)
         if cfg.motion_cov and len(d):
             # One stacked inverse and Cholesky factor for all odometry edges.

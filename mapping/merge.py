@@ -45,7 +45,9 @@ _DENSE_SNAP_MAX = 4096  # candidate vertex pairs from a dense distance matrix up
 _DENSE_PAIRS_MAX = 160
 _COS_45 = math.sqrt(0.5)
 _LIST_ASSEMBLY_MAX = 512  # vertices (base + new) up to which step 6 runs on lists
-_DENSE_NEAR_MAX = 20000  # (corner, wall) pairs tested densely up to this many, else via a grid  # all edge pairs are tested up to this many local edges, else angle windows
+# (corner, wall) pairs tested densely up to this many, else via a grid  # all edge pairs are tested
+# up to this many local edges, else angle windows
+_DENSE_NEAR_MAX = 20000
 
 
 @dataclass(frozen=True)
@@ -556,7 +558,8 @@ def _assemble_lists(
     merged = _valid_wireframe(
         np.array([pos[x] for x in kept], dtype=np.float64),
         np.array([lab[x] for x in kept], dtype=np.uint8),
-        np.stack((np.array([remap[x] for x in eu], dtype=np.int64), np.array([remap[y] for y in ev], dtype=np.int64)), axis=1),
+        np.stack((np.array([remap[x] for x in eu], dtype=np.int64),
+                  np.array([remap[y] for y in ev], dtype=np.int64)), axis=1),
         np.array(el, dtype=np.float64),
         np.array(es, dtype=np.uint64),
     )
@@ -1028,7 +1031,9 @@ def _group_ends(
     two most distant end points): its reference edge (the longest base edge, else the longest),
     its corners and their positions ``tv`` along the reference line, their extent ``t0, t1``,
     and the (start, end) corners of the resolved wall (None: leave the edges as they are)."""
-    e_new_l, len_l, edges_l, pos_l, lab_l, is_new_l = ed.e_new_l, ed.len_l, ed.edges_l, cs.pos_l, cs.lab_l, cs.is_new_l
+    e_new_l, len_l, edges_l, pos_l, lab_l, is_new_l = (
+        ed.e_new_l, ed.len_l, ed.edges_l, cs.pos_l, cs.lab_l, cs.is_new_l
+    )
     ref = eds[0]
     for e in eds[1:]:  # min over (new?, -length, index): base first, then the longest
         if (e_new_l[e], -len_l[e]) < (e_new_l[ref], -len_l[ref]):
@@ -1097,7 +1102,8 @@ def _group_spans(
                 continue
             rv, rt = _find(vparent, v), _find(vparent, tgt)
             if rv != rt and _may_absorb(
-                rv, rt, eds, vclass, inc_of, edges_l, cs.pos_l, ed.raw_l, vparent, cos_tol, cs.pos0_l, cs.mate_l, thr
+                rv, rt, eds, vclass, inc_of, edges_l, cs.pos_l, ed.raw_l, vparent, cos_tol, cs.pos0_l,
+                cs.mate_l, thr
             ):
                 vparent[rv] = rt
                 vclass.setdefault(rt, [rt]).extend(vclass.pop(rv, [rv]))
@@ -1191,7 +1197,9 @@ class _Plan:
     constraints: dict[int, list[tuple[float, float, float, float]]]
 
 
-def _plan_walls(cs: _Corners, ed: _Edges, grp: _Groups, splits: dict[int, list[int]], snap_lines: bool) -> _Plan:
+def _plan_walls(
+    cs: _Corners, ed: _Edges, grp: _Groups, splits: dict[int, list[int]], snap_lines: bool
+) -> _Plan:
     """Step 4c: the resolved walls, split at their T-junctions (which become nominal)."""
     pos_l = cs.pos_l
     nominal: set[int] = set()
@@ -1213,7 +1221,8 @@ def _plan_walls(cs: _Corners, ed: _Edges, grp: _Groups, splits: dict[int, list[i
         ux, uy = grp.gu_l[g]
         ox, oy = grp.go_l[g]
         if spl:
-            spl_sorted = sorted(set(spl), key=lambda v: (ux * (pos_l[v][0] - ox) + uy * (pos_l[v][1] - oy), v))
+            spl_sorted = sorted(set(spl),
+                                key=lambda v: (ux * (pos_l[v][0] - ox) + uy * (pos_l[v][1] - oy), v))
             nominal.update(spl_sorted)
             nodes = [s, *spl_sorted, e_]
         else:
@@ -1308,7 +1317,9 @@ def _settle_corners(
     return root_l, lab_out
 
 
-def _snap_to_lines(cs: _Corners, ed: _Edges, plan: _Plan, root_l: list[int], thr: float, cos_tol: float) -> None:
+def _snap_to_lines(
+    cs: _Corners, ed: _Edges, plan: _Plan, root_l: list[int], thr: float, cos_tol: float
+) -> None:
     """Step 5, ``MergeConfig.snap_to_lines``: a split corner whose position comes from ``new``
     moves onto the base walls' lines it splits (their least-squares intersection, or the
     projection on one line) unless that moves it more than ``thr`` from where any corner
@@ -1377,7 +1388,9 @@ def _turns_a_wall(
     return False
 
 
-def _points_like(x: int, y: int, cov: list[int], fpos: list[list[float]], rx_l: list[int], ed: _Edges, cos_tol: float) -> bool:
+def _points_like(
+    x: int, y: int, cov: list[int], fpos: list[list[float]], rx_l: list[int], ed: _Edges, cos_tol: float
+) -> bool:
     """Whether the wall from the final corner of ``x`` to that of ``y`` points within the angle
     of ``cos_tol`` of one of the edges ``cov`` as measured."""
     px, py = fpos[rx_l[x]]
@@ -1423,7 +1436,8 @@ def _emit_walls(
     for nodes, tn, eds, ux, uy, ox, oy in plan.todo:
         while True:
             walls = _pieces(nodes, tn, eds, ux, uy, ox, oy, ed, thr)
-            bad = [p for p, (x, y, cov, _) in enumerate(walls) if not _points_like(x, y, cov, fpos, rx_l, ed, cos_tol)]
+            bad = [p for p, (x, y, cov, _) in enumerate(walls)
+                   if not _points_like(x, y, cov, fpos, rx_l, ed, cos_tol)]
             if not bad:
                 for x, y, cov, prov_xy in walls:
                     w.out_u.append(x)
@@ -1445,7 +1459,8 @@ def _emit_walls(
                     pass_l[e] = True
                 break
             inner = [i for i in (bad[0], bad[0] + 1) if 0 < i < len(nodes) - 1]
-            offs = [abs(ux * (fpos[rx_l[nodes[i]]][1] - oy) - uy * (fpos[rx_l[nodes[i]]][0] - ox)) for i in inner]
+            offs = [abs(ux * (fpos[rx_l[nodes[i]]][1] - oy) - uy * (fpos[rx_l[nodes[i]]][0] - ox))
+                    for i in inner]
             drop = inner[int(np.argmax(offs))]  # the split corner farther off the line
             del nodes[drop]
             del tn[drop]

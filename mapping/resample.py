@@ -37,7 +37,8 @@ FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 BoolArray = NDArray[np.bool_]
 
-__all__ = ["ResampleResult", "low_variance_indexes", "mutate", "mutation_candidates", "resample_with_mutation"]
+__all__ = ["ResampleResult", "low_variance_indexes", "mutate", "mutation_candidates",
+           "resample_with_mutation"]
 
 
 def _normalised(weights: ArrayLike) -> FloatArray:

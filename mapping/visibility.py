@@ -45,8 +45,9 @@ Algorithm
 ---------
 1. Cull, vectorised: edges farther than ``max_range`` plus half their length from the robot
    (measured to their midpoint) cannot meet the range disc and are dropped; the rest move to
-   the robot frame and are clipped exactly to the disc and to the field-of-view wedge (an edge straddling the back
-   of the wedge, or the seam at bearing ``-pi`` for a full turn, becomes two sub-edges).
+   the robot frame and are clipped exactly to the disc and to the field-of-view wedge (an edge
+   straddling the back of the wedge, or the seam at bearing ``-pi`` for a full turn, becomes
+   two sub-edges).
 2. Sweep: the sub-edges' end bearings are sorted; a sweep over them keeps the sub-edges crossed
    by the current ray in a list ordered by distance (inserted by bisection, comparing distances
    along the middle ray of the next elementary angular interval; non-crossing segments keep
@@ -494,7 +495,9 @@ def _pieces(sub: _Sub, evs: _Events, nearest: list[int], full: bool) -> list[lis
     return pieces
 
 
-def _point_at(ed: _Edges, sub: _Sub, evs: _Events, phi0: float, s: int, k: int, start: bool) -> tuple[complex, float, int]:
+def _point_at(
+    ed: _Edges, sub: _Sub, evs: _Events, phi0: float, s: int, k: int, start: bool
+) -> tuple[complex, float, int]:
     """(point, t, source) of sub-edge ``s`` at event ``k``."""
     if start and k == evs.ka[s]:
         return sub.pa[s], sub.ta[s], sub.sa[s]
@@ -542,7 +545,8 @@ def _piece_ends(
 
     n_p = len(pieces)
     back = sub.back
-    out = _Ends([], [], [], [-1] * n_p, [-1] * n_p, [0.0] * n_p, [0.0] * n_p, [p[0] >= 0 and not back[p[0]] for p in pieces])
+    out = _Ends([], [], [], [-1] * n_p, [-1] * n_p, [0.0] * n_p, [0.0] * n_p,
+                [p[0] >= 0 and not back[p[0]] for p in pieces])
     is_front = out.is_front
 
     # Boundaries in sweep order: (left piece, right piece); -1 is outside the window.

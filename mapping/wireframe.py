@@ -121,7 +121,8 @@ class Wireframe:
         m = e_in.shape[0]
         if m and (e_in.min() < 0 or e_in.max() >= n):
             bad = int(np.argwhere((e_in < 0) | (e_in >= n))[0, 0])
-            raise ValueError(f"edge {bad} {tuple(int(v) for v in e_in[bad])} has a vertex index outside 0..{n - 1}")
+            raise ValueError(f"edge {bad} {tuple(int(v) for v in e_in[bad])} has a vertex index "
+                             f"outside 0..{n - 1}")
         edges = e_in.astype(np.int32, copy=True)
         if m and np.any(edges[:, 0] == edges[:, 1]):
             bad = int(np.argwhere(edges[:, 0] == edges[:, 1])[0, 0])

@@ -44,7 +44,8 @@ def _fleet_marker_is_honest(request: pytest.FixtureRequest, monkeypatch: pytest.
         return
 
     def refuse(*args: object, **kwargs: object) -> None:
-        raise RuntimeError(f"{request.node.nodeid} starts a process or a Zenoh session: mark it @pytest.mark.fleet")
+        raise RuntimeError(f"{request.node.nodeid} starts a process or a Zenoh session: "
+                           "mark it @pytest.mark.fleet")
 
     for owner, name in _PROCESS_STARTERS:
         monkeypatch.setattr(owner, name, refuse)

@@ -17,7 +17,9 @@ from mapping.filter import WireframeFilter
 from mapping.wireframe import Wireframe
 
 
-def set_state(f: WireframeFilter, maps: Sequence[Wireframe] | None = None, covariance: np.ndarray | None = None) -> None:
+def set_state(
+    f: WireframeFilter, maps: Sequence[Wireframe] | None = None, covariance: np.ndarray | None = None
+) -> None:
     """Replace the particles' maps (one map per particle) and/or the pose covariance (3 x 3)."""
     if maps is not None:
         if len(maps) != f.config.particles:

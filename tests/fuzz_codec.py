@@ -48,7 +48,9 @@ def main() -> int:
         from wire_codec.codec import decode_with
         from wire_codec.errors import DEFAULT_LIMITS
 
-    golden = json.loads((Path(__file__).with_name("golden") / f"codec_v{wire_codec.VERSION}.json").read_text())
+    golden = json.loads(
+        (Path(__file__).with_name("golden") / f"codec_v{wire_codec.VERSION}.json").read_text()
+    )
     seeds = {v["name"]: bytes.fromhex(v["hex"]) for v in golden["vectors"]}
     robot_fields = list(msgpack.unpackb(seeds["room_mixed"], raw=False)[:-1])
     fused_fields = list(msgpack.unpackb(seeds["fused_three_robots"], raw=False)[:-1])
@@ -84,8 +86,10 @@ def main() -> int:
                     a, b = fast.wireframe, slow.wireframe  # type: ignore[attr-defined]
                     if not (a.points.tolist() == b.points.tolist() and a.edges.tolist() == b.edges.tolist()
                             and a.likelihood.tolist() == b.likelihood.tolist()
-                            and a.sources.tolist() == b.sources.tolist() and a.labels.tolist() == b.labels.tolist()):
-                        raise AssertionError(f"fast and reference decoders read body {rest.hex()} differently")
+                            and a.sources.tolist() == b.sources.tolist()
+                            and a.labels.tolist() == b.labels.tolist()):
+                        raise AssertionError(f"fast and reference decoders read body {rest.hex()} "
+                                             "differently")
         else:
             head = rest[:-5] if len(rest) > 5 else rest
             outcome(head + b"\xce" + zlib.crc32(head).to_bytes(4, "big"))

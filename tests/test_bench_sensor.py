@@ -11,7 +11,8 @@ WORLD = str(Path(__file__).parent / "worlds" / "tiny.geojson")
 @pytest.mark.fleet
 def test_bench_sensor_reports_label_accuracy_and_lidar_corner_error():
     out = subprocess.run(
-        [sys.executable, "-m", "agents", "bench", "sensor", "--worlds", WORLD, "--lidar-every", "3", "--json"],
+        [sys.executable, "-m", "agents", "bench", "sensor", "--worlds", WORLD, "--lidar-every",
+         "3", "--json"],
         capture_output=True, text=True, timeout=120, check=True,
     )
     doc = json.loads(out.stdout.strip().splitlines()[-1])

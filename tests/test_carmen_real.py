@@ -31,7 +31,8 @@ def test_real_excerpt_reads_as_it_is() -> None:
     assert s.max_range == 80.99  # robot_front_laser_max
     # 360 beams at laser_front_laser_resolution 0.5 degrees, centred.
     assert s.ranges.size == 360
-    assert s.angles[0] == pytest.approx(-math.radians(89.75)) and s.angles[-1] == pytest.approx(math.radians(89.75))
+    assert (s.angles[0] == pytest.approx(-math.radians(89.75))
+            and s.angles[-1] == pytest.approx(math.radians(89.75)))
     assert np.isfinite(s.ranges).sum() > 300
     # Both pose triples are equal: the odometry is the laser's own pose, no offset composed.
     assert s.mount.almost_equal(Pose())
@@ -53,9 +54,12 @@ def test_real_excerpt_truth_rows_match_scans() -> None:
     assert first < 0.01 and last > first
 
 
-def test_map_scores_the_real_excerpt_against_its_truth(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+def test_map_scores_the_real_excerpt_against_its_truth(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     out = tmp_path / "run"
-    assert main(["map", "--carmen", str(EXCERPT), "--steps", "30", "--seed", "1", "--quiet", "--out", str(out)]) == 0
+    assert main(["map", "--carmen", str(EXCERPT), "--steps", "30", "--seed", "1", "--quiet", "--out",
+                 str(out)]) == 0
     report = json.loads((out / "report.json").read_text())
     assert report["laser"] == "FLASER" and report["steps"] == 30 and report["skipped_lines"] == 0
     assert report["edges"] > 10
@@ -74,16 +78,32 @@ def test_bench_lidar_json_on_the_excerpt(tmp_path: Path, capsys: pytest.CaptureF
     assert main(args) == 0
     lines = capsys.readouterr().out.strip().splitlines()
     summary = json.loads(lines[-1])
-    assert set(summary) == {"logs", "median"}
+    assert set(summary) == {"logs", "median", "profile", "settings"}
+    assert summary["profile"] == "lidar" and summary["settings"]["odometry.rot_per_m"] == 0.05
     row = summary["logs"]["freiburg-101-head"]
     for key in ("scans", "ate_rmse_m", "ate_max_m", "rpe_1m_m", "map_precision", "map_coverage",
                 "best_map_bytes", "particle_bytes", "time_s", "ms_per_scan", "odometry_ate_rmse_m"):
         assert key in row and key in summary["median"], key
-    assert row["scans"] == 15 and row["best_map_bytes"] > 0 and row["particle_bytes"] > row["baseline"]["particle_bytes"] / 2
+    assert (row["scans"] == 15 and row["best_map_bytes"] > 0
+            and row["particle_bytes"] > row["baseline"]["particle_bytes"] / 2)
     assert row["baseline"]["scans"] == 15 and "baseline" in summary["median"]
     assert summary["median"]["ate_rmse_m"] == row["ate_rmse_m"]  # one log: the median is it
     assert any(line.startswith("freiburg-101-head  odometry") for line in lines)
-    assert (tmp_path / "freiburg-101-head.png").is_file() and (tmp_path / "freiburg-101-head-baseline.png").is_file()
+    assert ((tmp_path / "freiburg-101-head.png").is_file()
+            and (tmp_path / "freiburg-101-head-baseline.png").is_file())
+
+
+def test_bench_lidar_profile_and_set(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    args = ["bench", "lidar", str(EXCERPT), "--steps", "5", "--particles", "2", "--json", "--quiet",
+            "--out", str(tmp_path), "--profile", "none", "--set", "odometry.rot_per_m=0.02",
+            "--set", "extract.jump_beams=3"]
+    assert main(args) == 0
+    summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert summary["profile"] == "none"
+    assert summary["settings"] == {"odometry.rot_per_m": "0.02", "extract.jump_beams": "3"}
+    for bad in ("odometry.nope=1", "odometry.rot_per_m=-1", "extract.jump=0", "novalue"):
+        assert main(["bench", "lidar", str(EXCERPT), "--steps", "2", "--quiet", "--set", bad]) == 2
+        assert "--set" in capsys.readouterr().err
 
 
 def test_bench_lidar_needs_logs(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

@@ -68,13 +68,18 @@ CASES: dict[str, list[str]] = {
     # run
     "run-bad-world": ["run", "--world", "no-such-world", "--robots", "2", "--out", "{dir}/r"],
     "run-bad-robots": ["run", "--world", "paper-small", "--robots", "0", "--out", "{dir}/r"],
-    "run-bad-duration": ["run", "--world", "paper-small", "--robots", "1", "--duration", "-3", "--out", "{dir}/r"],
-    "run-bad-config": ["run", "--world", "paper-small", "--robots", "1", "--out", "{dir}/r", "--config", "{bad_cfg}"],
-    "run-missing-config": ["run", "--world", "paper-small", "--robots", "1", "--out", "{dir}/r", "--config", "{missing}"],
-    "run-bad-listen": ["run", "--world", "paper-small", "--robots", "1", "--out", "{dir}/r", "--listen", "nonsense"],
-    "run-missing-credentials": ["run", "--world", "paper-small", "--robots", "1", "--out", "{dir}/r", "--credentials", "{missing}"],
-    "run-secure-with-listen": ["run", "--secure", "--world", "paper-small", "--robots", "1", "--out", "{dir}/r",
-                               "--listen", "tls/localhost:7447"],
+    "run-bad-duration": ["run", "--world", "paper-small", "--robots", "1", "--duration", "-3",
+                         "--out", "{dir}/r"],
+    "run-bad-config": ["run", "--world", "paper-small", "--robots", "1", "--out", "{dir}/r", "--config",
+                       "{bad_cfg}"],
+    "run-missing-config": ["run", "--world", "paper-small", "--robots", "1", "--out", "{dir}/r", "--config",
+                           "{missing}"],
+    "run-bad-listen": ["run", "--world", "paper-small", "--robots", "1", "--out", "{dir}/r", "--listen",
+                       "nonsense"],
+    "run-missing-credentials": ["run", "--world", "paper-small", "--robots", "1", "--out", "{dir}/r",
+                                "--credentials", "{missing}"],
+    "run-secure-with-listen": ["run", "--secure", "--world", "paper-small", "--robots", "1",
+                               "--out", "{dir}/r", "--listen", "tls/localhost:7447"],
     "run-bad-fleet": ["run", "--world", "paper-small", "--robots", "1", "--out", "{dir}/r", "--fleet", "a/b"],
     "run-out-is-a-file": ["run", "--world", "paper-small", "--robots", "1", "--out", "{a_file}"],
     # robot
@@ -140,7 +145,9 @@ def _argv(case: str, files: dict[str, str], busy: int) -> list[str]:
 # router-port-in-use opens a Zenoh router (which then fails to listen): fleet lane.
 @pytest.mark.parametrize("case", [pytest.param(c, marks=pytest.mark.fleet) if c == "router-port-in-use" else c
                                   for c in sorted(CASES)])
-def test_one_line_error_and_nonzero_exit(case: str, files: dict[str, str], busy_port: int, capfd: pytest.CaptureFixture[str]) -> None:
+def test_one_line_error_and_nonzero_exit(
+    case: str, files: dict[str, str], busy_port: int, capfd: pytest.CaptureFixture[str]
+) -> None:
     argv = _argv(case, files, busy_port)
     try:
         rc = main(argv)
@@ -166,11 +173,14 @@ BEFORE_THE_BUS: dict[str, list[str]] = {
 
 
 @pytest.mark.fleet
-@pytest.mark.parametrize("case", ["robot-bad-pose", "fuse-store-is-a-file", "export-garbage", "run-bad-world", *BEFORE_THE_BUS])
+@pytest.mark.parametrize("case",
+                         ["robot-bad-pose", "fuse-store-is-a-file", "export-garbage", "run-bad-world",
+                          *BEFORE_THE_BUS])
 def test_real_processes_too(case: str, files: dict[str, str], busy_port: int) -> None:
     argv = CASES.get(case) or BEFORE_THE_BUS[case]
     r = subprocess.run(
-        [sys.executable, "-m", "agents", *[a.format(**files, busy=busy_port, closed=free_port()) for a in argv]],
+        [sys.executable, "-m", "agents",
+         *[a.format(**files, busy=busy_port, closed=free_port()) for a in argv]],
         capture_output=True, text=True, cwd=REPO, timeout=60,
     )  # fmt: skip
     assert r.returncode == 2, r.stderr

@@ -20,7 +20,8 @@ from wire_codec.codec import encode_with_plan
 # ---------------------------------------------------------------------------------------- bits
 def test_exp_golomb_codes_match_the_textbook() -> None:
     # Order 0: 0 -> 1, 1 -> 010, 2 -> 011, 3 -> 00100; order 2: 0 -> 100, 5 -> 01001.
-    for value, k, code in [(0, 0, "1"), (1, 0, "010"), (2, 0, "011"), (3, 0, "00100"), (0, 2, "100"), (5, 2, "01001")]:
+    for value, k, code in [(0, 0, "1"), (1, 0, "010"), (2, 0, "011"), (3, 0, "00100"), (0, 2, "100"),
+                           (5, 2, "01001")]:
         w = BitWriter()
         w.eg(value, k)
         assert "".join(map(str, w.to_bits().tolist())) == code
@@ -102,7 +103,8 @@ def test_thin_wall_repeat_and_reverse_edges_survive() -> None:
 
 def test_likelihood_quantisation_is_exact_at_the_ends() -> None:
     lik = np.linspace(0.0, 1.0, 31)
-    wf = Wireframe.build(np.arange(64, dtype=float).reshape(32, 2), [[k, k + 1] for k in range(31)], likelihood=lik)
+    wf = Wireframe.build(np.arange(64, dtype=float).reshape(32, 2), [[k, k + 1] for k in range(31)],
+                         likelihood=lik)
     got = wire_codec.decode(check_round_trip(message(wf))).wireframe.likelihood
     assert got.min() == 0.0 and got.max() == 1.0
     assert np.max(np.abs(np.sort(got) - lik)) <= 1 / 30 + 1e-12
@@ -111,7 +113,8 @@ def test_likelihood_quantisation_is_exact_at_the_ends() -> None:
 def test_fused_map_sources_and_robots_round_trip() -> None:
     wf = room()
     src = np.array([1, 3, 1, 2, 2, 4, 4, 4, 1, 7], dtype=np.uint64)
-    fused = message(wf.replace(sources=src), kind=FUSED, robots=("r1", "r2", "r3"), sender="fusion", frame="fleet")
+    fused = message(wf.replace(sources=src), kind=FUSED, robots=("r1", "r2", "r3"), sender="fusion",
+                    frame="fleet")
     out = wire_codec.decode(check_round_trip(fused))
     assert out.robots == ("r1", "r2", "r3") and sorted(out.wireframe.sources.tolist()) == sorted(src.tolist())
     full = message(wf.replace(sources=np.full(10, 2**64 - 1, dtype=np.uint64)), kind=FUSED,
@@ -148,7 +151,8 @@ def test_decoding_is_deterministic_and_reencoding_is_stable() -> None:
 
 # ---------------------------------------------------------------------------------------- envelope
 def test_envelope_layout() -> None:
-    msg = message(room(), pose=Pose(1.2345, -2.0, -0.5), origin=Pose(10.0, 0.0, math.pi / 2), meta={"stale": ["r2"]})
+    msg = message(room(), pose=Pose(1.2345, -2.0, -0.5), origin=Pose(10.0, 0.0, math.pi / 2),
+                  meta={"stale": ["r2"]})
     data = wire_codec.encode(msg)
     assert data[0] == 0x9D and data[1] == wire_codec.VERSION and data[-5] == 0xCE
     f = fields_of(data)
@@ -215,7 +219,8 @@ def test_encoder_refuses_bad_sources_and_far_points() -> None:
     with pytest.raises(wire_codec.EncodeError, match="contributor"):
         wire_codec.encode(message(src))
     with pytest.raises(wire_codec.EncodeError, match="contributor"):
-        wire_codec.encode(message(src.replace(sources=np.full(10, 4, dtype=np.uint64)), kind=FUSED, robots=("a", "b")))
+        wire_codec.encode(message(src.replace(sources=np.full(10, 4, dtype=np.uint64)), kind=FUSED,
+                                  robots=("a", "b")))
     with pytest.raises(wire_codec.EncodeError, match="at most 64"):
         wire_codec.encode(message(room(), kind=FUSED, robots=tuple(f"r{k}" for k in range(65))))
     with pytest.raises(wire_codec.EncodeError, match="distinct"):
@@ -246,7 +251,8 @@ def test_encode_reuses_the_body_of_the_same_map_and_gives_the_same_bytes() -> No
     from wire_codec.codec import encode_with_plan
 
     wf = Wireframe.build([(0.0, 0.0), (4.0, 0.0), (4.0, 3.0)], [(0, 1), (1, 2)], [Label.NOMINAL] * 3)
-    msg = MapMessage(kind=MessageKind.ROBOT_MAP, sender="r1", seq=1, stamp_ns=5, pose=Pose.identity(), frame="",
+    msg = MapMessage(kind=MessageKind.ROBOT_MAP, sender="r1", seq=1, stamp_ns=5,
+                     pose=Pose.identity(), frame="",
                      origin=Pose.identity(), resolution=0.05, wireframe=wf, meta={"boot": 1})
     first = encode(msg)
     assert any(entry[0] is wf for entry in codec._body_cache.values())

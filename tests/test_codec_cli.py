@@ -30,7 +30,8 @@ def _geojson(tmp_path: Path, wf: Wireframe, name: str = "map.geojson") -> Path:
 def test_encode_decode_files(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     src = _geojson(tmp_path, room())
     out = tmp_path / "map.wfm"
-    assert main(["encode", str(src), "--resolution", "0.1", "--sender", "r7", "--stamp-ns", "5", "-o", str(out)]) == 0
+    assert main(["encode", str(src), "--resolution", "0.1", "--sender", "r7", "--stamp-ns", "5", "-o",
+                 str(out)]) == 0
     back = tmp_path / "back.geojson"
     assert main(["decode", str(out), "--geojson", str(back)]) == 0
     line = capsys.readouterr().out.strip()
@@ -143,8 +144,8 @@ def test_bench_run_prints_table_then_json(tmp_path: Path, capsys: pytest.Capture
                                           monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setattr(bench, "_world_truth", lambda name: room())
     extra = _geojson(tmp_path, room().transformed(wire_codec.codec.Pose(5, 5, 0)))
-    args = argparse.Namespace(json=True, paper_small_map=None, museum_map=None, map=str(extra), resolution=0.4, repeat=2,
-                              run_filter=[], filter_seed=1, filter_duration=None)
+    args = argparse.Namespace(json=True, paper_small_map=None, museum_map=None, map=str(extra),
+                              resolution=0.4, repeat=2, run_filter=[], filter_seed=1, filter_duration=None)
     assert bench.run(args) == 0
     lines = capsys.readouterr().out.strip().splitlines()
     assert lines[0].split()[:3] == ["map", "V", "E"]
@@ -153,9 +154,12 @@ def test_bench_run_prints_table_then_json(tmp_path: Path, capsys: pytest.Capture
     assert any(line.startswith("target paper_small body_bytes <= 96: ") for line in lines)
 
 
-def test_bench_on_a_short_filter_run(capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch) -> None:
+def test_bench_on_a_short_filter_run(
+    capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
     monkeypatch.setattr(bench, "_world_truth", lambda name: room())
-    args = argparse.Namespace(json=True, paper_small_map=None, museum_map=None, map=None, resolution=0.2, repeat=2,
+    args = argparse.Namespace(json=True, paper_small_map=None, museum_map=None, map=None,
+                              resolution=0.2, repeat=2,
                               run_filter=["paper-small"], filter_seed=1, filter_duration=4.0)
     assert bench.run(args) == 0
     result = json.loads(capsys.readouterr().out.strip().splitlines()[-1])

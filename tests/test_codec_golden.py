@@ -43,7 +43,8 @@ def golden_messages() -> dict[str, tuple[str, wire_codec.MapMessage]]:
         ),
         "square_room": (
             "a 4 x 3 m room, counterclockwise, all nominal, likelihood 1; 0.2 m",
-            message(square, seq=42, stamp_ns=123_456_789, pose=Pose(1.5, -2.25, 0.5), origin=Pose(2.0, 3.0, math.pi / 2)),
+            message(square, seq=42, stamp_ns=123_456_789, pose=Pose(1.5, -2.25, 0.5),
+                    origin=Pose(2.0, 3.0, math.pi / 2)),
         ),
         "room_mixed": (
             "L-shaped room with an obstacle, an occlusion and a frontier corner, varied likelihoods, "

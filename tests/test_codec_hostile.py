@@ -37,7 +37,8 @@ from wire_codec.errors import DEFAULT_LIMITS, Limits
 SMALL = message(room())
 SMALL_BYTES = wire_codec.encode(SMALL)
 FUSED_MSG = message(
-    room().replace(sources=np.array([1, 3, 1, 2, 2, 4, 4, 4, 1, 7], dtype=np.uint64), likelihood=np.linspace(0, 1, 10)),
+    room().replace(sources=np.array([1, 3, 1, 2, 2, 4, 4, 4, 1, 7], dtype=np.uint64),
+                   likelihood=np.linspace(0, 1, 10)),
     kind=FUSED,
     robots=("r1", "r2", "r3"),
     sender="fusion",
@@ -372,7 +373,9 @@ def _vectorised_outcome(body: bytes, res_mm: int, n_robots: int | None) -> Any:
 
 @settings(max_examples=300, deadline=2000, suppress_health_check=[HealthCheck.too_slow])
 @given(messages(), st.data())
-def test_small_body_reader_accepts_only_what_the_vectorised_reader_reads(msg: Any, data: st.DataObject) -> None:
+def test_small_body_reader_accepts_only_what_the_vectorised_reader_reads(
+    msg: Any, data: st.DataObject
+) -> None:
     """Small bodies are read in plain Python first; it must return exactly the vectorised
     reader's map, and decline (None) whatever that reader rejects -- on valid bodies and on
     mutated ones."""

@@ -131,12 +131,14 @@ def random_wireframe(rng: np.random.Generator, n: int, style: str, density: str,
             lik[rng.random(m) < 0.2] = 0.0
     if n_robots:
         top = (1 << n_robots) - 1 if n_robots < 64 else (1 << 64) - 1
-        src = np.array([int(rng.integers(0, 1 << min(n_robots, 62))) & top for _ in range(m)], dtype=np.uint64)
+        src = np.array([int(rng.integers(0, 1 << min(n_robots, 62))) & top for _ in range(m)],
+                       dtype=np.uint64)
         if m and n_robots == 64:
             src[0] = np.uint64((1 << 64) - 1)
     else:
         src = np.zeros(m, dtype=np.uint64)
-    return Wireframe.build(pts.reshape(-1, 2), np.array(edges, dtype=np.int64).reshape(-1, 2), labels, lik, src)
+    return Wireframe.build(pts.reshape(-1, 2), np.array(edges, dtype=np.int64).reshape(-1, 2),
+                           labels, lik, src)
 
 
 @st.composite
@@ -154,14 +156,15 @@ def messages(draw: st.DrawFn, max_vertices: int = 40) -> wire_codec.MapMessage:
     wf = random_wireframe(rng, n, style, density, resolution, n_robots, label_style, lik_style)
     theta = draw(st.floats(-math.pi, math.pi, allow_nan=False))
     pose = Pose(draw(st.floats(-1e4, 1e4)), draw(st.floats(-1e4, 1e4)), theta)
-    meta = draw(st.sampled_from([{}, {"stale": ["r2"]}, {"note": "x" * 40, "k": 1.5, "b": b"\x00\x01", "n": None}]))
+    meta = draw(st.sampled_from([{}, {"stale": ["r2"]},
+                                 {"note": "x" * 40, "k": 1.5, "b": b"\x00\x01", "n": None}]))
     if fused:
         robots = tuple(f"robot{k}" for k in range(n_robots or 0))
         return message(wf, kind=FUSED, resolution=resolution, robots=robots, sender="fusion",
                        pose=Pose(), frame="fleet", seq=draw(st.integers(0, 2**64 - 1)), meta=meta)
     return message(wf, resolution=resolution, pose=pose, origin=Pose(3.0, -4.0, 1.0),
-                   stamp_ns=draw(st.integers(0, 2**64 - 1)), sender=draw(st.sampled_from(["r1", "röbot-ß", "r" * 64])),
-                   meta=meta)
+                   stamp_ns=draw(st.integers(0, 2**64 - 1)),
+                   sender=draw(st.sampled_from(["r1", "röbot-ß", "r" * 64])), meta=meta)
 
 
 def check_round_trip(msg: wire_codec.MapMessage, limits: Limits = DEFAULT_LIMITS) -> bytes:
@@ -190,7 +193,8 @@ def check_round_trip(msg: wire_codec.MapMessage, limits: Limits = DEFAULT_LIMITS
     assert np.all(np.abs(got.likelihood - wf.likelihood[eorder]) <= 1 / 30 + 1e-12)
     assert np.array_equal(got.likelihood, np.rint(wf.likelihood[eorder] * 15) / 15)
     assert np.array_equal(got.sources, wf.sources[eorder])
-    assert (out.kind, out.sender, out.seq, out.stamp_ns, out.frame) == (msg.kind, msg.sender, msg.seq, msg.stamp_ns, msg.frame)
+    assert ((out.kind, out.sender, out.seq, out.stamp_ns, out.frame)
+            == (msg.kind, msg.sender, msg.seq, msg.stamp_ns, msg.frame))
     assert out.robots == tuple(msg.robots) and out.meta == msg.meta
     for a, b in ((out.pose, msg.pose), (out.origin, msg.origin)):
         assert a.almost_equal(b, tol=0.0005 + 1e-9, angle_tol=5e-7 + 1e-12)

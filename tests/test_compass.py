@@ -72,7 +72,8 @@ def test_offset_property(err, turn):
 
 
 def test_wall_directions_filters_and_folds():
-    wf = Wireframe.build([(0, 0), (5, 0), (5, -3), (5, -4)], [(1, 0), (1, 2), (2, 3)], likelihood=[0.9, 0.2, 0.9])
+    wf = Wireframe.build([(0, 0), (5, 0), (5, -3), (5, -4)], [(1, 0), (1, 2), (2, 3)],
+                         likelihood=[0.9, 0.2, 0.9])
     d, ln = wall_directions(wf, 2.0)
     assert np.allclose(d, [0.0, math.pi / 2]) and np.allclose(ln, [5.0, 3.0])
     d, ln = wall_directions(wf, 2.0, min_likelihood=0.5)
@@ -97,7 +98,8 @@ def test_filter_fixes_the_heading_from_new_walls(err_deg):
     est = Pose(1.0, 0.5, 0.3 + D(err_deg))
     out = {}
     for on in (True, False):
-        cfg = FilterConfig(particles=1, mutate=False, compass=CompassConfig(enabled=on), loops=LoopConfig(enabled=False))
+        cfg = FilterConfig(particles=1, mutate=False, compass=CompassConfig(enabled=on),
+                           loops=LoopConfig(enabled=False))
         f = WireframeFilter(cfg, np.random.default_rng(0), initial_pose=est)
         set_state(f, [_world_map()], np.diag([0.05**2, 0.05**2, D(2.5) ** 2]))
         info = f.step(Pose.identity(), scan)
@@ -128,7 +130,8 @@ def test_filter_covariance_shrinks_with_the_measurement():
     # of the measured offset; with the weight 0 nothing runs.
     poses, infos = {}, {}
     for w in (0.0, 0.05):
-        f2 = WireframeFilter(dataclasses.replace(cfg, compass=CompassConfig(young_weight=w)), np.random.default_rng(0),
+        f2 = WireframeFilter(dataclasses.replace(cfg, compass=CompassConfig(young_weight=w)),
+                             np.random.default_rng(0),
                              initial_pose=Pose(0, 0, D(0.3)))  # within the gate of a 0.1-degree sigma
         set_state(f2, [_world_map()], np.diag([0.05**2, 0.05**2, D(0.1) ** 2]))
         infos[w] = f2.step(Pose.identity(), scan)
@@ -144,8 +147,8 @@ def test_filter_covariance_shrinks_with_the_measurement():
     # 30 m (older than compass_young_travel, 25 m) since.
     w = _world_map()
     seen = Wireframe.build([(-4, 5), (6, 5), (6, -3)], [(1, 0), (2, 1)], likelihood=[0.99] * 2)
-    both = Wireframe.build(np.vstack([w.points, seen.points]), np.vstack([w.edges, seen.edges + w.n_vertices]),
-                           likelihood=[0.99] * 6)
+    both = Wireframe.build(np.vstack([w.points, seen.points]),
+                           np.vstack([w.edges, seen.edges + w.n_vertices]), likelihood=[0.99] * 6)
     for driven, runs in ((20.0, True), (30.0, False)):
         f3 = WireframeFilter(cfg, np.random.default_rng(0), initial_pose=Pose(0, 0, D(0.3)))
         set_state(f3, [both], np.diag([0.05**2, 0.05**2, D(0.1) ** 2]))

@@ -47,7 +47,8 @@ def test_filter_config_keys_are_grouped_by_concern():
 
 
 def test_overrides_coerce_text_to_the_field_type():
-    out = with_overrides(_Outer(), {"on": "False", "limit": "2.5", "inner.count": "7", "inner.labels": "4, 5"})
+    out = with_overrides(_Outer(),
+                         {"on": "False", "limit": "2.5", "inner.count": "7", "inner.labels": "4, 5"})
     assert out.on is False and out.limit == 2.5 and out.inner.count == 7 and out.inner.labels == (4, 5)
     assert with_overrides(out, {"limit": "none"}).limit is None
     assert with_overrides(out, {"limit": None}).limit is None

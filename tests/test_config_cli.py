@@ -47,10 +47,13 @@ def show(argv: list[str], capsys: pytest.CaptureFixture[str]) -> dict[str, Any]:
          "--set compass.young_wieght: unknown key (did you mean compass.young_weight?)"),
         (["--set", "young_weight=0"], "--set young_weight: unknown key (did you mean compass.young_weight?)"),
         (["--set", "compass=0"], "--set compass: a group of settings; set one of them, e.g. compass.enabled"),
-        (["--set", "compass.young_weight=abc"], "--set compass.young_weight=abc: must be a number, got 'abc'"),
-        (["--set", "compass.young_weight=2"], "--set compass.young_weight=2: young_weight must be a number within [0, 1]"),
+        (["--set", "compass.young_weight=abc"],
+         "--set compass.young_weight=abc: must be a number, got 'abc'"),
+        (["--set", "compass.young_weight=2"],
+         "--set compass.young_weight=2: young_weight must be a number within [0, 1]"),
         (["--set", "refine.enabled=maybe"], "--set refine.enabled=maybe: must be true or false, got 'maybe'"),
-        (["--particles", "3", "--set", "particles=0"], "--set particles=0: particles must be an integer >= 1"),
+        (["--particles", "3", "--set", "particles=0"],
+         "--set particles=0: particles must be an integer >= 1"),
     ],
 )
 @pytest.mark.parametrize(
@@ -75,7 +78,8 @@ def test_a_bad_set_is_one_line_and_exit_2_before_any_work(
 @pytest.mark.parametrize(
     ("text", "expected"),
     [
-        ("[compass]\nyoung_wieght = 0\n", "compass.young_wieght: unknown key (did you mean compass.young_weight?)"),
+        ("[compass]\nyoung_wieght = 0\n",
+         "compass.young_wieght: unknown key (did you mean compass.young_weight?)"),
         ("[compass]\nyoung_weight = 'x'\n", "compass.young_weight = \"x\": must be a number, got 'x'"),
         ("[icp]\ngate_end = 5.0\n", "icp.gate_end = 5.0: ICPConfig.gate_end must not exceed gate_start"),
         ("particles = [1\n", "not valid TOML"),
@@ -93,12 +97,17 @@ def test_a_bad_params_file_is_one_line_and_exit_2(
     assert expected in one_line(err)
 
 
-def test_missing_unreadable_and_binary_params_files(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+def test_missing_unreadable_and_binary_params_files(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     binary = tmp_path / "b.toml"
     binary.write_bytes(b"\xff\xfe\x00")
-    for path, expected in [(tmp_path / "none.toml", "no such file"), (tmp_path, "is a directory"), (binary, "not UTF-8")]:
-        code, _, err = run_cli(["map", "--world", TINY, "--out", str(tmp_path / "o"), "--params", str(path)], capsys)
-        assert code == 2 and one_line(err) == f"wiremap map: --params {path}: {expected}" + (" text" if "UTF" in expected else "")
+    for path, expected in [(tmp_path / "none.toml", "no such file"), (tmp_path, "is a directory"),
+                           (binary, "not UTF-8")]:
+        code, _, err = run_cli(["map", "--world", TINY, "--out", str(tmp_path / "o"), "--params",
+                                str(path)], capsys)
+        assert code == 2 and one_line(err) == (f"wiremap map: --params {path}: {expected}"
+                                               + (" text" if "UTF" in expected else ""))
     code, _, err = run_cli(["config", "show", "--set", "no_equals_sign"], capsys)
     assert code == 2 and "expected GROUP.KEY=VALUE" in one_line(err)
 
@@ -114,7 +123,9 @@ def test_jointly_valid_settings_are_accepted_whatever_their_order(
     assert show(["--params", str(p)], capsys)["icp.gate_end"] == 5.0
 
 
-def test_run_checks_the_settings_before_the_router_starts(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+def test_run_checks_the_settings_before_the_router_starts(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     out = tmp_path / "run"
     code, stdout, err = run_cli(["run", "--world", TINY, "--robots", "2", "--out", str(out),
                                  "--set", "loops.enabeld=false"], capsys)
@@ -123,7 +134,8 @@ def test_run_checks_the_settings_before_the_router_starts(tmp_path: Path, capsys
 
 
 def test_robot_refuses_a_bad_setting_before_the_bus(capsys: pytest.CaptureFixture[str]) -> None:
-    code, _, err = run_cli(["robot", "--id", "r1", "--world", TINY, "--start", "1,1,0", "--set", "icp.huber=-1"], capsys)
+    code, _, err = run_cli(["robot", "--id", "r1", "--world", TINY, "--start", "1,1,0", "--set",
+                            "icp.huber=-1"], capsys)
     assert code == 2 and one_line(err).startswith("wiremap robot: --set icp.huber=-1: ")
 
 
@@ -136,10 +148,12 @@ def test_precedence_defaults_file_flags_set(tmp_path: Path, capsys: pytest.Captu
     assert show(["--params", str(p)], capsys)["particles"] == 7  # the file over the defaults
     cfg = show(["--params", str(p), "--particles", "4"], capsys)  # a flag over the file
     assert (cfg["particles"], cfg["merge_threshold"], cfg["compass.young_weight"]) == (4, 0.3, 0.2)
-    cfg = show(["--params", str(p), "--particles", "4", "--set", "particles=5", "--set", "compass.young_weight=0"],
+    cfg = show(["--params", str(p), "--particles", "4", "--set", "particles=5", "--set",
+                "compass.young_weight=0"],
                capsys)  # --set over everything
     assert (cfg["particles"], cfg["compass.young_weight"]) == (5, 0.0)
-    assert show(["--set", "particles=2", "--set", "particles=3"], capsys)["particles"] == 3  # the last --set wins
+    # the last --set wins
+    assert show(["--set", "particles=2", "--set", "particles=3"], capsys)["particles"] == 3
 
 
 def test_world_defaults_and_mutation_follow_the_particle_count(capsys: pytest.CaptureFixture[str]) -> None:
@@ -154,8 +168,10 @@ def test_world_defaults_and_mutation_follow_the_particle_count(capsys: pytest.Ca
 def test_recorded_overrides_are_those_of_the_file_and_set_that_took_effect(tmp_path: Path) -> None:
     from agents.mapping_run import filter_config_for
 
-    cargs = ConfigArgs("p.toml", {"particles": 7, "compass.young_travel": "inf"}, {"icp.corner_labels": "1,0"})
-    r = resolve(cargs, lambda ov: filter_config_for(10, 0.2, 8.0, overrides=ov), {"particles": ("--particles", 4)})
+    cargs = ConfigArgs("p.toml", {"particles": 7, "compass.young_travel": "inf"},
+                       {"icp.corner_labels": "1,0"})
+    r = resolve(cargs, lambda ov: filter_config_for(10, 0.2, 8.0, overrides=ov),
+                {"particles": ("--particles", 4)})
     assert r.config.particles == 4
     assert r.recorded == {"compass.young_travel": "inf", "icp.corner_labels": [1, 0]}  # particles: the flag's
     assert filter_config_for(10, 0.2, 8.0, overrides=r.overrides) == r.config
@@ -203,8 +219,8 @@ def test_nested_groups_are_nested_tables_and_read_back() -> None:
     assert text.startswith("# a test\non = false\nlimit = 0.30000000000000004\n\n[mid]\n")
     assert "\n[mid.leaf]\ndepth = 5\nscale = \"none\"\n" in text
     back = parse_toml(text)
-    assert back == {"on": False, "limit": 0.30000000000000004, "mid.name": 'a "quoted" name', "mid.labels": [1, 2],
-                    "mid.leaf.depth": 5, "mid.leaf.scale": "none"}
+    assert back == {"on": False, "limit": 0.30000000000000004, "mid.name": 'a "quoted" name',
+                    "mid.labels": [1, 2], "mid.leaf.depth": 5, "mid.leaf.scale": "none"}
     assert with_overrides(_Top(), back) == cfg
 
 
@@ -222,26 +238,32 @@ def test_bench_accuracy_set_reaches_the_filter_and_the_baseline(
         return real(cfg, *a, **k)
 
     monkeypatch.setattr(mf, "WireframeFilter", spy)
-    code, out, err = run_cli(["bench", "accuracy", "--world", TINY, "--seeds", "1", "--steps", "4", "--baseline",
-                              "--particles", "3", "--set", "compass.young_weight=0", "--set", "loops.enabled=false",
-                              "--out", str(tmp_path), "--json", "--quiet"], capsys)
+    code, out, err = run_cli(["bench", "accuracy", "--world", TINY, "--seeds", "1", "--steps", "4",
+                              "--baseline", "--particles", "3", "--set", "compass.young_weight=0", "--set",
+                              "loops.enabled=false", "--out", str(tmp_path), "--json", "--quiet"], capsys)
     assert code == 0, err
     filt, base = seen
-    assert (filt.particles, filt.mutate, filt.compass.young_weight, filt.loops.enabled) == (3, True, 0.0, False)
-    assert (base.particles, base.mutate, base.compass.young_weight, base.loops.enabled) == (1, False, 0.0, False)
+    assert ((filt.particles, filt.mutate, filt.compass.young_weight, filt.loops.enabled)
+            == (3, True, 0.0, False))
+    assert ((base.particles, base.mutate, base.compass.young_weight, base.loops.enabled)
+            == (1, False, 0.0, False))
     summary = json.loads(out.splitlines()[-1])
     assert summary["particles"] == 3
     assert summary["config_overrides"] == {"compass.young_weight": 0.0, "loops.enabled": False}
 
 
-def test_bench_accuracy_json_has_no_overrides_key_by_default(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+def test_bench_accuracy_json_has_no_overrides_key_by_default(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     code, out, err = run_cli(["bench", "accuracy", "--world", TINY, "--seeds", "1", "--steps", "3",
                               "--out", str(tmp_path), "--json", "--quiet"], capsys)
     assert code == 0, err
     assert "config_overrides" not in json.loads(out.splitlines()[-1])
 
 
-def test_map_records_the_overrides_and_follows_max_range(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+def test_map_records_the_overrides_and_follows_max_range(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     p = tmp_path / "p.toml"
     p.write_text("[compass]\nyoung_weight = 0.25\n")
     code, _, err = run_cli(["map", "--world", TINY, "--out", str(tmp_path / "m"), "--steps", "3", "--quiet",
@@ -250,7 +272,8 @@ def test_map_records_the_overrides_and_follows_max_range(tmp_path: Path, capsys:
     report = json.loads((tmp_path / "m" / "report.json").read_text())
     assert report["particles"] == 2
     assert report["config_overrides"] == {"particles": 2, "max_range": 5.0, "compass.young_weight": 0.25}
-    code, _, err = run_cli(["map", "--world", TINY, "--out", str(tmp_path / "d"), "--steps", "3", "--quiet"], capsys)
+    code, _, err = run_cli(["map", "--world", TINY, "--out", str(tmp_path / "d"), "--steps", "3",
+                            "--quiet"], capsys)
     assert code == 0 and json.loads((tmp_path / "d" / "report.json").read_text())["config_overrides"] == {}
 
 
@@ -294,9 +317,12 @@ def test_run_hands_its_settings_to_every_robot(
     monkeypatch.setattr(run_cmd, "_start_fleet", fake_start)
     out = tmp_path / "run"
     code, _, err = run_cli(["run", "--world", TINY, "--robots", "1", "--out", str(out), "--no-progress",
-                            "--particles", "3", "--set", "merge_threshold=0.25", "--set", "compass.young_weight=0"],
+                            "--particles", "3", "--set", "merge_threshold=0.25", "--set",
+                            "compass.young_weight=0"],
                            capsys)
     assert code == 2 and "stopped by the test" in err
     assert seen["threshold"] == 0.25
     assert seen["filter_args"] == ["--particles", "3", "--params", str(out / "params.toml")]
-    assert parse_toml((out / "params.toml").read_text()) == {"merge_threshold": 0.25, "compass.young_weight": 0.0}
+    assert parse_toml((out / "params.toml").read_text()) == {
+        "merge_threshold": 0.25, "compass.young_weight": 0.0
+    }

@@ -188,7 +188,8 @@ def test_square_room_half_turn_ends_at_the_field_of_view() -> None:
 
 
 def test_wall_leaving_the_range_ends_on_the_range_circle() -> None:
-    corridor = Wireframe.from_polylines([[(0, 0), (30, 0), (30, 4), (0, 4)], [(5, 1.5), (5, 2.5), (6, 2.5), (6, 1.5)]])
+    corridor = Wireframe.from_polylines([[(0, 0), (30, 0), (30, 4), (0, 4)],
+                                         [(5, 1.5), (5, 2.5), (6, 2.5), (6, 1.5)]])
     cfg = LidarConfig(sigma=0.0, max_range=10.0)
     pose = Pose(2.0, 2.0, 0.0)
     s = scan(corridor, pose, cfg)
@@ -234,7 +235,8 @@ def test_nearer_and_farther_jumps_label_both_sides() -> None:
 def test_end_face_of_a_thick_wall_is_kept() -> None:
     # A 0.3 m thick wall (clockwise obstacle): its end face is shorter than min_length but meets
     # the long face in a corner, so it is structure, not clutter.
-    world = Wireframe.from_polylines([[(0, 0), (10, 0), (10, 8), (0, 8)], [(4, 2), (4, 5), (4.3, 5), (4.3, 2)]])
+    world = Wireframe.from_polylines([[(0, 0), (10, 0), (10, 8), (0, 8)],
+                                      [(4, 2), (4, 5), (4.3, 5), (4.3, 2)]])
     pose = Pose(2.0, 6.5, 0.3)
     s = scan(world, pose, LidarConfig(beams=720, fov=2 * math.pi, sigma=0.0))
     corner = int(np.argmin(np.hypot(s.points[:, 0] - 4.0, s.points[:, 1] - 5.0)))
@@ -295,7 +297,9 @@ def test_deterministic() -> None:
 FULL_TURN = LidarConfig(beams=720, fov=2 * math.pi, max_range=8.0, sigma=0.0)
 
 
-def edge_between(s: Wireframe, p: tuple[float, float], q: tuple[float, float], tol: float = 0.03) -> int | None:
+def edge_between(
+    s: Wireframe, p: tuple[float, float], q: tuple[float, float], tol: float = 0.03
+) -> int | None:
     """Index of the edge running from near ``p`` to near ``q``, or None."""
     for k, (a, b) in enumerate(s.edges.tolist()):
         if np.hypot(*(s.points[a] - p)) <= tol and np.hypot(*(s.points[b] - q)) <= tol:
@@ -310,7 +314,8 @@ def test_end_face_seen_end_on_is_a_wall_from_a_nominal_corner(x: float) -> None:
     and the long face ends in that NOMINAL corner -- as the corner sensor reports it. Before, the
     long face ended in a frontier and the end face was missing, so the filter's prediction of
     the map's jamb looked seen-through and a door jamb was mutated away."""
-    thick = Wireframe.from_polylines([[(-5, 2), (3, 2), (3, 2.4), (-5, 2.4)], [(-6, 6), (12, 6)]], closed=False)
+    thick = Wireframe.from_polylines([[(-5, 2), (3, 2), (3, 2.4), (-5, 2.4)], [(-6, 6), (12, 6)]],
+                                     closed=False)
     pose = Pose(x, 0.0, 0.3)
     s = scan(thick, pose, FULL_TURN)
     assert_scan_shape(s, pose)
@@ -326,7 +331,8 @@ def test_end_face_seen_end_on_is_a_wall_from_a_nominal_corner(x: float) -> None:
     assert abs(s.points[leaving[0], 1] - 2.0) < 0.02
     # without stubs: the old free end
     r = raycast(thick.segments(), pose, FULL_TURN)
-    old = extract_corners(r, FULL_TURN.angles(), FULL_TURN.max_range, ExtractConfig(stubs=False)).transformed(pose)
+    old = extract_corners(r, FULL_TURN.angles(), FULL_TURN.max_range,
+                          ExtractConfig(stubs=False)).transformed(pose)
     assert not np.any(np.hypot(*(old.points[old.labels == NOM] - (3.0, 2.0)).T) < 0.05)
 
 
@@ -361,7 +367,8 @@ def test_no_wall_along_a_line_of_sight_through_a_jamb_and_a_face_behind() -> Non
     are nearly collinear, but a range jump of 4 m is no grazing wall (regression: a 5 m
     line-of-sight 'wall' from the jamb's corner to the box)."""
     world = Wireframe.from_polylines(
-        [[(7.0, 7.0), (3.2, 7.0), (3.2, 7.4), (7.0, 7.4)], [(3.6, 11.0), (3.6, 13.0), (5.6, 13.0), (5.6, 11.0)]]
+        [[(7.0, 7.0), (3.2, 7.0), (3.2, 7.4), (7.0, 7.4)],
+         [(3.6, 11.0), (3.6, 13.0), (5.6, 13.0), (5.6, 11.0)]]
     )
     for dx in (-0.01, 0.0, 0.01, 0.02):
         pose = Pose(2.93 + dx, 4.62, 2.9)
@@ -422,7 +429,8 @@ def test_noisy_corner_error_over_many_poses() -> None:
         s = scan(L_WORLD, pose, cfg, rng)
         n_scans += 1
         assert_scan_shape(s, pose)
-        d = np.hypot(L_CORNERS[None, :, 0] - s.points[:, None, 0], L_CORNERS[None, :, 1] - s.points[:, None, 1])
+        d = np.hypot(L_CORNERS[None, :, 0] - s.points[:, None, 0],
+                     L_CORNERS[None, :, 1] - s.points[:, None, 1])
         nominal.extend(d.min(axis=1)[s.labels == NOM].tolist())
     e = np.array(nominal)
     assert len(e) > n_scans
@@ -444,3 +452,20 @@ def test_rotating_a_full_turn_scan_by_one_beam_changes_nothing() -> None:
 
 # How fast corners are extracted is a benchmark figure, not a test:
 # `wiremap bench speed --pieces` (extract_ms).
+
+
+def test_jump_beams_grows_the_run_break_with_range() -> None:
+    """Neighbouring returns 1 degree apart on a wall seen at 30 degrees are 0.35 m apart at
+    10 m: a break for the fixed ``jump`` (0.3 m), not with ``jump_beams = 3`` (0.52 m there);
+    a range step of 0.35 m at 1 m is a break either way."""
+    from mapping.extract import _far
+
+    a = np.radians(1.0)
+    far_p = np.array([[10.0, 0.0]])
+    far_q = 10.3 * np.array([[math.cos(a), math.sin(a)]])  # 0.35 m from far_p
+    near_p, near_q = np.array([[1.0, 0.0]]), 1.35 * np.array([[math.cos(a), math.sin(a)]])
+    assert _far(far_p, far_q, ExtractConfig()).tolist() == [True]
+    assert _far(far_p, far_q, ExtractConfig(jump_beams=3.0)).tolist() == [False]
+    assert _far(near_p, near_q, ExtractConfig(jump_beams=3.0)).tolist() == [True]
+    with pytest.raises(ValueError):
+        ExtractConfig(jump_beams=-1.0)

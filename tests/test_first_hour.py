@@ -118,7 +118,8 @@ def afile(tmp_path: Path) -> Path:
 CASES = {
     "map --out": ["map", "--world", "paper-small", "--out", "{f}/sub"],
     "run --out": ["run", "--world", "paper-small", "--robots", "2", "--out", "{f}/sub"],
-    "run --particles 0": ["run", "--world", "paper-small", "--robots", "2", "--particles", "0", "--out", "{d}/run"],
+    "run --particles 0": ["run", "--world", "paper-small", "--robots", "2", "--particles", "0",
+                          "--out", "{d}/run"],
     "world --png": ["world", "show", "paper-small", "--png", "{f}/x.png"],
     "world --geojson": ["world", "show", "paper-small", "--geojson", "{f}/x.geojson"],
     "world --svg": ["world", "show", "paper-small", "--svg", "{f}/deeper/x.svg"],
@@ -200,7 +201,8 @@ class _Agent:
 
         ap = argparse.ArgumentParser()
         add_arguments(ap)
-        self.opts = options_from_args(ap.parse_args(["--id", "r1", "--world", "paper-small", "--start", start]))
+        self.opts = options_from_args(ap.parse_args(["--id", "r1", "--world", "paper-small",
+                                                     "--start", start]))
         self.said: list[str] = []
         self._last_body = None
 
@@ -217,10 +219,13 @@ def test_robot_start_heading_is_the_routes_and_warnings_are_readable() -> None:
     assert quiet.said == [] and quiet.opts.start == true_start
     told = _Agent("2,2,0")
     told._check_start(true_start)
-    assert told.said == ["start heading 0 deg replaced by 90 deg (a simulated robot starts facing along its route)"]
+    assert told.said == [
+        "start heading 0 deg replaced by 90 deg (a simulated robot starts facing along its route)"
+    ]
     moved = _Agent("2.5,2,0")
     moved._check_start(true_start)
-    assert re.fullmatch(r"--start 2\.50,2\.00 differs from .*\(2\.00,2\.00, heading 90 deg\); using the latter",
+    assert re.fullmatch(r"--start 2\.50,2\.00 differs from .*"
+                        r"\(2\.00,2\.00, heading 90 deg\); using the latter",
                         moved.said[0])
 
 
@@ -352,7 +357,9 @@ def test_figure_has_title_legend_truth_and_shading() -> None:
         (["map", "--help"], ["simulated seconds"], []),
     ],
 )
-def test_help_texts(argv: list[str], present: list[str], absent: list[str], capsys: pytest.CaptureFixture[str]) -> None:
+def test_help_texts(
+    argv: list[str], present: list[str], absent: list[str], capsys: pytest.CaptureFixture[str]
+) -> None:
     with pytest.raises(SystemExit):
         cli_main(argv)
     text = " ".join(capsys.readouterr().out.split())

@@ -138,7 +138,8 @@ def test_edges_of_opposite_direction_never_correspond():
 def test_edge_correspondences_allow_duplicates_and_need_overlap():
     scan = Wireframe.build([(0, 0), (4, 0)], [(0, 1)])
     # Two collinear reference pieces under the scan edge, and one beyond its end.
-    ref = Wireframe.build([(0, 0.02), (2, 0.02), (2, 0.02), (4, 0.02), (5, 0.0), (6, 0.0)], [(0, 1), (2, 3), (4, 5)])
+    ref = Wireframe.build([(0, 0.02), (2, 0.02), (2, 0.02), (4, 0.02), (5, 0.0), (6, 0.0)],
+                          [(0, 1), (2, 3), (4, 5)])
     corr = correspond(scan, ref, gate=0.1)
     assert sorted(corr.edge_pairs.tolist()) == [[0, 0], [0, 1]]
     assert np.allclose(corr.edge_offset, 0.02)
@@ -255,7 +256,8 @@ def test_one_long_wall_corrects_heading_and_offset_across_it():
     assert abs(res.correction.theta - err.theta) < math.radians(0.05)
     assert abs(res.correction.y - err.y) < 0.01
     # with the older rule of four rows the same scan was rejected and the heading left drifting
-    assert not icp(wall.transformed(err.inverse()), wall, ICPConfig(min_constraints=4), prior_covariance=P).accepted
+    assert not icp(wall.transformed(err.inverse()), wall, ICPConfig(min_constraints=4),
+                   prior_covariance=P).accepted
 
 
 def test_a_scan_that_only_confirms_the_prediction_is_consistent():

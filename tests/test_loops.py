@@ -12,7 +12,9 @@ from mapping.loops import LoopCloser, LoopConfig, optimize
 from mapping.merge import MergeConfig, merge
 
 
-def square_loop(n_side: int = 10, bias: float = math.radians(0.5)) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def square_loop(
+    n_side: int = 10, bias: float = math.radians(0.5)
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Keyframes 1 m apart around a 10 m square (true), and the same chain as estimated with a
     heading bias of ``bias`` per keyframe: returns (true poses, estimated poses, odometry)."""
     true = [Pose(0.0, 0.0, 0.0)]
@@ -214,7 +216,9 @@ def test_the_filter_closes_a_loop_around_a_ring_corridor():
     inputs = list(simulate(world, SimOptions(), 1))
     out = {}
     for on in (False, True):
-        f = WireframeFilter(filter_config_for(5, 0.2, 8.0, overrides={"loops.enabled": on, "refine.enabled": False}), seeds_for(1)["filter"],
+        f = WireframeFilter(filter_config_for(5, 0.2, 8.0,
+                                              overrides={"loops.enabled": on, "refine.enabled": False}),
+                            seeds_for(1)["filter"],
                             inputs[0].true_pose)
         closures = sum(f.step(inp.odometry, inp.scan).loop is not None for inp in inputs)
         out[on] = (closures, evaluate(world.truth, f.best, 0.2), f.pose.distance(inputs[-1].true_pose))

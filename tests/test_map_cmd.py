@@ -33,7 +33,8 @@ def test_map_paper_small_short_route(tmp_path, capsys):
     assert png[:8] == b"\x89PNG\r\n\x1a\n"
     assert report["world"] == "paper-small" and report["steps"] == 25 and report["particles"] == 10
     assert report["particle_bytes"] >= report["best_bytes"] == wf.paper_storage_bytes()
-    assert set(report["metrics"]) == {"cell_error", "wall_precision", "wall_recall", "mean_dist_m", "p95_dist_m"}
+    assert set(report["metrics"]) == {"cell_error", "wall_precision", "wall_recall", "mean_dist_m",
+                                      "p95_dist_m"}
     assert report["metrics"]["wall_precision"] > 0.9
     assert report["pose_error_max_m"] < 0.15
     captured = capsys.readouterr()
@@ -147,8 +148,8 @@ def test_bench_accuracy_wall_tolerance(tmp_path, capsys):
 def test_bench_accuracy_jobs_give_the_same_maps(tmp_path, capsys):
     """Seeds run in worker processes (--jobs 2) give the same figures as one after another,
     in seed order, and every map's PNG."""
-    common = ["bench", "accuracy", "--world", str(WORLDS / "tiny.geojson"), "--seeds", "2", "--first-seed", "3",
-              "--steps", "10", "--json", "--quiet"]
+    common = ["bench", "accuracy", "--world", str(WORLDS / "tiny.geojson"), "--seeds", "2",
+              "--first-seed", "3", "--steps", "10", "--json", "--quiet"]
     out = {}
     for jobs in ("1", "2"):
         assert main([*common, "--jobs", jobs, "--out", str(tmp_path / jobs)]) == 0
@@ -198,8 +199,8 @@ def test_speed_pieces_keys():
     from agents.sim.world import builtin_names
 
     r = pieces()
-    assert set(r) == {"raycast_ms", "extract_ms", "evaluate_museum_ms", "render_museum_ms", "codec_reject_claim_us",
-                      "plan_route_s"}
+    assert set(r) == {"raycast_ms", "extract_ms", "evaluate_museum_ms", "render_museum_ms",
+                      "codec_reject_claim_us", "plan_route_s"}
     assert set(r["plan_route_s"]) == set(builtin_names())
     assert all(v > 0 for v in [*r.values(), *r.pop("plan_route_s").values()] if not isinstance(v, dict))
 
@@ -209,8 +210,8 @@ def test_robot_steps_yield_the_robot_state():
     from agents.mapping_run import robot_steps
 
     route = np.array([[1.0, 1.0], [4.0, 1.0], [4.0, 3.0]])
-    opts = RobotOptions(robot="r1", world=str(WORLDS / "tiny.geojson"), start=start_pose_of(route), route=route,
-                        particles=3, seed=4, duration=3.0)
+    opts = RobotOptions(robot="r1", world=str(WORLDS / "tiny.geojson"), start=start_pose_of(route),
+                        route=route, particles=3, seed=4, duration=3.0)
     steps = list(robot_steps(opts))
     assert len(steps) == 7  # t = 0, 0.5, ..., 3.0
     assert steps[0].filter.config.merge_threshold == opts.threshold != opts.resolution

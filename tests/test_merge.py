@@ -601,7 +601,8 @@ def test_merge_traced_is_merge_with_provenance():
     t_new = Wireframe.build([(3, 0.02), (5, 0.03), (5, 2)], [(0, 1), (1, 2)], likelihood=[0.5, 0.5])
     m, prov = merge_traced(seg((0, 0), (10, 0), 0.5), t_new, CFG)
     got = {walls(m.subgraph_edges(np.arange(m.n_edges) == k))[0]: prov[k] for k in range(m.n_edges)}
-    assert got == {((0.0, 0.0), (5.0, 0.0)): [0, 1], ((5.0, 0.0), (10.0, 0.0)): [0], ((5.0, 0.0), (5.0, 2.0)): [2]}
+    assert got == {((0.0, 0.0), (5.0, 0.0)): [0, 1], ((5.0, 0.0), (10.0, 0.0)): [0],
+                   ((5.0, 0.0), (5.0, 2.0)): [2]}
     m, prov = merge_traced(base, Wireframe.empty(), CFG)
     assert m is base and prov == [[0]]
 
@@ -652,7 +653,8 @@ def check_created_walls(
             angles = [_angle_between(d, src[i][1] - src[i][0]) for i in ids]
             if max_turn is None:
                 lengths = [float(np.hypot(*(src[i][1] - src[i][0]))) for i in ids]
-                angles = [a - math.asin(min(1.0, 2 * cfg.threshold / max(n, 1e-12))) for a, n in zip(angles, lengths)]
+                angles = [a - math.asin(min(1.0, 2 * cfg.threshold / max(n, 1e-12)))
+                          for a, n in zip(angles, lengths)]
             assert min(angles) <= turn + 1e-9, (k, (p, q), [src[i] for i in ids])
         spans = [tuple(sorted(((src[i][0] - p) @ u, (src[i][1] - p) @ u))) for i in ids]
         gap = _uncovered(length, spans)
@@ -759,12 +761,14 @@ def test_faces_of_a_wall_as_thick_as_the_threshold_keep_their_corners():
     expected = Wireframe.from_polylines([[(0, 0), (0, 3), (0.2, 3), (0.2, 0)]], closed=False)
     assert m.almost_equal(expected, tol=0.015, likelihood_tol=1.0)  # (nominal corners win)
     # a thin wall's two faces (on one line) still share their corners
-    thin = merge(Wireframe.build([(0, 0), (0, 3)], [(0, 1)]), Wireframe.build([(0.02, 3), (0.01, 0)], [(0, 1)]), CFG)
+    thin = merge(Wireframe.build([(0, 0), (0, 3)], [(0, 1)]),
+                 Wireframe.build([(0.02, 3), (0.01, 0)], [(0, 1)]), CFG)
     assert thin.n_vertices == 2 and thin.n_edges == 2
 
 
 def _arrays(wf: Wireframe) -> list[tuple[str, tuple[int, ...], bytes]]:
-    return [(str(a.dtype), a.shape, a.tobytes()) for a in (wf.points, wf.labels, wf.edges, wf.likelihood, wf.sources)]
+    return [(str(a.dtype), a.shape, a.tobytes()) for a in (wf.points, wf.labels, wf.edges, wf.likelihood,
+                                                           wf.sources)]
 
 
 @settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])
@@ -789,7 +793,8 @@ def test_list_and_vectorised_assembly_are_bit_identical(a, b, thr, cull):
     for arr in (small.points, small.labels, small.edges, small.likelihood, small.sources):
         assert arr.flags.c_contiguous and not arr.flags.writeable
     # the unchecked constructor builds what the checked one would
-    assert _arrays(Wireframe(small.points, small.labels, small.edges, small.likelihood, small.sources)) == _arrays(small)
+    assert (_arrays(Wireframe(small.points, small.labels, small.edges, small.likelihood, small.sources))
+            == _arrays(small))
 
 
 @settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])

@@ -41,7 +41,8 @@ def test_usage_lines_are_what_the_walk_runs() -> None:
     lines = usage_lines((REPO / "README.md").read_text())
     assert lines[0] == "source .venv/bin/activate"
     commands = {ln.split()[1] for ln in lines if ln.startswith("wiremap ")}
-    assert {"worlds", "world", "map", "run", "export", "replay", "router", "fuse", "robot", "watch"} <= commands
+    assert {"worlds", "world", "map", "run", "export", "replay", "router", "fuse", "robot",
+            "watch"} <= commands
     assert any(ln.startswith("python -m wire_codec ") for ln in lines)
 
 
@@ -81,6 +82,7 @@ def test_readme_usage_runs_pasted_into_a_shell(tmp_path: Path) -> None:
     text = p.stdout + p.stderr
     assert p.returncode == 0, text[-4000:]
     assert "Traceback" not in text, text[-4000:]
-    for name in ("museum.png", "office.geojson", "out/small/map.png", "out/office/fused.png", "out/intel/map.geojson",
-                 "out/demo/fused.pgm", "out/demo/fused-export.png", "fused.geojson", "out/hand/watch/latest.png"):
+    for name in ("museum.png", "office.geojson", "out/small/map.png", "out/office/fused.png",
+                 "out/intel/map.geojson", "out/demo/fused.pgm", "out/demo/fused-export.png", "fused.geojson",
+                 "out/hand/watch/latest.png"):
         assert (tmp_path / name).is_file(), (name, text[-3000:])

@@ -119,8 +119,8 @@ def test_refinement_keeps_the_ring_corridor_pose_closer():
     inputs = list(simulate(world, SimOptions(), 1))
     out = {}
     for on in (False, True):
-        f = WireframeFilter(filter_config_for(10, 0.2, 8.0, overrides={"refine.enabled": on}), seeds_for(1)["filter"],
-                            inputs[0].true_pose)
+        f = WireframeFilter(filter_config_for(10, 0.2, 8.0, overrides={"refine.enabled": on}),
+                            seeds_for(1)["filter"], inputs[0].true_pose)
         errors = []
         for inp in inputs:
             f.step(inp.odometry, inp.scan)

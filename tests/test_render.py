@@ -95,7 +95,8 @@ def test_decode_png_handles_all_filters():
         raw += bytes([f, *enc])
 
     def chunk(tag, data):
-        return struct.pack(">I", len(data)) + tag + data + struct.pack(">I", zlib.crc32(tag + data) & 0xFFFFFFFF)
+        return (struct.pack(">I", len(data)) + tag + data
+                + struct.pack(">I", zlib.crc32(tag + data) & 0xFFFFFFFF))
 
     png = (
         b"\x89PNG\r\n\x1a\n"
@@ -259,7 +260,8 @@ def test_wireframe_svg():
     ns = "{http://www.w3.org/2000/svg}"
     edges = [e for e in root.iter(f"{ns}line") if e.get("class") == "edge"]
     assert len(edges) == wf.n_edges
-    assert [(int(e.get("data-from")), int(e.get("data-to"))) for e in edges] == [tuple(e) for e in wf.edges.tolist()]
+    assert ([(int(e.get("data-from")), int(e.get("data-to"))) for e in edges]
+            == [tuple(e) for e in wf.edges.tolist()])
     assert all(e.get("marker-end") == "url(#arrow)" for e in edges)
     truth_g = next(g for g in root.iter(f"{ns}g") if g.get("class") == "truth")
     assert len(list(truth_g)) == truth.n_edges

@@ -31,9 +31,11 @@ def room_world(walls=(), route=None):
         }
     ]
     for w in walls:
-        feats.append({"type": "Feature", "properties": {}, "geometry": {"type": "LineString", "coordinates": w}})
+        feats.append({"type": "Feature", "properties": {},
+                      "geometry": {"type": "LineString", "coordinates": w}})
     if route is not None:
-        feats.append({"type": "Feature", "properties": {"kind": "route"}, "geometry": {"type": "LineString", "coordinates": route}})
+        feats.append({"type": "Feature", "properties": {"kind": "route"},
+                      "geometry": {"type": "LineString", "coordinates": route}})
     return world_from_geojson({"type": "FeatureCollection", "features": feats}, name="room")
 
 
@@ -99,7 +101,9 @@ def seen_fraction(world, route, reach):
 
 
 # ---------------------------------------------------------------------- routes
-@pytest.mark.parametrize("name", [pytest.param(n, marks=pytest.mark.slow) if n == "museum" else n for n in builtin_names()])
+@pytest.mark.parametrize(
+    "name", [pytest.param(n, marks=pytest.mark.slow) if n == "museum" else n for n in builtin_names()]
+)
 def test_builtin_route_is_collision_free_and_covers_the_walls(name):
     w, r = planned(name)
     assert r.ndim == 2 and r.shape[1] == 2 and len(r) > 5

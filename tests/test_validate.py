@@ -81,7 +81,8 @@ def progress_line(status: dict[str, Any]) -> str:
 @given(
     field=st.sampled_from(["seq", "t", "stamp_ns", "odom", "fleet", "truth", "status"]),
     value=HOSTILE,
-    sub=st.sampled_from(["step", "t", "vertices", "edges", "maps_sent", "bytes_sent", "finished", "step_ms", "zz"]),
+    sub=st.sampled_from(["step", "t", "vertices", "edges", "maps_sent", "bytes_sent", "finished",
+                         "step_ms", "zz"]),
 )
 def test_pose_hostile_field(field: str, value: Any, sub: str) -> None:
     d = dict(GOOD_POSE)

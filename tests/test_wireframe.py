@@ -107,8 +107,10 @@ def test_geojson_without_indices_joins_by_coordinates():
     doc = {
         "type": "FeatureCollection",
         "features": [
-            {"type": "Feature", "geometry": {"type": "LineString", "coordinates": [[0, 0], [1, 0]]}, "properties": {}},
-            {"type": "Feature", "geometry": {"type": "LineString", "coordinates": [[1, 0], [1, 1]]}, "properties": {}},
+            {"type": "Feature", "geometry": {"type": "LineString", "coordinates": [[0, 0], [1, 0]]},
+             "properties": {}},
+            {"type": "Feature", "geometry": {"type": "LineString", "coordinates": [[1, 0], [1, 1]]},
+             "properties": {}},
         ],
     }
     wf = Wireframe.from_geojson(doc)

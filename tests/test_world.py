@@ -165,19 +165,26 @@ def test_route_feature():
 @pytest.mark.parametrize(
     "features, match",
     [
-        ([poly_feature(SQUARE), {"type": "Feature", "properties": {}, "geometry": {"type": "Point", "coordinates": [1, 1]}}],
+        ([poly_feature(SQUARE),
+          {"type": "Feature", "properties": {}, "geometry": {"type": "Point", "coordinates": [1, 1]}}],
          r"feature 1: unsupported geometry 'Point'"),
-        ([poly_feature([(0, 0), (10, 10), (10, 0), (0, 10)])], r"feature 0: invalid polygon: Self-intersection"),
+        ([poly_feature([(0, 0), (10, 10), (10, 0), (0, 10)])],
+         r"feature 0: invalid polygon: Self-intersection"),
         ([poly_feature(SQUARE), line_feature([[5, 5], [15, 5]])], r"thin wall 0 .* leaves the free space"),
-        ([poly_feature(SQUARE), line_feature([[0, 2], [0, 8]])], r"thin wall 0 .* runs along the outer walls"),
-        ([poly_feature(SQUARE), line_feature([[1, 1], [2, 2]], kind="door")], r"feature 1: unknown LineString kind 'door'"),
+        ([poly_feature(SQUARE), line_feature([[0, 2], [0, 8]])],
+         r"thin wall 0 .* runs along the outer walls"),
+        ([poly_feature(SQUARE), line_feature([[1, 1], [2, 2]], kind="door")],
+         r"feature 1: unknown LineString kind 'door'"),
         ([poly_feature(SQUARE, kind="obstacle")], r"feature 0: a Polygon must be free space"),
-        ([poly_feature(SQUARE), line_feature([[1, 1], [1, 1]])], r"feature 1: a LineString needs two distinct points"),
-        ([poly_feature(SQUARE), line_feature([[1, 1], [20, 1]], kind="route")], r"feature 1: the route leaves"),
+        ([poly_feature(SQUARE), line_feature([[1, 1], [1, 1]])],
+         r"feature 1: a LineString needs two distinct points"),
+        ([poly_feature(SQUARE), line_feature([[1, 1], [20, 1]], kind="route")],
+         r"feature 1: the route leaves"),
         ([poly_feature(SQUARE), line_feature([[5, 2], [5, 8]]), line_feature([[1, 5], [9, 5]], kind="route")],
          r"feature 2: the route crosses thin wall 0"),
         ([line_feature([[1, 1], [2, 2]])], r"no free space"),
-        ([{"type": "Feature", "properties": {"name": "lobby"}, "geometry": None}], r"feature 0 \(lobby\): has no geometry"),
+        ([{"type": "Feature", "properties": {"name": "lobby"}, "geometry": None}],
+         r"feature 0 \(lobby\): has no geometry"),
     ],
 )
 def test_bad_features_raise_world_error_naming_them(features, match):
@@ -199,7 +206,8 @@ def test_bad_files(tmp_path):
         json.dumps(
             collection(
                 poly_feature(SQUARE),
-                {"type": "Feature", "id": "lamp", "properties": {}, "geometry": {"type": "Point", "coordinates": [1, 2]}},
+                {"type": "Feature", "id": "lamp", "properties": {},
+                 "geometry": {"type": "Point", "coordinates": [1, 2]}},
             )
         )
     )
@@ -297,7 +305,8 @@ def test_builtin_doorways_are_wide_enough():
 @settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(
     st.lists(
-        st.tuples(st.integers(0, 8), st.integers(0, 8), st.integers(1, 5), st.integers(1, 5)), min_size=1, max_size=5
+        st.tuples(st.integers(0, 8), st.integers(0, 8), st.integers(1, 5), st.integers(1, 5)),
+        min_size=1, max_size=5
     ),
     st.lists(st.tuples(st.integers(1, 10), st.integers(1, 10)), max_size=3),
 )
@@ -341,7 +350,8 @@ def test_world_show_png_and_geojson(tmp_path, capsys):
     from agents.files.render import decode_png
 
     png, gj = tmp_path / "w.png", tmp_path / "w.geojson"
-    assert cli_main(["world", "show", "paper-small", "--png", str(png), "--geojson", str(gj), "--max-px", "400"]) == 0
+    assert cli_main(["world", "show", "paper-small", "--png", str(png), "--geojson", str(gj), "--max-px",
+                     "400"]) == 0
     img = decode_png(png.read_bytes())
     assert img.shape[1] == 400
     w = load_world(str(gj))

@@ -50,14 +50,18 @@ def build_parser() -> argparse.ArgumentParser:
     e = sub.add_parser("encode", help="GeoJSON wireframe -> payload bytes (stdout or -o)")
     e.add_argument("geojson", help="a wireframe GeoJSON file (Wireframe.to_geojson), or - for stdin")
     e.add_argument("--resolution", type=float, default=0.2, help="quantisation step in metres (default 0.2)")
-    e.add_argument("--kind", choices=("robot", "fused"), help="default: fused if any wall has sources, else robot")
+    e.add_argument("--kind", choices=("robot", "fused"),
+                   help="default: fused if any wall has sources, else robot")
     e.add_argument("--sender", default="cli", help="sender id (default: cli)")
-    e.add_argument("--frame", default=None, help="frame name (default: odom/SENDER for robot maps, fleet for fused)")
+    e.add_argument("--frame", default=None,
+                   help="frame name (default: odom/SENDER for robot maps, fleet for fused)")
     e.add_argument("--seq", type=int, default=0, help="sequence number (default 0)")
     e.add_argument("--stamp-ns", type=int, default=None, help="timestamp in ns (default: now)")
     e.add_argument("--pose", type=Pose.parse, default=Pose(), metavar="X,Y,THETA", help="sender pose")
-    e.add_argument("--origin", type=Pose.parse, default=Pose(), metavar="X,Y,THETA", help="start pose in the fleet frame")
-    e.add_argument("--robots", default=None, help="fused maps: comma-separated robot ids, bit k = k-th id (default r0,r1,...)")
+    e.add_argument("--origin", type=Pose.parse, default=Pose(), metavar="X,Y,THETA",
+                   help="start pose in the fleet frame")
+    e.add_argument("--robots", default=None,
+                   help="fused maps: comma-separated robot ids, bit k = k-th id (default r0,r1,...)")
     e.add_argument("-o", "--output", default=None, help="write here instead of stdout")
     d = sub.add_parser("decode", help="payload -> one-line summary (and GeoJSON)")
     d.add_argument("payload", help="a payload file, or - for stdin")
@@ -103,7 +107,8 @@ def _encode(args: argparse.Namespace) -> int:
     except ValueError as exc:
         raise _UsageError(f"{args.geojson}: {exc}") from None
     has_sources = bool(wf.n_edges and wf.sources.any())
-    kind = MessageKind.FUSED_MAP if (args.kind or ("fused" if has_sources else "robot")) == "fused" else MessageKind.ROBOT_MAP
+    kind = (MessageKind.FUSED_MAP if (args.kind or ("fused" if has_sources else "robot")) == "fused"
+            else MessageKind.ROBOT_MAP)
     robots: tuple[str, ...] = ()
     if kind == MessageKind.FUSED_MAP:
         if args.robots:
@@ -113,7 +118,8 @@ def _encode(args: argparse.Namespace) -> int:
             robots = tuple(f"r{k}" for k in range(top))
     elif args.robots:
         raise _UsageError("--robots is for fused maps (--kind fused)")
-    frame = args.frame if args.frame is not None else ("fleet" if kind == MessageKind.FUSED_MAP else f"odom/{args.sender}")
+    frame = (args.frame if args.frame is not None
+             else ("fleet" if kind == MessageKind.FUSED_MAP else f"odom/{args.sender}"))
     message = MapMessage(
         kind=kind,
         sender=args.sender,
@@ -173,7 +179,8 @@ def _decode(args: argparse.Namespace) -> int:
             "robots": list(message.robots),
             "meta": _jsonable(message.meta),
         }
-        _write_atomic(args.geojson, (json.dumps(message.wireframe.to_geojson(props), indent=2) + "\n").encode())
+        _write_atomic(args.geojson,
+                      (json.dumps(message.wireframe.to_geojson(props), indent=2) + "\n").encode())
     return 0
 
 

@@ -150,7 +150,8 @@ def _gaps(positions: I64) -> I64:
 
 def _explicit_cost(a: I64, b: I64) -> tuple[int, int, int]:
     """``(bits, ke, kd)`` of explicit edges ``a -> b`` sorted by ``(a, b)``."""
-    (ke, kd), (cost_e, cost_d) = best_eg_orders(np.concatenate((np.diff(a, prepend=0), zigzag(b - a))), [a.size] * 2)
+    (ke, kd), (cost_e, cost_d) = best_eg_orders(np.concatenate((np.diff(a, prepend=0), zigzag(b - a))),
+                                                [a.size] * 2)
     return 8 + cost_e + cost_d, ke, kd
 
 
@@ -307,7 +308,8 @@ def _write_edges(w: BitWriter, ea: I64, eb: I64, n: int) -> I64:
         _, ke, kd = plan
         w.scalar(ke, 4)
         w.scalar(kd, 4)
-        w.eg_block(np.concatenate((np.diff(ra, prepend=0), zigzag(rb - ra))), _orders((rest.size, ke), (rest.size, kd)))
+        w.eg_block(np.concatenate((np.diff(ra, prepend=0), zigzag(rb - ra))),
+                   _orders((rest.size, ke), (rest.size, kd)))
 
     def by(mask: NDArray[np.bool_], key: I64) -> I64:  # the edges in mask, by distinct key
         sel = np.flatnonzero(mask)
@@ -748,7 +750,8 @@ def _read_edges(r: BitReader, n: int, limits: Limits) -> I64:
     starts, ends = chains(next_bits, n)
     ring = ends - starts >= 2
     close_bits = r.flags(int(ring.sum()), "the ring bits").astype(bool)
-    rev_bits = r.flags(n - 1, "the reverse bits") if r.scalar(1, "the reverse flag") else np.zeros(0, np.uint8)
+    rev_bits = (r.flags(n - 1, "the reverse bits") if r.scalar(1, "the reverse flag")
+                else np.zeros(0, np.uint8))
     n_rest = r.eg(0, "the explicit edge count")
     nk = np.flatnonzero(next_bits)
     rk = np.flatnonzero(rev_bits)

@@ -226,7 +226,9 @@ def decode(data: bytes | bytearray | memoryview, *, limits: Limits = DEFAULT_LIM
 BodyDecoder = Callable[[bytes, int, "int | None", Limits], Wireframe]
 
 
-def decode_with(data: bytes | bytearray | memoryview, limits: Limits, body_decoder: BodyDecoder) -> MapMessage:
+def decode_with(
+    data: bytes | bytearray | memoryview, limits: Limits, body_decoder: BodyDecoder
+) -> MapMessage:
     """:func:`decode` with another body decoder (the tests run :mod:`wire_codec.reference`)."""
     if not isinstance(data, (bytes, bytearray, memoryview)):
         raise FormatError(f"expected bytes, got {type(data).__name__}")

@@ -76,7 +76,9 @@ class Limits:
             if isinstance(value, bool) or not isinstance(value, int) or value < 0:
                 raise ValueError(f"Limits.{name} must be a non-negative int, got {value!r}")
         if not (self.max_coordinate > 0.0 and self.max_coordinate < float("inf")):
-            raise ValueError(f"Limits.max_coordinate must be positive and finite, got {self.max_coordinate!r}")
+            raise ValueError(
+                f"Limits.max_coordinate must be positive and finite, got {self.max_coordinate!r}"
+            )
 
 
 DEFAULT_LIMITS = Limits()

@@ -97,7 +97,8 @@ def run_one(
     metrics = evaluate(world.truth, best, thr, tol) if best.n_edges else dict.fromkeys(METRICS, math.nan)
     aligned = math.nan
     if best.n_edges:
-        aligned = distance_to_truth(world.truth, best.transformed(align_to_truth(world.truth, best, thr)), thr)[0]
+        aligned = distance_to_truth(world.truth,
+                                    best.transformed(align_to_truth(world.truth, best, thr)), thr)[0]
     row = {
         **{k: float(v) for k, v in metrics.items()},
         "mean_dist_aligned_m": aligned,
@@ -124,7 +125,8 @@ def _round(v: float) -> float | None:
 
 def format_table(rows: list[tuple[str, str, dict[str, Any]]]) -> str:
     """An aligned text table: one line per (seed, method) row."""
-    head = ["seed", "method", "cell_err", "precision", "recall", "mean_d_m", "p95_d_m", "aligned_m", "bytes", "steps", "ups"]
+    head = ["seed", "method", "cell_err", "precision", "recall", "mean_d_m", "p95_d_m", "aligned_m", "bytes",
+            "steps", "ups"]
     lines = [head]
     for seed, method, r in rows:
         lines.append([
@@ -142,7 +144,8 @@ def format_table(rows: list[tuple[str, str, dict[str, Any]]]) -> str:
         ])
     widths = [max(len(row[i]) for row in lines) for i in range(len(head))]
     return "\n".join(
-        "  ".join(c.ljust(w) if i < 2 else c.rjust(w) for i, (c, w) in enumerate(zip(row, widths))) for row in lines
+        "  ".join(c.ljust(w) if i < 2 else c.rjust(w) for i, (c, w) in enumerate(zip(row, widths)))
+        for row in lines
     )
 
 
@@ -158,7 +161,8 @@ def run_seed(
 ) -> list[tuple[str, dict[str, Any], float]]:
     """One seed: simulate the scans once (the sensor's range is ``cfg.max_range``), run the
     filter of configuration ``cfg`` (and the baseline, the same with one particle and no
-    mutation, on the same scans), write each map's PNG to ``out``. Returns ``(method, row, seconds since start)`` per run.
+    mutation, on the same scans), write each map's PNG to ``out``. Returns ``(method, row,
+    seconds since start)`` per run.
     Loads the world itself, so that it can run in a worker process (``--jobs``)."""
     from agents import mapping_run as mr
     from agents.files.io import write_atomic
@@ -173,7 +177,9 @@ def run_seed(
     except ValueError as exc:
         raise UserError(f"{world_arg}: {exc}") from None
     done = []
-    configs = [("filter", cfg)] + ([("baseline", replace(cfg, particles=1, mutate=False))] if baseline else [])
+    configs = [("filter", cfg)] + (
+        [("baseline", replace(cfg, particles=1, mutate=False))] if baseline else []
+    )
     for method, c in configs:
         row, best, traj = run_one(world, inputs, c, seed, tol)
         png = Path(out) / f"{world.name}-{sensor}-seed{seed}-{method}.png"
@@ -199,7 +205,8 @@ def run(args: argparse.Namespace) -> int:
     cargs = ConfigArgs.from_args(args)
     world = load_world(args.world)
     particles, thr = mr.world_defaults(world)
-    flags = {"particles": ("--particles", args.particles), "merge_threshold": ("--merge-threshold", args.merge_threshold)}
+    flags = {"particles": ("--particles", args.particles),
+             "merge_threshold": ("--merge-threshold", args.merge_threshold)}
     resolved = resolve(
         cargs,
         lambda ov: mr.filter_config_for(particles, thr, mr.SimOptions().max_range, overrides=ov),

@@ -64,16 +64,22 @@ FREE, WALL, UNKNOWN = 0, 100, -1
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--json", action="store_true", help="(kept for symmetry: the JSON line is always printed last)")
-    parser.add_argument("--paper-small-map", metavar="FILE", help="a stored GeoJSON map instead of paper-small's truth")
+    parser.add_argument("--json", action="store_true",
+                        help="(kept for symmetry: the JSON line is always printed last)")
+    parser.add_argument("--paper-small-map", metavar="FILE",
+                        help="a stored GeoJSON map instead of paper-small's truth")
     parser.add_argument("--museum-map", metavar="FILE", help="a stored GeoJSON map instead of museum's truth")
     parser.add_argument("--map", metavar="FILE", help="one more map to measure (JSON key 'map')")
-    parser.add_argument("--resolution", type=float, default=0.2, help="resolution for --map in metres (default 0.2)")
+    parser.add_argument("--resolution", type=float, default=0.2,
+                        help="resolution for --map in metres (default 0.2)")
     parser.add_argument("--repeat", type=int, default=300, help="timed calls per measurement (default 300)")
-    parser.add_argument("--run-filter", action="append", default=[], choices=("paper-small", "museum"), metavar="WORLD",
-                        help="measure the best particle of a filter run over WORLD (paper-small or museum; repeatable)")
+    parser.add_argument("--run-filter", action="append", default=[], choices=("paper-small", "museum"),
+                        metavar="WORLD",
+                        help="measure the best particle of a filter run over WORLD "
+                             "(paper-small or museum; repeatable)")
     parser.add_argument("--filter-seed", type=int, default=1, help="seed of --run-filter (default 1)")
-    parser.add_argument("--filter-duration", type=float, default=None, help="simulated seconds of --run-filter (default: the whole route)")
+    parser.add_argument("--filter-duration", type=float, default=None,
+                        help="simulated seconds of --run-filter (default: the whole route)")
 
 
 # ---------------------------------------------------------------------------------------- grids
@@ -144,7 +150,8 @@ def png_bytes(grid: NDArray[np.int8]) -> bytes:
         return struct.pack(">I", len(data)) + tag + data + struct.pack(">I", zlib.crc32(tag + data))
 
     ihdr = struct.pack(">IIBBBBB", rows.shape[1], rows.shape[0], 8, 0, 0, 0, 0)
-    return b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", zlib.compress(raw, 9)) + chunk(b"IEND", b"")
+    return (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", zlib.compress(raw, 9))
+            + chunk(b"IEND", b""))
 
 
 def ros_grid_bytes(grid: NDArray[np.int8], frame_id: str = "map") -> int:
@@ -266,7 +273,9 @@ def table(results: dict[str, dict[str, Any]]) -> str:
     head = ["map", *(title for _, title in COLUMNS)]
     rows = [[name, *(str(r[key]) for key, _ in COLUMNS)] for name, r in results.items()]
     widths = [max(len(row[i]) for row in [head, *rows]) for i in range(len(head))]
-    fmt = lambda row: "  ".join(c.ljust(w) if i == 0 else c.rjust(w) for i, (c, w) in enumerate(zip(row, widths)))  # noqa: E731
+    fmt = lambda row: "  ".join(  # noqa: E731
+        c.ljust(w) if i == 0 else c.rjust(w) for i, (c, w) in enumerate(zip(row, widths))
+    )
     return "\n".join([fmt(head), *(fmt(r) for r in rows)])
 
 

@@ -95,7 +95,8 @@ def save_recording(path: str | os.PathLike[str], rec: Recording) -> None:
     frames = []
     for k, f in enumerate(rec.frames):
         msg = robot_map_message(rec.robot, rec.start, rec.resolution, f.wireframe, f.pose, k + 1, 0, {})
-        frames.append({"t": float(f.t), "pose": _pose_list(f.pose), "truth": _pose_list(f.truth), "map": encode(msg)})
+        frames.append({"t": float(f.t), "pose": _pose_list(f.pose), "truth": _pose_list(f.truth),
+                       "map": encode(msg)})
     doc = {
         "format": RECORDING_FORMAT,
         "robot": rec.robot,
@@ -218,7 +219,8 @@ def recordings_for(
     world = load_world(world_spec)
     thr = float(threshold) if threshold is not None else default_merge_threshold(world)
     key = json.dumps(
-        [RECORD_VERSION, _world_fingerprint(world_spec), n, seed, particles, overlap, resolution, thr], sort_keys=True
+        [RECORD_VERSION, _world_fingerprint(world_spec), n, seed, particles, overlap, resolution, thr],
+        sort_keys=True
     )
     h = hashlib.sha256(key.encode()).hexdigest()[:12]
     d = Path(cache) / f"{world.name}-n{n}-s{seed}-{h}"

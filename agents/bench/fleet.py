@@ -62,6 +62,16 @@ after every robot's first map has reached the bus:
   observer), ``maps_sent``: what the robots report they put, ``maps_merged``: what the fusion
   service took in (:func:`agents.bench.common.merge_counts`).
 
+**Fusion tree** (``--fusers K,K,...``, each count measured in turn for every size, in the same
+run): K >= 2 starts K regional fusers over the fold's subtrees and a root instead of one service
+(:mod:`agents.bench.tree`); the latency is then end to end through the root, and the entry adds
+``regional_ms_p50/p99`` (robot publish -> partial publish), ``root_ms_p50/p99`` (partial publish
+-> fused publish), ``fuser_cpu`` (each fuser's share of a core), ``link_bytes_per_s`` (payload
+bytes per hop: robots -> regional fusers, partials -> root, fused maps -> clients; the same hops
+are reported for one fuser), ``fused_exact`` and, with ``--kill-fuser S``, ``fuser_stall_s``.
+``load_avg`` is the machine's load average at the end of each window. ``--synthetic`` replays
+synthetic robots instead of recorded filter runs (cheap for 64 robots; see :mod:`agents.bench.tree`).
+
 Filter robots run with their visualisation stream off (``--viz-rate 0``), like replay robots.
 The fusion service runs without a Rerun recording unless ``--record``.
 """
@@ -138,6 +148,20 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--separate-replay", action="store_true",
         help="one process per replay robot (default: all replay robots in one process, one session each)",
+    )
+    parser.add_argument(
+        "--fusers", default="1", metavar="K,K,...",
+        help="fusion processes per size, each measured in turn: 1 = the one-process service, K >= 2 = "
+        "K regional fusers over the fold's subtrees and a root (agents.bench.tree; default 1)",
+    )
+    parser.add_argument(
+        "--synthetic", action="store_true",
+        help="replay robots from synthetic maps (views of the true walls, agents.bench.tree) instead of recorded filter runs",
+    )
+    parser.add_argument(
+        "--kill-fuser", type=float, metavar="S",
+        help="with --fusers K >= 2: kill -9 the regional fuser g1 S seconds into the window; reports the longest "
+        "gap in g1's partial publishes (the takeover's stall, fuser_stall_s)",
     )
     parser.add_argument("--json", action="store_true", help="print the JSON summary as the last line")
 
@@ -220,6 +244,11 @@ def _sent_counts(d: Path, ids: list[str], mode: str) -> int:
     return total
 
 
+def _share(c0: float | None, c1: float | None, wall: float) -> float | None:
+    """CPU seconds between two readings over ``wall`` seconds (None when one is missing)."""
+    return None if c0 is None or c1 is None else rounded((c1 - c0) / wall, 4)
+
+
 def _cpu_total(procs: Procs, names: list[str]) -> float | None:
     """CPU seconds of the processes ``names`` together (None when one is gone)."""
     total = 0.0
@@ -234,26 +263,36 @@ def _cpu_total(procs: Procs, names: list[str]) -> float | None:
 # Over 120 lines: one fleet size measured top to bottom (start, warm up, measure, stop, score),
 # its phases sharing the process table and the counters; not yet split into steps.
 def run_size(
-    n: int, args: argparse.Namespace, world: Any, workdir: Path, say: Any, extra: list[str] | None = None
+    n: int,
+    args: argparse.Namespace,
+    world: Any,
+    workdir: Path,
+    say: Any,
+    fusers: int = 1,
+    extra: list[str] | None = None,
 ) -> dict[str, Any]:
     """One fleet of ``n`` robots: start, measure, stop; returns the size's JSON entry.
+    ``fusers`` >= 2: a fusion tree (:mod:`agents.bench.tree`) instead of one service.
 
     ``extra``: the argv of one more process (``bench hostile``'s attacker; the bus flags are
     appended), started once every robot's first map is on the bus; latency samples of 0 ms
     (its maps, stamped ahead) are then left out, and the entry also gets the fusion service's
     ``rss_kb`` at the window's start and end and its counters."""
+    from agents.bench.tree import LinkCounter, level_latencies, start_tree, synthetic_recordings
     from agents.files.io import write_json
     from agents.fleet.bus import free_port, tcp_endpoint
     from agents.fleet.robot import start_pose_of
 
-    d = workdir / f"n{n}"
+    d = workdir / (f"n{n}" if fusers == 1 else f"n{n}-f{fusers}")
     if d.exists():
         shutil.rmtree(d)
     d.mkdir(parents=True)
     mode = "filter" if n <= args.filter_upto else "replay"
     ids = [f"r{k + 1}" for k in range(n)]
     thr = args.merge_threshold
-    if mode == "replay":
+    if mode == "replay" and args.synthetic:
+        recs = synthetic_recordings(args.world, n, args.seed, args.cache, args.resolution)
+    elif mode == "replay":
         recs = recordings_for(
             args.world, n, args.seed, args.cache, args.particles, DEFAULT_OVERLAP, args.resolution, say, thr
         )
@@ -279,11 +318,16 @@ def run_size(
     with Procs(d / "logs") as procs:
         procs.start("router", ["-m", "agents", "router", "--listen", ep])
         with BusObserver(ep, FLEET, timeout=60.0) as obs:
-            fuse = ["-m", "agents", "fuse", *bus, "--store", str(store), "--threshold", repr(thr)]
-            if args.record:
-                fuse += ["--rrd", str(d / "recording.rrd"), "--world", args.world]
-            procs.start("fuse", fuse)
-            procs.wait_log("fuse", "fusion service ready", 90.0)
+            if fusers == 1:
+                fuse = ["-m", "agents", "fuse", *bus, "--store", str(store), "--threshold", repr(thr)]
+                if args.record:
+                    fuse += ["--rrd", str(d / "recording.rrd"), "--world", args.world]
+                procs.start("fuse", fuse)
+                procs.wait_log("fuse", "fusion service ready", 90.0)
+                fnames = ["fuse"]
+            else:
+                fnames = start_tree(procs, fusers, ids, bus, d, thr)
+            links = LinkCounter(obs.session, f"wiremap/{FLEET}")
             for group in groups:
                 if mode == "replay":
                     argv = ["-m", "agents.bench.replay_robot"]
@@ -308,21 +352,38 @@ def run_size(
             sleep_checked(procs, args.warmup)
             rss0 = obs.fusion_stats().get("rss_kb") if extra is not None else None
             harvest = LatencyHarvest(store)
-            pid_f, pid_r = procs.pid("fuse"), procs.pid("router")
-            c0, r0 = cpu_seconds(pid_f), cpu_seconds(pid_r)
+            pid_r = procs.pid("router")
+            f0 = {f: cpu_seconds(procs.pid(f)) for f in fnames}
+            c0, r0 = _cpu_total(procs, fnames), cpu_seconds(pid_r)
             b0 = _cpu_total(procs, names)
             t0, w0 = time.monotonic(), time.time_ns()
             obs.start_window(keep=True)
+            links.on = True
+            killed_at = None
             while (left := t0 + args.duration - time.monotonic()) > 0:
+                if fusers > 1 and args.kill_fuser is not None and killed_at is None:
+                    due = t0 + args.kill_fuser - time.monotonic()
+                    if due <= 0:
+                        os.kill(procs.pid("g1"), signal.SIGKILL)
+                        killed_at = time.monotonic()
+                        say(f"killed g1 (pid {procs.pid('g1')}) with SIGKILL")
+                        procs.procs.pop("g1").wait()  # reaped: the run goes on without it
+                        fnames = [f for f in fnames if f != "g1"]
+                        continue
+                    left = min(left, due)
                 sleep_checked(procs, min(1.0, left))
                 harvest.poll()
             win = obs.end_window()
+            links.on = False
             t1, w1 = time.monotonic(), time.time_ns()
             end_stats = obs.fusion_stats()
             if extra is not None:
                 procs.stop(["extra"], 10.0)
             transport = end_stats.get("transport_ms") or {}
-            c1, r1 = cpu_seconds(pid_f), cpu_seconds(pid_r)
+            c1, r1 = _cpu_total(procs, fnames), cpu_seconds(pid_r)
+            f1 = {f: cpu_seconds(procs.pid(f)) for f in fnames}
+            stall = links.max_gap("g1", killed_at - 1.0, t1) if killed_at is not None else None
+            root_stats = obs.fusion_stats() if fusers > 1 else {}
             b1 = _cpu_total(procs, names)
             kept = obs.kept
             if mode == "replay":
@@ -336,8 +397,11 @@ def run_size(
                 wait_for(procs, finals, 15.0, "the robots' final maps")
             procs.stop(names, 15.0)
             time.sleep(0.5)  # the robots' last maps reach the fusion service's queue
-            procs.stop(["fuse"], 60.0)
+            procs.stop([f for f in fnames if f != "root"], 60.0)
+            time.sleep(0.3 if fusers > 1 else 0.0)
+            procs.stop(["root"] if fusers > 1 else [], 30.0)
             total = obs.snapshot()
+            links.close()
         procs.stop(["router"], 10.0)
     harvest.poll()
     state = read_state(store)
@@ -379,6 +443,23 @@ def run_size(
         "mean_map_bytes": rounded(map_bytes / max(1, sum(c.maps for c in win.values())), 1),
     })
     result.update(_fused_quality(store, world))
+    if fusers > 1:
+        reg = level_latencies(d, fnames, w0, w1)["regional"]
+        rs = (root_stats.get("stats") or {}).get("root_ms") or {}
+        result.update({
+            "regional_ms_p50": rounded(percentile(reg, 50)),
+            "regional_ms_p99": rounded(percentile(reg, 99)),
+            "root_ms_p50": rounded(rs.get("p50")),
+            "root_ms_p99": rounded(rs.get("p99")),
+            "fused_exact": root_stats.get("exact"),
+        })
+    result.update({
+        "fusers": fusers,
+        "fuser_cpu": {f: _share(f0[f], f1[f], wall) for f in fnames},
+        "link_bytes_per_s": {h: rounded(b / wall, 1) for h, b in links.bytes.items()},
+        "load_avg": [round(v, 2) for v in os.getloadavg()],
+        "fuser_stall_s": rounded(stall, 3) if fusers > 1 and args.kill_fuser is not None else None,
+    })
     result.update({
         "maps_sent": _sent_counts(d, ids, mode),
         "maps_published": sum(c.valid for c in total.values()),
@@ -421,23 +502,39 @@ def run(args: argparse.Namespace) -> int:
         workdir = Path(tmp)
     results: dict[str, Any] = {}
     try:
+        fuser_counts = [int(k) for k in str(args.fusers).split(",") if k.strip()]
+    except ValueError:
+        raise UserError(f"--fusers must be a comma-separated list of counts, got {args.fusers!r}") from None
+    if not fuser_counts or any(k < 1 for k in fuser_counts):
+        raise UserError(f"--fusers: counts must be >= 1, got {args.fusers!r}")
+    try:
         for n in sizes:
-            say(f"{n} robot(s) for {args.duration:g} s at {args.rate:g} Hz in {world.name} ...")
-            results[str(n)] = run_size(n, args, world, workdir, say)
+            for k in fuser_counts:
+                say(f"{n} robot(s), {k} fuser(s) for {args.duration:g} s at {args.rate:g} Hz in {world.name} ...")
+                results[str(n) if k == 1 else f"{n}/f{k}"] = run_size(n, args, world, workdir, say, k)
     finally:
         if tmp is not None:
             shutil.rmtree(tmp, ignore_errors=True)
-    head = ["robots", "mode", "p50_ms", "p99_ms", "in_p99", "fuse_cpu", "B/s/robot", "grid_B/s", "ratio", "r_msg",
+    head = ["robots", "fusers", "mode", "p50_ms", "p99_ms", "in_p99", "fuse_cpu", "B/s/robot", "grid_B/s", "ratio", "r_msg",
             "r_body", "r_thr", "recall", "mean_m", "published", "merged"]
     rows = [
-        [n, r["robots_mode"], r["latency_ms_p50"], r["latency_ms_p99"], r["transport_ms_p99"], r["fusion_cpu_share"],
+        [n.split("/")[0], r["fusers"], r["robots_mode"], r["latency_ms_p50"], r["latency_ms_p99"], r["transport_ms_p99"], r["fusion_cpu_share"],
          r["bytes_per_s_per_robot"], r["grid_bytes_per_s_per_robot"], r["grid_ratio"], r["grid_ratio_msg"],
          r["grid_ratio_body"], r["grid_ratio_at_merge_threshold"], r["fused_recall"], r["fused_mean_dist_m"],
          r["maps_published"], r["maps_merged"]]
         for n, r in results.items()
     ]
     print_table(head, rows)
-    largest = results[str(max(sizes))]
+    largest = results.get(str(max(sizes))) or list(results.values())[-1]
+    trees = [(key, r) for key, r in results.items()]
+    if any(r["fusers"] > 1 for _, r in trees):
+        print_table(
+            ["run", "p50_ms", "p99_ms", "regional_p99", "root_p99", "fuser_cpu", "robots->regional B/s",
+             "regional->root B/s", "root->clients B/s", "load"],
+            [[key, r["latency_ms_p50"], r["latency_ms_p99"], r.get("regional_ms_p99"), r.get("root_ms_p99"),
+              " ".join(f"{f}:{v}" for f, v in r["fuser_cpu"].items()), *r["link_bytes_per_s"].values(),
+              r["load_avg"][0]] for key, r in trees],
+        )
     p99 = largest["latency_ms_p99"]
     ratios = [r["grid_ratio"] for r in results.values() if r["grid_ratio"] is not None]
     summary = {

@@ -23,12 +23,17 @@ Scores (:mod:`mapping.lidar_metrics`), per log and method:
   (drifting) odometry, beside them.
 
 Real-log settings, passed from here and never changed in the mapper: the range cap (default
-20 m, as ``wiremap map``), the merge threshold (0.2 m), the field of view from the log's beams.
+20 m, as ``wiremap map``), the merge threshold (0.2 m), the field of view from the log's beams,
+and the real-lidar profile (:func:`agents.mapping_run.lidar_profile`: odometry noise, point
+match, extractor; ``--profile none`` for the simulator's defaults) with any ``--set KEY=VALUE``
+on top (dotted keys: ``extract.*``, ``frontend.*``, else :class:`mapping.filter.FilterConfig`'s).
+The settings applied are in the JSON as ``"settings"``.
 
 Output: an aligned table on stdout, a PNG per log in ``--out`` (the map over the endpoints, with
 the true and estimated paths, a legend and a scale bar), and with ``--json`` one last line::
 
-    {"logs": {NAME: {"scans", "ate_rmse_m", ..., ["baseline": {...}]}}, "median": {...}}
+    {"logs": {NAME: {"scans", "ate_rmse_m", ..., ["baseline": {...}]}}, "median": {...},
+     "profile": "lidar", "settings": {KEY: VALUE, ...}}
 
 where ``median`` holds the medians over logs of every numeric key (and of the baseline's under
 ``"baseline"``).
@@ -80,7 +85,37 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", default="out/bench-lidar", metavar="DIR", help="where the PNGs go")
     parser.add_argument("--jobs", type=int, default=1, metavar="N",
                         help="run N logs at once in separate processes (default 1; they share the cores)")
+    parser.add_argument("--profile", choices=("lidar", "none"), default="lidar",
+                        help="real-lidar settings (agents.mapping_run.lidar_profile; default) or none")
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", dest="sets",
+                        help="override one setting (dotted key, e.g. odometry.rot_per_m=0.05); repeatable")
     parser.add_argument("--quiet", action="store_true", help="no progress on stderr")
+
+
+def settings_for(profile: str, sets: list[str]) -> dict[str, Any]:
+    """The profile's overrides with ``--set KEY=VALUE`` ones on top, checked.
+
+    Raises
+    ------
+    UserError
+        A ``--set`` without ``=``, or a key or value the configuration rejects.
+    """
+    from agents import mapping_run as mr
+    from mapping.config import ConfigError, with_overrides
+    from mapping.filter import FilterConfig
+
+    out: dict[str, Any] = mr.lidar_profile() if profile == "lidar" else {}
+    for item in sets:
+        key, eq, value = item.partition("=")
+        if not eq or not key.strip():
+            raise UserError(f"--set {item!r}: expected KEY=VALUE")
+        out[key.strip()] = value.strip()
+    try:
+        fo, _, _ = mr.split_profile(out)
+        with_overrides(FilterConfig(), fo)
+    except (ConfigError, ValueError) as exc:
+        raise UserError(f"--set: {exc}") from None
+    return out
 
 
 def log_name(path: str | Path) -> str:
@@ -184,7 +219,7 @@ def _poses(ps: list[Any]) -> np.ndarray:
 
 def run_log(
     path: str, *, seed: int, particles: int, steps: int | None, max_range: float, thr: float,
-    baseline: bool, out: str, progress: bool = False,
+    baseline: bool, out: str, progress: bool = False, settings: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
     """One log: read it, map it (and the baseline on the same scans), score, write its PNG.
     Returns the log's result object (see the module notes). Runs in a worker process too."""
@@ -192,6 +227,7 @@ def run_log(
     from agents.bench.lidar_png import lidar_png
     from agents.files.carmen import read_carmen_log, scan_truth
     from agents.files.io import write_atomic
+    from mapping.config import with_overrides
     from mapping.filter import WireframeFilter, particle_bytes
     from mapping.lidar_metrics import ate, map_coverage, map_precision, rpe, scan_endpoints
 
@@ -207,7 +243,8 @@ def run_log(
     truth = truth[: len(scans)]
     cap = min(float(scans[0].max_range), max_range)
     t0 = time.perf_counter()
-    inputs = list(mr.carmen_inputs(scans, max_range=cap, truth=truth))
+    filter_overrides, extract_cfg, frontend_cfg = mr.split_profile(dict(settings or {}))
+    inputs = list(mr.carmen_inputs(scans, max_range=cap, truth=truth, extract=extract_cfg, frontend=frontend_cfg))
     extract_s = time.perf_counter() - t0
     true_xyt = _poses(truth)
     odom_xyt = _poses([s.odom for s in scans])
@@ -215,7 +252,7 @@ def run_log(
     fov = mr.scan_fov(scans[0].angles)
 
     def one(method: str, p: int) -> tuple[dict[str, Any], Any, np.ndarray]:
-        cfg = mr.filter_config_for(p, thr, cap, fov=fov)
+        cfg = with_overrides(mr.filter_config_for(p, thr, cap, fov=fov), filter_overrides)
         filt = WireframeFilter(cfg, mr.seeds_for(seed)["filter"], initial_pose=truth[0])
         busy = 0.0
         est = []
@@ -340,9 +377,10 @@ def run(args: argparse.Namespace) -> int:
     for p in paths:
         if not p.is_file():
             raise UserError(f"{p}: no such file")
+    settings = settings_for(args.profile, list(args.sets))
     job = functools.partial(
         run_log, seed=args.seed, particles=args.particles, steps=args.steps, max_range=args.max_range,
-        thr=args.merge_threshold, baseline=bool(args.baseline), out=str(args.out),
+        thr=args.merge_threshold, baseline=bool(args.baseline), out=str(args.out), settings=settings,
     )
     results: dict[str, dict[str, Any]] = {}
     say = _Progress(not args.quiet, live=False)
@@ -368,5 +406,5 @@ def run(args: argparse.Namespace) -> int:
     if base_med is not None:
         med["baseline"] = base_med
     if args.json:
-        print(json.dumps({"logs": results, "median": med}))
+        print(json.dumps({"logs": results, "median": med, "profile": args.profile, "settings": settings}))
     return 0

@@ -10,8 +10,9 @@ measures is transport and fusion.
 **Several robots in one process** (``--id``/``--recording`` repeated, in pairs): each robot
 has its own Zenoh session (its own connection to the router, as a separate computer would),
 its own liveliness token and keys, and its own schedule (the loop below, all robots served
-from one thread, :func:`run_all`), with the same payloads and rates as a process of its own. Only the operating-system process is shared: on a
-two-core machine sixteen Python processes (plus the router and the fusion service) would
+from one thread, :func:`run_all`), with the same payloads and rates as a process of its own.
+Only the operating-system process is shared: on a two-core machine sixteen Python processes
+(plus the router and the fusion service) would
 measure CPU contention between simulated robots rather than transport and fusion. Robot ``k``
 (from 0) starts its first tick ``phase`` seconds late, drawn uniformly in ``[0, 1 / rate)``
 from ``--seed`` (independent robots are not in step; a single robot starts at once), and its
@@ -83,23 +84,30 @@ HELP = "replay recorded robot maps on the bus (benchmark robot)"
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
-        "--id", required=True, action="append", help="robot id (letters, digits, '_', '.', '-'); repeat for several"
+        "--id", required=True, action="append",
+        help="robot id (letters, digits, '_', '.', '-'); repeat for several"
     )
     parser.add_argument(
         "--recording", required=True, action="append", metavar="FILE",
         help="a recording (agents.bench.common); one per --id, in the same order",
     )
     parser.add_argument("--rate", type=float, default=10.0, metavar="HZ", help="maps per second (default 10)")
-    parser.add_argument("--pose-rate", type=float, default=10.0, metavar="HZ", help="poses per second (default 10)")
+    parser.add_argument("--pose-rate", type=float, default=10.0, metavar="HZ",
+                        help="poses per second (default 10)")
     parser.add_argument(
-        "--heartbeat", type=float, default=2.0, metavar="S", help="re-send the map at least every S s (default 2)"
+        "--heartbeat", type=float, default=2.0, metavar="S",
+        help="re-send the map at least every S s (default 2)"
     )
-    parser.add_argument("--corrupt", type=float, default=0.0, metavar="P", help="damage each map with probability P")
+    parser.add_argument("--corrupt", type=float, default=0.0, metavar="P",
+                        help="damage each map with probability P")
     parser.add_argument("--seed", type=int, default=0, help="seed of the corruption (default 0)")
-    parser.add_argument("--no-loop", action="store_true", help="play the recording once, then heartbeats only")
-    parser.add_argument("--log", metavar="FILE", help="append one line per map payload to FILE ({id}: the robot's id)")
+    parser.add_argument("--no-loop", action="store_true",
+                        help="play the recording once, then heartbeats only")
+    parser.add_argument("--log", metavar="FILE",
+                        help="append one line per map payload to FILE ({id}: the robot's id)")
     parser.add_argument(
-        "--status-file", metavar="FILE", help="write the final status as JSON to FILE on exit ({id}: the robot's id)"
+        "--status-file", metavar="FILE",
+        help="write the final status as JSON to FILE on exit ({id}: the robot's id)"
     )
     add_bus_arguments(parser)
 
@@ -332,10 +340,12 @@ def run(args: argparse.Namespace) -> int:
     logs = [_per_robot(args.log, r, several, "--log") for r in ids]
     status_files = [_per_robot(args.status_file, r, several, "--status-file") for r in ids]
     keys = fleet_keys(args)
-    phases = np.random.default_rng(args.seed).uniform(0.0, 1.0 / args.rate, len(ids)) if several else np.zeros(1)
+    phases = (np.random.default_rng(args.seed).uniform(0.0, 1.0 / args.rate, len(ids)) if several
+              else np.zeros(1))
 
     def say(text: str) -> None:
-        print(f"replay robot {' '.join(ids) if len(ids) <= 4 else f'{ids[0]}..{ids[-1]}'}: {text}", flush=True)
+        print(f"replay robot {' '.join(ids) if len(ids) <= 4 else f'{ids[0]}..{ids[-1]}'}: {text}",
+              flush=True)
 
     fds: list[int | None] = []
     sessions: list[Any] = []
@@ -358,7 +368,8 @@ def run(args: argparse.Namespace) -> int:
                     return 0
                 sessions.append(session)
                 bots.append(ReplayRobot(
-                    session, keys, rid, rec, rate=args.rate, pose_rate=args.pose_rate, heartbeat=args.heartbeat,
+                    session, keys, rid, rec, rate=args.rate, pose_rate=args.pose_rate,
+                    heartbeat=args.heartbeat,
                     corrupt_p=args.corrupt, seed=args.seed + k, loop=not args.no_loop, log_fd=fds[k],
                     phase=float(phases[k]),
                 ))
@@ -373,7 +384,8 @@ def run(args: argparse.Namespace) -> int:
                 for bot in bots:
                     bot.start()
                 for bot, rec in zip(bots, recs):
-                    say(f"on the bus as {keys.robot_map(bot.robot)}: {len(rec.frames)} frames at {args.rate:g} Hz")
+                    say(f"on the bus as {keys.robot_map(bot.robot)}: {len(rec.frames)} frames "
+                        f"at {args.rate:g} Hz")
 
                 run_all(bots, stop)  # one thread: the robots' puts need no interpreter-lock handoffs
                 results.update({b.robot: b.status() for b in bots})

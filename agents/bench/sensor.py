@@ -39,10 +39,12 @@ HELP = "label accuracy of the corner sensor and corner error of split-and-merge 
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--worlds", default="paper-small,museum", help="comma-separated worlds (default paper-small,museum)")
+    parser.add_argument("--worlds", default="paper-small,museum",
+                        help="comma-separated worlds (default paper-small,museum)")
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--tol", type=float, default=0.1, help="matching tolerance in metres (default 0.1)")
-    parser.add_argument("--lidar-every", type=int, default=5, help="use every k-th pose for lidar (default 5)")
+    parser.add_argument("--lidar-every", type=int, default=5,
+                        help="use every k-th pose for lidar (default 5)")
     parser.add_argument("--json", action="store_true", help="print the JSON object as the last line")
 
 
@@ -56,7 +58,8 @@ def _world_figures(name: str, seed: int, tol: float, lidar_every: int) -> dict[s
         total = total + label_stats(sensor.scan(st.true_pose, rng), sensor.true_scan(st.true_pose), tol)
 
     lidar = LidarConfig(beams=720, fov=2 * math.pi, max_range=sensor.config.max_range)
-    lidar_view = CornerSensor(world.truth, CornerSensorConfig(max_range=lidar.max_range, sigma=0.0, p_fp=0.0, p_fn=0.0))
+    lidar_view = CornerSensor(world.truth,
+                              CornerSensorConfig(max_range=lidar.max_range, sigma=0.0, p_fp=0.0, p_fn=0.0))
     segs = world.truth.segments()
     errors: list[float] = []
     n_true = n_same = n_scans = 0

@@ -74,16 +74,25 @@ MB = 1024.0 * 1024.0
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--robots", type=int, default=16, metavar="N", help="robots (default 16)")
-    parser.add_argument("--minutes", type=float, default=10.0, metavar="M", help="length of the run (default 10)")
-    parser.add_argument("--corrupt", type=float, default=0.01, metavar="P", help="share of damaged payloads (default 0.01)")
-    parser.add_argument("--rate", type=float, default=10.0, metavar="HZ", help="maps per second per robot (default 10)")
-    parser.add_argument("--kill-every", type=float, default=60.0, metavar="S", help="SIGKILL + restart a robot every S s")
-    parser.add_argument("--world", default="paper-small", metavar="NAME|FILE", help="world (default paper-small)")
+    parser.add_argument("--minutes", type=float, default=10.0, metavar="M",
+                        help="length of the run (default 10)")
+    parser.add_argument("--corrupt", type=float, default=0.01, metavar="P",
+                        help="share of damaged payloads (default 0.01)")
+    parser.add_argument("--rate", type=float, default=10.0, metavar="HZ",
+                        help="maps per second per robot (default 10)")
+    parser.add_argument("--kill-every", type=float, default=60.0, metavar="S",
+                        help="SIGKILL + restart a robot every S s")
+    parser.add_argument("--world", default="paper-small", metavar="NAME|FILE",
+                        help="world (default paper-small)")
     parser.add_argument("--seed", type=int, default=0, help="seed (default 0)")
-    parser.add_argument("--particles", type=int, default=DEFAULT_PARTICLES, help="particles of the recorded filters")
-    parser.add_argument("--warmup", type=float, default=2.0, metavar="S", help="seconds before the clock starts (default 2)")
-    parser.add_argument("--cache", default=str(DEFAULT_CACHE), metavar="DIR", help="recordings cache (default out/bench-cache)")
-    parser.add_argument("--out", metavar="DIR", help="keep logs and the store here (default: a temporary directory)")
+    parser.add_argument("--particles", type=int, default=DEFAULT_PARTICLES,
+                        help="particles of the recorded filters")
+    parser.add_argument("--warmup", type=float, default=2.0, metavar="S",
+                        help="seconds before the clock starts (default 2)")
+    parser.add_argument("--cache", default=str(DEFAULT_CACHE), metavar="DIR",
+                        help="recordings cache (default out/bench-cache)")
+    parser.add_argument("--out", metavar="DIR",
+                        help="keep logs and the store here (default: a temporary directory)")
     parser.add_argument("--json", action="store_true", help="print the JSON summary as the last line")
 
 
@@ -134,8 +143,9 @@ def soak(args: argparse.Namespace, world: Any, d: Path, say: Any) -> dict[str, A
     def robot_argv(k: int) -> list[str]:
         rid = ids[k]
         seed = args.seed * 1000 + 100 * starts[rid] + k
-        return ["-m", "agents.bench.replay_robot", "--id", rid, "--recording", str(recs[k]), "--rate", str(args.rate),
-                "--corrupt", str(args.corrupt), "--seed", str(seed), "--log", str(d / "sent" / f"{rid}.log"), *bus]
+        return ["-m", "agents.bench.replay_robot", "--id", rid, "--recording", str(recs[k]), "--rate",
+                str(args.rate), "--corrupt", str(args.corrupt), "--seed", str(seed), "--log",
+                str(d / "sent" / f"{rid}.log"), *bus]
 
     rss: list[tuple[float, int]] = []
     restarts: list[dict[str, Any]] = []  # {robot, t, boots_before, survived}
@@ -144,7 +154,8 @@ def soak(args: argparse.Namespace, world: Any, d: Path, say: Any) -> dict[str, A
         procs.start("router", ["-m", "agents", "router", "--listen", ep])
         with BusObserver(ep, FLEET, timeout=60.0) as obs:
             thr = default_merge_threshold(world)  # as the recordings' filters
-            procs.start("fuse", ["-m", "agents", "fuse", *bus, "--store", str(store), "--threshold", repr(thr)])
+            procs.start("fuse",
+                        ["-m", "agents", "fuse", *bus, "--store", str(store), "--threshold", repr(thr)])
             procs.wait_log("fuse", "fusion service ready", 90.0)
             for k in range(n):
                 procs.start(ids[k], robot_argv(k))
@@ -197,7 +208,8 @@ def soak(args: argparse.Namespace, world: Any, d: Path, say: Any) -> dict[str, A
                     procs.kill(rid)
                     starts[rid] += 1
                     procs.start(rid, robot_argv(ids.index(rid)))
-                    restarts.append({"robot": rid, "t": time.monotonic(), "boots_before": before, "survived": False})
+                    restarts.append({"robot": rid, "t": time.monotonic(), "boots_before": before,
+                                     "survived": False})
                     say(f"t={now - t0:.0f} s: killed {rid} (SIGKILL) and started it again")
                 time.sleep(max(0.0, min(next_rss, next_kill, t0 + length) - time.monotonic()))
             t1, w1 = time.monotonic(), time.time_ns()
@@ -208,7 +220,8 @@ def soak(args: argparse.Namespace, world: Any, d: Path, say: Any) -> dict[str, A
             # restarts near the end: give them a few seconds to reach the store
             deadline = time.monotonic() + 10.0
             check_restarts()
-            while any(not r["survived"] for r in restarts) and time.monotonic() < deadline and procs.alive("fuse"):
+            while (any(not r["survived"] for r in restarts) and time.monotonic() < deadline
+                   and procs.alive("fuse")):
                 time.sleep(0.25)
                 check_restarts()
             procs.stop(ids, 15.0)
@@ -259,7 +272,8 @@ def soak(args: argparse.Namespace, world: Any, d: Path, say: Any) -> dict[str, A
         "latency_samples_missed": harvest.missed,
         "restarts": len(restarts),
         "restarts_survived": sum(1 for r in restarts if r["survived"]),
-        "restart_merged_after_s_max": rounded(max((r.get("merged_after_s", 0.0) for r in restarts), default=None)),
+        "restart_merged_after_s_max": rounded(max((r.get("merged_after_s", 0.0) for r in restarts),
+                                                  default=None)),
         "fusion_alive": fusion_alive,
         "fusion_version": int(state.get("version", 0) or 0),
         "window_s": round(wall, 3),
@@ -294,7 +308,8 @@ def run(args: argparse.Namespace) -> int:
     else:
         tmp = tempfile.mkdtemp(prefix="wiremap-bench-soak-")
         d = Path(tmp)
-    say(f"{args.robots} robots for {args.minutes:g} min at {args.rate:g} Hz, {100 * args.corrupt:g} % damaged, "
+    say(f"{args.robots} robots for {args.minutes:g} min at {args.rate:g} Hz, "
+        f"{100 * args.corrupt:g} % damaged, "
         f"a SIGKILL + restart every {args.kill_every:g} s, in {world.name}")
     try:
         r = soak(args, world, d, say)
@@ -302,10 +317,13 @@ def run(args: argparse.Namespace) -> int:
         if tmp is not None:
             shutil.rmtree(tmp, ignore_errors=True)
     rows = [
-        ["valid maps sent / reached the bus / merged", f"{r['valid_sent']} / {r['valid_published']} / {r['maps_merged']}"],
+        ["valid maps sent / reached the bus / merged",
+         f"{r['valid_sent']} / {r['valid_published']} / {r['maps_merged']}"],
         ["valid maps lost", r["maps_lost"]],
-        ["damaged sent / reached the bus / dropped", f"{r['corrupt_sent']} / {r['corrupt_published']} / {r['corrupt_dropped']}"],
-        ["fusion RSS start / end / max (MB)", f"{r['fusion_rss_mb_start']} / {r['fusion_rss_mb_end']} / {r['fusion_rss_mb_max']}"],
+        ["damaged sent / reached the bus / dropped",
+         f"{r['corrupt_sent']} / {r['corrupt_published']} / {r['corrupt_dropped']}"],
+        ["fusion RSS start / end / max (MB)",
+         f"{r['fusion_rss_mb_start']} / {r['fusion_rss_mb_end']} / {r['fusion_rss_mb_max']}"],
         ["fusion RSS slope (MB/min)", r["fusion_rss_mb_per_min"]],
         ["latency p50 / p99 (ms)", f"{r['latency_ms_p50']} / {r['latency_ms_p99']}"],
         ["restarts survived", f"{r['restarts_survived']} / {r['restarts']}"],

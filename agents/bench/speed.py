@@ -66,7 +66,8 @@ WORLDS = (("paper_small", "paper-small"), ("museum", "museum"))
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--particles", type=int, default=10, help="particles (default 10)")
-    parser.add_argument("--steps", type=int, default=400, metavar="N", help="timed scans per world (default 400)")
+    parser.add_argument("--steps", type=int, default=400, metavar="N",
+                        help="timed scans per world (default 400)")
     parser.add_argument("--warmup", type=int, default=0, metavar="W",
                         help="paper-small: scans run before the timed ones (default 0)")
     parser.add_argument("--museum-warmup", type=int, default=2000, metavar="W",
@@ -149,11 +150,14 @@ def pieces() -> dict[str, Any]:
     a = rng.uniform(-5, 5, (100, 2))
     walls = np.stack([a, a + rng.uniform(-1, 1, (100, 2))], axis=1)
     lidar = LidarConfig()
-    out["raycast_ms"] = round(_best_s(lambda: raycast(walls, Pose(0.1, 0.2, 0.3), lidar, rng), 5, 10) * 1e3, 3)
+    out["raycast_ms"] = round(
+        _best_s(lambda: raycast(walls, Pose(0.1, 0.2, 0.3), lidar, rng), 5, 10) * 1e3, 3
+    )
 
     small = load_world("paper-small")
     noisy = LidarConfig(sigma=0.01)
-    poses = [inp.true_pose for inp in mr.simulate(small, mr.SimOptions(steps=20), 0) if inp.true_pose is not None]
+    poses = [inp.true_pose for inp in mr.simulate(small, mr.SimOptions(steps=20), 0)
+             if inp.true_pose is not None]
     ranges = [raycast(small.truth.segments(), p, noisy, rng) for p in poses]
     angles = noisy.angles()
 
@@ -164,9 +168,12 @@ def pieces() -> dict[str, Any]:
     out["extract_ms"] = round(_best_s(extract_all, 3) / len(ranges) * 1e3, 3)
 
     museum = load_world("museum")
-    moved = museum.truth.replace(points=museum.truth.points + rng.normal(0.0, 0.15, museum.truth.points.shape))
+    moved = museum.truth.replace(points=museum.truth.points
+                                 + rng.normal(0.0, 0.15, museum.truth.points.shape))
     out["evaluate_museum_ms"] = round(_best_s(lambda: evaluate(museum.truth, moved, 0.4), 3) * 1e3, 1)
-    out["render_museum_ms"] = round(_best_s(lambda: map_png(museum.truth, truth=museum.truth, max_px=1000), 3) * 1e3, 1)
+    out["render_museum_ms"] = round(
+        _best_s(lambda: map_png(museum.truth, truth=museum.truth, max_px=1000), 3) * 1e3, 1
+    )
 
     w = BitWriter()
     w.eg(10**6)
@@ -217,24 +224,27 @@ def run(args: argparse.Namespace) -> int:
         warmup = args.museum_warmup if key == "museum" else args.warmup
         for seed in seeds:
             cmd = [sys.executable, "-m", "agents", "bench", "speed", "--child", spec, "--particles",
-                   str(args.particles), "--steps", str(args.steps), "--warmup", str(warmup), "--seed", str(seed)]
+                   str(args.particles), "--steps", str(args.steps), "--warmup", str(warmup),
+                   "--seed", str(seed)]
             proc = subprocess.run(cmd, env=env, capture_output=True, text=True, check=False)
             if proc.returncode != 0:
                 raise UserError(f"speed run on {spec} failed: {proc.stderr.strip().splitlines()[-1:]}")
             runs[key].append(json.loads(proc.stdout.strip().splitlines()[-1]) | {"seed": seed})
             if args.seeds > 1:
                 r = runs[key][-1]
-                sys.stderr.write(f"{spec} seed {seed}: {r['updates_per_s']:.1f} ups, p50 {r['step_ms_p50']:.2f} ms\n")
+                sys.stderr.write(f"{spec} seed {seed}: {r['updates_per_s']:.1f} ups, "
+                                 f"p50 {r['step_ms_p50']:.2f} ms\n")
     keys = ("updates_per_s", "step_ms_p50", "step_ms_p95", "peak_rss_mb")
-    medians = {key: {k: round(float(np.median([r[k] for r in rs])), 3) for k in keys} for key, rs in runs.items()}
+    medians = {key: {k: round(float(np.median([r[k] for r in rs])), 3) for k in keys}
+               for key, rs in runs.items()}
     ratio = medians["museum"]["step_ms_p50"] / medians["paper_small"]["step_ms_p50"]
     head = ["world", "seed", "ups", "p50_ms", "p95_ms", "rss_mb", "cpu_ups", "timed", "vertices"]
     rows = [head]
     for key, spec in WORLDS:
         rows += [
-            [spec, str(r["seed"]), f"{r['updates_per_s']:.1f}", f"{r['step_ms_p50']:.2f}", f"{r['step_ms_p95']:.2f}",
-             f"{r['peak_rss_mb']:.1f}", f"{r['cpu_updates_per_s']}", f"{r['first']}-{r['first'] + r['steps'] - 1}",
-             str(r["map_vertices"])]
+            [spec, str(r["seed"]), f"{r['updates_per_s']:.1f}", f"{r['step_ms_p50']:.2f}",
+             f"{r['step_ms_p95']:.2f}", f"{r['peak_rss_mb']:.1f}", f"{r['cpu_updates_per_s']}",
+             f"{r['first']}-{r['first'] + r['steps'] - 1}", str(r["map_vertices"])]
             for r in runs[key]
         ]
         if args.seeds > 1:

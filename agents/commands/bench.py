@@ -1,4 +1,5 @@
-"""``wiremap bench {accuracy,speed,codec,fleet,soak,sensor,register,lidar}``: dispatches to :mod:`agents.bench`."""
+"""``wiremap bench {accuracy,speed,codec,fleet,soak,sensor,register,lidar,fingerprint}``: dispatches to
+:mod:`agents.bench`."""
 
 from __future__ import annotations
 
@@ -16,6 +17,7 @@ BENCHES: dict[str, tuple[str, str]] = {
     "sensor": ("agents.bench.sensor", "corner-sensor label accuracy and split-and-merge corner error"),
     "register": ("agents.bench.register", "global registration of map pairs in unrelated frames"),
     "lidar": ("agents.bench.lidar", "the mapper on real CARMEN lidar logs against their truth"),
+    "fingerprint": ("agents.bench.fingerprint", "hash the filter's poses and particle sets (bit-identity check)"),
 }
 
 

@@ -27,10 +27,13 @@ HELP = "show the particle filter's effective configuration (TOML, readable by --
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     sub = parser.add_subparsers(dest="action", metavar="ACTION", parser_class=type(parser), required=True)
-    show = sub.add_parser("show", help="print the effective configuration", description=__doc__.split("\n\n")[1])
-    show.add_argument("--world", metavar="NAME|FILE", help="apply this world's defaults (threshold, particles)")
+    show = sub.add_parser("show", help="print the effective configuration",
+                          description=__doc__.split("\n\n")[1])
+    show.add_argument("--world", metavar="NAME|FILE",
+                      help="apply this world's defaults (threshold, particles)")
     show.add_argument("--particles", type=int, default=None, help="number of particles")
-    show.add_argument("--merge-threshold", type=float, default=None, metavar="M", help="merge threshold, metres")
+    show.add_argument("--merge-threshold", type=float, default=None, metavar="M",
+                      help="merge threshold, metres")
     show.add_argument("--max-range", type=float, default=None, metavar="M", help="sensing range, metres")
     show.add_argument("--json", action="store_true", help="print {dotted key: value} as JSON instead of TOML")
     add_config_arguments(show, "--particles, --merge-threshold, --max-range")

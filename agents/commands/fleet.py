@@ -4,7 +4,9 @@
 ``forget=ID``, checked by :func:`agents.fleet.validate.admin_request`) to remove
 robot ``ID`` with no trace: its map, alignment, quarantined map; the store records why. In a
 secure fleet only the fusion (admin) identity may ask (:func:`agents.fleet.secure.acl_config`):
-pass its credentials. A robot still running comes back with its next map.
+pass its credentials (``wiremap run --secure --out DIR``: ``DIR/secure/credentials/fusion.json``).
+A robot still running comes back with its next good map. Exit status 0 when the service
+answered that it forgot the robot, 2 (one line) otherwise.
 """
 
 from __future__ import annotations

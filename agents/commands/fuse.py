@@ -9,6 +9,7 @@ import argparse
 import math
 import sys
 from pathlib import Path
+from typing import Any
 
 from agents.errors import UserError
 from agents.files.io import output_file
@@ -84,7 +85,74 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="M",
         help=f"drop maps with a vertex further than M metres from the fleet origin (default {d.max_extent_m:g})",
     )
+    add_tree_arguments(parser)
     add_bus_arguments(parser)
+
+
+def add_tree_arguments(parser: argparse.ArgumentParser) -> None:
+    """The fusion tree's flags (:mod:`agents.fleet.fusion.regional`, :mod:`agents.fleet.fusion.root`)."""
+    g = parser.add_argument_group("fusion tree")
+    g.add_argument("--group", metavar="NAME", help="be a regional fuser: publish the partial map of --robots on groups/NAME/map")
+    g.add_argument(
+        "--robots", metavar="PATTERN",
+        help="the regional fuser's robots: glob patterns over ids, comma-separated (r0[1-8],r1*), or hash:I/K",
+    )
+    g.add_argument(
+        "--of-groups", metavar="NAME,NAME|*",
+        help="be the root fuser: merge these groups' partial maps (* = every group) into fused/map",
+    )
+    g.add_argument("--no-standby", action="store_true", help="a regional fuser does not take over a dead one's robots")
+
+
+def run_tree(args: argparse.Namespace, say: Any) -> int | None:
+    """``--of-groups``: run the root fuser and return its exit status; ``--group``: check the
+    regional fuser's flags and return None (:func:`run` runs it); None for neither."""
+    if args.group is None and args.of_groups is None and args.robots is None:
+        return None
+    from agents.fleet.bus import valid_name
+    from agents.fleet.fusion.tree import RobotSelector
+
+    if args.of_groups is not None and (args.group is not None or args.robots is not None):
+        raise UserError("--of-groups (the root) does not take --group or --robots")
+    if args.of_groups is not None:
+        names = None if args.of_groups.strip() == "*" else [g.strip() for g in args.of_groups.split(",") if g.strip()]
+        for n in names or []:
+            if not valid_name(n) or n == "root":
+                raise UserError(f"--of-groups: {n!r} is not a group name")
+        return _serve(args, say, lambda session, keys, stop: _root(session, keys, stop, names, args, say))
+    if args.group is None or args.robots is None:
+        raise UserError("a regional fuser needs both --group NAME and --robots PATTERN")
+    if not valid_name(args.group) or args.group == "root":
+        raise UserError(f"--group {args.group!r}: letters, digits, '_', '.', '-' (and not 'root')")
+    RobotSelector.parse(args.robots)  # a bad pattern is one line at once
+    return None
+
+
+def _root(session: Any, keys: Any, stop: Any, names: Any, args: argparse.Namespace, say: Any) -> None:
+    from agents.fleet.fusion.root import serve_root
+
+    svc = serve_root(session, keys, names, stop, args.threshold, max(0.1, args.heartbeat), args.store, say)
+    st = svc.state
+    say(f"stopped at v{st.version}: {st.fused.n_vertices} vertices, {st.fused.n_edges} edges from "
+        f"{len(st.fused_robots)} robots in {len(st.partials)} groups (exact {st.exact})")
+
+
+def _serve(args: argparse.Namespace, say: Any, body: Any) -> int:
+    keys = fleet_keys(args)
+    cfg = config_from_args(args, "client")
+    if args.store:
+        Path(args.store).mkdir(parents=True, exist_ok=True)
+    with StopFlag() as stop:
+        watch_parent(args.parent_pid, stop)
+        session = open_session(cfg, stop, on_wait=lambda t: say(f"waiting for a router ({t})"))
+        if session is None:
+            return 0
+        try:
+            body(session, keys, stop.event)
+        finally:
+            session.close()
+    sys.stdout.flush()
+    return 0
 
 
 def run(args: argparse.Namespace) -> int:
@@ -92,6 +160,12 @@ def run(args: argparse.Namespace) -> int:
 
     from agents.fleet.fusion import FusionConfig, ServeOptions, serve
 
+    def say(text: str) -> None:
+        print(f"wiremap fuse: {text}", flush=True)
+
+    tree = run_tree(args, say)
+    if tree is not None:
+        return tree
     if args.serve_viewer is not None and not args.rrd:
         raise UserError("--serve-viewer needs --rrd FILE (the recording always goes to a file)")
     if args.threshold is not None and not (math.isfinite(args.threshold) and args.threshold > 0):
@@ -136,23 +210,33 @@ def run(args: argparse.Namespace) -> int:
         min_interval_s=args.min_interval,
         save_interval_s=args.save_interval,
         reset=args.reset,
-        config=FusionConfig(threshold=args.threshold, refine=not args.no_refine),
+        # a regional fuser publishes a node of the fold tree: frontiers are closed at the root
+        config=FusionConfig(threshold=args.threshold, refine=not args.no_refine, close_frontiers=args.group is None),
         limits=limits,
         frames=FramesConfig(anchor=check_name(args.anchor) if args.anchor else None),
     )
     keys = fleet_keys(args)
     cfg = config_from_args(args, "client")
+    if args.group is not None:
+        from agents.fleet.fusion.regional import serve_regional
+        from agents.fleet.fusion.tree import RobotSelector
 
-    def say(text: str) -> None:
-        print(f"wiremap fuse: {text}", flush=True)
+        sel = RobotSelector.parse(args.robots)
+        group_name = args.group
 
+        def say(text: str) -> None:
+            print(f"wiremap fuse [{group_name}]: {text}", flush=True)
     with StopFlag() as stop:
         watch_parent(args.parent_pid, stop)
         session = open_session(cfg, stop, on_wait=lambda t: say(f"waiting for a router ({t})"))
         if session is None:
             return 0
         try:
-            state = serve(session, keys, opts, stop.event, say)
+            if args.group is not None:
+                state = serve_regional(session, keys, opts, args.group, sel, stop.event, say,
+                                       standby=not args.no_standby).state
+            else:
+                state = serve(session, keys, opts, stop.event, say)
         finally:
             session.close()
     s = state.stats.as_dict()

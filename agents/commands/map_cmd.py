@@ -53,13 +53,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     src.add_argument("--carmen", metavar="LOG", help="a CARMEN log (FLASER lines) to map")
     parser.add_argument("--out", required=True, metavar="DIR", help="output directory")
     parser.add_argument("--sensor", choices=("corners", "lidar"), default="corners",
-                        help="simulated sensor: the corner sensor or a lidar + split-and-merge (default corners)")
+                        help="simulated sensor: the corner sensor or a lidar + split-and-merge "
+                             "(default corners)")
     parser.add_argument("--particles", type=int, default=None, help="number of particles (default 10)")
     parser.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     parser.add_argument("--merge-threshold", type=float, default=None, metavar="M",
                         help="merge threshold in metres (default 0.2, or 0.4 for worlds over 100 m)")
     parser.add_argument("--max-range", type=float, default=None, metavar="M",
-                        help="sensing range in metres (default 8 in simulation; CARMEN: the log's, at most 20)")
+                        help="sensing range in metres (default 8 in simulation; "
+                             "CARMEN: the log's, at most 20)")
     parser.add_argument("--steps", type=int, default=None, metavar="N", help="stop after N scans")
     parser.add_argument("--duration", type=float, default=None, metavar="S",
                         help="stop after S simulated seconds (the simulation does not wait for the clock)")
@@ -79,7 +81,9 @@ class Progress:
         self._logged = -math.inf
         self._width = 0
 
-    def update(self, k: int, total: int | None, vertices: int, edges: int, ups: float, force: bool = False) -> None:
+    def update(
+        self, k: int, total: int | None, vertices: int, edges: int, ups: float, force: bool = False
+    ) -> None:
         if not self.enabled:
             return
         now = time.monotonic()
@@ -121,7 +125,9 @@ def _check(args: argparse.Namespace) -> None:
         raise UserError(f"--steps must be >= 1, got {args.steps}")
     if args.duration is not None and not args.duration > 0:
         raise UserError(f"--duration must be > 0, got {args.duration}")
-    if args.merge_threshold is not None and not (math.isfinite(args.merge_threshold) and args.merge_threshold > 0):
+    if args.merge_threshold is not None and not (
+        math.isfinite(args.merge_threshold) and args.merge_threshold > 0
+    ):
         raise UserError(f"--merge-threshold must be a positive number of metres, got {args.merge_threshold}")
     if args.max_range is not None and not (math.isfinite(args.max_range) and args.max_range > 0):
         raise UserError(f"--max-range must be a positive number of metres, got {args.max_range}")
@@ -129,7 +135,7 @@ def _check(args: argparse.Namespace) -> None:
 
 def _filter_config(
     args: argparse.Namespace, cargs: ConfigArgs, thr: float, max_range: float, fov: float = 2.0 * math.pi,
-    range_cap: float = math.inf,
+    range_cap: float = math.inf, base: dict[str, Any] | None = None,
 ) -> Resolved:
     """The filter's configuration: 10 particles, ``thr``, ``max_range`` and ``fov`` under the
     file, the flags (``--max-range`` at most ``range_cap``, a log's scanner range) and
@@ -143,7 +149,7 @@ def _filter_config(
     }
     return resolve(
         cargs,
-        lambda ov: filter_config_for(10, thr, max_range, fov, overrides=ov),
+        lambda ov: filter_config_for(10, thr, max_range, fov, overrides={**(base or {}), **ov}),
         {k: v for k, v in flags.items() if v[1] is not None},
     )
 
@@ -204,7 +210,8 @@ def run(args: argparse.Namespace) -> int:
         )
         try:
             total: int | None = mr.count_sim_steps(world, options, args.seed)
-            filt, inputs = mr.sim_filter(world, options, args.seed, cfg.particles, cfg.merge_threshold, config=cfg)
+            filt, inputs = mr.sim_filter(world, options, args.seed, cfg.particles,
+                                         cfg.merge_threshold, config=cfg)
         except ValueError as exc:
             raise UserError(f"{args.world}: {exc}") from None
         source: dict[str, Any] = {"world": world_name, "sensor": args.sensor}
@@ -216,16 +223,22 @@ def run(args: argparse.Namespace) -> int:
         for msg in log.issues[:MAX_ISSUES_SHOWN]:
             print(f"wiremap: skipped {msg}", file=sys.stderr)
         if len(log.issues) > MAX_ISSUES_SHOWN:
-            print(f"wiremap: skipped {len(log.issues) - MAX_ISSUES_SHOWN} more unreadable lines", file=sys.stderr)
+            print(f"wiremap: skipped {len(log.issues) - MAX_ISSUES_SHOWN} more unreadable lines",
+                  file=sys.stderr)
         scans = log.scans
         if not scans:
             raise UserError(f"{args.carmen}: no laser scans in the log")
         true_scans = scan_truth(log)
         log_range = float(scans[0].max_range)
-        resolved = _filter_config(args, cargs, 0.2, min(log_range, 20.0), mr.scan_fov(scans[0].angles), log_range)
+        # A real lidar: the real-lidar profile (odometry noise, point match, extractor) under
+        # the user's --params and --set.
+        filter_overrides, extract_cfg, frontend_cfg = mr.split_profile(mr.lidar_profile())
+        resolved = _filter_config(args, cargs, 0.2, min(log_range, 20.0), mr.scan_fov(scans[0].angles),
+                                  log_range, base=filter_overrides)
         cfg = resolved.config
         max_range = cfg.max_range
-        inputs = mr.carmen_inputs(scans, max_range=max_range, steps=args.steps, truth=true_scans)
+        inputs = mr.carmen_inputs(scans, max_range=max_range, steps=args.steps, truth=true_scans,
+                                  extract=extract_cfg, frontend=frontend_cfg)
         start = true_scans[0] if true_scans is not None else scans[0].odom
         filt = WireframeFilter(cfg, mr.seeds_for(args.seed)["filter"], initial_pose=start)
         total = len(scans) if args.steps is None else min(len(scans), args.steps)
@@ -259,7 +272,8 @@ def run(args: argparse.Namespace) -> int:
     progress.close()
     wall = time.perf_counter() - t_start
     if interrupted:
-        print(f"wiremap map: interrupted after {k} steps; writing the map as it stands", file=sys.stderr, flush=True)
+        print(f"wiremap map: interrupted after {k} steps; writing the map as it stands",
+              file=sys.stderr, flush=True)
 
     report: dict[str, Any] = {
         **source,
@@ -287,7 +301,9 @@ def run(args: argparse.Namespace) -> int:
             from agents.commands.run import PARTIAL_CELL_ERROR
 
             report["metrics"]["cell_error"] = None
-            report["metrics"]["cell_error_note"] = PARTIAL_CELL_ERROR.replace("one robot's partial map", "a map cut short")
+            report["metrics"]["cell_error_note"] = PARTIAL_CELL_ERROR.replace(
+                "one robot's partial map", "a map cut short"
+            )
         report["pose_error_mean_m"] = round(float(np.mean(pose_err)), 4) if pose_err else None
         report["pose_error_max_m"] = round(float(np.max(pose_err)), 4) if pose_err else None
     png = None
@@ -298,7 +314,8 @@ def run(args: argparse.Namespace) -> int:
             report.update(lidar)
     props = {**source, "steps": k, "seed": args.seed, "particles": cfg.particles, "merge_threshold": thr}
     title = f"{world_name or Path(args.carmen).name}: one robot, {k} steps, {cfg.particles} particles"
-    write_outputs(out, best, trajectory, report, truth=truth, properties=props, png=png, title=title, free=free)
+    write_outputs(out, best, trajectory, report, truth=truth, properties=props, png=png,
+                  title=title, free=free)
     _print_summary(report, out)
     return INTERRUPTED if interrupted else 0
 
@@ -320,12 +337,14 @@ def _print_summary(report: dict[str, Any], out: Path) -> None:
             f"recall {m['wall_recall']:.3f}"
         )
     if report.get("ate_rmse_m") is not None:
-        line = f"  vs truth    ATE {report['ate_rmse_m']:.3f} m (odometry {report['odometry_ate_rmse_m']:.3f} m)"
+        line = (f"  vs truth    ATE {report['ate_rmse_m']:.3f} m "
+                f"(odometry {report['odometry_ate_rmse_m']:.3f} m)")
         if report.get("map_precision") is not None:
             line += f", map precision {report['map_precision']:.3f}, coverage {report['map_coverage']:.3f}"
         lines.append(line)
     if report.get("pose_error_mean_m") is not None:
-        lines.append(f"  pose error  mean {report['pose_error_mean_m']:.3f} m, max {report['pose_error_max_m']:.3f} m")
+        lines.append(f"  pose error  mean {report['pose_error_mean_m']:.3f} m, "
+                     f"max {report['pose_error_max_m']:.3f} m")
     lines.append(f"  wrote       in {out}: map.geojson map.png trajectory.tsv report.json")
     print("\n".join(lines), flush=True)
 

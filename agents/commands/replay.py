@@ -37,7 +37,8 @@ DEFAULT_WEB_PORT = 9090
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
-        "file", metavar="FILE.rrd", help="a Rerun recording (e.g. DIR/recording.rrd of `wiremap run --out DIR`)"
+        "file", metavar="FILE.rrd",
+        help="a Rerun recording (e.g. DIR/recording.rrd of `wiremap run --out DIR`)"
     )
     parser.add_argument(
         "--web", action="store_true",

@@ -35,12 +35,14 @@ HELP = "one robot agent process"
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--id", required=True, help="robot id (letters, digits, '_', '.', '-')")
-    parser.add_argument("--world", metavar="NAME|FILE", help="built-in world name or world file (or give --carmen)")
+    parser.add_argument("--world", metavar="NAME|FILE",
+                        help="built-in world name or world file (or give --carmen)")
     parser.add_argument(
         "--unknown-start", action="store_true",
         help="publish the map in the robot's own frame with its origin marked unknown (fusion registers it)",
     )
-    parser.add_argument("--carmen", metavar="LOG", help="replay this CARMEN log instead of simulating a world")
+    parser.add_argument("--carmen", metavar="LOG",
+                        help="replay this CARMEN log instead of simulating a world")
     parser.add_argument("--scans", metavar="I0:I1", help="with --carmen: replay the log's scans I0 to I1-1")
     parser.add_argument(
         "--start", metavar="X,Y[,THETA]",
@@ -61,12 +63,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--threshold", type=float, default=None, metavar="M",
-        help=f"merge threshold of the particle filter (default {DEFAULT_THRESHOLD:g}; the paper: 0.4 in a large world)",
+        help=f"merge threshold of the particle filter (default {DEFAULT_THRESHOLD:g}; "
+             "the paper: 0.4 in a large world)",
     )
     parser.add_argument(
-        "--heartbeat", type=float, default=2.0, metavar="S", help="re-send the map at least every S s (default 2)"
+        "--heartbeat", type=float, default=2.0, metavar="S",
+        help="re-send the map at least every S s (default 2)"
     )
-    parser.add_argument("--viz-rate", type=float, default=2.0, metavar="HZ", help="scan+particles for the recorder, Hz (0: off)")
+    parser.add_argument("--viz-rate", type=float, default=2.0, metavar="HZ",
+                        help="scan+particles for the recorder, Hz (0: off)")
     parser.add_argument(
         "--duration", type=float, metavar="S",
         help="stop mapping after S simulated seconds (simulated time runs 2.5x the wall clock at --rate 5: "
@@ -77,7 +82,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="give up (exit 2) when no router answers within S seconds (default: wait; "
         "says what it tries every 10 s)",
     )
-    parser.add_argument("--status-file", metavar="FILE", help="write the final status as JSON to FILE on exit")
+    parser.add_argument("--status-file", metavar="FILE",
+                        help="write the final status as JSON to FILE on exit")
     add_config_arguments(parser, "--particles, --threshold")
     add_bus_arguments(parser)
 
@@ -110,8 +116,8 @@ def options_from_args(args: argparse.Namespace) -> RobotOptions:
     else:
         raise UserError("give --start X,Y,THETA or --route")
     for name, v, lo in (
-        ("--rate", args.rate, 0.0), ("--resolution", args.resolution, 0.0), ("--threshold", args.threshold, 0.0),
-        ("--heartbeat", args.heartbeat, 0.0),
+        ("--rate", args.rate, 0.0), ("--resolution", args.resolution, 0.0),
+        ("--threshold", args.threshold, 0.0), ("--heartbeat", args.heartbeat, 0.0),
     ):
         if v is not None and not (math.isfinite(v) and v > lo):
             raise UserError(f"{name} must be a positive number, got {v}")
@@ -174,8 +180,8 @@ def _carmen_options(args: argparse.Namespace, rid: str) -> RobotOptions:
         robot=rid, world="", start=Pose.identity(), rate=args.rate, seed=args.seed,
         particles=resolved.config.particles, resolution=args.resolution,
         threshold=resolved.config.merge_threshold, heartbeat_s=args.heartbeat,
-        viz_hz=max(0.0, args.viz_rate), duration=args.duration, unknown_start=True, carmen=args.carmen, scans=scans,
-        filter_overrides=resolved.overrides,
+        viz_hz=max(0.0, args.viz_rate), duration=args.duration, unknown_start=True, carmen=args.carmen,
+        scans=scans, filter_overrides=resolved.overrides,
     )
 
 
@@ -206,8 +212,12 @@ def run(args: argparse.Namespace) -> int:
     steps = itertools.chain([first], steps) if first is not None else iter(())
     with StopFlag() as stop:
         watch_parent(args.parent_pid, stop)
-        if args.router_timeout is not None and not (math.isfinite(args.router_timeout) and args.router_timeout > 0):
-            raise UserError(f"--router-timeout must be a positive number of seconds, got {args.router_timeout}")
+        if args.router_timeout is not None and not (
+            math.isfinite(args.router_timeout) and args.router_timeout > 0
+        ):
+            raise UserError(
+                f"--router-timeout must be a positive number of seconds, got {args.router_timeout}"
+            )
         session = open_session(
             cfg, stop, timeout=args.router_timeout, on_wait=lambda t: say(f"waiting for a router ({t})")
         )

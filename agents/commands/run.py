@@ -95,6 +95,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--rate", type=float, default=5.0, metavar="HZ", help="scans per second per robot (default 5)")
     parser.add_argument("--particles", type=int, default=None, help="particles per robot (default 5)")
     parser.add_argument(
+        "--fusers", type=int, default=1, metavar="K",
+        help="fusion processes: 1 = one service; K >= 2 = K regional fusers over the fold's subtrees and a root",
+    )
+    parser.add_argument(
         "--resolution", type=float, default=0.05, metavar="M",
         help="quantisation step of the robots' published maps (default 0.05)",
     )
@@ -324,6 +328,8 @@ def write_outputs(
     for rid in ids:
         entry: dict[str, Any] = {}
         f = store / "robots" / f"{rid}.wfm"
+        if not f.is_file():  # a fusion tree (--fusers K): the robot's regional fuser has it
+            f = next(iter(sorted(store.parent.glob(f"store-g*/robots/{rid}.wfm"))), f)
         if f.is_file():
             m = decode_message(f.read_bytes())
             rwf = m.wireframe.transformed(m.origin)
@@ -607,6 +613,21 @@ def _start_fleet(
     fuse_argv += ["--recording-id", str(uuid.uuid4())]
     if args.serve_viewer is not None:
         fuse_argv += ["--serve-viewer", str(args.serve_viewer)]
+    if getattr(args, "fusers", 1) > 1:
+        # the fusion tree (agents.fleet.fusion.regional/root): "fuse" is the root, with the store
+        # this command reads; the regional fusers over the fold's subtrees, the first records
+        from agents.fleet.fusion.tree import fold_groups
+
+        groups = fold_groups(ids, args.fusers)
+        names = [f"g{g}" for g in range(len(groups))]
+        for g, (name, group) in enumerate(zip(names, groups)):
+            argv = ["fuse", *bus, *cred_args("fusion"), "--group", name, "--robots", ",".join(group),
+                    "--store", str(out / f"store-{name}"), "--threshold", repr(threshold)]
+            if g == 0:
+                argv += fuse_argv[fuse_argv.index("--rrd"):]
+            procs[f"fuser-{name}"] = _spawn(f"fuser-{name}", argv, logs)
+        fuse_argv = ["fuse", *bus, *cred_args("fusion"), "--of-groups", ",".join(names), "--store", str(store),
+                     "--threshold", repr(threshold)]
     procs["fuse"] = _spawn("fuse", fuse_argv, logs)
     for k, (rid, r) in enumerate(zip(ids, routes)):
         if args.carmen:
@@ -740,6 +761,10 @@ def _stop_fleet(
     robots_up = [r for r in ids if r in procs]
     if robots_up:
         codes.update(stop_processes(procs, robots_up, 15.0))
+    regional = [k for k in procs if k.startswith("fuser-")]
+    if regional:  # the fusion tree: the regional fusers' final partials reach the root first
+        codes.update(stop_processes(procs, regional, 60.0))
+        time.sleep(0.5)
     if "fuse" in procs:
         codes.update(stop_processes(procs, ["fuse"], 60.0))
 

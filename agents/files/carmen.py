@@ -17,12 +17,15 @@ a single ``timestamp`` (old logs). ``t`` of a scan is the last one (the logger's
     triples are equal (corrected logs, and logs whose odometry was rewritten from them, such as
     the shared Radish logs), the odometry is the *laser's* pose already and the mounting offset
     is not composed again: ``mount`` is the identity for that line.
-``ROBOTLASER1 laser_type start_angle field_of_view angular_resolution maximum_range accuracy remission_mode num_readings [range_readings] num_remissions [remissions] laser_x laser_y laser_theta robot_x robot_y robot_theta tv rv forward_safety side_safety turn_axis <time>``
+``ROBOTLASER1 laser_type start_angle field_of_view angular_resolution maximum_range accuracy
+remission_mode num_readings [range_readings] num_remissions [remissions] laser_x laser_y
+laser_theta robot_x robot_y robot_theta tv rv forward_safety side_safety turn_axis <time>``
     A laser with its own geometry (``ROBOTLASER2`` likewise): bearings ``start_angle + k *
     angular_resolution``, its own ``maximum_range`` (when positive). The odometry is ``robot_x
     robot_y robot_theta``; the laser's mounting offset is ``robot^-1 * laser`` from the same
     line. Old lines without the five ``tv .. turn_axis`` fields are accepted.
-``RAWLASER1 .. RAWLASER4 laser_type start_angle field_of_view angular_resolution maximum_range accuracy remission_mode num_readings [range_readings] num_remissions [remissions] <time>``
+``RAWLASER1 .. RAWLASER4 laser_type start_angle field_of_view angular_resolution maximum_range
+accuracy remission_mode num_readings [range_readings] num_remissions [remissions] <time>``
     A laser without a pose: its odometry is that of the latest ``ODOM`` line before it (scans
     before the first ``ODOM`` are skipped).
 ``ODOM x y theta tv rv accel <time>``
@@ -607,7 +610,8 @@ def _parse_laser(ln: _Line, index: int, last_odom: Pose | None) -> _Raw | None:
         laser = ln.pose(k)
         robot = ln.pose(k + 3)
         t = ln.stamp(k + (11 if rest >= 12 else 6))
-        return _Raw(ln.kind, index, t, ranges, angles, rmax if rmax > 0 else None, robot, robot.between(laser))
+        return _Raw(ln.kind, index, t, ranges, angles, rmax if rmax > 0 else None, robot,
+                    robot.between(laser))
     if rest not in (1, 3):
         raise ln.fail(f"has {len(tok)} fields, expected {k + 3} for {n} readings and {n_rem} remissions")
     t = ln.stamp(k)
@@ -714,7 +718,8 @@ def write_carmen(
     for k, s in enumerate(scans):
         n = s.ranges.size
         if not np.allclose(s.angles, flaser_angles(n, fov), atol=1e-9):
-            raise ValueError(f"scan {k}: its {n} bearings are not the FLASER bearings of a {fov:g} rad field of view")
+            raise ValueError(f"scan {k}: its {n} bearings are not the FLASER bearings of a "
+                             f"{fov:g} rad field of view")
         r = np.asarray(s.ranges, dtype=np.float64)
         with np.errstate(invalid="ignore"):
             miss = ~np.isfinite(r) | (r >= max_range) | ~(r > 0.0)
@@ -760,6 +765,7 @@ def scan_truth(log: CarmenLog, truth_file: str | os.PathLike[str] | None = None)
     th = np.unwrap(xyt[:, 2])
     out = []
     for s in log.scans:
-        pose = Pose(float(np.interp(s.t, t, xyt[:, 0])), float(np.interp(s.t, t, xyt[:, 1])), float(np.interp(s.t, t, th)))
+        pose = Pose(float(np.interp(s.t, t, xyt[:, 0])), float(np.interp(s.t, t, xyt[:, 1])),
+                    float(np.interp(s.t, t, th)))
         out.append(pose.compose(s.mount))
     return out

@@ -115,7 +115,8 @@ def message_properties(msg: Any, world: str | None = None) -> dict[str, Any]:
     else:
         props["seq"] = int(msg.seq)
     props.update(
-        {"stamp_ns": int(msg.stamp_ns), "frame": msg.frame, "resolution": float(msg.resolution), "robots": list(msg.robots)}
+        {"stamp_ns": int(msg.stamp_ns), "frame": msg.frame, "resolution": float(msg.resolution),
+         "robots": list(msg.robots)}
     )
     if meta:
         props["meta"] = _jsonable(meta)

@@ -58,7 +58,8 @@ def check_output_dir(flag: str, path: str | os.PathLike[str]) -> Path:
             break
         probe = probe.parent
     if probe.exists() and not probe.is_dir():
-        what = "is a file, not a directory" if probe == p else f"cannot create it: {probe} is a file, not a directory"
+        what = ("is a file, not a directory" if probe == p
+                else f"cannot create it: {probe} is a file, not a directory")
         raise UserError(f"{flag} {p}: {what}")
     if probe.exists() and not os.access(probe, os.W_OK | os.X_OK):
         raise UserError(f"{flag} {p}: {probe} is not writable")
@@ -104,7 +105,9 @@ def read_json(path: str | os.PathLike[str]) -> Any:
         raise UserError(f"{path}: {exc.strerror}") from None
 
 
-def save_wireframe_geojson(path: str | os.PathLike[str], wf: Wireframe, properties: dict[str, Any] | None = None) -> None:
+def save_wireframe_geojson(
+    path: str | os.PathLike[str], wf: Wireframe, properties: dict[str, Any] | None = None
+) -> None:
     write_json(path, wf.to_geojson(properties))
 
 

@@ -47,7 +47,8 @@ LABEL_COLORS: dict[Label, Color] = {
     Label.FRONTIER: (240, 140, 0),
 }
 #: Vertex marker shapes per label (paper Fig. 2/4).
-LABEL_SHAPES: dict[Label, str] = {Label.NOMINAL: "circle", Label.OCCLUSION: "triangle", Label.FRONTIER: "square"}
+LABEL_SHAPES: dict[Label, str] = {Label.NOMINAL: "circle", Label.OCCLUSION: "triangle",
+                                  Label.FRONTIER: "square"}
 
 TRUTH_COLOR: Color = (200, 200, 200)
 #: The truth in :func:`map_figure`: wider than the map's walls and darker than
@@ -423,7 +424,8 @@ def draw_wireframe(
             tip = (a + b) / 2 + u * s / 2
             left = tip - u * s + np.array([-u[1], u[0]]) * s / 2
             right = tip - u * s - np.array([-u[1], u[0]]) * s / 2
-            c = edge_color if edge_color is not None else tuple(int(v) for v in likelihood_colors(wf.likelihood[k])[0])
+            c = (edge_color if edge_color is not None
+                 else tuple(int(v) for v in likelihood_colors(wf.likelihood[k])[0]))
             canvas.lines(np.array([[left, tip], [right, tip]]), c, width)
     colors: Mapping[Label, Color | None] = LABEL_COLORS if label_colors is None else label_colors
     for lab in Label:
@@ -529,14 +531,16 @@ def wireframe_svg(
         )
     out.append(f'<rect x="0" y="0" width="{width:.3f}" height="{height:.3f}" fill="#ffffff"/>')
     if truth is not None:
-        out.append(f'<g class="truth" stroke="{_hex(TRUTH_COLOR)}" stroke-width="{sw + 2:.2f}" stroke-linecap="round">')
+        out.append(f'<g class="truth" stroke="{_hex(TRUTH_COLOR)}" stroke-width="{sw + 2:.2f}" '
+                   'stroke-linecap="round">')
         for a, b in truth.segments():
             (x1, y1), (x2, y2) = tx(a), tx(b)
             out.append(f'<line x1="{x1:.3f}" y1="{y1:.3f}" x2="{x2:.3f}" y2="{y2:.3f}"/>')
         out.append("</g>")
     if traj is not None and len(traj) >= 2:
         pts = " ".join(f"{x:.3f},{y:.3f}" for x, y in (tx(p) for p in traj))
-        out.append(f'<polyline class="trajectory" points="{pts}" fill="none" stroke="{_hex(TRAJECTORY_COLOR)}" stroke-width="1.5"/>')
+        out.append(f'<polyline class="trajectory" points="{pts}" fill="none" '
+                   f'stroke="{_hex(TRAJECTORY_COLOR)}" stroke-width="1.5"/>')
     marker = ' marker-end="url(#arrow)"' if arrows else ""
     out.append(f'<g class="map" stroke-width="{sw:.2f}" stroke-linecap="round">')
     cols = likelihood_colors(wf.likelihood)
@@ -557,7 +561,8 @@ def wireframe_svg(
         if label is Label.NOMINAL:
             out.append(f'<circle {cls} cx="{x:.3f}" cy="{y:.3f}" r="{r:.2f}" fill="{fill}"/>')
         elif label is Label.FRONTIER:
-            out.append(f'<rect {cls} x="{x - r:.3f}" y="{y - r:.3f}" width="{2 * r:.2f}" height="{2 * r:.2f}" fill="{fill}"/>')
+            out.append(f'<rect {cls} x="{x - r:.3f}" y="{y - r:.3f}" width="{2 * r:.2f}" '
+                       f'height="{2 * r:.2f}" fill="{fill}"/>')
         else:
             tri = [(x, y - r), (x + r * 0.866, y + r / 2), (x - r * 0.866, y + r / 2)]
             pts = " ".join(f"{a:.3f},{b:.3f}" for a, b in tri)

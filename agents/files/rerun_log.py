@@ -8,7 +8,8 @@ Entity tree (all coordinates in the fleet frame, metres)::
     robots/<id>/scan                    the current scan, placed at the estimated pose
     robots/<id>/particles               every particle's wireframe, faded
     robots/<id>/map                     the robot's best wireframe (grey while it is stale)
-    robots/<id>/trajectory              the estimated path so far, a line (every 5 cm, sent at most once a second)
+    robots/<id>/trajectory              the estimated path so far, a line (every 5 cm, sent at most
+                                        once a second)
     robots/<id>/status                  "joined" / "stale" / "alive again" text entries
     fused/walls                         fused walls, coloured by contributing robot(s)
     fused/corners/{nominal,occlusion,frontier}
@@ -16,7 +17,8 @@ Entity tree (all coordinates in the fleet frame, metres)::
     stats/fused/{vertices,edges}, stats/latency_ms, stats/robots/<id>/edges,
     stats/robots/<id>/alive             time series (alive: 1 while the robot's token lives, 0 stale),
                                         a sample a second for every robot seen
-    log                                 text events: robots joining, going stale, coming back; dropped payloads
+    log                                 text events: robots joining, going stale, coming back;
+                                        dropped payloads
 
 Timelines: ``fleet_time`` (seconds since the recording started, by the recorder's clock: one
 clock for every robot, so a robot started later appears later) and ``sim_time`` (the
@@ -233,7 +235,8 @@ class FleetRecorder:
         c = robot_colour(self.robot_index(robot))
         self.rec.log(
             f"robots/{robot}/trajectory",
-            self._rr.LineStrips2D([np.asarray(track)], colors=[c], radii=[0.025], labels=[robot], draw_order=8.0),
+            self._rr.LineStrips2D([np.asarray(track)], colors=[c], radii=[0.025], labels=[robot],
+                                  draw_order=8.0),
         )
 
     def log_robot_viz(
@@ -401,7 +404,8 @@ class FleetRecorder:
         c = robot_colour(self.robot_index(root))
         self.rec.log(
             f"islands/{root}/map",
-            rr.LineStrips2D(_strips(wf), colors=[c], radii=[0.035], labels=["+".join(members)], draw_order=10.0),
+            rr.LineStrips2D(_strips(wf), colors=[c], radii=[0.035], labels=["+".join(members)],
+                            draw_order=10.0),
         )
 
     def log_quarantine(self, robot: str, t: float, text: str, wf_fleet: Wireframe) -> None:

@@ -157,7 +157,8 @@ def _grid(world: World, clearance: float, h: float, rng: np.random.Generator) ->
     c = np.concatenate(cols)
     w = np.concatenate(wts)
     n = int(inside.sum())
-    graph = csr_matrix((np.concatenate([w, w]), (np.concatenate([r, c]), np.concatenate([c, r]))), shape=(n, n))
+    graph = csr_matrix((np.concatenate([w, w]), (np.concatenate([r, c]), np.concatenate([c, r]))),
+                       shape=(n, n))
     return _Grid(xy=np.column_stack([gx[inside], gy[inside]]), graph=graph)
 
 
@@ -284,12 +285,15 @@ def _greedy_cover(ti: NDArray[np.int64], ci: NDArray[np.int64], n_targets: int, 
         new = new[~covered[new]]
         covered[new] = True
         # every candidate that also saw a newly covered target gains one less
-        hit = np.concatenate([by_target.indices[by_target.indptr[t] : by_target.indptr[t + 1]] for t in new.tolist()])
+        hit = np.concatenate([by_target.indices[by_target.indptr[t] : by_target.indptr[t + 1]]
+                              for t in new.tolist()])
         np.subtract.at(gain, hit, 1)
     return chosen
 
 
-def _wall_waypoints(world: World, grid: _Grid, radius: float, sensor_range: float, h: float) -> NDArray[np.int64]:
+def _wall_waypoints(
+    world: World, grid: _Grid, radius: float, sensor_range: float, h: float
+) -> NDArray[np.int64]:
     """Node indices of the wall-coverage waypoints (module docstring, step 3), sorted."""
     step = min(1.0, radius / 3.0)
     targets, normals = _wall_targets(world, step)
@@ -507,7 +511,8 @@ def _start_node(world: World, grid: _Grid, sx: float, sy: float) -> int:
     segs = shapely.linestrings(np.stack([np.broadcast_to([sx, sy], (len(near), 2)), grid.xy[near]], axis=1))
     ok = np.asarray(shapely.covers(world.free_space, segs), dtype=bool)
     if world.thin_walls:
-        ok &= ~np.asarray(shapely.intersects(shapely.MultiLineString(list(world.thin_walls)), segs), dtype=bool)
+        ok &= ~np.asarray(shapely.intersects(shapely.MultiLineString(list(world.thin_walls)), segs),
+                          dtype=bool)
     return int(near[np.flatnonzero(ok)[0]]) if ok.any() else int(near[0])
 
 
@@ -620,6 +625,7 @@ def plan_routes(
     if n < 1:
         raise ValueError(f"n must be >= 1, got {n}")
     full = plan_route(
-        world, rng, clearance=clearance, spacing=spacing, resolution=resolution, use_world_route=use_world_route
+        world, rng, clearance=clearance, spacing=spacing, resolution=resolution,
+        use_world_route=use_world_route
     )
     return split_route(full, n, overlap)

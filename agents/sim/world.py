@@ -174,11 +174,13 @@ class World:
             )
         for line in self.thin_walls:
             feats.append(
-                {"type": "Feature", "geometry": shapely.geometry.mapping(line), "properties": {"kind": "wall"}}
+                {"type": "Feature", "geometry": shapely.geometry.mapping(line),
+                 "properties": {"kind": "wall"}}
             )
         if self.route is not None:
             feats.append(
-                {"type": "Feature", "geometry": shapely.geometry.mapping(self.route), "properties": {"kind": "route"}}
+                {"type": "Feature", "geometry": shapely.geometry.mapping(self.route),
+                 "properties": {"kind": "route"}}
             )
         doc = {"type": "FeatureCollection", "properties": {"name": self.name}, "features": feats}
         # shapely's mapping() gives tuples; make it plain JSON data.

@@ -337,7 +337,7 @@ class FusionService:
         with self.lock:
             came, self._came_alive = self._came_alive, []
         for rid in came:
-            st.note_alive(rid)
+            st.note_alive(rid, time.time_ns())
         now_ns = time.time_ns()
         for rid in st.release_held(now_ns):  # maps that waited for their robot's work budget
             self.dirty.add(rid)

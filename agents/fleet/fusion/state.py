@@ -44,11 +44,15 @@ from agents.fleet.fusion.quarantine import (
 )
 from agents.fleet.fusion.stats import MAX_LATENCIES, FusionStats
 from agents.fleet.fusion.store import LATENCY_LOG, StoreDamaged, StoreJob, read_latency_log, read_store
+from agents.fleet.fusion.tree import wire_snap
 from mapping.fleet import align_maps, close_frontiers, fold_split
 from mapping.se2 import Pose
 from mapping.wireframe import Wireframe
 from wire_codec import MAX_ROBOTS
 from wire_codec.message import MapMessage, MessageKind
+
+#: How long (seconds) a map claiming a restart waits for its robot's liveliness token.
+RESTART_HOLD_S = 5.0
 
 DEFAULT_THRESHOLD = 0.2  # merge threshold (m) unless configured
 DEFAULT_RESOLUTION = 0.05  # the fused map's quantisation step (m) while no robot map sets it
@@ -219,6 +223,8 @@ class FusionState:
         # from the bus (note_alive), not from the boot number its maps claim
         self.restart_by_token = False
         self.token_gen: dict[str, int] = {}
+        # the latest map per robot refused as boot_without_restart, for a token still on its way
+        self._held_restart: dict[str, tuple[bytes, MapMessage, int]] = {}
         self.forgotten: dict[str, str] = {}  # robot id -> why it was forgotten (kept in the store)
         self._since: dict[str, int] = {}  # restored since_ns per robot (load)
         self.store_rewrite: set[str] = set()  # views load found damaged (written again by the next save)
@@ -237,6 +243,11 @@ class FusionState:
         self.budget: WorkBudget | None = None
         self.held: dict[str, tuple[MapMessage, bytes]] = {}
         self._aligning = 0.0  # CPU seconds of alignments in the running compute (charged apart)
+        # a regional fuser's (agents.fleet.fusion.regional): (identity, map) of the robots before
+        # its group in the fleet-wide fold, the start of every alignment prefix; None: this
+        # state's first robot is the anchor
+        self.base: tuple[Any, Wireframe] | None = None
+        self._grid = DEFAULT_RESOLUTION  # the fold's grid (wire_snap) in the current compute
 
     # ------------------------------------------------------------------ input
     def offer(self, data: bytes, key_robot: str | None = None, now_ns: int | None = None) -> bool:
@@ -288,17 +299,38 @@ class FusionState:
         state holds exactly what would have travelled (the codec quantises coordinates)."""
         return self.offer(encode_message(msg), msg.sender)
 
-    def note_alive(self, rid: str) -> None:
+    def note_alive(self, rid: str, now_ns: int | None = None) -> None:
         """The robot's liveliness token appeared (a new session of it): its next map may come
-        from a new boot (see :meth:`_add`)."""
+        from a new boot (see :meth:`_add`).
+
+        A restarted robot's first map can arrive before its token does (they travel apart). Such
+        a map was refused as ``boot_without_restart`` and held; if the token now appears within
+        :data:`RESTART_HOLD_S` of that map, the map is taken after all (and leaves the
+        ``rejected`` count), so an honest restart loses nothing while a map claiming a restart
+        that never shows on the bus stays refused."""
         self.token_gen[rid] = self.token_gen.get(rid, 0) + 1
+        held = self._held_restart.pop(rid, None)
+        if held is None:
+            return
+        raw, msg, at_ns = held
+        now = time.time_ns() if now_ns is None else now_ns
+        if now - at_ns > RESTART_HOLD_S * 1e9:
+            return
+        accepted = self.stats.accepted
+        self._add(msg, raw, now)
+        if self.stats.accepted > accepted:
+            self.stats.rejected -= 1
+            by = self.stats.rejected_by
+            by["boot_without_restart"] -= 1
+            if by["boot_without_restart"] <= 0:
+                del by["boot_without_restart"]
 
     def forget(self, rid: str, why: str) -> bool:
         """Remove every trace of a robot (its map, alignment, caches, quarantined map); the store
         records ``why`` (:attr:`forgotten`). Returns whether it had a map."""
         had = self.robots.pop(rid, None) is not None
         for cache in (self.alignments, self.corrections, self._in_fleet, self._prepared, self._pending,
-                      self.quarantine.maps, self._first_seen, self.token_gen, self.held):  # fmt: skip
+                      self.quarantine.maps, self._first_seen, self.token_gen, self.held, self._held_restart):  # fmt: skip
             cache.pop(rid, None)
         if self.budget is not None:
             self.budget.forget(rid)
@@ -374,6 +406,7 @@ class FusionState:
     def _add(self, msg: MapMessage, raw: bytes, now_ns: int | None = None) -> bool:
         rid = msg.sender
         key = order_key(msg, raw)
+        given = msg
         if self.frames.active or origin_unknown(msg):
             msg = self._place(msg, raw)
         old = self.robots.get(rid)
@@ -392,6 +425,7 @@ class FusionState:
                     if key[0] < old.key[0]:
                         self.stats.outdated += 1
                         return False
+                    self._held_restart[rid] = (raw, given, now_ns if now_ns is not None else time.time_ns())
                     return self._drop("rejected", "boot_without_restart",
                                       f"{rid!r} claims boot {key[0]} but its session did not restart")
             elif key < old.key:
@@ -594,7 +628,7 @@ class FusionState:
     def _ready(self, rid: str, corr: Pose | None, k: int) -> Wireframe:
         """The robot's map in the fleet frame with its correction, contributor bit ``k`` set."""
         e = self.robots[rid]
-        key = (e.rev, corr, k)
+        key = (e.rev, corr, k, self._grid)
         hit = self._prepared.get(rid)
         if hit is not None and hit[0] == key:
             return hit[1]
@@ -606,6 +640,7 @@ class FusionState:
             pose.apply(src.points), src.labels, src.edges, src.likelihood,
             np.full(src.n_edges, np.uint64(1) << np.uint64(k), dtype=np.uint64),
         )
+        wf = wire_snap(wf, self._grid)
         self._prepared[rid] = (key, wf)
         return wf
 
@@ -636,7 +671,9 @@ class FusionState:
         if base.n_vertices == 0:
             return new
         self.merges += 1
-        return self.merge_fn(base, new, thr)
+        # every node as it would travel (agents.fleet.fusion.tree.wire_snap): a subtree can be
+        # a regional fuser's partial map without changing the fold above it
+        return wire_snap(self.merge_fn(base, new, thr), self._grid)
 
     def _node(self, lo: int, hi: int, leaves: list[tuple[Any, Wireframe]], thr: float) -> tuple[Wireframe, Any]:
         """The fold of ``leaves[lo:hi]`` (see :meth:`compute`) and its identity: a leaf's item,
@@ -675,6 +712,8 @@ class FusionState:
             else:
                 parts.append(self._node(lo, mid, leaves, thr))
                 lo = mid
+        if self.base is not None:
+            parts.insert(0, (self.base[1], self.base[0]))
         key = (thr, *(ident for _, ident in parts))
         hit = self._prefix_maps.get(k)
         if hit is not None and hit[0] == key:
@@ -707,8 +746,9 @@ class FusionState:
         cfg = self.config
         ids = self.fleet_ids()
         thr = self.threshold
+        self._grid = self.resolution
         budget = len(ids) if full else (cfg.max_realign_per_fuse if max_realign is None else max_realign)
-        prefix: tuple[Any, ...] = (thr,)
+        prefix: tuple[Any, ...] = (thr,) if self.base is None else (thr, self.base[0])
         exact = True
         corrections: dict[str, Pose] = {}
         alignments: dict[str, Alignment] = {}
@@ -720,7 +760,7 @@ class FusionState:
             al = self.alignments.get(rid)
             n = e.message.wireframe.n_vertices
             references.append(prefix)
-            if k == 0 or not cfg.refine:
+            if (k == 0 and self.base is None) or not cfg.refine:
                 # the anchor (and everyone without refinement): the start pose alone, by definition current
                 if al is None or al.rev != e.rev or al.reference != prefix or al.correction is not None:
                     al = Alignment(None, e.rev, n, _origin_of(e.message), now, prefix)
@@ -786,7 +826,7 @@ class FusionState:
             self.wanted.remove(rid)
             k = position.get(rid, 0)
             e = self.robots.get(rid)
-            if e is None or k == 0:
+            if e is None or (k == 0 and self.base is None):
                 continue
             reference = self._references[k]
             if reference[0] != thr:
@@ -823,6 +863,10 @@ class FusionState:
         else:
             self._pending.clear()
         return changed
+
+    def pending_stamps(self) -> list[int]:
+        """The publish stamps (ns) of the robot maps fused since the last publish."""
+        return list(self._pending.values())
 
     def take_latencies(self, published_ns: int) -> list[float]:
         """Latency (ms) from each robot map that changed since the last fused publish to this

@@ -1,0 +1,242 @@
+"""The fusion tree: regional fusers' partial maps merged by a root give the one-process map."""
+
+from __future__ import annotations
+
+import itertools
+import time
+
+import numpy as np
+import pytest
+
+from agents.fleet.bus import FleetKeys
+from agents.fleet.fusion import FusionConfig, FusionState, decode_message, encode_message
+from agents.fleet.fusion.tree import (
+    RobotSelector,
+    RootState,
+    fold_groups,
+    fold_nodes,
+    is_fold_node,
+    prefix_spans,
+    remap_sources,
+)
+from tests.fleet_util import Fleet, FusedWatcher, client, in_process_router, query_stats, wait_until
+from tests.tree_util import robot_views
+
+THR = 0.4
+
+
+def _one_process(raws: dict[str, bytes], refine: bool = True) -> tuple[FusionState, object]:
+    st = FusionState(FusionConfig(threshold=THR, refine=refine))
+    for rid, raw in raws.items():
+        st.offer(raw, rid)
+    st.fuse(full=True)
+    return st, decode_message(encode_message(st.fused_message(0)))
+
+
+def _tree(raws: dict[str, bytes], groups: list[list[str]], refine: bool = True) -> tuple[RootState, object]:
+    """Each group a regional FusionState (full path, aligned onto the partials before it), its
+    partial through the codec, the root's merge through the codec."""
+    root = RootState(THR)
+    for g, ids in enumerate(groups):
+        st = FusionState(FusionConfig(threshold=THR, refine=refine, close_frontiers=False), sender=f"g{g}")
+        for r in ids:
+            st.offer(raws[r], r)
+        st.base = root.prefix_before(ids)
+        st.fuse(full=True)
+        root.offer(f"g{g}", decode_message(encode_message(st.fused_message(0, {"boot": 1}))))
+    root.fuse()
+    return root, decode_message(encode_message(root.fused_message(0)))
+
+
+def _same_map(a, b) -> None:
+    assert a.robots == b.robots
+    wa, wb = a.wireframe, b.wireframe
+    assert (wa.n_vertices, wa.n_edges) == (wb.n_vertices, wb.n_edges)
+    assert wa.almost_equal(wb, tol=1e-9, likelihood_tol=1e-9)
+    assert np.array_equal(np.sort(wa.sources), np.sort(wb.sources))
+
+
+# ---------------------------------------------------------------------- the fold's subtrees
+def test_fold_nodes_are_subtrees_and_cover_the_fleet():
+    for n in (1, 2, 3, 5, 16, 33, 48, 64):
+        for k in (1, 2, 3, 4):
+            spans = fold_nodes(n, k)
+            assert spans[0][0] == 0 and spans[-1][1] == n
+            assert all(a[1] == b[0] for a, b in itertools.pairwise(spans))
+            assert all(is_fold_node(lo, hi, n) for lo, hi in spans)
+    assert fold_nodes(64, 2) == [(0, 32), (32, 64)] and fold_nodes(48, 2) == [(0, 32), (32, 48)]
+    assert not is_fold_node(0, 24, 48) and is_fold_node(32, 40, 48)
+    assert prefix_spans(40, 48) == [(0, 32), (32, 40)] and prefix_spans(3, 4) == [(0, 2), (2, 3)]
+
+
+def test_remap_sources_moves_each_bit():
+    src = np.array([0b01, 0b10, 0b11, 0], dtype=np.uint64)
+    out = remap_sources(src, [5, 63])
+    assert out.tolist() == [1 << 5, 1 << 63, (1 << 5) | (1 << 63), 0]
+
+
+def test_selectors():
+    s = RobotSelector.parse("r0[1-4],r10")
+    assert [r for r in ("r01", "r04", "r05", "r10", "r100") if s.matches(r)] == ["r01", "r04", "r10"]
+    assert s.key_chunk() == "*" and RobotSelector.parse("r1*").key_chunk() == "r1$*"
+    h = [RobotSelector.parse(f"hash:{i}/3") for i in range(3)]
+    ids = [f"r{k}" for k in range(60)]
+    assert sorted(r for s in h for r in ids if s.matches(r)) == sorted(ids)  # a partition
+
+
+# ---------------------------------------------------------------------- the same map
+@pytest.mark.parametrize(("n", "k"), [(3, 2), (16, 2), (16, 4), (24, 2), (32, 2)])
+def test_tree_of_subtrees_gives_the_one_process_map(n, k):
+    """Robot maps recorded once (views of the museum's walls with noise and start-pose error)
+    fed to one FusionState and to a tree of k regional states and a root, partials through the
+    codec: the same walls, robots and sources bits (compared as decoded, as a subscriber sees
+    them; the codec does not keep vertex order)."""
+    raws = {m.sender: encode_message(m) for m in robot_views("museum", n, seed=1)}
+    _, ref = _one_process(raws)
+    root, out = _tree(raws, fold_groups(list(raws), k))
+    assert root.exact
+    _same_map(ref, out)
+
+
+def test_groups_that_are_not_subtrees_keep_provenance_but_say_so():
+    raws = {m.sender: encode_message(m) for m in robot_views("museum", 12, seed=2)}
+    ids = sorted(raws)
+    groups = [[r for r in ids if RobotSelector.parse(f"hash:{i}/2").matches(r)] for i in range(2)]
+    root, out = _tree(raws, groups)
+    assert not root.exact and out.robots == tuple(ids)
+    _, ref = _one_process(raws)
+    # each wall's bits name robots of the fleet; every robot contributes somewhere
+    seen = int(np.bitwise_or.reduce(out.wireframe.sources))
+    assert seen == int(np.bitwise_or.reduce(ref.wireframe.sources)) == (1 << len(ids)) - 1
+
+
+# ---------------------------------------------------------------------- over Zenoh
+@pytest.mark.fleet
+def test_two_regional_fusers_and_a_root_publish_the_one_process_map(tmp_path):
+    """A recorded fleet of 8 robots on the bus (each with its token), two regional fusers over
+    the fold's two subtrees and a root as processes: the root's fused map (as a subscriber
+    sees it) becomes the one-process full-path map of the same robot maps."""
+    msgs = robot_views("museum", 8, seed=3)
+    raws = {m.sender: encode_message(m) for m in msgs}
+    _, ref = _one_process(raws)
+    keys = FleetKeys("tree")
+    with in_process_router() as ep, Fleet(tmp_path) as fleet, client(ep) as s:
+        bus = ["--connect", ep, "--fleet", "tree", "--threshold", repr(THR)]
+        fleet.start("g0", ["fuse", "--group", "g0", "--robots", "r0[1-4]", *bus])
+        fleet.start("g1", ["fuse", "--group", "g1", "--robots", "r0[5-8]", *bus])
+        fleet.start("root", ["fuse", "--of-groups", "g0,g1", *bus])
+        for name in ("g0", "g1"):
+            fleet.wait_log(name, "ready", 60.0)
+        fleet.wait_log("root", "root fuser ready", 60.0)
+        tokens = [s.liveliness().declare_token(keys.alive(r)) for r in raws]
+        watcher = FusedWatcher(s, keys)
+        try:
+            for rid, raw in raws.items():
+                s.put(keys.robot_map(rid), raw)
+
+            def same(m) -> bool:
+                try:
+                    _same_map(ref, m)
+                except AssertionError:
+                    return False
+                return True
+
+            got = watcher.wait_for(same, 60.0, "the one-process map")
+            assert got.meta["exact"] and got.meta["stale"] == []
+            stats = wait_until(
+                lambda: (d := query_stats(s, keys, 2.0)) and set(d["groups"]) == {"g0", "g1"} and d, 10.0, "root stats"
+            )
+            assert stats["role"] == "root" and stats["exact"]
+            # a takeover of g1 started while g1 was only cut off (its partial with a newer boot):
+            # g1, alive, takes a newer boot still and the root follows it again
+            import dataclasses
+
+            forged_boot = time.time_ns()
+            forged = dataclasses.replace(got, sender="g1", robots=("r05",), seq=1,
+                                         wireframe=got.wireframe.subgraph_edges(np.zeros(got.wireframe.n_edges, bool)),
+                                         meta={"boot": forged_boot, "group": "g1", "select": "r0[5-8]"})
+            since = watcher.count()
+            s.put("wiremap/tree/groups/g1/map",
+                  encode_message(forged))
+            back = watcher.wait_for(
+                lambda m: m.meta["group_versions"].get("g1", [0])[0] > forged_boot and len(m.robots) == 8, 20.0,
+                "g1 taking its group back", since,
+            )
+            _same_map(ref, back)
+            assert "taking it back" in fleet.log("g1")
+        finally:
+            watcher.close()
+            for t in tokens:
+                t.undeclare()
+
+
+@pytest.mark.fleet
+def test_a_killed_regional_fuser_is_taken_over_and_no_map_is_lost(tmp_path):
+    """kill -9 of a regional fuser: the root keeps serving its last partial (flagged in
+    ``fusers_down``), the other fuser takes its robots over from the bytes it kept, and a map a
+    robot of the dead group sends after the kill reaches the fused map (timed). Restarted from
+    its store, the fuser takes its group back (the takeover retires; newer boot at the root)."""
+    msgs = robot_views("museum", 8, seed=4)
+    keys = FleetKeys("tree2")
+    with in_process_router() as ep, Fleet(tmp_path) as fleet, client(ep) as s:
+        bus = ["--connect", ep, "--fleet", "tree2", "--threshold", repr(THR), "--no-refine"]
+        fleet.start("g0", ["fuse", "--group", "g0", "--robots", "r0[1-4]", *bus])
+        g1 = ["fuse", "--group", "g1", "--robots", "r0[5-8]", "--store", str(tmp_path / "store-g1"), *bus]
+        fleet.start("g1", g1)
+        fleet.start("root", ["fuse", "--of-groups", "*", *bus])
+        for name in ("g0", "g1", "root"):
+            fleet.wait_log(name, "ready", 60.0)
+        tokens = [s.liveliness().declare_token(keys.alive(m.sender)) for m in msgs]
+        watcher = FusedWatcher(s, keys)
+        try:
+            for m in msgs:
+                s.put(keys.robot_map(m.sender), encode_message(m))
+            full = watcher.wait_for(lambda m: len(m.robots) == 8, 60.0, "8 robots")
+            fleet.kill9("g1")
+            down = watcher.wait_for(lambda m: m.meta.get("fusers_down") == ["g1"], 10.0, "g1 down", 0)
+            assert down.robots == full.robots  # the last partial is still served
+            wait_until(lambda: "taking over" in fleet.log("g0"), 10.0, "g0 takes over g1")
+            # r08 grows: a wall nobody had, in its odometry frame
+            import dataclasses
+
+            from mapping.wireframe import Wireframe
+
+            r8 = msgs[-1]
+            extra = Wireframe.from_polylines([[(0.0, 0.0), (0.0, 3.0)]]).transformed(r8.origin.inverse())
+            wf = _union(r8.wireframe, extra)
+            m2 = dataclasses.replace(r8, seq=2, stamp_ns=time.time_ns(), wireframe=wf)
+            since = watcher.count()
+            t0 = time.monotonic()
+            s.put(keys.robot_map("r08"), encode_message(m2))
+            _, t1 = watcher.wait_for_timed(
+                lambda m: m.wireframe.n_edges > full.wireframe.n_edges, 10.0, "r08's new wall", since
+            )
+            print(f"takeover: r08's map in the fused map {1000 * (t1 - t0):.0f} ms after its publish")
+            # g1 restarted: the takeover retires, the root follows the new g1 (newer boot)
+            boot_before = watcher.wait_for(lambda m: True, 1.0, "any").meta["group_versions"]["g1"][0]
+            fleet.start("g1", g1)  # resumes from its store
+            wait_until(lambda: "takeover retired" in fleet.log("g0"), 30.0, "the takeover retiring")
+            # the robots' heartbeats (each re-sends its latest map at least every 2 s)
+            for m in msgs[4:7]:
+                s.put(keys.robot_map(m.sender), encode_message(m))
+            s.put(keys.robot_map("r08"), encode_message(dataclasses.replace(m2, seq=3, stamp_ns=time.time_ns())))
+            back = watcher.wait_for(
+                lambda m: m.meta["group_versions"].get("g1", [0])[0] > boot_before and len(m.robots) == 8
+                and m.wireframe.n_edges > full.wireframe.n_edges, 30.0, "the new g1 with every map",
+            )
+            assert back.meta["fusers_down"] == []
+        finally:
+            watcher.close()
+            for t in tokens:
+                t.undeclare()
+
+
+def _union(a, b):
+    from mapping.wireframe import Wireframe
+
+    n = a.n_vertices
+    return Wireframe(
+        np.vstack([a.points, b.points]), np.concatenate([a.labels, b.labels]),
+        np.vstack([a.edges, b.edges + n]), np.concatenate([a.likelihood, b.likelihood]),
+        np.zeros(a.n_edges + b.n_edges, dtype=np.uint64),
+    )

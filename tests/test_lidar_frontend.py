@@ -1,0 +1,117 @@
+"""Real-lidar front end (mapping.lidar_frontend) and the filter's point-match hook."""
+
+import math
+
+import numpy as np
+import pytest
+
+from mapping.config import with_overrides
+from mapping.filter import FilterConfig, OdometryConfig, WireframeFilter
+from mapping.lidar_frontend import FrontendConfig, LidarFrontend, odometry_overrides, scan_points
+from mapping.scan_match import PointMatchConfig
+from mapping.se2 import Pose
+
+ANGLES = np.linspace(-math.pi / 2, math.pi / 2, 181)
+
+
+def box_ranges(dx: float = 0.0) -> np.ndarray:
+    """A 180-degree scan of a 6 x 8 m room from (dx, 0): walls at x = 4, y = -4, y = 4."""
+    c, s = np.cos(ANGLES), np.sin(ANGLES)
+    with np.errstate(divide="ignore"):
+        tx = np.where(c > 1e-9, (4.0 - dx) / c, np.inf)
+        ty = np.where(np.abs(s) > 1e-9, 4.0 / np.abs(s), np.inf)
+    return np.minimum(tx, ty)
+
+
+def test_scan_points_drops_no_returns_and_near_ones() -> None:
+    r = box_ranges()
+    r[10] = np.inf
+    r[20] = 0.1
+    pts = scan_points(r, ANGLES, FrontendConfig())
+    assert len(pts) == 179
+    assert np.allclose(np.hypot(pts[:, 0], pts[:, 1]), np.delete(r, [10, 20]))
+    fine = np.linspace(-math.pi / 2, math.pi / 2, 361)
+    assert len(scan_points(np.full(361, 3.0), fine, FrontendConfig(point_stride=2))) == 181
+    # A 2-degree scanner keeps every beam whatever the stride says.
+    coarse = np.linspace(-math.pi / 2, math.pi / 2, 91)
+    assert len(scan_points(np.full(91, 3.0), coarse, FrontendConfig(point_stride=2))) == 91
+    with pytest.raises(ValueError):
+        FrontendConfig(point_range=0.1, min_range=0.3)
+
+
+def test_frontend_scan_has_walls_and_points() -> None:
+    wf, pts = LidarFrontend().scan(box_ranges(), ANGLES, 20.0)
+    assert wf.n_edges >= 3
+    assert len(pts) == 181
+
+
+def test_point_match_hook_corrects_odometry_error() -> None:
+    fe = LidarFrontend()
+    cfg = FilterConfig(particles=2, fov=math.pi + math.radians(1), max_range=20.0,
+                       odometry=OdometryConfig(trans_per_m=0.1), point_match=PointMatchConfig(enabled=True))
+    filt = WireframeFilter(cfg, np.random.default_rng(0))
+    plain = WireframeFilter(FilterConfig(particles=2, fov=math.pi + math.radians(1), max_range=20.0),
+                            np.random.default_rng(0))
+    wf, pts = fe.scan(box_ranges(), ANGLES, 20.0)
+    filt.step(Pose.identity(), wf, points=pts)
+    plain.step(Pose.identity(), wf, points=pts)
+    # The robot moves 0.5 m; odometry says 0.6 m.
+    wf, pts = fe.scan(box_ranges(0.5), ANGLES, 20.0)
+    info = filt.step(Pose(0.6, 0.0, 0.0), wf, points=pts)
+    assert info.icp is not None and info.icp.accepted
+    assert abs(filt.pose.x - 0.5) < 0.01
+    # Without FilterConfig.point_match the points are ignored (the simulator's path).
+    plain.step(Pose(0.6, 0.0, 0.0), wf, points=pts)
+    again = WireframeFilter(FilterConfig(particles=2, fov=math.pi + math.radians(1), max_range=20.0),
+                            np.random.default_rng(0))
+    wf0, _ = fe.scan(box_ranges(), ANGLES, 20.0)
+    again.step(Pose.identity(), wf0)
+    again.step(Pose(0.6, 0.0, 0.0), wf)
+    assert again.pose == plain.pose
+
+
+def test_odometry_overrides_cover_the_logs_noise() -> None:
+    o = odometry_overrides()
+    assert o == {"odometry.trans_per_m": 0.07, "odometry.rot_per_m": 0.05}
+    cfg = with_overrides(FilterConfig(), o)
+    assert cfg.odometry.rot_per_m > math.radians(2.0) > FilterConfig().odometry.rot_per_m
+
+
+def test_lidar_profile_splits_into_filter_extract_and_frontend() -> None:
+    from agents.mapping_run import lidar_profile, split_profile
+
+    prof = lidar_profile()
+    fo, ecfg, fcfg = split_profile({**prof, "extract.jump_beams": 2.5, "frontend.point_range": 15})
+    assert not any(k.startswith(("extract.", "frontend.")) for k in fo)
+    assert ecfg.jump_beams == 2.5 and fcfg.point_range == 15.0
+    cfg = with_overrides(FilterConfig(), fo)
+    assert cfg.odometry.rot_per_m == prof["odometry.rot_per_m"]
+    # The simulator's defaults are not the profile's.
+    assert FilterConfig().odometry.rot_per_m < cfg.odometry.rot_per_m
+
+
+def room_ranges(pose: Pose) -> np.ndarray:
+    """A 180-degree scan from ``pose`` inside the room [-2, 6] x [-4, 4] (walls only)."""
+    from agents.sim.lidar import LidarConfig, raycast
+
+    room = np.array([[[-2.0, -4.0], [6.0, -4.0]], [[6.0, -4.0], [6.0, 4.0]], [[6.0, 4.0], [-2.0, 4.0]],
+                     [[-2.0, 4.0], [-2.0, -4.0]], [[3.0, 1.0], [3.0, 2.5]]])
+    cfg = LidarConfig(beams=181, fov=math.pi + math.radians(1.0), max_range=20.0, sigma=0.0)
+    return raycast(room, pose, cfg, None)
+
+
+def test_scan_increment_recovers_the_turn_the_wheels_got_wrong() -> None:
+    from mapping.lidar_frontend import scan_increment
+
+    cfg = FrontendConfig(scan_odometry=True)
+    a = np.linspace(-(math.pi + math.radians(1.0)) / 2, (math.pi + math.radians(1.0)) / 2, 181)
+    true = Pose(0.5, 0.05, math.radians(8.0))
+    p0 = scan_points(room_ranges(Pose.identity()), a, cfg)
+    p1 = scan_points(room_ranges(true), a, cfg)
+    wheels = Pose(0.55, 0.0, math.radians(6.0))  # 2 degrees and 5 cm off
+    inc, matched = scan_increment(p0, p1, wheels, cfg)
+    assert matched
+    err = true.inverse().compose(inc)
+    assert math.hypot(err.x, err.y) < 0.01 and abs(err.theta) < math.radians(0.2)
+    # Nothing to match: the wheels' increment as it was.
+    assert scan_increment(p0[:2], p1, wheels, cfg) == (wheels, False)
