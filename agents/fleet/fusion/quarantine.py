@@ -9,7 +9,7 @@ Both tests compare *where the maps overlap*, on points sampled along the walls:
   more than the robot could have seen since (``extent_jump``: sensor range + speed x seconds
   between the two maps + slack), and where the new walls lie inside the old map's box most of
   them must lie near an old wall (``history_walls``). A robot's best particle changes, and
-  loop closures move walls, by decimetres to a metre; ``far_m`` is 1 m (1-2.9 m on its grid).
+  loop closures move walls, by decimetres to a metre; ``far_m`` is 1 m.
 * **first map** (in :meth:`FusionState._inconsistent`): a robot's first accepted map may reach
   no further from its start than sensor range + speed x seconds since the fusion service first
   heard of the id + slack (``extent_jump``): its claimed boot may be as old as it likes.
@@ -31,6 +31,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.spatial import cKDTree
 
 from mapping.wireframe import Wireframe
 
@@ -43,8 +44,7 @@ class QuarantineConfig:
     """Thresholds of the consistency tests (choices, see the module's docstring).
 
     sample_m : walls are compared on points this far apart.
-    far_m : a wall point further than this (up to 2.9 times this: a grid's neighbourhood) from
-        the other map's walls disagrees.
+    far_m : a wall point further than this from the other map's walls disagrees.
     min_overlap_m : metres of new walls in the overlap below which a test does not judge.
     max_disagree : the largest fraction of disagreeing wall points in the overlap.
     cell_m : the grid of the fleet's seen space (cells holding a wall of another robot).
@@ -104,37 +104,38 @@ def wall_samples(wf: Wireframe, step: float) -> FloatArray:
     return out
 
 
-def _near_cells(points: FloatArray, cell: float) -> NDArray[np.int64]:
-    """The codes of the cells (side ``cell``) holding a point and of their 8 neighbours."""
-    c = np.unique(_cell_codes(points, cell))
-    ring = np.array([(dx << 32) + dy for dx in (-1, 0, 1) for dy in (-1, 0, 1)], dtype=np.int64)
-    out: NDArray[np.int64] = np.unique((c[:, None] + ring[None, :]).reshape(-1))
-    return out
+def _near(walls: Wireframe, cfg: QuarantineConfig) -> cKDTree | None:
+    """A k-d tree of points every ``sample_m / 2`` along ``walls`` (None without walls): a
+    point within ``far_m`` of a wall is within ``far_m + sample_m / 4`` of one of them."""
+    pts = wall_samples(walls, cfg.sample_m / 2)
+    return cKDTree(pts, balanced_tree=False, compact_nodes=False) if len(pts) else None
 
 
-def _disagreement(points: FloatArray, near: NDArray[np.int64], cfg: QuarantineConfig) -> tuple[float, float]:
-    """(metres of walls at ``points`` judged, fraction of them not near the other map's walls:
-    no wall point of it in their ``far_m`` cell or the 8 around it, so further than ``far_m``
-    surely, and than ``2.9 far_m`` at most)."""
+def _disagreement(points: FloatArray, near: cKDTree | None, cfg: QuarantineConfig) -> tuple[float, float]:
+    """(metres of walls at ``points`` judged, fraction of them further than ``far_m`` from the
+    other map's walls, :func:`_near`), on at most ``MAX_JUDGED`` of the points."""
     if len(points) == 0:
         return 0.0, 0.0
+    if near is None:
+        return len(points) * cfg.sample_m, 1.0
     judged = points[:: -(-len(points) // MAX_JUDGED)]  # an even subsample: the fraction is what counts
-    return len(points) * cfg.sample_m, float(np.mean(~np.isin(_cell_codes(judged, cfg.far_m), near)))
+    d, _ = near.query(judged, distance_upper_bound=cfg.far_m + cfg.sample_m / 4)
+    return len(points) * cfg.sample_m, float(np.mean(~np.isfinite(d)))
 
 
 @dataclass(frozen=True)
 class FleetView:
-    """The other robots' walls, prepared once per fused version: the cells near them
-    (:func:`_near_cells`) and the cells of ``cell_m`` that hold one (the space they have seen
+    """The other robots' walls, prepared once per fused version: a k-d tree of points along
+    them (:func:`_near`) and the cells of ``cell_m`` that hold one (the space they have seen
     well: a wall and the free space beside it)."""
 
-    near: NDArray[np.int64]
+    near: cKDTree | None
     cells: NDArray[np.int64]
 
     @classmethod
     def of(cls, fleet: Wireframe, cfg: QuarantineConfig) -> FleetView:
         ref = wall_samples(fleet, cfg.sample_m)
-        return cls(_near_cells(ref, cfg.far_m), np.unique(_cell_codes(ref, cfg.cell_m)))
+        return cls(_near(fleet, cfg), np.unique(_cell_codes(ref, cfg.cell_m)))
 
 
 def _cell_codes(xy: FloatArray, cell: float) -> NDArray[np.int64]:
@@ -157,7 +158,7 @@ def against_history(
         return "extent_jump", f"walls {beyond:.0f} m beyond what {seconds:.1f} s could add to its last map"
     pts = wall_samples(new, cfg.sample_m)
     inside = pts[np.all((pts >= lo) & (pts <= hi), axis=1)]
-    metres, frac = _disagreement(inside, _near_cells(wall_samples(old, cfg.sample_m), cfg.far_m), cfg)
+    metres, frac = _disagreement(inside, _near(old, cfg), cfg)
     if metres >= cfg.min_overlap_m and frac > cfg.max_disagree:
         return "history_walls", f"{100 * frac:.0f} % of {metres:.0f} m of walls over {cfg.far_m:g} m from its last map"
     return None

@@ -388,12 +388,20 @@ class FusionState:
                 return bad
         elif old is None and wf.n_vertices:
             # a robot's first map: no further from its start than it could have gone since the
-            # fusion first heard of it (its claimed boot may be as old as it likes)
+            # fusion first heard of it (its claimed boot may be as old as it likes), except
+            # within the fleet's known extent (a robot joining a mapped building late)
             heard = (now_ns - self._first_seen.get(msg.sender, now_ns)) / 1e9
             reach = lim.sensor_range_m + lim.max_speed_mps * heard + cfg.growth_slack_m
-            far = float(np.hypot(wf.points[:, 0], wf.points[:, 1]).max())
-            if far > reach:
-                return "extent_jump", f"a first map reaching {far:.0f} m from the start, heard of {heard:.0f} s ago"
+            out = np.hypot(wf.points[:, 0], wf.points[:, 1]) > reach
+            if np.any(out) and self.fused.n_vertices:
+                lo = self.fused.points.min(axis=0) - lim.sensor_range_m
+                hi = self.fused.points.max(axis=0) + lim.sensor_range_m
+                fleet = msg.origin.apply(wf.points[out])
+                out[out] = ~np.all((fleet >= lo) & (fleet <= hi), axis=1)
+            if np.any(out):
+                far = float(np.hypot(wf.points[out, 0], wf.points[out, 1]).max())
+                return "extent_jump", (f"a first map reaching {far:.0f} m from the start and out of the "
+                                       f"fleet's extent, heard of {heard:.0f} s ago")  # fmt: skip
         if origin_unknown(msg) or self.fused.n_edges == 0:
             return None
         rid = msg.sender
