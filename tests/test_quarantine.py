@@ -152,8 +152,21 @@ def test_a_first_map_reaches_no_further_than_since_the_fusion_heard_of_the_robot
     truth = load_world("museum").truth
     st = FusionState(FusionConfig(threshold=0.4, refine=False), quarantine=QuarantineConfig())
     t = BOOT + 3600 * S  # it claims to have been up for an hour (reach 10.9 km by its boot)
+    assert st.offer(raw_map("r0", part(truth, (40.0, 40.0), 20.0), Pose(40.0, 40.0, 0.0), 1), "r0", t - 60 * S)
     big = part(truth, (100.0, 100.0), 70.0)
     assert not st.offer(raw_map("r1", big, Pose(30.0, 30.0, 0.0), 1), "r1", t)
     assert st.stats.quarantined_by == {"extent_jump": 1} and st.last_drop is not None
     assert "first map" in st.last_drop[2]
     assert st.offer(raw_map("r1", big, Pose(30.0, 30.0, 0.0), 2), "r1", t + 60 * S)  # 60 s later: 230 m
+
+
+def test_robots_already_sending_when_the_state_began_keep_their_claimed_boot() -> None:
+    """A fusion service started late (no store, a takeover in a fusion tree) takes the first maps
+    of robots it hears of in its first 10 s by their claimed boot (over_budget's reach)."""
+    truth = load_world("museum").truth
+    st = FusionState(FusionConfig(threshold=0.4, refine=False), quarantine=QuarantineConfig())
+    t = BOOT + 3600 * S
+    big = part(truth, (100.0, 100.0), 70.0)
+    assert st.offer(raw_map("r1", big, Pose(30.0, 30.0, 0.0), 1), "r1", t)
+    assert st.offer(raw_map("r2", big, Pose(30.0, 30.0, 0.0), 1), "r2", t + 5 * S)
+    assert st.stats.quarantined == 0

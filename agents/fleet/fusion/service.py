@@ -292,7 +292,9 @@ class FusionService:
         self.liveliness_ready = True
         self._entities.append(s.declare_queryable(self.keys.fused_map, self._on_query, complete=True))
         self._entities.append(s.declare_queryable(self.keys.fusion_stats, self._on_stats_query, complete=True))
-        self._entities.append(s.declare_queryable(self.keys.admin_forget, self._on_forget, complete=True))
+        admin = getattr(self.keys, "admin_forget", None)  # a regional fuser's keys have none (yet)
+        if admin is not None:
+            self._entities.append(s.declare_queryable(admin, self._on_forget, complete=True))
         self._entities.append(s.declare_subscriber(self.keys.all_maps, self._on_map))
         if self.recorder is not None:
             # poses and scans only feed the recording: without one, 10 Hz x robots of callbacks

@@ -57,6 +57,7 @@ RESTART_HOLD_S = 5.0
 DEFAULT_THRESHOLD = 0.2  # merge threshold (m) unless configured
 DEFAULT_RESOLUTION = 0.05  # the fused map's quantisation step (m) while no robot map sets it
 FUSION_ID = "fusion"
+LATE_GRACE_NS = 10 * 10**9  # robots first heard of this soon after start were already running
 MAX_TRANSPORT_NS = 60 * 10**9  # a map's latency sample is at most this plus the fuse (forged stamps)
 
 
@@ -238,6 +239,7 @@ class FusionState:
         self.quarantine = Quarantine()
         self._fleet_view: tuple[tuple[int, int | None], FleetView] | None = None
         self._first_seen: dict[str, int] = {}  # robot id -> first map (ns) while none was accepted
+        self._born_ns: int | None = None  # the first offer with a clock (see _inconsistent)
         # a work budget per robot (budget.py; None: off): maps of a robot whose fusion CPU
         # budget is spent wait in `held` (the latest only) until release_held
         self.budget: WorkBudget | None = None
@@ -262,6 +264,8 @@ class FusionState:
         self.stats.received += 1
         self.last_drop = None
         raw = bytes(data)
+        if now_ns is not None and self._born_ns is None:
+            self._born_ns = now_ns  # the first payload with a clock: when this state began listening
         if now_ns is not None and key_robot is not None and key_robot not in self.robots:
             self._note_unproven(key_robot, now_ns)
         try:
@@ -386,10 +390,12 @@ class FusionState:
             bad = against_history(wf, old.message.wireframe, seconds, lim.max_speed_mps, lim.sensor_range_m, cfg)
             if bad is not None:
                 return bad
-        elif old is None and wf.n_vertices:
+        elif old is None and wf.n_vertices and self._first_seen.get(msg.sender, now_ns) - (self._born_ns or now_ns) > LATE_GRACE_NS:
             # a robot's first map: no further from its start than it could have gone since the
             # fusion first heard of it (its claimed boot may be as old as it likes), except
-            # within the fleet's known extent (a robot joining a mapped building late)
+            # within the fleet's known extent (a robot joining a mapped building late). Not for
+            # robots already sending when this state began (a restart without store, a takeover
+            # in a fusion tree): those are held to their claimed boot (over_budget's reach).
             heard = (now_ns - self._first_seen.get(msg.sender, now_ns)) / 1e9
             reach = lim.sensor_range_m + lim.max_speed_mps * heard + cfg.growth_slack_m
             out = np.hypot(wf.points[:, 0], wf.points[:, 1]) > reach
