@@ -277,7 +277,7 @@ def run_size(
     ``extra``: the argv of one more process (``bench hostile``'s attacker; the bus flags are
     appended), started once every robot's first map is on the bus; latency samples of 0 ms
     (its maps, stamped ahead) are then left out, and the entry also gets the fusion service's
-    ``rss_kb`` at the window's start and end and its counters."""
+    ``rss_kb`` before the extra process starts and at the window's end, and its counters."""
     from agents.bench.tree import LinkCounter, level_latencies, start_tree, synthetic_recordings
     from agents.files.io import write_json
     from agents.fleet.bus import free_port, tcp_endpoint
@@ -347,10 +347,10 @@ def run_size(
                             "--viz-rate", "0", "--status-file", str(d / "status" / f"{rid}.json"), *bus]
                 procs.start(gname[group[0]], argv)
             wait_for(procs, lambda: set(ids) <= obs.seen(), 60.0 + 2.0 * n, "every robot's first map")
+            rss0 = obs.fusion_stats().get("rss_kb") if extra is not None else None  # before the extra process
             if extra is not None:
                 procs.start("extra", [*extra, *bus])
             sleep_checked(procs, args.warmup)
-            rss0 = obs.fusion_stats().get("rss_kb") if extra is not None else None
             harvest = LatencyHarvest(store)
             pid_r = procs.pid("router")
             f0 = {f: cpu_seconds(procs.pid(f)) for f in fnames}

@@ -15,12 +15,15 @@ Three measurements in one run:
 * **Honest latency quiet vs attacked** (``quiet`` / ``attacked``, side by side): the same fleet
   (:func:`agents.bench.fleet.run_size`, replay robots) twice, the second time with an attacker
   process (``python -m agents.bench.hostile --attack``) publishing every attack in a loop on
-  its own robot keys (``r99``) at ``--attack-rate`` messages per second. The attacker stamps its
+  its own robot keys (``r99``) at ``--attack-rate`` messages per second, from the fleet's first
+  maps on or ``--attack-after`` seconds later (a fusion service trusts the claimed boot of the
+  robots it hears of in its first 3 s: an attacker there may place walls within its claimed
+  reach; ``fused_precision`` shows it). The attacker stamps its
   maps 90 s ahead (within the accepted clock skew) so that its own accepted maps' latency
   samples are 0 and are left out (honest samples are never exactly 0): the percentiles are the
   honest robots'. ``p99_ratio`` = attacked p99 / quiet p99 (target <= 2).
 * **Fusion RSS growth** under attack (``rss_growth_mb``: ``fused/stats``' ``rss_kb`` at the end
-  of the attacked window minus at its start; target < 50 MB) and the fusion service's counters
+  of the attacked window minus just before the attacker started; target < 50 MB) and the fusion service's counters
   (``quarantined``, ``absurd_by``, ...).
 """
 
@@ -57,6 +60,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--rate", type=float, default=10.0, metavar="HZ", help="honest maps per second per robot (default 10)")
     parser.add_argument("--attack-rate", type=float, default=40.0, metavar="HZ",
                         help="attacker messages per second (default 40)")  # fmt: skip
+    parser.add_argument("--attack-after", type=float, default=0.0, metavar="S",
+                        help="the attacker waits S seconds after the fleet's first maps (default 0: at once)")  # fmt: skip
     parser.add_argument("--messages", type=int, default=10_000, metavar="K", help="in-process hostile messages (default 10000)")
     parser.add_argument("--world", default="paper-small", metavar="NAME|FILE", help="world (default paper-small)")
     parser.add_argument("--seed", type=int, default=0, help="seed (default 0)")
@@ -240,6 +245,9 @@ def attack_loop(args: argparse.Namespace) -> int:
         return 1
     boot = time.time_ns() - 600 * 10**9
     period = 1.0 / max(1e-3, args.attack_rate)
+    t_wait = time.monotonic() + args.attack_after
+    while time.monotonic() < t_wait and not stop["now"]:
+        time.sleep(0.1)
     sent = 0
     try:
         nxt = time.monotonic()
@@ -284,7 +292,8 @@ def _run(n: int, fa: argparse.Namespace, world: Any, workdir: Path, attacker: bo
 
     argv = None
     if attacker:
-        argv = ["-m", "agents.bench.hostile", "--attack", "--attack-rate", str(fa.attack_rate), "--seed", str(fa.seed)]
+        argv = ["-m", "agents.bench.hostile", "--attack", "--attack-rate", str(fa.attack_rate), "--seed", str(fa.seed),
+                "--attack-after", str(fa.attack_after)]
     r = fleet.run_size(n, fa, world, workdir / ("attacked" if attacker else "quiet"), say, extra=argv)
     keep = ("latency_ms_p50", "latency_ms_p99", "latency_ms_max", "latency_samples", "fusion_cpu_share",
             "fused_recall", "fused_precision", "fused_mean_dist_m", "rss_kb_start", "rss_kb_end", "fusion_counters")  # fmt: skip
@@ -312,6 +321,8 @@ def run(args: argparse.Namespace) -> int:
         fa = _fleet_args(args)
         fa.merge_threshold = default_merge_threshold(world)
         fa.attack_rate = args.attack_rate
+        fa.attack_after = args.attack_after
+        fa.warmup = max(fa.warmup, args.attack_after)  # the window starts once the attack has
         tmp = None
         if args.out:
             workdir = Path(args.out)

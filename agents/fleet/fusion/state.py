@@ -57,7 +57,7 @@ RESTART_HOLD_S = 5.0
 DEFAULT_THRESHOLD = 0.2  # merge threshold (m) unless configured
 DEFAULT_RESOLUTION = 0.05  # the fused map's quantisation step (m) while no robot map sets it
 FUSION_ID = "fusion"
-LATE_GRACE_NS = 10 * 10**9  # robots first heard of this soon after start were already running
+LATE_GRACE_NS = 3 * 10**9  # robots heard of this soon after start were already running (heartbeat 2 s)
 MAX_TRANSPORT_NS = 60 * 10**9  # a map's latency sample is at most this plus the fuse (forged stamps)
 
 
