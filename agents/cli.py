@@ -28,6 +28,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "fuse": ("agents.commands.fuse", "the fusion service"),
     "router": ("agents.commands.router", "a Zenoh router"),
     "watch": ("agents.commands.watch", "subscribe to the fused map and show each version"),
+    "fleet": ("agents.commands.fleet", "administer a running fleet: forget a robot"),
     "replay": ("agents.commands.replay", "open the Rerun viewer on a recording"),
     "export": ("agents.commands.export", "export a map as GeoJSON, SVG, PNG or a ROS map"),
     "bench": ("agents.commands.bench",

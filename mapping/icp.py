@@ -82,6 +82,8 @@ IntArray = NDArray[np.int64]
 BoolArray = NDArray[np.bool_]
 
 _DENSE_MAX = 4096  # vertex pairs up to which a dense distance matrix replaces the k-d trees
+_DENSE_EDGE_MAX = 4096  # edge pairs up to which match_edges tests every pair, else a k-d tree of samples
+_MAX_EDGE_SAMPLES = 200_000  # points sampled along the segments of one match_edges call, at most
 
 __all__ = [
     "Correspondences",
@@ -90,10 +92,12 @@ __all__ = [
     "constraints",
     "correspond",
     "edge_overlap",
+    "edge_overlap_pairs",
     "icp",
     "information_split",
     "match_edges",
     "match_vertices",
+    "near_segment_pairs",
     "project_onto_segments",
 ]
 
@@ -374,6 +378,68 @@ def edge_overlap(
     return cos, lo, hi, offset, np.broadcast_to(lr[None, :], cos.shape)
 
 
+def edge_overlap_pairs(
+    scan_segments: FloatArray, ref_segments: FloatArray, si: IntArray, ri: IntArray
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
+    """:func:`edge_overlap` of the pairs ``(scan_segments[si], ref_segments[ri])`` only, each
+    output ``(len(si),)``: the same arithmetic, element by element, as the dense matrices'
+    entries ``[si, ri]`` (the cosine is a sum of two products here, a matrix product there; it
+    only meets a threshold)."""
+    s = np.asarray(scan_segments, dtype=np.float64).reshape(-1, 2, 2)
+    r = np.asarray(ref_segments, dtype=np.float64).reshape(-1, 2, 2)
+    ds = s[:, 1] - s[:, 0]
+    dr = r[:, 1] - r[:, 0]
+    ls = np.hypot(ds[:, 0], ds[:, 1])
+    lr = np.hypot(dr[:, 0], dr[:, 1])
+    us = (ds / np.where(ls > 0, ls, 1.0)[:, None])[si]
+    ur = (dr / np.where(lr > 0, lr, 1.0)[:, None])[ri]
+    s0 = s[si, 0]
+    r0 = r[ri, 0]
+    cos = us[:, 0] * ur[:, 0] + us[:, 1] * ur[:, 1]
+    t1 = np.einsum("pi,pi->p", r0 - s0, us)
+    t2 = np.einsum("pi,pi->p", r[ri, 1] - s0, us)
+    lo = np.maximum(0.0, np.minimum(t1, t2))
+    hi = np.minimum(ls[si], np.maximum(t1, t2))
+    nr = np.stack([-ur[:, 1], ur[:, 0]], axis=1)
+    p_lo = s0 + lo[:, None] * us
+    p_hi = s0 + hi[:, None] * us
+    d_lo = np.einsum("pi,pi->p", p_lo - r0, nr)
+    d_hi = np.einsum("pi,pi->p", p_hi - r0, nr)
+    offset = np.maximum(np.abs(d_lo), np.abs(d_hi))
+    return cos, lo, hi, offset, lr[ri]
+
+
+def _sample_segments(seg: FloatArray, step: float) -> tuple[FloatArray, IntArray]:
+    """Points every ``step`` (at most) along each segment, both ends included, and the index of
+    the segment of each point."""
+    length = np.hypot(*(seg[:, 1] - seg[:, 0]).T)
+    k = np.ceil(length / step).astype(np.int64) + 1  # points per segment
+    owner = np.repeat(np.arange(len(seg), dtype=np.int64), k)
+    first = np.cumsum(k) - k
+    t = (np.arange(int(k.sum()), dtype=np.int64) - first[owner]) / np.maximum(k - 1, 1)[owner]
+    pts = seg[owner, 0] + t[:, None] * (seg[owner, 1] - seg[owner, 0])
+    return pts, owner
+
+
+def near_segment_pairs(a: FloatArray, b: FloatArray, reach: float) -> tuple[IntArray, IntArray]:
+    """Every pair ``(i, j)`` of segments ``a[i]``, ``b[j]`` that come within ``reach`` of each
+    other (and some a little further), in row-major order, without testing all pairs.
+
+    Both sets are sampled every ``step`` along their length (:func:`_sample_segments`); two
+    segments within ``reach`` have samples within ``reach + step`` (each closest point is within
+    ``step / 2`` of a sample), found by a k-d tree. ``step`` is ``reach`` unless that would make
+    more than ``_MAX_EDGE_SAMPLES`` samples (kilometres of walls at a small reach).
+    """
+    la = float(np.hypot(*(a[:, 1] - a[:, 0]).T).sum())
+    lb = float(np.hypot(*(b[:, 1] - b[:, 0]).T).sum())
+    step = max(reach, (la + lb) / _MAX_EDGE_SAMPLES, 1e-6)
+    pa, oa = _sample_segments(a, step)
+    pb, ob = _sample_segments(b, step)
+    sdm = cKDTree(pa).sparse_distance_matrix(cKDTree(pb), reach + step, output_type="ndarray")
+    code = np.unique(oa[sdm["i"]] * len(b) + ob[sdm["j"]])
+    return code // len(b), code % len(b)
+
+
 # ---------------------------------------------------------------------------- correspondences
 def match_vertices(
     scan_points: FloatArray,
@@ -470,10 +536,13 @@ def match_edges(
     sp = scan.points if scan_points is None else np.asarray(scan_points, dtype=np.float64)
     ss = sp[scan.edges]
     rs = ref.segments()
+    cos_max = math.cos(max_angle)
+    if scan.n_edges * ref.n_edges > _DENSE_EDGE_MAX and cos_max > 0.01:
+        return _match_edges_near(scan, ref, vertex_pairs, ss, rs, max_offset, cos_max, min_overlap)
     cos, lo, hi, offset, lr = edge_overlap(ss, rs)
     ls = np.hypot(*(ss[:, 1] - ss[:, 0]).T)
     need = np.minimum(min_overlap, 0.5 * np.minimum(ls[:, None], lr))
-    geo = (cos >= math.cos(max_angle)) & (hi - lo >= need) & (offset <= max_offset)
+    geo = (cos >= cos_max) & (hi - lo >= need) & (offset <= max_offset)
     if len(vertex_pairs):
         vmap = np.full(scan.n_vertices, -1, dtype=np.int64)
         vmap[vertex_pairs[:, 0]] = vertex_pairs[:, 1]
@@ -494,6 +563,70 @@ def match_edges(
     si, ri = np.nonzero(geo)
     pairs = np.stack([si, ri], axis=1).astype(np.int64)
     return pairs, offset[si, ri], lo[si, ri], hi[si, ri]
+
+
+def _endpoint_keys(scan: Wireframe, ref: Wireframe, vertex_pairs: IntArray) -> tuple[IntArray, IntArray]:
+    """The ``(scan edge, reference edge)`` pairs whose end vertices correspond, in order."""
+    none = (np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64))
+    if len(vertex_pairs) == 0:
+        return none
+    vmap = np.full(scan.n_vertices, -1, dtype=np.int64)
+    vmap[vertex_pairs[:, 0]] = vertex_pairs[:, 1]
+    ea = vmap[scan.edges[:, 0]]
+    eb = vmap[scan.edges[:, 1]]
+    both = np.nonzero((ea >= 0) & (eb >= 0))[0]
+    if len(both) == 0:
+        return none
+    n_ref = ref.n_vertices
+    key_ref = ref.edges[:, 0].astype(np.int64) * n_ref + ref.edges[:, 1]
+    order = np.argsort(key_ref, kind="stable")
+    key_scan = ea[both] * n_ref + eb[both]
+    lo = np.searchsorted(key_ref[order], key_scan, side="left")
+    hi = np.searchsorted(key_ref[order], key_scan, side="right")
+    count = hi - lo
+    si = np.repeat(both, count)
+    start = np.repeat(lo, count)
+    within = np.arange(len(si)) - np.repeat(np.cumsum(count) - count, count)
+    return si.astype(np.int64), order[start + within].astype(np.int64)
+
+
+def _match_edges_near(
+    scan: Wireframe,
+    ref: Wireframe,
+    vertex_pairs: IntArray,
+    ss: FloatArray,
+    rs: FloatArray,
+    max_offset: float,
+    cos_max: float,
+    min_overlap: float,
+) -> tuple[IntArray, FloatArray, FloatArray, FloatArray]:
+    """:func:`match_edges` for many edges: only pairs that can pass its geometric test.
+
+    A pair passes only if some point of the scan edge within the overlap lies within
+    ``max_offset`` of the reference line and has the same projection as a point of the
+    reference edge; the two points differ along the scan edge's normal only, by at most
+    ``max_offset / cos(angle)``. So the segments come within ``max_offset / cos_max`` of each
+    other (:func:`near_segment_pairs`, with a margin for rounding); pairs whose end vertices
+    correspond are added (they need no geometry). The result is the dense test's, pair for pair,
+    in the same (row-major) order.
+    """
+    reach = max_offset / cos_max * (1.0 + 1e-6) + 1e-9
+    gi, gr = near_segment_pairs(ss, rs, reach)
+    ki, kr = _endpoint_keys(scan, ref, vertex_pairs)
+    n_ref = len(rs)
+    code = np.unique(np.concatenate([gi * n_ref + gr, ki * n_ref + kr]))
+    si, ri = code // n_ref, code % n_ref
+    cos, lo, hi, offset, lr = edge_overlap_pairs(ss, rs, si, ri)
+    ls = np.hypot(*(ss[:, 1] - ss[:, 0]).T)[si]
+    need = np.minimum(min_overlap, 0.5 * np.minimum(ls, lr))
+    geo = (cos >= cos_max) & (hi - lo >= need) & (offset <= max_offset)
+    hit = np.isin(code, ki * n_ref + kr)
+    geo |= hit
+    lo = np.where(hit, 0.0, lo)
+    hi = np.where(hit, np.maximum(hi, ls), hi)
+    keep = np.nonzero(geo)[0]
+    pairs = np.stack([si[keep], ri[keep]], axis=1).astype(np.int64)
+    return pairs, offset[keep], lo[keep], hi[keep]
 
 
 def correspond(

@@ -276,3 +276,28 @@ def test_a_scan_that_only_confirms_the_prediction_is_consistent():
     assert not off.accepted and not off.consistent
     # an accepted match is consistent
     assert icp(corridor.transformed(Pose(0.0, 0.05, 0.0).inverse()), corridor).consistent
+
+
+def test_match_edges_with_the_index_equals_the_dense_test(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Over 4,096 edge pairs match_edges tests only the pairs within reach (a k-d tree of
+    points along the segments): pairs, offsets and overlaps are the dense test's, bit for bit."""
+    import mapping.icp as icp_mod
+    from agents.sim.world import load_world
+
+    rng = np.random.default_rng(11)
+    truth = load_world("museum").truth
+    for trial in range(12):
+        ref = Wireframe.build(truth.points + rng.normal(0, 0.05, truth.points.shape), truth.edges)
+        th = rng.normal(0, 0.03)
+        c, s = np.cos(th), np.sin(th)
+        pts = (truth.points + rng.normal(0, 0.1 * (trial % 4), truth.points.shape)) @ np.array([[c, s], [-s, c]])
+        scan = Wireframe.build(pts + rng.normal(0, 0.2, 2), truth.edges)
+        vp, _ = match_vertices(scan.points, ref.points, 0.5)
+        vp = vp if trial % 3 else vp[:0]
+        for gate, angle, overlap in [(0.5, 0.35, 0.1), (1.0, 0.2, 0.0), (0.3, 1.2, 0.5)]:
+            monkeypatch.setattr(icp_mod, "_DENSE_EDGE_MAX", 10**12)
+            dense = icp_mod.match_edges(scan, ref, vp, gate, angle, overlap)
+            monkeypatch.setattr(icp_mod, "_DENSE_EDGE_MAX", 0)
+            near = icp_mod.match_edges(scan, ref, vp, gate, angle, overlap)
+            for a, b in zip(dense, near):
+                assert a.dtype == b.dtype and a.shape == b.shape and a.tobytes() == b.tobytes()

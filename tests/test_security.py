@@ -193,7 +193,12 @@ def test_acl_config_grants() -> None:
     writes_fused = {s for s, g in grants.items() if ("put", "ingress", "wiremap/f/fused/**") in g}
     assert writes_fused == {"fusion"}
     assert ("declare_queryable", "ingress", "wiremap/f/fused/**") in grants["fusion"]
-    assert ("declare_subscriber", "ingress", "wiremap/f/**") in grants["observer-monitor"]
+    assert ("declare_subscriber", "ingress", "wiremap/f/robots/**") in grants["observer-monitor"]
+    # admin/** (wiremap fleet forget): only the fusion identity asks and answers
+    asks_admin = {s for s, g in grants.items() if any(m == "query" and k.startswith("wiremap/f/admin") for m, _, k in g)}
+    assert asks_admin == {"fusion"}
+    assert ("declare_queryable", "ingress", "wiremap/f/admin/**") in grants["fusion"]
+    assert not any("/**" == k[-3:] and k == "wiremap/f/**" for g in grants.values() for _, _, k in g)
     assert not any(m in ("put", "delete", "declare_queryable") and f == "ingress" for m, f, _ in grants["observer-monitor"])
     assert ("declare_subscriber", "ingress", "wiremap/f/fused/**") in grants["any"]
     assert ("query", "ingress", "wiremap/f/fused/**") in grants["any"]

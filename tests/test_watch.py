@@ -176,3 +176,16 @@ def test_watch_without_router_is_one_error_line(tmp_path: Path) -> None:
     assert p.returncode == 2, p.stderr
     assert "no router after 1 s" in p.stderr and "Traceback" not in p.stderr
     assert p.stdout == ""
+
+
+def test_health_line_shows_the_store_flag_and_quarantines() -> None:
+    from agents.commands.watch import health_line
+
+    assert health_line({}) == "store ok; quarantined 0"
+    doc = {
+        "store": {"ok": False, "enabled": True, "error": "No space left on device", "written_version": 41, "behind": 7},
+        "stats": {"quarantined": 3},
+        "quarantine": {"r3": {"reason": "fleet_walls", "count": 3}, "bad": "junk"},
+    }
+    assert health_line(doc) == "store FAILING (No space left on device; on disk v41, 7 behind); quarantined 3 (r3: fleet_walls x3)"
+    assert health_line({"store": {"enabled": False}, "stats": {"quarantined": "x"}}) == "store off; quarantined 0"

@@ -196,11 +196,15 @@ def _grid_totals(kept: list[tuple[str, bytes]], threshold: float) -> dict[str, i
     envelope) and ``maps``."""
     from mapping.wireframe import Wireframe
     from wire_codec import decode, encode
+    from wire_codec.errors import CodecError
 
     out = {"grid": 0, "grid_thr": 0, "grid_msg": 0, "body": 0, "maps": 0}
     empty = Wireframe.empty()
     for _rid, data in kept:
-        m = decode(data)
+        try:
+            m = decode(data)
+        except CodecError:  # a CRC-valid payload can still be forged (bench hostile's attacker)
+            continue
         g = grid_bytes(m.wireframe, m.resolution)
         out["grid"] += g
         out["grid_thr"] += grid_bytes(m.wireframe, threshold)
@@ -272,10 +276,21 @@ def _cpu_total(procs: Procs, names: list[str]) -> float | None:
 # Over 120 lines: one fleet size measured top to bottom (start, warm up, measure, stop, score),
 # its phases sharing the process table and the counters; not yet split into steps.
 def run_size(
-    n: int, args: argparse.Namespace, world: Any, workdir: Path, say: Any, fusers: int = 1
+    n: int,
+    args: argparse.Namespace,
+    world: Any,
+    workdir: Path,
+    say: Any,
+    fusers: int = 1,
+    extra: list[str] | None = None,
 ) -> dict[str, Any]:
     """One fleet of ``n`` robots: start, measure, stop; returns the size's JSON entry.
-    ``fusers`` >= 2: a fusion tree (:mod:`agents.bench.tree`) instead of one service."""
+    ``fusers`` >= 2: a fusion tree (:mod:`agents.bench.tree`) instead of one service.
+
+    ``extra``: the argv of one more process (``bench hostile``'s attacker; the bus flags are
+    appended), started once every robot's first map is on the bus; latency samples of 0 ms
+    (its maps, stamped ahead) are then left out, and the entry also gets the fusion service's
+    ``rss_kb`` before the extra process starts and at the window's end, and its counters."""
     from agents.bench.tree import LinkCounter, level_latencies, start_tree, synthetic_recordings
     from agents.files.io import write_json
     from agents.fleet.bus import free_port, tcp_endpoint
@@ -345,6 +360,9 @@ def run_size(
                             "--viz-rate", "0", "--status-file", str(d / "status" / f"{rid}.json"), *bus]
                 procs.start(gname[group[0]], argv)
             wait_for(procs, lambda: set(ids) <= obs.seen(), 60.0 + 2.0 * n, "every robot's first map")
+            rss0 = obs.fusion_stats().get("rss_kb") if extra is not None else None  # before the extra process
+            if extra is not None:
+                procs.start("extra", [*extra, *bus])
             sleep_checked(procs, args.warmup)
             harvest = LatencyHarvest(store)
             pid_r = procs.pid("router")
@@ -371,7 +389,10 @@ def run_size(
             win = obs.end_window()
             links.on = False
             t1, w1 = time.monotonic(), time.time_ns()
-            transport = obs.fusion_stats().get("transport_ms") or {}
+            end_stats = obs.fusion_stats()
+            if extra is not None:
+                procs.stop(["extra"], 10.0)
+            transport = end_stats.get("transport_ms") or {}
             c1, r1 = _cpu_total(procs, fnames), cpu_seconds(pid_r)
             f1 = {f: cpu_seconds(procs.pid(f)) for f in fnames}
             stall = links.max_gap("g1", killed_at - 1.0, t1) if killed_at is not None else None
@@ -399,6 +420,9 @@ def run_size(
     state = read_state(store)
     stats = state.get("stats") or {}
     lat = harvest.between(w0, w1)  # fused publishes within the window
+    if extra is not None:
+        lat = [v for v in lat if v > 0.0]
+        result.update({"rss_kb_start": rss0, "rss_kb_end": end_stats.get("rss_kb"), "fusion_counters": stats})
     wall = max(t1 - t0, 1e-9)
     map_bytes = sum(c.map_bytes for c in win.values())
     pose_bytes = sum(c.pose_bytes for c in win.values())

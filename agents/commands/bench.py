@@ -13,6 +13,7 @@ BENCHES: dict[str, tuple[str, str]] = {
     "codec": ("agents.bench.codec", "wire codec size and speed against other encodings"),
     "fleet": ("agents.bench.fleet", "fleet latency, bandwidth and fused-map quality by fleet size"),
     "soak": ("agents.bench.soak", "long run with corrupt payloads and robot restarts"),
+    "hostile": ("agents.bench.hostile", "one stolen robot: crashes, honest latency quiet vs attacked, fusion RSS"),
     "sensor": ("agents.bench.sensor", "corner-sensor label accuracy and split-and-merge corner error"),
     "register": ("agents.bench.register", "global registration of map pairs in unrelated frames"),
     "lidar": ("agents.bench.lidar", "the mapper on real CARMEN lidar logs against their truth"),

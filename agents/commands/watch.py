@@ -10,6 +10,10 @@ history, declared before anything else, so the count is normally complete by the
 "from" lists the robots that contributed to the map, with ``stale`` ones (alive no longer)
 marked when the fusion service says so.
 
+Every 2 s it also asks ``fused/stats`` and prints a line when the store's health or the
+quarantine changes: ``store ok; quarantined 0``, or ``store FAILING (<error>; on disk v41, 7
+behind); quarantined 3 (r3: fleet_walls x3)`` (maps kept aside as inconsistent, see ``ARCHITECTURE.md``).
+
 A version is shown once: the query's answer and the subscription may both deliver it, and
 copies with the same sender, version and stamp are dropped. A payload that does not decode (or
 is not a fused map) is counted, reported on stderr and skipped.
@@ -49,6 +53,7 @@ HELP = "subscribe to the fused map and show each version"
 
 #: Seconds the start-up query waits for the fusion service's answer.
 QUERY_TIMEOUT = 5.0
+HEALTH_EVERY_S = 2.0  # fused/stats asked this often for the store flag and quarantines
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -92,6 +97,7 @@ class Watcher:
         self.shown = 0
         self.malformed = 0
         self._seen: deque[tuple[str, int, int]] = deque(maxlen=64)
+        self._health: str | None = None
 
     # zenoh thread
     def liveliness(self, sample: Any) -> None:
@@ -164,6 +170,22 @@ class Watcher:
             f"{' (' + ' '.join(alive) + ')' if alive else ''}; from {contributors}{_frames(msg)}"
         )
 
+    def health(self, data: bytes) -> str | None:
+        """A ``fused/stats`` reply: a line when the store's health or the quarantine changed
+        since the last one shown (printed), else None."""
+        from agents.fleet import validate
+
+        try:
+            doc = validate.stats_doc(data)
+        except validate.Invalid:
+            return None
+        line = health_line(doc)
+        if line == self._health:
+            return None
+        self._health = line
+        print(line, flush=True)
+        return line
+
     def save(self, msg: Any, nbytes: int, numbered: bool = True) -> None:
         from agents.files.export import message_properties, wireframe_geojson
         from agents.files.io import write_atomic, write_json
@@ -201,6 +223,28 @@ def _frames(msg: Any) -> str:
                 f"{what}, confidence {r.get('confidence')}, support {r.get('support_m')} m"
             )
     return text
+
+
+def health_line(doc: dict[str, Any]) -> str:
+    """``store ok|FAILING ...; quarantined N (robot: reason xK, ...)`` from ``fused/stats``."""
+    from agents.fleet.validate import get_int
+
+    store: dict[str, Any] = doc["store"] if isinstance(doc.get("store"), dict) else {}
+    if store.get("enabled") is False:
+        text = "store off"
+    elif store.get("ok") is False:
+        err = str(store.get("error", ""))[:120]
+        text = f"store FAILING ({err}; on disk v{get_int(store, 'written_version')}, {get_int(store, 'behind')} behind)"
+    else:
+        text = "store ok"
+    stats: dict[str, Any] = doc["stats"] if isinstance(doc.get("stats"), dict) else {}
+    q: dict[str, Any] = doc["quarantine"] if isinstance(doc.get("quarantine"), dict) else {}
+    parts = [
+        f"{str(r)[:40]}: {str(v.get('reason'))[:40]} x{get_int(v, 'count')}"
+        for r, v in list(q.items())[:8] if isinstance(v, dict)
+    ]  # fmt: skip
+    text += f"; quarantined {get_int(stats, 'quarantined')}"
+    return text + (f" ({', '.join(parts)})" if parts else "")
 
 
 def _stale(msg: Any) -> list[str]:
@@ -248,7 +292,19 @@ def run(args: argparse.Namespace) -> int:
 
             session.get(keys.fused_map, on_reply, timeout=QUERY_TIMEOUT)
             _eprint(f"watching {keys.fused_map}")
+            health: queue.Queue[bytes] = queue.Queue()
+            last_health = -math.inf
+
+            def on_stats(reply: Any) -> None:
+                if reply.ok is not None:
+                    health.put(reply.ok.payload.to_bytes())
+
             while not stop.is_set():
+                if time.monotonic() - last_health >= HEALTH_EVERY_S:  # the store flag and quarantines
+                    last_health = time.monotonic()
+                    session.get(keys.fusion_stats, on_stats, timeout=QUERY_TIMEOUT)
+                while not health.empty():
+                    watcher.health(health.get())
                 if args.count is not None and watcher.shown >= args.count:
                     break
                 wait = 0.2

@@ -408,6 +408,20 @@ class FleetRecorder:
                             draw_order=10.0),
         )
 
+    def log_quarantine(self, robot: str, t: float, text: str, wf_fleet: Wireframe) -> None:
+        """A robot map kept aside as inconsistent (not merged): drawn red under
+        ``quarantine/<robot>/map`` (the latest one), the reason in ``quarantine/<robot>/reason``
+        and in ``log``."""
+        rr = self._rr
+        self.set_time(t)
+        self.rec.log(
+            f"quarantine/{robot}/map",
+            rr.LineStrips2D(_strips(wf_fleet), colors=[(230, 40, 40)], radii=[0.05], draw_order=20.0),
+        )
+        line = f"{robot} quarantined: {text}"
+        self.rec.log(f"quarantine/{robot}/reason", rr.TextLog(line, level="WARN"))
+        self.rec.log("log", rr.TextLog(line, level="WARN"))
+
     def log_text(self, t: float, text: str, level: str = "INFO") -> None:
         rr = self._rr
         self.set_time(t)

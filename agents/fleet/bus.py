@@ -122,6 +122,13 @@ class FleetKeys:
         return f"{self.prefix}/fused/stats"
 
     @property
+    def admin_forget(self) -> str:
+        """``wiremap fleet forget ID``: a query (payload ``forget=ID``) the fusion service
+        answers; in a secure fleet only the admin identity may ask
+        (:func:`agents.fleet.secure.acl_config`)."""
+        return f"{self.prefix}/admin/forget"
+
+    @property
     def all_maps(self) -> str:
         return f"{self.prefix}/robots/*/map"
 

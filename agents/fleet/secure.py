@@ -17,9 +17,11 @@ Threat model and choices
                             liveliness token ``wiremap/<fleet>/alive/ID`` (and no other)
   the fusion identity       put/delete, declare a queryable and reply under
                             ``wiremap/<fleet>/fused/**``; read the whole fleet (subscribe,
-                            query, liveliness) and receive the queries for the fused map
-  observers (optional)      read the whole fleet (``wiremap watch``, the ``wiremap run``
-                            supervisor): no puts at all
+                            query, liveliness) and receive the queries for the fused map;
+                            it is also the admin: the only one to ask and answer
+                            ``wiremap/<fleet>/admin/**`` (``wiremap fleet forget ID``)
+  observers (optional)      read ``robots/``, ``alive/`` and ``fused/`` (``wiremap watch``,
+                            the ``wiremap run`` supervisor): no puts, no admin queries
   any authenticated client  subscribe to and query ``wiremap/<fleet>/fused/**``; see the
                             liveliness tokens ``wiremap/<fleet>/alive/**`` (``wiremap watch``
                             counts the robots alive: the ids are not secret)
@@ -395,15 +397,21 @@ def acl_config(
         return s
 
     p = f"wiremap/{fleet}"
+    fleet_read = [f"{p}/robots/**", f"{p}/alive/**", f"{p}/fused/**"]
     rules = [
         _rule("any-read-fused-in", ["declare_subscriber", "query"], "ingress", [f"{p}/fused/**"]),
         _rule("any-read-fused-out", ["put", "delete", "reply"], "egress", [f"{p}/fused/**"]),
         _rule("any-alive-in", ["declare_liveliness_subscriber", "liveliness_query"], "ingress", [f"{p}/alive/**"]),
         _rule("any-alive-out", ["liveliness_token", "reply"], "egress", [f"{p}/alive/**"]),
-        _rule("fleet-read-in", READ_IN, "ingress", [f"{p}/**"]),
-        _rule("fleet-read-out", READ_OUT, "egress", [f"{p}/**"]),
+        # reading the fleet: everything but admin/** (an observer may not ask the fusion
+        # service to forget a robot)
+        _rule("fleet-read-in", READ_IN, "ingress", fleet_read),
+        _rule("fleet-read-out", READ_OUT, "egress", fleet_read),
         _rule("fusion-write", ["put", "delete", "declare_queryable", "reply"], "ingress", [f"{p}/fused/**"]),
         _rule("fusion-answer", ["query"], "egress", [f"{p}/fused/**"]),
+        # admin/** (``wiremap fleet forget``): asked and answered by the fusion identity only
+        _rule("admin-in", ["query", "declare_queryable", "reply"], "ingress", [f"{p}/admin/**"]),
+        _rule("admin-out", ["query", "reply"], "egress", [f"{p}/admin/**"]),
     ]
     subjects: list[dict[str, Any]] = [subject("fusion", fusion_user)]
     if identity != "both":
@@ -415,7 +423,8 @@ def acl_config(
     policies: list[dict[str, Any]] = [
         {"id": "any", "rules": ["any-read-fused-in", "any-read-fused-out", "any-alive-in", "any-alive-out"],
          "subjects": everyone if identity == "both" else ["any"]},
-        {"id": "fusion", "rules": ["fleet-read-in", "fleet-read-out", "fusion-write", "fusion-answer"],
+        {"id": "fusion", "rules": ["fleet-read-in", "fleet-read-out", "fusion-write", "fusion-answer", "admin-in",
+                                   "admin-out"],
          "subjects": ["fusion"]},
     ]
     if observers:

@@ -346,7 +346,7 @@ def get_int(d: Mapping[str, Any], key: str, default: int = 0) -> int:
 
 
 def admin_request(params: object) -> tuple[str, str]:
-    """A ``fused/admin`` query's parameters (``forget=ID``) as ``("forget", id)``. Raises
+    """An ``admin/forget`` query's payload (``forget=ID``) as ``("forget", id)``. Raises
     :class:`Invalid`."""
     from agents.fleet.bus import valid_name
 

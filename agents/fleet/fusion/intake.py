@@ -3,7 +3,8 @@
 * :class:`InputLimits`: sizes, rates and content bounds (choices, see there);
 * :class:`Intake`: the bounded FIFO between Zenoh's callback thread and the fusion loop, which
   drops (and counts) payloads before anything is decoded;
-* :func:`implausible`: the content checks of a decoded robot map;
+* :func:`implausible`: the content checks of a decoded robot map; :func:`over_budget` and
+  :func:`too_dense`: what one robot map may cost;
 * :class:`DropLog`: at most one line per period summarising what was dropped.
 """
 
@@ -21,6 +22,7 @@ import numpy as np
 
 import wire_codec
 from agents.fleet import validate
+from mapping.wireframe import Wireframe
 from wire_codec import MAX_ROBOTS
 from wire_codec.message import MapMessage
 
@@ -46,6 +48,10 @@ class InputLimits:
     max_robot_vertices, max_robot_wall_m : a robot map's budget (vertices, total wall length):
         the fusion's cost grows with them (ICP and merge), so one robot cannot buy more. The
         largest built-in world's robot maps have a few hundred vertices.
+    max_cell_vertices, max_cell_wall_m : at most this many vertices and metres of walls in any
+        square metre (cells of a 1 m grid): the cost of ICP and merge grows with the walls near
+        each wall, so a budget-sized map stacked in a few square metres costs seconds; honest
+        maps of the built-in worlds have at most 2 vertices and 2.1 m of walls in a cell.
     sensor_range_m, max_speed_mps, reach_slack_m : a robot's map lies within ``sensor_range_m +
         max_speed_mps * (time since its boot) + reach_slack_m`` of its start pose: it cannot
         have seen further (a lidar's range, a fast robot; checked with the fusion's clock).
@@ -66,6 +72,8 @@ class InputLimits:
     viz_bytes: int = 4 * 1024 * 1024
     max_robot_vertices: int = 3000
     max_robot_wall_m: float = 5000.0
+    max_cell_vertices: int = 32
+    max_cell_wall_m: float = 12.0
     sensor_range_m: float = 40.0
     max_speed_mps: float = 3.0
     reach_slack_m: float = 10.0
@@ -116,6 +124,9 @@ def over_budget(msg: MapMessage, limits: InputLimits, now_ns: int | None = None)
         length = float(np.hypot(*(seg[:, 1] - seg[:, 0]).T).sum())
         if length > limits.max_robot_wall_m:
             return "budget_walls", f"{length:.0f} m of walls (budget {limits.max_robot_wall_m:g} m)"
+    bad = too_dense(wf, limits)
+    if bad is not None:
+        return bad
     if now_ns is not None and wf.n_vertices:
         meta = msg.meta if isinstance(msg.meta, dict) else {}
         elapsed = max(0.0, (now_ns - int(meta.get("boot", 0))) / 1e9)
@@ -123,6 +134,39 @@ def over_budget(msg: MapMessage, limits: InputLimits, now_ns: int | None = None)
         far = float(np.hypot(wf.points[:, 0], wf.points[:, 1]).max())  # odometry frame: from the start
         if far > reach:
             return "reach", f"a vertex {far:.0f} m from the start, {elapsed:.0f} s after boot (reach {reach:.0f} m)"
+    return None
+
+
+DENSITY_STEP_M = 0.5  # walls are sampled this often to measure their length per cell
+
+
+def _cell_codes(xy: np.ndarray) -> np.ndarray:
+    """One integer per 1 m grid cell (coordinates are bounded by the codec's limits)."""
+    c = np.floor(xy).astype(np.int64)
+    return (c[:, 0] << 32) + c[:, 1]
+
+
+def too_dense(wf: Wireframe, limits: InputLimits) -> tuple[str, str] | None:
+    """``("budget_density", detail)`` when a square metre of the map (a 1 m grid cell) holds
+    more than ``limits.max_cell_vertices`` vertices or ``limits.max_cell_wall_m`` metres of
+    walls (measured on points every ``DENSITY_STEP_M`` along the walls), else None."""
+    if wf.n_vertices == 0:
+        return None
+    _, per_cell = np.unique(_cell_codes(wf.points), return_counts=True)
+    if int(per_cell.max()) > limits.max_cell_vertices:
+        return "budget_density", f"{int(per_cell.max())} vertices in one square metre (budget {limits.max_cell_vertices})"
+    if wf.n_edges == 0:
+        return None
+    seg = wf.points[wf.edges]
+    length = np.hypot(*(seg[:, 1] - seg[:, 0]).T)
+    k = np.maximum(1, np.ceil(length / DENSITY_STEP_M).astype(np.int64))  # samples per edge (midpoints)
+    owner = np.repeat(np.arange(len(seg)), k)
+    t = (np.arange(int(k.sum())) - np.repeat(np.cumsum(k) - k, k) + 0.5) / k[owner]
+    pts = seg[owner, 0] + t[:, None] * (seg[owner, 1] - seg[owner, 0])
+    cells, inv = np.unique(_cell_codes(pts), return_inverse=True)
+    metres = np.bincount(inv, weights=(length / k)[owner], minlength=len(cells))
+    if float(metres.max()) > limits.max_cell_wall_m:
+        return "budget_density", f"{float(metres.max()):.0f} m of walls in one square metre (budget {limits.max_cell_wall_m:g} m)"
     return None
 
 

@@ -16,10 +16,13 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from agents.errors import UserError
-from agents.fleet.fusion.codec import encode_message
+from agents.fleet import validate
+from agents.fleet.fusion.budget import BudgetConfig, WorkBudget
+from agents.fleet.fusion.codec import decode_message, encode_message
 from agents.fleet.fusion.frames import FramesConfig
 from agents.fleet.fusion.intake import DropLog, InputLimits, Intake
 from agents.fleet.fusion.islands import IslandShell, frames_section
+from agents.fleet.fusion.quarantine import QuarantineConfig
 from agents.fleet.fusion.state import FusionConfig, FusionState
 from agents.fleet.fusion.stats import LatencyWindow
 from agents.fleet.fusion.store import StoreWriter
@@ -53,6 +56,9 @@ class ServeOptions:
     drop_log_s : at most one "dropped ..." line per this many seconds (:class:`DropLog`).
     config : :class:`FusionConfig`.
     frames : :class:`FramesConfig` (robots of unknown start pose: anchor, retry schedule).
+    quarantine : :class:`QuarantineConfig` (maps inconsistent with their robot's history or the
+        fleet are kept aside; None: off).
+    budget : :class:`BudgetConfig` (a robot's maps may cost this much fusion CPU; None: off).
     """
 
     store: str | None = None
@@ -71,6 +77,11 @@ class ServeOptions:
     align_wait_s: float = 0.5
     reset: bool = False
     frames: FramesConfig = field(default_factory=FramesConfig)
+    quarantine: QuarantineConfig | None = field(default_factory=QuarantineConfig)
+    budget: BudgetConfig | None = field(default_factory=BudgetConfig)
+
+
+MAX_ADMIN_BYTES = 256  # an admin query's payload (``forget=ID``), at most
 
 
 class FusionService:
@@ -89,8 +100,12 @@ class FusionService:
             if opts.store
             else FusionState(opts.config, limits=opts.limits)
         )
+        self.state.quarantine_config = opts.quarantine
+        self.state.budget = WorkBudget(opts.budget) if opts.budget is not None else None
         self.state.restart_by_token = True  # a robot's restart is learned from its liveliness token
         self._came_alive: list[str] = []  # tokens that appeared (zenoh thread -> main thread)
+        self._forget_requests: list[tuple[str, Any]] = []  # admin/forget queries (zenoh thread -> main thread)
+        self._last_unproven = 0.0
         self.state.frames.config = opts.frames
         self.recorder: Any = None
         if opts.rrd:
@@ -196,6 +211,47 @@ class FusionService:
             data = self._stats_doc
         query.reply(self.keys.fusion_stats, data, encoding=self._zenoh.Encoding.APPLICATION_JSON)
 
+    def _on_forget(self, query: Any) -> None:
+        """``admin/forget`` (payload ``forget=ID``): answered by the main thread (:meth:`_forget`)."""
+        payload = query.payload
+        rid = payload.to_bytes()[:MAX_ADMIN_BYTES].decode("utf-8", "replace") if payload is not None else ""
+        with self.lock:
+            if len(self._forget_requests) < 16:
+                self._forget_requests.append((rid, query))
+                return
+        query.reply_err(b"busy")
+
+    def _forget(self) -> None:
+        """Serve the waiting ``admin/forget`` queries and forget robot ids that never became
+        plausible (:meth:`FusionState.forget_implausible`, checked every 5 s)."""
+        st = self.state
+        with self.lock:
+            requests, self._forget_requests = self._forget_requests, []
+        for text, query in requests:
+            try:
+                _, rid = validate.admin_request(text)
+            except validate.Invalid as exc:
+                answer = {"ok": False, "error": exc.detail}
+            else:
+                had = st.forget(rid, "forgotten by the fleet's admin")
+                answer = {"ok": True, "robot": rid, "had_map": had}
+                self._forgotten(rid, "by the admin")
+            with query:
+                query.reply(self.keys.admin_forget, json.dumps(answer).encode())
+        if time.monotonic() - self._last_unproven >= 5.0:
+            self._last_unproven = time.monotonic()
+            for rid in st.forget_implausible(time.time_ns()):
+                self._forgotten(rid, "automatically: it never sent a plausible map")
+
+    def _forgotten(self, rid: str, how: str) -> None:
+        self.say(f"forgot robot {rid} {how}")
+        self.dirty.add(rid)  # a fuse without it
+        self.refuse = True
+        self.save_due = True
+        self.unsaved.discard(rid)
+        if self.recorder is not None:
+            self.recorder.log_text(self.state.sim_time(), f"forgot robot {rid} {how}")
+
     def _on_alive(self, sample: Any) -> None:
         rid = self.keys.robot_of(str(sample.key_expr))
         if rid is None:
@@ -236,6 +292,9 @@ class FusionService:
         self.liveliness_ready = True
         self._entities.append(s.declare_queryable(self.keys.fused_map, self._on_query, complete=True))
         self._entities.append(s.declare_queryable(self.keys.fusion_stats, self._on_stats_query, complete=True))
+        admin = getattr(self.keys, "admin_forget", None)  # a regional fuser's keys have none (yet)
+        if admin is not None:
+            self._entities.append(s.declare_queryable(admin, self._on_forget, complete=True))
         self._entities.append(s.declare_subscriber(self.keys.all_maps, self._on_map))
         if self.recorder is not None:
             # poses and scans only feed the recording: without one, 10 Hz x robots of callbacks
@@ -282,6 +341,9 @@ class FusionService:
         for rid in came:
             st.note_alive(rid, time.time_ns())
         now_ns = time.time_ns()
+        for rid in st.release_held(now_ns):  # maps that waited for their robot's work budget
+            self.dirty.add(rid)
+            self.last_change = time.monotonic()
         for key, data, arrived_ns in items:
             rid = self.keys.robot_of(key)
             if rid is None:
@@ -294,6 +356,12 @@ class FusionService:
             if st.last_drop is not None:
                 counter, reason, detail = st.last_drop
                 self.drops.note(counter, key, f"{reason}: {detail}")
+                if counter == "quarantined" and rid is not None and self.recorder is not None:
+                    q = st.quarantine.maps.get(rid)
+                    if q is not None:
+                        m = decode_message(q.raw)
+                        t = float(m.meta.get("t", 0.0)) if isinstance(m.meta.get("t"), (int, float)) else 0.0
+                        self.recorder.log_quarantine(rid, t, f"{reason}: {detail}", m.wireframe.transformed(m.origin))
 
     def _update_stale(self, publish: bool = True) -> None:
         """Recompute the stale list; on a change re-publish the same version with the new
@@ -342,6 +410,8 @@ class FusionService:
             },
             "stats": st.stats.as_dict(fresh),
             "converged": st.converged,
+            "quarantine": st.quarantine.summary(),
+            "forgotten": dict(sorted(st.forgotten.items())),
             **({"frames": frames_section(st)} if st.frames.active else {}),
             "transport_ms": self.transport_ms.summary(fresh),
             "queued_bytes": self.intake.queued_bytes,
@@ -466,6 +536,7 @@ class FusionService:
         ):
             self._save_async()
         self._poll_side_channels()
+        self._forget()
         self._update_stale()
         if self.current is not None and time.monotonic() - self.last_put > self.opts.heartbeat_s:
             self._put(self.current)  # maps are whole states: re-publishing is idempotent

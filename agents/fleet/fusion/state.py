@@ -24,6 +24,7 @@ import numpy as np
 
 from agents.errors import UserError
 from agents.fleet.bus import valid_name
+from agents.fleet.fusion.budget import WorkBudget
 from agents.fleet.fusion.codec import decode_message, encode_message, order_key
 from agents.fleet.fusion.frames import (
     FleetFrames,
@@ -33,6 +34,14 @@ from agents.fleet.fusion.frames import (
     origin_unknown,
 )
 from agents.fleet.fusion.intake import InputLimits, implausible, over_budget
+from agents.fleet.fusion.quarantine import (
+    FleetView,
+    Quarantine,
+    QuarantineConfig,
+    against_fleet,
+    against_history,
+    others_walls,
+)
 from agents.fleet.fusion.stats import MAX_LATENCIES, FusionStats
 from agents.fleet.fusion.store import LATENCY_LOG, StoreDamaged, StoreJob, read_latency_log, read_store
 from agents.fleet.fusion.tree import wire_snap
@@ -48,6 +57,8 @@ RESTART_HOLD_S = 5.0
 DEFAULT_THRESHOLD = 0.2  # merge threshold (m) unless configured
 DEFAULT_RESOLUTION = 0.05  # the fused map's quantisation step (m) while no robot map sets it
 FUSION_ID = "fusion"
+LATE_GRACE_NS = 3 * 10**9  # robots heard of this soon after start were already running (heartbeat 2 s)
+MAX_TRANSPORT_NS = 60 * 10**9  # a map's latency sample is at most this plus the fuse (forged stamps)
 
 
 MergeFn = Callable[[Wireframe, Wireframe, float], Wireframe]
@@ -179,6 +190,7 @@ class FusionState:
         merge_fn: MergeFn | None = None,
         limits: InputLimits | None = None,
         frames: FramesConfig | None = None,
+        quarantine: QuarantineConfig | None = None,
     ) -> None:
         self.config = config or FusionConfig()
         self.sender = sender
@@ -221,6 +233,18 @@ class FusionState:
         # robots of unknown start pose (meta origin_unknown): the registration graph (frames.py)
         self.frames = FleetFrames(frames)
         self._island_cache: dict[str, tuple[tuple[Any, ...], tuple[str, ...], Wireframe]] = {}
+        # consistency (quarantine.py; None: off): maps that contradict their robot's history or
+        # the fleet are kept aside, never merged; ids that never sent a plausible map are forgotten
+        self.quarantine_config = quarantine
+        self.quarantine = Quarantine()
+        self._fleet_view: tuple[tuple[int, int | None], FleetView] | None = None
+        self._first_seen: dict[str, int] = {}  # robot id -> first map (ns) while none was accepted
+        self._born_ns: int | None = None  # the first offer with a clock (see _inconsistent)
+        # a work budget per robot (budget.py; None: off): maps of a robot whose fusion CPU
+        # budget is spent wait in `held` (the latest only) until release_held
+        self.budget: WorkBudget | None = None
+        self.held: dict[str, tuple[MapMessage, bytes]] = {}
+        self._aligning = 0.0  # CPU seconds of alignments in the running compute (charged apart)
         # a regional fuser's (agents.fleet.fusion.regional): (identity, map) of the robots before
         # its group in the fleet-wide fold, the start of every alignment prefix; None: this
         # state's first robot is the anchor
@@ -240,6 +264,10 @@ class FusionState:
         self.stats.received += 1
         self.last_drop = None
         raw = bytes(data)
+        if now_ns is not None and self._born_ns is None:
+            self._born_ns = now_ns  # the first payload with a clock: when this state began listening
+        if now_ns is not None and key_robot is not None and key_robot not in self.robots:
+            self._note_unproven(key_robot, now_ns)
         try:
             msg = decode_message(raw, self._codec_limits)
         except ValueError as exc:
@@ -302,13 +330,92 @@ class FusionState:
                 del by["boot_without_restart"]
 
     def forget(self, rid: str, why: str) -> bool:
-        """Remove every trace of a robot (its map, alignment, caches); the store records
-        ``why`` (:attr:`forgotten`). Returns whether it had a map."""
+        """Remove every trace of a robot (its map, alignment, caches, quarantined map); the store
+        records ``why`` (:attr:`forgotten`). Returns whether it had a map."""
         had = self.robots.pop(rid, None) is not None
-        for cache in (self.alignments, self.corrections, self._in_fleet, self._prepared, self._pending):
+        for cache in (self.alignments, self.corrections, self._in_fleet, self._prepared, self._pending,
+                      self.quarantine.maps, self._first_seen, self.token_gen, self.held, self._held_restart):  # fmt: skip
             cache.pop(rid, None)
+        if self.budget is not None:
+            self.budget.forget(rid)
         self.forgotten[rid] = why[:200]
         return had
+
+    # ------------------------------------------------------------------ consistency (quarantine.py)
+    def _note_unproven(self, rid: str, now_ns: int) -> None:
+        """Remember when a robot id without an accepted map first sent one (bounded)."""
+        if rid not in self._first_seen:
+            if len(self._first_seen) >= 4 * MAX_ROBOTS:
+                del self._first_seen[min(self._first_seen, key=self._first_seen.__getitem__)]
+            self._first_seen[rid] = now_ns
+
+    def _charge(self, rid: str, seconds: float) -> None:
+        if self.budget is not None:
+            self.budget.charge(rid, seconds, time.monotonic())
+
+    def release_held(self, now_ns: int) -> list[str]:
+        """Take the held maps of robots whose work budget has refilled (:meth:`_add` again,
+        every check included). Returns the robots whose latest map changed."""
+        changed: list[str] = []
+        if self.budget is None:
+            return changed
+        now = time.monotonic()
+        for rid in [r for r in self.held if self.budget.allowed(r, now)]:
+            msg, raw = self.held.pop(rid)
+            if self._add(msg, raw, now_ns):
+                changed.append(rid)
+        return changed
+
+    def forget_implausible(self, now_ns: int) -> list[str]:
+        """Forget the robot ids none of whose maps was accepted (each refused or quarantined)
+        for ``forget_after_s`` since their first. Returns them."""
+        cfg = self.quarantine_config
+        if cfg is None:
+            return []
+        due = [r for r, t in self._first_seen.items() if r not in self.robots and now_ns - t >= cfg.forget_after_s * 1e9]
+        for rid in due:
+            self.forget(rid, f"never plausible: no map accepted in {cfg.forget_after_s:.0f} s")
+        return due
+
+    def _inconsistent(self, msg: MapMessage, old: RobotEntry | None, now_ns: int | None) -> tuple[str, str] | None:
+        """Why ``msg`` contradicts its robot's last accepted map of the same boot or the other
+        robots' walls (:mod:`agents.fleet.fusion.quarantine`), else None."""
+        cfg = self.quarantine_config
+        if cfg is None or now_ns is None:
+            return None
+        wf = msg.wireframe
+        lim = self.limits
+        if old is not None and old.at_ns and _origin_of(old.message) == _origin_of(msg):  # same boot and start
+            seconds = (now_ns - old.at_ns) / 1e9
+            bad = against_history(wf, old.message.wireframe, seconds, lim.max_speed_mps, lim.sensor_range_m, cfg)
+            if bad is not None:
+                return bad
+        elif old is None and wf.n_vertices and self._first_seen.get(msg.sender, now_ns) - (self._born_ns or now_ns) > LATE_GRACE_NS:
+            # a robot's first map: no further from its start than it could have gone since the
+            # fusion first heard of it (its claimed boot may be as old as it likes), except
+            # within the fleet's known extent (a robot joining a mapped building late). Not for
+            # robots already sending when this state began (a restart without store, a takeover
+            # in a fusion tree): those are held to their claimed boot (over_budget's reach).
+            heard = (now_ns - self._first_seen.get(msg.sender, now_ns)) / 1e9
+            reach = lim.sensor_range_m + lim.max_speed_mps * heard + cfg.growth_slack_m
+            out = np.hypot(wf.points[:, 0], wf.points[:, 1]) > reach
+            if np.any(out) and self.fused.n_vertices:
+                lo = self.fused.points.min(axis=0) - lim.sensor_range_m
+                hi = self.fused.points.max(axis=0) + lim.sensor_range_m
+                fleet = msg.origin.apply(wf.points[out])
+                out[out] = ~np.all((fleet >= lo) & (fleet <= hi), axis=1)
+            if np.any(out):
+                far = float(np.hypot(wf.points[out, 0], wf.points[out, 1]).max())
+                return "extent_jump", (f"a first map reaching {far:.0f} m from the start and out of the "
+                                       f"fleet's extent, heard of {heard:.0f} s ago")  # fmt: skip
+        if origin_unknown(msg) or self.fused.n_edges == 0:
+            return None
+        rid = msg.sender
+        bit = self.fused_robots.index(rid) if rid in self.fused_robots else None
+        key = (self.version, bit)
+        if self._fleet_view is None or self._fleet_view[0] != key:
+            self._fleet_view = (key, FleetView.of(others_walls(self.fused, bit), cfg))
+        return against_fleet(wf.transformed(msg.origin), self._fleet_view[1], cfg)
 
     def _add(self, msg: MapMessage, raw: bytes, now_ns: int | None = None) -> bool:
         rid = msg.sender
@@ -349,6 +456,19 @@ class FusionState:
                         return self._drop("absurd", "seq_jump", f"seq {key[1]} after {old.key[1]} {dt:.1f} s ago")
         elif len(self.robots) >= MAX_ROBOTS:
             return self._drop("rejected", "too_many_robots", f"{rid!r} would be robot {MAX_ROBOTS + 1}")
+        if self.budget is not None and now_ns is not None and not self.budget.allowed(rid, time.monotonic()):
+            self.held[rid] = (msg, raw)  # its fusion budget is spent: fused later (release_held)
+            self.stats.held += 1
+            return False
+        self.held.pop(rid, None)
+        t0 = time.thread_time()
+        bad = self._inconsistent(msg, old, now_ns)
+        self._charge(rid, time.thread_time() - t0)
+        if bad is not None:
+            self.quarantine.put(rid, raw, *bad, now_ns or 0)
+            return self._drop("quarantined", *bad)
+        self.quarantine.maps.pop(rid, None)
+        self._first_seen.pop(rid, None)
         self.forgotten.pop(rid, None)
         same = old is not None and _same_content(old.message, msg)
         if same:
@@ -360,7 +480,10 @@ class FusionState:
         self.robots[rid] = RobotEntry(msg, raw, key, rev, gen, since, now_ns or 0)
         self.stats.accepted += 1
         if not same:
-            self._pending.setdefault(rid, int(msg.stamp_ns))
+            # a stamp over MAX_TRANSPORT_S old counts as that old: a forged stamp from the past
+            # cannot fill the latency summary with centuries
+            stamp = int(msg.stamp_ns) if now_ns is None else max(int(msg.stamp_ns), now_ns - MAX_TRANSPORT_NS)
+            self._pending.setdefault(rid, stamp)
         return not same
 
     # ------------------------------------------------------------------ unknown start poses
@@ -664,7 +787,10 @@ class FusionState:
                     budget -= 1
                     wf0 = self._fleet_map(rid)
                     ref = self._prefix_map(k, leaves, thr)
+                    t_align = time.thread_time()
                     corr_new = self._align(wf0, ref) if ref.n_edges and wf0.n_edges else None
+                    self._charge(rid, time.thread_time() - t_align)
+                    self._aligning += time.thread_time() - t_align
                     al = Alignment(corr_new, e.rev, n, _origin_of(e.message), now, prefix)
                     self.stats.alignments += 1
                     current = exact
@@ -721,7 +847,9 @@ class FusionState:
                 continue  # the threshold changed since that fold: the next fuse decides
             acc = self._prefix_map(k, self._leaves, thr)
             wf0 = self._fleet_map(rid)
+            t_align = time.thread_time()
             corr = self._align(wf0, acc) if acc.n_edges and wf0.n_edges else None
+            self._charge(rid, time.thread_time() - t_align)
             n = e.message.wireframe.n_vertices
             self.alignments[rid] = Alignment(corr, e.rev, n, _origin_of(e.message), now, reference)
             self.stats.alignments += 1
@@ -731,7 +859,14 @@ class FusionState:
     def fuse(self, full: bool = False, now: float | None = None, max_realign: int | None = None) -> bool:
         """Recompute the fused map (:meth:`compute`); bump ``version`` and return True when it
         changed."""
+        who = [r for r in self._pending if r in self.robots]  # the robots whose new maps this fuse takes
+        t0 = time.thread_time()
+        self._aligning = 0.0
         wf, ids, corr = self.compute(full, now, max_realign)
+        if who:  # the fuse's cost besides alignments (charged to their robots), shared
+            share = max(0.0, time.thread_time() - t0 - self._aligning) / len(who)
+            for rid in who:
+                self._charge(rid, share)
         self.stats.fuses += 1
         self.stats.full_fuses += int(full)
         self.corrections = corr

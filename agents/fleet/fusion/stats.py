@@ -84,6 +84,10 @@ class FusionStats:
     received : payloads offered to :meth:`~agents.fleet.fusion.state.FusionState.offer` (decoded or not).
     accepted : became their robot's latest map; duplicates / outdated: identical to, or older
         than, the latest (not errors: maps are re-sent).
+    quarantined : kept aside as inconsistent with the robot's history or the fleet, not merged
+        (:mod:`agents.fleet.fusion.quarantine`); ``quarantined_by`` by reason.
+    held : maps that waited because their robot's fusion work budget was spent
+        (:mod:`agents.fleet.fusion.budget`; fused later, the latest one per robot).
     malformed / rejected / absurd : dropped in :meth:`~agents.fleet.fusion.state.FusionState.offer`; ``*_by`` break them
         down by codec error class or reason.
     oversized / rate_limited / overflow : dropped by :class:`~agents.fleet.fusion.intake.Intake` before decoding.
@@ -102,6 +106,8 @@ class FusionStats:
     malformed: int = 0
     rejected: int = 0
     absurd: int = 0
+    quarantined: int = 0
+    held: int = 0
     oversized: int = 0
     rate_limited: int = 0
     overflow: int = 0
@@ -113,6 +119,7 @@ class FusionStats:
     malformed_by: dict[str, int] = field(default_factory=dict)
     rejected_by: dict[str, int] = field(default_factory=dict)
     absurd_by: dict[str, int] = field(default_factory=dict)
+    quarantined_by: dict[str, int] = field(default_factory=dict)
     side_dropped_by: dict[str, int] = field(default_factory=dict)
     latencies_ms: LatencyWindow = field(default_factory=LatencyWindow)
 
@@ -136,6 +143,8 @@ class FusionStats:
             "malformed": self.malformed,
             "rejected": self.rejected,
             "absurd": self.absurd,
+            "quarantined": self.quarantined,
+            "held": self.held,
             "oversized": self.oversized,
             "rate_limited": self.rate_limited,
             "overflow": self.overflow,
@@ -148,6 +157,7 @@ class FusionStats:
             "malformed_by": dict(sorted(self.malformed_by.items())),
             "rejected_by": dict(sorted(self.rejected_by.items())),
             "absurd_by": dict(sorted(self.absurd_by.items())),
+            "quarantined_by": dict(sorted(self.quarantined_by.items())),
             "side_dropped_by": dict(sorted(self.side_dropped_by.items())),
             "latency_ms": self.latencies_ms.summary(fresh_latency),
         }
