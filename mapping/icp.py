@@ -312,7 +312,9 @@ class ICPResult:
 
 
 # ---------------------------------------------------------------------------------- geometry
-def project_onto_segments(points: FloatArray, segments: FloatArray) -> tuple[IntArray, FloatArray, FloatArray]:
+def project_onto_segments(
+    points: FloatArray, segments: FloatArray
+) -> tuple[IntArray, FloatArray, FloatArray]:
     """Closest point on any of ``segments`` for each point.
 
     Parameters
@@ -859,8 +861,16 @@ def _checked_prior(cfg: ICPConfig, prior_covariance: ArrayLike | None) -> FloatA
 
 
 def _linearise(
-    scan: Wireframe, ref: Wireframe, cfg: ICPConfig, P: FloatArray, scale: float, at: Pose, gate: float,
-) -> tuple[Correspondences, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray, BoolArray]:
+    scan: Wireframe,
+    ref: Wireframe,
+    cfg: ICPConfig,
+    P: FloatArray,
+    scale: float,
+    at: Pose,
+    gate: float,
+) -> tuple[
+    Correspondences, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray, BoolArray
+]:
     """Linearise the constraints with the scan moved by ``at`` (paper Sec. IV-C).
 
     Parameters

@@ -32,7 +32,8 @@ def test_a_robot_over_its_budget_waits_and_the_others_do_not() -> None:
     st.fuse()
     st.budget.charge("r1", 5.0, time.monotonic())  # r1's maps have been expensive
     assert not st.offer(raw_map("r1", part(truth, (50.0, 50.0), 45.0), Pose(50.0, 50.0, 0.0), 2), "r1", t + S)
-    assert not st.offer(raw_map("r1", part(truth, (50.0, 50.0), 50.0), Pose(50.0, 50.0, 0.0), 3), "r1", t + 2 * S)
+    assert not st.offer(raw_map("r1", part(truth, (50.0, 50.0), 50.0), Pose(50.0, 50.0, 0.0), 3),
+                        "r1", t + 2 * S)
     assert st.stats.held == 2 and set(st.held) == {"r1"} and st.held["r1"][0].seq == 3
     assert st.offer(raw_map("r2", part(truth, (100.0, 100.0), 45.0), Pose(100.0, 100.0, 0.0), 2), "r2", t + S)
     assert st.release_held(t + 3 * S) == []

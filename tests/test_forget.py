@@ -27,8 +27,8 @@ def square(rid: str, seq: int) -> bytes:
     return encode_message(
         MapMessage(
             kind=MessageKind.ROBOT_MAP, sender=rid, seq=seq, stamp_ns=time.time_ns(), pose=Pose.identity(),
-            frame=f"odom/{rid}", origin=Pose(1.0, 2.0, 0.0), resolution=0.05, wireframe=Wireframe.build(pts, edges),
-            meta={"boot": time.time_ns() - 10**9, "t": 1.0, "step": 1},
+            frame=f"odom/{rid}", origin=Pose(1.0, 2.0, 0.0), resolution=0.05,
+            wireframe=Wireframe.build(pts, edges), meta={"boot": time.time_ns() - 10**9, "t": 1.0, "step": 1},
         )
     )  # fmt: skip
 
@@ -37,22 +37,27 @@ def test_forget_removes_a_robot_and_the_store_says_why(tmp_path: Path) -> None:
     keys = FleetKeys("forget")
     store = tmp_path / "store"
     with in_process_router() as ep, Fleet(tmp_path) as fleet, client(ep) as s:
-        fleet.start("fuse", ["fuse", "--connect", ep, "--fleet", keys.fleet, "--store", store, "--save-interval", "0"])
+        fleet.start("fuse",
+                    ["fuse", "--connect", ep, "--fleet", keys.fleet, "--store", store,
+                     "--save-interval", "0"])
         fleet.wait_log("fuse", "fusion service ready", 30)
         for rid in ("r1", "r2"):
             s.put(keys.robot_map(rid), square(rid, 1))
-        wait_until(lambda: set((query_stats(s, keys) or {}).get("robots", {})) == {"r1", "r2"}, 20, "both robots fused")
+        wait_until(lambda: set((query_stats(s, keys) or {}).get("robots", {})) == {"r1", "r2"}, 20,
+                   "both robots fused")
         out = subprocess.run(
             [sys.executable, "-m", "agents", "fleet", "forget", "r2", "--connect", ep, "--fleet", keys.fleet],
             capture_output=True, text=True, timeout=60,
         )  # fmt: skip
         assert out.returncode == 0, out.stderr
         assert "forgot r2 (its map removed)" in out.stdout
-        doc = wait_until(lambda: (d := query_stats(s, keys)) and "r2" not in d["robots"] and d, 20, "r2 forgotten")
+        doc = wait_until(lambda: (d := query_stats(s, keys)) and "r2" not in d["robots"] and d, 20,
+                         "r2 forgotten")
         assert doc["fused"]["robots"] == ["r1"]
         assert "admin" in doc["forgotten"]["r2"]
         bad = subprocess.run(
-            [sys.executable, "-m", "agents", "fleet", "forget", "no/such", "--connect", ep, "--fleet", keys.fleet],
+            [sys.executable, "-m", "agents", "fleet", "forget", "no/such", "--connect", ep, "--fleet",
+             keys.fleet],
             capture_output=True, text=True, timeout=60,
         )  # fmt: skip
         assert bad.returncode != 0 and "no robot id" in bad.stderr

@@ -48,7 +48,9 @@ def chain(points, labels) -> Wireframe:
     return Wireframe.build(points, [(i, i + 1) for i in range(n - 1)], labels)
 
 
-def robot_msg(rid: str, seq: int = 1, wf_fleet: Wireframe | None = None, boot: int = 1, origin=None) -> MapMessage:
+def robot_msg(
+    rid: str, seq: int = 1, wf_fleet: Wireframe | None = None, boot: int = 1, origin=None
+) -> MapMessage:
     """A robot map message: the fleet-frame view expressed in the robot's odometry frame."""
     origin = origin or ORIGINS[rid]
     if wf_fleet is None:
@@ -231,7 +233,9 @@ def test_icp_refinement_removes_a_start_pose_error():
 
     def worst(state: FusionState) -> float:
         pts = state.robot_in_fleet("r2").points
-        return float(np.max(np.min(np.hypot(*(pts[:, None, :] - room.points[None]).transpose(2, 0, 1)), axis=1)))
+        return float(
+            np.max(np.min(np.hypot(*(pts[:, None, :] - room.points[None]).transpose(2, 0, 1)), axis=1))
+        )
 
     # the codec's quantisation alone leaves ~0.07 m; the uncorrected error is ~0.3 m
     assert worst(plain) > 0.25
@@ -285,7 +289,8 @@ def _fake_refine(source: Wireframe, target: Wireframe, max_shift: float, max_tur
     """A stand-in for ICP whose correction depends on the reference (its edge count and extent)
     and on the map aligned (its extent), so that a stale alignment shows in the result (by
     several steps of the fold's 0.05 m grid, ``agents.fleet.fusion.tree.wire_snap``)."""
-    return Pose(0.05 * target.n_edges, 0.025 * float(np.ptp(target.points[:, 0]) + np.ptp(source.points[:, 0])), 0.0)
+    return Pose(0.05 * target.n_edges,
+                0.025 * float(np.ptp(target.points[:, 0]) + np.ptp(source.points[:, 0])), 0.0)
 
 
 class _Counting:
@@ -344,13 +349,17 @@ def test_full_path_is_a_function_of_the_set_with_reference_dependent_alignments(
             if fuse_between[i % len(fuse_between)]:
                 st_.fuse()
         for m, raw in zip(_MIXED, _MIXED_RAW):  # the latest of each robot: the greatest order key
-            if m.sender not in latest or order_key(m, raw) > order_key(decode_message(latest[m.sender]), latest[m.sender]):
+            if m.sender not in latest or order_key(m, raw) > order_key(
+                decode_message(latest[m.sender]), latest[m.sender]
+            ):
                 latest[m.sender] = raw
         ref = _full_of(latest)
         st_.fuse(full=True)
         assert st_.converged and st_.fused_robots == ref.fused_robots
         assert _arrays(st_.fused) == _arrays(ref.fused)
-        assert {r: c.as_tuple() for r, c in st_.corrections.items()} == {r: c.as_tuple() for r, c in ref.corrections.items()}
+        assert {r: c.as_tuple() for r, c in st_.corrections.items()} == {
+            r: c.as_tuple() for r, c in ref.corrections.items()
+        }
 
 
 def test_fast_path_reuses_alignments_and_realigns_on_growth_and_age():
@@ -638,7 +647,8 @@ def test_merge_threshold_default_configured_and_raised_by_a_coarse_map():
 
 
 @settings(max_examples=80, deadline=None, suppress_health_check=[HealthCheck.too_slow])
-@given(st.integers(1, 12), st.integers(0, 2**32 - 1), st.sampled_from(["same", "permuted", "moved", "relabelled", "lik", "src"]))
+@given(st.integers(1, 12), st.integers(0, 2**32 - 1),
+       st.sampled_from(["same", "permuted", "moved", "relabelled", "lik", "src"]))
 def test_quick_difference_test_never_contradicts_almost_equal(n, seed, change):
     """``almost_equal`` (and so ``_same_wireframe``) skips the vertex matching when sorted
     coordinates, labels, likelihoods or sources already differ; the quick test must agree with
@@ -649,7 +659,8 @@ def test_quick_difference_test_never_contradicts_almost_equal(n, seed, change):
     rng = np.random.default_rng(seed)
     pts = rng.integers(0, 6, (n, 2)) * 0.5
     edges = [(i, (i + 1) % n) for i in range(n - 1)] if n > 1 else []
-    a = Wireframe.build(pts, edges, rng.integers(0, 3, n), rng.random(len(edges)), rng.integers(0, 4, len(edges)))
+    a = Wireframe.build(pts, edges, rng.integers(0, 3, n), rng.random(len(edges)),
+                        rng.integers(0, 4, len(edges)))
     perm = rng.permutation(n)
     inv = np.argsort(perm)
     b = Wireframe.build(

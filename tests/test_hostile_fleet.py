@@ -26,7 +26,8 @@ from wire_codec.message import MapMessage, MessageKind
 
 pytestmark = [
     pytest.mark.fleet,
-    pytest.mark.skipif(shutil.which("openssl") is None, reason="the openssl command generates the test certificates"),
+    pytest.mark.skipif(shutil.which("openssl") is None,
+                       reason="the openssl command generates the test certificates"),
 ]
 
 
@@ -54,7 +55,8 @@ def attacks(doc: dict[str, Any]) -> list[tuple[str, bytes]]:
         ("pose", msgpack.packb({**good_pose, "t": 1e300})),  # crash 1: Rerun's set_time
         ("pose", msgpack.packb({**good_pose, "status": {"step": "x"}})),  # crash 2: run's progress line
         ("pose", msgpack.packb({**good_pose, "fleet": [float("nan"), 0, 0]})),
-        ("viz", msgpack.packb({"t": float("inf"), "pose": [0, 0, 0], "scan": {}, "particles": [], "weights": []})),
+        ("viz",
+         msgpack.packb({"t": float("inf"), "pose": [0, 0, 0], "scan": {}, "particles": [], "weights": []})),
         ("map", junk_map(5000, 900.0, now, seq + 1, rng, origin)),  # over the vertex budget
         ("map", junk_map(1500, 900.0, boot, seq + 1, rng, origin)),  # kilometres of junk walls
         ("map", junk_map(3, 600.0, boot, seq + 1, rng, origin)),  # walls beyond the robot's reach
@@ -91,7 +93,8 @@ def test_one_stolen_robot_does_not_take_the_fleet_down(tmp_path: Path) -> None:
                     thief.put(key, payload)
                     time.sleep(0.2)  # poses and scans: only the latest per robot is looked at
             # the honest robots keep merging: new versions keep coming
-            wait_until(lambda: (d := query_stats(mon, keys)) and d["version"] > before + 3, 30, "new versions")
+            wait_until(lambda: (d := query_stats(mon, keys)) and d["version"] > before + 3, 30,
+                       "new versions")
             st = wait_until(lambda: (d := query_stats(mon, keys)) and d["stats"]["absurd"] >= 12 and d, 20,
                             "the attacks counted")["stats"]  # fmt: skip
         assert p.wait(timeout=120) == 0, fleet.log("run")

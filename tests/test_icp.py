@@ -290,7 +290,9 @@ def test_match_edges_with_the_index_equals_the_dense_test(monkeypatch: pytest.Mo
         ref = Wireframe.build(truth.points + rng.normal(0, 0.05, truth.points.shape), truth.edges)
         th = rng.normal(0, 0.03)
         c, s = np.cos(th), np.sin(th)
-        pts = (truth.points + rng.normal(0, 0.1 * (trial % 4), truth.points.shape)) @ np.array([[c, s], [-s, c]])
+        pts = (truth.points + rng.normal(0, 0.1 * (trial % 4), truth.points.shape)) @ np.array(
+            [[c, s], [-s, c]]
+        )
         scan = Wireframe.build(pts + rng.normal(0, 0.2, 2), truth.edges)
         vp, _ = match_vertices(scan.points, ref.points, 0.5)
         vp = vp if trial % 3 else vp[:0]

@@ -33,7 +33,8 @@ def raw_map(rid: str, wf_fleet: Wireframe, origin: Pose, seq: int, boot: int = B
     return encode_message(
         MapMessage(
             kind=MessageKind.ROBOT_MAP, sender=rid, seq=seq, stamp_ns=boot + seq * S, pose=Pose.identity(),
-            frame=f"odom/{rid}", origin=origin, resolution=0.05, wireframe=wf_fleet.transformed(origin.inverse()),
+            frame=f"odom/{rid}", origin=origin, resolution=0.05,
+            wireframe=wf_fleet.transformed(origin.inverse()),
             meta={"boot": boot, "t": float(seq), "step": seq},
         )
     )  # fmt: skip
@@ -55,7 +56,9 @@ def test_honest_growing_maps_are_never_quarantined() -> None:
         for rid, c in starts.items():
             origin = Pose(c[0], c[1], 0.3)
             wf = part(truth, c, 5.0 + 2.0 * seq)
-            wobble = Wireframe.build(wf.points + rng.normal(0, 0.15, wf.points.shape), wf.edges)  # a particle's drift
+            wobble = Wireframe.build(
+                wf.points + rng.normal(0, 0.15, wf.points.shape), wf.edges
+            )  # a particle's drift
             assert st.offer(raw_map(rid, wobble, origin, seq), rid, BOOT + seq * S + S // 2) or True
         st.fuse()
     assert st.stats.quarantined == 0, st.quarantine.summary()
@@ -88,7 +91,7 @@ def test_an_extent_jump_is_quarantined() -> None:
     small = part(truth, (50.0, 50.0), 30.0)
     assert st.offer(raw_map("r1", small, origin, 1), "r1", BOOT + 100 * S)  # within its reach after 100 s
     far = Wireframe.build(np.concatenate([small.points, [[180.0, 180.0], [181.0, 180.0]]]),
-                          np.concatenate([small.edges, [[small.n_vertices, small.n_vertices + 1]]]))  # fmt: skip
+                          np.concatenate([small.edges, [[small.n_vertices, small.n_vertices + 1]]]))  # fmt: skip  # noqa: E501
     assert not st.offer(raw_map("r1", far, origin, 2), "r1", BOOT + 101 * S)  # but not one second later
     assert st.stats.quarantined_by == {"extent_jump": 1}
 
@@ -105,7 +108,8 @@ def beside_walls(st: FusionState) -> Wireframe:
     keep = np.isin(_cell_codes(a, cfg.cell_m), view.cells)
     a, d = a[keep], d[keep]
     n = len(a)
-    return Wireframe.build(np.concatenate([a, a + 2.0 * d]), np.stack([np.arange(n), np.arange(n, 2 * n)], axis=1))
+    return Wireframe.build(np.concatenate([a, a + 2.0 * d]),
+                           np.stack([np.arange(n), np.arange(n, 2 * n)], axis=1))
 
 
 def test_walls_in_the_fleets_free_space_are_quarantined() -> None:
@@ -118,12 +122,14 @@ def test_walls_in_the_fleets_free_space_are_quarantined() -> None:
     assert st.stats.quarantined_by == {"fleet_walls": 1}
     assert "r3" not in st.robots and "r3" in st.quarantine.summary()
     # an honest newcomer on the same rooms is accepted
-    assert st.offer(raw_map("r4", part(truth, (80.0, 80.0), 30.0), Pose(80.0, 80.0, 0.0), 1), "r4", BOOT + 100 * S)
+    assert st.offer(raw_map("r4", part(truth, (80.0, 80.0), 30.0), Pose(80.0, 80.0, 0.0), 1), "r4",
+                    BOOT + 100 * S)
 
 
 def test_an_id_that_never_sends_a_plausible_map_is_forgotten() -> None:
     st, truth = fleet()
-    st.offer(raw_map("r1", part(truth, (100.0, 100.0), 80.0), Pose(100.0, 100.0, 0.0), 1), "r1", BOOT + 100 * S)
+    st.offer(raw_map("r1", part(truth, (100.0, 100.0), 80.0), Pose(100.0, 100.0, 0.0), 1), "r1",
+             BOOT + 100 * S)
     st.fuse()
     junk = beside_walls(st)
     t = BOOT + 100 * S
@@ -140,7 +146,7 @@ def test_stacked_walls_are_over_the_density_budget() -> None:
     pts = rng.uniform(0.0, 1.0, size=(200, 2))
     wf = Wireframe.build(pts, np.stack([np.arange(199), np.arange(1, 200)], axis=1))
     assert too_dense(wf, InputLimits()) is not None
-    star = Wireframe.build(np.array([[0.5, 0.5]] + [[0.5 + 3 * np.cos(a), 0.5 + 3 * np.sin(a)] for a in np.linspace(0, 6, 40)]),
+    star = Wireframe.build(np.array([[0.5, 0.5]] + [[0.5 + 3 * np.cos(a), 0.5 + 3 * np.sin(a)] for a in np.linspace(0, 6, 40)]),  # noqa: E501
                            np.array([[0, k] for k in range(1, 41)]))  # fmt: skip
     bad = too_dense(star, InputLimits(max_cell_vertices=100))
     assert bad is not None and "walls" in bad[1]
@@ -152,7 +158,8 @@ def test_a_first_map_reaches_no_further_than_since_the_fusion_heard_of_the_robot
     truth = load_world("museum").truth
     st = FusionState(FusionConfig(threshold=0.4, refine=False), quarantine=QuarantineConfig())
     t = BOOT + 3600 * S  # it claims to have been up for an hour (reach 10.9 km by its boot)
-    assert st.offer(raw_map("r0", part(truth, (40.0, 40.0), 20.0), Pose(40.0, 40.0, 0.0), 1), "r0", t - 60 * S)
+    assert st.offer(raw_map("r0", part(truth, (40.0, 40.0), 20.0), Pose(40.0, 40.0, 0.0), 1),
+                    "r0", t - 60 * S)
     big = part(truth, (100.0, 100.0), 70.0)
     assert not st.offer(raw_map("r1", big, Pose(30.0, 30.0, 0.0), 1), "r1", t)
     assert st.stats.quarantined_by == {"extent_jump": 1} and st.last_drop is not None

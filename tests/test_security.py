@@ -63,7 +63,7 @@ def free_port() -> int:
 
 # ====================================================================== pure helpers
 def test_parse_credentials_resolves_paths_and_skips_comment_lines(tmp_path: Path) -> None:
-    text = '// a comment\n# another\n{"user": "r1", "password": "pw", "ca": "c/ca.pem",\n "cert": "c/r1.pem", "key": "/abs/r1.key"}\n'
+    text = '// a comment\n# another\n{"user": "r1", "password": "pw", "ca": "c/ca.pem",\n "cert": "c/r1.pem", "key": "/abs/r1.key"}\n'  # noqa: E501
     c = parse_credentials(text, tmp_path)
     assert c.user == "r1" and c.password == "pw"
     assert c.ca == (tmp_path / "c" / "ca.pem").resolve()
@@ -134,7 +134,8 @@ def test_write_credentials_round_trip_is_private_and_relative(tmp_path: Path) ->
     for name in ("ca.pem", "r1.pem", "r1.key"):
         (tmp_path / "certs" / name).write_text("x")
         (tmp_path / "certs" / name).chmod(0o600)
-    c = Credentials("r1", "s3cret", tmp_path / "certs/ca.pem", tmp_path / "certs/r1.pem", tmp_path / "certs/r1.key")
+    c = Credentials("r1", "s3cret", tmp_path / "certs/ca.pem", tmp_path / "certs/r1.pem",
+                    tmp_path / "certs/r1.key")
     p = write_credentials(tmp_path / "creds" / "r1.json", c)
     assert p.stat().st_mode & 0o777 == 0o600
     assert json.loads(p.read_text())["ca"] == "../certs/ca.pem"
@@ -177,7 +178,9 @@ def _policy_map(acl: dict[str, Any]) -> dict[str, set[tuple[str, str, str]]]:
             for rid in pol["rules"]:
                 r = rules[rid]
                 assert r["permission"] == "allow"
-                out.setdefault(s, set()).update((m, f, k) for m in r["messages"] for f in r["flows"] for k in r["key_exprs"])
+                out.setdefault(s, set()).update(
+                    (m, f, k) for m in r["messages"] for f in r["flows"] for k in r["key_exprs"]
+                )
     return out
 
 
@@ -195,11 +198,16 @@ def test_acl_config_grants() -> None:
     assert ("declare_queryable", "ingress", "wiremap/f/fused/**") in grants["fusion"]
     assert ("declare_subscriber", "ingress", "wiremap/f/robots/**") in grants["observer-monitor"]
     # admin/** (wiremap fleet forget): only the fusion identity asks and answers
-    asks_admin = {s for s, g in grants.items() if any(m == "query" and k.startswith("wiremap/f/admin") for m, _, k in g)}
+    asks_admin = {
+        s for s, g in grants.items() if any(m == "query" and k.startswith("wiremap/f/admin") for m, _, k in g)
+    }
     assert asks_admin == {"fusion"}
     assert ("declare_queryable", "ingress", "wiremap/f/admin/**") in grants["fusion"]
     assert not any("/**" == k[-3:] and k == "wiremap/f/**" for g in grants.values() for _, _, k in g)
-    assert not any(m in ("put", "delete", "declare_queryable") and f == "ingress" for m, f, _ in grants["observer-monitor"])
+    assert not any(
+        m in ("put", "delete", "declare_queryable") and f == "ingress"
+        for m, f, _ in grants["observer-monitor"]
+    )
     assert ("declare_subscriber", "ingress", "wiremap/f/fused/**") in grants["any"]
     assert ("query", "ingress", "wiremap/f/fused/**") in grants["any"]
     assert not any(f == "ingress" and m in ("put", "delete", "liveliness_token") for m, f, _ in grants["any"])
@@ -254,7 +262,8 @@ def test_endpoint_address_and_reachable() -> None:
 
 def test_router_config_shape(tmp_path: Path) -> None:
     tls = ServerTls(tmp_path / "ca.pem", tmp_path / "s.pem", tmp_path / "s.key")
-    doc = router_config(["tls/localhost:1"], dictionary_file=tmp_path / "pw.txt", tls=tls, acl={"enabled": True})
+    doc = router_config(["tls/localhost:1"], dictionary_file=tmp_path / "pw.txt", tls=tls,
+                        acl={"enabled": True})
     assert doc["mode"] == "router" and doc["scouting"]["multicast"]["enabled"] is False
     assert doc["transport"]["auth"]["usrpwd"]["dictionary_file"] == str(tmp_path / "pw.txt")
     assert doc["transport"]["link"]["tls"]["enable_mtls"] is True
@@ -269,7 +278,11 @@ def test_router_config_shape(tmp_path: Path) -> None:
 def test_committed_router_files_match_acl_config(name: str, identity: str) -> None:
     cfg = zenoh.Config.from_file(str(SECURE / f"router-{name}.json5"))
     want = to_zenoh_config(
-        {"access_control": acl_config("default", ["r1", "r2", "r3"], observers=["monitor"], identity=identity)}  # type: ignore[arg-type]
+        {
+            "access_control": acl_config(
+                "default", ["r1", "r2", "r3"], observers=["monitor"], identity=identity
+            )
+        }  # type: ignore[arg-type]
     )
     assert json.loads(cfg.get_json("access_control")) == json.loads(want.get_json("access_control"))
     assert json.loads(cfg.get_json("scouting/multicast/enabled")) is False
@@ -279,8 +292,11 @@ def test_committed_router_files_match_acl_config(name: str, identity: str) -> No
 
 def test_committed_acl_fragment_matches_acl_config() -> None:
     text = (SECURE / "acl.json5").read_text()
-    cfg = zenoh.Config.from_json5("{access_control: " + "\n".join(ln for ln in text.splitlines() if not ln.startswith("//")) + "}")
-    want = to_zenoh_config({"access_control": acl_config("default", ["r1", "r2", "r3"], observers=["monitor"])})
+    cfg = zenoh.Config.from_json5(
+        "{access_control: " + "\n".join(ln for ln in text.splitlines() if not ln.startswith("//")) + "}"
+    )
+    want = to_zenoh_config({"access_control": acl_config("default", ["r1", "r2", "r3"],
+                                                         observers=["monitor"])})
     assert json.loads(cfg.get_json("access_control")) == json.loads(want.get_json("access_control"))
 
 
@@ -314,7 +330,8 @@ def test_generated_certificates(certs: CertSet, foreign_certs: CertSet) -> None:
     for pem in (certs.server.cert, certs.clients["r2"][0]):
         assert _openssl("verify", "-CAfile", str(certs.ca), str(pem)).strip().endswith("OK")
     bad = subprocess.run(
-        ["openssl", "verify", "-CAfile", str(certs.ca), str(foreign_certs.clients["r1"][0])], capture_output=True
+        ["openssl", "verify", "-CAfile", str(certs.ca), str(foreign_certs.clients["r1"][0])],
+        capture_output=True
     )
     assert bad.returncode != 0
     for key in (certs.ca_key, certs.server.key, *(k for _, k in certs.clients.values())):
@@ -324,7 +341,8 @@ def test_generated_certificates(certs: CertSet, foreign_certs: CertSet) -> None:
 # ====================================================================== live routers
 def _client(endpoint: str, creds: Credentials | None) -> zenoh.Config:
     cfg = to_zenoh_config(
-        {"mode": "client", "connect": {"endpoints": [endpoint]}, "scouting": {"multicast": {"enabled": False}}}
+        {"mode": "client", "connect": {"endpoints": [endpoint]},
+         "scouting": {"multicast": {"enabled": False}}}
     )
     return apply_credentials(cfg, creds) if creds is not None else cfg
 
@@ -395,7 +413,9 @@ def _refused(cfg: zenoh.Config) -> bool:
 
 
 @pytest.mark.fleet
-def test_usrpwd_wrong_or_missing_password_is_refused(usrpwd_router: tuple[str, dict[str, Credentials]]) -> None:
+def test_usrpwd_wrong_or_missing_password_is_refused(
+    usrpwd_router: tuple[str, dict[str, Credentials]],
+) -> None:
     ep, creds = usrpwd_router
     assert _refused(_client(ep, Credentials("r1", "wrong")))
     assert _refused(_client(ep, Credentials("intruder", "pw-r1")))
@@ -432,7 +452,8 @@ def _check_fleet_acl(ep: str, creds: dict[str, Credentials]) -> None:
             viewer.declare_subscriber(f"{F}/fused/map", fused_at_viewer),
             r1.declare_subscriber(f"{F}/robots/r2/**", r1_spy),  # robots may not read each other
             fusion.liveliness().declare_subscriber(f"{F}/alive/*", alive, history=True),
-            fusion.declare_queryable(f"{F}/fused/map", lambda q: q.reply(f"{F}/fused/map", b"fused-v1"), complete=True),
+            fusion.declare_queryable(f"{F}/fused/map", lambda q: q.reply(f"{F}/fused/map", b"fused-v1"),
+                                     complete=True),
         ]
         try:
             _put_until_seen(r1, f"{F}/robots/r1/map", maps, b"r1-probe")
@@ -463,7 +484,8 @@ def _check_fleet_acl(ep: str, creds: dict[str, Credentials]) -> None:
             assert _query_fused(r1) == [b"fused-v1"]
             assert _query_fused(viewer) == [b"fused-v1"]
             # a robot cannot declare a queryable on the fused map: the viewer hears only fusion
-            ents.append(r1.declare_queryable(f"{F}/fused/map", lambda q: q.reply(f"{F}/fused/map", b"fake"), complete=True))
+            ents.append(r1.declare_queryable(f"{F}/fused/map", lambda q: q.reply(f"{F}/fused/map", b"fake"),
+                                             complete=True))
             _put_until_seen(r1, f"{F}/robots/r1/map", maps, b"r1-after-queryable")  # declaration sent before
             assert _query_fused(viewer) == [b"fused-v1"]
         finally:
@@ -499,7 +521,9 @@ def test_usrpwd_liveliness_only_own_token_put_and_delete(
 
 
 @pytest.mark.fleet
-def test_mtls_refuses_missing_or_foreign_certificate(mtls_router: str, certs: CertSet, foreign_certs: CertSet) -> None:
+def test_mtls_refuses_missing_or_foreign_certificate(
+    mtls_router: str, certs: CertSet, foreign_certs: CertSet
+) -> None:
     ep = mtls_router
     assert _refused(_client(ep, Credentials(ca=certs.ca)))  # server verified, no client certificate
     assert _refused(_client(ep, None))
@@ -526,13 +550,19 @@ def test_generated_secure_fleet_end_to_end(tmp_path: Path) -> None:
     creds = {i: load_credentials(p) for i, p in fl.credentials.items()}
     assert creds["r1"].has_password and creds["r1"].has_client_cert
     with _router(fl.router):
-        assert _refused(_client(ep, Credentials("r1", "wrong", creds["r1"].ca, creds["r1"].cert, creds["r1"].key)))
-        assert _refused(_client(ep, Credentials("r1", creds["r1"].password, creds["r1"].ca)))  # no certificate
+        assert _refused(_client(ep,
+                                Credentials("r1", "wrong", creds["r1"].ca, creds["r1"].cert,
+                                            creds["r1"].key)))
+        assert _refused(
+            _client(ep, Credentials("r1", creds["r1"].password, creds["r1"].ca))
+        )  # no certificate
         _check_fleet_acl(ep, creds)
         mixed = Credentials("r1", creds["r1"].password, creds["r2"].ca, creds["r2"].cert, creds["r2"].key)
-        with zenoh.open(_client(ep, creds["fusion"])) as fusion, zenoh.open(_client(ep, mixed)) as m, zenoh.open(
-            _client(ep, creds["r1"])
-        ) as r1:
+        with (
+            zenoh.open(_client(ep, creds["fusion"])) as fusion,
+            zenoh.open(_client(ep, mixed)) as m,
+            zenoh.open(_client(ep, creds["r1"])) as r1,
+        ):
             maps = Inbox()
             sub = fusion.declare_subscriber(f"{F}/robots/*/map", maps)
             try:
@@ -547,7 +577,9 @@ def test_generated_secure_fleet_end_to_end(tmp_path: Path) -> None:
                 sub.undeclare()
 
 
-def test_cli_init_writes_a_fleet_and_refuses_to_overwrite(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+def test_cli_init_writes_a_fleet_and_refuses_to_overwrite(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     d = tmp_path / "fleet"
     assert main(["init", str(d), "--robots", "a1", "--no-mtls", "--listen", "tcp/127.0.0.1:7447"]) == 0
     assert "--credentials" in capsys.readouterr().out
@@ -591,7 +623,9 @@ def test_check_private_without_strict_warns(tmp_path: Path) -> None:
 
 
 @pytest.mark.fleet
-def test_committed_secure_router_runs_with_init_output(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+def test_committed_secure_router_runs_with_init_output(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     """router-secure.json5 reads broker_config/secure/... relative to the working directory:
     ``init`` there, start the committed file (on a free port), connect robot r1."""
     monkeypatch.chdir(tmp_path)

@@ -128,13 +128,16 @@ def test_watch_process_query_subscription_and_save(tmp_path: Path) -> None:
         assert int(m.group(5)) == 2, text
     assert "2 malformed payloads skipped" in text and "Traceback" not in text
     # the first version numbered, the others within --save-every (30 s): latest only
-    assert sorted(p.name for p in save.iterdir()) == ["fused-v1.geojson", "fused-v1.png", "latest.geojson", "latest.png"]
+    assert sorted(p.name for p in save.iterdir()) == ["fused-v1.geojson", "fused-v1.png", "latest.geojson",
+                                                      "latest.png"]
     doc = json.loads((save / "fused-v1.geojson").read_text())
     assert doc["properties"]["version"] == 1
     assert Wireframe.from_geojson(doc).almost_equal(room(1), tol=1e-3)
     assert (save / "latest.png").read_bytes()[:4] == b"\x89PNG"
     latest = json.loads((save / "latest.geojson").read_text())
-    assert latest["properties"]["version"] == 3 and Wireframe.from_geojson(latest).almost_equal(room(3), tol=1e-3)
+    assert latest["properties"]["version"] == 3 and Wireframe.from_geojson(latest).almost_equal(
+        room(3), tol=1e-3
+    )
 
 
 @pytest.mark.fleet
@@ -183,9 +186,16 @@ def test_health_line_shows_the_store_flag_and_quarantines() -> None:
 
     assert health_line({}) == "store ok; quarantined 0"
     doc = {
-        "store": {"ok": False, "enabled": True, "error": "No space left on device", "written_version": 41, "behind": 7},
+        "store": {"ok": False, "enabled": True, "error": "No space left on device", "written_version": 41,
+                  "behind": 7},
         "stats": {"quarantined": 3},
         "quarantine": {"r3": {"reason": "fleet_walls", "count": 3}, "bad": "junk"},
     }
-    assert health_line(doc) == "store FAILING (No space left on device; on disk v41, 7 behind); quarantined 3 (r3: fleet_walls x3)"
-    assert health_line({"store": {"enabled": False}, "stats": {"quarantined": "x"}}) == "store off; quarantined 0"
+    assert (
+        health_line(doc)
+        == "store FAILING (No space left on device; on disk v41, 7 behind); quarantined 3 (r3: fleet_walls x3)"  # noqa: E501
+    )
+    assert (
+        health_line({"store": {"enabled": False}, "stats": {"quarantined": "x"}})
+        == "store off; quarantined 0"
+    )

@@ -23,7 +23,8 @@ Three measurements in one run:
   samples are 0 and are left out (honest samples are never exactly 0): the percentiles are the
   honest robots'. ``p99_ratio`` = attacked p99 / quiet p99 (target <= 2).
 * **Fusion RSS growth** under attack (``rss_growth_mb``: ``fused/stats``' ``rss_kb`` at the end
-  of the attacked window minus just before the attacker started; target < 50 MB) and the fusion service's counters
+  of the attacked window minus just before the attacker started; target < 50 MB) and the fusion service's
+  counters
   (``quarantined``, ``absurd_by``, ...).
 """
 
@@ -55,19 +56,26 @@ MAP_5000_TARGET_MS = 50.0
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--robots", type=int, default=4, metavar="N", help="honest robots (default 4, replay robots)")
-    parser.add_argument("--duration", type=float, default=20.0, metavar="S", help="measured seconds per run (default 20)")
-    parser.add_argument("--rate", type=float, default=10.0, metavar="HZ", help="honest maps per second per robot (default 10)")
+    parser.add_argument("--robots", type=int, default=4, metavar="N",
+                        help="honest robots (default 4, replay robots)")
+    parser.add_argument("--duration", type=float, default=20.0, metavar="S",
+                        help="measured seconds per run (default 20)")
+    parser.add_argument("--rate", type=float, default=10.0, metavar="HZ",
+                        help="honest maps per second per robot (default 10)")
     parser.add_argument("--attack-rate", type=float, default=40.0, metavar="HZ",
                         help="attacker messages per second (default 40)")  # fmt: skip
     parser.add_argument("--attack-after", type=float, default=0.0, metavar="S",
-                        help="the attacker waits S seconds after the fleet's first maps (default 0: at once)")  # fmt: skip
-    parser.add_argument("--messages", type=int, default=10_000, metavar="K", help="in-process hostile messages (default 10000)")
-    parser.add_argument("--world", default="paper-small", metavar="NAME|FILE", help="world (default paper-small)")
+                        help="the attacker waits S seconds after the fleet's first maps (default 0: at once)")  # fmt: skip  # noqa: E501
+    parser.add_argument("--messages", type=int, default=10_000, metavar="K",
+                        help="in-process hostile messages (default 10000)")
+    parser.add_argument("--world", default="paper-small", metavar="NAME|FILE",
+                        help="world (default paper-small)")
     parser.add_argument("--seed", type=int, default=0, help="seed (default 0)")
     parser.add_argument("--no-fleet", action="store_true", help="only the in-process part (no processes)")
-    parser.add_argument("--cache", default=None, metavar="DIR", help="recordings cache (default out/bench-cache)")
-    parser.add_argument("--out", metavar="DIR", help="keep logs and stores here (default: a temporary directory)")
+    parser.add_argument("--cache", default=None, metavar="DIR",
+                        help="recordings cache (default out/bench-cache)")
+    parser.add_argument("--out", metavar="DIR",
+                        help="keep logs and stores here (default: a temporary directory)")
     parser.add_argument("--json", action="store_true", help="print the JSON summary as the last line")
     # the attacker process (started by the bench itself)
     parser.add_argument("--attack", action="store_true", help=argparse.SUPPRESS)
@@ -78,7 +86,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 # ---------------------------------------------------------------------- the attacks
 def _map(n_or_pts: Any, edges: Any, *, boot: int, seq: int, stamp_ns: int, sender: str = ATTACKER,
-         origin: tuple[float, float, float] = (0.0, 0.0, 0.0), meta: dict[str, Any] | None = None) -> bytes:  # fmt: skip
+         origin: tuple[float, float, float] = (0.0, 0.0, 0.0), meta: dict[str, Any] | None = None) -> bytes:  # fmt: skip  # noqa: E501
     from agents.fleet.fusion import encode_message
     from mapping.se2 import Pose
     from mapping.wireframe import Wireframe
@@ -137,29 +145,42 @@ def attacks(seed: int, boot: int, stamp_ahead_s: float = 0.0) -> Iterator[tuple[
         seq += 1
         now = time.time_ns()
         stamp = now + int(stamp_ahead_s * 1e9)
-        good = _map(square, [[0, 1], [1, 2], [2, 3], [3, 0]], origin=(1.0, 1.0, 0.0), boot=boot, seq=seq, stamp_ns=stamp)
-        yield "map_5000", "map", _map(rng.uniform(-20, 20, (5000, 2)), _chain(5000), boot=boot, seq=seq, stamp_ns=stamp)
+        good = _map(square, [[0, 1], [1, 2], [2, 3], [3, 0]], origin=(1.0, 1.0, 0.0), boot=boot, seq=seq,
+                    stamp_ns=stamp)
+        yield "map_5000", "map", _map(rng.uniform(-20, 20, (5000, 2)), _chain(5000), boot=boot, seq=seq,
+                                      stamp_ns=stamp)
         yield "map_budget", "map", _map(*_budget_map(rng, 3000, 45.0), boot=boot, seq=seq, stamp_ns=stamp)
-        yield "map_dense", "map", _map(rng.uniform(0, 1, (2000, 2)), _chain(2000), boot=boot, seq=seq, stamp_ns=stamp)
-        yield "map_km_walls", "map", _map(rng.uniform(-500, 500, (1500, 2)), _chain(1500), boot=boot, seq=seq, stamp_ns=stamp)
-        yield "map_reach", "map", _map(rng.uniform(-600, 600, (3, 2)), _chain(3), boot=boot, seq=seq, stamp_ns=stamp)
+        yield "map_dense", "map", _map(rng.uniform(0, 1, (2000, 2)), _chain(2000), boot=boot, seq=seq,
+                                       stamp_ns=stamp)
+        yield "map_km_walls", "map", _map(rng.uniform(-500, 500, (1500, 2)), _chain(1500), boot=boot, seq=seq,
+                                          stamp_ns=stamp)
+        yield "map_reach", "map", _map(rng.uniform(-600, 600, (3, 2)), _chain(3), boot=boot, seq=seq,
+                                       stamp_ns=stamp)
         yield "map_future", "map", _map(square, _chain(4), boot=now + 3600 * 10**9, seq=1, stamp_ns=stamp)
         yield "map_seq_jump", "map", _map(square, _chain(4), boot=boot, seq=seq + 10**9, stamp_ns=stamp)
         yield "map_sender", "map", _map(square, _chain(4), sender="r1", boot=boot, seq=seq, stamp_ns=stamp)
         junk = rng.uniform(0, 40, (400, 2))
         yield "map_junk_rooms", "map", _map(np.concatenate([junk, junk + np.array([1.5, 0.0])]),
-                                            np.stack([np.arange(400), np.arange(400, 800)], axis=1), boot=boot, seq=seq, stamp_ns=stamp)  # fmt: skip
+                                            np.stack([np.arange(400), np.arange(400, 800)], axis=1), boot=boot, seq=seq, stamp_ns=stamp)  # fmt: skip  # noqa: E501
         yield "map_flipped", "map", _flip(good, prng, prng.randint(1, 8))
         yield "map_truncated", "map", good[: prng.randrange(1, len(good))]
         yield "map_random", "map", rng.bytes(int(rng.integers(1, 4096)))
-        pose = msgpack.unpackb(encode_pose(seq=seq, t=1.0, stamp_ns=now, odom=Pose(0, 0, 0), fleet=Pose(0, 0, 0)), raw=False)
+        pose = msgpack.unpackb(encode_pose(seq=seq, t=1.0, stamp_ns=now, odom=Pose(0, 0, 0),
+                                           fleet=Pose(0, 0, 0)), raw=False)
         yield "pose_t_1e300", "pose", msgpack.packb({**pose, "t": 1e300})
         yield "pose_nan", "pose", msgpack.packb({**pose, "fleet": [math.nan, math.inf, 0.0]})
-        yield "pose_status", "pose", msgpack.packb({**pose, "status": {"step": "x", "vertices": -1, "maps_sent": 2**64 - 1}})
+        yield (
+            "pose_status",
+            "pose",
+            msgpack.packb({**pose, "status": {"step": "x", "vertices": -1, "maps_sent": 2**64 - 1}}),
+        )
         yield "pose_junk", "pose", rng.bytes(int(rng.integers(1, 512)))
-        yield "viz_inf", "viz", msgpack.packb({"t": math.inf, "pose": [0, 0, 0], "scan": {}, "particles": [], "weights": []})
-        yield "viz_types", "viz", msgpack.packb({"t": 1.0, "pose": "x", "scan": [1, 2], "particles": {"a": 1}, "weights": None})
-        yield "viz_huge", "viz", msgpack.packb({"t": 1.0, "pose": [0, 0, 0], "scan": {"points": b"\0" * 1_000_000}})
+        yield "viz_inf", "viz", msgpack.packb({"t": math.inf, "pose": [0, 0, 0], "scan": {}, "particles": [],
+                                               "weights": []})
+        yield "viz_types", "viz", msgpack.packb({"t": 1.0, "pose": "x", "scan": [1, 2], "particles": {"a": 1},
+                                                 "weights": None})
+        yield "viz_huge", "viz", msgpack.packb({"t": 1.0, "pose": [0, 0, 0],
+                                                "scan": {"points": b"\0" * 1_000_000}})
 
 
 # ---------------------------------------------------------------------- in process
@@ -287,16 +308,18 @@ def _fleet_args(args: argparse.Namespace) -> argparse.Namespace:
     return fa
 
 
-def _run(n: int, fa: argparse.Namespace, world: Any, workdir: Path, attacker: bool, say: Any) -> dict[str, Any]:
+def _run(
+    n: int, fa: argparse.Namespace, world: Any, workdir: Path, attacker: bool, say: Any
+) -> dict[str, Any]:
     from agents.bench import fleet
 
     argv = None
     if attacker:
-        argv = ["-m", "agents.bench.hostile", "--attack", "--attack-rate", str(fa.attack_rate), "--seed", str(fa.seed),
-                "--attack-after", str(fa.attack_after)]
+        argv = ["-m", "agents.bench.hostile", "--attack", "--attack-rate", str(fa.attack_rate), "--seed",
+                str(fa.seed), "--attack-after", str(fa.attack_after)]
     r = fleet.run_size(n, fa, world, workdir / ("attacked" if attacker else "quiet"), say, extra=argv)
     keep = ("latency_ms_p50", "latency_ms_p99", "latency_ms_max", "latency_samples", "fusion_cpu_share",
-            "fused_recall", "fused_precision", "fused_mean_dist_m", "rss_kb_start", "rss_kb_end", "fusion_counters")  # fmt: skip
+            "fused_recall", "fused_precision", "fused_mean_dist_m", "rss_kb_start", "rss_kb_end", "fusion_counters")  # fmt: skip  # noqa: E501
     return {k: r.get(k) for k in keep}
 
 
@@ -312,7 +335,9 @@ def run(args: argparse.Namespace) -> int:
     say(f"in process: {args.messages} hostile messages ...")
     t0 = time.monotonic()
     inproc = crash_count(args.messages, args.seed)
-    say(f"  {inproc['crashes']} crashes, 5,000-vertex map {inproc['map_5000_ms']} ms, {time.monotonic() - t0:.1f} s")
+    say(
+        f"  {inproc['crashes']} crashes, 5,000-vertex map {inproc['map_5000_ms']} ms, {time.monotonic() - t0:.1f} s"  # noqa: E501
+    )
     for tb in inproc["tracebacks"]:
         print(tb, file=sys.stderr)
     out: dict[str, Any] = {"bench": "hostile", **inproc, "load_avg": os.getloadavg()[0]}
@@ -333,7 +358,9 @@ def run(args: argparse.Namespace) -> int:
         try:
             say(f"{args.robots} honest robots, quiet, {args.duration:g} s ...")
             quiet = _run(args.robots, fa, world, workdir, False, say)
-            say(f"{args.robots} honest robots and an attacker at {args.attack_rate:g} msg/s, {args.duration:g} s ...")
+            say(
+                f"{args.robots} honest robots and an attacker at {args.attack_rate:g} msg/s, {args.duration:g} s ..."  # noqa: E501
+            )
             attacked = _run(args.robots, fa, world, workdir, True, say)
         finally:
             if tmp is not None:

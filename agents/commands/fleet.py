@@ -45,7 +45,8 @@ def run(args: argparse.Namespace) -> int:
         if session is None:
             return 1
         try:
-            replies = list(session.get(keys.admin_forget, payload=f"forget={args.robot}".encode(), timeout=args.timeout))
+            replies = list(session.get(keys.admin_forget, payload=f"forget={args.robot}".encode(),
+                                       timeout=args.timeout))
         finally:
             session.close()
     for reply in replies:
@@ -57,5 +58,5 @@ def run(args: argparse.Namespace) -> int:
                 return 0
             raise UserError(f"the fusion service refused: {answer.get('error')}")
     raise UserError(
-        "no answer from the fusion service on admin/forget (not running, or these credentials are not the admin's)"
+        "no answer from the fusion service on admin/forget (not running, or these credentials are not the admin's)"  # noqa: E501
     )

@@ -59,11 +59,15 @@ HEALTH_EVERY_S = 2.0  # fused/stats asked this often for the store flag and quar
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_bus_arguments(parser)
     parser.add_argument(
-        "--save", metavar="DIR", help="keep DIR/latest.geojson and DIR/latest.png up to date (at most once a second)"
+        "--save", metavar="DIR",
+        help="keep DIR/latest.geojson and DIR/latest.png up to date (at most once a second)"
     )
     parser.add_argument(
-        "--save-every", type=float, default=30.0, metavar="S",
-        help="with --save, also keep a numbered copy fused-v<N> at most every S seconds (default 30; 0: latest only)",
+        "--save-every",
+        type=float,
+        default=30.0,
+        metavar="S",
+        help="with --save, also keep a numbered copy fused-v<N> at most every S seconds (default 30; 0: latest only)",  # noqa: E501
     )
     parser.add_argument("--count", type=argtypes.positive_int, metavar="N", help="exit after N versions")
     parser.add_argument(
@@ -200,7 +204,8 @@ class Watcher:
         title = f"fused map v{msg.seq} from {', '.join(msg.robots) or 'no robot'}"
         png = map_figure(msg.wireframe, title=title)
         try:
-            for stem in [self.save_dir / "latest", *([self.save_dir / f"fused-v{msg.seq}"] if numbered else [])]:
+            for stem in [self.save_dir / "latest",
+                         *([self.save_dir / f"fused-v{msg.seq}"] if numbered else [])]:
                 write_json(stem.with_suffix(".geojson"), doc)
                 write_atomic(stem.with_suffix(".png"), png)
         except OSError as exc:
@@ -214,7 +219,7 @@ def _frames(msg: Any) -> str:
     if not isinstance(fr, dict):
         return ""
     islands = fr.get("islands") or {}
-    text = f"; frame of {fr.get('fleet_root')}; islands {' '.join('+'.join(m) for m in islands.values()) or 'none'}"
+    text = f"; frame of {fr.get('fleet_root')}; islands {' '.join('+'.join(m) for m in islands.values()) or 'none'}"  # noqa: E501
     for r in fr.get("registrations") or []:
         if isinstance(r, dict):
             what = "accepted" if r.get("accepted") else f"refused ({r.get('reason')})"
@@ -234,7 +239,7 @@ def health_line(doc: dict[str, Any]) -> str:
         text = "store off"
     elif store.get("ok") is False:
         err = str(store.get("error", ""))[:120]
-        text = f"store FAILING ({err}; on disk v{get_int(store, 'written_version')}, {get_int(store, 'behind')} behind)"
+        text = f"store FAILING ({err}; on disk v{get_int(store, 'written_version')}, {get_int(store, 'behind')} behind)"  # noqa: E501
     else:
         text = "store ok"
     stats: dict[str, Any] = doc["stats"] if isinstance(doc.get("stats"), dict) else {}

@@ -76,7 +76,8 @@ def robot_steps(opts: Any) -> Iterator[Any]:
     if not part:
         raise ValueError(f"no scans in {i0}:{i1} of {opts.carmen}")
     max_range = min(float(part[0].max_range), MAX_RANGE)
-    cfg = mr.filter_config_for(int(opts.particles), float(opts.threshold), max_range, fov=mr.scan_fov(part[0].angles),
+    cfg = mr.filter_config_for(int(opts.particles), float(opts.threshold), max_range,
+                               fov=mr.scan_fov(part[0].angles),
                                overrides=getattr(opts, "filter_overrides", None) or None)
     filt = WireframeFilter(cfg, mr.seeds_for(int(opts.seed))["filter"], initial_pose=Pose.identity())
     return mr.run_filter(mr.carmen_inputs(part, max_range=max_range), filt, total=len(part))
@@ -95,7 +96,9 @@ def endpoints(scans: list[Any], truth: list[Pose], max_range: float = MAX_RANGE)
     ) if k else np.zeros((0, 2))
 
 
-def endpoint_precision(wf: Wireframe, ends: FloatArray, tol: float = ENDPOINT_TOL, step: float = SAMPLE_STEP) -> float:
+def endpoint_precision(
+    wf: Wireframe, ends: FloatArray, tol: float = ENDPOINT_TOL, step: float = SAMPLE_STEP
+) -> float:
     """Fraction of points every ``step`` along the walls within ``tol`` of an endpoint
     (:func:`mapping.lidar_metrics.map_precision`)."""
     from mapping.lidar_metrics import map_precision

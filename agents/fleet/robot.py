@@ -18,7 +18,8 @@ it in real time and publishes, under ``wiremap/<fleet>/``:
 * ``alive/<id>``: a liveliness token for as long as the process runs.
 
 The origin is the robot's true first pose when the simulator knows it (see
-:meth:`RobotAgent._check_start`). Pacing: a scan every ``1 / rate`` s of wall time; when a step takes longer the robot simply
+:meth:`RobotAgent._check_start`). Pacing: a scan every ``1 / rate`` s of wall time; when a step takes longer
+the robot simply
 falls behind (no step is skipped). When the route ends the robot stays on the bus (token, pose,
 heartbeat maps) until stopped.
 """
@@ -141,12 +142,15 @@ def robot_map_message(
     )
 
 
-def map_message(opts: RobotOptions, wf: Wireframe, pose: Pose, seq: int, stamp_ns: int, meta: dict[str, Any]) -> MapMessage:
+def map_message(
+    opts: RobotOptions, wf: Wireframe, pose: Pose, seq: int, stamp_ns: int, meta: dict[str, Any]
+) -> MapMessage:
     """The ``ROBOT_MAP`` the agent with options ``opts`` sends for ``wf`` (with an unknown
     start: origin the identity, ``meta["origin_unknown"] = True``)."""
     if opts.unknown_start:
         return robot_map_message(
-            opts.robot, Pose.identity(), opts.resolution, wf, pose, seq, stamp_ns, {**meta, "origin_unknown": True}
+            opts.robot, Pose.identity(), opts.resolution, wf, pose, seq, stamp_ns,
+            {**meta, "origin_unknown": True}
         )
     return robot_map_message(opts.robot, opts.start, opts.resolution, wf, pose, seq, stamp_ns, meta)
 
@@ -300,7 +304,8 @@ class RobotAgent:
             return
         f = self.last.filter
         data = encode_viz(
-            t=self.last.t, scan=self.last.scan, pose=self.last.pose, particles=list(f.particles), weights=list(f.weights)
+            t=self.last.t, scan=self.last.scan, pose=self.last.pose, particles=list(f.particles),
+            weights=list(f.weights)
         )
         self._pubs["viz"].put(data)
         self.status.viz_bytes += len(data)
@@ -338,11 +343,11 @@ class RobotAgent:
         if math.hypot(s.x - first.x, s.y - first.y) > 0.01:
             self.say(
                 f"--start {s.x:.2f},{s.y:.2f} differs from where the simulation starts the robot "
-                f"({first.x:.2f},{first.y:.2f}, heading {math.degrees(first.theta):.0f} deg); using the latter"
+                f"({first.x:.2f},{first.y:.2f}, heading {math.degrees(first.theta):.0f} deg); using the latter"  # noqa: E501
             )
         elif self.opts.heading_given and abs(math.remainder(s.theta - first.theta, math.tau)) > 0.01:
             self.say(
-                f"start heading {math.degrees(s.theta):.0f} deg replaced by {math.degrees(first.theta):.0f} deg "
+                f"start heading {math.degrees(s.theta):.0f} deg replaced by {math.degrees(first.theta):.0f} deg "  # noqa: E501
                 f"(a simulated robot starts facing along its route)"
             )
         if not s.almost_equal(first, 1e-9, 1e-9):
@@ -377,7 +382,9 @@ class RobotAgent:
             if now - last_report >= 10.0:
                 last_report = now
                 st = self.status
-                self.say(f"step {st.step} t={st.t:.1f}s: {st.vertices} vertices, {st.edges} edges, {st.maps_sent} maps")
+                self.say(
+                    f"step {st.step} t={st.t:.1f}s: {st.vertices} vertices, {st.edges} edges, {st.maps_sent} maps"  # noqa: E501
+                )
             wake = min(next_pose, next_viz, self._last_map_put + self.opts.heartbeat_s)
             if not self.status.finished:
                 wake = min(wake, next_step)

@@ -187,7 +187,9 @@ class Credentials:
         return out
 
 
-def parse_credentials(text: str, base: str | os.PathLike[str] = ".", source: str = "credentials") -> Credentials:
+def parse_credentials(
+    text: str, base: str | os.PathLike[str] = ".", source: str = "credentials"
+) -> Credentials:
     """Parse a credentials document (see the module docstring); paths are resolved against ``base``.
 
     Raises
@@ -383,7 +385,9 @@ def acl_config(
     seen: set[str] = {fusion_user}
     for i in ids:
         if i in seen:
-            raise UserError(f"identity {i!r} is used twice (robots, observers and the fusion user must differ)")
+            raise UserError(
+                f"identity {i!r} is used twice (robots, observers and the fusion user must differ)"
+            )
         seen.add(i)
     if identity not in ("username", "cert", "both"):
         raise UserError(f"bad identity kind {identity!r}: use username, cert or both")
@@ -401,7 +405,8 @@ def acl_config(
     rules = [
         _rule("any-read-fused-in", ["declare_subscriber", "query"], "ingress", [f"{p}/fused/**"]),
         _rule("any-read-fused-out", ["put", "delete", "reply"], "egress", [f"{p}/fused/**"]),
-        _rule("any-alive-in", ["declare_liveliness_subscriber", "liveliness_query"], "ingress", [f"{p}/alive/**"]),
+        _rule("any-alive-in", ["declare_liveliness_subscriber", "liveliness_query"], "ingress",
+              [f"{p}/alive/**"]),
         _rule("any-alive-out", ["liveliness_token", "reply"], "egress", [f"{p}/alive/**"]),
         # reading the fleet: everything but admin/** (an observer may not ask the fusion
         # service to forget a robot)
@@ -423,7 +428,8 @@ def acl_config(
     policies: list[dict[str, Any]] = [
         {"id": "any", "rules": ["any-read-fused-in", "any-read-fused-out", "any-alive-in", "any-alive-out"],
          "subjects": everyone if identity == "both" else ["any"]},
-        {"id": "fusion", "rules": ["fleet-read-in", "fleet-read-out", "fusion-write", "fusion-answer", "admin-in",
+        {"id": "fusion",
+         "rules": ["fleet-read-in", "fleet-read-out", "fusion-write", "fusion-answer", "admin-in",
                                    "admin-out"],
          "subjects": ["fusion"]},
     ]
@@ -609,7 +615,9 @@ class CertSet:
     server: ServerTls
     clients: dict[str, tuple[Path, Path]]
 
-    def client_credentials(self, name: str, user: str | None = None, password: str | None = None) -> Credentials:
+    def client_credentials(
+        self, name: str, user: str | None = None, password: str | None = None
+    ) -> Credentials:
         pem, key = self.clients[name]
         return Credentials(user=user, password=password, ca=self.ca, cert=pem, key=key)
 
@@ -714,9 +722,12 @@ def make_secure_fleet(
         )
         creds[i] = write_credentials(d / "credentials" / f"{i}.json", c)
     router = router_config([listen], dictionary_file=dictionary, tls=certs.server if certs else None, acl=acl)
-    header = f"// wiremap secure router for fleet {fleet!r}, written by agents.fleet.secure.make_secure_fleet\n"
+    header = (
+        f"// wiremap secure router for fleet {fleet!r}, written by agents.fleet.secure.make_secure_fleet\n"
+    )
     router_file = write_private(d / "router.json5", header + json.dumps(router, indent=2) + "\n")
-    return SecureFleet(directory=d, router=router, router_file=router_file, credentials=creds, endpoint=listen)
+    return SecureFleet(directory=d, router=router, router_file=router_file, credentials=creds,
+                       endpoint=listen)
 
 
 # ---------------------------------------------------------------------- diagnosis
@@ -747,23 +758,28 @@ def endpoint_reachable(endpoint: str, timeout: float = 0.5) -> bool:
 
 # ---------------------------------------------------------------------- command line
 def main(argv: Sequence[str] | None = None) -> int:
-    """``python -m agents.fleet.secure init DIR --fleet F --robots r1,r2 [...]`` (see :func:`make_secure_fleet`)."""
-    ap = argparse.ArgumentParser(prog="python -m agents.fleet.secure", description="wiremap fleet credentials")
+    """``python -m agents.fleet.secure init DIR --fleet F --robots r1,r2 [...]`` (see :func:`make_secure_fleet`)."""  # noqa: E501
+    ap = argparse.ArgumentParser(prog="python -m agents.fleet.secure",
+                                 description="wiremap fleet credentials")
     sub = ap.add_subparsers(dest="cmd", required=True)
     init = sub.add_parser("init", help="write certificates, passwords, credentials files and a router config")
     init.add_argument("directory")
     init.add_argument("--fleet", default="default")
     init.add_argument("--robots", required=True, help="comma-separated robot ids")
     init.add_argument("--fusion-user", default=DEFAULT_FUSION_USER)
-    init.add_argument("--observers", default=DEFAULT_OBSERVER, help="comma-separated read-only ids ('' for none)")
+    init.add_argument("--observers", default=DEFAULT_OBSERVER,
+                      help="comma-separated read-only ids ('' for none)")
     init.add_argument("--listen", default=f"tls/localhost:{DEFAULT_SECURE_PORT}")
     init.add_argument("--no-usrpwd", action="store_true", help="mutual TLS only")
-    init.add_argument("--no-mtls", action="store_true", help="user/password only (plain TCP: use a tcp/ endpoint)")
+    init.add_argument("--no-mtls", action="store_true",
+                      help="user/password only (plain TCP: use a tcp/ endpoint)")
     init.add_argument("--force", action="store_true", help="replace existing files")
     args = ap.parse_args(argv)
     try:
         d = Path(args.directory)
-        if not args.force and any((d / n).exists() for n in ("certs", "credentials", "passwords.txt", "router.json5")):
+        if not args.force and any(
+            (d / n).exists() for n in ("certs", "credentials", "passwords.txt", "router.json5")
+        ):
             raise UserError(f"{d} already holds credentials (use --force to replace them)")
         robots = [r for r in args.robots.split(",") if r]
         observers = [o for o in args.observers.split(",") if o]

@@ -77,7 +77,9 @@ def carmen_world(args: argparse.Namespace) -> CarmenWorld:
     return CarmenWorld(name, str(args.carmen), scans, truth)
 
 
-def prepare_carmen(out: Path, world: CarmenWorld, ids: list[str], args: argparse.Namespace) -> list[tuple[int, int]]:
+def prepare_carmen(
+    out: Path, world: CarmenWorld, ids: list[str], args: argparse.Namespace
+) -> list[tuple[int, int]]:
     """The robots' stretches of the log (``routes/<id>.json`` records them)."""
     from agents.fleet.carmen_fleet import split
 
@@ -124,7 +126,9 @@ def _robot_maps(out: Path, ids: list[str]) -> dict[str, Wireframe]:
     return maps
 
 
-def _common(out: Path, ids: list[str], duration_s: float, extra: dict[str, Any], raw: bytes, msg: Any) -> dict[str, Any]:
+def _common(
+    out: Path, ids: list[str], duration_s: float, extra: dict[str, Any], raw: bytes, msg: Any
+) -> dict[str, Any]:
     from agents.fleet.fusion import merge_threshold_of
 
     state: dict[str, Any] = {}
@@ -138,7 +142,8 @@ def _common(out: Path, ids: list[str], duration_s: float, extra: dict[str, Any],
     return {
         "robots": len(ids),
         "duration_s": round(duration_s, 3),
-        "latency_ms": {"p50": lat.get("p50"), "p99": lat.get("p99"), "max": lat.get("max"), "n": lat.get("n", 0)},
+        "latency_ms": {"p50": lat.get("p50"), "p99": lat.get("p99"), "max": lat.get("max"),
+                       "n": lat.get("n", 0)},
         "merge_threshold": merge_threshold_of(msg),
         "map_resolution": float(msg.resolution),
         "fusion": {k: v for k, v in (state.get("stats") or {}).items() if k != "latency_ms"},
@@ -182,7 +187,8 @@ def write_outputs_unknown(
     starts: dict[str, Pose] = {}
     for rid in ids:
         try:
-            route = np.asarray(json.loads((out / "routes" / f"{rid}.json").read_text())["route"], dtype=np.float64)
+            route = np.asarray(json.loads((out / "routes" / f"{rid}.json").read_text())["route"],
+                               dtype=np.float64)
             starts[rid] = start_pose_of(route)
         except (OSError, ValueError, KeyError):
             continue
@@ -195,7 +201,8 @@ def write_outputs_unknown(
     fused.update({"vertices": wf.n_vertices, "edges": wf.n_edges, "bytes": len(raw), "version": msg.seq,
                   "robots": robots, "alignment": [round(v, 6) for v in align.as_tuple()],
                   "placed_unaligned": _metrics(world.truth, placed, res)})
-    write_json(out / "fused.geojson", aligned.to_geojson({"kind": "fused_map", "world": world.name, "robots": robots,
+    write_json(out / "fused.geojson",
+               aligned.to_geojson({"kind": "fused_map", "world": world.name, "robots": robots,
                                                            "frame": "truth (aligned)"}))
     write_atomic(out / "fused.png", map_png(aligned, world.truth))
     per_robot: dict[str, Any] = {}
@@ -243,15 +250,16 @@ def write_outputs_carmen(
     truth = world.truth
     starts = {r: truth[i0] for r, (i0, _) in stretches.items()} if truth is not None else {}
     root = fr.get("fleet_root")
-    fused: dict[str, Any] = {"vertices": wf.n_vertices, "edges": wf.n_edges, "bytes": len(raw), "version": msg.seq,
-                             "robots": robots}
+    fused: dict[str, Any] = {"vertices": wf.n_vertices, "edges": wf.n_edges, "bytes": len(raw),
+                             "version": msg.seq, "robots": robots}
     per_robot: dict[str, Any] = {}
     if truth is not None:
         ends = endpoints(world.scans, truth)
         placed = wf.transformed(starts[root]) if root in starts else wf
         fused["endpoint_precision"] = round(endpoint_precision(placed, ends), 4)
         write_atomic(out / "fused.png", map_png(placed))
-        write_json(out / "fused.geojson", placed.to_geojson({"kind": "fused_map", "log": world.name, "robots": robots,
+        write_json(out / "fused.geojson",
+                   placed.to_geojson({"kind": "fused_map", "log": world.name, "robots": robots,
                                                               "frame": "truth"}))
         for rid, rwf in _robot_maps(out, ids).items():
             i0, i1 = stretches[rid]
@@ -259,7 +267,8 @@ def write_outputs_carmen(
             per_robot[rid] = {
                 "scans": [i0, i1], "vertices": rwf.n_vertices, "edges": rwf.n_edges,
                 "endpoint_precision": round(endpoint_precision(rwf.transformed(starts[rid]), ends), 4),
-                "endpoint_precision_own_scans": round(endpoint_precision(rwf.transformed(starts[rid]), own), 4),
+                "endpoint_precision_own_scans": round(endpoint_precision(rwf.transformed(starts[rid]), own),
+                                                      4),
             }
     report = {
         "log": world.name,

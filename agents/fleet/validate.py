@@ -189,7 +189,8 @@ def _wireframe(v: object, what: str, budget: list[int]) -> Wireframe:
     if not np.all(np.isfinite(pts)) or (n and float(np.abs(pts).max()) > MAX_COORD):
         raise Invalid("extent", f"{what} has a non-finite or far vertex")
     try:
-        return Wireframe.build(pts, np.frombuffer(e, dtype="<i4").reshape(-1, 2), np.frombuffer(lab, dtype=np.uint8))
+        return Wireframe.build(pts, np.frombuffer(e, dtype="<i4").reshape(-1, 2),
+                               np.frombuffer(lab, dtype=np.uint8))
     except ValueError as exc:
         raise Invalid("shape", f"{what}: {exc}") from None
 

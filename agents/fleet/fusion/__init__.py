@@ -75,7 +75,8 @@ Hostile or broken input (choices; the counters are in :class:`FusionStats`, serv
   negative ``meta.t``, a ``meta.boot`` that is not an integer or lies in the future
   (``absurd``, by reason).
 
-Every drop is counted; :class:`~agents.fleet.fusion.intake.DropLog` prints at most one line per ``period`` summarising them.
+Every drop is counted; :class:`~agents.fleet.fusion.intake.DropLog` prints at most one line per ``period``
+summarising them.
 The fused map is only ever recomputed from accepted maps, so the last good map keeps being
 served.
 """

@@ -297,8 +297,10 @@ class FleetFrames:
         if res.accepted and res.transform is not None:
             self._join(a, b, res.transform)
         rec = RegistrationRecord(
-            t=float(t), a=a, b=b, a_members=ma, b_members=mb, accepted=bool(res.accepted and res.transform is not None),
-            confidence=float(res.confidence), support=float(res.support), support_fraction=float(res.support_fraction),
+            t=float(t), a=a, b=b, a_members=ma, b_members=mb,
+            accepted=bool(res.accepted and res.transform is not None),
+            confidence=float(res.confidence), support=float(res.support),
+            support_fraction=float(res.support_fraction),
             reason=res.reason, transform=None if res.transform is None else res.transform.as_tuple(), ms=ms,
         )
         self.records.append(rec)

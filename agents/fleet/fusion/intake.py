@@ -133,7 +133,10 @@ def over_budget(msg: MapMessage, limits: InputLimits, now_ns: int | None = None)
         reach = limits.sensor_range_m + limits.max_speed_mps * elapsed + limits.reach_slack_m
         far = float(np.hypot(wf.points[:, 0], wf.points[:, 1]).max())  # odometry frame: from the start
         if far > reach:
-            return "reach", f"a vertex {far:.0f} m from the start, {elapsed:.0f} s after boot (reach {reach:.0f} m)"
+            return (
+                "reach",
+                f"a vertex {far:.0f} m from the start, {elapsed:.0f} s after boot (reach {reach:.0f} m)",
+            )
     return None
 
 
@@ -154,7 +157,10 @@ def too_dense(wf: Wireframe, limits: InputLimits) -> tuple[str, str] | None:
         return None
     _, per_cell = np.unique(_cell_codes(wf.points), return_counts=True)
     if int(per_cell.max()) > limits.max_cell_vertices:
-        return "budget_density", f"{int(per_cell.max())} vertices in one square metre (budget {limits.max_cell_vertices})"
+        return (
+            "budget_density",
+            f"{int(per_cell.max())} vertices in one square metre (budget {limits.max_cell_vertices})",
+        )
     if wf.n_edges == 0:
         return None
     seg = wf.points[wf.edges]
@@ -166,7 +172,10 @@ def too_dense(wf: Wireframe, limits: InputLimits) -> tuple[str, str] | None:
     cells, inv = np.unique(_cell_codes(pts), return_inverse=True)
     metres = np.bincount(inv, weights=(length / k)[owner], minlength=len(cells))
     if float(metres.max()) > limits.max_cell_wall_m:
-        return "budget_density", f"{float(metres.max()):.0f} m of walls in one square metre (budget {limits.max_cell_wall_m:g} m)"
+        return (
+            "budget_density",
+            f"{float(metres.max()):.0f} m of walls in one square metre (budget {limits.max_cell_wall_m:g} m)",
+        )
     return None
 
 
@@ -280,7 +289,9 @@ class DropLog:
     ones at most once per ``period`` seconds, as one line with the counts per reason since the
     last line and the last drop's key and detail. Thread-safe."""
 
-    def __init__(self, say: Callable[[str], None], period: float = 5.0, clock: Callable[[], float] = time.monotonic) -> None:
+    def __init__(
+        self, say: Callable[[str], None], period: float = 5.0, clock: Callable[[], float] = time.monotonic
+    ) -> None:
         self.say = say
         self.period = period
         self.clock = clock
@@ -305,7 +316,9 @@ class DropLog:
             parts = ", ".join(f"{c} {r}" for r, c in sorted(self._counts.items()))
             key, detail = self._last or ("?", "")
             since = "" if self._said == -math.inf else f" in the last {now - self._said:.0f} s"
-            line = f"dropped {n} payload{'s' if n != 1 else ''}{since} ({parts}); last on {key}: {detail[:200]}"
+            line = (
+                f"dropped {n} payload{'s' if n != 1 else ''}{since} ({parts}); last on {key}: {detail[:200]}"
+            )
             self._counts.clear()
             self._said = now
             self.lines += 1

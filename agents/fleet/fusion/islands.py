@@ -31,11 +31,13 @@ def islands_key(keys: Any, root: str | None = None) -> str:
     return f"{keys.prefix}/fused/islands/{root if root is not None else '*'}"
 
 
-def island_message(st: FusionState, root: str, members: tuple[str, ...], wf: Any, stamp_ns: int) -> MapMessage:
+def island_message(
+    st: FusionState, root: str, members: tuple[str, ...], wf: Any, stamp_ns: int
+) -> MapMessage:
     """An island as a ``FUSED_MAP`` in its root robot's frame."""
     return MapMessage(
-        kind=MessageKind.FUSED_MAP, sender=st.sender, seq=st.version, stamp_ns=int(stamp_ns), pose=Pose.identity(),
-        frame=f"odom/{root}", origin=Pose.identity(), resolution=st.resolution,
+        kind=MessageKind.FUSED_MAP, sender=st.sender, seq=st.version, stamp_ns=int(stamp_ns),
+        pose=Pose.identity(), frame=f"odom/{root}", origin=Pose.identity(), resolution=st.resolution,
         wireframe=wf, robots=members,
         meta={
             "island": True, "root": root, "version": st.version, "threshold": st.threshold,
@@ -88,7 +90,8 @@ class IslandShell:
     def note(self, st: FusionState, rec: RegistrationRecord) -> None:
         self.say(rec.line())
         if self.recorder is not None:
-            self.recorder.log_registration(rec.t, rec.line(), rec.a, rec.b, rec.accepted, rec.confidence, rec.support)
+            self.recorder.log_registration(rec.t, rec.line(), rec.a, rec.b, rec.accepted, rec.confidence,
+                                           rec.support)
 
     def publish(self, st: FusionState, stamp_ns: int) -> None:
         """Put every island whose map changed; DELETE the key of an island that is gone."""

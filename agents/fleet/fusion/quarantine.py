@@ -145,7 +145,8 @@ def _cell_codes(xy: FloatArray, cell: float) -> NDArray[np.int64]:
 
 
 def against_history(
-    new: Wireframe, old: Wireframe, seconds: float, reach_per_s: float, sensor_range: float, cfg: QuarantineConfig
+    new: Wireframe, old: Wireframe, seconds: float, reach_per_s: float, sensor_range: float,
+    cfg: QuarantineConfig
 ) -> tuple[str, str] | None:
     """``(reason, detail)`` when ``new`` (a robot's map) contradicts ``old`` (its last accepted
     map of the same boot, ``seconds`` earlier, same frame), else None."""
@@ -160,7 +161,10 @@ def against_history(
     inside = pts[np.all((pts >= lo) & (pts <= hi), axis=1)]
     metres, frac = _disagreement(inside, _near(old, cfg), cfg)
     if metres >= cfg.min_overlap_m and frac > cfg.max_disagree:
-        return "history_walls", f"{100 * frac:.0f} % of {metres:.0f} m of walls over {cfg.far_m:g} m from its last map"
+        return (
+            "history_walls",
+            f"{100 * frac:.0f} % of {metres:.0f} m of walls over {cfg.far_m:g} m from its last map",
+        )
     return None
 
 
@@ -184,4 +188,5 @@ def others_walls(fused: Wireframe, bit: int | None) -> Wireframe:
         return fused
     mine = np.uint64(1) << np.uint64(bit)
     keep = (fused.sources & ~mine) != 0
-    return Wireframe(fused.points, fused.labels, fused.edges[keep], fused.likelihood[keep], fused.sources[keep])
+    return Wireframe(fused.points, fused.labels, fused.edges[keep], fused.likelihood[keep],
+                     fused.sources[keep])

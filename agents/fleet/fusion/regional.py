@@ -300,9 +300,14 @@ class Standby:
     def _take_over(self, g: str) -> None:
         sel = RobotSelector.parse(self.selects[g])
         with self.lock:
-            seed = {k: v for k, v in self.raw.items() if (r := self.owner.fleet_keys.robot_of(k)) and sel.matches(r)}
+            seed = {
+                k: v
+                for k, v in self.raw.items()
+                if (r := self.owner.fleet_keys.robot_of(k)) and sel.matches(r)
+            }
         opts = ServeOptions(
-            heartbeat_s=self.opts.heartbeat_s, min_interval_s=self.opts.min_interval_s, config=self.opts.config,
+            heartbeat_s=self.opts.heartbeat_s, min_interval_s=self.opts.min_interval_s,
+            config=self.opts.config,
             limits=self.opts.limits, full_after_s=self.opts.full_after_s, align_wait_s=self.opts.align_wait_s,
         )
         t = RegionalService(self.owner.session, self.owner.fleet_keys, opts, g, sel,
@@ -337,7 +342,9 @@ def serve_regional(
     try:
         svc.start()
         if svc.standby is not None:
-            tok_sub = session.liveliness().declare_subscriber(svc.tree.all_fusers, svc.standby.on_token, history=True)
+            tok_sub = session.liveliness().declare_subscriber(
+                svc.tree.all_fusers, svc.standby.on_token, history=True
+            )
         freeze_heap()
         svc.say(f"regional fuser {group} ready ({selector.text})")
         while not stop.is_set():

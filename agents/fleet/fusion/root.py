@@ -129,8 +129,12 @@ class RootService:
     def start(self) -> None:
         s = self.session
         self._entities.append(s.liveliness().declare_token(self.tree.fuser_token(ROOT_NAME)))
-        self._entities.append(s.liveliness().declare_subscriber(self.keys.all_alive, self._on_alive, history=True))
-        self._entities.append(s.liveliness().declare_subscriber(self.tree.all_fusers, self._on_fuser, history=True))
+        self._entities.append(
+            s.liveliness().declare_subscriber(self.keys.all_alive, self._on_alive, history=True)
+        )
+        self._entities.append(
+            s.liveliness().declare_subscriber(self.tree.all_fusers, self._on_fuser, history=True)
+        )
         self._entities.append(s.declare_queryable(self.keys.fused_map, self._on_query, complete=True))
         self._entities.append(s.declare_queryable(self.keys.fusion_stats, self._on_stats, complete=True))
         self._entities.append(s.declare_subscriber(self.tree.all_groups, self._on_partial))
@@ -218,7 +222,8 @@ class RootService:
             "version": st.version,
             "role": "root",
             "exact": st.exact,
-            "fused": {"vertices": st.fused.n_vertices, "edges": st.fused.n_edges, "robots": list(st.fused_robots)},
+            "fused": {"vertices": st.fused.n_vertices, "edges": st.fused.n_edges,
+                      "robots": list(st.fused_robots)},
             "groups": {g: {"boot": p.key[0], "version": p.key[1], "robots": list(p.message.robots)}
                        for g, p in sorted(st.partials.items())},
             "latency_total": self.lat_total,

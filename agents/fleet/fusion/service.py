@@ -87,7 +87,9 @@ MAX_ADMIN_BYTES = 256  # an admin query's payload (``forget=ID``), at most
 class FusionService:
     """The Zenoh shell around :class:`FusionState` (see :func:`serve`)."""
 
-    def __init__(self, session: Any, keys: Any, opts: ServeOptions, log: Callable[[str], None] | None = None) -> None:
+    def __init__(
+        self, session: Any, keys: Any, opts: ServeOptions, log: Callable[[str], None] | None = None
+    ) -> None:
         import zenoh
 
         self._zenoh = zenoh
@@ -104,14 +106,17 @@ class FusionService:
         self.state.budget = WorkBudget(opts.budget) if opts.budget is not None else None
         self.state.restart_by_token = True  # a robot's restart is learned from its liveliness token
         self._came_alive: list[str] = []  # tokens that appeared (zenoh thread -> main thread)
-        self._forget_requests: list[tuple[str, Any]] = []  # admin/forget queries (zenoh thread -> main thread)
+        self._forget_requests: list[
+            tuple[str, Any]
+        ] = []  # admin/forget queries (zenoh thread -> main thread)
         self._last_unproven = 0.0
         self.state.frames.config = opts.frames
         self.recorder: Any = None
         if opts.rrd:
             from agents.files.rerun_log import FleetRecorder
 
-            self.recorder = FleetRecorder(opts.rrd, serve_port=opts.serve_viewer, recording_id=opts.recording_id)
+            self.recorder = FleetRecorder(opts.rrd, serve_port=opts.serve_viewer,
+                                          recording_id=opts.recording_id)
             if opts.world:
                 try:
                     from agents.sim.world import load_world
@@ -161,7 +166,9 @@ class FusionService:
         if self.state.version > 0 and self.state.robots:
             self.version_stamp_ns = time.time_ns()
             self.current = encode_message(self.state.fused_message(self.version_stamp_ns, self._meta()))
-            self.say(f"resumed fused v{self.state.version} from {opts.store} ({len(self.state.robots)} robots)")
+            self.say(
+                f"resumed fused v{self.state.version} from {opts.store} ({len(self.state.robots)} robots)"
+            )
 
     def _say_drop(self, line: str) -> None:
         self.say(line)
@@ -275,7 +282,9 @@ class FusionService:
         and no token of it is alive (after the start-up query)."""
         s = self.session
         # liveliness first, so the alive set is complete when the first maps come in
-        self._entities.append(s.liveliness().declare_subscriber(self.keys.all_alive, self._on_alive, history=True))
+        self._entities.append(
+            s.liveliness().declare_subscriber(self.keys.all_alive, self._on_alive, history=True)
+        )
         with self.lock:
             self._gone_during_query.clear()
         try:
@@ -291,7 +300,8 @@ class FusionService:
             self.say(f"liveliness query failed: {exc}")
         self.liveliness_ready = True
         self._entities.append(s.declare_queryable(self.keys.fused_map, self._on_query, complete=True))
-        self._entities.append(s.declare_queryable(self.keys.fusion_stats, self._on_stats_query, complete=True))
+        self._entities.append(s.declare_queryable(self.keys.fusion_stats, self._on_stats_query,
+                                                  complete=True))
         admin = getattr(self.keys, "admin_forget", None)  # a regional fuser's keys have none (yet)
         if admin is not None:
             self._entities.append(s.declare_queryable(admin, self._on_forget, complete=True))
@@ -325,7 +335,8 @@ class FusionService:
         self.islands.publish(st, self.version_stamp_ns)
         lat = st.take_latencies(time.time_ns())
         if self.recorder is not None:
-            self.recorder.log_fused(st.sim_time(), st.fused, st.fused_robots, st.version, max(lat) if lat else None)
+            self.recorder.log_fused(st.sim_time(), st.fused, st.fused_robots, st.version,
+                                    max(lat) if lat else None)
         now = time.monotonic()
         if now - self.last_say >= 1.0:
             self.last_say = now
@@ -361,7 +372,8 @@ class FusionService:
                     if q is not None:
                         m = decode_message(q.raw)
                         t = float(m.meta.get("t", 0.0)) if isinstance(m.meta.get("t"), (int, float)) else 0.0
-                        self.recorder.log_quarantine(rid, t, f"{reason}: {detail}", m.wireframe.transformed(m.origin))
+                        self.recorder.log_quarantine(rid, t, f"{reason}: {detail}",
+                                                     m.wireframe.transformed(m.origin))
 
     def _update_stale(self, publish: bool = True) -> None:
         """Recompute the stale list; on a change re-publish the same version with the new
@@ -401,7 +413,8 @@ class FusionService:
             alive = sorted(self.alive)
         return {
             "version": st.version,
-            "fused": {"vertices": st.fused.n_vertices, "edges": st.fused.n_edges, "robots": list(st.fused_robots)},
+            "fused": {"vertices": st.fused.n_vertices, "edges": st.fused.n_edges,
+                      "robots": list(st.fused_robots)},
             "stale": list(self.stale),
             "alive": alive,
             "robots": {
@@ -448,7 +461,11 @@ class FusionService:
 
     def _sync_counters(self) -> None:
         s = self.state.stats
-        s.oversized, s.rate_limited, s.overflow = self.intake.oversized, self.intake.rate_limited, self.intake.overflow
+        s.oversized, s.rate_limited, s.overflow = (
+            self.intake.oversized,
+            self.intake.rate_limited,
+            self.intake.overflow,
+        )
         with self.lock:
             s.side_dropped = self._side_dropped
             s.side_dropped_by = dict(self._side_by)
@@ -566,7 +583,11 @@ class FusionService:
         t = self.timing
         parts = " ".join(f"{k} {t[k]:.2f}" for k in ("wait", "decode", "fuse", "publish", "align", "other"))
         tr = self.transport_ms.summary()
-        transport = "" if tr["p50"] is None else f"; robot publish -> inbox ms: p50 {tr['p50']:.1f} p99 {tr['p99']:.1f}"
+        transport = (
+            ""
+            if tr["p50"] is None
+            else f"; robot publish -> inbox ms: p50 {tr['p50']:.1f} p99 {tr['p99']:.1f}"
+        )
         return (
             f"main loop: {int(t['iterations'])} iterations, {self.state.stats.fuses} fuses; seconds: {parts}"
             f"{transport}"
@@ -575,7 +596,8 @@ class FusionService:
     def _save_async(self) -> None:
         assert self.opts.store is not None
         self._sync_counters()
-        job = self.state.store_job(self.opts.store, sorted(self.unsaved), self.version_stamp_ns, self._fresh_latency())
+        job = self.state.store_job(self.opts.store, sorted(self.unsaved), self.version_stamp_ns,
+                                   self._fresh_latency())
         if self.writer is not None:
             self.writer.submit(job)
         else:  # pragma: no cover - a store always has a writer
@@ -594,7 +616,8 @@ class FusionService:
             self._side = {"pose": {}, "viz": {}}
         poses: dict[str, dict[str, Any]] = {}
         viz: dict[str, dict[str, Any]] = {}
-        for kind, raw, out, decode in (("pose", raw_poses, poses, decode_pose), ("viz", raw_viz, viz, decode_viz)):
+        for kind, raw, out, decode in (("pose", raw_poses, poses, decode_pose),
+                                       ("viz", raw_viz, viz, decode_viz)):
             for rid, data in raw.items():
                 try:
                     out[rid] = decode(data)  # every field checked (agents.fleet.validate)
@@ -610,7 +633,8 @@ class FusionService:
         for rid, v in sorted(viz.items()):
             if rid in st.robots:
                 m = st.robots[rid].message
-                self.recorder.log_robot_viz(rid, v["t"], m.origin, v["pose"], v["scan"], v["particles"], v["weights"])
+                self.recorder.log_robot_viz(rid, v["t"], m.origin, v["pose"], v["scan"], v["particles"],
+                                            v["weights"])
 
     def close(self) -> None:
         """Fuse and publish the maps still queued by the full path (the final map is the
@@ -645,7 +669,8 @@ class FusionService:
 
 
 def serve(
-    session: Any, keys: Any, opts: ServeOptions, stop: threading.Event, log: Callable[[str], None] | None = None
+    session: Any, keys: Any, opts: ServeOptions, stop: threading.Event,
+    log: Callable[[str], None] | None = None
 ) -> FusionState:
     """Run the fusion service on an open Zenoh session until ``stop`` is set.
 

@@ -217,7 +217,9 @@ class FusionState:
         self.merges = 0  # merge_fn calls made (all paths; a cost counter)
         self._closed: tuple[tuple[Any, ...], Wireframe] | None = None  # the folded map after close_frontiers
         self._in_fleet: dict[str, tuple[int, Wireframe]] = {}  # robot -> (rev, map moved by its start pose)
-        self._prepared: dict[str, tuple[tuple[Any, ...], Wireframe]] = {}  # robot -> (key, map ready to merge)
+        self._prepared: dict[
+            str, tuple[tuple[Any, ...], Wireframe]
+        ] = {}  # robot -> (key, map ready to merge)
         self._lat_saved = 0  # latency_total already handed to a store job
         self.store_report: list[str] = []  # what load found damaged and how it was recovered
         # ordering that cannot be frozen from outside (see _add): a robot's restart is learned
@@ -277,7 +279,8 @@ class FusionState:
         if not valid_name(msg.sender):
             return self._drop("rejected", "bad_sender", f"sender {msg.sender[:80]!r} is not a robot id")
         if key_robot is not None and msg.sender != key_robot:
-            return self._drop("rejected", "sender_mismatch", f"sender {msg.sender!r} on the key of {key_robot!r}")
+            return self._drop("rejected", "sender_mismatch",
+                              f"sender {msg.sender!r} on the key of {key_robot!r}")
         bad = implausible(msg, self.limits, now_ns)
         if bad is None:
             bad = over_budget(msg, self.limits, now_ns)
@@ -334,7 +337,7 @@ class FusionState:
         records ``why`` (:attr:`forgotten`). Returns whether it had a map."""
         had = self.robots.pop(rid, None) is not None
         for cache in (self.alignments, self.corrections, self._in_fleet, self._prepared, self._pending,
-                      self.quarantine.maps, self._first_seen, self.token_gen, self.held, self._held_restart):  # fmt: skip
+                      self.quarantine.maps, self._first_seen, self.token_gen, self.held, self._held_restart):  # fmt: skip  # noqa: E501
             cache.pop(rid, None)
         if self.budget is not None:
             self.budget.forget(rid)
@@ -372,12 +375,18 @@ class FusionState:
         cfg = self.quarantine_config
         if cfg is None:
             return []
-        due = [r for r, t in self._first_seen.items() if r not in self.robots and now_ns - t >= cfg.forget_after_s * 1e9]
+        due = [
+            r
+            for r, t in self._first_seen.items()
+            if r not in self.robots and now_ns - t >= cfg.forget_after_s * 1e9
+        ]
         for rid in due:
             self.forget(rid, f"never plausible: no map accepted in {cfg.forget_after_s:.0f} s")
         return due
 
-    def _inconsistent(self, msg: MapMessage, old: RobotEntry | None, now_ns: int | None) -> tuple[str, str] | None:
+    def _inconsistent(
+        self, msg: MapMessage, old: RobotEntry | None, now_ns: int | None
+    ) -> tuple[str, str] | None:
         """Why ``msg`` contradicts its robot's last accepted map of the same boot or the other
         robots' walls (:mod:`agents.fleet.fusion.quarantine`), else None."""
         cfg = self.quarantine_config
@@ -385,12 +394,19 @@ class FusionState:
             return None
         wf = msg.wireframe
         lim = self.limits
-        if old is not None and old.at_ns and _origin_of(old.message) == _origin_of(msg):  # same boot and start
+        if (
+            old is not None and old.at_ns and _origin_of(old.message) == _origin_of(msg)
+        ):  # same boot and start
             seconds = (now_ns - old.at_ns) / 1e9
-            bad = against_history(wf, old.message.wireframe, seconds, lim.max_speed_mps, lim.sensor_range_m, cfg)
+            bad = against_history(wf, old.message.wireframe, seconds, lim.max_speed_mps,
+                                  lim.sensor_range_m, cfg)
             if bad is not None:
                 return bad
-        elif old is None and wf.n_vertices and self._first_seen.get(msg.sender, now_ns) - (self._born_ns or now_ns) > LATE_GRACE_NS:
+        elif (
+            old is None
+            and wf.n_vertices
+            and self._first_seen.get(msg.sender, now_ns) - (self._born_ns or now_ns) > LATE_GRACE_NS
+        ):
             # a robot's first map: no further from its start than it could have gone since the
             # fusion first heard of it (its claimed boot may be as old as it likes), except
             # within the fleet's known extent (a robot joining a mapped building late). Not for
@@ -453,7 +469,8 @@ class FusionState:
                     dt = max(0.0, (now_ns - old.at_ns) / 1e9)
                     allowed = old.key[1] + self.limits.burst + self.limits.rate_hz * dt
                     if key[1] > allowed:
-                        return self._drop("absurd", "seq_jump", f"seq {key[1]} after {old.key[1]} {dt:.1f} s ago")
+                        return self._drop("absurd", "seq_jump",
+                                          f"seq {key[1]} after {old.key[1]} {dt:.1f} s ago")
         elif len(self.robots) >= MAX_ROBOTS:
             return self._drop("rejected", "too_many_robots", f"{rid!r} would be robot {MAX_ROBOTS + 1}")
         if self.budget is not None and now_ns is not None and not self.budget.allowed(rid, time.monotonic()):
@@ -560,7 +577,8 @@ class FusionState:
         if hit is not None and hit[0] == key:
             return hit[2]
         wf = fold_maps(
-            (self.robots[m].message.wireframe.transformed(fr.pose[m]) for m in ms), lambda a, b: self._merge(a, b, thr)
+            (self.robots[m].message.wireframe.transformed(fr.pose[m]) for m in ms),
+            lambda a, b: self._merge(a, b, thr)
         )
         if self.config.close_frontiers and len(ms) > 1:
             wf = close_frontiers(wf, thr)
@@ -689,7 +707,9 @@ class FusionState:
         # a regional fuser's partial map without changing the fold above it
         return wire_snap(self.merge_fn(base, new, thr), self._grid)
 
-    def _node(self, lo: int, hi: int, leaves: list[tuple[Any, Wireframe]], thr: float) -> tuple[Wireframe, Any]:
+    def _node(
+        self, lo: int, hi: int, leaves: list[tuple[Any, Wireframe]], thr: float
+    ) -> tuple[Wireframe, Any]:
         """The fold of ``leaves[lo:hi]`` (see :meth:`compute`) and its identity: a leaf's item,
         or a digest of the node's map. Cached per ``(lo, hi)`` under ``(thr, identity of the
         left part, identity of the right part)``, so a change that leaves a partial result
@@ -916,7 +936,11 @@ class FusionState:
 
     def sim_time(self) -> float:
         """The latest simulated time any robot map carries (``meta["t"]``), 0 if none."""
-        ts = [float(e.message.meta.get("t", 0.0)) for e in self.robots.values() if isinstance(e.message.meta, dict)]
+        ts = [
+            float(e.message.meta.get("t", 0.0))
+            for e in self.robots.values()
+            if isinstance(e.message.meta, dict)
+        ]
         return max(ts, default=0.0)
 
     # ------------------------------------------------------------------ store
@@ -942,12 +966,14 @@ class FusionState:
             views={r for r in ids if r in self.robots},
             fused_raw=encode_message(self.fused_message(stamp_ns)),
             alignments={
-                r: (None if (c := self.corrections.get(r)) is None else [c.x, c.y, c.theta]) for r in self.fused_robots
+                r: (None if (c := self.corrections.get(r)) is None else [c.x, c.y, c.theta])
+                for r in self.fused_robots
             },
             state={
                 "version": self.version,
                 "robots": {
-                    r: {"seq": e.key[1], "boot": e.key[0], "sha256": e.key[2]} for r, e in sorted(self.robots.items())
+                    r: {"seq": e.key[1], "boot": e.key[0], "sha256": e.key[2]}
+                    for r, e in sorted(self.robots.items())
                 },
                 "fused": {"vertices": self.fused.n_vertices, "edges": self.fused.n_edges},
                 "converged": self.converged,
@@ -955,7 +981,9 @@ class FusionState:
                 "latency_total": lat.total,
                 "latency_log": LATENCY_LOG,
             },
-            latencies=[(first + i, v, t) for i, (v, t) in enumerate(zip(*(a.tolist() for a in lat.tail(new))))],
+            latencies=[
+                (first + i, v, t) for i, (v, t) in enumerate(zip(*(a.tolist() for a in lat.tail(new))))
+            ],
             extra=self.extra_doc(),
             forgotten=set(self.forgotten),
         )
@@ -976,11 +1004,19 @@ class FusionState:
         if isinstance(f, dict):
             self.forgotten = {k: str(v)[:200] for k, v in f.items() if valid_name(k)}
         since = extra.get("since_ns")
-        self._since = {
-            k: v for k, v in since.items() if isinstance(v, int) and not isinstance(v, bool) and 0 <= v < 1 << 63
-        } if isinstance(since, dict) else {}
+        self._since = (
+            {
+                k: v
+                for k, v in since.items()
+                if isinstance(v, int) and not isinstance(v, bool) and 0 <= v < 1 << 63
+            }
+            if isinstance(since, dict)
+            else {}
+        )
 
-    def save(self, store: str | os.PathLike[str], robots: Iterable[str] | None = None, stamp_ns: int = 0) -> None:
+    def save(
+        self, store: str | os.PathLike[str], robots: Iterable[str] | None = None, stamp_ns: int = 0
+    ) -> None:
         """Write the state under ``store`` now (see :class:`StoreJob` for the files)."""
         self.store_job(store, robots, stamp_ns).write()
 
@@ -1070,7 +1106,8 @@ class FusionState:
             if al is not None and set(al) == set(st.robots):
                 for rid, corr in al.items():
                     e = st.robots[rid]
-                    st.alignments[rid] = Alignment(corr, e.rev, e.message.wireframe.n_vertices, _origin_of(e.message))
+                    st.alignments[rid] = Alignment(corr, e.rev, e.message.wireframe.n_vertices,
+                                                   _origin_of(e.message))
                 st.fuse(max_realign=0)
             else:
                 st.fuse(full=True)

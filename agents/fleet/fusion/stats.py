@@ -88,9 +88,11 @@ class FusionStats:
         (:mod:`agents.fleet.fusion.quarantine`); ``quarantined_by`` by reason.
     held : maps that waited because their robot's fusion work budget was spent
         (:mod:`agents.fleet.fusion.budget`; fused later, the latest one per robot).
-    malformed / rejected / absurd : dropped in :meth:`~agents.fleet.fusion.state.FusionState.offer`; ``*_by`` break them
+    malformed / rejected / absurd : dropped in :meth:`~agents.fleet.fusion.state.FusionState.offer`; ``*_by``
+    break them
         down by codec error class or reason.
-    oversized / rate_limited / overflow : dropped by :class:`~agents.fleet.fusion.intake.Intake` before decoding.
+    oversized / rate_limited / overflow : dropped by :class:`~agents.fleet.fusion.intake.Intake` before
+    decoding.
     side_dropped : pose and visualisation payloads dropped (too big, bad key, a field that fails
         :mod:`agents.fleet.validate`); ``side_dropped_by`` by ``<kind>_<reason>``.
     published : fused versions published.
@@ -126,7 +128,9 @@ class FusionStats:
     @property
     def dropped(self) -> int:
         """Every map payload that was dropped, for whatever reason."""
-        return self.malformed + self.rejected + self.absurd + self.oversized + self.rate_limited + self.overflow
+        return (
+            self.malformed + self.rejected + self.absurd + self.oversized + self.rate_limited + self.overflow
+        )
 
     @property
     def latency_total(self) -> int:

@@ -62,8 +62,8 @@ class StoreJob:
     def then(self, newer: StoreJob) -> StoreJob:
         """This job followed by ``newer`` as one: newer contents, the views and latencies of both."""
         return StoreJob(
-            newer.store, newer.version, newer.stamp_ns, newer.robots, self.views | newer.views, newer.fused_raw,
-            newer.alignments, newer.state, self.latencies + newer.latencies, newer.extra,
+            newer.store, newer.version, newer.stamp_ns, newer.robots, self.views | newer.views,
+            newer.fused_raw, newer.alignments, newer.state, self.latencies + newer.latencies, newer.extra,
             (self.forgotten | newer.forgotten) - set(newer.robots),
         )
 
@@ -300,7 +300,10 @@ def read_store(store: str | os.PathLike[str], warn: Callable[[str], None] | None
             if not isinstance(doc, dict):
                 raise ValueError("not a map")
             robots = doc["robots"]
-            if not (isinstance(robots, dict) and all(isinstance(k, str) and isinstance(v, bytes) for k, v in robots.items())):
+            if not (
+                isinstance(robots, dict)
+                and all(isinstance(k, str) and isinstance(v, bytes) for k, v in robots.items())
+            ):
                 raise ValueError("robots is not a map of id -> bytes")
             doc["version"] = _version(doc["version"])
             snap = doc

@@ -396,7 +396,9 @@ class RootState:
             acc = pnode(0, len(leaves))[1]
         return close_frontiers(acc, thr), ids, exact
 
-    def _cached(self, span: tuple[int, int], a: tuple[Any, Wireframe], b: tuple[Any, Wireframe], thr: float) -> tuple[Any, Wireframe]:
+    def _cached(
+        self, span: tuple[int, int], a: tuple[Any, Wireframe], b: tuple[Any, Wireframe], thr: float
+    ) -> tuple[Any, Wireframe]:
         key = (thr, a[0], b[0])
         hit = self._cache.get(span)
         if hit is not None and hit[0] == key:
