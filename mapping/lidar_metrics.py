@@ -33,7 +33,7 @@ from mapping.wireframe import Wireframe
 
 FloatArray = NDArray[np.float64]
 
-__all__ = ["ate", "map_coverage", "map_precision", "rpe", "scan_endpoints"]
+__all__ = ["ate", "map_coverage", "map_precision", "rpe", "scan_endpoints", "score_run"]
 
 
 def _poses(a: ArrayLike, name: str, cols: int = 3) -> FloatArray:
@@ -203,3 +203,20 @@ def map_coverage(wf: Wireframe, endpoints: ArrayLike, tol: float = 0.2) -> float
     tree = shapely.STRtree(shapely.linestrings(pieces))
     hit, _ = tree.query(shapely.points(pts), predicate="dwithin", distance=tol)
     return float(len(np.unique(hit)) / len(pts))
+
+
+def score_run(
+    estimate: ArrayLike, truth: ArrayLike, wf: Wireframe, endpoints: ArrayLike,
+    tol: float = 0.2, spacing: float = 0.05, rpe_distance: float = 1.0,
+) -> dict[str, float]:
+    """The figures of one run against its truth, as ``wiremap map`` and ``wiremap bench lidar``
+    report them: ``ate_rmse_m``, ``ate_max_m``, ``rpe_1m_m`` (relative error over
+    ``rpe_distance``), ``map_precision`` and ``map_coverage`` (at ``tol`` against ``endpoints``)."""
+    rmse, mx = ate(estimate, truth)
+    return {
+        "ate_rmse_m": rmse,
+        "ate_max_m": mx,
+        "rpe_1m_m": rpe(estimate, truth, rpe_distance),
+        "map_precision": map_precision(wf, endpoints, tol, spacing),
+        "map_coverage": map_coverage(wf, endpoints, tol),
+    }

@@ -75,3 +75,18 @@ def test_precision_and_coverage_against_endpoints() -> None:
     assert math.isnan(map_coverage(wall, np.zeros((0, 2))))
     with pytest.raises(ValueError):
         map_precision(wall, pts, tol=-1.0)
+
+
+def test_score_run_is_the_pieces_together() -> None:
+    from mapping.lidar_metrics import ate, map_coverage, map_precision, rpe, score_run
+    from mapping.wireframe import Wireframe
+
+    truth = np.array([[0.1 * k, 0.0, 0.0] for k in range(40)])
+    est = truth + np.array([0.0, 0.05, 0.0])
+    wf = Wireframe.from_polylines([[(0.0, 1.0), (4.0, 1.0)]])
+    ends = np.array([[x, 1.02] for x in np.linspace(0, 3, 31)])
+    s = score_run(est, truth, wf, ends)
+    assert (s["ate_rmse_m"], s["ate_max_m"]) == ate(est, truth)
+    assert s["rpe_1m_m"] == rpe(est, truth, 1.0)
+    assert s["map_precision"] == map_precision(wf, ends) and s["map_coverage"] == map_coverage(wf, ends)
+    assert 0.75 < s["map_precision"] < 0.85 and s["map_coverage"] == 1.0

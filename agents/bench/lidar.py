@@ -234,7 +234,7 @@ def run_log(
     from agents.files.io import write_atomic
     from mapping.config import with_overrides
     from mapping.filter import WireframeFilter, particle_bytes
-    from mapping.lidar_metrics import ate, map_coverage, map_precision, rpe, scan_endpoints
+    from mapping.lidar_metrics import ate, rpe, scan_endpoints, score_run
 
     name = log_name(path)
     show = _Progress(progress, live=True)
@@ -269,15 +269,10 @@ def run_log(
                         f"{filt.best.n_edges} walls, {(st.index + 1) / busy if busy else 0:.1f} scans/s")
         best = filt.best
         est_xyt = _poses(est)
-        rmse, mx = ate(est_xyt, true_xyt)
         secs = extract_s + busy
         row = {
             "scans": len(inputs),
-            "ate_rmse_m": rmse,
-            "ate_max_m": mx,
-            "rpe_1m_m": rpe(est_xyt, true_xyt, RPE_DISTANCE),
-            "map_precision": map_precision(best, endpoints, TOL, SPACING),
-            "map_coverage": map_coverage(best, endpoints, TOL),
+            **score_run(est_xyt, true_xyt, best, endpoints, TOL, SPACING, RPE_DISTANCE),
             "best_map_bytes": wire_bytes(best, filt.pose),
             "particle_bytes": particle_bytes(filt.particles),
             "vertices": best.n_vertices,
@@ -285,8 +280,9 @@ def run_log(
             "time_s": secs,
             "ms_per_scan": 1000.0 * secs / len(inputs),
         }
-        show.line(f"{name} {method}: ATE {rmse:.3f} m (max {mx:.2f}), precision {row['map_precision']:.3f}, "
-                  f"coverage {row['map_coverage']:.3f}, {row['ms_per_scan']:.0f} ms/scan")
+        show.line(f"{name} {method}: ATE {row['ate_rmse_m']:.3f} m (max {row['ate_max_m']:.2f}), "
+                  f"precision {row['map_precision']:.3f}, coverage {row['map_coverage']:.3f}, "
+                  f"{row['ms_per_scan']:.0f} ms/scan")
         return row, best, est_xyt
 
     result, best, est_xyt = one("filter", particles)

@@ -407,23 +407,15 @@ def _score_log(
     """Scores of a CARMEN run against its true poses (:mod:`mapping.lidar_metrics`) and the
     picture of the map over the real endpoints at those poses."""
     from agents.bench.lidar_png import lidar_png
-    from mapping.lidar_metrics import ate, map_coverage, map_precision, rpe, scan_endpoints
+    from mapping.lidar_metrics import ate, scan_endpoints, score_run
 
     true_xyt = np.array([[p.x, p.y, p.theta] for p in truth], dtype=np.float64)
     est = np.array([(x, y, th) for _, x, y, th in trajectory], dtype=np.float64)
     odom = np.array([[s.odom.x, s.odom.y, s.odom.theta] for s in scans], dtype=np.float64)
     ends = scan_endpoints(true_xyt, [s.ranges for s in scans], [s.angles for s in scans], max_range=max_range)
-    rmse, mx = ate(est, true_xyt)
-    o_rmse, _ = ate(odom, true_xyt)
-    scores = {
-        "ate_rmse_m": rmse,
-        "ate_max_m": mx,
-        "rpe_1m_m": rpe(est, true_xyt, 1.0),
-        "map_precision": map_precision(best, ends, 0.2, 0.05),
-        "map_coverage": map_coverage(best, ends, 0.2),
-        "odometry_ate_rmse_m": o_rmse,
-    }
-    png = lidar_png(best, ends, true_xyt[:, :2], est[:, :2], title=f"ate {rmse:.2f} m")
+    scores = score_run(est, true_xyt, best, ends)
+    scores["odometry_ate_rmse_m"] = ate(odom, true_xyt)[0]
+    png = lidar_png(best, ends, true_xyt[:, :2], est[:, :2], title=f"ate {scores['ate_rmse_m']:.2f} m")
     return {k: _num(v) for k, v in scores.items()}, png
 
 

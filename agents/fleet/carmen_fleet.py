@@ -42,14 +42,6 @@ def read_log(path: str | os.PathLike[str]) -> list[Any]:
     return list(read_carmen_log(path).scans)
 
 
-def read_truth(log: str | os.PathLike[str]) -> list[Pose] | None:
-    """The true laser pose per scan (``NAME.truth.tsv`` beside the log, or its ``TRUEPOS``
-    track; :func:`agents.files.carmen.scan_truth`), None when the log has none."""
-    from agents.files.carmen import read_carmen_log, scan_truth
-
-    return scan_truth(read_carmen_log(log))
-
-
 def split(n_scans: int, robots: int, overlap: float = 0.3) -> list[tuple[int, int]]:
     """``robots`` stretches ``[i0, i1)`` of equal length along ``n_scans`` scans, each running
     on into the next by ``overlap`` of a stretch."""

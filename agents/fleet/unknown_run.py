@@ -65,12 +65,13 @@ class CarmenWorld:
 
 
 def carmen_world(args: argparse.Namespace) -> CarmenWorld:
-    from agents.fleet.carmen_fleet import read_log, read_truth
+    from agents.files.carmen import read_carmen_log, scan_truth
 
-    scans = read_log(args.carmen)
+    log = read_carmen_log(args.carmen)
+    scans = list(log.scans)
     if not scans:
         raise UserError(f"{args.carmen}: no laser scans in the log")
-    truth = read_truth(args.carmen)
+    truth = scan_truth(log)
     if truth is not None and len(truth) != len(scans):
         truth = truth[: len(scans)] if len(truth) > len(scans) else None
     name = Path(args.carmen).name.split(".")[0]

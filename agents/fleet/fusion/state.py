@@ -44,7 +44,7 @@ from agents.fleet.fusion.quarantine import (
 )
 from agents.fleet.fusion.stats import MAX_LATENCIES, FusionStats
 from agents.fleet.fusion.store import LATENCY_LOG, StoreDamaged, StoreJob, read_latency_log, read_store
-from agents.fleet.fusion.tree import wire_snap
+from agents.fleet.fusion.tree import merge_on_grid, wire_snap
 from mapping.fleet import align_maps, close_frontiers, fold_split
 from mapping.se2 import Pose
 from mapping.wireframe import Wireframe
@@ -698,14 +698,8 @@ class FusionState:
 
     # ------------------------------------------------------------------ the fold tree
     def _merge(self, base: Wireframe, new: Wireframe, thr: float) -> Wireframe:
-        if new.n_vertices == 0:
-            return base
-        if base.n_vertices == 0:
-            return new
-        self.merges += 1
-        # every node as it would travel (agents.fleet.fusion.tree.wire_snap): a subtree can be
-        # a regional fuser's partial map without changing the fold above it
-        return wire_snap(self.merge_fn(base, new, thr), self._grid)
+        self.merges += bool(base.n_vertices and new.n_vertices)
+        return merge_on_grid(self.merge_fn, base, new, thr, self._grid)
 
     def _node(
         self, lo: int, hi: int, leaves: list[tuple[Any, Wireframe]], thr: float

@@ -96,6 +96,17 @@ class GroupKeys:
 
 
 # ---------------------------------------------------------------------- the wire's grid
+def merge_on_grid(merge_fn: Any, a: Wireframe, b: Wireframe, thr: float, grid: float) -> Wireframe:
+    """One node of the fold: an empty side leaves the other as it is; otherwise ``merge_fn(a, b,
+    thr)`` snapped to the wire's grid (:func:`wire_snap`), so that a subtree can be a regional
+    fuser's partial map without changing the fold above it."""
+    if b.n_vertices == 0:
+        return a
+    if a.n_vertices == 0:
+        return b
+    return wire_snap(merge_fn(a, b, thr), grid)
+
+
 def wire_snap(wf: Wireframe, resolution: float) -> Wireframe:
     """``wf`` as the codec would bring it back at ``resolution``: vertices on the grid of
     ``round(resolution, mm)`` (the decoder's arithmetic, ``q * res_mm / 1000``), likelihoods
@@ -344,12 +355,8 @@ class RootState:
         return out
 
     def _merge(self, a: Wireframe, b: Wireframe, thr: float) -> Wireframe:
-        if b.n_vertices == 0:
-            return a
-        if a.n_vertices == 0:
-            return b
-        self.merges += 1
-        return wire_snap(self.merge_fn(a, b, thr), self.resolution)
+        self.merges += bool(a.n_vertices and b.n_vertices)
+        return merge_on_grid(self.merge_fn, a, b, thr, self.resolution)
 
     def layout(self) -> tuple[tuple[str, ...], list[tuple[int, int, Partial]], bool]:
         """The fleet's sorted ids, each partial's span ``(lo, hi, partial)`` in fold order, and
