@@ -7,7 +7,8 @@ scans):
 
 * **scan sources** yield :class:`ScanInput` (time, odometry increment, robot-frame scan and the
   true pose when there is one): :func:`simulate` (a world, its coverage route, the motion model
-  and the corner sensor or a simulated lidar plus split-and-merge) and :func:`carmen_inputs`
+  and the corner sensor or a simulated lidar -- clean, or realistic with noise, dropouts, glass,
+  clutter and people, :mod:`agents.sim.real_lidar` -- plus split-and-merge) and :func:`carmen_inputs`
   (a CARMEN log's ``FLASER`` lines through split-and-merge);
 * :func:`run_filter` feeds them to a :class:`~mapping.filter.WireframeFilter` and yields a
   :class:`RunStep` per scan: step index, time, true pose, estimated pose, scan, the filter.
@@ -51,7 +52,9 @@ __all__ = [
     "world_defaults",
 ]
 
-SENSORS = ("corners", "lidar")
+#: The simulated sensors: the corner sensor (paper Sec. IV-A), the clean lidar (ray casting,
+#: 1 cm noise) and the realistic lidar (:mod:`agents.sim.real_lidar`), both through split-and-merge.
+SENSORS = ("corners", "lidar", "lidar-real")
 
 
 @dataclass(frozen=True)
@@ -87,8 +90,11 @@ class SimOptions:
     Attributes
     ----------
     sensor : str
-        ``"corners"`` (the simulated corner sensor, paper Sec. IV-A) or ``"lidar"`` (ray-cast
-        ranges turned into corners by split-and-merge, :mod:`mapping.extract`).
+        ``"corners"`` (the simulated corner sensor, paper Sec. IV-A), ``"lidar"`` (ray-cast
+        ranges turned into corners by split-and-merge, :mod:`mapping.extract`) or
+        ``"lidar-real"`` (the same lidar with what real scans have: range noise growing with
+        range, dropouts, max-range bursts, glass, clutter and walking people,
+        :mod:`agents.sim.real_lidar`).
     max_range : float
         Sensing range (metres) of either sensor; the filter predicts scans with the same range.
     speed, dt : float
@@ -101,7 +107,16 @@ class SimOptions:
         Corner sensor noise (see :class:`agents.sim.sensor.CornerSensorConfig`).
     lidar_beams, lidar_sigma : int, float
         The simulated lidar: a full turn of ``lidar_beams`` beams with ``lidar_sigma`` range
-        noise (a 360-degree scanner, so both sensors see the same field of view).
+        noise (a 360-degree scanner, so both sensors see the same field of view). The realistic
+        lidar has the same beams; ``real.noise`` replaces ``lidar_sigma``.
+    real : agents.sim.real_lidar.RealLidarConfig, optional
+        The realistic lidar's noise and scene (its defaults without).
+    scene_seed : int, optional
+        Seed of the realistic lidar's scene (glass, clutter, people;
+        :func:`agents.sim.real_lidar.build_scene`); default the run's seed. A fleet's robots
+        share one, as they share the building.
+    extract : mapping.extract.ExtractConfig, optional
+        Split-and-merge settings for either lidar (its defaults without).
     """
 
     sensor: str = "corners"
@@ -116,6 +131,9 @@ class SimOptions:
     lidar_beams: int = 720
     lidar_sigma: float = 0.01
     extra: dict[str, Any] = field(default_factory=dict)
+    real: Any = None
+    scene_seed: int | None = None
+    extract: Any = None
 
     def __post_init__(self) -> None:
         if self.sensor not in SENSORS:
@@ -296,10 +314,10 @@ def simulate(
         steps = steps[: options.steps]
     if options.duration is not None:
         steps = [s for s in steps if s.t <= options.duration + 1e-9]
-    scan_fn = _scanner(world, options)
+    scan_fn = _scanner(world, options, route, seed if options.scene_seed is None else options.scene_seed)
     srng = rngs["sensor"]
     for s in steps:
-        yield ScanInput(s.t, s.odometry, scan_fn(s.true_pose, srng), s.true_pose)
+        yield ScanInput(s.t, s.odometry, scan_fn(s.true_pose, srng, s.t), s.true_pose)
 
 
 def count_sim_steps(
@@ -321,7 +339,8 @@ def count_sim_steps(
     return n
 
 
-def _scanner(world: Any, options: SimOptions) -> Any:
+def _scanner(world: Any, options: SimOptions, route: NDArray[np.float64], scene_seed: int) -> Any:
+    """``scan(true pose, sensor rng, time) -> corner scan`` of ``options.sensor``."""
     if options.sensor == "corners":
         from agents.sim.sensor import CornerSensor, CornerSensorConfig
 
@@ -334,18 +353,39 @@ def _scanner(world: Any, options: SimOptions) -> Any:
                 p_fn=options.corner_p_fn,
             ),
         )
-        return sensor.scan
+
+        def corner_scan(pose: Pose, rng: np.random.Generator, t: float) -> Wireframe:
+            return sensor.scan(pose, rng)
+
+        return corner_scan
     from agents.sim.lidar import LidarConfig, raycast
     from mapping.extract import extract_corners
 
     lcfg = LidarConfig(beams=options.lidar_beams, fov=2.0 * math.pi, max_range=options.max_range,
                        sigma=options.lidar_sigma)
-    segments = world.truth.segments()
     angles = lcfg.angles()
+    ecfg = options.extract
 
-    def lidar_scan(pose: Pose, rng: np.random.Generator) -> Wireframe:
-        ranges = raycast(segments, pose, lcfg, rng)
-        return extract_corners(ranges, angles, lcfg.max_range)
+    def corners(ranges: NDArray[np.float64]) -> Wireframe:
+        if ecfg is None:
+            return extract_corners(ranges, angles, lcfg.max_range)
+        return extract_corners(ranges, angles, lcfg.max_range, ecfg)
+
+    if options.sensor == "lidar-real":
+        from agents.sim.real_lidar import RealLidarConfig, build_scene, realistic_scan
+
+        real = options.real if options.real is not None else RealLidarConfig()
+        scene = build_scene(world, real.scene, scene_seed).clear_of(route, real.scene.route_clearance)
+
+        def real_scan(pose: Pose, rng: np.random.Generator, t: float) -> Wireframe:
+            return corners(realistic_scan(scene, pose, t, lcfg, real.noise, rng))
+
+        return real_scan
+
+    segments = world.truth.segments()
+
+    def lidar_scan(pose: Pose, rng: np.random.Generator, t: float) -> Wireframe:
+        return corners(raycast(segments, pose, lcfg, rng))
 
     return lidar_scan
 
@@ -437,7 +477,8 @@ def robot_steps(opts: Any) -> Iterator[RunStep]:
     ``opts.particles`` particles whose map frame is the robot's odometry frame (its first pose is
     the identity). ``opts.threshold`` is the merge threshold (``opts.resolution``, the wire
     quantisation, for options without one); ``opts.filter_overrides`` (dotted keys) go over
-    both. ``opts.extra`` may set ``sensor`` and ``max_range``; the sensor senses as far as the
+    both. ``opts.extra`` may set ``sensor`` (:data:`SENSORS`), ``scene_seed`` (the realistic
+    lidar's scene; default ``opts.seed``) and ``max_range``; the sensor senses as far as the
     filter's ``max_range``. ``RunStep.true_pose`` is in the world frame."""
     from agents.sim.world import load_world
 
@@ -447,10 +488,12 @@ def robot_steps(opts: Any) -> Iterator[RunStep]:
     max_range = float(extra.get("max_range", 8.0))
     overrides = getattr(opts, "filter_overrides", None)
     cfg = filter_config_for(int(opts.particles), threshold, max_range, overrides=overrides)
+    scene_seed = extra.get("scene_seed")
     options = SimOptions(
         sensor=str(extra.get("sensor", "corners")),
         max_range=cfg.max_range,
         duration=getattr(opts, "duration", None),
+        scene_seed=None if scene_seed is None else int(scene_seed),
     )
     start = getattr(opts, "start", None)
     route = getattr(opts, "route", None)

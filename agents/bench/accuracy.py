@@ -9,7 +9,8 @@ medians over seeds::
 
     {"world", "sensor", "seeds", "particles", "cell_error", "wall_precision", "wall_recall",
      "mean_dist_m", "p95_dist_m", "mean_dist_aligned_m", "particle_bytes", "steps", "updates_per_s"
-     [, "baseline": {...}]}
+     [, "baseline": {...}] [, "realistic": {"sensor": "lidar-real", ...same medians...,
+     ["baseline": {...}]}]}
 
 ``mean_dist_aligned_m`` (added) is the mean distance after the rigid motion that lays the map
 best onto the truth (:func:`mapping.metrics.align_to_truth`): how much of ``mean_dist_m`` is the
@@ -19,6 +20,19 @@ known, so the map's frame is the truth's). Each seed's map is written as a PNG (
 ``--wall-tol M`` scores wall precision and recall at ``M`` metres instead of twice the merge
 threshold (the paper's cell metric, the default); the JSON then also has ``"wall_tol_m"``.
 The issue's target for world files (95 % at 0.2 m) is ``--wall-tol 0.2``.
+
+Sensors (``--sensor``): ``corners`` (the corner sensor, the default), ``lidar`` and
+``lidar-real`` (:data:`agents.mapping_run.SENSORS`). ``--sensor lidar`` runs every seed twice,
+with the clean lidar and with the realistic one (:mod:`agents.sim.real_lidar`: range noise
+growing with range, dropouts, max-range bursts, glass, clutter, people; the seed is also the
+scene's), and reports both: the table gains a ``sensor`` column with a row per sensor, the JSON's
+top-level figures stay the clean lidar's, and ``"realistic": {...}`` holds the same medians
+for the realistic one (with ``"baseline"`` inside it under ``--baseline``). ``--sensor
+lidar-real`` runs the realistic lidar alone (its figures at the top level).
+
+``--profile lidar`` applies the real-lidar profile (:func:`agents.mapping_run.lidar_profile`:
+its filter settings under ``--params`` and ``--set``, its ``extract.*`` settings to the
+simulated lidars' split-and-merge); the JSON then has ``"profile": "lidar"``.
 
 ``--params FILE`` and ``--set group.key=value`` change the filter's settings
 (:mod:`agents.params`; ``--particles`` and ``--merge-threshold`` are shorthands for ``--set
@@ -59,7 +73,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--world", required=True, metavar="NAME|FILE", help="built-in world or world file")
     parser.add_argument("--seeds", type=int, default=3, metavar="K", help="number of seeds (default 3)")
     parser.add_argument("--first-seed", type=int, default=0, metavar="S", help="seeds S..S+K-1 (default 0)")
-    parser.add_argument("--sensor", choices=("corners", "lidar"), default="corners")
+    parser.add_argument("--sensor", choices=("corners", "lidar", "lidar-real"), default="corners",
+                        help="corner sensor (default), lidar (reports the clean and the realistic "
+                             "lidar) or lidar-real (the realistic lidar alone)")
+    parser.add_argument("--profile", choices=("none", "lidar"), default="none",
+                        help="lidar: the real-lidar profile (filter settings and split-and-merge) "
+                             "on top of the defaults (default none)")
     parser.add_argument("--particles", type=int, default=None,
                         help="particles (default 10; 6 for worlds over 100 m, as the paper)")
     parser.add_argument("--merge-threshold", type=float, default=None, metavar="M",
@@ -124,13 +143,16 @@ def _round(v: float) -> float | None:
     return None if not math.isfinite(v) else round(v, 6)
 
 
-def format_table(rows: list[tuple[str, str, dict[str, Any]]]) -> str:
-    """An aligned text table: one line per (seed, method) row."""
+def format_table(rows: list[tuple[str, str, dict[str, Any]]], sensors: list[str] | None = None) -> str:
+    """An aligned text table: one line per (seed, method) row; with ``sensors`` (one per row) a
+    ``sensor`` column after the seed."""
     head = ["seed", "method", "cell_err", "precision", "recall", "mean_d_m", "p95_d_m", "aligned_m", "bytes",
             "steps", "ups"]
+    if sensors is not None:
+        head.insert(1, "sensor")
     lines = [head]
-    for seed, method, r in rows:
-        lines.append([
+    for k, (seed, method, r) in enumerate(rows):
+        line = [
             seed,
             method,
             fmt_cell(r["cell_error"], "{:.2%}"),
@@ -142,19 +164,28 @@ def format_table(rows: list[tuple[str, str, dict[str, Any]]]) -> str:
             str(r["particle_bytes"]),
             str(r["steps"]),
             fmt_cell(r["updates_per_s"], "{:.1f}"),
-        ])
-    return aligned_rows(lines, left=2)
+        ]
+        if sensors is not None:
+            line.insert(1, sensors[k])
+        lines.append(line)
+    return aligned_rows(lines, left=3 if sensors is not None else 2)
 
+
+def sensors_for(sensor: str) -> list[str]:
+    """The simulated sensors a ``--sensor`` choice runs: ``lidar`` runs the clean and the
+    realistic lidar."""
+    return ["lidar", "lidar-real"] if sensor == "lidar" else [sensor]
 
 
 def run_seed(
     world_arg: str, sensor: str, steps: int | None, seed: int, cfg: FilterConfig,
-    baseline: bool, out: str, tol: float | None = None,
-) -> list[tuple[str, dict[str, Any], float]]:
-    """One seed: simulate the scans once (the sensor's range is ``cfg.max_range``), run the
+    baseline: bool, out: str, tol: float | None = None, extract: Any = None,
+) -> list[tuple[str, str, dict[str, Any], float]]:
+    """One seed: for each sensor of :func:`sensors_for`, simulate the scans once (the sensor's
+    range is ``cfg.max_range``; ``extract``: the lidars' split-and-merge settings), run the
     filter of configuration ``cfg`` (and the baseline, the same with one particle and no
-    mutation, on the same scans), write each map's PNG to ``out``. Returns ``(method, row,
-    seconds since start)`` per run.
+    mutation, on the same scans), write each map's PNG to ``out``. Returns ``(sensor, method,
+    row, seconds since start)`` per run.
     Loads the world itself, so that it can run in a worker process (``--jobs``)."""
     from agents import mapping_run as mr
     from agents.files.io import write_atomic
@@ -163,20 +194,21 @@ def run_seed(
 
     t0 = time.perf_counter()
     world = load_world(world_arg)
-    options = mr.SimOptions(sensor=sensor, steps=steps, max_range=cfg.max_range)
-    try:
-        inputs = list(mr.simulate(world, options, seed))
-    except ValueError as exc:
-        raise UserError(f"{world_arg}: {exc}") from None
     done = []
-    configs = [("filter", cfg)] + (
-        [("baseline", replace(cfg, particles=1, mutate=False))] if baseline else []
-    )
-    for method, c in configs:
-        row, best, traj = run_one(world, inputs, c, seed, tol)
-        png = Path(out) / f"{world.name}-{sensor}-seed{seed}-{method}.png"
-        write_atomic(png, map_png(best, truth=world.truth, trajectory=np.asarray(traj)))
-        done.append((method, row, time.perf_counter() - t0))
+    for name in sensors_for(sensor):
+        options = mr.SimOptions(sensor=name, steps=steps, max_range=cfg.max_range, extract=extract)
+        try:
+            inputs = list(mr.simulate(world, options, seed))
+        except ValueError as exc:
+            raise UserError(f"{world_arg}: {exc}") from None
+        configs = [("filter", cfg)] + (
+            [("baseline", replace(cfg, particles=1, mutate=False))] if baseline else []
+        )
+        for method, c in configs:
+            row, best, traj = run_one(world, inputs, c, seed, tol)
+            png = Path(out) / f"{world.name}-{name}-seed{seed}-{method}.png"
+            write_atomic(png, map_png(best, truth=world.truth, trajectory=np.asarray(traj)))
+            done.append((name, method, row, time.perf_counter() - t0))
     return done
 
 
@@ -199,26 +231,32 @@ def run(args: argparse.Namespace) -> int:
     particles, thr = mr.world_defaults(world)
     flags = {"particles": ("--particles", args.particles),
              "merge_threshold": ("--merge-threshold", args.merge_threshold)}
+    profile_filter: dict[str, Any] = {}
+    extract = None
+    if args.profile == "lidar":
+        profile_filter, extract, _ = mr.split_profile(mr.lidar_profile())
     resolved = resolve(
         cargs,
-        lambda ov: mr.filter_config_for(particles, thr, mr.SimOptions().max_range, overrides=ov),
+        lambda ov: mr.filter_config_for(particles, thr, mr.SimOptions().max_range,
+                                        overrides={**profile_filter, **ov}),
         {k: v for k, v in flags.items() if v[1] is not None},
     )
     cfg = resolved.config
     seeds = list(range(args.first_seed, args.first_seed + args.seeds))
     job = functools.partial(
         run_seed, str(args.world), args.sensor, args.steps,
-        cfg=cfg, baseline=bool(args.baseline), out=str(args.out), tol=args.wall_tol,
+        cfg=cfg, baseline=bool(args.baseline), out=str(args.out), tol=args.wall_tol, extract=extract,
     )
-    results: dict[int, list[tuple[str, dict[str, Any], float]]] = {}
+    results: dict[int, list[tuple[str, str, dict[str, Any], float]]] = {}
 
-    def report(seed: int, done: list[tuple[str, dict[str, Any], float]]) -> None:
+    def report(seed: int, done: list[tuple[str, str, dict[str, Any], float]]) -> None:
         results[seed] = done
         if args.quiet:
             return
-        for method, row, secs in done:
+        for name, method, row, secs in done:
+            what = method if len(sensors_for(args.sensor)) == 1 else f"{name} {method}"
             sys.stderr.write(
-                f"seed {seed} {method}: cell error {row['cell_error']:.2%}, "
+                f"seed {seed} {what}: cell error {row['cell_error']:.2%}, "
                 f"precision {row['wall_precision']:.3f}, recall {row['wall_recall']:.3f}, "
                 f"{row['particle_bytes']} B, {row['updates_per_s']:.1f} ups "
                 f"({secs:.0f} s) [{len(results)}/{len(seeds)} seeds]\n"
@@ -232,31 +270,43 @@ def run(args: argparse.Namespace) -> int:
             futures = {seed: pool.submit(job, seed) for seed in seeds}
             for seed, fut in futures.items():  # in seed order; later seeds may be done already
                 report(seed, fut.result())
+    names = sensors_for(args.sensor)
     table: list[tuple[str, str, dict[str, Any]]] = []
-    filt_rows: list[dict[str, Any]] = []
-    base_rows: list[dict[str, Any]] = []
+    table_sensors: list[str] = []
+    rows: dict[tuple[str, str], list[dict[str, Any]]] = {}
     for seed in seeds:
-        for method, row, _ in results[seed]:
+        for name, method, row, _ in results[seed]:
             table.append((str(seed), method, row))
-            (filt_rows if method == "filter" else base_rows).append(row)
+            table_sensors.append(name)
+            rows.setdefault((name, method), []).append(row)
+    meds = {key: _median(r) for key, r in rows.items()}
+    for name in names:
+        for method in ("filter", "baseline"):
+            if (name, method) in meds:
+                table.append(("median", method, meds[(name, method)]))
+                table_sensors.append(name)
     out = Path(args.out)
-    med = _median(filt_rows)
-    table.append(("median", "filter", med))
-    if base_rows:
-        table.append(("median", "baseline", _median(base_rows)))
-    print(format_table(table))
+    print(format_table(table, table_sensors if len(names) > 1 else None))
     print(f"PNGs in {out}/")
+    first = names[0]
     summary: dict[str, Any] = {
         "world": world.name,
         "sensor": args.sensor,
         "seeds": args.seeds,
         "particles": cfg.particles,
-        **med,
+        **meds[(first, "filter")],
     }
     if args.wall_tol is not None:
         summary["wall_tol_m"] = args.wall_tol
-    if base_rows:
-        summary["baseline"] = {"particles": 1, **_median(base_rows)}
+    if (first, "baseline") in meds:
+        summary["baseline"] = {"particles": 1, **meds[(first, "baseline")]}
+    if "lidar-real" in names[1:]:
+        real: dict[str, Any] = {"sensor": "lidar-real", **meds[("lidar-real", "filter")]}
+        if ("lidar-real", "baseline") in meds:
+            real["baseline"] = {"particles": 1, **meds[("lidar-real", "baseline")]}
+        summary["realistic"] = real
+    if args.profile != "none":
+        summary["profile"] = args.profile
     if resolved.recorded:
         summary["config_overrides"] = resolved.recorded
     if args.json:

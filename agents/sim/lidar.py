@@ -118,6 +118,48 @@ def raycast(
     ``s = ((p - o) x e) / (d x e)``, ``u = ((p - o) x d) / (d x e)``, a hit when
     ``s > 0`` and ``0 <= u <= 1``).
     """
+    out = cast_ranges(segments, pose, config)
+    r_max = float(config.max_range)
+    if rng is not None and config.sigma > 0.0:
+        seen = np.isfinite(out)
+        noisy = out[seen] + rng.normal(0.0, config.sigma, size=int(seen.sum()))
+        noisy = np.maximum(noisy, 0.0)
+        noisy[noisy >= r_max] = np.inf
+        out[seen] = noisy
+    return np.asarray(out, dtype=np.float64)
+
+
+def cast_ranges(
+    segments: FloatArray,
+    pose: Pose,
+    config: LidarConfig,
+    *,
+    glass: NDArray[np.bool_] | None = None,
+    glass_min_sin: float = 1.0,
+) -> FloatArray:
+    """Exact ranges (no noise) from ``pose`` to the nearest of ``segments``, as :func:`raycast`.
+
+    Parameters
+    ----------
+    segments, pose, config
+        As :func:`raycast` (``config.sigma`` is not used).
+    glass : (m,) bool, optional
+        Segments that are glass: a beam meets one only when it strikes it near normal
+        incidence, ``|sin(angle between beam and segment)| >= glass_min_sin``; at any other
+        angle it passes through to whatever lies behind (:mod:`agents.sim.real_lidar`).
+    glass_min_sin : float
+        See ``glass`` (``cos`` of the largest angle from the normal that still returns).
+
+    Returns
+    -------
+    (beams,) float64
+        Range per beam, ``np.inf`` where no segment is met within ``config.max_range``.
+
+    Raises
+    ------
+    ValueError
+        ``segments`` not of shape ``(m, 2, 2)`` or not finite, or ``glass`` not of shape ``(m,)``.
+    """
     seg = np.asarray(segments, dtype=np.float64)
     if seg.size == 0:
         seg = seg.reshape(0, 2, 2)
@@ -125,6 +167,10 @@ def raycast(
         raise ValueError(f"segments must have shape (m, 2, 2), got {seg.shape}")
     if not np.all(np.isfinite(seg)):
         raise ValueError("segments must have finite coordinates")
+    if glass is not None:
+        glass = np.asarray(glass, dtype=bool)
+        if glass.shape != (len(seg),):
+            raise ValueError(f"glass must have shape ({len(seg)},), got {glass.shape}")
     beams = int(config.beams)
     out = np.full(beams, np.inf)
     r_max = float(config.max_range)
@@ -136,7 +182,10 @@ def raycast(
         hi = np.maximum(seg[:, 0], seg[:, 1])
         dx = np.maximum(np.maximum(lo[:, 0] - ox, ox - hi[:, 0]), 0.0)
         dy = np.maximum(np.maximum(lo[:, 1] - oy, oy - hi[:, 1]), 0.0)
-        seg = seg[dx * dx + dy * dy <= r_max * r_max]
+        near = dx * dx + dy * dy <= r_max * r_max
+        seg = seg[near]
+        if glass is not None:
+            glass = glass[near]
 
     if len(seg):
         bearings = config.angles() + pose.theta
@@ -152,14 +201,13 @@ def raycast(
         # Parallel rays (denom == 0) never hit: a wall seen edge-on has no width.
         eps = 1e-12
         hit = (denom != 0.0) & (s > 0.0) & (u >= -eps) & (u <= 1.0 + eps)
+        if glass is not None and glass.any():
+            # |d x e| / |e| is the sine of the angle between the beam and the pane.
+            length = np.hypot(e[:, 0], e[:, 1])
+            with np.errstate(divide="ignore", invalid="ignore"):
+                steep = np.abs(denom) >= glass_min_sin * length[None, :]
+            hit &= ~glass[None, :] | steep
         s = np.where(hit, s, np.inf)
         out = s.min(axis=1)
         out[out > r_max] = np.inf
-
-    if rng is not None and config.sigma > 0.0:
-        seen = np.isfinite(out)
-        noisy = out[seen] + rng.normal(0.0, config.sigma, size=int(seen.sum()))
-        noisy = np.maximum(noisy, 0.0)
-        noisy[noisy >= r_max] = np.inf
-        out[seen] = noisy
     return np.asarray(out, dtype=np.float64)

@@ -16,6 +16,11 @@ Anything else (a ``Point``, an unknown kind, an invalid polygon, bad JSON) raise
 :class:`WorldError` naming the feature. The collection's ``properties.name`` names the world
 (default: the file's stem).
 
+**Walls at odd angles**: ``NAME@DEG`` (a built-in name or a file, then ``@`` and a number of
+degrees) is that world turned by ``DEG`` degrees counterclockwise about the centre of its
+bounds and shifted back into the positive quadrant (:func:`rotated_world`), e.g.
+``paper-small@23``: every command that takes a world takes it, and its truth turns with it.
+
 Loading normalises the geometry, so that writing a world out with :meth:`World.to_geojson` and
 reading it back gives an identical world: straight-through (collinear) ring vertices are
 dropped (they are not corners), exteriors run counterclockwise and holes clockwise, every ring
@@ -35,6 +40,7 @@ from typing import Any
 
 import numpy as np
 import shapely
+import shapely.affinity
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 from shapely.geometry import LineString, MultiLineString, MultiPolygon, Polygon
@@ -49,6 +55,7 @@ __all__ = [
     "WorldError",
     "builtin_names",
     "load_world",
+    "rotated_world",
     "world_from_geojson",
 ]
 
@@ -212,8 +219,9 @@ def builtin_names() -> list[str]:
 
 
 def load_world(spec: str | os.PathLike[str]) -> World:
-    """A built-in world by name, or a world file (``.geojson``) by path. A built-in name wins
-    over a file of that name in the working directory; built-ins are made once per process.
+    """A built-in world by name, or a world file (``.geojson``) by path; ``SPEC@DEG`` is that
+    world turned by ``DEG`` degrees (:func:`rotated_world`). A built-in name wins over a file
+    of that name in the working directory; built-ins are made once per process.
 
     Raises
     ------
@@ -226,6 +234,15 @@ def load_world(spec: str | os.PathLike[str]) -> World:
     if text in BUILTINS:
         return _builtin(text)
     path = Path(text)
+    base, at, deg = text.rpartition("@")
+    if at and base and not path.exists():
+        try:
+            degrees = float(deg)
+        except ValueError:
+            raise WorldError(f"world {text!r}: after '@' comes a number of degrees, got {deg!r}") from None
+        if not math.isfinite(degrees):
+            raise WorldError(f"world {text!r}: the rotation must be a finite number of degrees")
+        return rotated_world(load_world(base), degrees)
     if not path.exists():
         raise WorldError(
             f"unknown world {text!r}: not a built-in ({', '.join(BUILTINS)}) and no such file"
@@ -239,6 +256,31 @@ def load_world(spec: str | os.PathLike[str]) -> World:
     except json.JSONDecodeError as exc:
         raise WorldError(f"{path}: not valid JSON: {exc}") from None
     return world_from_geojson(doc, name=path.stem, where=str(path))
+
+
+def rotated_world(world: World, degrees: float) -> World:
+    """``world`` turned by ``degrees`` counterclockwise about the centre of its bounds, then
+    shifted so that its bounds start at the origin again (walls at odd angles for the
+    simulator). Named ``NAME@DEG``; free space, thin walls, route and truth all turn.
+
+    Raises
+    ------
+    WorldError
+        The turned geometry does not load (it always should; rounding of a degenerate world).
+    """
+    xmin, ymin, xmax, ymax = world.bounds()
+    cx, cy = 0.5 * (xmin + xmax), 0.5 * (ymin + ymax)
+    doc = world.to_geojson()
+    turned = [shapely.geometry.shape(f["geometry"]) for f in doc["features"]]
+    turned = [shapely.affinity.rotate(g, degrees, origin=(cx, cy)) for g in turned]
+    bx0 = min(float(g.bounds[0]) for g in turned)
+    by0 = min(float(g.bounds[1]) for g in turned)
+    for f, g in zip(doc["features"], turned):
+        f["geometry"] = json.loads(json.dumps(shapely.geometry.mapping(
+            shapely.affinity.translate(g, -bx0, -by0))))
+    name = f"{world.name}@{degrees:g}"
+    doc["properties"] = {"name": name}
+    return world_from_geojson(doc, name=name, where=f"world {name!r}")
 
 
 @cache
