@@ -317,7 +317,8 @@ def simulate(
     scan_fn = _scanner(world, options, route, seed if options.scene_seed is None else options.scene_seed)
     srng = rngs["sensor"]
     for s in steps:
-        yield ScanInput(s.t, s.odometry, scan_fn(s.true_pose, srng, s.t), s.true_pose)
+        scan, points = scan_fn(s.true_pose, srng, s.t)
+        yield ScanInput(s.t, s.odometry, scan, s.true_pose, points)
 
 
 def count_sim_steps(
@@ -340,7 +341,10 @@ def count_sim_steps(
 
 
 def _scanner(world: Any, options: SimOptions, route: NDArray[np.float64], scene_seed: int) -> Any:
-    """``scan(true pose, sensor rng, time) -> corner scan`` of ``options.sensor``."""
+    """``scan(true pose, sensor rng, time) -> (corner scan, raw points or None)`` of
+    ``options.sensor``. The realistic lidar gives its raw points
+    (:func:`mapping.lidar_frontend.scan_points`), as a real lidar's front end does
+    (:func:`carmen_inputs`); the clean sensors give none, as they always have."""
     if options.sensor == "corners":
         from agents.sim.sensor import CornerSensor, CornerSensorConfig
 
@@ -354,8 +358,8 @@ def _scanner(world: Any, options: SimOptions, route: NDArray[np.float64], scene_
             ),
         )
 
-        def corner_scan(pose: Pose, rng: np.random.Generator, t: float) -> Wireframe:
-            return sensor.scan(pose, rng)
+        def corner_scan(pose: Pose, rng: np.random.Generator, t: float) -> tuple[Wireframe, None]:
+            return sensor.scan(pose, rng), None
 
         return corner_scan
     from agents.sim.lidar import LidarConfig, raycast
@@ -373,19 +377,22 @@ def _scanner(world: Any, options: SimOptions, route: NDArray[np.float64], scene_
 
     if options.sensor == "lidar-real":
         from agents.sim.real_lidar import RealLidarConfig, build_scene, realistic_scan
+        from mapping.lidar_frontend import FrontendConfig, scan_points
 
         real = options.real if options.real is not None else RealLidarConfig()
         scene = build_scene(world, real.scene, scene_seed).clear_of(route, real.scene.route_clearance)
+        fcfg = FrontendConfig()
 
-        def real_scan(pose: Pose, rng: np.random.Generator, t: float) -> Wireframe:
-            return corners(realistic_scan(scene, pose, t, lcfg, real.noise, rng))
+        def real_scan(pose: Pose, rng: np.random.Generator, t: float) -> tuple[Wireframe, Any]:
+            ranges = realistic_scan(scene, pose, t, lcfg, real.noise, rng)
+            return corners(ranges), scan_points(ranges, angles, fcfg)
 
         return real_scan
 
     segments = world.truth.segments()
 
-    def lidar_scan(pose: Pose, rng: np.random.Generator, t: float) -> Wireframe:
-        return corners(raycast(segments, pose, lcfg, rng))
+    def lidar_scan(pose: Pose, rng: np.random.Generator, t: float) -> tuple[Wireframe, None]:
+        return corners(raycast(segments, pose, lcfg, rng)), None
 
     return lidar_scan
 

@@ -53,9 +53,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     src.add_argument("--world", metavar="NAME|FILE", help="a built-in world name or a world GeoJSON file")
     src.add_argument("--carmen", metavar="LOG", help="a CARMEN log (FLASER lines) to map")
     parser.add_argument("--out", required=True, metavar="DIR", help="output directory")
-    parser.add_argument("--sensor", choices=("corners", "lidar"), default="corners",
-                        help="simulated sensor: the corner sensor or a lidar + split-and-merge "
-                             "(default corners)")
+    parser.add_argument("--sensor", choices=("corners", "lidar", "lidar-real"), default="corners",
+                        help="simulated sensor: the corner sensor, a lidar + split-and-merge, or the "
+                             "realistic lidar (lidar-real: range noise, dropouts, glass, clutter, "
+                             "people; its scene drawn from --seed) (default corners)")
     parser.add_argument("--particles", type=int, default=None, help="number of particles (default 10)")
     parser.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     parser.add_argument("--merge-threshold", type=float, default=None, metavar="M",

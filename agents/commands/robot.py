@@ -1,15 +1,16 @@
 """``wiremap robot --id ID --world NAME|FILE --start X,Y,THETA [--route ...] [--rate HZ] [--seed S]
-[--params FILE] [--set KEY=VALUE ...] [--connect ...]``: one simulated robot with its own particle
-filter, publishing its map, pose and liveliness on the bus until SIGINT/SIGTERM. See
-:mod:`agents.fleet.robot`; ``--params``/``--set``: :mod:`agents.params` (``--particles`` and
-``--threshold`` are shorthands for ``--set particles=`` and ``--set merge_threshold=``)."""
+[--sensor corners|lidar|lidar-real [--scene-seed S]] [--params FILE] [--set KEY=VALUE ...]
+[--connect ...]``: one simulated robot with its own particle filter, publishing its map, pose and
+liveliness on the bus until SIGINT/SIGTERM. See :mod:`agents.fleet.robot`; ``--params``/``--set``:
+:mod:`agents.params` (``--particles`` and ``--threshold`` are shorthands for ``--set particles=``
+and ``--set merge_threshold=``); ``--sensor``: :data:`agents.mapping_run.SENSORS`."""
 
 from __future__ import annotations
 
 import argparse
 import itertools
 import math
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -24,6 +25,7 @@ from agents.fleet.bus import (
     watch_parent,
 )
 from agents.fleet.robot import DEFAULT_RESOLUTION, DEFAULT_THRESHOLD
+from agents.mapping_run import SENSORS
 from agents.params import ConfigArgs, Resolved, add_config_arguments, resolve
 from mapping.se2 import Pose
 
@@ -56,6 +58,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--rate", type=float, default=5.0, metavar="HZ", help="scans per second (default 5)")
     parser.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    parser.add_argument(
+        "--sensor", choices=SENSORS, default="corners",
+        help="simulated sensor: corner sensor (default), clean lidar, or realistic lidar (lidar-real)",
+    )
+    parser.add_argument(
+        "--scene-seed", type=int, default=None, metavar="S",
+        help="with --sensor lidar-real: seed of the scene (glass, clutter, people; default --seed); "
+        "robots of one fleet share it",
+    )
     parser.add_argument("--particles", type=int, default=None, help="particles of the filter (default 5)")
     parser.add_argument(
         "--resolution", type=float, default=DEFAULT_RESOLUTION, metavar="M",
@@ -93,6 +104,9 @@ def options_from_args(args: argparse.Namespace) -> RobotOptions:
 
     rid = check_name(args.id)
     if args.carmen:
+        if args.sensor != "corners" or args.scene_seed is not None:
+            raise UserError("--sensor and --scene-seed are for a simulated world; "
+                            "--carmen replays the log's lidar")
         return _carmen_options(args, rid)
     if not args.world:
         raise UserError("give --world NAME|FILE (or --carmen LOG)")
@@ -147,7 +161,19 @@ def options_from_args(args: argparse.Namespace) -> RobotOptions:
         filter_overrides=resolved.overrides,
         unknown_start=bool(args.unknown_start),
         heading_given=heading_given,
+        extra=_sensor_extra(args),
     )
+
+
+def _sensor_extra(args: argparse.Namespace) -> dict[str, Any]:
+    """``RobotOptions.extra`` for ``--sensor`` and ``--scene-seed`` (read by
+    :func:`agents.mapping_run.robot_steps`); empty for the default corner sensor."""
+    extra: dict[str, Any] = {}
+    if args.sensor != "corners":
+        extra["sensor"] = args.sensor
+    if args.scene_seed is not None:
+        extra["scene_seed"] = int(args.scene_seed)
+    return extra
 
 
 def _filter_config(args: argparse.Namespace) -> Resolved:
@@ -226,7 +252,8 @@ def run(args: argparse.Namespace) -> int:
         agent = RobotAgent(session, keys, opts, steps, say)
         try:
             agent.start()
-            say(f"on the bus as {keys.robot_map(rid)}")
+            sensor = "" if opts.carmen else f" (sensor {opts.extra.get('sensor', 'corners')})"
+            say(f"on the bus as {keys.robot_map(rid)}{sensor}")
             st = agent.run(stop)
         finally:
             agent.close()

@@ -30,6 +30,12 @@ checked before the router or any robot starts.
 The mapping clock starts when every robot has reported its first pose (process start-up is not
 counted), bounded by ``--startup-timeout``.
 
+``--sensor`` picks the robots' simulated sensor (:data:`agents.mapping_run.SENSORS`): the corner
+sensor (default), the clean lidar or the realistic lidar ``lidar-real``
+(:mod:`agents.sim.real_lidar`), whose scene (glass, clutter, people) is drawn from ``--seed`` and
+so is the same for every robot; each robot gets ``--sensor`` and ``--scene-seed``, and
+``report.json`` has ``"sensor"``.
+
 ``--secure`` runs the whole fleet authenticated and access-controlled
 (:func:`agents.fleet.secure.make_secure_fleet`): fresh test certificates and passwords under
 ``DIR/secure/`` (private files mode 600), the router on ``tls/localhost:<free port>`` with
@@ -67,6 +73,7 @@ from agents.fleet.bus import (
     tcp_endpoint,
 )
 from agents.fleet.proc import cpu_seconds, stop_processes
+from agents.mapping_run import SENSORS
 from agents.params import ConfigArgs, add_config_arguments, resolve, to_toml
 from wire_codec import MAX_ROBOTS
 
@@ -94,6 +101,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "0.5 s of driving)",
     )
     parser.add_argument("--seed", type=int, default=0, help="random seed (routes; robot k gets seed + k)")
+    parser.add_argument(
+        "--sensor", choices=SENSORS, default="corners",
+        help="the robots' simulated sensor: the corner sensor (default), the clean lidar or the "
+        "realistic lidar (lidar-real: range noise, dropouts, glass, clutter, people; the scene "
+        "is drawn from --seed, the same for every robot)",
+    )
     parser.add_argument("--out", required=True, metavar="DIR", help="output directory")
     parser.add_argument("--rate", type=float, default=5.0, metavar="HZ",
                         help="scans per second per robot (default 5)")
@@ -481,6 +494,7 @@ def run(args: argparse.Namespace) -> int:
             "cpu_s": cpu,
             "exit_codes": codes,
             "seed": args.seed,
+            **({} if args.carmen else {"sensor": args.sensor}),
             "rate_hz": args.rate,
             "particles": resolved.config.particles,
             "config_overrides": resolved.recorded,
@@ -512,6 +526,8 @@ def _check_arguments(args: argparse.Namespace) -> int:
         raise UserError("give --world NAME|FILE or --carmen LOG (one of them)")
     if args.carmen and not Path(args.carmen).is_file():
         raise UserError(f"--carmen {args.carmen}: no such file")
+    if args.carmen and args.sensor != "corners":
+        raise UserError("--sensor is for a simulated world; --carmen replays the log's own lidar")
     if args.anchor is not None and args.anchor not in [f"r{k + 1}" for k in range(max(0, n))]:
         raise UserError(f"--anchor must be one of the robot ids r1..r{n}, got {args.anchor!r}")
     if args.overlap is None:
@@ -655,13 +671,14 @@ def _start_fleet(
             continue
         s0 = start_pose_of(r)
         unknown = ["--unknown-start"] if args.unknown_starts else []
+        sensor = [] if args.sensor == "corners" else ["--sensor", args.sensor, "--scene-seed", str(args.seed)]
         procs[rid] = _spawn(
             rid,
             [
                 "robot", "--id", rid, "--world", args.world,
                 "--start", f"{s0.x:.9f},{s0.y:.9f},{s0.theta:.9f}",
                 "--route", str(out / "routes" / f"{rid}.json"),
-                "--rate", str(args.rate), "--seed", str(args.seed + k + 1),
+                "--rate", str(args.rate), "--seed", str(args.seed + k + 1), *sensor,
                 *filter_args,
                 "--resolution", repr(float(args.resolution)), "--threshold", repr(threshold),
                 "--status-file", str(out / "status" / f"{rid}.json"),

@@ -125,12 +125,15 @@ class SceneConfig:
     Parameters
     ----------
     glass_share : float
-        Share of the walls that could be glass that are (default 0.1). A wall could be glass
-        when it is at least ``glass_min_length`` long and nothing lies within ``glass_depth``
-        behind it (a window to the outside, or a thin wall between rooms), so that a pane never
-        uncovers the back of a thick wall.
+        Probability that a wall at least ``glass_min_length`` long has a pane (default 0.2):
+        a stretch of ``glass_length`` metres (at most the wall) at a random place along it,
+        provided nothing lies within ``glass_depth`` behind the pane (a window to the
+        outside, or glass between rooms), so that a pane never uncovers the back of a thick
+        wall. Panes are in the truth (they are walls), the lidar mostly sees through them.
     glass_min_length, glass_depth : float
         Metres (defaults 1.0 and 1.0).
+    glass_length : (float, float)
+        Pane lengths drawn between these, metres (default 1-4).
     glass_return_deg : float
         A pane returns a beam that strikes it within this angle of its normal (default 10).
     clutter_per_100m2 : float
@@ -156,9 +159,10 @@ class SceneConfig:
         A value out of its range.
     """
 
-    glass_share: float = 0.1
+    glass_share: float = 0.2
     glass_min_length: float = 1.0
     glass_depth: float = 1.0
+    glass_length: tuple[float, float] = (1.0, 4.0)
     glass_return_deg: float = 10.0
     clutter_per_100m2: float = 2.0
     people_per_100m2: float = 0.5
@@ -178,7 +182,9 @@ class SceneConfig:
         _check("person_radius", self.person_radius, 0.0, 2.0, lo_open=True)
         _check("route_clearance", self.route_clearance, 0.0)
         _check("person_clearance", self.person_clearance, 0.0)
-        for name, (lo, hi) in (("person_speed", self.person_speed), ("person_path", self.person_path)):
+        pairs = (("person_speed", self.person_speed), ("person_path", self.person_path),
+                 ("glass_length", self.glass_length))
+        for name, (lo, hi) in pairs:
             if not (math.isfinite(lo) and math.isfinite(hi) and 0.0 < lo <= hi):
                 raise ValueError(f"{name} must be (low, high) with 0 < low <= high, got {(lo, hi)!r}")
 
@@ -199,9 +205,9 @@ class Scene:
     Attributes
     ----------
     walls : (m, 2, 2) float
-        The world's walls (its truth's segments).
+        The world's walls (its truth's segments), each pane cut out as a segment of its own.
     glass : (m,) bool
-        Which walls are panes.
+        Which of ``walls`` are panes.
     glass_min_sin : float
         ``cos(glass_return_deg)``: see :func:`agents.sim.lidar.cast_ranges`.
     clutter : (c, 2, 2) float
@@ -330,45 +336,61 @@ def _free_points(free: shapely.Geometry, n: int, rng: np.random.Generator) -> Fl
     return np.concatenate(got)[:n] if got else np.zeros((0, 2))
 
 
-def _glass_candidates(
-    world: object, walls: FloatArray, min_length: float, depth: float
-) -> tuple[IntArray, IntArray]:
-    """Walls that could be panes, as ``(wall index per candidate, candidate per wall or -1)``:
-    at least ``min_length`` long, and the ``depth`` behind their middle (right of the edge:
-    walls have free space on their left) crosses no other wall and no solid (the inside of a
-    thick wall or an obstacle): a window to the outside, or a thin wall between rooms. One
-    candidate per geometric wall (a thin wall's two opposite edges share theirs)."""
-    m = len(walls)
-    group = np.full(m, -1, dtype=np.int64)
-    if not m:
-        return np.zeros(0, dtype=np.int64), group
+def _panes(
+    world: object, walls: FloatArray, config: SceneConfig, rng: np.random.Generator
+) -> tuple[FloatArray, BoolArray]:
+    """The walls with panes cut out: ``(segments, glass)``. Each wall (a thin wall's two
+    opposite edges together) at least ``glass_min_length`` long gets, with probability
+    ``glass_share``, one pane of a length drawn from ``glass_length`` (at most the wall's) at
+    a random place along it -- provided the ``glass_depth`` behind the pane's middle (right of
+    the edge: walls have free space on their left) crosses no other wall and no solid (the
+    inside of a thick wall or an obstacle): a window to the outside, or glass between rooms.
+    The draws are made for every wall whatever the outcome."""
     free = world.free_space  # type: ignore[attr-defined]
     building = shapely.unary_union([shapely.Polygon(p.exterior) for p in free.geoms])
     solid = building.difference(free)
     shapely.prepare(solid)
+    lines = shapely.linestrings(walls)
     a, b = walls[:, 0], walls[:, 1]
     e = b - a
     length = np.hypot(e[:, 0], e[:, 1])
-    lines = shapely.linestrings(walls)
-    key: dict[tuple[float, ...], int] = {}
-    firsts: list[int] = []
-    for k in range(m):
-        if length[k] < min_length:
-            continue
+    panes: dict[tuple[float, ...], tuple[FloatArray, FloatArray]] = {}  # key -> pane ends (p, q)
+    drawn: set[tuple[float, ...]] = set()
+    for k in range(len(walls)):
         p, q = tuple(np.round(a[k], 6)), tuple(np.round(b[k], 6))
-        k2 = (*min(p, q), *max(p, q))
-        if k2 in key:
-            group[k] = key[k2]
+        key = (*min(p, q), *max(p, q))
+        if key in drawn:  # the other edge of a thin wall
             continue
-        mid = 0.5 * (a[k] + b[k])
+        drawn.add(key)
+        u, plen, where = rng.random(), rng.uniform(*config.glass_length), rng.random()
+        if length[k] < config.glass_min_length or u >= config.glass_share:
+            continue
+        plen = min(plen, float(length[k]))
+        t0 = where * (length[k] - plen) / length[k]
+        t1 = t0 + plen / length[k]
+        mid = a[k] + 0.5 * (t0 + t1) * e[k]
         normal = np.array([e[k, 1], -e[k, 0]]) / length[k]  # right of the edge: behind the wall
-        probe = LineString([mid + 1e-3 * normal, mid + depth * normal])
+        probe = LineString([mid + 1e-3 * normal, mid + config.glass_depth * normal])
         if solid.intersects(probe) or bool(np.any(shapely.intersects(lines, probe))):
             continue
-        key[k2] = len(firsts)
-        group[k] = len(firsts)
-        firsts.append(k)
-    return np.asarray(firsts, dtype=np.int64), group
+        panes[key] = (a[k] + t0 * e[k], a[k] + t1 * e[k])
+    segs: list[FloatArray] = []
+    glass: list[bool] = []
+    for k in range(len(walls)):
+        p, q = tuple(np.round(a[k], 6)), tuple(np.round(b[k], 6))
+        pane = panes.get((*min(p, q), *max(p, q)))
+        if pane is None:
+            segs.append(walls[k])
+            glass.append(False)
+            continue
+        g0, g1 = pane
+        if np.dot(g1 - g0, e[k]) < 0:  # the twin of a thin wall runs the other way
+            g0, g1 = g1, g0
+        for piece, is_glass in (((a[k], g0), False), ((g0, g1), True), ((g1, b[k]), False)):
+            if float(np.hypot(*(piece[1] - piece[0]))) > 1e-9:
+                segs.append(np.stack(piece))
+                glass.append(is_glass)
+    return np.asarray(segs, dtype=np.float64).reshape(-1, 2, 2), np.asarray(glass, dtype=bool)
 
 
 def _walkable(walk: shapely.Geometry, a: FloatArray, b: FloatArray, least: float = 1.0) -> FloatArray | None:
@@ -403,13 +425,7 @@ def build_scene(world: object, config: SceneConfig, seed: int) -> Scene:
     if not len(walls):
         raise ValueError(f"world {world.name!r} has no walls")
 
-    # glass: a share of the walls that could be panes, both edges of a thin wall alike
-    firsts, group = _glass_candidates(world, walls, config.glass_min_length, config.glass_depth)
-    n_glass = round(config.glass_share * len(firsts))
-    chosen = rng.permutation(len(firsts))[:n_glass]
-    pane = np.zeros(len(firsts), dtype=bool)
-    pane[chosen] = True
-    glass = (group >= 0) & pane[np.maximum(group, 0)]
+    segments, glass = _panes(world, walls, config, rng)
 
     free = world.free_space
     area = float(free.area)
@@ -461,7 +477,7 @@ def build_scene(world: object, config: SceneConfig, seed: int) -> Scene:
     phase = rng.uniform(0.0, 1.0, size=n_walking) * 2.0 * lengths
 
     return Scene(
-        walls=walls,
+        walls=segments,
         glass=glass,
         glass_min_sin=math.cos(math.radians(config.glass_return_deg)),
         clutter=np.concatenate(segs) if segs else np.zeros((0, 2, 2)),
