@@ -30,6 +30,12 @@ top-level figures stay the clean lidar's, and ``"realistic": {...}`` holds the s
 for the realistic one (with ``"baseline"`` inside it under ``--baseline``). ``--sensor
 lidar-real`` runs the realistic lidar alone (its figures at the top level).
 
+``--lidar-set GROUP.KEY=VALUE`` (repeatable) changes the realistic lidar
+(:class:`agents.sim.real_lidar.RealLidarConfig`: ``noise.*`` for :class:`~agents.sim.real_lidar.RangeNoise`,
+``scene.*`` for :class:`~agents.sim.real_lidar.SceneConfig`), e.g. ``--lidar-set
+scene.glass_share=0`` for a building without glass; the JSON's ``"realistic"`` then has
+``"lidar_settings"``.
+
 ``--profile lidar`` applies the real-lidar profile (:func:`agents.mapping_run.lidar_profile`:
 its filter settings under ``--params`` and ``--set``, its ``extract.*`` settings to the
 simulated lidars' split-and-merge); the JSON then has ``"profile": "lidar"``.
@@ -76,6 +82,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--sensor", choices=("corners", "lidar", "lidar-real"), default="corners",
                         help="corner sensor (default), lidar (reports the clean and the realistic "
                              "lidar) or lidar-real (the realistic lidar alone)")
+    parser.add_argument("--lidar-set", action="append", default=[], metavar="GROUP.KEY=VALUE",
+                        dest="lidar_sets",
+                        help="one setting of the realistic lidar, e.g. scene.glass_share=0 or "
+                             "noise.p_dropout=0.01 (repeatable)")
     parser.add_argument("--profile", choices=("none", "lidar"), default="none",
                         help="lidar: the real-lidar profile (filter settings and split-and-merge) "
                              "on top of the defaults (default none)")
@@ -179,10 +189,11 @@ def sensors_for(sensor: str) -> list[str]:
 
 def run_seed(
     world_arg: str, sensor: str, steps: int | None, seed: int, cfg: FilterConfig,
-    baseline: bool, out: str, tol: float | None = None, extract: Any = None,
+    baseline: bool, out: str, tol: float | None = None, extract: Any = None, real: Any = None,
 ) -> list[tuple[str, str, dict[str, Any], float]]:
     """One seed: for each sensor of :func:`sensors_for`, simulate the scans once (the sensor's
-    range is ``cfg.max_range``; ``extract``: the lidars' split-and-merge settings), run the
+    range is ``cfg.max_range``; ``extract``: the lidars' split-and-merge settings; ``real``: the
+    realistic lidar's :class:`~agents.sim.real_lidar.RealLidarConfig`), run the
     filter of configuration ``cfg`` (and the baseline, the same with one particle and no
     mutation, on the same scans), write each map's PNG to ``out``. Returns ``(sensor, method,
     row, seconds since start)`` per run.
@@ -196,7 +207,8 @@ def run_seed(
     world = load_world(world_arg)
     done = []
     for name in sensors_for(sensor):
-        options = mr.SimOptions(sensor=name, steps=steps, max_range=cfg.max_range, extract=extract)
+        options = mr.SimOptions(sensor=name, steps=steps, max_range=cfg.max_range, extract=extract,
+                                real=real if name == "lidar-real" else None)
         try:
             inputs = list(mr.simulate(world, options, seed))
         except ValueError as exc:
@@ -210,6 +222,31 @@ def run_seed(
             write_atomic(png, map_png(best, truth=world.truth, trajectory=np.asarray(traj)))
             done.append((name, method, row, time.perf_counter() - t0))
     return done
+
+
+def _lidar_settings(items: list[str]) -> tuple[dict[str, str], Any]:
+    """``({key: value}, RealLidarConfig)`` from ``--lidar-set`` items (None without any).
+
+    Raises
+    ------
+    UserError
+        An item without ``=``, an unknown key or a bad value.
+    """
+    from agents.sim.real_lidar import RealLidarConfig
+    from mapping.config import ConfigError, with_overrides
+
+    settings: dict[str, str] = {}
+    for item in items:
+        key, eq, value = item.partition("=")
+        if not eq or not key.strip():
+            raise UserError(f"--lidar-set {item!r}: expected GROUP.KEY=VALUE")
+        settings[key.strip()] = value.strip()
+    if not settings:
+        return settings, None
+    try:
+        return settings, with_overrides(RealLidarConfig(), settings)
+    except (ConfigError, ValueError) as exc:
+        raise UserError(f"--lidar-set: {exc}") from None
 
 
 def run(args: argparse.Namespace) -> int:
@@ -242,10 +279,12 @@ def run(args: argparse.Namespace) -> int:
         {k: v for k, v in flags.items() if v[1] is not None},
     )
     cfg = resolved.config
+    lidar_settings, real = _lidar_settings(list(args.lidar_sets))
     seeds = list(range(args.first_seed, args.first_seed + args.seeds))
     job = functools.partial(
         run_seed, str(args.world), args.sensor, args.steps,
         cfg=cfg, baseline=bool(args.baseline), out=str(args.out), tol=args.wall_tol, extract=extract,
+        real=real,
     )
     results: dict[int, list[tuple[str, str, dict[str, Any], float]]] = {}
 
@@ -301,10 +340,14 @@ def run(args: argparse.Namespace) -> int:
     if (first, "baseline") in meds:
         summary["baseline"] = {"particles": 1, **meds[(first, "baseline")]}
     if "lidar-real" in names[1:]:
-        real: dict[str, Any] = {"sensor": "lidar-real", **meds[("lidar-real", "filter")]}
+        realistic: dict[str, Any] = {"sensor": "lidar-real", **meds[("lidar-real", "filter")]}
         if ("lidar-real", "baseline") in meds:
-            real["baseline"] = {"particles": 1, **meds[("lidar-real", "baseline")]}
-        summary["realistic"] = real
+            realistic["baseline"] = {"particles": 1, **meds[("lidar-real", "baseline")]}
+        if lidar_settings:
+            realistic["lidar_settings"] = lidar_settings
+        summary["realistic"] = realistic
+    elif lidar_settings and "lidar-real" in names:
+        summary["lidar_settings"] = lidar_settings
     if args.profile != "none":
         summary["profile"] = args.profile
     if resolved.recorded:
