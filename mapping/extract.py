@@ -167,6 +167,12 @@ class ExtractConfig:
     max_extrapolation : float
         The furthest (metres) a free end (occlusion or frontier) is placed beyond the wall's
         last return (step 6). Keep it small: a merge is a union and keeps any overshoot.
+    lost_gap : float
+        A no-return gap of more than ``max_gap`` beams after which the next return lies on the
+        wall's own line, further along and at most this far (metres), is lost beams (a dark
+        patch, a burst of max-range returns), not where the wall ends: the ends on both sides
+        are ``FRONTIER`` at their last point instead of ``OCCLUSION`` (0: off; doorways are
+        wider).
     exit_on_circle : bool
         A wall taken to leave the range ends exactly on the range circle (up to ``corner_tol``
         plus twice the end's extrapolation past its last return) instead of at most
@@ -194,10 +200,13 @@ class ExtractConfig:
     max_extrapolation: float = 0.1
     exit_on_circle: bool = False
     jump_beams: float = 0.0
+    lost_gap: float = 0.0
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.jump_beams) and self.jump_beams >= 0.0):
             raise ValueError(f"jump_beams must be a non-negative number, got {self.jump_beams}")
+        if not (math.isfinite(self.lost_gap) and self.lost_gap >= 0.0):
+            raise ValueError(f"lost_gap must be a non-negative number of metres, got {self.lost_gap}")
         for name in ("split_tol", "jump", "corner_tol"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0.0):
@@ -1042,6 +1051,16 @@ def _end_vertex(
             return _on_ray(beta, p, last, side, cap, cfg), int(label)
     # No return beyond this end: does the wall leave the range, or end here?
     if not beams.raw_valid(kn):
+        if cfg.lost_gap > 0.0 and 0 <= cn < m and cn != ci:
+            q = pts[cn]
+            if (
+                float(np.hypot(*(q - last))) <= cfg.lost_gap
+                and _line_dist(q[None, :], p.c, p.u)[0] <= cfg.split_tol
+                and side * float(np.dot(q - last, p.u)) > 0.0
+            ):
+                # The wall goes on past the lost beams: it may continue there; stop at the
+                # last point seen.
+                return _on_ray(beams.bearing(k), p, last, side, cap, cfg), int(Label.FRONTIER)
         return _range_exit(sc, p, last, side, kn, beta, cap)
     return _on_ray(beta, p, last, side, cap, cfg), int(Label.OCCLUSION)
 

@@ -76,6 +76,8 @@ def random_poses(n: int, seed: int) -> list[Pose]:
         {"min_length": math.nan},
         {"max_gap": -1},
         {"max_extrapolation": -0.1},
+        {"lost_gap": -0.5},
+        {"lost_gap": math.inf},
     ],
 )
 def test_config_rejects_bad_values(kwargs: dict[str, float]) -> None:
@@ -266,6 +268,25 @@ def test_clutter_is_dropped_and_dropouts_are_bridged() -> None:
     s2 = extract_corners(r2, cfg.angles(), cfg.max_range)
     s_ref = extract_corners(raycast(room.segments(), pose, cfg), cfg.angles(), cfg.max_range)
     assert s2.almost_equal(s_ref, tol=0.01)
+
+
+@pytest.mark.parametrize(("lost", "width", "label"), [(0.0, 5, "occ"), (0.5, 5, "fro"), (0.5, 20, "occ")])
+def test_lost_beams_inside_a_wall_are_not_its_end(lost: float, width: int, label: str) -> None:
+    """A burst of lost beams inside a wall (five at 3 m: 13 cm) leaves two silhouette corners
+    unless ``lost_gap`` says the wall goes on beyond them (frontiers at the last points); a
+    gap wider than ``lost_gap`` (twenty beams: 0.53 m, a doorway with nothing behind) stays
+    where the wall ends."""
+    wall = np.array([[[-10.0, 3.0], [10.0, 3.0]]])
+    cfg = LidarConfig(beams=720, fov=2 * math.pi, max_range=8.0, sigma=0.0)
+    r = raycast(wall, Pose(0.0, 0.0, 0.0), cfg)
+    r[560:560 + width] = np.inf  # beam 540 points along +y, at the wall
+    s = extract_corners(r, cfg.angles(), cfg.max_range, ExtractConfig(lost_gap=lost))
+    assert s.n_edges == 2
+    inner = np.abs(s.points[:, 0]) < 5.0  # the two ends at the gap
+    assert inner.sum() == 2
+    want = OCC if label == "occ" else FRO
+    assert np.all(s.labels[inner] == want)
+    assert np.allclose(s.points[:, 1], 3.0, atol=1e-6)
 
 
 def test_vertex_budget_keeps_the_longest_walls() -> None:

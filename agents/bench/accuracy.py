@@ -38,7 +38,9 @@ scene.glass_share=0`` for a building without glass; the JSON's ``"realistic"`` t
 
 ``--profile lidar`` applies the real-lidar profile (:func:`agents.mapping_run.lidar_profile`:
 its filter settings under ``--params`` and ``--set``, its ``extract.*`` settings to the
-simulated lidars' split-and-merge); the JSON then has ``"profile": "lidar"``.
+simulated lidars' split-and-merge); the JSON then has ``"profile": "lidar"``. ``--set
+extract.KEY=VALUE`` sets one split-and-merge setting (:class:`mapping.extract.ExtractConfig`) of the
+simulated lidars, on top of the profile's; the JSON then has ``"extract_overrides"``.
 
 ``--params FILE`` and ``--set group.key=value`` change the filter's settings
 (:mod:`agents.params`; ``--particles`` and ``--merge-threshold`` are shorthands for ``--set
@@ -51,6 +53,7 @@ mutation. The JSON then also has ``"config_overrides"``: the settings from ``--p
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import functools
 import json
 import math
@@ -264,6 +267,11 @@ def run(args: argparse.Namespace) -> int:
     if args.particles is not None and args.particles < 1:
         raise UserError(f"--particles must be >= 1, got {args.particles}")
     cargs = ConfigArgs.from_args(args)
+    # --set extract.KEY=VALUE is split-and-merge's (the simulated lidars'), not the filter's
+    extract_sets = {k: v for k, v in cargs.set_values.items() if k.startswith("extract.")}
+    if extract_sets:
+        cargs = dataclasses.replace(
+            cargs, set_values={k: v for k, v in cargs.set_values.items() if k not in extract_sets})
     world = load_world(args.world)
     particles, thr = mr.world_defaults(world)
     flags = {"particles": ("--particles", args.particles),
@@ -272,6 +280,15 @@ def run(args: argparse.Namespace) -> int:
     extract = None
     if args.profile == "lidar":
         profile_filter, extract, _ = mr.split_profile(mr.lidar_profile())
+    if extract_sets:
+        from mapping.config import ConfigError, with_overrides
+        from mapping.extract import ExtractConfig
+
+        try:
+            extract = with_overrides(extract if extract is not None else ExtractConfig(),
+                                     {k.partition(".")[2]: v for k, v in extract_sets.items()})
+        except (ConfigError, ValueError) as exc:
+            raise UserError(f"--set extract.*: {exc}") from None
     resolved = resolve(
         cargs,
         lambda ov: mr.filter_config_for(particles, thr, mr.SimOptions().max_range,
@@ -352,6 +369,8 @@ def run(args: argparse.Namespace) -> int:
         summary["profile"] = args.profile
     if resolved.recorded:
         summary["config_overrides"] = resolved.recorded
+    if extract_sets:
+        summary["extract_overrides"] = extract_sets
     if args.json:
         print(json.dumps(summary))
     return 0
