@@ -125,6 +125,30 @@ def test_bench_accuracy_json_and_table(tmp_path, capsys):
     assert len(list(tmp_path.glob("*.png"))) == 2
 
 
+def test_bench_accuracy_lidar_reports_the_clean_and_the_realistic_lidar(tmp_path, capsys):
+    """--sensor lidar: a row per sensor (a sensor column), the JSON's top level is the clean
+    lidar's with the same keys as ever, "realistic" holds the realistic lidar's medians; a PNG
+    per sensor; --lidar-set reaches the realistic lidar and a bad key is a user error."""
+    args = ["bench", "accuracy", "--world", str(WORLDS / "tiny.geojson"), "--seeds", "1", "--steps", "6",
+            "--sensor", "lidar", "--json", "--quiet", "--out", str(tmp_path)]
+    assert main(args) == 0
+    lines = capsys.readouterr().out.strip().splitlines()
+    summary = json.loads(lines[-1])
+    keys = {"cell_error", "wall_precision", "wall_recall", "mean_dist_m", "p95_dist_m", "particle_bytes",
+            "steps", "updates_per_s"}
+    assert summary["sensor"] == "lidar" and keys <= set(summary)
+    assert summary["realistic"]["sensor"] == "lidar-real" and keys <= set(summary["realistic"])
+    assert lines[0].split()[:3] == ["seed", "sensor", "method"]
+    assert [ln.split()[1] for ln in lines[1:] if ln.startswith("median")] == ["lidar", "lidar-real"]
+    assert sorted(p.name for p in tmp_path.glob("*.png")) == [
+        "tiny-lidar-real-seed0-filter.png", "tiny-lidar-seed0-filter.png"]
+    assert main([*args, "--lidar-set", "scene.people_per_100m2=0"]) == 0
+    out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert out["realistic"]["lidar_settings"] == {"scene.people_per_100m2": "0"}
+    assert main([*args, "--lidar-set", "scene.no_such=1"]) == 2
+    assert "--lidar-set" in capsys.readouterr().err
+
+
 def test_bench_accuracy_wall_tolerance(tmp_path, capsys):
     """--wall-tol scores walls at that tolerance (the world-file target is 95 % at 0.2 m): the
     same map scores lower at 1 mm than at the default 0.4 m, the JSON says which tolerance it

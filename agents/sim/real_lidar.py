@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, replace
+from typing import TYPE_CHECKING
 
 import numpy as np
 import shapely
@@ -43,6 +44,9 @@ from shapely.geometry import LineString, Point
 
 from agents.sim.lidar import LidarConfig, cast_ranges
 from mapping.se2 import Pose
+
+if TYPE_CHECKING:
+    from agents.sim.world import World
 
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
@@ -299,7 +303,7 @@ def _legs(centre: FloatArray, w: float, h: float, heading: float, leg: float) ->
     """Four square legs of side ``leg`` at the corners of a ``w x h`` top."""
     c, s = math.cos(heading), math.sin(heading)
     rot = np.array([[c, s], [-s, c]])
-    offsets = (np.array([[-w, -h], [w, -h], [w, h], [-w, h]]) * 0.5 + 0.0) @ rot
+    offsets = (np.array([[-w, -h], [w, -h], [w, h], [-w, h]]) * 0.5) @ rot
     return np.concatenate([_rectangle(centre + o, leg, leg, heading) for o in offsets])
 
 
@@ -337,7 +341,7 @@ def _free_points(free: shapely.Geometry, n: int, rng: np.random.Generator) -> Fl
 
 
 def _panes(
-    world: object, walls: FloatArray, config: SceneConfig, rng: np.random.Generator
+    world: World, walls: FloatArray, config: SceneConfig, rng: np.random.Generator
 ) -> tuple[FloatArray, BoolArray]:
     """The walls with panes cut out: ``(segments, glass)``. Each wall (a thin wall's two
     opposite edges together) at least ``glass_min_length`` long gets, with probability
@@ -346,7 +350,7 @@ def _panes(
     the edge: walls have free space on their left) crosses no other wall and no solid (the
     inside of a thick wall or an obstacle): a window to the outside, or glass between rooms.
     The draws are made for every wall whatever the outcome."""
-    free = world.free_space  # type: ignore[attr-defined]
+    free = world.free_space
     building = shapely.unary_union([shapely.Polygon(p.exterior) for p in free.geoms])
     solid = building.difference(free)
     shapely.prepare(solid)
@@ -407,7 +411,7 @@ def _walkable(walk: shapely.Geometry, a: FloatArray, b: FloatArray, least: float
     return None
 
 
-def build_scene(world: object, config: SceneConfig, seed: int) -> Scene:
+def build_scene(world: World, config: SceneConfig, seed: int) -> Scene:
     """Glass, clutter and people for ``world`` (an :class:`agents.sim.world.World`), drawn from
     ``seed`` alone: the same world, configuration and seed give the same scene.
 
@@ -418,7 +422,7 @@ def build_scene(world: object, config: SceneConfig, seed: int) -> Scene:
     """
     from agents.sim.world import World
 
-    if not isinstance(world, World):
+    if not isinstance(world, World):  # (a caller without type checking)
         raise ValueError(f"world must be an agents.sim.world.World, got {type(world).__name__}")
     rng = np.random.default_rng(np.random.SeedSequence([int(seed), 0x5CE4E]))
     walls = np.asarray(world.truth.segments(), dtype=np.float64).reshape(-1, 2, 2)
