@@ -40,7 +40,8 @@ class BagWriter:
 
     def __init__(self, path: Path, fmt: str) -> None:
         from rosbags.rosbag1 import Writer as Writer1
-        from rosbags.rosbag2 import StoragePlugin, Writer as Writer2
+        from rosbags.rosbag2 import StoragePlugin
+        from rosbags.rosbag2 import Writer as Writer2
         from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
         self.ros1 = fmt == "ros1"
@@ -60,7 +61,9 @@ class BagWriter:
         self.writer.open()
         return self
 
-    def __exit__(self, kind: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None) -> None:
+    def __exit__(
+        self, kind: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
         self.writer.close()
 
     # ------------------------------------------------------------------ writing
@@ -92,8 +95,9 @@ class BagWriter:
         return types["std_msgs/msg/Header"](stamp=stamp, frame_id=frame)
 
     def scan(
-        self, t: float, ranges: Any, angle_min: float, angle_increment: float, *, angle_max: float | None = None,
-        range_min: float = 0.0, range_max: float = 30.0, frame: str = LASER_FRAME,
+        self, t: float, ranges: Any, angle_min: float, angle_increment: float, *,
+        angle_max: float | None = None, range_min: float = 0.0, range_max: float = 30.0,
+        frame: str = LASER_FRAME,
     ) -> Any:
         """A ``sensor_msgs/LaserScan`` (``angle_max`` from the beams when not given)."""
         r = np.asarray(ranges, dtype=np.float32)
@@ -171,7 +175,8 @@ def write_scans_bag(
     unmount = (mount or Pose()).inverse()
     with BagWriter(path, fmt) as bag:
         if mount is not None:
-            bag.write("/tf_static", scans[0].t, bag.transforms(scans[0].t, [("base_link", LASER_FRAME, mount)], z=0.3))
+            link = [("base_link", LASER_FRAME, mount)]
+            bag.write("/tf_static", scans[0].t, bag.transforms(scans[0].t, link, z=0.3))
         for k, s in enumerate(scans):
             a = np.asarray(s.angles)
             inc = float(a[-1] - a[0]) / (a.size - 1)
