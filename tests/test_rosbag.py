@@ -287,6 +287,8 @@ def test_odometry_choice(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> 
     assert read_rosbag(two, odom_topic="/odom_filtered").odometry == "/odom_filtered"
     # The truth topic is not a candidate for the odometry.
     assert read_rosbag(two, truth_topic="/odom_filtered").odometry == "/odom"
+    with pytest.raises(RosbagError, match="both /odom"):
+        read_rosbag(two, odom_topic="odom", truth_topic="/odom")
     # /tf, whose odometry frame pair is not the default one: the line names the pairs it has.
     tf = small_bag(tmp_path / "tf.bag", odoms=(), tf=True)
     line = one_line_exit_2(["map", "--rosbag", str(tf), *out], capsys)

@@ -55,7 +55,7 @@ from agents.errors import INTERRUPTED, UserError
 from agents.files.rosbag import DEFAULT_BASE_FRAME, DEFAULT_ODOM_FRAME
 from agents.params import ConfigArgs, Resolved, add_config_arguments, resolve
 
-HELP = "run one robot (simulated, a CARMEN log or a ROS bag) and write its map"
+HELP = "run one robot (simulated, CARMEN log, ROS bag), write its map"
 MAX_ISSUES_SHOWN = 5  # unreadable CARMEN lines or bag messages reported one by one on stderr
 #: Flags that only a ROS bag takes (``--rosbag``).
 BAG_FLAGS = ("scan_topic", "odom_topic", "odom_frame", "base_frame", "truth_topic")

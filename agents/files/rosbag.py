@@ -293,6 +293,8 @@ def _choose(
         truth = _pick(topics, truth_topic, TRUTH_TYPES, "--truth-topic", where)
     odom = _pick(topics, odom_topic, (ODOM_TYPE, TF_TYPE) if odom_topic is not None else (ODOM_TYPE,),
                  "--odom-topic", where, exclude=(truth,))
+    if odom is not None and odom == truth:
+        raise RosbagError(f"{where}: --odom-topic and --truth-topic are both {odom}")
     if odom is None:
         if topics.get(TF_TOPIC) != TF_TYPE:
             raise RosbagError(f"{where}: no odometry: no nav_msgs/Odometry topic and no {TF_TOPIC} "
