@@ -109,7 +109,7 @@ class SlamConfig:
     floor_sigma_xy: float = 0.01
     floor_sigma_theta: float = 0.003
     odo_trans_per_m: float = 0.05
-    odo_rot_per_m: float = 0.035
+    odo_rot_per_m: float = 0.07
     odo_rot_per_rad: float = 0.05
     odo_floor_xy: float = 0.01
     odo_floor_theta: float = 0.005
@@ -129,6 +129,8 @@ class SlamConfig:
     loop_kernel: float = 3.0
     effective_points: float = 4.0
     loop_max_chi2: float = 25.0
+    map_radius: float = 4.0
+    map_scans: int = 15
     heading_search: float = 0.0
     heading_step: float = math.radians(0.5)
     enabled: bool = False
@@ -333,7 +335,7 @@ def _best_heading(points: FloatArray, submap: Submap, guess: FloatArray, sigma_t
     steps = int(half / config.heading_step)
     if steps < 1 or len(points) < 10:
         return guess
-    best, best_n = guess, -1
+    best, best_n = guess, -1.0
     for k in range(-steps, steps + 1):
         cand = np.array([guess[0], guess[1], _wrap(guess[2] + k * config.heading_step)])
         dist, _ = submap.tree.query(_apply(cand, points), distance_upper_bound=config.gate_start)
@@ -375,12 +377,14 @@ class _Field:
         """Mean field value of ``pts`` (world) shifted by each of ``offsets`` (cells, (k, 2)
         as (dx, dy)); points off the grid score 0."""
         ij = np.floor((pts - self.origin) / self.res).astype(np.int64)
-        cols = ij[None, :, 0] + offsets[:, None, 0]
-        rows = ij[None, :, 1] + offsets[:, None, 1]
         h, w = grid.shape
-        inside = (rows >= 0) & (rows < h) & (cols >= 0) & (cols < w)
-        vals = np.where(inside, grid[np.clip(rows, 0, h - 1), np.clip(cols, 0, w - 1)], 0.0)
-        return np.asarray(vals.mean(axis=1))
+        lo, hi = offsets.min(axis=0), offsets.max(axis=0)
+        # A point that some offset would take off the grid is dropped for all of them: the
+        # grid's margin is wider than any window, so such a point lies off the submap anyway.
+        keep = (ij[:, 0] + lo[0] >= 0) & (ij[:, 0] + hi[0] < w) & (ij[:, 1] + lo[1] >= 0) & (ij[:, 1] + hi[1] < h)
+        base = ij[keep, 1] * w + ij[keep, 0]
+        flat = base[None, :] + (offsets[:, 1] * w + offsets[:, 0])[:, None]
+        return np.asarray(grid.ravel()[flat].sum(axis=1) / max(1, len(pts)))
 
 
 def search_loop(
@@ -404,14 +408,14 @@ def search_loop(
     if len(points) < 10 or len(submap.points) < 10:
         return None
     sub = points if len(points) <= 200 else points[np.linspace(0, len(points) - 1, 200).astype(int)]
-    fld = _Field.build(submap.points, res, sigma=2.0 * res, margin=1.0, factor=coarse_factor)
+    fld = _Field.build(submap.points, res, sigma=2.0 * res, margin=radius + 1.0, factor=coarse_factor)
     step_c = coarse_factor
-    n_c = int(math.ceil(radius / (res * step_c)))
+    n_c = math.ceil(radius / (res * step_c))
     ax = np.arange(-n_c, n_c + 1) * step_c
     offs = np.stack(np.meshgrid(ax, ax, indexing="xy"), axis=-1).reshape(-1, 2)
     # The coarse cell of the field holds the max over the cells [o, o + factor), so the search
     # over a coarse offset o covers fine offsets o .. o + factor - 1.
-    n_a = int(math.ceil(angle / angle_step))
+    n_a = math.ceil(angle / angle_step)
     thetas = guess[2] + np.arange(-n_a, n_a + 1) * angle_step
     best: list[tuple[float, float, int, int]] = []
     for th in thetas:
@@ -463,48 +467,60 @@ def optimize(poses: FloatArray, edges: list[Edge], iterations: int = 10, kernel:
     n = len(x)
     if n < 2 or not edges:
         return x
+    ii = np.array([e.i for e in edges])
+    jj = np.array([e.j for e in edges])
+    z = np.array([e.z for e in edges])
+    omega0 = np.array([e.omega for e in edges])
+    robust = np.array([e.robust for e in edges])
+    cz, sz = np.cos(z[:, 2]), np.sin(z[:, 2])
+    # Block (p, q) of an edge goes to rows 3p.., cols 3q..: the 9 (row, col) pairs of each.
+    r3, c3 = np.repeat(np.arange(3), 3), np.tile(np.arange(3), 3)
     for _ in range(iterations):
-        rows: list[NDArray[np.int64]] = []
-        cols: list[NDArray[np.int64]] = []
-        vals: list[FloatArray] = []
+        xi, xj = x[ii], x[jj]
+        ci, si = np.cos(xi[:, 2]), np.sin(xi[:, 2])
+        dx, dy = xj[:, 0] - xi[:, 0], xj[:, 1] - xi[:, 1]
+        # a = R_i^T dt - t_z; e_xy = R_z^T a.
+        ax = ci * dx + si * dy - z[:, 0]
+        ay = -si * dx + ci * dy - z[:, 1]
+        err = np.stack([cz * ax + sz * ay, -sz * ax + cz * ay,
+                        (xj[:, 2] - xi[:, 2] - z[:, 2] + np.pi) % (2 * np.pi) - np.pi], axis=1)
+        # R_z^T R_i^T = R(-(th_i + th_z)).
+        c, s_ = np.cos(xi[:, 2] + z[:, 2]), np.sin(xi[:, 2] + z[:, 2])
+        rt = np.stack([np.stack([c, s_], 1), np.stack([-s_, c], 1)], 1)  # (m, 2, 2)
+        # d(R_i^T)/d th_i dt = (-si dx + ci dy, -ci dx - si dy); then R_z^T.
+        ddx, ddy = -si * dx + ci * dy, -ci * dx - si * dy
+        a = np.zeros((len(edges), 3, 3))
+        a[:, :2, :2] = -rt
+        a[:, 0, 2] = cz * ddx + sz * ddy
+        a[:, 1, 2] = -sz * ddx + cz * ddy
+        a[:, 2, 2] = -1.0
+        b_ = np.zeros((len(edges), 3, 3))
+        b_[:, :2, :2] = rt
+        b_[:, 2, 2] = 1.0
+        om = omega0.copy()
+        if robust.any():
+            chi2 = np.einsum("mi,mij,mj->m", err, omega0, err)
+            om[robust] /= (1.0 + chi2[robust] / kernel**2)[:, None, None]
+        rows, cols, vals = [], [], []
         b = np.zeros(3 * n)
-        for e in edges:
-            xi, xj = x[e.i], x[e.j]
-            ri, rz = _rot(xi[2]), _rot(e.z[2])
-            dt = xj[:2] - xi[:2]
-            err = np.empty(3)
-            err[:2] = rz.T @ (ri.T @ dt - e.z[:2])
-            err[2] = _wrap(xj[2] - xi[2] - e.z[2])
-            dri = np.array([[-math.sin(xi[2]), math.cos(xi[2])], [-math.cos(xi[2]), -math.sin(xi[2])]])
-            a = np.zeros((3, 3))
-            a[:2, :2] = -rz.T @ ri.T
-            a[:2, 2] = rz.T @ dri @ dt
-            a[2, 2] = -1.0
-            bb = np.zeros((3, 3))
-            bb[:2, :2] = rz.T @ ri.T
-            bb[2, 2] = 1.0
-            om = e.omega
-            if e.robust:
-                chi2 = float(err @ om @ err)
-                om = om / (1.0 + chi2 / kernel**2)
-            idx_i = np.arange(3 * e.i, 3 * e.i + 3)
-            idx_j = np.arange(3 * e.j, 3 * e.j + 3)
-            for (p, jp) in ((idx_i, a), (idx_j, bb)):
-                b[p] += jp.T @ om @ err
-                for (q, jq) in ((idx_i, a), (idx_j, bb)):
-                    blk = jp.T @ om @ jq
-                    rows.append(np.repeat(p, 3))
-                    cols.append(np.tile(q, 3))
-                    vals.append(blk.reshape(-1))
+        for (np_, jp) in ((ii, a), (jj, b_)):
+            jto = np.einsum("mki,mkl->mil", jp, om)  # J^T omega
+            np.add.at(b, (3 * np_[:, None] + np.arange(3)).ravel(), np.einsum("mil,ml->mi", jto, err).ravel())
+            for (nq, jq) in ((ii, a), (jj, b_)):
+                blk = np.einsum("mil,mlq->miq", jto, jq)
+                rows.append((3 * np_[:, None] + r3).ravel())
+                cols.append((3 * nq[:, None] + c3).ravel())
+                vals.append(blk.reshape(len(edges), 9).ravel())
         # Node 0 is the frame: a stiff prior holds it.
         rows.append(np.arange(3))
         cols.append(np.arange(3))
         vals.append(np.full(3, 1e12))
-        h = sp.csc_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(3 * n, 3 * n))
-        dx = spla.spsolve(h, -b)
-        x += dx.reshape(-1, 3)
+        h = sp.csc_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
+                          shape=(3 * n, 3 * n))
+        dxs = spla.spsolve(h, -b)
+        x += dxs.reshape(-1, 3)
         x[:, 2] = (x[:, 2] + math.pi) % (2.0 * math.pi) - math.pi
-        if float(np.abs(dx).max()) < 1e-6:
+        if float(np.abs(dxs).max()) < 1e-6:
             break
     return x
 
@@ -547,7 +563,7 @@ class LidarSlam:
     loops: list[tuple[int, int]] = field(default_factory=list)
     rejected: list[tuple[int, int]] = field(default_factory=list)
     _nodes: list[_Node] = field(default_factory=list)
-    debug: bool = False
+    _last_loop: tuple[float, int] = (-math.inf, -(10**9))
 
     def _cloud(self, k: int) -> tuple[FloatArray, FloatArray]:
         nd = self._nodes[k]
@@ -557,7 +573,8 @@ class LidarSlam:
     def _edge_information(self, hessian: FloatArray, theta_j: float) -> FloatArray:
         cfg = self.config
         h = hessian / cfg.information_scale + 1e-6 * np.eye(3)
-        cov = np.linalg.inv(h) + np.diag([cfg.floor_sigma_xy**2, cfg.floor_sigma_xy**2, cfg.floor_sigma_theta**2])
+        floor = np.array([cfg.floor_sigma_xy, cfg.floor_sigma_xy, cfg.floor_sigma_theta])
+        cov = np.linalg.inv(h) + np.diag(floor**2)
         # The Hessian is on the world-frame pose; the edge's error lives in the j frame.
         rb = np.eye(3)
         rb[:2, :2] = _rot(theta_j)
@@ -577,13 +594,21 @@ class LidarSlam:
         if k == 0:
             self.poses = np.array([self.start], dtype=np.float64)
             self.online.append(self.poses[0].copy())
-            return self.poses[0].copy()
+            return np.array(self.poses[0])
         guess = _compose(self.poses[k - 1], odo)
         sxy = max(cfg.odo_floor_xy, cfg.odo_trans_per_m * d)
         sth = max(cfg.odo_floor_theta, cfg.odo_rot_per_m * d + cfg.odo_rot_per_rad * abs(odo[2]))
         prior = np.diag([1 / sxy**2, 1 / sxy**2, 1 / sth**2])
         lo = max(0, k - cfg.local_scans)
-        sub = Submap.build([self._cloud(i) for i in range(lo, k)], cfg.voxel)
+        ids = list(range(lo, k))
+        if cfg.map_radius > 0 and lo > 0:
+            # Scan-to-map: the old scans taken near here join the submap (the nearest
+            # ``map_scans`` within ``map_radius``), so the pose holds to what was mapped before.
+            d = np.hypot(*(self.poses[:lo, :2] - guess[:2]).T)
+            old = np.flatnonzero(d <= cfg.map_radius)
+            old = old[np.argsort(d[old], kind="stable")[: cfg.map_scans]]
+            ids = sorted(old.tolist()) + ids
+        sub = Submap.build([self._cloud(i) for i in ids], cfg.voxel)
         m = match_scan(pts, sub, _best_heading(pts, sub, guess, sth, cfg), cfg, prior_information=prior)
         pose = m.pose if m.matched >= 10 else guess
         self.poses = np.vstack([self.poses, pose])
@@ -596,7 +621,7 @@ class LidarSlam:
         if k % cfg.loop_every == 0:
             self._close_loop(k)
         self.online.append(self.poses[k].copy())
-        return self.poses[k].copy()
+        return np.array(self.poses[k])
 
     def _odometry_information(self, prior: FloatArray, theta_j: float) -> FloatArray:
         rb = np.eye(3)
@@ -611,27 +636,29 @@ class LidarSlam:
             return
         cj = np.array(cand)
         dist = np.hypot(*(self.poses[cj, :2] - self.poses[k, :2]).T)
-        driven = here - np.array([self._nodes[j].travel for j in cand])
+        # The window grows with the distance driven since the old scan -- or since the last loop
+        # closed, when that loop's old end is near this one's: it tied the two ends together.
+        travel = np.array([self._nodes[j].travel for j in cand])
+        tied = np.abs(cj - self._last_loop[1]) <= 3 * cfg.loop_submap_scans
+        driven = np.where(tied, np.minimum(here - travel, here - self._last_loop[0]), here - travel)
         radius = np.minimum(cfg.loop_radius + cfg.loop_radius_per_m * driven, cfg.loop_radius_max)
         near = dist <= radius + 2.0
         if not near.any():
             return
         j = int(cj[near][np.argmin(dist[near])])
         r = float(radius[near][np.argmin(dist[near])])
-        ang = float(min(cfg.loop_angle + cfg.loop_angle_per_m * (here - self._nodes[j].travel), cfg.loop_angle_max))
+        driven_j = float(driven[near][np.argmin(dist[near])])
+        ang = float(min(cfg.loop_angle + cfg.loop_angle_per_m * driven_j, cfg.loop_angle_max))
         lo = max(0, j - cfg.loop_submap_scans)
         hi = min(k, j + cfg.loop_submap_scans + 1)
         # The old submap must be old: no scan driven within loop_min_travel of here.
         ids = [i for i in range(lo, hi) if here - self._nodes[i].travel >= cfg.loop_min_travel]
         sub = Submap.build([self._cloud(i) for i in ids], cfg.voxel)
         # The query: the recent scans in scan k's frame.
-        q = [self._nodes[i].points if i == k else _apply(_between(self.poses[k], self.poses[i]), self._nodes[i].points)
+        q = [_apply(_between(self.poses[k], self.poses[i]), self._nodes[i].points)
              for i in range(max(0, k - cfg.loop_query_scans + 1), k + 1)]
         query = np.concatenate(q)
         m = search_loop(query, sub, self.poses[k], r, ang, cfg)
-        if self.debug:
-            print(f"loop? k={k} j={j} dist={dist[near].min():.2f} r={r:.2f} ang={math.degrees(ang):.1f} "
-                  f"-> {None if m is None else round(m.inliers, 2)}")
         if m is None:
             return
         # An edge from j to k: where k is in j's frame, as the match says.
@@ -649,4 +676,5 @@ class LidarSlam:
             return
         self.edges.append(edge)
         self.loops.append((j, k))
+        self._last_loop = (here, j)
         self.poses = poses

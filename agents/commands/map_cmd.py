@@ -98,6 +98,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     bag.add_argument("--truth-topic", metavar="TOPIC",
                      help="a topic with the robot's true pose (nav_msgs/Odometry or "
                           "geometry_msgs/PoseStamped) to start from and score against (default: none)")
+    parser.add_argument("--lidar-profile", choices=("lidar", "lidar-slam"), default="lidar",
+                        help="real scans (--carmen, --rosbag): the real-lidar profile (default) or "
+                             "lidar-slam, lidar SLAM under the filter (agents.mapping_run.LIDAR_PROFILES)")
     parser.add_argument("--quiet", action="store_true", help="no progress line")
     add_config_arguments(parser, "--particles, --merge-threshold, --max-range")
 
@@ -334,7 +337,7 @@ def _real_source(
     from mapping.filter import WireframeFilter
 
     log_range = float(scans[0].max_range)
-    filter_overrides, extract_cfg, frontend_cfg = mr.split_profile(mr.lidar_profile())
+    filter_overrides, extract_cfg, frontend_cfg = mr.split_profile(mr.lidar_profile(args.lidar_profile))
     resolved = _filter_config(args, cargs, 0.2, min(log_range, 20.0), mr.scan_fov(scans[0].angles),
                               log_range, base=filter_overrides)
     cfg = resolved.config
@@ -344,7 +347,7 @@ def _real_source(
     filt = WireframeFilter(cfg, mr.seeds_for(args.seed)["filter"], initial_pose=start)
     total = len(scans) if args.steps is None else min(len(scans), args.steps)
     return _Source(filt, inputs, total, source, resolved, name, scans=scans, true_scans=true_scans,
-                   max_range=cfg.max_range, extra=extra)
+                   max_range=cfg.max_range, extra={**extra, "lidar_profile": args.lidar_profile})
 
 
 @dataclass
