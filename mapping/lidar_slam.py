@@ -381,7 +381,8 @@ class _Field:
         lo, hi = offsets.min(axis=0), offsets.max(axis=0)
         # A point that some offset would take off the grid is dropped for all of them: the
         # grid's margin is wider than any window, so such a point lies off the submap anyway.
-        keep = (ij[:, 0] + lo[0] >= 0) & (ij[:, 0] + hi[0] < w) & (ij[:, 1] + lo[1] >= 0) & (ij[:, 1] + hi[1] < h)
+        keep = ((ij[:, 0] + lo[0] >= 0) & (ij[:, 0] + hi[0] < w)
+                & (ij[:, 1] + lo[1] >= 0) & (ij[:, 1] + hi[1] < h))
         base = ij[keep, 1] * w + ij[keep, 0]
         flat = base[None, :] + (offsets[:, 1] * w + offsets[:, 0])[:, None]
         return np.asarray(grid.ravel()[flat].sum(axis=1) / max(1, len(pts)))
