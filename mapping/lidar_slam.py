@@ -5,8 +5,9 @@ anchors (corners) are too few to hold the pose over a long log. This module give
 that every scan point holds, the way Cartographer's local and global SLAM do (ideas, not code):
 
 * **Local matching** (:func:`match_scan`): each scan's points are matched point-to-line (Censi's
-  PLICP cost) against a *submap*, the points of the recent scans at their estimated poses, with
-  their normals, the wheel odometry's noise as the prior. The result is a node of a pose graph
+  PLICP cost) against a *submap*, the points of the recent scans and of the old scans taken
+  nearby (scan-to-map) at their estimated poses, with their normals, the wheel odometry's noise
+  as the prior. The result is a node of a pose graph
   and an edge to the previous node whose information is the match's own Hessian: a corridor
   pins the pose across itself, not along it.
 * **Loop closure** (:func:`search_loop`): every ``loop_every`` scans, the recent scans
@@ -96,6 +97,22 @@ class SlamConfig:
         Metres (0.1).
     loop_kernel : float
         Cauchy scale of a loop edge's chi (3.0).
+    effective_points : float
+        A match's data term counts as this many independent points at most (4): neighbouring
+        returns' errors are correlated, and a raw scan matched against raw scans is good to a
+        couple of centimetres, not to ``sigma / sqrt(n)``; with more, the match overrules the
+        odometry's translation, which on the logs is better.
+    loop_max_chi2 : float
+        A loop is refused when, after optimising with it, a link of the chain or the loop's own
+        edge is strained beyond this chi-square (25).
+    map_radius : float
+        Old scans whose estimated position is within this many metres of the prediction join
+        the local submap (4.0; 0: the recent scans only).
+    map_scans : int
+        At most this many of them, nearest first (15).
+    enabled : bool
+        Used by the front end (:attr:`mapping.lidar_frontend.FrontendConfig.slam`): run the SLAM
+        under the filter (False).
     """
 
     local_scans: int = 15
@@ -131,8 +148,6 @@ class SlamConfig:
     loop_max_chi2: float = 25.0
     map_radius: float = 4.0
     map_scans: int = 15
-    heading_search: float = 0.0
-    heading_step: float = math.radians(0.5)
     enabled: bool = False
 
     def __post_init__(self) -> None:
@@ -324,25 +339,6 @@ def match_scan(
     else:
         inl = 0.0
     return Match(pose, hess, inl, matched)
-
-
-def _best_heading(points: FloatArray, submap: Submap, guess: FloatArray, sigma_theta: float,
-                  config: SlamConfig) -> FloatArray:
-    """The guess turned to the heading, within three odometry sigmas (at most
-    ``heading_search``), that lands the most points within ``gate_end`` of the submap: the
-    point-to-line match's basin is narrow in heading when far points move a lot."""
-    half = min(3.0 * sigma_theta, config.heading_search)
-    steps = int(half / config.heading_step)
-    if steps < 1 or len(points) < 10:
-        return guess
-    best, best_n = guess, -1.0
-    for k in range(-steps, steps + 1):
-        cand = np.array([guess[0], guess[1], _wrap(guess[2] + k * config.heading_step)])
-        dist, _ = submap.tree.query(_apply(cand, points), distance_upper_bound=config.gate_start)
-        n = float(np.sum(1.0 / (1.0 + (dist[np.isfinite(dist)] / config.gate_end) ** 2)))
-        if n > best_n + 1e-9 * abs(n):
-            best, best_n = cand, n
-    return best
 
 
 # ------------------------------------------------------------------------------ correlative search
@@ -610,7 +606,7 @@ class LidarSlam:
             old = old[np.argsort(d[old], kind="stable")[: cfg.map_scans]]
             ids = sorted(old.tolist()) + ids
         sub = Submap.build([self._cloud(i) for i in ids], cfg.voxel)
-        m = match_scan(pts, sub, _best_heading(pts, sub, guess, sth, cfg), cfg, prior_information=prior)
+        m = match_scan(pts, sub, guess, cfg, prior_information=prior)
         pose = m.pose if m.matched >= 10 else guess
         self.poses = np.vstack([self.poses, pose])
         z = _between(self.poses[k - 1], pose)
