@@ -106,6 +106,18 @@ def test_bench_lidar_profile_and_set(tmp_path: Path, capsys: pytest.CaptureFixtu
         assert "--set" in capsys.readouterr().err
 
 
+def test_bench_lidar_slam_profile(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    args = ["bench", "lidar", str(EXCERPT), "--steps", "30", "--particles", "2", "--json", "--quiet",
+            "--out", str(tmp_path), "--profile", "lidar-slam", "--set", "slam.map_radius=0"]
+    assert main(args) == 0
+    summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert summary["profile"] == "lidar-slam"
+    assert summary["settings"]["slam.enabled"] is True and summary["settings"]["slam.map_radius"] == "0"
+    assert summary["logs"]["freiburg-101-head"]["ate_rmse_m"] < summary["logs"]["freiburg-101-head"][
+        "odometry_ate_rmse_m"]
+    assert main(["bench", "lidar", str(EXCERPT), "--steps", "2", "--quiet", "--set", "slam.nope=1"]) == 2
+
+
 def test_bench_lidar_needs_logs(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["bench", "lidar"]) == 2
     assert "--data" in capsys.readouterr().err
