@@ -44,6 +44,8 @@ from numpy.typing import NDArray
 from scipy.ndimage import distance_transform_edt, maximum_filter
 from scipy.spatial import cKDTree
 
+from mapping.se2 import wrap_angle
+
 FloatArray = NDArray[np.float64]
 
 __all__ = ["Edge", "LidarSlam", "Match", "SlamConfig", "match_scan", "optimize", "scan_normals",
@@ -169,21 +171,17 @@ def _rot(theta: float) -> FloatArray:
     return np.array([[c, -s], [s, c]])
 
 
-def _wrap(a: float) -> float:
-    return (a + math.pi) % (2.0 * math.pi) - math.pi
-
-
 def _compose(a: FloatArray, b: FloatArray) -> FloatArray:
     """``a * b`` of two ``(x, y, theta)`` poses."""
     c, s = math.cos(a[2]), math.sin(a[2])
-    return np.array([a[0] + c * b[0] - s * b[1], a[1] + s * b[0] + c * b[1], _wrap(a[2] + b[2])])
+    return np.array([a[0] + c * b[0] - s * b[1], a[1] + s * b[0] + c * b[1], wrap_angle(a[2] + b[2])])
 
 
 def _between(a: FloatArray, b: FloatArray) -> FloatArray:
     """``a^-1 * b``."""
     c, s = math.cos(a[2]), math.sin(a[2])
     dx, dy = b[0] - a[0], b[1] - a[1]
-    return np.array([c * dx + s * dy, -s * dx + c * dy, _wrap(b[2] - a[2])])
+    return np.array([c * dx + s * dy, -s * dx + c * dy, wrap_angle(b[2] - a[2])])
 
 
 def _apply(pose: FloatArray, pts: FloatArray) -> FloatArray:
@@ -306,7 +304,7 @@ def match_scan(
         ok = np.isfinite(dist)
         matched = int(ok.sum())
         d = pose - guess
-        d[2] = _wrap(d[2])
+        d[2] = wrap_angle(d[2])
         if matched < 3:
             hess = np.zeros((3, 3))
             g = prior @ d
@@ -327,7 +325,7 @@ def match_scan(
             h = hess + prior + 1e-9 * np.eye(3)
         step = -np.linalg.solve(h, g)
         pose = pose + step
-        pose[2] = _wrap(pose[2])
+        pose[2] = wrap_angle(pose[2])
         if it >= half and abs(step[0]) + abs(step[1]) < 1e-4 and abs(step[2]) < 1e-5:
             break
     world = _apply(pose, points)
@@ -526,7 +524,7 @@ def _edge_error(x: FloatArray, e: Edge) -> FloatArray:
     xi, xj = x[e.i], x[e.j]
     err = np.empty(3)
     err[:2] = _rot(e.z[2]).T @ (_rot(xi[2]).T @ (xj[:2] - xi[:2]) - e.z[:2])
-    err[2] = _wrap(xj[2] - xi[2] - e.z[2])
+    err[2] = wrap_angle(xj[2] - xi[2] - e.z[2])
     return err
 
 
