@@ -20,7 +20,7 @@ from agents.errors import INTERRUPTED, UserError
 # command name -> (module, one-line help). The help text is repeated here so that
 # `wiremap --help` can list every command without importing any of them.
 COMMANDS: dict[str, tuple[str, str]] = {
-    "map": ("agents.commands.map_cmd", "run one robot (simulated or a CARMEN log) and write its map"),
+    "map": ("agents.commands.map_cmd", "run one robot (simulated, CARMEN log, ROS bag), write its map"),
     "worlds": ("agents.commands.worlds", "list the built-in worlds"),
     "world": ("agents.commands.world", "draw a world or write it out as a world file"),
     "run": ("agents.commands.run", "the main job: router, N robots and the fusion service"),

@@ -31,13 +31,15 @@ Choices
 
 from __future__ import annotations
 
+import itertools
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
 
 from mapping.extract import ExtractConfig, extract_corners
+from mapping.lidar_slam import LidarSlam, SlamConfig
 from mapping.scan_match import PointMatchConfig, match_points
 from mapping.se2 import Pose
 from mapping.wireframe import Wireframe
@@ -45,7 +47,7 @@ from mapping.wireframe import Wireframe
 FloatArray = NDArray[np.float64]
 
 __all__ = ["FrontendConfig", "LidarFrontend", "odometry_overrides", "scan_increment", "scan_points",
-           "scan_polyline"]
+           "scan_polyline", "slam_increments"]
 
 
 @dataclass(frozen=True)
@@ -74,6 +76,9 @@ class FrontendConfig:
     link_gap : float
         Consecutive returns of the previous scan farther apart than this, or than three times
         the arc between them at their range, are not joined (metres; default 0.3).
+    slam : mapping.lidar_slam.SlamConfig
+        Lidar SLAM under the filter (:func:`slam_increments`; off by default, on in the
+        real-lidar profile).
     """
 
     point_range: float = 20.0
@@ -87,6 +92,7 @@ class FrontendConfig:
     odo_floor_xy: float = 0.05
     odo_floor_theta: float = 0.02
     link_gap: float = 0.3
+    slam: SlamConfig = field(default_factory=SlamConfig)
 
     def __post_init__(self) -> None:
         if not (self.point_range > self.min_range >= 0):
@@ -170,6 +176,26 @@ def scan_points(ranges: FloatArray, angles: FloatArray, config: FrontendConfig) 
     r, a = r[::stride], a[::stride]
     ok = np.isfinite(r) & (r >= config.min_range) & (r <= config.point_range)
     return np.stack([r[ok] * np.cos(a[ok]), r[ok] * np.sin(a[ok])], axis=1)
+
+
+def slam_increments(
+    points: list[FloatArray], odometry: list[Pose], config: SlamConfig
+) -> tuple[list[Pose], LidarSlam]:
+    """The motion between consecutive scans after lidar SLAM over the whole log
+    (:class:`mapping.lidar_slam.LidarSlam`: every scan point matched against the recent
+    scans, loops closed against old ones, the pose graph optimised), from each scan's points
+    and the wheel odometry's increments (``odometry[0]`` is ignored). Returns the increments
+    of the final, smoothed trajectory (the first is the identity) and the SLAM itself (its
+    ``online`` poses are what it knew at each scan).
+
+    This is the offline (whole log in hand) use, like Cartographer's offline mode: a loop
+    closed at the end straightens the increments of the whole loop before the filter maps it.
+    """
+    slam = LidarSlam(config)
+    for k, (pts, odo) in enumerate(zip(points, odometry)):
+        slam.add(pts, np.zeros(3) if k == 0 else np.array(odo.as_tuple()))
+    poses = [Pose(*map(float, p)) for p in slam.poses]
+    return [Pose.identity(), *(a.between(b) for a, b in itertools.pairwise(poses))], slam
 
 
 class LidarFrontend:

@@ -428,6 +428,7 @@ def _may_absorb(
     pos0: list[list[float]],
     mate: list[int],
     thr: float,
+    alike: dict[int, list[int]],
 ) -> bool:
     """Whether the corners of class ``rv`` may join class ``rt`` (and move to ``pos[rt]``):
 
@@ -436,7 +437,11 @@ def _may_absorb(
       no chain of combinations moves a corner farther than the threshold;
     * every wall of the moved corners other than ``eds`` (the group being resolved) still
       points within the angle of ``cos_tol`` of its measured direction ``raw`` (or collapses
-      to nothing and is removed).
+      to nothing and is removed). An edge ``f`` of another resolved group (``alike[f]``: that
+      group's edges) becomes part of that group's wall, which step 5b keeps when it points
+      like *one* of the group's edges: the same test here. (Two sightings of a short wall can
+      differ in direction by more than ``angle_tol``; judging the wall by each sighting alone
+      refused absorptions that the resolved wall allows, and left a corner twice in the map.)
     """
     ids = [*vclass.get(rv, [rv]), *vclass.get(rt, [rt])]
     pts = [pos0[x] for x in ids] + [pos0[mate[x]] for x in ids if mate[x] >= 0]
@@ -461,7 +466,9 @@ def _may_absorb(
                 if w in (rv, rt):
                     continue
                 dx, dy = tx - pos[w][0], ty - pos[w][1]
-            if raw[f][0] * dx + raw[f][1] * dy < cos_tol * math.hypot(dx, dy) * math.hypot(*raw[f]):
+            lim = cos_tol * math.hypot(dx, dy)
+            if not any(raw[g][0] * dx + raw[g][1] * dy >= lim * math.hypot(*raw[g])
+                       for g in alike.get(f, (f,))):
                 return False
     return True
 
@@ -664,7 +671,8 @@ def merge(base: Wireframe, new: Wireframe, config: MergeConfig | None = None) ->
       left as they are. The other corners near either end are absorbed into that end (their
       other walls are re-attached to it) unless that would move a corner more than
       ``threshold`` from where any corner combined with it was measured (chains of
-      combinations) or turn one of its other walls by more than ``angle_tol``.
+      combinations) or turn one of its other walls by more than ``angle_tol`` (a wall that
+      another group resolves: away from all of that group's edges, as the clean-up judges it).
       Corners strictly inside ``(t0 + threshold, t1 - threshold)`` leave the wall --
       frontiers always (the wall was seen to continue: the frontier disappears), others unless
       they are a T-junction. The resolved wall runs from the start corner to the end corner
@@ -1081,8 +1089,13 @@ def _group_spans(
         for f, (x, y) in enumerate(edges_l):
             inc_of.setdefault(x, []).append(f)
             inc_of.setdefault(y, []).append(f)
+    # every group's ends first (absorbing corners moves none, so the ends do not depend on the
+    # order): a wall of a moved corner that belongs to a resolved group is judged like that
+    # group's wall, which may point like any one of its edges (see _may_absorb)
+    ends_of = {cid: _group_ends(cs, ed, eds, thr, cos_tol) for cid, eds in members.items()}
+    alike = {e: eds for cid, eds in members.items() if ends_of[cid][5] is not None for e in eds}
     for cid, eds in members.items():
-        ref, verts, tv, t0, t1, chosen = _group_ends(cs, ed, eds, thr, cos_tol)
+        ref, verts, tv, t0, t1, chosen = ends_of[cid]
         if chosen is None:
             continue
         lo_t, hi_t = t0 + thr, t1 - thr
@@ -1103,7 +1116,7 @@ def _group_spans(
             rv, rt = _find(vparent, v), _find(vparent, tgt)
             if rv != rt and _may_absorb(
                 rv, rt, eds, vclass, inc_of, edges_l, cs.pos_l, ed.raw_l, vparent, cos_tol, cs.pos0_l,
-                cs.mate_l, thr
+                cs.mate_l, thr, alike
             ):
                 vparent[rv] = rt
                 vclass.setdefault(rt, [rt]).extend(vclass.pop(rv, [rv]))

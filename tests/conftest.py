@@ -1,8 +1,19 @@
 """Test-wide settings.
 
-Under CI (``CI`` set), hypothesis is derandomized: every run explores the same examples, so a
-green run here is a green run in CI (run ``CI=1 make test`` to reproduce it). Locally each run
-draws new examples, which is how property tests keep finding bugs.
+Hypothesis profiles (``HYPOTHESIS_PROFILE`` picks one; pytest's ``--hypothesis-profile`` too):
+
+* ``ci`` (the default, here and in CI): derandomized -- every run tries the same examples, so
+  a green run here is a green run in CI, and an old bug does not fail CI at random when a new
+  draw happens to find it. No example database; a failure prints its reproduction blob.
+* ``explore``: random examples, ten times each test's ``max_examples``, failures kept in
+  ``.hypothesis/`` and replayed first next time. For hunting bugs by hand, e.g.
+  ``HYPOTHESIS_PROFILE=explore .venv/bin/python -m pytest -q -m "not slow" tests/test_merge.py``;
+  add what it finds as an ``@example`` or a regression test.
+
+A profile only gives defaults: a test's own ``@settings(max_examples=...)`` wins over it
+(``explore`` then scales it, see ``pytest_collection_modifyitems``). The profile must be loaded
+before the test modules are imported, because ``settings(...)`` and ``@given`` capture the
+then-current default; pytest imports this file before them.
 """
 
 import multiprocessing.process
@@ -17,11 +28,44 @@ settings.register_profile(
     "ci",
     derandomize=True,
     database=None,
+    print_blob=True,
     deadline=None,
     suppress_health_check=[HealthCheck.too_slow],
 )
-settings.register_profile("dev", deadline=None, suppress_health_check=[HealthCheck.too_slow])
-settings.load_profile("ci" if os.environ.get("CI") else "dev")
+settings.register_profile(
+    "explore",
+    derandomize=False,
+    print_blob=True,
+    deadline=None,
+    suppress_health_check=[HealthCheck.too_slow],
+)
+settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "ci"))
+_EXPLORE_FACTOR = 10
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """Under ``explore``, each property test runs ten times its own ``max_examples``, randomly.
+
+    Per-test ``@settings`` override a profile, and nearly every property test sets
+    ``max_examples`` (and a few ``derandomize``), so the profile alone would not explore more.
+    Hypothesis has no public way to change a decorated test's settings: this replaces the
+    settings object ``@given`` reads (``_hypothesis_internal_use_settings``), and stops with a
+    clear error if a hypothesis release renames it."""
+    if settings.get_current_profile_name() != "explore":
+        return
+    done: set[int] = set()
+    for item in items:
+        fn = getattr(item, "obj", None)
+        if not getattr(fn, "is_hypothesis_test", False) or id(fn) in done:
+            continue
+        done.add(id(fn))
+        own = getattr(fn, "_hypothesis_internal_use_settings", None)
+        if not isinstance(own, settings):
+            raise pytest.UsageError("HYPOTHESIS_PROFILE=explore: this hypothesis release keeps a test's "
+                                    "settings elsewhere; update tests/conftest.py")
+        fn._hypothesis_internal_use_settings = settings(
+            own, max_examples=own.max_examples * _EXPLORE_FACTOR, derandomize=False
+        )
 
 
 # ------------------------------------------------------------------------------------- lanes

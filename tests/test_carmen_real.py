@@ -106,6 +106,18 @@ def test_bench_lidar_profile_and_set(tmp_path: Path, capsys: pytest.CaptureFixtu
         assert "--set" in capsys.readouterr().err
 
 
+def test_bench_lidar_slam_profile(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    args = ["bench", "lidar", str(EXCERPT), "--steps", "30", "--particles", "2", "--json", "--quiet",
+            "--out", str(tmp_path), "--profile", "lidar-slam", "--set", "slam.map_radius=0"]
+    assert main(args) == 0
+    summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert summary["profile"] == "lidar-slam"
+    assert summary["settings"]["slam.enabled"] is True and summary["settings"]["slam.map_radius"] == "0"
+    assert summary["logs"]["freiburg-101-head"]["ate_rmse_m"] < summary["logs"]["freiburg-101-head"][
+        "odometry_ate_rmse_m"]
+    assert main(["bench", "lidar", str(EXCERPT), "--steps", "2", "--quiet", "--set", "slam.nope=1"]) == 2
+
+
 def test_bench_lidar_needs_logs(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["bench", "lidar"]) == 2
     assert "--data" in capsys.readouterr().err
@@ -298,3 +310,19 @@ def test_bench_lidar_runs_logs_in_parallel(tmp_path: Path, capsys: pytest.Captur
     for key in ("ate_rmse_m", "map_precision", "best_map_bytes", "particle_bytes"):
         assert summary["logs"]["a"][key] == summary["logs"]["b"][key], key
     assert "[2/2 logs" in captured.err
+
+
+@pytest.mark.parametrize(("beams", "degrees"), [(181, 180.0), (180, 179.0), (361, 180.0), (360, 179.5),
+                                                (721, 180.0), (3, 180.0), (100, 180.0)])
+def test_a_log_without_geometry_gets_the_standard_resolution(beams: int, degrees: float) -> None:
+    from agents.files.carmen import default_width
+
+    assert math.degrees(default_width(beams)) == pytest.approx(degrees)
+
+
+def test_180_beams_without_parameters_are_one_degree_apart(tmp_path: Path) -> None:
+    ranges = " ".join(["2.0"] * 180)
+    log = write(tmp_path, f"FLASER 180 {ranges} 0 0 0 0 0 0 1.0 host 1.0\n")
+    scan = read_carmen_log(log).scans[0]
+    assert np.allclose(np.diff(scan.angles), math.radians(1.0))
+    assert scan.angles[0] == pytest.approx(-math.radians(89.5))

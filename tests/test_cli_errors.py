@@ -35,6 +35,8 @@ def files(tmp_path_factory: pytest.TempPathFactory) -> dict[str, str]:
     open_creds.chmod(0o644)
     a_file = d / "a-file"
     a_file.write_text("x")
+    garbage_bag = d / "garbage.bag"
+    garbage_bag.write_bytes(b"#ROSBAG V2.0\n\x00\x01 cut short")
     return {
         "dir": str(d),
         "missing": str(d / "missing.file"),
@@ -44,6 +46,7 @@ def files(tmp_path_factory: pytest.TempPathFactory) -> dict[str, str]:
         "bad_cfg": str(bad_cfg),
         "open_creds": str(open_creds),
         "a_file": str(a_file),
+        "garbage_bag": str(garbage_bag),
     }
 
 
@@ -59,6 +62,10 @@ CASES: dict[str, list[str]] = {
     "map-world-file-missing": ["map", "--world", "{missing}", "--out", "{dir}/m"],
     "map-world-file-bad": ["map", "--world", "{bad_world}", "--out", "{dir}/m"],
     "map-carmen-missing": ["map", "--carmen", "{missing}", "--out", "{dir}/m"],
+    "map-rosbag-missing": ["map", "--rosbag", "{missing}", "--out", "{dir}/m"],
+    "map-rosbag-garbage": ["map", "--rosbag", "{garbage_bag}", "--out", "{dir}/m"],
+    "map-rosbag-not-a-bag": ["map", "--rosbag", "{garbage}", "--out", "{dir}/m"],
+    "map-rosbag-and-carmen": ["map", "--rosbag", "{missing}", "--carmen", "{missing}", "--out", "{dir}/m"],
     "map-bad-particles": ["map", "--world", "paper-small", "--out", "{dir}/m", "--particles", "0"],
     "map-no-out": ["map", "--world", "paper-small"],
     # world / worlds

@@ -2,7 +2,7 @@ import math
 
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, assume, given, settings
+from hypothesis import HealthCheck, assume, example, given, settings
 from hypothesis import strategies as st
 
 from mapping.merge import MergeConfig, merge, merge_all, merge_traced, normalize
@@ -484,8 +484,19 @@ def test_partial_scans_add_nothing_to_a_complete_map(w, thr, seed):
     assert m.almost_equal(w, tol=thr / 4, likelihood_tol=1.0)
 
 
+# Two unit squares (a box and a room): the first scan sees three walls of the box as separate
+# pieces, so its top-left corner is two corners 5 cm apart that no later scan of one wall joins;
+# the whole world seen then must join them (hypothesis found it; fixed in _may_absorb).
+TWO_SQUARES = Wireframe.build(
+    [(0, 1), (1, 1), (1, 0), (0, 0), (10, 0), (11, 0), (11, 1), (10, 1)],
+    [(0, 1), (1, 2), (2, 3), (3, 0), (4, 5), (5, 6), (6, 7), (7, 4)],
+    [N] * 8,
+)
+
+
 @SETTINGS
 @given(any_world, thr_st, st.integers(0, 2**32 - 1))
+@example(TWO_SQUARES, 0.4, 2213)
 def test_frontiers_closed_when_the_whole_map_is_seen(w, thr, seed):
     """A map built from partial scans, then the whole world seen: the world's graph, its labels."""
     cfg = MergeConfig(threshold=thr)

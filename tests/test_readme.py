@@ -4,7 +4,8 @@ may fail or print a traceback.
 
 Substitutions (and only these) keep it short and independent of the machine: free ports for
 7447 and the web viewer's, shorter runs (``--rate 20``, ``--duration 6``, ``--steps 100``), a
-small CARMEN log written from the simulator for ``intel.log`` (none ships with the repository),
+small CARMEN log written from the simulator for ``intel.log`` (none ships with the repository)
+and a ROS 1 bag of the same scans for ``lab.bag``,
 and the web viewer stopped with Ctrl-C after a few seconds.
 """
 
@@ -51,12 +52,14 @@ def test_usage_lines_are_what_the_walk_runs() -> None:
 def test_readme_usage_runs_pasted_into_a_shell(tmp_path: Path) -> None:
     import math
 
-    from agents.files.carmen import write_carmen
+    from agents.files.carmen import read_carmen, write_carmen
+    from tests.rosbag_util import write_scans_bag
     from tests.test_carmen import LidarConfig, simulated_scans
 
     (tmp_path / ".venv").symlink_to(REPO / ".venv")
     cfg = LidarConfig(beams=181, fov=math.pi, max_range=6.0, sigma=0.01)
     write_carmen(tmp_path / "intel.log", simulated_scans(cfg), fov=math.pi, max_range=cfg.max_range)
+    write_scans_bag(tmp_path / "lab.bag", "ros1", read_carmen(tmp_path / "intel.log"))
     port, web = free_port(), free_port()
     subs = [
         ("7447", str(port)),
@@ -83,6 +86,6 @@ def test_readme_usage_runs_pasted_into_a_shell(tmp_path: Path) -> None:
     assert p.returncode == 0, text[-4000:]
     assert "Traceback" not in text, text[-4000:]
     for name in ("museum.png", "office.geojson", "out/small/map.png", "out/office/fused.png",
-                 "out/intel/map.geojson", "out/demo/fused.pgm", "out/demo/fused-export.png", "fused.geojson",
-                 "out/hand/watch/latest.png"):
+                 "out/intel/map.geojson", "out/lab/map.geojson", "out/demo/fused.pgm",
+                 "out/demo/fused-export.png", "fused.geojson", "out/hand/watch/latest.png"):
         assert (tmp_path / name).is_file(), (name, text[-3000:])

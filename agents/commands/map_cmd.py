@@ -1,4 +1,4 @@
-"""``wiremap map``: run one robot (a simulated world or a CARMEN log) and write its map.
+"""``wiremap map``: run one robot (a simulated world, a CARMEN log or a ROS bag) and write its map.
 
 Writes, in ``--out DIR``:
 
@@ -14,6 +14,16 @@ When the log has a ``TRUEPOS`` track or a ``NAME.truth.tsv`` beside it, the filt
 true first pose and the run is scored against it (:mod:`mapping.lidar_metrics`: ATE without
 alignment, relative error over 1 m, map precision and coverage at 0.2 m against the real scan
 endpoints placed at the true poses) and ``map.png`` shows the map over those endpoints.
+
+A ROS bag (``--rosbag``: a ROS 1 ``.bag``, a ROS 2 bag folder or its ``.db3``/``.mcap`` file) is
+read by :func:`agents.files.rosbag.read_rosbag`: ``sensor_msgs/LaserScan`` from ``--scan-topic``
+(default the bag's only one), odometry from ``--odom-topic`` (default the only
+``nav_msgs/Odometry`` topic, else ``/tf`` between ``--odom-frame`` and ``--base-frame``), the
+laser's mount from ``/tf_static``; ``--truth-topic`` names a topic with the robot's true pose to
+score against. It is mapped as a CARMEN log is (the same real-lidar profile); unreadable messages
+are reported and skipped like unreadable lines (``--strict``: the first one is an error).
+``report.json`` says which input was mapped (``"input"``: ``world``, ``carmen`` or ``rosbag``),
+and for a bag its format, the topics used, the scans and the messages skipped.
 
 A live progress line on stderr shows the step, the best map's size and the update rate.
 
@@ -42,16 +52,21 @@ from typing import Any
 import numpy as np
 
 from agents.errors import INTERRUPTED, UserError
+from agents.files.rosbag import DEFAULT_BASE_FRAME, DEFAULT_ODOM_FRAME
 from agents.params import ConfigArgs, Resolved, add_config_arguments, resolve
 
-HELP = "run one robot (simulated or a CARMEN log) and write its map"
-MAX_ISSUES_SHOWN = 5  # unreadable CARMEN lines reported one by one on stderr
+HELP = "run one robot (simulated, CARMEN log, ROS bag), write its map"
+MAX_ISSUES_SHOWN = 5  # unreadable CARMEN lines or bag messages reported one by one on stderr
+#: Flags that only a ROS bag takes (``--rosbag``).
+BAG_FLAGS = ("scan_topic", "odom_topic", "odom_frame", "base_frame", "truth_topic")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     src = parser.add_mutually_exclusive_group(required=True)
     src.add_argument("--world", metavar="NAME|FILE", help="a built-in world name or a world GeoJSON file")
     src.add_argument("--carmen", metavar="LOG", help="a CARMEN log (FLASER lines) to map")
+    src.add_argument("--rosbag", metavar="FILE",
+                     help="a ROS bag to map: ROS 1 .bag, ROS 2 bag folder or its .db3/.mcap file")
     parser.add_argument("--out", required=True, metavar="DIR", help="output directory")
     parser.add_argument("--sensor", choices=("corners", "lidar", "lidar-real"), default="corners",
                         help="simulated sensor: the corner sensor, a lidar + split-and-merge, or the "
@@ -63,12 +78,30 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="merge threshold in metres (default 0.2, or 0.4 for worlds over 100 m)")
     parser.add_argument("--max-range", type=float, default=None, metavar="M",
                         help="sensing range in metres (default 8 in simulation; "
-                             "CARMEN: the log's, at most 20)")
+                             "CARMEN log or ROS bag: the scanner's, at most 20)")
     parser.add_argument("--steps", type=int, default=None, metavar="N", help="stop after N scans")
     parser.add_argument("--duration", type=float, default=None, metavar="S",
                         help="stop after S simulated seconds (the simulation does not wait for the clock)")
     parser.add_argument("--strict", action="store_true",
-                        help="CARMEN: an unreadable line is an error (default: skip it and count it)")
+                        help="CARMEN log or ROS bag: an unreadable line or message is an error "
+                             "(default: skip it and count it)")
+    bag = parser.add_argument_group("ROS bag (--rosbag)")
+    bag.add_argument("--scan-topic", metavar="TOPIC",
+                     help="the sensor_msgs/LaserScan topic (default: the bag's only one)")
+    bag.add_argument("--odom-topic", metavar="TOPIC",
+                     help="the nav_msgs/Odometry topic, or /tf (default: the bag's only Odometry topic, "
+                          "else /tf)")
+    bag.add_argument("--odom-frame", metavar="FRAME",
+                     help=f"odometry from /tf: the odometry frame (default {DEFAULT_ODOM_FRAME})")
+    bag.add_argument("--base-frame", metavar="FRAME",
+                     help=f"the robot's base frame, for /tf odometry and the laser's mount on /tf_static "
+                          f"(default {DEFAULT_BASE_FRAME})")
+    bag.add_argument("--truth-topic", metavar="TOPIC",
+                     help="a topic with the robot's true pose (nav_msgs/Odometry or "
+                          "geometry_msgs/PoseStamped) to start from and score against (default: none)")
+    parser.add_argument("--lidar-profile", choices=("lidar", "lidar-slam"), default="lidar",
+                        help="real scans (--carmen, --rosbag): the real-lidar profile (default) or "
+                             "lidar-slam, lidar SLAM under the filter (agents.mapping_run.LIDAR_PROFILES)")
     parser.add_argument("--quiet", action="store_true", help="no progress line")
     add_config_arguments(parser, "--particles, --merge-threshold, --max-range")
 
@@ -121,6 +154,12 @@ def _check(args: argparse.Namespace) -> None:
     check_output_dir("--out", args.out)
     if args.carmen is not None and not Path(args.carmen).is_file():
         raise UserError(f"--carmen {args.carmen}: no such file")
+    if args.rosbag is not None and not Path(args.rosbag).exists():
+        raise UserError(f"--rosbag {args.rosbag}: no such file or directory")
+    if args.rosbag is None:
+        for name in BAG_FLAGS:
+            if getattr(args, name) is not None:
+                raise UserError(f"--{name.replace('_', '-')} is for a ROS bag: it needs --rosbag")
     if args.particles is not None and args.particles < 1:
         raise UserError(f"--particles must be >= 1, got {args.particles}")
     if args.steps is not None and args.steps < 1:
@@ -196,9 +235,10 @@ class _Source:
     name: str
     truth: Any = None  # the world's true walls (a simulated world)
     free: Any = None  # the world's free space (shaded outside in the picture)
-    log: Any = None  # the CARMEN log, its scans' true poses and the range mapped
+    scans: Any = None  # a real log's scans, their true poses and the range mapped
     true_scans: Any = None
     max_range: float = 0.0
+    extra: dict[str, Any] | None = None  # what report.json adds for this input
 
 
 def _world_source(args: argparse.Namespace, cargs: ConfigArgs) -> _Source:
@@ -217,30 +257,88 @@ def _world_source(args: argparse.Namespace, cargs: ConfigArgs) -> _Source:
                                      cfg.merge_threshold, config=cfg)
     except ValueError as exc:
         raise UserError(f"{args.world}: {exc}") from None
-    return _Source(filt, inputs, total, {"world": world.name, "sensor": args.sensor}, resolved, world.name,
-                   truth=world.truth, free=world.free_space)
+    source = {"input": "world", "world": world.name, "sensor": args.sensor}
+    return _Source(filt, inputs, total, source, resolved, world.name, truth=world.truth,
+                   free=world.free_space)
 
 
 def _log_source(args: argparse.Namespace, cargs: ConfigArgs) -> _Source:
-    """A CARMEN log through the real-lidar profile (odometry noise, point match, extractor)
-    under the user's ``--params`` and ``--set``; the filter starts at the true first pose when
-    the log has a truth."""
-    from agents import mapping_run as mr
+    """A CARMEN log (:func:`_real_source`)."""
     from agents.files.carmen import read_carmen_log, scan_truth
-    from mapping.filter import WireframeFilter
 
     # CarmenError (a UserError) names the bad line; without --strict such lines are skipped.
     log = read_carmen_log(args.carmen, strict=args.strict)
-    for msg in log.issues[:MAX_ISSUES_SHOWN]:
-        print(f"wiremap: skipped {msg}", file=sys.stderr)
-    if len(log.issues) > MAX_ISSUES_SHOWN:
-        print(f"wiremap: skipped {len(log.issues) - MAX_ISSUES_SHOWN} more unreadable lines", file=sys.stderr)
-    scans = log.scans
-    if not scans:
+    _show_issues(log.issues, "unreadable lines")
+    if not log.scans:
         raise UserError(f"{args.carmen}: no laser scans in the log")
-    true_scans = scan_truth(log)
+    source = {"input": "carmen", "carmen": str(args.carmen), "sensor": "lidar", "laser": log.laser}
+    return _real_source(args, cargs, log.scans, scan_truth(log), source, Path(args.carmen).name,
+                        {"skipped_lines": len(log.issues)})
+
+
+def _bag_source(args: argparse.Namespace, cargs: ConfigArgs) -> _Source:
+    """A ROS bag (:func:`_real_source`): its LaserScan topic, posed by its odometry."""
+    from agents.files.rosbag import read_rosbag
+
+    # RosbagError (a UserError) names the bad topic or message; without --strict such messages
+    # are skipped.
+    bag = read_rosbag(
+        args.rosbag, scan_topic=args.scan_topic, odom_topic=args.odom_topic,
+        odom_frame=args.odom_frame or DEFAULT_ODOM_FRAME, base_frame=args.base_frame or DEFAULT_BASE_FRAME,
+        truth_topic=args.truth_topic, strict=args.strict,
+    )  # fmt: skip
+    _show_issues(bag.issues, "unreadable messages")
+    if not bag.scans:
+        read = bag.messages.get(bag.scan_topic, 0)
+        odometry = f"{bag.odometry}: {bag.messages.get(bag.odometry, 0)} messages"
+        if bag.truth_topic is not None:
+            odometry += f"; truth {bag.truth_topic}: {bag.messages.get(bag.truth_topic, 0)} messages"
+        raise UserError(f"{args.rosbag}: no scan to map ({bag.scan_topic}: {read} messages, "
+                        f"{sum(bag.skipped.values())} unreadable, {bag.unposed} without odometry at "
+                        f"their time; {odometry})")
+    source = {
+        "input": "rosbag",
+        "rosbag": str(args.rosbag),
+        "sensor": "lidar",
+        "format": bag.format,
+        "scan_topic": bag.scan_topic,
+        "odometry": bag.odometry,
+    }
+    extra = {
+        "odom_frames": list(bag.odom_frames) if bag.odom_frames else None,
+        "truth_topic": bag.truth_topic,
+        "laser_frame": bag.laser_frame,
+        "mount": {"x": bag.mount.x, "y": bag.mount.y, "theta": bag.mount.theta, "from": bag.mount_from,
+                  "upside_down": bag.upside_down},
+        "messages": bag.messages,
+        "scans": len(bag.scans),
+        "skipped_messages": sum(bag.skipped.values()),
+        "skipped_by_topic": bag.skipped,
+        "unposed_scans": bag.unposed,
+    }
+    return _real_source(args, cargs, bag.scans, bag.truth, source, Path(args.rosbag).name, extra)
+
+
+def _show_issues(issues: list[str], what: str) -> None:
+    """The first unreadable lines or messages on stderr, then how many more."""
+    for msg in issues[:MAX_ISSUES_SHOWN]:
+        print(f"wiremap: skipped {msg}", file=sys.stderr)
+    if len(issues) > MAX_ISSUES_SHOWN:
+        print(f"wiremap: skipped {len(issues) - MAX_ISSUES_SHOWN} more {what}", file=sys.stderr)
+
+
+def _real_source(
+    args: argparse.Namespace, cargs: ConfigArgs, scans: list[Any], true_scans: list[Any] | None,
+    source: dict[str, Any], name: str, extra: dict[str, Any],
+) -> _Source:
+    """Real scans (:class:`agents.files.carmen.LaserScan`) through the real-lidar profile
+    (odometry noise, point match, extractor) under the user's ``--params`` and ``--set``; the
+    filter starts at the true first pose when the scans have a truth."""
+    from agents import mapping_run as mr
+    from mapping.filter import WireframeFilter
+
     log_range = float(scans[0].max_range)
-    filter_overrides, extract_cfg, frontend_cfg = mr.split_profile(mr.lidar_profile())
+    filter_overrides, extract_cfg, frontend_cfg = mr.split_profile(mr.lidar_profile(args.lidar_profile))
     resolved = _filter_config(args, cargs, 0.2, min(log_range, 20.0), mr.scan_fov(scans[0].angles),
                               log_range, base=filter_overrides)
     cfg = resolved.config
@@ -249,9 +347,8 @@ def _log_source(args: argparse.Namespace, cargs: ConfigArgs) -> _Source:
     start = true_scans[0] if true_scans is not None else scans[0].odom
     filt = WireframeFilter(cfg, mr.seeds_for(args.seed)["filter"], initial_pose=start)
     total = len(scans) if args.steps is None else min(len(scans), args.steps)
-    source = {"carmen": str(args.carmen), "sensor": "lidar", "laser": log.laser}
-    return _Source(filt, inputs, total, source, resolved, Path(args.carmen).name, log=log,
-                   true_scans=true_scans, max_range=cfg.max_range)
+    return _Source(filt, inputs, total, source, resolved, name, scans=scans, true_scans=true_scans,
+                   max_range=cfg.max_range, extra={**extra, "lidar_profile": args.lidar_profile})
 
 
 @dataclass
@@ -310,7 +407,12 @@ def run(args: argparse.Namespace) -> int:
     cargs = ConfigArgs.from_args(args)
     _filter_config(args, cargs, 0.2, 8.0)  # the keys and values, before any work
     out = Path(args.out)
-    src = _world_source(args, cargs) if args.world is not None else _log_source(args, cargs)
+    if args.world is not None:
+        src = _world_source(args, cargs)
+    elif args.carmen is not None:
+        src = _log_source(args, cargs)
+    else:
+        src = _bag_source(args, cargs)
     done = _drive(src, args.quiet)
     filt, cfg, k = src.filt, src.resolved.config, done.steps
     thr = cfg.merge_threshold
@@ -335,12 +437,10 @@ def run(args: argparse.Namespace) -> int:
     if src.truth is not None:
         report.update(_score_world(src.truth, best, thr, done))
     png = None
-    if src.log is not None:
-        report["skipped_lines"] = len(src.log.issues)
-        if src.true_scans is not None and k:
-            lidar, png = _score_log(src.log.scans[:k], src.true_scans[:k], done.trajectory, best,
-                                    src.max_range)
-            report.update(lidar)
+    report.update(src.extra or {})
+    if src.scans is not None and src.true_scans is not None and k:
+        lidar, png = _score_log(src.scans[:k], src.true_scans[:k], done.trajectory, best, src.max_range)
+        report.update(lidar)
     props = {**src.source, "steps": k, "seed": args.seed, "particles": cfg.particles, "merge_threshold": thr}
     title = f"{src.name}: one robot, {k} steps, {cfg.particles} particles"
     write_outputs(out, best, done.trajectory, report, truth=src.truth, properties=props, png=png,
@@ -379,6 +479,14 @@ def _print_summary(report: dict[str, Any], out: Path) -> None:
     ]
     if report.get("skipped_lines"):
         lines.append(f"  log         skipped {report['skipped_lines']} unreadable lines")
+    if report.get("input") == "rosbag":
+        line = (f"  bag         {report['scans']} scans from {report['scan_topic']}, "
+                f"odometry {report['odometry']}")
+        if report.get("skipped_messages"):
+            line += f", skipped {report['skipped_messages']} unreadable messages"
+        if report.get("unposed_scans"):
+            line += f", {report['unposed_scans']} scans without odometry at their time"
+        lines.append(line)
     if m:
         lines.append(
             f"  vs truth    cell error {_pct(m['cell_error'])}, wall precision {m['wall_precision']:.3f}, "

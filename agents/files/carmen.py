@@ -61,7 +61,11 @@ For the front laser (``FLASER``; ``RLASER`` reads the same names with ``rear`` f
 
 * field of view in **degrees**: ``laser_front_laser_fov``, ``robot_front_laser_fov``; else
   the angular resolution in degrees, ``laser_front_laser_resolution`` (field of view
-  ``resolution * (num_readings - 1)``); else 180 degrees. Bearings are ``-fov/2 .. +fov/2`` in
+  ``resolution * (num_readings - 1)``); else the standard resolution (1, 0.5 or 0.25 degrees)
+  within 2 % of ``180 / (num_readings - 1)``, so that 181 beams span 180 degrees and 180 beams
+  179 (a 1-degree scanner that logs 180 readings; spread over 180 degrees its turns come out
+  0.3 % too large, which the matcher then carries around every loop); else 180 degrees.
+  Bearings are ``-fov/2 .. +fov/2`` in
   ``num_readings`` even steps (both edges included); a full 360 degrees does not repeat its
   first beam (step ``fov / num_readings``).
 * maximum range, metres: ``robot_front_laser_max`` (CARMEN's robot module),
@@ -215,6 +219,24 @@ class CarmenLog:
     truepos: list[tuple[float, Pose]]
     issues: list[str]
     params: dict[str, str]
+
+
+#: Angular resolutions (degrees) planar scanners step in, for a log that names neither its field
+#: of view nor its resolution (module notes, "Parameters honoured").
+STANDARD_RESOLUTIONS_DEG = (1.0, 0.5, 0.25)
+
+
+def default_width(n: int) -> float:
+    """The field of view (radians) of an ``n``-beam scan whose log gives no geometry: the
+    standard resolution within 2 % of ``180 / (n - 1)`` degrees times ``n - 1``, else 180
+    degrees."""
+    if n < 2:
+        return DEFAULT_FOV
+    guess = 180.0 / (n - 1)
+    res = min(STANDARD_RESOLUTIONS_DEG, key=lambda r: abs(r - guess))
+    if abs(res - guess) > 0.02 * res:
+        return DEFAULT_FOV
+    return math.radians(res * (n - 1))
 
 
 def flaser_angles(n: int, fov: float) -> FloatArray:
@@ -540,7 +562,7 @@ def _to_scan(raw: _Raw, geometry: _Geometry, max_range: float | None) -> LaserSc
         elif geometry.res_deg is not None and 0.0 < geometry.res_deg * (n - 1) <= 360.0:
             width = math.radians(geometry.res_deg * (n - 1))
         else:
-            width = DEFAULT_FOV
+            width = default_width(n)
         angles = flaser_angles(n, width)
     rmax = max_range if max_range is not None else (raw.max_range or geometry.log_max)
     ranges = raw.ranges.copy()

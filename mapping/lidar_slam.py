@@ -1,0 +1,675 @@
+"""Lidar SLAM for real scans: scan-to-submap matching and loop closure over a pose graph.
+
+The wireframe filter (:mod:`mapping.filter`) corrects discrete map errors; on a real lidar its
+anchors (corners) are too few to hold the pose over a long log. This module gives it a pose
+that every scan point holds, the way Cartographer's local and global SLAM do (ideas, not code):
+
+* **Local matching** (:func:`match_scan`): each scan's points are matched point-to-line (Censi's
+  PLICP cost) against a *submap*, the points of the recent scans and of the old scans taken
+  nearby (scan-to-map) at their estimated poses, with their normals, the wheel odometry's noise
+  as the prior. The result is a node of a pose graph
+  and an edge to the previous node whose information is the match's own Hessian: a corridor
+  pins the pose across itself, not along it.
+* **Loop closure** (:func:`search_loop`): every ``loop_every`` scans, the recent scans
+  (``loop_query_scans``) are searched for in an old submap near the estimate -- a correlative
+  search (Olson 2009) over a window that grows with the distance driven since, on a
+  likelihood field, coarse to fine -- then refined by the same point-to-line match and
+  accepted only when most of the points land on the old walls (``loop_min_inliers``).
+* **Pose graph** (:func:`optimize`): Gauss-Newton on the relative-pose errors (Grisetti et al.,
+  "A tutorial on graph-based SLAM", 2010, eqs. 30-35), loop edges under a Cauchy kernel, so a
+  wrong loop that slips through is down-weighted rather than believed.
+
+Everything is deterministic: no randomness, the same scans give the same poses.
+
+Choices (where the papers leave it open)
+----------------------------------------
+* Point normals come from each scan on its own (the two neighbours in bearing order within
+  ``normal_gap``), as PLICP does; a point without a line through its neighbours (a chair leg,
+  a person) is matched against but never matched to.
+* The submap is thinned to one point per ``voxel`` cell; the newest scan wins a cell.
+* An edge's information is the match's Hessian divided by ``information_scale`` (neighbouring
+  returns' errors are correlated; the raw Hessian would make the graph overconfident), capped by
+  ``floor_sigma_xy`` / ``floor_sigma_theta``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+from numpy.typing import NDArray
+from scipy.ndimage import distance_transform_edt, maximum_filter
+from scipy.spatial import cKDTree
+
+from mapping.se2 import wrap_angle
+
+FloatArray = NDArray[np.float64]
+
+__all__ = ["Edge", "LidarSlam", "Match", "SlamConfig", "match_scan", "optimize", "scan_normals",
+           "search_loop"]
+
+
+@dataclass(frozen=True)
+class SlamConfig:
+    """Parameters of :class:`LidarSlam` (the ``slam`` group).
+
+    Parameters
+    ----------
+    local_scans : int
+        Scans in the local submap the next scan is matched against (default 15).
+    voxel : float
+        Submap thinning cell in metres (0.05).
+    iterations : int
+        Gauss-Newton iterations of a point-to-line match (12).
+    gate_start, gate_end : float
+        Nearest-neighbour gate of a match, annealed from ``gate_start`` to ``gate_end`` metres
+        (0.5, 0.15).
+    kernel : float
+        Cauchy scale of a point's line residual in metres (0.05).
+    sigma : float
+        A point's line residual std in metres, before ``information_scale`` (0.03).
+    information_scale : float
+        Divides a match's Hessian for the graph's edges (10).
+    floor_sigma_xy, floor_sigma_theta : float
+        Least std of an edge (0.01 m, 0.003 rad).
+    odo_trans_per_m, odo_rot_per_m, odo_rot_per_rad, odo_floor_xy, odo_floor_theta : float
+        The wheel odometry's noise, the local match's prior (0.07 /m, 0.05 rad/m, 0.05 rad/rad,
+        0.05 m, 0.02 rad).
+    normal_gap : float
+        Neighbours farther than this (metres) give a point no normal (0.3).
+    loop_every : int
+        Try to close a loop every this many scans (3).
+    loop_query_scans : int
+        The recent scans searched for in an old submap (5).
+    loop_submap_scans : int
+        Scans either side of the old node in its submap (8).
+    loop_min_travel : float
+        Least distance driven between the two ends of a loop, metres (12).
+    loop_radius, loop_radius_per_m, loop_radius_max : float
+        Search window half-width in metres: ``loop_radius + loop_radius_per_m * driven``, at most
+        ``loop_radius_max`` (1.0, 0.05, 5.0).
+    loop_angle, loop_angle_per_m, loop_angle_max : float
+        Heading window half-width in radians, the same way (0.1, 0.006, 0.5).
+    loop_min_inliers : float
+        Least share of the query's points within ``loop_inlier_distance`` of an old wall (0.6).
+    loop_inlier_distance : float
+        Metres (0.1).
+    loop_kernel : float
+        Cauchy scale of a loop edge's chi (3.0).
+    effective_points : float
+        A match's data term counts as this many independent points at most (4): neighbouring
+        returns' errors are correlated, and a raw scan matched against raw scans is good to a
+        couple of centimetres, not to ``sigma / sqrt(n)``; with more, the match overrules the
+        odometry's translation, which on the logs is better.
+    loop_max_chi2 : float
+        A loop is refused when, after optimising with it, a link of the chain or the loop's own
+        edge is strained beyond this chi-square (25).
+    map_radius : float
+        Old scans whose estimated position is within this many metres of the prediction join
+        the local submap (4.0; 0: the recent scans only).
+    map_scans : int
+        At most this many of them, nearest first (15).
+    enabled : bool
+        Used by the front end (:attr:`mapping.lidar_frontend.FrontendConfig.slam`): run the SLAM
+        under the filter (False).
+    """
+
+    local_scans: int = 15
+    voxel: float = 0.05
+    iterations: int = 12
+    gate_start: float = 0.5
+    gate_end: float = 0.15
+    kernel: float = 0.05
+    sigma: float = 0.03
+    information_scale: float = 1.0
+    floor_sigma_xy: float = 0.01
+    floor_sigma_theta: float = 0.003
+    odo_trans_per_m: float = 0.05
+    odo_rot_per_m: float = 0.07
+    odo_rot_per_rad: float = 0.05
+    odo_floor_xy: float = 0.01
+    odo_floor_theta: float = 0.005
+    normal_gap: float = 0.3
+    loop_every: int = 3
+    loop_query_scans: int = 5
+    loop_submap_scans: int = 8
+    loop_min_travel: float = 12.0
+    loop_radius: float = 1.0
+    loop_radius_per_m: float = 0.05
+    loop_radius_max: float = 5.0
+    loop_angle: float = 0.1
+    loop_angle_per_m: float = 0.006
+    loop_angle_max: float = 0.5
+    loop_min_inliers: float = 0.6
+    loop_inlier_distance: float = 0.1
+    loop_kernel: float = 3.0
+    effective_points: float = 4.0
+    loop_max_chi2: float = 25.0
+    map_radius: float = 4.0
+    map_scans: int = 15
+    enabled: bool = False
+
+    def __post_init__(self) -> None:
+        if self.local_scans < 1 or self.iterations < 1 or self.loop_every < 1:
+            raise ValueError("local_scans, iterations and loop_every must be >= 1")
+        if not (self.gate_start >= self.gate_end > 0):
+            raise ValueError("need gate_start >= gate_end > 0")
+        if self.voxel <= 0 or self.kernel <= 0 or self.sigma <= 0 or self.information_scale <= 0:
+            raise ValueError("voxel, kernel, sigma and information_scale must be > 0")
+        if not (0 < self.loop_min_inliers <= 1):
+            raise ValueError("loop_min_inliers must be in (0, 1]")
+
+
+# ---------------------------------------------------------------------------------------- SE(2)
+
+
+def _rot(theta: float) -> FloatArray:
+    c, s = math.cos(theta), math.sin(theta)
+    return np.array([[c, -s], [s, c]])
+
+
+def _compose(a: FloatArray, b: FloatArray) -> FloatArray:
+    """``a * b`` of two ``(x, y, theta)`` poses."""
+    c, s = math.cos(a[2]), math.sin(a[2])
+    return np.array([a[0] + c * b[0] - s * b[1], a[1] + s * b[0] + c * b[1], wrap_angle(a[2] + b[2])])
+
+
+def _between(a: FloatArray, b: FloatArray) -> FloatArray:
+    """``a^-1 * b``."""
+    c, s = math.cos(a[2]), math.sin(a[2])
+    dx, dy = b[0] - a[0], b[1] - a[1]
+    return np.array([c * dx + s * dy, -s * dx + c * dy, wrap_angle(b[2] - a[2])])
+
+
+def _apply(pose: FloatArray, pts: FloatArray) -> FloatArray:
+    c, s = math.cos(pose[2]), math.sin(pose[2])
+    out = np.empty_like(pts)
+    out[:, 0] = c * pts[:, 0] - s * pts[:, 1] + pose[0]
+    out[:, 1] = s * pts[:, 0] + c * pts[:, 1] + pose[1]
+    return out
+
+
+# ------------------------------------------------------------------------------------- normals
+
+
+def scan_normals(points: FloatArray, gap: float = 0.3) -> FloatArray:
+    """Unit normals ``(n, 2)`` of a scan's points (bearing order) from the line through each
+    point's two neighbours; NaN where a neighbour is missing or farther than ``gap``, or where
+    the three points are far from a line."""
+    p = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+    n = len(p)
+    out = np.full((n, 2), np.nan)
+    if n < 3:
+        return out
+    prev, nxt = p[:-2], p[2:]
+    mid = p[1:-1]
+    d1 = np.hypot(*(mid - prev).T)
+    d2 = np.hypot(*(nxt - mid).T)
+    t = nxt - prev
+    tl = np.hypot(*t.T)
+    ok = (d1 <= gap) & (d2 <= gap) & (tl > 1e-6)
+    # Straightness: the middle point's distance to the chord, relative to the chord.
+    with np.errstate(invalid="ignore", divide="ignore"):
+        off = np.abs(t[:, 0] * (mid[:, 1] - prev[:, 1]) - t[:, 1] * (mid[:, 0] - prev[:, 0])) / tl
+        ok &= off <= 0.25 * tl
+        nrm = np.stack([-t[:, 1] / tl, t[:, 0] / tl], axis=1)
+    out[1:-1][ok] = nrm[ok]
+    return out
+
+
+# -------------------------------------------------------------------------------------- submap
+
+
+@dataclass
+class Submap:
+    """Points (world frame) with unit normals, thinned to a voxel grid, and their k-d tree."""
+
+    points: FloatArray
+    normals: FloatArray
+    tree: cKDTree
+
+    @classmethod
+    def build(cls, clouds: list[tuple[FloatArray, FloatArray]], voxel: float) -> Submap:
+        """From ``(points, normals)`` per scan, world frame, oldest first; points without a
+        normal are dropped; the newest point of a voxel wins."""
+        if clouds:
+            p = np.concatenate([c[0] for c in clouds])
+            n = np.concatenate([c[1] for c in clouds])
+        else:
+            p = np.zeros((0, 2))
+            n = np.zeros((0, 2))
+        ok = np.isfinite(n[:, 0])
+        p, n = p[ok], n[ok]
+        if len(p):
+            keys = np.floor(p / voxel).astype(np.int64)
+            # Last occurrence of each cell: unique over the reversed order.
+            _, first_rev = np.unique(keys[::-1], axis=0, return_index=True)
+            keep = np.sort(len(p) - 1 - first_rev)
+            p, n = p[keep], n[keep]
+        return cls(p, n, cKDTree(p if len(p) else np.zeros((1, 2)) + 1e9))
+
+
+# --------------------------------------------------------------------------------------- match
+
+
+@dataclass(frozen=True)
+class Match:
+    """A point-to-line match's result.
+
+    Attributes
+    ----------
+    pose : (3,) float64
+        The matched pose ``(x, y, theta)`` in the submap's frame.
+    hessian : (3, 3) float64
+        The data term's Hessian at the optimum (information on ``pose``, world axes).
+    inliers : float
+        Share of the points within ``inlier_distance`` of a submap line.
+    matched : int
+        Points matched in the last iteration.
+    """
+
+    pose: FloatArray
+    hessian: FloatArray
+    inliers: float
+    matched: int
+
+
+def match_scan(
+    points: FloatArray,
+    submap: Submap,
+    guess: FloatArray,
+    config: SlamConfig,
+    prior_information: FloatArray | None = None,
+    inlier_distance: float = 0.1,
+) -> Match:
+    """Point-to-line Gauss-Newton of robot-frame ``points`` against ``submap`` from ``guess``;
+    the prior (``prior_information`` on the pose, centred on ``guess``) keeps what the scan
+    does not fix. Cauchy weights, gate annealed geometrically from ``gate_start`` to
+    ``gate_end`` over the first half of the iterations."""
+    pose = np.asarray(guess, dtype=np.float64).copy()
+    prior = np.zeros((3, 3)) if prior_information is None else prior_information
+    w_sigma = 1.0 / config.sigma**2
+    hess = np.zeros((3, 3))
+    matched = 0
+    n_it = config.iterations
+    half = max(1, n_it // 2)
+    for it in range(n_it):
+        f = min(1.0, it / half)
+        gate = config.gate_start * (config.gate_end / config.gate_start) ** f
+        world = _apply(pose, points)
+        dist, idx = submap.tree.query(world, distance_upper_bound=gate)
+        ok = np.isfinite(dist)
+        matched = int(ok.sum())
+        d = pose - guess
+        d[2] = wrap_angle(d[2])
+        if matched < 3:
+            hess = np.zeros((3, 3))
+            g = prior @ d
+            h = prior + 1e-9 * np.eye(3)
+        else:
+            q = submap.points[idx[ok]]
+            nr = submap.normals[idx[ok]]
+            w_ = world[ok]
+            r = np.einsum("ij,ij->i", nr, w_ - q)
+            rel = w_ - pose[:2]
+            jac = np.stack([nr[:, 0], nr[:, 1], -nr[:, 0] * rel[:, 1] + nr[:, 1] * rel[:, 0]], axis=1)
+            # Neighbouring returns' errors are correlated (and the truth itself is only good to a
+            # few cm): the data term counts as ``effective_points`` independent points at most.
+            scale = min(1.0, config.effective_points / matched)
+            wts = scale * w_sigma / (1.0 + (r / config.kernel) ** 2)
+            hess = (jac * wts[:, None]).T @ jac
+            g = (jac * wts[:, None]).T @ r + prior @ d
+            h = hess + prior + 1e-9 * np.eye(3)
+        step = -np.linalg.solve(h, g)
+        pose = pose + step
+        pose[2] = wrap_angle(pose[2])
+        if it >= half and abs(step[0]) + abs(step[1]) < 1e-4 and abs(step[2]) < 1e-5:
+            break
+    world = _apply(pose, points)
+    dist, idx = submap.tree.query(world, distance_upper_bound=max(config.gate_end, inlier_distance))
+    ok = np.isfinite(dist)
+    if ok.any():
+        r = np.abs(np.einsum("ij,ij->i", submap.normals[idx[ok]], world[ok] - submap.points[idx[ok]]))
+        inl = float(np.count_nonzero(r <= inlier_distance)) / max(1, len(points))
+    else:
+        inl = 0.0
+    return Match(pose, hess, inl, matched)
+
+
+# ------------------------------------------------------------------------------ correlative search
+
+
+@dataclass
+class _Field:
+    """A likelihood field of a submap on a grid: ``exp(-d^2 / 2 s^2)`` of the distance to the
+    nearest submap point, and a coarse copy whose cell holds the max over ``coarse`` fine cells
+    (an upper bound of any fine translation it covers: Olson's multi-resolution search)."""
+
+    origin: FloatArray
+    res: float
+    fine: FloatArray
+    coarse: FloatArray
+    factor: int
+
+    @classmethod
+    def build(cls, pts: FloatArray, res: float, sigma: float, margin: float, factor: int) -> _Field:
+        lo = pts.min(axis=0) - margin
+        hi = pts.max(axis=0) + margin
+        shape = (np.ceil((hi - lo) / res).astype(int) + 1)[::-1]  # rows = y, cols = x
+        occ = np.ones(tuple(shape), dtype=bool)
+        ij = np.floor((pts - lo) / res).astype(int)
+        occ[ij[:, 1], ij[:, 0]] = False
+        d = distance_transform_edt(occ) * res
+        fine = np.exp(-0.5 * (d / sigma) ** 2)
+        coarse = maximum_filter(fine, size=factor, mode="constant", origin=-(factor // 2))
+        return cls(lo, res, fine, coarse, factor)
+
+    def score(self, grid: FloatArray, pts: FloatArray, offsets: NDArray[np.int64]) -> FloatArray:
+        """Mean field value of ``pts`` (world) shifted by each of ``offsets`` (cells, (k, 2)
+        as (dx, dy)); points off the grid score 0."""
+        ij = np.floor((pts - self.origin) / self.res).astype(np.int64)
+        h, w = grid.shape
+        lo, hi = offsets.min(axis=0), offsets.max(axis=0)
+        # A point that some offset would take off the grid is dropped for all of them: the
+        # grid's margin is wider than any window, so such a point lies off the submap anyway.
+        keep = ((ij[:, 0] + lo[0] >= 0) & (ij[:, 0] + hi[0] < w)
+                & (ij[:, 1] + lo[1] >= 0) & (ij[:, 1] + hi[1] < h))
+        base = ij[keep, 1] * w + ij[keep, 0]
+        flat = base[None, :] + (offsets[:, 1] * w + offsets[:, 0])[:, None]
+        return np.asarray(grid.ravel()[flat].sum(axis=1) / max(1, len(pts)))
+
+
+def search_loop(
+    points: FloatArray,
+    submap: Submap,
+    guess: FloatArray,
+    radius: float,
+    angle: float,
+    config: SlamConfig,
+    *,
+    res: float = 0.1,
+    coarse_factor: int = 4,
+    angle_step: float = math.radians(1.0),
+    candidates: int = 8,
+) -> Match | None:
+    """Where robot-frame ``points`` (the recent scans, in the newest scan's frame) lie in an old
+    ``submap``: a correlative search within ``radius`` metres and ``angle`` radians of
+    ``guess``, coarse (``coarse_factor`` cells) then fine, the best few refined by
+    :func:`match_scan`. Returns the best refined match, or None when none has
+    ``loop_min_inliers``."""
+    if len(points) < 10 or len(submap.points) < 10:
+        return None
+    sub = points if len(points) <= 200 else points[np.linspace(0, len(points) - 1, 200).astype(int)]
+    fld = _Field.build(submap.points, res, sigma=2.0 * res, margin=radius + 1.0, factor=coarse_factor)
+    step_c = coarse_factor
+    n_c = math.ceil(radius / (res * step_c))
+    ax = np.arange(-n_c, n_c + 1) * step_c
+    offs = np.stack(np.meshgrid(ax, ax, indexing="xy"), axis=-1).reshape(-1, 2)
+    # The coarse cell of the field holds the max over the cells [o, o + factor), so the search
+    # over a coarse offset o covers fine offsets o .. o + factor - 1.
+    n_a = math.ceil(angle / angle_step)
+    thetas = guess[2] + np.arange(-n_a, n_a + 1) * angle_step
+    best: list[tuple[float, float, int, int]] = []
+    for th in thetas:
+        world = _apply(np.array([guess[0], guess[1], th]), sub)
+        s = fld.score(fld.coarse, world, offs)
+        top = np.argsort(-s, kind="stable")[:candidates]
+        best.extend((float(s[t]), float(th), int(offs[t, 0]), int(offs[t, 1])) for t in top)
+    best.sort(key=lambda b: -b[0])
+    fine_ax = np.arange(0, step_c)
+    fine_offs = np.stack(np.meshgrid(fine_ax, fine_ax, indexing="xy"), axis=-1).reshape(-1, 2)
+    refined: list[tuple[float, FloatArray]] = []
+    for _score, th, ox, oy in best[:candidates]:
+        world = _apply(np.array([guess[0], guess[1], th]), sub)
+        s = fld.score(fld.fine, world, fine_offs + np.array([ox, oy]))
+        k = int(np.argmax(s))
+        dx, dy = (fine_offs[k] + np.array([ox, oy])) * res
+        refined.append((float(s[k]), np.array([guess[0] + dx, guess[1] + dy, th])))
+    refined.sort(key=lambda r: -r[0])
+    out: Match | None = None
+    for _s, start in refined[:3]:
+        m = match_scan(points, submap, start, config, inlier_distance=config.loop_inlier_distance)
+        if m.inliers >= config.loop_min_inliers and (out is None or m.inliers > out.inliers):
+            out = m
+    return out
+
+
+# ---------------------------------------------------------------------------------- pose graph
+
+
+@dataclass(frozen=True)
+class Edge:
+    """A relative-pose constraint ``z = x_i^-1 * x_j`` with information ``omega`` (in ``i``'s
+    frame rotated to ``j``'s, the error's frame); ``robust``: under the Cauchy kernel."""
+
+    i: int
+    j: int
+    z: FloatArray
+    omega: FloatArray
+    robust: bool = False
+
+
+def optimize(poses: FloatArray, edges: list[Edge], iterations: int = 10, kernel: float = 3.0) -> FloatArray:
+    """Gauss-Newton over the poses ``(n, 3)`` with node 0 fixed; returns the new poses.
+
+    The error of an edge is ``e = t2v(z^-1 (x_i^-1 x_j))`` and its Jacobians are those of
+    Grisetti et al. (2010), eqs. 30-35; a robust edge's information is scaled by the Cauchy
+    weight ``1 / (1 + chi2 / kernel^2)``."""
+    x = np.array(poses, dtype=np.float64)
+    n = len(x)
+    if n < 2 or not edges:
+        return x
+    ii = np.array([e.i for e in edges])
+    jj = np.array([e.j for e in edges])
+    z = np.array([e.z for e in edges])
+    omega0 = np.array([e.omega for e in edges])
+    robust = np.array([e.robust for e in edges])
+    cz, sz = np.cos(z[:, 2]), np.sin(z[:, 2])
+    # Block (p, q) of an edge goes to rows 3p.., cols 3q..: the 9 (row, col) pairs of each.
+    r3, c3 = np.repeat(np.arange(3), 3), np.tile(np.arange(3), 3)
+    for _ in range(iterations):
+        xi, xj = x[ii], x[jj]
+        ci, si = np.cos(xi[:, 2]), np.sin(xi[:, 2])
+        dx, dy = xj[:, 0] - xi[:, 0], xj[:, 1] - xi[:, 1]
+        # a = R_i^T dt - t_z; e_xy = R_z^T a.
+        ax = ci * dx + si * dy - z[:, 0]
+        ay = -si * dx + ci * dy - z[:, 1]
+        err = np.stack([cz * ax + sz * ay, -sz * ax + cz * ay,
+                        (xj[:, 2] - xi[:, 2] - z[:, 2] + np.pi) % (2 * np.pi) - np.pi], axis=1)
+        # R_z^T R_i^T = R(-(th_i + th_z)).
+        c, s_ = np.cos(xi[:, 2] + z[:, 2]), np.sin(xi[:, 2] + z[:, 2])
+        rt = np.stack([np.stack([c, s_], 1), np.stack([-s_, c], 1)], 1)  # (m, 2, 2)
+        # d(R_i^T)/d th_i dt = (-si dx + ci dy, -ci dx - si dy); then R_z^T.
+        ddx, ddy = -si * dx + ci * dy, -ci * dx - si * dy
+        a = np.zeros((len(edges), 3, 3))
+        a[:, :2, :2] = -rt
+        a[:, 0, 2] = cz * ddx + sz * ddy
+        a[:, 1, 2] = -sz * ddx + cz * ddy
+        a[:, 2, 2] = -1.0
+        b_ = np.zeros((len(edges), 3, 3))
+        b_[:, :2, :2] = rt
+        b_[:, 2, 2] = 1.0
+        om = omega0.copy()
+        if robust.any():
+            chi2 = np.einsum("mi,mij,mj->m", err, omega0, err)
+            om[robust] /= (1.0 + chi2[robust] / kernel**2)[:, None, None]
+        rows, cols, vals = [], [], []
+        b = np.zeros(3 * n)
+        for (np_, jp) in ((ii, a), (jj, b_)):
+            jto = np.einsum("mki,mkl->mil", jp, om)  # J^T omega
+            np.add.at(b, (3 * np_[:, None] + np.arange(3)).ravel(), np.einsum("mil,ml->mi", jto, err).ravel())
+            for (nq, jq) in ((ii, a), (jj, b_)):
+                blk = np.einsum("mil,mlq->miq", jto, jq)
+                rows.append((3 * np_[:, None] + r3).ravel())
+                cols.append((3 * nq[:, None] + c3).ravel())
+                vals.append(blk.reshape(len(edges), 9).ravel())
+        # Node 0 is the frame: a stiff prior holds it.
+        rows.append(np.arange(3))
+        cols.append(np.arange(3))
+        vals.append(np.full(3, 1e12))
+        h = sp.csc_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
+                          shape=(3 * n, 3 * n))
+        dxs = spla.spsolve(h, -b)
+        x += dxs.reshape(-1, 3)
+        x[:, 2] = (x[:, 2] + math.pi) % (2.0 * math.pi) - math.pi
+        if float(np.abs(dxs).max()) < 1e-6:
+            break
+    return x
+
+
+def _edge_error(x: FloatArray, e: Edge) -> FloatArray:
+    xi, xj = x[e.i], x[e.j]
+    err = np.empty(3)
+    err[:2] = _rot(e.z[2]).T @ (_rot(xi[2]).T @ (xj[:2] - xi[:2]) - e.z[:2])
+    err[2] = wrap_angle(xj[2] - xi[2] - e.z[2])
+    return err
+
+
+def _chi2(x: FloatArray, e: Edge) -> float:
+    err = _edge_error(x, e)
+    return float(err @ e.omega @ err)
+
+
+# ------------------------------------------------------------------------------------- the SLAM
+
+
+@dataclass
+class _Node:
+    points: FloatArray  # robot frame
+    normals: FloatArray  # robot frame, NaN where none
+    travel: float  # metres driven from the first scan
+
+
+@dataclass
+class LidarSlam:
+    """Online lidar SLAM over a log's scans: :meth:`add` per scan, in order.
+
+    ``poses`` holds every scan's current estimate (a loop closure moves them all);
+    ``online`` what :meth:`add` returned for each scan at the time."""
+
+    config: SlamConfig = field(default_factory=SlamConfig)
+    start: FloatArray = field(default_factory=lambda: np.zeros(3))
+    poses: FloatArray = field(default_factory=lambda: np.zeros((0, 3)))
+    online: list[FloatArray] = field(default_factory=list)
+    edges: list[Edge] = field(default_factory=list)
+    loops: list[tuple[int, int]] = field(default_factory=list)
+    rejected: list[tuple[int, int]] = field(default_factory=list)
+    _nodes: list[_Node] = field(default_factory=list)
+    _last_loop: tuple[float, int] = (-math.inf, -(10**9))
+
+    def _cloud(self, k: int) -> tuple[FloatArray, FloatArray]:
+        nd = self._nodes[k]
+        pose = self.poses[k]
+        return _apply(pose, nd.points), nd.normals @ _rot(pose[2]).T
+
+    def _edge_information(self, hessian: FloatArray, theta_j: float) -> FloatArray:
+        cfg = self.config
+        h = hessian / cfg.information_scale + 1e-6 * np.eye(3)
+        floor = np.array([cfg.floor_sigma_xy, cfg.floor_sigma_xy, cfg.floor_sigma_theta])
+        cov = np.linalg.inv(h) + np.diag(floor**2)
+        # The Hessian is on the world-frame pose; the edge's error lives in the j frame.
+        rb = np.eye(3)
+        rb[:2, :2] = _rot(theta_j)
+        return np.asarray(rb.T @ np.linalg.inv(cov) @ rb)
+
+    def add(self, points: FloatArray, odometry: FloatArray) -> FloatArray:
+        """One scan: its robot-frame points (bearing order) and the odometry increment since the
+        previous scan ``(dx, dy, dtheta)``. Returns the scan's pose estimate."""
+        cfg = self.config
+        pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+        odo = np.asarray(odometry, dtype=np.float64)
+        k = len(self._nodes)
+        nrm = scan_normals(pts, cfg.normal_gap)
+        d = math.hypot(odo[0], odo[1])
+        travel = 0.0 if k == 0 else self._nodes[-1].travel + d
+        self._nodes.append(_Node(pts, nrm, travel))
+        if k == 0:
+            self.poses = np.array([self.start], dtype=np.float64)
+            self.online.append(self.poses[0].copy())
+            return np.array(self.poses[0])
+        guess = _compose(self.poses[k - 1], odo)
+        sxy = max(cfg.odo_floor_xy, cfg.odo_trans_per_m * d)
+        sth = max(cfg.odo_floor_theta, cfg.odo_rot_per_m * d + cfg.odo_rot_per_rad * abs(odo[2]))
+        prior = np.diag([1 / sxy**2, 1 / sxy**2, 1 / sth**2])
+        lo = max(0, k - cfg.local_scans)
+        ids = list(range(lo, k))
+        if cfg.map_radius > 0 and lo > 0:
+            # Scan-to-map: the old scans taken near here join the submap (the nearest
+            # ``map_scans`` within ``map_radius``), so the pose holds to what was mapped before.
+            d = np.hypot(*(self.poses[:lo, :2] - guess[:2]).T)
+            old = np.flatnonzero(d <= cfg.map_radius)
+            old = old[np.argsort(d[old], kind="stable")[: cfg.map_scans]]
+            ids = sorted(old.tolist()) + ids
+        sub = Submap.build([self._cloud(i) for i in ids], cfg.voxel)
+        m = match_scan(pts, sub, guess, cfg, prior_information=prior)
+        pose = m.pose if m.matched >= 10 else guess
+        self.poses = np.vstack([self.poses, pose])
+        z = _between(self.poses[k - 1], pose)
+        if m.matched >= 10:
+            omega = self._edge_information(m.hessian, pose[2]) + self._odometry_information(prior, pose[2])
+        else:
+            omega = self._odometry_information(prior, pose[2])
+        self.edges.append(Edge(k - 1, k, z, omega))
+        if k % cfg.loop_every == 0:
+            self._close_loop(k)
+        self.online.append(self.poses[k].copy())
+        return np.array(self.poses[k])
+
+    def _odometry_information(self, prior: FloatArray, theta_j: float) -> FloatArray:
+        rb = np.eye(3)
+        rb[:2, :2] = _rot(theta_j)
+        return np.asarray(rb.T @ prior @ rb)
+
+    def _close_loop(self, k: int) -> None:
+        cfg = self.config
+        here = self._nodes[k].travel
+        cand = [j for j in range(k) if here - self._nodes[j].travel >= cfg.loop_min_travel]
+        if not cand:
+            return
+        cj = np.array(cand)
+        dist = np.hypot(*(self.poses[cj, :2] - self.poses[k, :2]).T)
+        # The window grows with the distance driven since the old scan -- or since the last loop
+        # closed, when that loop's old end is near this one's: it tied the two ends together.
+        travel = np.array([self._nodes[j].travel for j in cand])
+        tied = np.abs(cj - self._last_loop[1]) <= 3 * cfg.loop_submap_scans
+        driven = np.where(tied, np.minimum(here - travel, here - self._last_loop[0]), here - travel)
+        radius = np.minimum(cfg.loop_radius + cfg.loop_radius_per_m * driven, cfg.loop_radius_max)
+        near = dist <= radius + 2.0
+        if not near.any():
+            return
+        j = int(cj[near][np.argmin(dist[near])])
+        r = float(radius[near][np.argmin(dist[near])])
+        driven_j = float(driven[near][np.argmin(dist[near])])
+        ang = float(min(cfg.loop_angle + cfg.loop_angle_per_m * driven_j, cfg.loop_angle_max))
+        lo = max(0, j - cfg.loop_submap_scans)
+        hi = min(k, j + cfg.loop_submap_scans + 1)
+        # The old submap must be old: no scan driven within loop_min_travel of here.
+        ids = [i for i in range(lo, hi) if here - self._nodes[i].travel >= cfg.loop_min_travel]
+        sub = Submap.build([self._cloud(i) for i in ids], cfg.voxel)
+        # The query: the recent scans in scan k's frame.
+        q = [_apply(_between(self.poses[k], self.poses[i]), self._nodes[i].points)
+             for i in range(max(0, k - cfg.loop_query_scans + 1), k + 1)]
+        query = np.concatenate(q)
+        m = search_loop(query, sub, self.poses[k], r, ang, cfg)
+        if m is None:
+            return
+        # An edge from j to k: where k is in j's frame, as the match says.
+        # m.pose is scan k in the old submap's frame, the world as node j's estimate has it.
+        z = _between(self.poses[j], m.pose)
+        omega = self._edge_information(m.hessian, m.pose[2])
+        edge = Edge(j, k, z, omega, robust=True)
+        poses = optimize(self.poses, [*self.edges, edge], kernel=cfg.loop_kernel)
+        # Verification by the graph: a loop the chain of matches can only meet by straining
+        # some of its links far beyond their noise is an alias (a corridor's other door), not
+        # a loop. The chain's links are the sequential edges.
+        strain = max(_chi2(poses, e) for e in self.edges if e.j == e.i + 1)
+        if strain > cfg.loop_max_chi2 or _chi2(poses, edge) > cfg.loop_max_chi2:
+            self.rejected.append((j, k))
+            return
+        self.edges.append(edge)
+        self.loops.append((j, k))
+        self._last_loop = (here, j)
+        self.poses = poses
