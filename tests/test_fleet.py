@@ -430,9 +430,10 @@ def test_run_with_the_realistic_lidar(tmp_path: Path):
         wait_until(lambda: p.poll() is not None, 120, "wiremap run to finish")
         assert p.returncode == 0, fleet.log("run")
     report = json.loads((out / "report.json").read_text())
-    assert report["sensor"] == "lidar-real"
+    assert report["sensor"] == "lidar-real", report
     for rid in ("r1", "r2"):
-        assert "(sensor lidar-real)" in (out / "logs" / f"{rid}.log").read_text()
-        assert report["per_robot"][rid]["finished"]
+        log = (out / "logs" / f"{rid}.log").read_text()
+        assert "(sensor lidar-real)" in log, log
+        assert report["per_robot"][rid]["finished"], report["per_robot"]
     fused = report["fused"]
-    assert fused["wall_precision"] >= 0.85 and fused["wall_recall"] >= 0.85, fused
+    assert fused["wall_precision"] >= 0.85 and fused["wall_recall"] >= 0.85, report
