@@ -660,6 +660,25 @@ def _angle_pairs(
     return ia[ok], ib[ok]
 
 
+def _top_cells(grid: FloatArray, k: int) -> IntArray:
+    """The indexes of the ``k`` largest cells of ``grid``, as ``np.argpartition(-grid, k)[:k]``
+    (in another order).
+
+    The grid has hundreds of thousands of cells of which a few thousand got votes: when the
+    ``k``-th largest vote is positive and strictly above the next one, the set is unique and is
+    found among the voted cells alone. Otherwise (a tie at the boundary, or fewer voted cells
+    than ``k``) which tied cells are kept is up to ``argpartition``, so it is asked on the whole
+    grid, as before, for the same choice.
+    """
+    nz = np.flatnonzero(grid)
+    if 0 < k < len(nz):
+        vals = grid[nz]
+        part = np.argpartition(-vals, k)
+        if float(vals[part[:k]].min()) > float(vals[part[k:]].max()):
+            return np.asarray(nz[part[:k]], dtype=np.int64)
+    return np.asarray(np.argpartition(-grid, k)[:k], dtype=np.int64)
+
+
 def _coarse_select(
     tx: FloatArray, ty: FloatArray, wv: FloatArray, cfg: RegistrationConfig
 ) -> tuple[FloatArray, FloatArray, FloatArray]:
@@ -680,7 +699,7 @@ def _coarse_select(
     key = cx * ny + cy
     grid = np.bincount(key, weights=wv, minlength=(int(cx.max()) + 2) * ny)
     k = min(cfg.coarse_vote_cells, len(grid) - 1)
-    strong = np.argpartition(-grid, k)[:k]
+    strong = _top_cells(grid, k)
     keep = np.zeros(len(grid), dtype=bool)
     for dx in (-1, 0, 1):
         for dy in (-1, 0, 1):
