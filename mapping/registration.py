@@ -406,6 +406,10 @@ class MapFeatures:
     conflict_weights : (k,)
         Wall length per sample as it counts in a conflict: times its edge's likelihood, 0 on
         edges shorter than ``conflict_min_wall`` and within ``frontier_margin`` of a frontier.
+    end_tree, corner_tree : cKDTree
+        Over ``end_points`` and ``corner_points`` (built once per map, not per hypothesis).
+    end_centred : (f, 2)
+        ``end_points - centre`` (the vote's coordinates).
     """
 
     wireframe: Wireframe
@@ -426,6 +430,9 @@ class MapFeatures:
     owner: IntArray
     corner_points: FloatArray
     conflict_weights: FloatArray
+    end_tree: cKDTree
+    corner_tree: cKDTree
+    end_centred: FloatArray
 
 
 @dataclass(frozen=True)
@@ -594,7 +601,8 @@ def prepare(wf: Wireframe, config: RegistrationConfig | None = None) -> MapFeatu
         weights=w, tree=tree, probes=probes, probe_tree=probe_tree, end_points=end_points,
         end_angles=end_angles, end_starts=end_starts, end_weights=end_weights, histogram=hist, length=total,
         owner=kept[owner].astype(np.int64), corner_points=corner_points,
-        conflict_weights=np.asarray(cw, dtype=np.float64),
+        conflict_weights=np.asarray(cw, dtype=np.float64), end_tree=cKDTree(end_points.reshape(-1, 2)),
+        corner_tree=cKDTree(corner_points), end_centred=end_points - centre,
     )
 
 
@@ -721,8 +729,8 @@ def _vote(
     if len(ia) == 0:
         return []
     c, s = math.cos(theta), math.sin(theta)
-    pb = fb.end_points[ib] - fb.centre
-    pa = fa.end_points[ia] - fa.centre
+    pb = fb.end_centred[ib]
+    pa = fa.end_centred[ia]
     tx = pa[:, 0] - (c * pb[:, 0] - s * pb[:, 1])
     ty = pa[:, 1] - (s * pb[:, 0] + c * pb[:, 1])
     wv = np.minimum(np.minimum(fa.end_weights[ia], fb.end_weights[ib]), cfg.vote_weight_cap)
@@ -926,7 +934,7 @@ def _matched_corners(
     if len(fa.corner_points) == 0 or len(fb.corner_points) == 0:
         return 0
     gate = cfg.corner_match_dist if dist is None else dist
-    d, _ = cKDTree(fa.corner_points).query(T.apply(fb.corner_points), k=1, distance_upper_bound=gate)
+    d, _ = fa.corner_tree.query(T.apply(fb.corner_points), k=1, distance_upper_bound=gate)
     return int(np.isfinite(d).sum())
 
 
@@ -938,7 +946,7 @@ def _matched_ends(fa: MapFeatures, fb: MapFeatures, T: Pose, cfg: RegistrationCo
     ends."""
     if len(fa.end_points) == 0 or len(fb.end_points) == 0:
         return 0
-    d, idx = cKDTree(fa.end_points).query(T.apply(fb.end_points), k=4, distance_upper_bound=dist)
+    d, idx = fa.end_tree.query(T.apply(fb.end_points), k=4, distance_upper_bound=dist)
     ok = np.isfinite(d)
     idx_c = np.where(ok, idx, 0)
     ok &= fa.end_starts[idx_c] == fb.end_starts[:, None]
