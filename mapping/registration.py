@@ -664,7 +664,15 @@ def _angle_pairs(
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
     ia = np.concatenate(ia_l)
     ib = np.concatenate(ib_l)
-    ok = np.abs(_wrap(ang_a[ia] - ang_b[ib])) <= tol
+    d = ang_a[ia] - ang_b[ib]
+    ad = np.abs(d)
+    ok = ad <= tol
+    # ``_wrap`` (a float remainder, the costly part) changes a difference well inside
+    # (-pi, pi) by an ulp at most: only differences near ``tol`` or beyond 3 rad (across the
+    # wrap) need it for the same decision.
+    unsure = (np.abs(ad - tol) <= 1e-9) | (ad >= 3.0)
+    if unsure.any():
+        ok[unsure] = np.abs(_wrap(d[unsure])) <= tol
     return ia[ok], ib[ok]
 
 
