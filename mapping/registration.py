@@ -686,7 +686,7 @@ def _top_cells(grid: FloatArray, k: int) -> IntArray:
     than ``k``) which tied cells are kept is up to ``argpartition``, so it is asked on the whole
     grid, as before, for the same choice.
     """
-    nz = np.flatnonzero(grid)
+    nz = np.flatnonzero(grid != 0.0)
     if 0 < k < len(nz):
         vals = grid[nz]
         part = np.argpartition(-vals, k)
@@ -737,10 +737,10 @@ def _vote(
     if len(ia) == 0:
         return []
     c, s = math.cos(theta), math.sin(theta)
-    pb = fb.end_centred[ib]
-    pa = fa.end_centred[ia]
-    tx = pa[:, 0] - (c * pb[:, 0] - s * pb[:, 1])
-    ty = pa[:, 1] - (s * pb[:, 0] + c * pb[:, 1])
+    # Gathered per coordinate from contiguous copies (a row gather of a (f, 2) array is slower).
+    bx, by = fb.end_centred[:, 0].copy()[ib], fb.end_centred[:, 1].copy()[ib]
+    tx = fa.end_centred[:, 0].copy()[ia] - (c * bx - s * by)
+    ty = fa.end_centred[:, 1].copy()[ia] - (s * bx + c * by)
     wv = np.minimum(np.minimum(fa.end_weights[ia], fb.end_weights[ib]), cfg.vote_weight_cap)
     if len(wv) > cfg.coarse_vote_pairs:
         tx, ty, wv = _coarse_select(tx, ty, wv, cfg)
