@@ -120,6 +120,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import numpy as np
 from numpy.typing import NDArray
@@ -369,6 +370,62 @@ class RegistrationConfig:
 
 
 @dataclass(frozen=True, eq=False)
+class CellMask:
+    """Which cells of a square grid have one of a set of points within ``radius`` (a cheap
+    superset test in front of a k-d tree query with ``distance_upper_bound=radius``).
+
+    The cells are ``5 %`` wider than ``radius`` and each point marks its own cell and the eight
+    around it, so a point that a bounded query would find is always in a marked cell, with room
+    for the rounding of the division; a query point in an unmarked cell has nothing within
+    ``radius`` and need not be asked.
+
+    Attributes
+    ----------
+    radius, cell : float
+    origin : (2,) int64
+        Cell index of ``mask[0, 0]``.
+    mask : (nx, ny) bool
+    """
+
+    radius: float
+    cell: float
+    origin: IntArray
+    mask: BoolArray
+
+    def near(self, q: FloatArray) -> BoolArray:
+        """Whether each of ``q`` (n, 2) lies in a marked cell."""
+        ij = np.floor(q / self.cell).astype(np.int64) - self.origin
+        nx, ny = self.mask.shape
+        ok = (ij[:, 0] >= 0) & (ij[:, 1] >= 0) & (ij[:, 0] < nx) & (ij[:, 1] < ny)
+        out = np.zeros(len(q), dtype=bool)
+        out[ok] = self.mask[ij[ok, 0], ij[ok, 1]]
+        return out
+
+
+MAX_MASK_CELLS = 4_000_000  # larger maps do without a cell mask (memory)
+MIN_MASK_QUERY = 500  # fewer query points go straight to the tree (the mask's fixed cost)
+
+
+def _cell_mask(points: FloatArray, radius: float) -> CellMask | None:
+    """The :class:`CellMask` of ``points`` for queries within ``radius`` (None when there are no
+    points or the grid would have more than ``MAX_MASK_CELLS`` cells)."""
+    if len(points) == 0 or not radius > 0:
+        return None
+    cell = 1.05 * radius
+    ij = np.floor(points / cell).astype(np.int64)
+    lo = ij.min(axis=0) - 1
+    shape = ij.max(axis=0) - lo + 2
+    if int(shape[0]) * int(shape[1]) > MAX_MASK_CELLS:
+        return None
+    mask = np.zeros((int(shape[0]), int(shape[1])), dtype=bool)
+    ij -= lo
+    for dx in (-1, 0, 1):
+        for dy in (-1, 0, 1):
+            mask[ij[:, 0] + dx, ij[:, 1] + dy] = True
+    return CellMask(radius=radius, cell=cell, origin=lo, mask=mask)
+
+
+@dataclass(frozen=True, eq=False)
 class MapFeatures:
     """What registration needs of one map (:func:`prepare`), in the map's own frame.
 
@@ -406,10 +463,12 @@ class MapFeatures:
     conflict_weights : (k,)
         Wall length per sample as it counts in a conflict: times its edge's likelihood, 0 on
         edges shorter than ``conflict_min_wall`` and within ``frontier_margin`` of a frontier.
-    end_tree, corner_tree : cKDTree
-        Over ``end_points`` and ``corner_points`` (built once per map, not per hypothesis).
-    end_centred : (f, 2)
-        ``end_points - centre`` (the vote's coordinates).
+    config : RegistrationConfig
+        The configuration it was prepared with.
+
+    Derived data is built on first use and kept (once per map, not per hypothesis):
+    :attr:`end_tree`, :attr:`corner_tree`, :attr:`end_centred`, :attr:`probe_cells`,
+    :attr:`sample_cells`.
     """
 
     wireframe: Wireframe
@@ -430,9 +489,32 @@ class MapFeatures:
     owner: IntArray
     corner_points: FloatArray
     conflict_weights: FloatArray
-    end_tree: cKDTree
-    corner_tree: cKDTree
-    end_centred: FloatArray
+    config: RegistrationConfig
+
+    @cached_property
+    def end_tree(self) -> cKDTree:
+        """k-d tree over ``end_points``."""
+        return cKDTree(self.end_points.reshape(-1, 2))
+
+    @cached_property
+    def corner_tree(self) -> cKDTree:
+        """k-d tree over ``corner_points``."""
+        return cKDTree(self.corner_points)
+
+    @cached_property
+    def end_centred(self) -> FloatArray:
+        """``end_points - centre`` (the vote's coordinates)."""
+        return np.asarray(self.end_points - self.centre, dtype=np.float64)
+
+    @cached_property
+    def probe_cells(self) -> CellMask | None:
+        """Cells near a free probe (``conflict_radius``): points elsewhere need no probe query."""
+        return _cell_mask(self.probes, self.config.conflict_radius)
+
+    @cached_property
+    def sample_cells(self) -> CellMask | None:
+        """Cells near a wall sample (the larger of ``coarse_match_dist`` and ``match_dist``)."""
+        return _cell_mask(self.points, max(self.config.coarse_match_dist, self.config.match_dist))
 
 
 @dataclass(frozen=True)
@@ -601,8 +683,7 @@ def prepare(wf: Wireframe, config: RegistrationConfig | None = None) -> MapFeatu
         weights=w, tree=tree, probes=probes, probe_tree=probe_tree, end_points=end_points,
         end_angles=end_angles, end_starts=end_starts, end_weights=end_weights, histogram=hist, length=total,
         owner=kept[owner].astype(np.int64), corner_points=corner_points,
-        conflict_weights=np.asarray(cw, dtype=np.float64), end_tree=cKDTree(end_points.reshape(-1, 2)),
-        corner_tree=cKDTree(corner_points), end_centred=end_points - centre,
+        conflict_weights=np.asarray(cw, dtype=np.float64), config=cfg,
     )
 
 
@@ -799,7 +880,15 @@ def _match(
     """B samples (every ``stride``-th) moved by ``T`` matched to A samples: ``(ib, ia)``."""
     sel = np.arange(0, len(fb.points), stride)
     q = T.apply(fb.points[sel])
-    dist, idx = fa.tree.query(q, k=3, distance_upper_bound=gate)
+    cells = fa.sample_cells
+    if cells is None or gate > cells.radius or len(q) < MIN_MASK_QUERY:
+        dist, idx = fa.tree.query(q, k=3, distance_upper_bound=gate)
+    else:  # only the points near a sample are asked; the others have no neighbour
+        dist = np.full((len(q), 3), np.inf)
+        idx = np.full((len(q), 3), len(fa.points), dtype=np.int64)
+        near = cells.near(q)
+        if near.any():
+            dist[near], idx[near] = fa.tree.query(q[near], k=3, distance_upper_bound=gate)
     R = _rot(T.theta)
     db = fb.directions[sel] @ R.T
     ok = np.isfinite(dist)
@@ -820,8 +909,14 @@ def _conflict_one(fp: MapFeatures, fw: MapFeatures, T: Pose, cfg: RegistrationCo
     if len(sel) == 0:
         return 0.0
     q = T.apply(fw.points[sel])
-    d, _ = fp.probe_tree.query(q, k=1, distance_upper_bound=cfg.conflict_radius)
-    hit = np.isfinite(d)
+    hit = (
+        np.ones(len(q), dtype=bool)
+        if fp.probe_cells is None or len(q) < MIN_MASK_QUERY
+        else fp.probe_cells.near(q)
+    )
+    if hit.any():
+        d, _ = fp.probe_tree.query(q[hit], k=1, distance_upper_bound=cfg.conflict_radius)
+        hit[hit] = np.isfinite(d)
     if not hit.any():
         return 0.0
     sel, q = sel[hit], q[hit]
