@@ -794,7 +794,7 @@ def _coarse_select(
     cy -= cy.min() - 1
     ny = int(cy.max()) + 2
     key = cx * ny + cy
-    grid = np.bincount(key, weights=wv, minlength=(int(cx.max()) + 2) * ny)
+    grid = np.asarray(np.bincount(key, weights=wv, minlength=(int(cx.max()) + 2) * ny), dtype=np.float64)
     k = min(cfg.coarse_vote_cells, len(grid) - 1)
     strong = _top_cells(grid, k)
     keep = np.zeros(len(grid), dtype=bool)
@@ -1073,7 +1073,13 @@ def _self_ratio(f: MapFeatures, samples: IntArray, cfg: RegistrationConfig) -> f
     """
     mask = np.zeros(f.wireframe.n_edges, dtype=bool)
     mask[f.owner[samples]] = True
-    region = prepare(f.wireframe.subgraph_edges(mask), cfg)
+    wf = f.wireframe
+    if mask.all() and f.config == cfg and np.isin(np.arange(wf.n_vertices), wf.edges).all():
+        # The part is the whole map (same arrays: every vertex is on an edge), whose features
+        # are at hand.
+        region = f
+    else:
+        region = prepare(wf.subgraph_edges(mask), cfg)
     if len(region.end_points) == 0 or len(region.corner_points) == 0:
         return 0.0
     cands: list[tuple[float, Pose]] = []
