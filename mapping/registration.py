@@ -107,13 +107,17 @@ uses the individual gates above, all reported in :class:`Registration`.
 
 Determinism: no randomness at all (exhaustive voting, not RANSAC); ties are broken by index.
 
-Cost (CPU time of one process on a shared 2-core machine, ``time.process_time``): about 30 ms
-(median) for the bench's map pairs; about 100 ms for two 228-corner halves of the museum and
-170-180 ms for two 281-corner halves (2.5 km of wall each) -- over the 50 ms target for 300
-corners. The time goes to the translation vote (every same-direction wall-end pair of a
-rectilinear map votes; the coarse vote bounds the fine grid), the self-similarity check of an
-accepted match (step 6, a vote of the overlap against each whole map) and the scoring.
-:func:`prepare` is a small part and can be cached per map.
+Cost (CPU time of one process on a shared 2-core machine, ``time.process_time``): about 25-30 ms
+(median) for the bench's map pairs; about 65 ms for two museum halves cut at the median with 10 m
+of overlap (164 and 161 corners) and 115-135 ms for two noisy copies of the whole museum (281
+corners, 2.5 km of wall each; 175-190 ms before the exact speed-ups of ``docs/experiments.md``)
+-- over the 50 ms target for 300 corners. The time goes to the translation vote (every
+same-direction wall-end pair of a rectilinear map votes, about 41,000 pairs per rotation for the
+museum; the coarse vote bounds the fine grid), the self-similarity check of an accepted match
+(step 6, a vote of the overlap against each whole map), the refinement and the scoring (k-d tree
+queries; a :class:`CellMask` skips the points with nothing near). :func:`prepare` is a small part
+and can be cached per map; what it derives lazily (trees over wall ends and corners, the masks)
+is kept with the features.
 """
 
 from __future__ import annotations
