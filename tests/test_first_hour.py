@@ -161,7 +161,7 @@ def test_map_ctrl_c_writes_what_there_is(tmp_path: Path) -> None:
     out = tmp_path / "m"
     env = {"PYTHONUNBUFFERED": "1", "PATH": "/usr/bin:/bin"}
     p = subprocess.Popen(
-        [sys.executable, "-m", "agents", "map", "--world", "museum", "--particles", "2", "--out", str(out)],
+        [sys.executable, "-m", "agents", "map", "--world", "office", "--particles", "2", "--out", str(out)],
         cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env, text=True,
     )
     try:

@@ -393,8 +393,8 @@ def test_run_unknown_starts_on_paper_small(tmp_path: Path):
     with Fleet(tmp_path) as fleet:
         fleet.start(
             "run",
-            ["run", "--world", "paper-small", "--robots", "2", "--unknown-starts", "--duration", "25",
-             "--seed", "3", "--rate", "10", "--out", out, "--no-progress"],
+            ["run", "--world", "paper-small", "--robots", "2", "--unknown-starts", "--duration", "12.5",
+             "--seed", "3", "--rate", "20", "--out", out, "--no-progress"],
         )
         p = fleet.procs["run"]
         wait_until(lambda: p.poll() is not None, 180, "wiremap run to finish")

@@ -3,10 +3,12 @@
 The robot agent runs in its own network namespace, joined to the host by a veth pair with
 link-local addresses (``169.254.A.B/30``, chosen per run; traffic never leaves this machine). The
 router listens on the host end of the pair (for the robot) and on 127.0.0.1 (for the fusion
-service and this test's observer). The cut takes the namespace's end of the pair down for
-``WIREMAP_PARTITION_S`` seconds (default 30: longer than Zenoh's 10 s lease, so the router drops
-the robot's session and its liveliness token, and the robot must reconnect by itself), then
-brings it up again.
+service and this test's observer). The router and the robot run with a Zenoh lease of
+``LEASE_S`` (2 s, from a ``--config`` file written by the test; Zenoh's default is 10 s), so that
+a short cut is already a long one for Zenoh. The cut takes the namespace's end of the pair down
+for ``WIREMAP_PARTITION_S`` seconds (default 6: three leases, so the router drops the robot's
+session and its liveliness token, and the robot must reconnect by itself), then brings it up
+again.
 
 Measured after the heal: the robot's newest map ``seq`` (``maps_sent`` in its first pose message
 after the heal) must be in the fusion service's store (``state.json``, written after the fused
@@ -42,7 +44,8 @@ from wire_codec import decode
 
 pytestmark = pytest.mark.fleet
 
-PARTITION_S = float(os.environ.get("WIREMAP_PARTITION_S", "30"))
+LEASE_S = 2.0  # the router's and the robot's Zenoh lease (Zenoh's default: 10 s)
+PARTITION_S = float(os.environ.get("WIREMAP_PARTITION_S", str(3 * LEASE_S)))
 HEAL_LIMIT_S = 20.0
 FLEET = "partition"
 
@@ -160,6 +163,19 @@ def wait(cond: Any, timeout: float, what: str, procs: Procs) -> Any:
         time.sleep(0.05)
 
 
+def short_lease_config(path: Path, mode: str) -> Path:
+    """A Zenoh configuration file (``--config``): ``mode``, multicast scouting off (as the
+    embedded defaults) and a lease of :data:`LEASE_S` (keep-alives four times a lease, Zenoh's
+    default ratio)."""
+    cfg = {
+        "mode": mode,
+        "scouting": {"multicast": {"enabled": False}},
+        "transport": {"link": {"tx": {"lease": int(LEASE_S * 1000), "keep_alive": 4}}},
+    }
+    path.write_text(json.dumps(cfg))
+    return path
+
+
 def store_seq(store: Path) -> int:
     return int(((read_state(store).get("robots") or {}).get("r1") or {}).get("seq", 0))
 
@@ -176,7 +192,8 @@ def test_robot_cut_off_then_healed_reaches_the_fused_map(tmp_path: Path) -> None
         ep_veth, ep_lo = f"tcp/{net['host_ip']}:{p_veth}", f"tcp/127.0.0.1:{p_lo}"
         store = tmp_path / "store"
         with Procs(tmp_path / "logs") as procs:
-            procs.start("router", ["-m", "agents", "router", "--listen", ep_veth, "--listen", ep_lo])
+            procs.start("router", ["-m", "agents", "router", "--listen", ep_veth, "--listen", ep_lo,
+                                   "--config", str(short_lease_config(tmp_path / "router.json5", "router"))])
             obs = Observer(ep_lo)
             try:
                 procs.start("fuse",
@@ -187,7 +204,8 @@ def test_robot_cut_off_then_healed_reaches_the_fused_map(tmp_path: Path) -> None
                     "r1",
                     ["-m", "agents", "robot", "--id", "r1", "--world", "paper-small", "--route",
                      str(tmp_path / "route.json"),
-                     "--rate", "4", "--viz-rate", "0", "--connect", ep_veth, "--fleet", FLEET],
+                     "--rate", "4", "--viz-rate", "0", "--connect", ep_veth, "--fleet", FLEET,
+                     "--config", str(short_lease_config(tmp_path / "robot.json5", "client"))],
                     prefix=["ip", "netns", "exec", net["ns"]],
                 )
                 wait(lambda: obs.first("fused", 0.0, lambda f: "r1" in f[2]), 60,
@@ -233,7 +251,7 @@ def test_robot_cut_off_then_healed_reaches_the_fused_map(tmp_path: Path) -> None
                 )
                 assert heal_s < HEAL_LIMIT_S
                 assert "r1" in fused[2]
-                if PARTITION_S >= 15:  # beyond the 10 s lease the token goes, and comes back
+                if PARTITION_S >= 1.5 * LEASE_S:  # beyond the lease the token goes, and comes back
                     assert stale_seen, "r1's liveliness token did not go during a cut longer than the lease"
                     wait(lambda: obs.first("fused", t_heal, lambda f: "r1" not in f[3]), HEAL_LIMIT_S,
                          "r1 no longer stale", procs)

@@ -5,11 +5,13 @@ Site B (inside the namespace): its own router on the namespace's loopback and ve
 connected to site A's router over the veth; robots r1-r4 (replay robots, synthetic maps) and
 their regional fuser ``site-b`` connect to it. Site A (the host): a router, robots r5-r8, their
 regional fuser ``site-a`` and the root. Both fusers run with ``--no-standby`` (robot maps stay
-in their site; only partials cross). The fused map arrives with all eight robots; then site B's
-veth is down for ``WIREMAP_SITE_CUT_S`` (10) seconds and up again: within ``HEAL_LIMIT_S`` the
-fused map carries site B's partial again and site B's fuser holds each of its robots' maps sent
-up to the heal (its store); nothing is lost. Skips (with the reason) where namespaces cannot be
-made.
+in their site; only partials cross). Both routers run with a Zenoh lease of
+:data:`tests.test_partition.LEASE_S` (2 s; Zenoh's default is 10 s), so that the cut outlasts the
+lease: the link between the sites is dropped, not merely quiet. The fused map arrives with all
+eight robots; then site B's veth is down for ``WIREMAP_SITE_CUT_S`` (default 6: three leases)
+seconds and up again: within ``HEAL_LIMIT_S`` the fused map carries site B's partial again and
+site B's fuser holds each of its robots' maps sent up to the heal (its store); nothing is lost.
+Skips (with the reason) where namespaces cannot be made.
 """
 
 from __future__ import annotations
@@ -25,12 +27,12 @@ import pytest
 from agents.bench.common import Procs, read_state
 from agents.bench.tree import synthetic_recordings
 from agents.fleet.bus import FleetKeys, build_config, free_port, open_session
-from tests.test_partition import _ip, namespace, wait
+from tests.test_partition import LEASE_S, _ip, namespace, short_lease_config, wait
 from wire_codec import decode
 
 pytestmark = pytest.mark.fleet
 
-CUT_S = float(os.environ.get("WIREMAP_SITE_CUT_S", "10"))
+CUT_S = float(os.environ.get("WIREMAP_SITE_CUT_S", str(3 * LEASE_S)))
 HEAL_LIMIT_S = 20.0
 FLEET = "sites"
 
@@ -84,8 +86,11 @@ def test_tree_across_two_sites_survives_a_cut_link(tmp_path: Path) -> None:
         bus_a = ["--connect", ep_a, "--fleet", FLEET]
         bus_b = ["--connect", ep_b, "--fleet", FLEET]
         with Procs(tmp_path / "logs") as procs:
-            procs.start("router-a", ["-m", "agents", "router", "--listen", ep_a, "--listen", ep_a_veth])
-            procs.start("router-b", ["-m", "agents", "router", "--listen", ep_b, "--connect", ep_a_veth],
+            router_cfg = ["--config", str(short_lease_config(tmp_path / "router.json5", "router"))]
+            procs.start("router-a",
+                        ["-m", "agents", "router", "--listen", ep_a, "--listen", ep_a_veth, *router_cfg])
+            procs.start("router-b",
+                        ["-m", "agents", "router", "--listen", ep_b, "--connect", ep_a_veth, *router_cfg],
                         prefix=in_ns)
             obs = FusedLog(ep_a)
             try:
@@ -126,6 +131,10 @@ def test_tree_across_two_sites_survives_a_cut_link(tmp_path: Path) -> None:
                 assert last is None or last[1].robots == ids, (
                     "the fused map lost site B's robots during the cut"
                 )
+                if CUT_S >= 1.5 * LEASE_S:  # beyond the lease the link goes: site B's tokens with it
+                    assert obs.first(t_cut, lambda m: set(ids[:4]) <= set(m.meta.get("stale", []))), (
+                        "site B's robots were not stale during a cut longer than the lease"
+                    )
 
                 # --- heal
                 _ip("link", "set", net["veth_ns"], "up", ns=net["ns"])
