@@ -464,15 +464,16 @@ def carmen_inputs(
         scans = log
     if steps is not None:
         scans = scans[:steps]
+    # Points: every return short of the scanner's saturation value, up to the front end's range.
+    pts = [scan_points(np.where(np.asarray(ls.ranges) >= float(ls.max_range), np.inf,
+                                np.asarray(ls.ranges, dtype=np.float64)),
+                       np.asarray(ls.angles, dtype=np.float64), fcfg) for ls in scans]
     smoothed: list[Pose] | None = None
     if fcfg.slam.enabled:
         # Lidar SLAM over the whole log first (mapping.lidar_slam); the filter then maps on its
         # smoothed increments.
         from mapping.lidar_frontend import slam_increments
 
-        pts = [scan_points(np.where(np.asarray(ls.ranges) >= float(ls.max_range), np.inf,
-                                    np.asarray(ls.ranges, dtype=np.float64)),
-                           np.asarray(ls.angles, dtype=np.float64), fcfg) for ls in scans]
         wheel = [Pose.identity(), *(a.odom.between(b.odom) for a, b in itertools.pairwise(scans))]
         smoothed = slam_increments(pts, wheel, fcfg.slam)[0]
     prev: Pose | None = None
@@ -483,8 +484,7 @@ def carmen_inputs(
         angles = np.asarray(ls.angles, dtype=np.float64)
         ranges = np.where(raw >= rmax, np.inf, raw)
         scan = extract_corners(ranges, angles, rmax, ecfg)
-        # Points: every return short of the scanner's saturation value, up to the front end's range.
-        points = scan_points(np.where(raw >= float(ls.max_range), np.inf, raw), angles, fcfg)
+        points = pts[k]
         odo = Pose.identity() if prev is None else prev.between(ls.odom)
         if smoothed is not None:
             odo = smoothed[k]
