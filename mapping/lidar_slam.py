@@ -452,6 +452,18 @@ class Edge:
     robust: bool = False
 
 
+def _edge_errors(x: FloatArray, ii: NDArray[np.int64], jj: NDArray[np.int64], z: FloatArray) -> FloatArray:
+    """``t2v(z^-1 (x_i^-1 x_j))`` of every edge ``(m, 3)``: ``e_xy = R_z^T (R_i^T (t_j - t_i) - t_z)``."""
+    xi, xj = x[ii], x[jj]
+    ci, si = np.cos(xi[:, 2]), np.sin(xi[:, 2])
+    cz, sz = np.cos(z[:, 2]), np.sin(z[:, 2])
+    dx, dy = xj[:, 0] - xi[:, 0], xj[:, 1] - xi[:, 1]
+    ax = ci * dx + si * dy - z[:, 0]
+    ay = -si * dx + ci * dy - z[:, 1]
+    return np.stack([cz * ax + sz * ay, -sz * ax + cz * ay,
+                     (xj[:, 2] - xi[:, 2] - z[:, 2] + np.pi) % (2 * np.pi) - np.pi], axis=1)
+
+
 def optimize(poses: FloatArray, edges: list[Edge], iterations: int = 10, kernel: float = 3.0) -> FloatArray:
     """Gauss-Newton over the poses ``(n, 3)`` with node 0 fixed; returns the new poses.
 
@@ -471,14 +483,10 @@ def optimize(poses: FloatArray, edges: list[Edge], iterations: int = 10, kernel:
     # Block (p, q) of an edge goes to rows 3p.., cols 3q..: the 9 (row, col) pairs of each.
     r3, c3 = np.repeat(np.arange(3), 3), np.tile(np.arange(3), 3)
     for _ in range(iterations):
+        err = _edge_errors(x, ii, jj, z)
         xi, xj = x[ii], x[jj]
         ci, si = np.cos(xi[:, 2]), np.sin(xi[:, 2])
         dx, dy = xj[:, 0] - xi[:, 0], xj[:, 1] - xi[:, 1]
-        # a = R_i^T dt - t_z; e_xy = R_z^T a.
-        ax = ci * dx + si * dy - z[:, 0]
-        ay = -si * dx + ci * dy - z[:, 1]
-        err = np.stack([cz * ax + sz * ay, -sz * ax + cz * ay,
-                        (xj[:, 2] - xi[:, 2] - z[:, 2] + np.pi) % (2 * np.pi) - np.pi], axis=1)
         # R_z^T R_i^T = R(-(th_i + th_z)).
         c, s_ = np.cos(xi[:, 2] + z[:, 2]), np.sin(xi[:, 2] + z[:, 2])
         rt = np.stack([np.stack([c, s_], 1), np.stack([-s_, c], 1)], 1)  # (m, 2, 2)
@@ -520,17 +528,13 @@ def optimize(poses: FloatArray, edges: list[Edge], iterations: int = 10, kernel:
     return x
 
 
-def _edge_error(x: FloatArray, e: Edge) -> FloatArray:
-    xi, xj = x[e.i], x[e.j]
-    err = np.empty(3)
-    err[:2] = _rot(e.z[2]).T @ (_rot(xi[2]).T @ (xj[:2] - xi[:2]) - e.z[:2])
-    err[2] = wrap_angle(xj[2] - xi[2] - e.z[2])
-    return err
-
-
-def _chi2(x: FloatArray, e: Edge) -> float:
-    err = _edge_error(x, e)
-    return float(err @ e.omega @ err)
+def _chi2(x: FloatArray, edges: list[Edge]) -> FloatArray:
+    """Each edge's ``e^T omega e`` at the poses ``x``."""
+    if not edges:
+        return np.zeros(0)
+    err = _edge_errors(x, np.array([e.i for e in edges]), np.array([e.j for e in edges]),
+                       np.array([e.z for e in edges]))
+    return np.asarray(np.einsum("mi,mij,mj->m", err, np.array([e.omega for e in edges]), err))
 
 
 # ------------------------------------------------------------------------------------- the SLAM
@@ -665,8 +669,8 @@ class LidarSlam:
         # Verification by the graph: a loop the chain of matches can only meet by straining
         # some of its links far beyond their noise is an alias (a corridor's other door), not
         # a loop. The chain's links are the sequential edges.
-        strain = max(_chi2(poses, e) for e in self.edges if e.j == e.i + 1)
-        if strain > cfg.loop_max_chi2 or _chi2(poses, edge) > cfg.loop_max_chi2:
+        strain = float(_chi2(poses, [e for e in self.edges if e.j == e.i + 1]).max(initial=0.0))
+        if strain > cfg.loop_max_chi2 or float(_chi2(poses, [edge])[0]) > cfg.loop_max_chi2:
             self.rejected.append((j, k))
             return
         self.edges.append(edge)

@@ -153,6 +153,18 @@ def _common(
     }
 
 
+def _registration_report(fr: dict[str, Any], root: Any, starts: dict[str, Pose]) -> dict[str, Any]:
+    """The report's registration keys (both kinds of run): the fleet frame's root, who joined
+    it, the islands, each registration's error against the true starts, and the attempts."""
+    return {
+        "fleet_root": root,
+        "registered": list(fr.get("registered", [])),
+        "islands": fr.get("islands", {}),
+        "registration_errors": _pose_errors(fr, starts),
+        "registrations": fr.get("registrations", []),
+    }
+
+
 def _pose_errors(fr: dict[str, Any], starts: dict[str, Pose]) -> dict[str, Any]:
     """Each registered robot's pose in the fleet frame against the true relative start."""
     from agents.fleet.carmen_fleet import pose_error
@@ -214,11 +226,7 @@ def write_outputs_unknown(
     report = {
         "world": world.name,
         "unknown_starts": True,
-        "fleet_root": root,
-        "registered": list(fr.get("registered", [])),
-        "islands": fr.get("islands", {}),
-        "registration_errors": _pose_errors(fr, starts),
-        "registrations": fr.get("registrations", []),
+        **_registration_report(fr, root, starts),
         "fused": fused,
         "per_robot": per_robot,
         "resolution": res,
@@ -274,11 +282,7 @@ def write_outputs_carmen(
     report = {
         "log": world.name,
         "carmen": world.path,
-        "fleet_root": root,
-        "registered": list(fr.get("registered", [])),
-        "islands": fr.get("islands", {}),
-        "registration_errors": _pose_errors(fr, starts),
-        "registrations": fr.get("registrations", []),
+        **_registration_report(fr, root, starts),
         "fused": fused,
         "per_robot": per_robot,
     }

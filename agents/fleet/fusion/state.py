@@ -44,7 +44,7 @@ from agents.fleet.fusion.quarantine import (
 )
 from agents.fleet.fusion.stats import MAX_LATENCIES, FusionStats
 from agents.fleet.fusion.store import LATENCY_LOG, StoreDamaged, StoreJob, read_latency_log, read_store
-from agents.fleet.fusion.tree import merge_on_grid, wire_snap
+from agents.fleet.fusion.tree import merge_on_grid, prefix_spans, wire_snap
 from mapping.fleet import align_maps, close_frontiers, fold_split
 from mapping.se2 import Pose
 from mapping.wireframe import Wireframe
@@ -726,20 +726,7 @@ class FusionState:
         """The map of the robots before fold position ``k`` (what robot ``k`` is aligned onto):
         the tree's nodes that cover ``[0, k)``, merged left to right. For ``k <= 2`` and for
         fleets of up to three robots that is exactly the left fold of their maps."""
-        parts: list[tuple[Wireframe, Any]] = []
-        lo, hi = 0, len(leaves)
-        while k > lo and hi - lo > 0:
-            if k >= hi:
-                parts.append(self._node(lo, hi, leaves, thr))
-                break
-            if hi - lo == 1:
-                break
-            mid = fold_split(lo, hi)
-            if k <= mid:
-                hi = mid
-            else:
-                parts.append(self._node(lo, mid, leaves, thr))
-                lo = mid
+        parts = [self._node(lo, hi, leaves, thr) for lo, hi in prefix_spans(k, len(leaves))]
         if self.base is not None:
             parts.insert(0, (self.base[1], self.base[0]))
         key = (thr, *(ident for _, ident in parts))

@@ -228,7 +228,7 @@ def fold_groups(ids: Sequence[str], k: int) -> list[list[str]]:
 
 def prefix_spans(k: int, n: int) -> list[tuple[int, int]]:
     """The fold tree's nodes that cover ``[0, k)`` (left to right): what robot ``k`` is aligned
-    onto (:meth:`FusionState._prefix_map` walks the same way)."""
+    onto (:meth:`FusionState._prefix_map` merges these nodes)."""
     out: list[tuple[int, int]] = []
     lo, hi = 0, n
     while k > lo and hi - lo > 0:
