@@ -8,6 +8,7 @@ import time
 import numpy as np
 import pytest
 
+from agents.errors import UserError
 from agents.fleet.bus import FleetKeys
 from agents.fleet.fusion import FusionConfig, FusionState, decode_message, encode_message
 from agents.fleet.fusion.tree import (
@@ -15,6 +16,7 @@ from agents.fleet.fusion.tree import (
     RootState,
     fold_groups,
     fold_nodes,
+    fold_ranges,
     is_fold_node,
     prefix_spans,
     remap_sources,
@@ -84,6 +86,22 @@ def test_selectors():
     assert sorted(r for s in h for r in ids if s.matches(r)) == sorted(ids)  # a partition
 
 
+@pytest.mark.parametrize(("n", "k"), [(1, 2), (3, 2), (8, 2), (16, 4), (48, 2), (64, 3)])
+def test_fold_ranges_take_the_subtrees_and_every_late_joiner_once(n, k):
+    """``wiremap run --fusers K``'s patterns: each range takes exactly its subtree of the ids it
+    was made from, and any other id (a robot that joins later) falls in exactly one range."""
+    ids = [f"r{j + 1}" for j in range(n)]
+    sels = [RobotSelector.parse(p) for p in fold_ranges(ids, k)]
+    assert [[r for r in sorted(ids) if s.matches(r)] for s in sels] == fold_groups(ids, k)
+    late = ["r0", "r1a", "r10b", "r99", "r100000", "a", "z", "R5", "r2-x", "r3.1", "_", "~"]
+    for rid in late:
+        assert sum(s.matches(rid) for s in sels) == 1, rid
+    with pytest.raises(UserError):
+        RobotSelector.parse("range:r5:r1")
+    with pytest.raises(UserError):
+        RobotSelector.parse("range:r/5:")
+
+
 # ---------------------------------------------------------------------- the same map
 @pytest.mark.parametrize(("n", "k"), [(3, 2), (16, 2), (16, 4), (24, 2), (32, 2)])
 def test_tree_of_subtrees_gives_the_one_process_map(n, k):
@@ -144,10 +162,10 @@ def test_two_regional_fusers_and_a_root_publish_the_one_process_map(tmp_path):
             got = watcher.wait_for(same, 60.0, "the one-process map")
             assert got.meta["exact"] and got.meta["stale"] == []
             stats = wait_until(
-                lambda: (d := query_stats(s, keys, 2.0)) and set(d["groups"]) == {"g0", "g1"} and d, 10.0,
-                "root stats"
+                lambda: (d := query_stats(s, keys, 2.0)) and d["version"] >= got.seq and d, 10.0,
+                "root stats of that version"
             )
-            assert stats["role"] == "root" and stats["exact"]
+            assert stats["role"] == "root" and stats["exact"] and set(stats["groups"]) == {"g0", "g1"}
             # a takeover of g1 started while g1 was only cut off (its partial with a newer boot):
             # g1, alive, takes a newer boot still and the root follows it again
             import dataclasses
@@ -248,3 +266,97 @@ def _union(a, b):
         np.vstack([a.edges, b.edges + n]), np.concatenate([a.likelihood, b.likelihood]),
         np.zeros(a.n_edges + b.n_edges, dtype=np.uint64),
     )
+
+
+@pytest.mark.fleet
+def test_late_joiners_land_in_one_group_and_a_standby_root_takes_over(tmp_path, record_property):
+    """``wiremap run --fusers 2``'s id ranges: a robot that joins later (``r04b``, ``r09``)
+    lands in exactly one group. Two roots: the younger is a standby that publishes nothing;
+    kill -9 of the active root: the standby takes over, a subscriber joining after the kill is
+    answered at once with the last fused map (every robot), and the tree keeps fusing (a robot
+    joining after the failover reaches the map) with versions that never go back."""
+    import dataclasses
+
+    from tests.fleet_util import query_fused, record
+
+    views = robot_views("museum", 10, seed=5)
+    late = [dataclasses.replace(views[8], sender="r04b", frame="odom/r04b"),
+            dataclasses.replace(views[9], sender="r09", frame="odom/r09")]
+    msgs = views[:8]
+    keys = FleetKeys("tree3")
+    ranges = fold_ranges([m.sender for m in msgs], 2)
+    assert ranges == ["range::r05", "range:r05:"]
+    with in_process_router() as ep, Fleet(tmp_path) as fleet, client(ep) as s:
+        bus = ["--connect", ep, "--fleet", "tree3", "--threshold", repr(THR), "--no-refine"]
+        for g, pattern in enumerate(ranges):
+            fleet.start(f"g{g}", ["fuse", "--group", f"g{g}", "--robots", pattern, *bus])
+        fleet.start("rootA", ["fuse", "--of-groups", "*", "--store", str(tmp_path / "sa"), *bus])
+        for name in ("g0", "g1", "rootA"):
+            fleet.wait_log(name, "ready", 60.0)
+        fleet.start("rootB", ["fuse", "--of-groups", "*", "--store", str(tmp_path / "sb"), *bus])
+        fleet.wait_log("rootB", "standby root", 60.0)
+        tokens = [s.liveliness().declare_token(keys.alive(m.sender)) for m in [*msgs, *late]]
+        watcher = FusedWatcher(s, keys)
+        try:
+            for m in msgs:
+                s.put(keys.robot_map(m.sender), encode_message(m))
+            watcher.wait_for(lambda m: len(m.robots) == 8, 60.0, "8 robots")
+            s.put(keys.robot_map("r04b"), encode_message(late[0]))
+            nine = watcher.wait_for(lambda m: "r04b" in m.robots, 20.0, "the late joiner r04b")
+            assert len(nine.robots) == 9
+            stats = wait_until(
+                lambda: (d := query_stats(s, keys, 2.0)) and d["version"] >= nine.seq and d, 10.0,
+                "root stats")
+            homes = [g for g, d in stats["groups"].items() if "r04b" in d["robots"]]
+            assert homes == ["g0"], stats["groups"]
+            assert stats["active"] and stats["uncovered"] == []
+            # only the active root publishes: every fused map so far came from rootA
+            assert "takes over" not in fleet.log("rootB")
+            last_a = watcher.wait_for(lambda m: True, 1.0, "any").seq
+            t_kill = fleet.kill9("rootA")
+            fleet.wait_log("rootB", "takes over", 10.0)
+            with client(ep) as joiner:  # a subscriber that comes after the kill
+                got = wait_until(lambda: query_fused(joiner, keys, 2.0), 10.0, "an answer from rootB")
+            t_answer = time.monotonic()
+            assert set(got.robots) == set(nine.robots) and got.seq >= last_a
+            assert got.wireframe.n_edges == nine.wireframe.n_edges
+            record(record_property, "root_failover_answer_s", round(t_answer - t_kill, 2))
+            since = watcher.count()
+            s.put(keys.robot_map("r09"), encode_message(late[1]))
+            ten = watcher.wait_for(lambda m: "r09" in m.robots, 20.0, "r09 through rootB", since)
+            assert len(ten.robots) == 10 and ten.seq > last_a
+            seqs = [m.seq for m in watcher.msgs]
+            assert seqs == sorted(seqs), seqs  # versions never go back across the failover
+            stats = wait_until(
+                lambda: (d := query_stats(s, keys, 2.0)) and d["version"] >= ten.seq and d, 10.0,
+                "rootB stats")
+            assert stats["takeovers"] == 1 and [g for g, d in stats["groups"].items()
+                                                 if "r09" in d["robots"]] == ["g1"]
+        finally:
+            watcher.close()
+            for t in tokens:
+                t.undeclare()
+
+
+def test_a_root_resumes_from_its_store(tmp_path):
+    """A root's ``--store``: the stored fused map is served at once and its version continues;
+    an unreadable one is one line (UserError), or moved aside with ``--reset`` (the version then
+    restarts from the wall clock, so it never goes back)."""
+    from agents.fleet.fusion.root import RootService
+
+    raws = {m.sender: encode_message(m) for m in robot_views("museum", 4, seed=2)}
+    root, msg = _tree(raws, fold_groups(list(raws), 2))
+    data = encode_message(root.fused_message(7))
+    store = tmp_path / "store"
+    store.mkdir()
+    (store / "fused.wfm").write_bytes(data)
+    svc = RootService(None, FleetKeys("x"), None, THR, store=str(store))
+    assert svc.current == data and svc.state.version == msg.seq
+    assert svc.state.fused_robots == msg.robots
+    (store / "fused.wfm").write_bytes(data[:-1] + bytes([data[-1] ^ 1]))
+    with pytest.raises(UserError, match="unreadable"):
+        RootService(None, FleetKeys("x"), None, THR, store=str(store))
+    t0 = time.time_ns() // 1_000_000
+    svc = RootService(None, FleetKeys("x"), None, THR, store=str(store), reset=True)
+    assert svc.current is None and svc.state.version >= t0
+    assert not (store / "fused.wfm").exists() and list(store.glob("damaged-*/fused.wfm"))

@@ -29,7 +29,7 @@ from typing import Any
 
 import numpy as np
 
-from agents.fleet.fusion.tree import fold_groups
+from agents.fleet.fusion.tree import fold_ranges
 
 
 def synthetic_recordings(world_spec: str, n: int, seed: int, cache: str | os.PathLike[str],
@@ -92,9 +92,9 @@ def start_tree(procs: Any, k: int, ids: list[str], bus: list[str], d: Path, thr:
     """Start ``k`` regional fusers over the fold's subtrees of ``ids`` and the root; returns the
     fuser process names (``g0..``, ``root``) once all are ready."""
     names = []
-    for g, group in enumerate(fold_groups(ids, k)):
+    for g, pattern in enumerate(fold_ranges(ids, k)):  # id ranges, as wiremap run --fusers gives
         name = f"g{g}"
-        procs.start(name, ["-m", "agents", "fuse", *bus, "--group", name, "--robots", ",".join(group),
+        procs.start(name, ["-m", "agents", "fuse", *bus, "--group", name, "--robots", pattern,
                            "--store", str(d / f"store-{name}"), "--threshold", repr(thr)])
         names.append(name)
     procs.start("root", ["-m", "agents", "fuse", *bus, "--of-groups", ",".join(names),

@@ -131,6 +131,13 @@ def run_tree(args: argparse.Namespace, say: Any) -> int | None:
         for n in names or []:
             if not valid_name(n) or n == "root":
                 raise UserError(f"--of-groups: {n!r} is not a group name")
+        if args.store:
+            from agents.files.io import check_output_dir
+            from agents.fleet.fusion.root import read_root_store
+
+            check_output_dir("--store", args.store)
+            if not args.reset:
+                read_root_store(args.store)  # unreadable: one line, exit 2, before any router
         return _serve(args, say, lambda session, keys, stop: _root(session, keys, stop, names, args, say))
     if args.group is None or args.robots is None:
         raise UserError("a regional fuser needs both --group NAME and --robots PATTERN")
@@ -143,7 +150,8 @@ def run_tree(args: argparse.Namespace, say: Any) -> int | None:
 def _root(session: Any, keys: Any, stop: Any, names: Any, args: argparse.Namespace, say: Any) -> None:
     from agents.fleet.fusion.root import serve_root
 
-    svc = serve_root(session, keys, names, stop, args.threshold, max(0.1, args.heartbeat), args.store, say)
+    svc = serve_root(session, keys, names, stop, args.threshold, max(0.1, args.heartbeat), args.store, say,
+                     args.reset)
     st = svc.state
     say(f"stopped at v{st.version}: {st.fused.n_vertices} vertices, {st.fused.n_edges} edges from "
         f"{len(st.fused_robots)} robots in {len(st.partials)} groups (exact {st.exact})")

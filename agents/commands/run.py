@@ -650,12 +650,13 @@ def _start_fleet(
     if getattr(args, "fusers", 1) > 1:
         # the fusion tree (agents.fleet.fusion.regional/root): "fuse" is the root, with the store
         # this command reads; the regional fusers over the fold's subtrees, the first records
-        from agents.fleet.fusion.tree import fold_groups
+        # (ranges of ids, not lists: a robot that joins later lands in exactly one group)
+        from agents.fleet.fusion.tree import fold_ranges
 
-        groups = fold_groups(ids, args.fusers)
-        names = [f"g{g}" for g in range(len(groups))]
-        for g, (name, group) in enumerate(zip(names, groups)):
-            argv = ["fuse", *bus, *cred_args("fusion"), "--group", name, "--robots", ",".join(group),
+        ranges = fold_ranges(ids, args.fusers)
+        names = [f"g{g}" for g in range(len(ranges))]
+        for g, (name, pattern) in enumerate(zip(names, ranges)):
+            argv = ["fuse", *bus, *cred_args("fusion"), "--group", name, "--robots", pattern,
                     "--store", str(out / f"store-{name}"), "--threshold", repr(threshold)]
             if g == 0:
                 argv += fuse_argv[fuse_argv.index("--rrd"):]

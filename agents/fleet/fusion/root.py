@@ -15,6 +15,23 @@ partial maps (``wiremap/<fleet>/groups/<NAME>/map``) into the fleet's fused map.
   ``root_ms`` from a partial's publish to that fused publish (the root's level); with
   ``--store DIR`` the end-to-end samples go to ``DIR/latency.log`` and the map to
   ``DIR/fused.wfm`` and ``DIR/state.json`` (as the one-process store's views).
+
+**Several roots** (failover; the choice made here). Any number of roots may run; each holds the
+liveliness token ``wiremap/<fleet>/fusers/root/<boot>`` (``boot``: its start, ns) and the
+*oldest* live one is **active**: it alone publishes ``fused/map``, answers its queryable and
+``fused/stats`` and holds ``fusers/root``. The others are **standbys**: they keep the latest
+bytes of each group's partial and of the fused map (nothing decoded, nothing merged: a
+standby costs a callback per partial) and take over when every older root's token is gone
+(kill -9: milliseconds; a frozen process: the Zenoh lease). On takeover a standby decodes what
+it kept, folds the partials (the same fold, so the same map) and publishes it with the version
+after the last one the old root published, so a subscriber that keeps the highest version
+follows it. A root restarted later is the youngest, so it stays a standby (no flapping); two
+roots active across a healed partition: the younger steps down when it sees the older's token.
+
+**Restart from the store.** With ``--store DIR`` a root starts from ``DIR/fused.wfm`` (the
+codec's CRC checks it; written atomically): it serves that map and continues its version
+before any partial arrives. An unreadable file is one line and exit 2, unless ``--reset`` (the
+file moved aside, the version restarted from the wall clock in ms so that it never goes back).
 """
 
 from __future__ import annotations
@@ -27,19 +44,55 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from agents.errors import UserError
 from agents.fleet.fusion.codec import decode_message, encode_message
 from agents.fleet.fusion.stats import LatencyWindow
 from agents.fleet.fusion.store import append_latency_log
 from agents.fleet.fusion.tree import GroupKeys, RootState
 from agents.fleet.proc import freeze_heap, rss_kb
+from mapping.wireframe import Wireframe
 
 ROOT_NAME = "root"
 
 
 def _atomic_write(path: Path, data: bytes) -> None:
     tmp = path.with_name(path.name + ".tmp")
-    tmp.write_bytes(data)
+    with open(tmp, "wb") as fh:
+        fh.write(data)
+        fh.flush()
+        os.fsync(fh.fileno())
     os.replace(tmp, path)
+
+
+#: A robot alive this long that no group's partial includes is listed as ``uncovered``.
+UNCOVERED_AFTER_S = 10.0
+
+
+def read_root_store(store: str | os.PathLike[str], reset: bool = False) -> bytes | None:
+    """The fused map a root's ``--store`` holds (``fused.wfm``), None when there is none.
+    Unreadable: :class:`UserError` (one line, exit 2), or with ``reset`` the file is moved to
+    ``damaged-<ns>/`` and None returned."""
+    path = Path(store) / "fused.wfm"
+    if not path.is_file():
+        return None
+    try:
+        data = path.read_bytes()
+        msg = decode_message(data)
+    except (OSError, ValueError) as exc:
+        if not reset:
+            raise UserError(
+                f"--store {store}: fused.wfm is unreadable ({exc}); --reset moves it aside") from None
+        aside = Path(store) / f"damaged-{time.time_ns()}"
+        aside.mkdir(parents=True, exist_ok=True)
+        os.replace(path, aside / "fused.wfm")
+        return None
+    from wire_codec.message import MessageKind
+
+    if msg.kind != MessageKind.FUSED_MAP:
+        if not reset:
+            raise UserError(f"--store {store}: fused.wfm is not a fused map; --reset moves it aside")
+        return None
+    return data
 
 
 class RootService:
@@ -54,6 +107,7 @@ class RootService:
         heartbeat_s: float = 3.0,
         store: str | None = None,
         log: Callable[[str], None] | None = None,
+        reset: bool = False,
     ) -> None:
         import zenoh
 
@@ -85,6 +139,28 @@ class RootService:
         self._entities: list[Any] = []
         self.received = 0
         self.started = time.monotonic()
+        self.boot = time.time_ns()
+        self.active = False
+        self.roots: set[int] = set()  # boots of the live roots (their tokens), ours included
+        self._fused_raw: bytes | None = None  # the active root's latest fused map (standby)
+        self._active_entities: list[Any] = []
+        self.alive_since: dict[str, float] = {}
+        self.uncovered: list[str] = []
+        self.takeovers = 0
+        if self.store is not None:
+            had = (self.store / "fused.wfm").is_file()
+            data = read_root_store(self.store, reset)
+            if data is not None:  # serve the stored map and continue its version
+                self._resume(data)
+            elif had:  # moved aside (--reset): a version that never goes back
+                self.state.version = time.time_ns() // 1_000_000
+
+    def _resume(self, data: bytes) -> None:
+        msg = decode_message(data)
+        self.state.version = max(self.state.version, int(msg.seq))
+        self.state.fused, self.state.fused_robots = msg.wireframe, tuple(msg.robots)
+        self.current = data
+        self.stamp_ns = int(msg.stamp_ns)
 
     # zenoh threads
     def _on_partial(self, sample: Any) -> None:
@@ -102,7 +178,31 @@ class RootService:
         if rid is None:
             return
         with self.lock:
-            (self.alive.add if sample.kind == self._zenoh.SampleKind.PUT else self.alive.discard)(rid)
+            if sample.kind == self._zenoh.SampleKind.PUT:
+                self.alive.add(rid)
+                self.alive_since.setdefault(rid, time.monotonic())
+            else:
+                self.alive.discard(rid)
+                self.alive_since.pop(rid, None)
+
+    def _on_root(self, sample: Any) -> None:
+        boot = self._root_boot(str(sample.key_expr))
+        if boot is None:
+            return
+        with self.lock:
+            (self.roots.add if sample.kind == self._zenoh.SampleKind.PUT else self.roots.discard)(boot)
+
+    def _root_boot(self, key: str) -> int | None:
+        head = self.tree.fuser_token(ROOT_NAME) + "/"
+        if not key.startswith(head) or not key[len(head):].isdigit():
+            return None
+        return int(key[len(head):])
+
+    def _on_fused(self, sample: Any) -> None:
+        if not self.active:
+            data = sample.payload.to_bytes()
+            with self.lock:
+                self._fused_raw = data
 
     def _on_fuser(self, sample: Any) -> None:
         g = self.tree.group_of(str(sample.key_expr))
@@ -117,7 +217,7 @@ class RootService:
 
     def _on_query(self, query: Any) -> None:
         with self.lock:
-            data = self.current
+            data = self.current if self.active else None
         if data is not None:
             query.reply(self.keys.fused_map, data)
 
@@ -128,16 +228,26 @@ class RootService:
 
     def start(self) -> None:
         s = self.session
-        self._entities.append(s.liveliness().declare_token(self.tree.fuser_token(ROOT_NAME)))
-        self._entities.append(
-            s.liveliness().declare_subscriber(self.keys.all_alive, self._on_alive, history=True)
-        )
-        self._entities.append(
-            s.liveliness().declare_subscriber(self.tree.all_fusers, self._on_fuser, history=True)
-        )
-        self._entities.append(s.declare_queryable(self.keys.fused_map, self._on_query, complete=True))
-        self._entities.append(s.declare_queryable(self.keys.fusion_stats, self._on_stats, complete=True))
+        lv = s.liveliness()
+        root_keys = self.tree.fuser_token(ROOT_NAME) + "/*"
+        self._entities.append(lv.declare_token(f"{self.tree.fuser_token(ROOT_NAME)}/{self.boot}"))
+        self._entities.append(lv.declare_subscriber(self.keys.all_alive, self._on_alive, history=True))
+        self._entities.append(lv.declare_subscriber(self.tree.all_fusers, self._on_fuser, history=True))
+        self._entities.append(lv.declare_subscriber(root_keys, self._on_root, history=True))
+        self._entities.append(s.declare_subscriber(self.keys.fused_map, self._on_fused))
         self._entities.append(s.declare_subscriber(self.tree.all_groups, self._on_partial))
+        # the roots alive now (an older one makes us a standby) before deciding anything
+        try:
+            for reply in lv.get(root_keys, timeout=2.0):
+                ok = reply.ok
+                boot = None if ok is None else self._root_boot(str(ok.key_expr))
+                if boot is not None:
+                    with self.lock:
+                        self.roots.add(boot)
+        except self._zenoh.ZError as exc:  # pragma: no cover - the subscriber still works
+            self.say(f"liveliness query for roots failed: {exc}")
+        with self.lock:
+            self.roots.add(self.boot)
         # partials published before we came: ask each group's queryable
         try:
             for reply in s.get(self.tree.all_groups, timeout=2.0):
@@ -146,7 +256,61 @@ class RootService:
                     self._on_partial(ok)
         except self._zenoh.ZError as exc:  # pragma: no cover
             self.say(f"query for partials failed: {exc}")
+        self._check_role()
+        if not self.active:
+            self.say("standby root (an older root is active): taking over when it goes")
         self._update_stats()
+
+    def _check_role(self) -> None:
+        """Active when no older root's token is alive (see the module docstring)."""
+        with self.lock:
+            older = any(b < self.boot for b in self.roots)
+        if not older and not self.active:
+            self._become_active()
+        elif older and self.active:
+            self._step_down()
+
+    def _become_active(self) -> None:
+        s = self.session
+        with self.lock:
+            last, self._fused_raw = self._fused_raw, None
+        last_v = None
+        if last is not None:
+            try:
+                last_v = int(decode_message(last).seq)
+            except ValueError:
+                last_v = None
+        if last_v is not None and last_v >= self.state.version:
+            # serve the old root's last map at once and continue after its version: our first
+            # fold of the partials (made afresh: the same fold) publishes as the next version
+            self.state.version = last_v
+            self.state.fused, self.state.fused_robots = Wireframe.empty(), ()
+            with self.lock:
+                self.current = last
+        else:
+            last_v = None
+        self.active = True
+        self._active_entities = [
+            s.liveliness().declare_token(self.tree.fuser_token(ROOT_NAME)),
+            s.declare_queryable(self.keys.fused_map, self._on_query, complete=True),
+            s.declare_queryable(self.keys.fusion_stats, self._on_stats, complete=True),
+        ]
+        if self.roots != {self.boot} or last_v is not None:
+            self.takeovers += 1
+            after = "-" if last_v is None else last_v
+            self.say(f"root {self.boot} takes over as the active root (after v{after})")
+        if self.current is not None:
+            self._put(self.current)  # the last map (the old root's, or the stored one) at once
+
+    def _step_down(self) -> None:
+        for ent in reversed(self._active_entities):
+            try:
+                ent.undeclare()
+            except Exception:
+                pass
+        self._active_entities = []
+        self.active = False
+        self.say(f"an older root is active: root {self.boot} steps down to standby")
 
     def _meta(self) -> dict[str, Any]:
         st = self.state
@@ -159,6 +323,10 @@ class RootService:
         }
 
     def poll(self, timeout: float = 0.05) -> None:
+        self._check_role()
+        if not self.active:  # a standby keeps the latest partial of each group, undecoded
+            time.sleep(timeout)
+            return
         with self.cond:
             if not self.inbox:
                 self.cond.wait(timeout)
@@ -230,11 +398,29 @@ class RootService:
             "stats": {"latency_ms": self.latency.summary(True), "root_ms": self.root_ms.summary(True),
                       "merges": st.merges, "received": self.received},
             "transport_ms": self.transport_ms.summary(True),
+            "active": self.active,
+            "root_boot": self.boot,
+            "takeovers": self.takeovers,
+            "uncovered": self._uncovered(),
             **self._meta(),
             "rss_kb": rss_kb(),
             "pid": os.getpid(),
             "uptime_s": round(time.monotonic() - self.started, 3),
         }
+
+    def _uncovered(self) -> list[str]:
+        """Robots alive for over :data:`UNCOVERED_AFTER_S` that no group's partial includes:
+        no group's pattern covers them (a list of ids given to ``--robots``), or none of their
+        maps was accepted. Logged when the list changes."""
+        now = time.monotonic()
+        have = {r for p in self.state.partials.values() for r in p.message.robots}
+        with self.lock:
+            out = sorted(r for r, t in self.alive_since.items()
+                         if now - t > UNCOVERED_AFTER_S and r not in have)
+        if out != self.uncovered and self.active:
+            self.say(f"robots in no group's partial: {', '.join(out) or 'none'}")
+        self.uncovered = out
+        return out
 
     def _update_stats(self) -> None:
         data = json.dumps(self.stats_doc()).encode()
@@ -242,13 +428,15 @@ class RootService:
             self._stats_doc = data
 
     def close(self) -> None:
-        for ent in reversed(self._entities):
+        for ent in reversed([*self._entities, *self._active_entities]):
             try:
                 ent.undeclare()
             except Exception:
                 pass
         self._entities.clear()
-        self._save()
+        self._active_entities = []
+        if self.active:
+            self._save()
 
 
 def serve_root(
@@ -260,9 +448,10 @@ def serve_root(
     heartbeat_s: float = 3.0,
     store: str | None = None,
     log: Callable[[str], None] | None = None,
+    reset: bool = False,
 ) -> RootService:
     """Run the root fuser on an open session until ``stop`` is set."""
-    svc = RootService(session, keys, groups, threshold, heartbeat_s, store, log)
+    svc = RootService(session, keys, groups, threshold, heartbeat_s, store, log, reset)
     try:
         svc.start()
         freeze_heap()

@@ -50,6 +50,7 @@ __all__ = [
     "RootState",
     "fold_groups",
     "fold_nodes",
+    "fold_ranges",
     "is_fold_node",
     "prefix_spans",
     "remap_sources",
@@ -127,6 +128,7 @@ def wire_snap(wf: Wireframe, resolution: float) -> Wireframe:
 
 # ---------------------------------------------------------------------- robot selection
 _HASH = re.compile(r"^hash:(\d+)/(\d+)$")
+_RANGE = re.compile(r"^range:([A-Za-z0-9_.\-]*):([A-Za-z0-9_.\-]*)$")
 
 
 def robot_hash(rid: str) -> int:
@@ -138,17 +140,28 @@ def robot_hash(rid: str) -> int:
 class RobotSelector:
     """The robots of a regional fuser (``wiremap fuse --robots PATTERN``).
 
-    ``PATTERN`` is ``hash:I/K`` (the robots whose :func:`robot_hash` modulo ``K`` is ``I``:
-    stable as the fleet grows, but not a subtree of the fold, so the root's map is then a fold
-    of the partials, see the module docstring), or comma-separated glob patterns over robot ids
-    (``r1*``, ``r0[1-8]``, ``r01,r02``; ``*`` any run of characters, ``?`` one, ``[..]`` a
-    set), a robot is in the group when one of them matches.
+    ``PATTERN`` is one of:
+
+    * ``range:LO:HI``: the ids ``LO <= id < HI`` in sorted order (Python's string order, the
+      fold's), either end may be empty (``range::r5`` every id before ``r5``, ``range:r5:``
+      ``r5`` and after). Ranges that meet end to end cover every id there can be, so a robot
+      that joins later lands in exactly one group; and the groups stay contiguous in the
+      fold's order, so they are the fold's subtrees (``meta.exact``) whenever the counts
+      allow (:func:`fold_ranges`; ``wiremap run --fusers K`` uses these);
+    * ``hash:I/K``: the robots whose :func:`robot_hash` modulo ``K`` is ``I`` (stable as the
+      fleet grows, every id in exactly one of the ``K``, but not a subtree of the fold, so the
+      root's map is then a fold of the partials, see the module docstring);
+    * comma-separated glob patterns over robot ids (``r1*``, ``r0[1-8]``, ``r01,r02``; ``*`` any
+      run of characters, ``?`` one, ``[..]`` a set), a robot is in the group when one of them
+      matches. A list of plain ids covers those robots only: a robot that joins later is in
+      no group (the root lists it in ``uncovered``).
     """
 
     text: str
     globs: tuple[str, ...] = ()
     bucket: tuple[int, int] | None = None
     _re: Any = field(default=None, compare=False, repr=False)
+    span: tuple[str, str | None] | None = None  # range:LO:HI as (LO, HI or None for open)
 
     @classmethod
     def parse(cls, text: str) -> RobotSelector:
@@ -159,6 +172,14 @@ class RobotSelector:
             if k < 1 or not 0 <= i < k:
                 raise UserError(f"--robots {text!r}: hash:I/K needs K >= 1 and 0 <= I < K")
             return cls(t, (), (i, k))
+        m = _RANGE.match(t)
+        if m:
+            lo, hi = m.group(1), m.group(2) or None
+            if hi is not None and hi <= lo:
+                raise UserError(f"--robots {text!r}: range:LO:HI needs LO < HI")
+            return cls(t, span=(lo, hi))
+        if t.startswith("range:"):
+            raise UserError(f"--robots {text!r}: range:LO:HI with LO and HI robot ids or empty")
         globs = tuple(g.strip() for g in t.split(",") if g.strip())
         if not globs:
             raise UserError(f"--robots {text!r}: give glob patterns over robot ids or hash:I/K")
@@ -172,6 +193,9 @@ class RobotSelector:
         if self.bucket is not None:
             i, k = self.bucket
             return robot_hash(rid) % k == i
+        if self.span is not None:
+            lo, hi = self.span
+            return lo <= rid and (hi is None or rid < hi)
         return bool(self._re.match(rid))
 
     def key_chunk(self) -> str:
@@ -224,6 +248,17 @@ def fold_groups(ids: Sequence[str], k: int) -> list[list[str]]:
     """The robots (sorted ids) of :func:`fold_nodes`' ``k`` subtrees."""
     s = sorted(ids)
     return [s[lo:hi] for lo, hi in fold_nodes(len(s), k)]
+
+
+def fold_ranges(ids: Sequence[str], k: int) -> list[str]:
+    """``range:LO:HI`` patterns (:class:`RobotSelector`) for :func:`fold_groups`' ``k``
+    subtrees of ``ids``: group ``g`` from its first id to the next group's first id, the first
+    group open below and the last open above. Each group takes the same robots as the list of
+    its ids, and every id not in ``ids`` (a robot that joins later) falls in exactly one."""
+    groups = [g for g in fold_groups(ids, k) if g]
+    firsts = [g[0] for g in groups]
+    return [f"range:{'' if j == 0 else lo}:{firsts[j + 1] if j + 1 < len(firsts) else ''}"
+            for j, lo in enumerate(firsts)]
 
 
 def prefix_spans(k: int, n: int) -> list[tuple[int, int]]:
