@@ -360,3 +360,32 @@ def test_a_root_resumes_from_its_store(tmp_path):
     svc = RootService(None, FleetKeys("x"), None, THR, store=str(store), reset=True)
     assert svc.current is None and svc.state.version >= t0
     assert not (store / "fused.wfm").exists() and list(store.glob("damaged-*/fused.wfm"))
+
+
+@pytest.mark.fleet
+def test_run_with_two_fusers_records_every_robot_and_the_fused_map(tmp_path):
+    """``wiremap run --fusers 2``: the report covers every robot, and ``recording.rrd`` (the
+    fusers' parts merged) has every robot's map, both partials, the truth and the root's fused map;
+    the parts are gone."""
+    import json
+
+    from agents.files.rerun_log import read_recording
+    from tests.fleet_util import free_port, tcp_endpoint
+
+    out = tmp_path / "out"
+    with Fleet(tmp_path) as fleet:
+        p = fleet.start("run", ["run", "--world", "paper-small", "--robots", "3", "--fusers", "2",
+                                "--duration", "5", "--particles", "3", "--no-progress", "--out", out,
+                                "--listen", tcp_endpoint(free_port())])
+        assert p.wait(timeout=120) == 0, fleet.log("run")
+    assert "Traceback" not in fleet.log("run")
+    rep = json.loads((out / "report.json").read_text())
+    assert set(rep["per_robot"]) == {"r1", "r2", "r3"}
+    assert all(r["vertices"] > 0 for r in rep["per_robot"].values()), rep["per_robot"]
+    assert decode_message((out / "fused.wfm").read_bytes()).robots == ("r1", "r2", "r3")
+    entities, _ = read_recording(out / "recording.rrd")
+    for rid in ("r1", "r2", "r3"):
+        assert f"/robots/{rid}/map" in entities, sorted(entities)
+    for e in ("/fused/walls", "/groups/g0/walls", "/groups/g1/walls", "/world/truth"):
+        assert any(x == e or x.startswith(e + "/") for x in entities), (e, sorted(entities))
+    assert not list(out.glob("store*/*.rrd"))

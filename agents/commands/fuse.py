@@ -138,6 +138,14 @@ def run_tree(args: argparse.Namespace, say: Any) -> int | None:
             check_output_dir("--store", args.store)
             if not args.reset:
                 read_root_store(args.store)  # unreadable: one line, exit 2, before any router
+        if args.rrd:
+            output_file("--rrd", args.rrd)
+        if args.serve_viewer is not None and not args.rrd:
+            raise UserError("--serve-viewer needs --rrd FILE (the recording always goes to a file)")
+        if args.world:
+            from agents.sim.world import load_world
+
+            load_world(args.world)
         return _serve(args, say, lambda session, keys, stop: _root(session, keys, stop, names, args, say))
     if args.group is None or args.robots is None:
         raise UserError("a regional fuser needs both --group NAME and --robots PATTERN")
@@ -150,8 +158,10 @@ def run_tree(args: argparse.Namespace, say: Any) -> int | None:
 def _root(session: Any, keys: Any, stop: Any, names: Any, args: argparse.Namespace, say: Any) -> None:
     from agents.fleet.fusion.root import serve_root
 
+    recording = {"rrd": args.rrd, "serve_viewer": args.serve_viewer, "recording_id": args.recording_id,
+                 "world": args.world}
     svc = serve_root(session, keys, names, stop, args.threshold, max(0.1, args.heartbeat), args.store, say,
-                     args.reset)
+                     args.reset, recording)
     st = svc.state
     say(f"stopped at v{st.version}: {st.fused.n_vertices} vertices, {st.fused.n_edges} edges from "
         f"{len(st.fused_robots)} robots in {len(st.partials)} groups (exact {st.exact})")

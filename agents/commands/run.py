@@ -471,6 +471,8 @@ def run(args: argparse.Namespace) -> int:
             sub_pose.undeclare()
             sub_fused.undeclare()
             router.close()
+    if getattr(args, "fusers", 1) > 1:
+        merge_recordings(out)
     if interrupted:
         print("wiremap run: interrupted; writing what the fleet has mapped so far", flush=True)
     statuses: dict[str, Any] = {}
@@ -581,6 +583,33 @@ RUN_FILES = ("fused.wfm", "fused.geojson", "fused.png", "report.json", "recordin
 RUN_DIRS = ("store", "logs", "status", "routes", "secure")
 
 
+def merge_recordings(out: Path) -> None:
+    """A fusion tree's recording: the fusers' parts (``store-g*/recording.rrd``,
+    ``store/recording-root.rrd``, one recording id) merged into ``recording.rrd`` with ``rerun
+    rrd merge``; the parts are removed once merged (kept, with one line, when it fails)."""
+    from agents.commands.replay import find_rerun
+
+    parts = sorted(out.glob("store-g*/recording.rrd")) + sorted(out.glob("store/recording-root.rrd"))
+    parts = [p for p in parts if p.is_file() and p.stat().st_size > 0]
+    exe = find_rerun()
+    if not parts:
+        return
+    if exe is None:
+        print(f"wiremap run: no rerun executable to merge the recording's parts: {len(parts)} kept", flush=True)
+        return
+    tmp = out / "recording.rrd.tmp"
+    res = subprocess.run([exe, "rrd", "merge", *map(str, parts), "-o", str(tmp)],
+                         capture_output=True, text=True, timeout=300)
+    if res.returncode != 0 or not tmp.is_file():
+        tail = (res.stderr or res.stdout).strip().splitlines()[-1:] or ["no output"]
+        print(f"wiremap run: merging the recording's parts failed ({tail[0]}): kept in store*/", flush=True)
+        tmp.unlink(missing_ok=True)
+        return
+    os.replace(tmp, out / "recording.rrd")
+    for p in parts:
+        p.unlink(missing_ok=True)
+
+
 def clear_previous_run(out: Path) -> None:
     """Remove what an earlier run left in ``out`` (its outputs, logs, routes, statuses,
     credentials and fusion store: a new run does not resume, and no file of the old fleet stays
@@ -589,8 +618,7 @@ def clear_previous_run(out: Path) -> None:
 
     for name in RUN_FILES:
         (out / name).unlink(missing_ok=True)
-    for name in RUN_DIRS:
-        d = out / name
+    for d in [*(out / name for name in RUN_DIRS), *out.glob("store-g*")]:  # store-gK: a tree's fusers
         if d.is_dir() and not d.is_symlink():
             shutil.rmtree(d)
 
@@ -655,14 +683,22 @@ def _start_fleet(
 
         ranges = fold_ranges(ids, args.fusers)
         names = [f"g{g}" for g in range(len(ranges))]
-        for g, (name, pattern) in enumerate(zip(names, ranges)):
+        # every fuser records its part into one recording (same id; merged into recording.rrd
+        # at the end, merge_recordings): a regional fuser its robots and its partial, the root
+        # the fused map and the world
+        rec_id = fuse_argv[fuse_argv.index("--recording-id") + 1]
+        for name, pattern in zip(names, ranges):
             argv = ["fuse", *bus, *cred_args("fusion"), "--group", name, "--robots", pattern,
-                    "--store", str(out / f"store-{name}"), "--threshold", repr(threshold)]
-            if g == 0:
-                argv += fuse_argv[fuse_argv.index("--rrd"):]
+                    "--store", str(out / f"store-{name}"), "--threshold", repr(threshold),
+                    "--rrd", str(out / f"store-{name}" / "recording.rrd"), "--recording-id", rec_id]
             procs[f"fuser-{name}"] = _spawn(f"fuser-{name}", argv, logs)
         fuse_argv = ["fuse", *bus, *cred_args("fusion"), "--of-groups", ",".join(names),
-                     "--store", str(store), "--threshold", repr(threshold)]
+                     "--store", str(store), "--threshold", repr(threshold),
+                     "--rrd", str(store / "recording-root.rrd"), "--recording-id", rec_id]
+        if args.world and not args.unknown_starts:
+            fuse_argv += ["--world", args.world]
+        if args.serve_viewer is not None:
+            fuse_argv += ["--serve-viewer", str(args.serve_viewer)]
     procs["fuse"] = _spawn("fuse", fuse_argv, logs)
     for k, (rid, r) in enumerate(zip(ids, routes)):
         if args.carmen:

@@ -108,6 +108,9 @@ class FleetRecorder:
         self._track_sent: dict[str, float] = {}
         self._stale: set[str] = set()
         self._alive_sent = -1.0
+        #: where log_fused draws: ``fused`` (the fleet's map); a regional fuser of a fusion tree
+        #: draws its partial map under ``groups/<NAME>`` (the root draws ``fused``)
+        self.fused_path = "fused"
         self.send_blueprint()
 
     def fleet_time(self) -> float:
@@ -339,7 +342,7 @@ class FleetRecorder:
                 cols[e] = np.mean([robot_colour(idx[j]) for j in ks], axis=0).astype(np.uint8)
             names.append("+".join(robots[j] for j in ks))
         self.rec.log(
-            "fused/walls",
+            f"{self.fused_path}/walls",
             rr.LineStrips2D(
                 _strips(wf), colors=cols, radii=[0.05], labels=names, show_labels=False, draw_order=15.0
             ),
@@ -347,14 +350,14 @@ class FleetRecorder:
         pts = wf.points
         nom = pts[wf.labels == Label.NOMINAL]
         self.rec.log(
-            "fused/corners/nominal",
+            f"{self.fused_path}/corners/nominal",
             rr.Points2D(nom, colors=[LABEL_COLOURS[Label.NOMINAL]], radii=[0.09], draw_order=25.0),
         )
         occ = pts[wf.labels == Label.OCCLUSION]
         rad = 0.14
         tri = np.array([[0.0, rad], [-0.87 * rad, -0.5 * rad], [0.87 * rad, -0.5 * rad], [0.0, rad]])
         self.rec.log(
-            "fused/corners/occlusion",
+            f"{self.fused_path}/corners/occlusion",
             rr.LineStrips2D(
                 [p + tri for p in occ] if len(occ) else np.zeros((0, 2, 2)),
                 colors=[LABEL_COLOURS[Label.OCCLUSION]],
@@ -364,7 +367,7 @@ class FleetRecorder:
         )
         fro = pts[wf.labels == Label.FRONTIER]
         self.rec.log(
-            "fused/corners/frontier",
+            f"{self.fused_path}/corners/frontier",
             rr.Boxes2D(
                 centers=fro.reshape(-1, 2),
                 half_sizes=np.full((len(fro), 2), 0.1),
@@ -373,10 +376,10 @@ class FleetRecorder:
                 draw_order=27.0,
             ),
         )
-        self.rec.log("stats/fused/vertices", rr.Scalars([float(wf.n_vertices)]))
-        self.rec.log("stats/fused/edges", rr.Scalars([float(wf.n_edges)]))
-        self.rec.log("stats/fused/version", rr.Scalars([float(version)]))
-        if latency_ms is not None:
+        self.rec.log(f"stats/{self.fused_path}/vertices", rr.Scalars([float(wf.n_vertices)]))
+        self.rec.log(f"stats/{self.fused_path}/edges", rr.Scalars([float(wf.n_edges)]))
+        self.rec.log(f"stats/{self.fused_path}/version", rr.Scalars([float(version)]))
+        if latency_ms is not None and self.fused_path == "fused":
             self.rec.log("stats/latency_ms", rr.Scalars([float(latency_ms)]))
 
     # ------------------------------------------------------------------ unknown start poses

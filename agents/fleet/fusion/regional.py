@@ -95,6 +95,11 @@ class RegionalService(FusionService):
         self._token = token
         self._seed = seed or {}
         self.standby: Standby | None = None
+        if self.recorder is not None:
+            # the recording of a tree is one per fuser, merged (wiremap run): this fuser draws
+            # its own robots (maps in the fleet frame, poses, scans) and its partial map; the
+            # root draws the fused map
+            self.recorder.fused_path = f"groups/{group}"
 
     # zenoh threads
     def _on_map(self, sample: Any) -> None:
@@ -105,6 +110,16 @@ class RegionalService(FusionService):
                 self.standby.keep(key, sample.payload)
             return
         super()._on_map(sample)
+
+    def _on_pose(self, sample: Any) -> None:
+        rid = self.fleet_keys.robot_of(str(sample.key_expr))
+        if rid is not None and self.selector.matches(rid):
+            super()._on_pose(sample)
+
+    def _on_viz(self, sample: Any) -> None:
+        rid = self.fleet_keys.robot_of(str(sample.key_expr))
+        if rid is not None and self.selector.matches(rid):
+            super()._on_viz(sample)
 
     def _on_partial(self, sample: Any) -> None:
         g = self.tree.group_of(str(sample.key_expr))

@@ -108,6 +108,7 @@ class RootService:
         store: str | None = None,
         log: Callable[[str], None] | None = None,
         reset: bool = False,
+        recording: dict[str, Any] | None = None,
     ) -> None:
         import zenoh
 
@@ -147,6 +148,20 @@ class RootService:
         self.alive_since: dict[str, float] = {}
         self.uncovered: list[str] = []
         self.takeovers = 0
+        self.recorder: Any = None
+        rec = recording or {}
+        if rec.get("rrd"):  # the fused map (a regional fuser records its own robots)
+            from agents.files.rerun_log import FleetRecorder
+
+            self.recorder = FleetRecorder(rec["rrd"], serve_port=rec.get("serve_viewer"),
+                                          recording_id=rec.get("recording_id"))
+            if rec.get("world"):
+                try:
+                    from agents.sim.world import load_world
+
+                    self.recorder.log_truth(load_world(rec["world"]).truth)
+                except (UserError, OSError, ValueError) as exc:
+                    self.say(f"cannot draw the world {rec['world']!r}: {exc}")
         if self.store is not None:
             had = (self.store / "fused.wfm").is_file()
             data = read_root_store(self.store, reset)
@@ -371,6 +386,16 @@ class RootService:
         for v in e2e:
             self.lat_total += 1
             self._unsaved.append((self.lat_total, v, pub))
+        if self.recorder is not None:
+            st = self.state
+            self.recorder.log_fused(self._sim_time(), st.fused, st.fused_robots, st.version,
+                                    max(e2e) if e2e else None)
+
+    def _sim_time(self) -> float:
+        """The latest simulated time the partials carry (``meta["t"]``), 0 if none."""
+        ts = [p.message.meta.get("t", 0.0) for p in self.state.partials.values()
+              if isinstance(p.message.meta, dict)]
+        return max((float(t) for t in ts if isinstance(t, (int, float))), default=0.0)
 
     def _save(self) -> None:
         self._saved_at = time.monotonic()
@@ -437,6 +462,8 @@ class RootService:
         self._active_entities = []
         if self.active:
             self._save()
+        if self.recorder is not None:
+            self.recorder.close()
 
 
 def serve_root(
@@ -449,9 +476,11 @@ def serve_root(
     store: str | None = None,
     log: Callable[[str], None] | None = None,
     reset: bool = False,
+    recording: dict[str, Any] | None = None,
 ) -> RootService:
-    """Run the root fuser on an open session until ``stop`` is set."""
-    svc = RootService(session, keys, groups, threshold, heartbeat_s, store, log, reset)
+    """Run the root fuser on an open session until ``stop`` is set (``recording``: ``rrd``,
+    ``serve_viewer``, ``recording_id``, ``world``, as ``wiremap fuse``'s flags)."""
+    svc = RootService(session, keys, groups, threshold, heartbeat_s, store, log, reset, recording)
     try:
         svc.start()
         freeze_heap()
