@@ -595,7 +595,8 @@ def merge_recordings(out: Path) -> None:
     if not parts:
         return
     if exe is None:
-        print(f"wiremap run: no rerun executable to merge the recording's parts: {len(parts)} kept", flush=True)
+        print(f"wiremap run: no rerun executable to merge the recording's parts: {len(parts)} kept",
+              flush=True)
         return
     tmp = out / "recording.rrd.tmp"
     res = subprocess.run([exe, "rrd", "merge", *map(str, parts), "-o", str(tmp)],
