@@ -389,3 +389,28 @@ def test_run_with_two_fusers_records_every_robot_and_the_fused_map(tmp_path):
     for e in ("/fused/walls", "/groups/g0/walls", "/groups/g1/walls", "/world/truth"):
         assert any(x == e or x.startswith(e + "/") for x in entities), (e, sorted(entities))
     assert not list(out.glob("store*/*.rrd"))
+
+
+def test_the_root_refuses_a_partial_that_would_make_a_65th_robot():
+    """The fused map's masks are 64 bits: a partial that would bring the fleet past 64 robots is
+    refused (counted per group) and the group's previous partial stays; nothing raises."""
+    import dataclasses
+
+    from mapping.wireframe import Wireframe
+
+    def partial(group: str, ids: list[str], seq: int) -> object:
+        wf = Wireframe.from_polylines([[(0.0, float(k)), (3.0, float(k))] for k in range(len(ids))])
+        wf = Wireframe(wf.points, wf.labels, wf.edges, wf.likelihood,
+                       np.array([1 << k for k in range(len(ids))], dtype=np.uint64))
+        m = robot_views("museum", 1)[0]
+        return dataclasses.replace(m, kind=m.kind.__class__.FUSED_MAP, sender=group, seq=seq, robots=tuple(ids),
+                                   wireframe=wf, frame="fleet", meta={"boot": 1})
+
+    root = RootState(THR)
+    assert root.offer("g0", partial("g0", [f"a{k:02d}" for k in range(40)], 1))
+    assert root.offer("g1", partial("g1", [f"b{k:02d}" for k in range(24)], 1))
+    assert root.fuse() and len(root.fused_robots) == 64
+    assert not root.offer("g1", partial("g1", [f"b{k:02d}" for k in range(25)], 2))
+    assert root.refused == {"g1": 1} and root.partials["g1"].key == (1, 1)
+    assert not root.fuse() and len(root.fused_robots) == 64
+    decode_message(encode_message(root.fused_message(0)))  # still a valid message

@@ -424,6 +424,7 @@ class RootService:
                       "merges": st.merges, "received": self.received},
             "transport_ms": self.transport_ms.summary(True),
             "active": self.active,
+            "refused_too_many_robots": dict(self.state.refused),
             "root_boot": self.boot,
             "takeovers": self.takeovers,
             "uncovered": self._uncovered(),

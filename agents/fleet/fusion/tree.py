@@ -346,6 +346,7 @@ class RootState:
         self._leaves: dict[str, tuple[Any, Wireframe]] = {}
         self._pending: list[int] = []  # robot stamps newly included, not yet published
         self._group_pending: list[int] = []  # partial stamps newly included
+        self.refused: dict[str, int] = {}  # partials refused per group: over MAX_ROBOTS robots in all
 
     def offer(self, group: str, msg: MapMessage) -> bool:
         """Keep ``msg`` if it is the group's newest partial (by ``(meta.boot, version)``)."""
@@ -354,6 +355,15 @@ class RootState:
         key = partial_key(msg)
         old = self.partials.get(group)
         if old is not None and key <= old.key:
+            return False
+        from wire_codec import MAX_ROBOTS
+
+        others = {r for g, p in self.partials.items() if g != group for r in p.message.robots}
+        if len(others | set(msg.robots)) > MAX_ROBOTS:
+            # the fused map's contributor masks are 64 bits (wire_codec/FORMAT.md 3.6,
+            # Wireframe.sources): the partial that would make the 65th robot is refused, the
+            # group's last one (if any) stays in the map
+            self.refused[group] = self.refused.get(group, 0) + 1
             return False
         meta = msg.meta if isinstance(msg.meta, dict) else {}
         stamps = tuple(int(s) for s in meta.get("stamps", []) if isinstance(s, int))
