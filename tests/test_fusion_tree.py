@@ -403,8 +403,8 @@ def test_the_root_refuses_a_partial_that_would_make_a_65th_robot():
         wf = Wireframe(wf.points, wf.labels, wf.edges, wf.likelihood,
                        np.array([1 << k for k in range(len(ids))], dtype=np.uint64))
         m = robot_views("museum", 1)[0]
-        return dataclasses.replace(m, kind=m.kind.__class__.FUSED_MAP, sender=group, seq=seq, robots=tuple(ids),
-                                   wireframe=wf, frame="fleet", meta={"boot": 1})
+        return dataclasses.replace(m, kind=m.kind.__class__.FUSED_MAP, sender=group, seq=seq,
+                                   robots=tuple(ids), wireframe=wf, frame="fleet", meta={"boot": 1})
 
     root = RootState(THR)
     assert root.offer("g0", partial("g0", [f"a{k:02d}" for k in range(40)], 1))
