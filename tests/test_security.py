@@ -216,6 +216,45 @@ def test_acl_config_grants() -> None:
     assert subjects["robot-r2"] == {"id": "robot-r2", "usernames": ["r2"]}
 
 
+def test_acl_config_fusion_tree_grants() -> None:
+    """A regional fuser writes only its group's keys and token; the root (the fusion identity)
+    reads the partials and declares the root tokens; robots gain nothing."""
+    acl = acl_config("f", ["r1", "r2"], observers=["monitor"], fusers=["g0", "g1"])
+    grants = _policy_map(acl)
+    writes = {s: {(m, k) for m, f, k in g if f == "ingress" and m in ("put", "delete", "declare_queryable",
+                                                                       "reply", "liveliness_token")}
+              for s, g in grants.items()}
+    assert writes["fuser-g0"] == {
+        ("put", "wiremap/f/groups/g0/**"), ("delete", "wiremap/f/groups/g0/**"),
+        ("declare_queryable", "wiremap/f/groups/g0/**"), ("reply", "wiremap/f/groups/g0/**"),
+        ("liveliness_token", "wiremap/f/fusers/g0"),
+    }  # fmt: skip
+    assert ("declare_subscriber", "ingress", "wiremap/f/robots/**") in grants["fuser-g0"]
+    assert ("declare_subscriber", "ingress", "wiremap/f/groups/**") in grants["fuser-g0"]
+    assert ("query", "egress", "wiremap/f/groups/g0/**") in grants["fuser-g0"]
+    assert not any(k.startswith("wiremap/f/groups/g1") for _, _, k in grants["fuser-g0"])
+    assert ("declare_subscriber", "ingress", "wiremap/f/groups/**") in grants["fusion"]
+    assert ("liveliness_token", "ingress", "wiremap/f/fusers/root/*") in grants["fusion"]
+    assert ("put", "ingress", "wiremap/f/fused/**") in grants["fusion"]
+    for s in ("robot-r1", "observer-monitor", "fuser-g0", "fuser-g1"):
+        assert not any(m == "put" and k.startswith("wiremap/f/fused") and f == "ingress"
+                       for m, f, k in grants[s]), s
+    assert writes["robot-r1"] == {("put", "wiremap/f/robots/r1/**"), ("delete", "wiremap/f/robots/r1/**"),
+                                  ("liveliness_token", "wiremap/f/alive/r1")}
+    assert writes["observer-monitor"] == set()
+    both = {s["id"]: s for s in acl_config("f", ["r1"], identity="both", fusers=["g0"])["subjects"]}
+    assert both["fuser-g0"] == {"id": "fuser-g0", "usernames": ["fuser-g0"], "cert_common_names": ["fuser-g0"]}
+    assert "fuser-g0" in next(p for p in acl_config("f", ["r1"], identity="both", fusers=["g0"])["policies"]
+                              if p["id"] == "any")["subjects"]
+    # without a tree nothing of it is granted
+    assert not any("groups" in k or "fusers" in k for g in _policy_map(acl_config("f", ["r1"])).values()
+                   for _, _, k in g)
+    with pytest.raises(UserError, match="reserved"):
+        acl_config("f", ["r1"], fusers=["root"])
+    with pytest.raises(UserError, match="used twice"):
+        acl_config("f", ["fuser-g0"], fusers=["g0"])
+
+
 def test_acl_config_identity_kinds_and_errors() -> None:
     by_cert = {s["id"]: s for s in acl_config("f", ["r1"], identity="cert")["subjects"]}
     assert by_cert["robot-r1"] == {"id": "robot-r1", "cert_common_names": ["r1"]}
@@ -280,7 +319,7 @@ def test_committed_router_files_match_acl_config(name: str, identity: str) -> No
     want = to_zenoh_config(
         {
             "access_control": acl_config(
-                "default", ["r1", "r2", "r3"], observers=["monitor"], identity=identity
+                "default", ["r1", "r2", "r3"], observers=["monitor"], identity=identity, fusers=["g0", "g1"]
             )
         }  # type: ignore[arg-type]
     )
@@ -296,7 +335,7 @@ def test_committed_acl_fragment_matches_acl_config() -> None:
         "{access_control: " + "\n".join(ln for ln in text.splitlines() if not ln.startswith("//")) + "}"
     )
     want = to_zenoh_config({"access_control": acl_config("default", ["r1", "r2", "r3"],
-                                                         observers=["monitor"])})
+                                                         observers=["monitor"], fusers=["g0", "g1"])})
     assert json.loads(cfg.get_json("access_control")) == json.loads(want.get_json("access_control"))
 
 

@@ -40,7 +40,9 @@ so is the same for every robot; each robot gets ``--sensor`` and ``--scene-seed`
 (:func:`agents.fleet.secure.make_secure_fleet`): fresh test certificates and passwords under
 ``DIR/secure/`` (private files mode 600), the router on ``tls/localhost:<free port>`` with
 user/password *and* mutual TLS and the fleet ACL, and every child process given its own
-``--credentials`` file (robot ``rK`` as ``rK``, the fusion service as ``fusion``). It makes its
+``--credentials`` file (robot ``rK`` as ``rK``, the fusion service as ``fusion``; with
+``--fusers K`` the root as ``fusion`` and the regional fuser of group ``gI`` as ``fuser-gI``,
+which may publish only its group's partial and token, so the fusers run ``--no-standby``). It makes its
 own router configuration, so it refuses ``--config``, ``--listen`` and ``--connect``. It needs
 the ``openssl`` command.
 """
@@ -641,8 +643,17 @@ def _router_config(
     if args.credentials:
         raise UserError("--secure writes the credentials itself: drop --credentials")
     listen = [f"tls/localhost:{free_port()}"]  # the generated server certificate is for localhost
-    fl = make_secure_fleet(out / "secure", fleet, ids, listen=listen[0])
+    fl = make_secure_fleet(out / "secure", fleet, ids, listen=listen[0], fusers=_group_names(args, ids))
     return to_zenoh_config(fl.router), listen, dict(fl.credentials)
+
+
+def _group_names(args: argparse.Namespace, ids: list[str]) -> list[str]:
+    """The regional fusers' group names of ``--fusers K`` (none for one fusion service)."""
+    if getattr(args, "fusers", 1) <= 1:
+        return []
+    from agents.fleet.fusion.tree import fold_ranges
+
+    return [f"g{g}" for g in range(len(fold_ranges(ids, args.fusers)))]
 
 
 def _start_fleet(
@@ -688,8 +699,14 @@ def _start_fleet(
         # at the end, merge_recordings): a regional fuser its robots and its partial, the root
         # the fused map and the world
         rec_id = fuse_argv[fuse_argv.index("--recording-id") + 1]
+        from agents.fleet.secure import fuser_identity
+
         for name, pattern in zip(names, ranges):
-            argv = ["fuse", *bus, *cred_args("fusion"), "--group", name, "--robots", pattern,
+            # secure: each regional fuser has its own identity, which may publish its group's
+            # partial only, so it cannot take another group over (no standby)
+            who = fuser_identity(name)
+            standby = ["--no-standby"] if who in creds else []
+            argv = ["fuse", *bus, *cred_args(who), *standby, "--group", name, "--robots", pattern,
                     "--store", str(out / f"store-{name}"), "--threshold", repr(threshold),
                     "--rrd", str(out / f"store-{name}" / "recording.rrd"), "--recording-id", rec_id]
             procs[f"fuser-{name}"] = _spawn(f"fuser-{name}", argv, logs)

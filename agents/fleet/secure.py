@@ -25,7 +25,18 @@ Threat model and choices
   any authenticated client  subscribe to and query ``wiremap/<fleet>/fused/**``; see the
                             liveliness tokens ``wiremap/<fleet>/alive/**`` (``wiremap watch``
                             counts the robots alive: the ids are not secret)
+  regional fuser ``NAME``   (a fusion tree, ``fusers=``; identity ``fuser-NAME``) read the
+                            fleet and the tree (``groups/**``, the tokens ``fusers/**``); put,
+                            declare a queryable and reply under ``wiremap/<fleet>/groups/NAME/**``
+                            (its partial map and counters) and receive the queries for them;
+                            declare the token ``wiremap/<fleet>/fusers/NAME`` (and no other)
+  the fusion identity,      as above, and read ``groups/**`` and ``fusers/**``; declare the
+  as a tree's root          tokens ``fusers/root`` and ``fusers/root/<boot>``
   ========================  ===============================================================
+
+  A regional fuser may not publish another group's partial, so a secure tree has no standby
+  takeover (``wiremap run --secure --fusers K`` passes ``--no-standby``): a dead fuser's group
+  stays in the fused map as its last partial until the fuser is restarted (from its store).
 
   An identity is a user name (``identity="username"``), a certificate common name
   (``"cert"``) or both at once (``"both"``: the subject requires the user name *and* the
@@ -342,6 +353,12 @@ def _rule(rid: str, messages: Sequence[str], flow: str, key_exprs: Sequence[str]
     }
 
 
+def fuser_identity(group: str) -> str:
+    """The identity (user name, certificate CN, credentials file name) of the regional fuser of
+    ``group`` in a secure fusion tree: ``fuser-<group>``."""
+    return f"fuser-{group}"
+
+
 READ_IN = ("declare_subscriber", "query", "declare_liveliness_subscriber", "liveliness_query")
 READ_OUT = ("put", "delete", "reply", "liveliness_token")
 
@@ -353,6 +370,7 @@ def acl_config(
     *,
     observers: Sequence[str] = (),
     identity: Identity = "username",
+    fusers: Sequence[str] = (),
 ) -> dict[str, Any]:
     """The router's ``access_control`` section for one fleet (default deny).
 
@@ -364,6 +382,9 @@ def acl_config(
     observers : identities that may read the whole fleet but write nothing.
     identity : how a client is matched to an id: ``"username"`` (usrpwd), ``"cert"``
         (mTLS certificate common name) or ``"both"`` (user name and CN must both equal the id).
+    fusers : the group names of a fusion tree's regional fusers (``wiremap fuse --group
+        NAME``); the fuser of group ``NAME`` authenticates as :func:`fuser_identity` (``NAME``),
+        i.e. ``fuser-NAME``, and may write only its group's keys; the root is ``fusion_user``.
 
     Returns
     -------
@@ -381,7 +402,12 @@ def acl_config(
     """
     _check_id(fleet, "fleet name")
     _check_id(fusion_user, "fusion user")
+    groups = [_check_id(g, "fuser group") for g in fusers]
+    for g in groups:
+        if g == "root":
+            raise UserError("fuser group 'root' is reserved (the root's token is fusers/root)")
     ids = [_check_id(r, "robot id") for r in robots] + [_check_id(o, "observer") for o in observers]
+    ids += [_check_id(fuser_identity(g), "fuser identity") for g in groups]
     seen: set[str] = {fusion_user}
     for i in ids:
         if i in seen:
@@ -418,26 +444,52 @@ def acl_config(
         _rule("admin-in", ["query", "declare_queryable", "reply"], "ingress", [f"{p}/admin/**"]),
         _rule("admin-out", ["query", "reply"], "egress", [f"{p}/admin/**"]),
     ]
+    tree_read = [f"{p}/groups/**", f"{p}/fusers/**"]
+    if groups:
+        # the fusion tree: everyone who reads the fleet reads the partials and the fusers'
+        # tokens; the root (the fusion identity) declares the root tokens only
+        rules += [
+            _rule("tree-read-in", READ_IN, "ingress", tree_read),
+            _rule("tree-read-out", READ_OUT, "egress", tree_read),
+            _rule("root-token", ["liveliness_token"], "ingress",
+                  [f"{p}/fusers/root", f"{p}/fusers/root/*"]),
+        ]
+    tree_rules = ["tree-read-in", "tree-read-out"] if groups else []
     subjects: list[dict[str, Any]] = [subject("fusion", fusion_user)]
     if identity != "both":
         subjects.insert(0, {"id": "any"})
     # "any" authenticated client: with identity "both", only the clients whose user name and
     # certificate CN are one known identity (a subject with neither would also match r2's
     # certificate logged in with r1's password, which must be able to do nothing at all)
-    everyone = ["fusion", *(f"observer-{o}" for o in observers), *(f"robot-{r}" for r in robots)]
+    everyone = ["fusion", *(f"observer-{o}" for o in observers), *(f"robot-{r}" for r in robots),
+                *(fuser_identity(g) for g in groups)]
     policies: list[dict[str, Any]] = [
         {"id": "any", "rules": ["any-read-fused-in", "any-read-fused-out", "any-alive-in", "any-alive-out"],
          "subjects": everyone if identity == "both" else ["any"]},
         {"id": "fusion",
          "rules": ["fleet-read-in", "fleet-read-out", "fusion-write", "fusion-answer", "admin-in",
-                                   "admin-out"],
+                   "admin-out", *tree_rules, *(["root-token"] if groups else [])],
          "subjects": ["fusion"]},
     ]
     if observers:
         for o in observers:
             subjects.append(subject(f"observer-{o}", o))
-        policies.append({"id": "observers", "rules": ["fleet-read-in", "fleet-read-out"],
+        policies.append({"id": "observers", "rules": ["fleet-read-in", "fleet-read-out", *tree_rules],
                          "subjects": [f"observer-{o}" for o in observers]})
+    for g in groups:
+        # a regional fuser: reads the fleet and the tree, writes (puts, its queryables' replies)
+        # only under groups/NAME/** and declares only the token fusers/NAME; it receives the
+        # queries for its own keys only
+        fid = fuser_identity(g)
+        rules.append(_rule(f"{fid}-write", ["put", "delete", "declare_queryable", "reply"], "ingress",
+                           [f"{p}/groups/{g}/**"]))
+        rules.append(_rule(f"{fid}-answer", ["query"], "egress", [f"{p}/groups/{g}/**"]))
+        rules.append(_rule(f"{fid}-token", ["liveliness_token"], "ingress", [f"{p}/fusers/{g}"]))
+        subjects.append(subject(fid, fid))
+        policies.append({"id": fid,
+                         "rules": ["fleet-read-in", "fleet-read-out", *tree_rules, f"{fid}-write",
+                                   f"{fid}-answer", f"{fid}-token"],
+                         "subjects": [fid]})
     for r in robots:
         rules.append(_rule(f"robot-{r}-write", ["put", "delete"], "ingress", [f"{p}/robots/{r}/**"]))
         rules.append(_rule(f"robot-{r}-alive", ["liveliness_token"], "ingress", [f"{p}/alive/{r}"]))
@@ -677,6 +729,7 @@ def make_secure_fleet(
     listen: str = f"tls/localhost:{DEFAULT_SECURE_PORT}",
     usrpwd: bool = True,
     mtls: bool = True,
+    fusers: Sequence[str] = (),
 ) -> SecureFleet:
     """Write credentials for a fleet: certificates, passwords, one credentials file per
     identity and the router configuration with the fleet's ACL.
@@ -689,6 +742,8 @@ def make_secure_fleet(
         ``localhost`` or ``127.0.0.1`` (the SANs of the generated server certificate).
     usrpwd : user/password authentication (random passwords, :func:`make_password`).
     mtls : mutual TLS with generated certificates (CN = id).
+    fusers : a fusion tree's group names: one identity and credentials file per regional
+        fuser, ``fuser-NAME`` (:func:`fuser_identity`); the root uses ``fusion_user``.
 
     With both, the ACL identifies a client by user name *and* certificate CN
     (``identity="both"``; a client whose two do not name one identity may do nothing); with
@@ -700,9 +755,10 @@ def make_secure_fleet(
     if mtls and not listen.startswith("tls/"):
         raise UserError(f"mutual TLS needs a tls/ endpoint, not {listen!r}")
     identity: Identity = "both" if (usrpwd and mtls) else ("username" if usrpwd else "cert")
-    acl = acl_config(fleet, list(robots), fusion_user, observers=observers, identity=identity)
+    acl = acl_config(fleet, list(robots), fusion_user, observers=observers, identity=identity,
+                     fusers=fusers)
     d = Path(directory).resolve()
-    ids = [fusion_user, *observers, *robots]
+    ids = [fusion_user, *observers, *robots, *(fuser_identity(g) for g in fusers)]
     certs = generate_test_certs(d / "certs", ids) if mtls else None
     if certs is not None:
         # every certificate of the fleet is issued: the CA's private key would only let whoever
@@ -767,6 +823,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     init.add_argument("--fleet", default="default")
     init.add_argument("--robots", required=True, help="comma-separated robot ids")
     init.add_argument("--fusion-user", default=DEFAULT_FUSION_USER)
+    init.add_argument("--fusers", default="",
+                      help="comma-separated group names of a fusion tree's regional fusers "
+                           "(identities fuser-NAME)")
     init.add_argument("--observers", default=DEFAULT_OBSERVER,
                       help="comma-separated read-only ids ('' for none)")
     init.add_argument("--listen", default=f"tls/localhost:{DEFAULT_SECURE_PORT}")
@@ -786,6 +845,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         fl = make_secure_fleet(
             d, args.fleet, robots, fusion_user=args.fusion_user, observers=observers,
             listen=args.listen, usrpwd=not args.no_usrpwd, mtls=not args.no_mtls,
+            fusers=[g for g in args.fusers.split(",") if g],
         )
     except UserError as exc:
         print(f"wiremap: {exc}", file=sys.stderr)
