@@ -35,7 +35,7 @@ from numpy.typing import NDArray
 from scipy.optimize import linear_sum_assignment
 from scipy.spatial import cKDTree
 
-from mapping.wireframe import Label, Wireframe
+from mapping.wireframe import Label, MaskArray, Wireframe, as_masks
 
 __all__ = ["MergeConfig", "merge", "merge_all", "merge_traced", "normalize"]
 
@@ -478,7 +478,7 @@ def _valid_wireframe(
     labels: NDArray[np.uint8],
     edges: NDArray[np.int64],
     likelihood: NDArray[np.float64],
-    sources: NDArray[np.uint64],
+    sources: MaskArray,
 ) -> Wireframe:
     """``Wireframe(points, labels, edges, likelihood, sources)`` for arrays that are valid by
     construction (a merge's result: indices in range, no self-loops, finite coordinates,
@@ -492,7 +492,8 @@ def _valid_wireframe(
         ("likelihood", likelihood, np.float64),
         ("sources", sources, np.uint64),
     ):
-        a = np.array(arr, dtype=dtype, order="C")
+        # masks past bit 63 (fleets of more than 64 robots) stay Python ints (as_masks)
+        a = as_masks(arr) if name == "sources" and arr.dtype == object else np.array(arr, dtype=dtype, order="C")
         a.setflags(write=False)
         object.__setattr__(wf, name, a)
     return wf
@@ -568,7 +569,7 @@ def _assemble_lists(
         np.stack((np.array([remap[x] for x in eu], dtype=np.int64),
                   np.array([remap[y] for y in ev], dtype=np.int64)), axis=1),
         np.array(el, dtype=np.float64),
-        np.array(es, dtype=np.uint64),
+        as_masks(es),
     )
     return merged, [sorted(set(x)) for x in prov]
 
@@ -1545,7 +1546,7 @@ def _assemble(
         eu = np.asarray(eu_l, dtype=np.int64)
         ev = np.asarray(ev_l, dtype=np.int64)
         el = np.asarray(el_l, dtype=np.float64)
-        es = np.asarray(es_l, dtype=np.uint64)
+        es = as_masks(es_l)
         if trace:
             prov = w.out_p + [[orig_l[e]] for e in pass_idx]
     else:
@@ -1555,7 +1556,11 @@ def _assemble(
         eu = np.concatenate([gmap[bedges[far, 0]], np.asarray(eu_l, dtype=np.int64)])
         ev = np.concatenate([gmap[bedges[far, 1]], np.asarray(ev_l, dtype=np.int64)])
         el = np.concatenate([base.likelihood[far], np.asarray(el_l, dtype=np.float64)])
-        es = np.concatenate([base.sources[far], np.asarray(es_l, dtype=np.uint64)])
+        es = as_masks(es_l)
+        if base.sources.dtype == object or es.dtype == object:  # masks past bit 63: Python ints
+            es = as_masks(base.sources[far].tolist() + es_l)
+        else:
+            es = np.concatenate([base.sources[far], es])
         if trace:
             prov = [[x] for x in np.flatnonzero(far).tolist()] + w.out_p + [[orig_l[e]] for e in pass_idx]
     kept_b = ~loc.local_v
@@ -1569,7 +1574,7 @@ def _assemble_arrays(
     eu: NDArray[np.int64],
     ev: NDArray[np.int64],
     el: NDArray[np.float64],
-    es: NDArray[np.uint64],
+    es: MaskArray,
     prov: list[list[int]],
     trace: bool,
 ) -> tuple[Wireframe, list[list[int]]]:
@@ -1592,7 +1597,7 @@ def _assemble_arrays(
             order = np.argsort(first, kind="stable")  # keep first-occurrence order
             q = np.ones(len(uk))
             np.multiply.at(q, inv, 1.0 - el)
-            s_acc = np.zeros(len(uk), dtype=np.uint64)
+            s_acc = np.zeros(len(uk), dtype=es.dtype)  # object: masks past bit 63, OR-ed as ints
             np.bitwise_or.at(s_acc, inv, es)
             eu, ev = eu[first][order], ev[first][order]
             if trace:

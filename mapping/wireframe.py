@@ -12,9 +12,13 @@ Vertices are wall corners, edges are walls. Conventions used everywhere in this 
   visible wall that hides another one, ``FRONTIER`` vertices are where a wall leaves what has
   been seen (behind an occlusion or beyond the sensing range).
 * **Likelihood.** Each edge carries the likelihood that it exists (paper Sec. IV-D/E), in [0, 1].
-* **Sources.** Each edge carries a ``uint64`` bit mask of contributors (bit k = contributor k);
-  the fusion service uses it for "which robots saw this wall"; a single robot leaves it 0.
-  Merging ORs the masks the way it combines likelihoods.
+* **Sources.** Each edge carries a bit mask of contributors (bit k = contributor k); the fusion
+  service uses it for "which robots saw this wall"; a single robot leaves it 0. Merging ORs
+  the masks the way it combines likelihoods. Masks have no width limit (a fleet of any size):
+  the array is ``uint64`` while every mask is below ``2**64`` (every fleet of at most 64
+  robots, every robot map: the arrays, their bytes and every result are as they always were)
+  and an ``object`` array of Python ints once a mask has bit 64 or above (:func:`as_masks`
+  makes that canonical choice; :func:`mask_bytes` hashes either kind).
 
 The value type is immutable: its arrays are read-only, and every operation returns a new one.
 """
@@ -36,7 +40,82 @@ from mapping.se2 import Pose
 FloatArray = NDArray[np.float64]
 IndexArray = NDArray[np.int32]
 LabelArray = NDArray[np.uint8]
-MaskArray = NDArray[np.uint64]
+MaskArray = NDArray[Any]
+"""Contributor masks: ``uint64``, or ``object`` (Python ints) when a mask needs bit 64 or above."""
+
+MASK_WORD = 1 << 64
+"""Masks below this live in a ``uint64`` array; an array with any mask at or above it is an
+``object`` array of Python ints."""
+
+
+def as_masks(values: ArrayLike) -> MaskArray:
+    """Contributor masks in their canonical array (a fresh, writable copy).
+
+    ``uint64`` when every mask is below ``2**64``, else an ``object`` array of non-negative
+    Python ints. A non-object numpy array is cast to ``uint64`` as ``numpy.array(values,
+    dtype=numpy.uint64)`` does (the behaviour of 64-bit masks, unchanged); lists and object
+    arrays may hold ints of any size.
+
+    Raises
+    ------
+    ValueError
+        A negative mask, or one that is not an integer (only for values that do not fit
+        ``uint64``).
+    """
+    if isinstance(values, np.ndarray) and values.dtype != object:
+        return np.array(values, dtype=np.uint64, copy=True)
+    try:
+        return np.array(values, dtype=np.uint64, copy=True)
+    except (OverflowError, TypeError, ValueError):
+        pass
+    a = np.asarray(values, dtype=object)
+    flat: list[int] = []
+    for v in a.reshape(-1).tolist():
+        if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, np.integer)):
+            raise ValueError(f"a contributor mask must be an integer, got {v!r}")
+        if v < 0:
+            raise ValueError(f"a contributor mask must not be negative, got {v}")
+        flat.append(int(v))
+    if all(v < MASK_WORD for v in flat):
+        return np.array(flat, dtype=np.uint64).reshape(a.shape)
+    out = np.empty(len(flat), dtype=object)
+    out[:] = flat
+    return out.reshape(a.shape)
+
+
+def mask_array(n: int, mask: int) -> MaskArray:
+    """``n`` copies of one contributor mask (``uint64`` below ``2**64``, else Python ints)."""
+    if mask < MASK_WORD:
+        return np.full(n, mask, dtype=np.uint64)
+    out = np.empty(n, dtype=object)
+    out[:] = [mask] * n
+    return out
+
+
+def mask_bytes(sources: MaskArray) -> bytes:
+    """The bytes that identify a mask array, for digests: ``tobytes()`` of a ``uint64`` array
+    (so every hash of maps of at most 64 robots is unchanged), and for an ``object`` array a
+    marker, then per mask its byte count (4 bytes, little endian) and its bytes (little
+    endian)."""
+    if sources.dtype != object:
+        return np.ascontiguousarray(sources).tobytes()
+    parts = [b"wide-masks"]
+    for v in sources.reshape(-1).tolist():
+        raw = int(v).to_bytes((int(v).bit_length() + 7) // 8, "little")
+        parts.append(len(raw).to_bytes(4, "little") + raw)
+    return b"".join(parts)
+
+
+def mask_or(sources: MaskArray) -> int:
+    """The OR of every mask (0 for none): the set of contributors of a map."""
+    if sources.size == 0:
+        return 0
+    if sources.dtype != object:
+        return int(np.bitwise_or.reduce(sources))
+    out = 0
+    for v in sources.tolist():
+        out |= int(v)
+    return out
 
 
 class Label(IntEnum):
@@ -77,8 +156,9 @@ class Wireframe:
         Directed edges ``(i, j)``: the wall from ``p_i`` to ``p_j`` with free space on its left.
     likelihood : (m,) float64
         Per-edge existence likelihood in [0, 1].
-    sources : (m,) uint64
-        Per-edge contributor bit mask.
+    sources : (m,) uint64, or object (Python ints)
+        Per-edge contributor bit mask (see the module docstring: ``object`` only when a mask
+        has bit 64 or above; :func:`as_masks`).
 
     Raises
     ------
@@ -132,7 +212,10 @@ class Wireframe:
             raise ValueError(f"likelihood must have shape ({m},), got {lik.shape}")
         if m and (not np.all(np.isfinite(lik)) or lik.min() < 0.0 or lik.max() > 1.0):
             raise ValueError("edge likelihoods must be finite and within [0, 1]")
-        src = np.array(self.sources, dtype=np.uint64, copy=True).reshape(-1)
+        try:
+            src = as_masks(self.sources).reshape(-1)
+        except ValueError as exc:
+            raise ValueError(f"sources: {exc}") from None
         if src.shape != (m,):
             raise ValueError(f"sources must have shape ({m},), got {src.shape}")
         object.__setattr__(self, "points", _readonly(pts))
@@ -161,7 +244,7 @@ class Wireframe:
         n, m = pts.shape[0], e.shape[0]
         lab = np.zeros(n, np.uint8) if labels is None else np.asarray(labels)
         lik = np.ones(m) if likelihood is None else np.asarray(likelihood, dtype=np.float64)
-        src = np.zeros(m, np.uint64) if sources is None else np.asarray(sources, dtype=np.uint64)
+        src = np.zeros(m, np.uint64) if sources is None else as_masks(sources)
         return cls(pts, lab, e, lik, src)  # type: ignore[arg-type]  # validated and cast in __post_init__
 
     @classmethod
@@ -312,12 +395,15 @@ class Wireframe:
         Returns
         -------
         bytes
-            ``blake2b(digest_size=16)`` over ``str(a.shape)`` and ``a.tobytes()`` of each array.
+            ``blake2b(digest_size=16)`` over ``str(a.shape)`` and ``a.tobytes()`` of each array
+            (:func:`mask_bytes` for the sources: the same bytes for ``uint64`` masks).
         """
         h = hashlib.blake2b(digest_size=16)
-        for a in (self.points, self.labels, self.edges, self.likelihood, self.sources):
+        for a in (self.points, self.labels, self.edges, self.likelihood):
             h.update(str(a.shape).encode())
             h.update(np.ascontiguousarray(a).tobytes())
+        h.update(str(self.sources.shape).encode())
+        h.update(mask_bytes(self.sources))
         return h.digest()
 
     # ------------------------------------------------------------------ storage

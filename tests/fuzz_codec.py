@@ -48,10 +48,11 @@ def main() -> int:
         from wire_codec.codec import decode_with
         from wire_codec.errors import DEFAULT_LIMITS
 
-    golden = json.loads(
-        (Path(__file__).with_name("golden") / f"codec_v{wire_codec.VERSION}.json").read_text()
-    )
-    seeds = {v["name"]: bytes.fromhex(v["hex"]) for v in golden["vectors"]}
+    seeds = {
+        v["name"]: bytes.fromhex(v["hex"])
+        for version in wire_codec.VERSIONS
+        for v in json.loads((Path(__file__).with_name("golden") / f"codec_v{version}.json").read_text())["vectors"]
+    }
     robot_fields = list(msgpack.unpackb(seeds["room_mixed"], raw=False)[:-1])
     fused_fields = list(msgpack.unpackb(seeds["fused_three_robots"], raw=False)[:-1])
 

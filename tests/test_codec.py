@@ -135,6 +135,23 @@ def test_round_trip_property(msg: wire_codec.MapMessage) -> None:
 
 
 @settings(max_examples=15, deadline=5000, suppress_health_check=[HealthCheck.too_slow])
+@given(messages(robot_counts=(65, 128, 200, 4096)))
+def test_round_trip_property_past_64_robots(msg: wire_codec.MapMessage) -> None:
+    """Fused maps of more than 64 robots (masks past bit 63, Python ints) travel as format
+    version 2 and come back bit for bit, through both decoders."""
+    data = check_round_trip(msg)
+    assert data[1] == 2
+    if msg.wireframe.n_edges:
+        assert msg.wireframe.sources.dtype == object
+        assert wire_codec.decode(data).wireframe.sources.dtype == object
+
+
+@given(messages(robot_counts=(1, 3, 8, 64)))
+def test_maps_of_at_most_64_robots_are_version_1(msg: wire_codec.MapMessage) -> None:
+    """Every message that version 1 can carry is written as version 1 (old decoders read it)."""
+    assert wire_codec.encode(msg)[1] == 1
+
+
 @given(messages(max_vertices=400))
 def test_round_trip_property_larger_maps(msg: wire_codec.MapMessage) -> None:
     check_round_trip(msg)
@@ -154,7 +171,7 @@ def test_envelope_layout() -> None:
     msg = message(room(), pose=Pose(1.2345, -2.0, -0.5), origin=Pose(10.0, 0.0, math.pi / 2),
                   meta={"stale": ["r2"]})
     data = wire_codec.encode(msg)
-    assert data[0] == 0x9D and data[1] == wire_codec.VERSION and data[-5] == 0xCE
+    assert data[0] == 0x9D and data[1] == 1 and data[-5] == 0xCE  # version 1: it fits (<= 64 robots)
     f = fields_of(data)
     assert f[:5] == [1, 1, "r1", 7, 1_700_000_000_000_000_000]
     assert f[5] == [1234, -2000, -500000] and f[6] == "odom/r1" and f[7] == [10000, 0, 1570796]
@@ -221,8 +238,13 @@ def test_encoder_refuses_bad_sources_and_far_points() -> None:
     with pytest.raises(wire_codec.EncodeError, match="contributor"):
         wire_codec.encode(message(src.replace(sources=np.full(10, 4, dtype=np.uint64)), kind=FUSED,
                                   robots=("a", "b")))
-    with pytest.raises(wire_codec.EncodeError, match="at most 64"):
-        wire_codec.encode(message(room(), kind=FUSED, robots=tuple(f"r{k}" for k in range(65))))
+    with pytest.raises(wire_codec.EncodeError, match="at most 4096"):
+        wire_codec.encode(message(room(), kind=FUSED, robots=tuple(f"r{k}" for k in range(4097))))
+    wide = room().replace(sources=np.array([1 << 70] * 10, dtype=object))
+    with pytest.raises(wire_codec.EncodeError, match="contributor"):
+        wire_codec.encode(message(wide, kind=FUSED, robots=tuple(f"r{k}" for k in range(70))))
+    with pytest.raises(wire_codec.EncodeError, match="contributor"):
+        wire_codec.encode(message(wide, kind=FUSED, robots=("a", "b")))
     with pytest.raises(wire_codec.EncodeError, match="distinct"):
         wire_codec.encode(message(room(), kind=FUSED, robots=("a", "a")))
     far = Wireframe.build([[1e17, 0.0]])

@@ -1,8 +1,11 @@
-"""Golden vectors: a few small maps with their exact bytes checked in (tests/golden/codec_v1.json).
+"""Golden vectors: a few small maps with their exact bytes checked in, per format version
+(tests/golden/codec_v1.json: maps of at most 64 robots, still written as version 1;
+tests/golden/codec_v2.json: a fused map of 70 robots, version 2).
 
 Any change to the bytes the encoder writes fails here. If the change is deliberate, bump
-``wire_codec.VERSION``, describe the new format in FORMAT.md, and regenerate with
-``python -m tests.test_codec_golden --write`` (it writes codec_v<VERSION>.json).
+``wire_codec.VERSION``, describe the new format in FORMAT.md, add its vectors and write them
+with ``python -m tests.test_codec_golden --write`` (it writes codec_v<version>.json for every
+version; the old files must not change).
 """
 
 from __future__ import annotations
@@ -21,7 +24,23 @@ from mapping.se2 import Pose
 from mapping.wireframe import Wireframe
 from tests.test_codec_util import FUSED, fields_of, message, room
 
-GOLDEN = Path(__file__).with_name("golden") / f"codec_v{wire_codec.VERSION}.json"
+GOLDEN_DIR = Path(__file__).with_name("golden")
+GOLDEN = GOLDEN_DIR / "codec_v1.json"
+
+
+def golden_messages_v2() -> dict[str, tuple[str, wire_codec.MapMessage]]:
+    """Version 2: more than 64 robots (masks past bit 63)."""
+    robots = tuple(f"r{k:02d}" for k in range(70))
+    masks = [1, 1 << 69, (1 << 69) | 1, 1 << 64, 1 << 63, (1 << 70) - 1, 6, 1 << 69, 1, 1 << 40]
+    fused = room().replace(sources=np.array(masks, dtype=object))
+    return {
+        "fused_seventy_robots": (
+            "fused map of the L-shaped room from 70 robots r00..r69, masks using bits 0, 1, 2, 40, "
+            "63, 64, 69 and all 70; 0.4 m",
+            message(fused, kind=FUSED, robots=robots, sender="fusion", frame="fleet",
+                    resolution=0.4, pose=Pose(), seq=5, stamp_ns=2),
+        ),
+    }
 
 
 def golden_messages() -> dict[str, tuple[str, wire_codec.MapMessage]]:
@@ -59,19 +78,27 @@ def golden_messages() -> dict[str, tuple[str, wire_codec.MapMessage]]:
     }
 
 
-def _load() -> dict[str, str]:
-    return {v["name"]: v["hex"] for v in json.loads(GOLDEN.read_text())["vectors"]}
+VERSIONED = {1: golden_messages, 2: golden_messages_v2}
 
 
-@pytest.mark.parametrize("name", list(golden_messages()))
-def test_encoder_writes_the_golden_bytes(name: str) -> None:
-    assert wire_codec.encode(golden_messages()[name][1]).hex() == _load()[name]
+def _load(version: int = 1) -> dict[str, str]:
+    return {v["name"]: v["hex"] for v in json.loads((GOLDEN_DIR / f"codec_v{version}.json").read_text())["vectors"]}
 
 
-@pytest.mark.parametrize("name", list(golden_messages()))
-def test_golden_bytes_decode_to_the_map(name: str) -> None:
-    msg = golden_messages()[name][1]
-    out = wire_codec.decode(bytes.fromhex(_load()[name]))
+CASES = [(v, name) for v, make in VERSIONED.items() for name in make()]
+
+
+@pytest.mark.parametrize(("version", "name"), CASES)
+def test_encoder_writes_the_golden_bytes(version: int, name: str) -> None:
+    data = wire_codec.encode(VERSIONED[version]()[name][1])
+    assert data.hex() == _load(version)[name]
+    assert data[1] == version
+
+
+@pytest.mark.parametrize(("version", "name"), CASES)
+def test_golden_bytes_decode_to_the_map(version: int, name: str) -> None:
+    msg = VERSIONED[version]()[name][1]
+    out = wire_codec.decode(bytes.fromhex(_load(version)[name]))
     assert (out.kind, out.sender, out.seq, out.stamp_ns, out.frame, out.robots, out.meta) == (
         msg.kind, msg.sender, msg.seq, msg.stamp_ns, msg.frame, msg.robots, msg.meta
     )
@@ -88,20 +115,24 @@ def test_square_room_bytes_by_hand() -> None:
 
 
 def test_golden_file_lists_every_vector() -> None:
-    doc = json.loads(GOLDEN.read_text())
-    assert doc["version"] == wire_codec.VERSION
-    assert sorted(v["name"] for v in doc["vectors"]) == sorted(golden_messages())
+    assert sorted(VERSIONED) == list(wire_codec.VERSIONS)
+    for version, make in VERSIONED.items():
+        doc = json.loads((GOLDEN_DIR / f"codec_v{version}.json").read_text())
+        assert doc["version"] == version
+        assert sorted(v["name"] for v in doc["vectors"]) == sorted(make())
 
 
 def write() -> None:
-    vectors = [
-        {"name": name, "description": text, "hex": wire_codec.encode(msg).hex()}
-        for name, (text, msg) in golden_messages().items()
-    ]
-    doc = {"version": wire_codec.VERSION, "format": "wire_codec/FORMAT.md", "vectors": vectors}
-    GOLDEN.parent.mkdir(exist_ok=True)
-    GOLDEN.write_text(json.dumps(doc, indent=2) + "\n")
-    print(f"wrote {GOLDEN}")
+    for version, make in VERSIONED.items():
+        vectors = [
+            {"name": name, "description": text, "hex": wire_codec.encode(msg).hex()}
+            for name, (text, msg) in make().items()
+        ]
+        doc = {"version": version, "format": "wire_codec/FORMAT.md", "vectors": vectors}
+        path = GOLDEN_DIR / f"codec_v{version}.json"
+        path.parent.mkdir(exist_ok=True)
+        path.write_text(json.dumps(doc, indent=2) + "\n")
+        print(f"wrote {path}")
 
 
 def test_format_md_worked_example_matches_the_golden_vector() -> None:

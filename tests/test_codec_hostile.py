@@ -244,7 +244,7 @@ def _resealed(index: int, value: Any, base: bytes = SMALL_BYTES) -> bytes:
 @pytest.mark.parametrize(
     ("index", "value", "error"),
     [
-        (0, 2, wire_codec.VersionError),
+        (0, 3, wire_codec.VersionError),
         (0, 300, wire_codec.VersionError),
         (0, "1", wire_codec.VersionError),
         (1, 3, wire_codec.FormatError),
@@ -281,6 +281,19 @@ def test_bad_envelope_fields(index: int, value: Any, error: type) -> None:
 def test_bad_fused_envelopes() -> None:
     assert outcome(_resealed(9, ["a", "a", "b"], FUSED_BYTES)) is wire_codec.FormatError
     assert outcome(_resealed(9, [f"r{k}" for k in range(65)], FUSED_BYTES)) is wire_codec.LimitError
+    # version 2 raises the bound to 4,096 robots (and a decoder's Limits may lower it)
+    f = fields_of(FUSED_BYTES)
+    f[0], f[9] = 2, [f"r{k}" for k in range(4097)]
+    assert outcome(seal(f)) is wire_codec.LimitError
+    f[9] = [f"r{k}" for k in range(65)]
+    with pytest.raises(wire_codec.LimitError, match="at most 64"):
+        wire_codec.decode(seal(f), limits=Limits(max_robots=64))
+    # a version-2 envelope around a map that version 1 could carry reads the same
+    f = fields_of(FUSED_BYTES)
+    f[0] = 2
+    same = wire_codec.decode(seal(f))
+    assert same.robots == wire_codec.decode(FUSED_BYTES).robots
+    assert np.array_equal(same.wireframe.sources, wire_codec.decode(FUSED_BYTES).wireframe.sources)
     # Two robots instead of three: the body's masks no longer line up.
     assert isinstance(outcome(_resealed(9, ["a", "b"], FUSED_BYTES)), type)
     # A robot map's body read as fused (or the reverse) does not parse cleanly.
@@ -292,7 +305,7 @@ def test_envelope_shape_errors() -> None:
     f = fields_of(SMALL_BYTES)
     assert outcome(seal(f[:-1])) is wire_codec.FormatError  # 12 elements
     assert outcome(seal([*f, 0])) is wire_codec.FormatError  # 14 elements
-    assert outcome(seal([2, *f[1:-1]])) is wire_codec.VersionError  # another version's shape
+    assert outcome(seal([3, *f[1:-1]])) is wire_codec.VersionError  # another version's shape
     # CRC written as a small int instead of uint32.
     head = SMALL_BYTES[:-5]
     assert outcome(head + msgpack.packb(zlib_crc(head))) is wire_codec.FormatError
@@ -312,7 +325,7 @@ def zlib_crc(data: bytes) -> int:
 
 def test_wrong_version_detected_before_the_crc() -> None:
     payload = bytearray(SMALL_BYTES)
-    payload[1] = 2  # the CRC is now wrong too, but the version is the reason given
+    payload[1] = 3  # the CRC is now wrong too, but the version is the reason given
     assert outcome(bytes(payload)) is wire_codec.VersionError
 
 

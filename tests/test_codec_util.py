@@ -15,7 +15,7 @@ from hypothesis import strategies as st
 
 import wire_codec
 from mapping.se2 import Pose
-from mapping.wireframe import Wireframe
+from mapping.wireframe import Wireframe, as_masks
 from wire_codec import reference
 from wire_codec.codec import decode_with, encode_with_plan
 from wire_codec.errors import DEFAULT_LIMITS, Limits
@@ -129,7 +129,14 @@ def random_wireframe(rng: np.random.Generator, n: int, style: str, density: str,
         lik = rng.random(m)
         if m:
             lik[rng.random(m) < 0.2] = 0.0
-    if n_robots:
+    if n_robots and n_robots > 64:  # masks past bit 63: Python ints (mapping.wireframe.as_masks)
+        wide = [int.from_bytes(rng.bytes((n_robots + 7) // 8), "big") >> (-n_robots % 8) for _ in range(m)]
+        if m:
+            wide[0] = (1 << n_robots) - 1  # every robot, the top bit included
+        if m > 1:
+            wide[-1] = 1 << (n_robots - 1)  # the last robot alone
+        src = as_masks(wide) if m else np.zeros(0, dtype=np.uint64)
+    elif n_robots:
         top = (1 << n_robots) - 1 if n_robots < 64 else (1 << 64) - 1
         src = np.array([int(rng.integers(0, 1 << min(n_robots, 62))) & top for _ in range(m)],
                        dtype=np.uint64)
@@ -142,14 +149,17 @@ def random_wireframe(rng: np.random.Generator, n: int, style: str, density: str,
 
 
 @st.composite
-def messages(draw: st.DrawFn, max_vertices: int = 40) -> wire_codec.MapMessage:
-    """Random valid messages: every kind, shape and size the format has to carry."""
-    fused = draw(st.booleans())
+def messages(
+    draw: st.DrawFn, max_vertices: int = 40, robot_counts: tuple[int, ...] = (0, 1, 3, 8, 64)
+) -> wire_codec.MapMessage:
+    """Random valid messages: every kind, shape and size the format has to carry (fused maps
+    of ``robot_counts`` robots; with only counts over 64, fused maps only: format version 2)."""
+    fused = True if min(robot_counts) > 64 else draw(st.booleans())
     n = draw(st.one_of(st.sampled_from([0, 1, 2, 3]), st.integers(0, max_vertices)))
     style = draw(st.sampled_from(["rect", "rect", "random", "far"]))
     density = draw(st.sampled_from(["rings", "rings", "sparse", "dense"]))
     resolution = draw(st.sampled_from([0.2, 0.4, 0.05, 1.0, 0.001, 0.1234]))
-    n_robots = draw(st.sampled_from([0, 1, 3, 8, 64])) if fused else None
+    n_robots = draw(st.sampled_from(list(robot_counts))) if fused else None
     label_style = draw(st.sampled_from(["constant", "mostly", "random"]))
     lik_style = draw(st.sampled_from(["constant", "mostly", "random"]))
     rng = np.random.default_rng(draw(st.integers(0, 2**32 - 1)))

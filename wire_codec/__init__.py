@@ -4,8 +4,8 @@
 decoding failure is a :class:`CodecError`. No I/O, no zenoh, no rerun.
 """
 
-from wire_codec.body import MAX_ROBOTS
-from wire_codec.codec import VERSION, decode, encode
+from wire_codec.body import MAX_ROBOTS, MAX_ROBOTS_V1
+from wire_codec.codec import VERSION, VERSIONS, decode, encode, version_for
 from wire_codec.errors import (
     ChecksumError,
     CodecError,
@@ -21,7 +21,9 @@ from wire_codec.message import MapMessage, MessageKind
 
 __all__ = [
     "MAX_ROBOTS",
+    "MAX_ROBOTS_V1",
     "VERSION",
+    "VERSIONS",
     "ChecksumError",
     "CodecError",
     "EncodeError",
@@ -35,4 +37,5 @@ __all__ = [
     "VersionError",
     "decode",
     "encode",
+    "version_for",
 ]

@@ -25,8 +25,8 @@ from pathlib import Path
 from typing import Any
 
 from mapping.se2 import Pose
-from mapping.wireframe import Wireframe
-from wire_codec.codec import VERSION, decode, encode
+from mapping.wireframe import Wireframe, mask_or
+from wire_codec.codec import decode, encode, version_for
 from wire_codec.errors import CodecError
 from wire_codec.message import MapMessage, MessageKind
 
@@ -114,7 +114,7 @@ def _encode(args: argparse.Namespace) -> int:
         if args.robots:
             robots = tuple(r.strip() for r in args.robots.split(",") if r.strip())
         else:
-            top = int(wf.sources.max()).bit_length() if wf.n_edges else 0
+            top = mask_or(wf.sources).bit_length() if wf.n_edges else 0
             robots = tuple(f"r{k}" for k in range(top))
     elif args.robots:
         raise _UsageError("--robots is for fused maps (--kind fused)")
@@ -153,10 +153,12 @@ def _jsonable(value: Any) -> Any:
     return value
 
 
-def summary(message: MapMessage, n_bytes: int) -> str:
-    """The one-line description ``decode`` prints."""
+def summary(message: MapMessage, n_bytes: int, version: int | None = None) -> str:
+    """The one-line description ``decode`` prints (``version``: the message's format version,
+    by default the one an encoder writes for it)."""
+    v = version_for(len(message.robots)) if version is None else version
     return (
-        f"kind={message.kind.name.lower()} sender={message.sender} version={VERSION} "
+        f"kind={message.kind.name.lower()} sender={message.sender} version={v} "
         f"seq={message.seq} vertices={message.wireframe.n_vertices} edges={message.wireframe.n_edges} "
         f"bytes={n_bytes}"
     )
@@ -165,7 +167,7 @@ def summary(message: MapMessage, n_bytes: int) -> str:
 def _decode(args: argparse.Namespace) -> int:
     data = _read(args.payload)
     message = decode(data)
-    print(summary(message, len(data)))
+    print(summary(message, len(data), data[1]))  # decode checked: byte 1 is the version
     if args.geojson:
         props = {
             "kind": message.kind.name.lower(),

@@ -117,6 +117,17 @@ class BitWriter:
         shifts = np.arange(width - 1, -1, -1, dtype=np.uint64)
         self._add(((v[:, None] >> shifts[None, :]) & np.uint64(1)).astype(np.uint8).ravel())
 
+    def wide(self, values: list[int], width: int) -> None:
+        """Each value (a non-negative Python int below ``2**width``) as an unsigned
+        ``width``-bit field, for any ``width`` (the same bits as :meth:`fixed` where both
+        apply)."""
+        if width == 0 or not values:
+            return
+        nb = (width + 7) // 8
+        raw = b"".join(int(v).to_bytes(nb, "big") for v in values)
+        bits = np.unpackbits(np.frombuffer(raw, dtype=np.uint8)).reshape(len(values), 8 * nb)
+        self._add(np.ascontiguousarray(bits[:, 8 * nb - width :]).ravel())
+
     def varwidth(self, values: I64, widths: I64) -> None:
         """Value ``i`` as an unsigned field of ``widths[i]`` bits (``widths[i] <= 64``)."""
         v = np.asarray(values).astype(np.uint64).ravel()
@@ -211,6 +222,20 @@ class BitReader:
         self.pos += count * width
         shifts = np.arange(width - 1, -1, -1, dtype=np.uint64)
         return np.asarray((seg << shifts[None, :]).sum(axis=1, dtype=np.uint64), dtype=np.uint64)
+
+    def wide(self, count: int, width: int, what: str) -> list[int]:
+        """``count`` unsigned ``width``-bit fields of any width, as Python ints (checks that
+        the bits are there before allocating anything)."""
+        if width == 0 or count == 0:
+            return [0] * count
+        self.need(count * width, what)
+        seg = self.bits[self.pos : self.pos + count * width].reshape(count, width)
+        self.pos += count * width
+        nb = (width + 7) // 8
+        padded = np.zeros((count, 8 * nb), dtype=np.uint8)
+        padded[:, 8 * nb - width :] = seg
+        raw = np.packbits(padded, axis=1).tobytes()
+        return [int.from_bytes(raw[i * nb : (i + 1) * nb], "big") for i in range(count)]
 
     def varwidth(self, widths: I64, what: str) -> I64:
         """Unsigned fields of the given widths (each at most 63 bits), as int64."""

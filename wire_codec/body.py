@@ -34,7 +34,7 @@ from typing import NamedTuple
 import numpy as np
 from numpy.typing import NDArray
 
-from mapping.wireframe import Wireframe
+from mapping.wireframe import MaskArray, Wireframe, as_masks
 from wire_codec.bits import I64, MAX_EG_BITS, BitReader, BitWriter, best_eg_orders, ceil_log2
 from wire_codec.errors import EncodeError, ExtraDataError, FormatError, LimitError, Limits, TruncatedError
 
@@ -44,8 +44,13 @@ MAX_GRID = 1 << 50
 LIKELIHOOD_LEVELS = 15
 """Likelihood ``l`` travels as ``round(15 l)`` in 4 bits and comes back as ``v / 15``."""
 
-MAX_ROBOTS = 64
-"""A fused map's contributor masks are ``uint64``: at most 64 robots."""
+MAX_ROBOTS = 4096
+"""The most robots a fused map may list (format version 2; masks of ``len(robots)`` bits)."""
+
+MAX_ROBOTS_V1 = 64
+"""The most robots of a format version 1 message (its masks were ``uint64``). An encoder writes
+version 1 whenever a message fits it, so maps of at most 64 robots travel byte for byte as
+before version 2 existed."""
 
 MODE_CONSTANT, MODE_FLAGS, MODE_PLAIN, MODE_GAPS = 0, 1, 2, 3
 """Value-section modes (labels, likelihoods): one value; a dominant value with one exception
@@ -320,7 +325,7 @@ def _write_edges(w: BitWriter, ea: I64, eb: I64, n: int) -> I64:
     return np.concatenate((by(is_next, ea), by(is_rev, eb), by(is_close, ca), rest)).astype(np.int64)
 
 
-def _write_sources(w: BitWriter, src: NDArray[np.uint64], n_robots: int) -> None:
+def _write_sources(w: BitWriter, src: MaskArray, n_robots: int) -> None:
     """A fused map's contributor masks (FORMAT.md 3, item 6), ``src`` in the edges' decoded
     order: the sorted distinct masks of ``n_robots`` bits, then an index per edge.
 
@@ -329,7 +334,18 @@ def _write_sources(w: BitWriter, src: NDArray[np.uint64], n_robots: int) -> None
     EncodeError
         A contributor bit at or above ``n_robots``.
     """
-    if n_robots < MAX_ROBOTS and np.any(src >> np.uint64(n_robots)):
+    if n_robots > 64 or src.dtype == object:
+        # masks wider than 64 bits (Python ints): the same layout, written from Python ints
+        vals = [int(v) for v in src.tolist()]
+        if any(v >> n_robots for v in vals):
+            raise EncodeError(f"an edge has a contributor bit >= the number of robots ({n_robots})")
+        masks = sorted(set(vals))
+        slot = {v: i for i, v in enumerate(masks)}
+        w.eg(len(masks))
+        w.wide(masks, n_robots)
+        w.fixed(np.array([slot[v] for v in vals], dtype=np.int64), ceil_log2(len(masks)))
+        return
+    if n_robots < 64 and np.any(src >> np.uint64(n_robots)):
         raise EncodeError(f"an edge has a contributor bit >= the number of robots ({n_robots})")
     uniq, index = np.unique(src, return_inverse=True)
     w.eg(int(uniq.size))
@@ -424,7 +440,7 @@ def _decode_small(data: bytes, resolution_mm: int, n_robots: int | None, limits:
             np.array(labels, dtype=np.uint8),
             np.array(edges, dtype=np.int32).reshape(-1, 2),
             np.array(lq, dtype=np.float64) / LIKELIHOOD_LEVELS,
-            np.array(sources, dtype=np.uint64),
+            as_masks(sources),
         )
     except (_Reject, ValueError, IndexError, StopIteration):
         return None
@@ -782,8 +798,9 @@ def _read_edges(r: BitReader, n: int, limits: Limits) -> I64:
     )
 
 
-def _read_sources(r: BitReader, m: int, n_robots: int) -> NDArray[np.uint64]:
-    """The contributor masks of a fused map's ``m`` edges (FORMAT.md 3, item 6).
+def _read_sources(r: BitReader, m: int, n_robots: int) -> MaskArray:
+    """The contributor masks of a fused map's ``m`` edges (FORMAT.md 3, item 6): ``uint64``
+    for at most 64 robots, else :func:`~mapping.wireframe.as_masks` of Python ints.
 
     Raises
     ------
@@ -793,6 +810,14 @@ def _read_sources(r: BitReader, m: int, n_robots: int) -> NDArray[np.uint64]:
     n_masks = r.eg(0, "the contributor mask count")
     if not 1 <= n_masks <= m:
         raise FormatError(f"body: {n_masks} distinct contributor masks for {m} edges")
+    if n_robots > 64:
+        wide = r.wide(n_masks, n_robots, "the contributor masks")
+        if any(b <= a for a, b in itertools.pairwise(wide)):
+            raise FormatError("body: contributor masks are not strictly increasing")
+        idx = r.fixed(m, ceil_log2(n_masks), "the contributor indices").astype(np.int64)
+        if np.any(idx >= n_masks):
+            raise FormatError("body: a contributor index is out of range")
+        return as_masks([wide[i] for i in idx.tolist()])
     masks = r.fixed(n_masks, n_robots, "the contributor masks")
     if np.any(masks[1:] <= masks[:-1]):
         raise FormatError("body: contributor masks are not strictly increasing")

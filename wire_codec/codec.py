@@ -28,7 +28,7 @@ import msgpack
 
 from mapping.se2 import Pose
 from mapping.wireframe import Wireframe
-from wire_codec.body import MAX_ROBOTS, EncodedBody, decode_body, encode_body
+from wire_codec.body import MAX_ROBOTS, MAX_ROBOTS_V1, EncodedBody, decode_body, encode_body
 from wire_codec.errors import (
     DEFAULT_LIMITS,
     ChecksumError,
@@ -43,8 +43,17 @@ from wire_codec.errors import (
 )
 from wire_codec.message import MapMessage, MessageKind
 
-VERSION = 1
-"""The format version this module writes and reads. Bump it on any change to the bytes."""
+VERSION = 2
+"""The newest format version this module writes and reads. Bump it on any change to the bytes.
+
+Version 2 differs from version 1 only in the bound on ``robots`` (4,096 instead of 64; the
+masks are ``len(robots)`` bits in both). The encoder writes the *oldest* version a message
+fits (:func:`version_for`): version 1 for every robot map and every fused map of at most 64
+robots, byte for byte what it wrote before version 2 existed, so decoders of version 1 keep
+reading them; version 2 only for more robots (a version-1 decoder says VersionError)."""
+
+VERSIONS = (1, 2)
+"""The format versions :func:`decode` reads."""
 
 N_FIELDS = 13
 MIN_MESSAGE_BYTES = 20
@@ -64,10 +73,17 @@ def encode(message: MapMessage) -> bytes:
     ------
     EncodeError
         When the message cannot travel: a field of the wrong type or out of range, a robot map
-        with contributor masks or robots, a fused map with more than 64 robots or a mask bit
-        beyond them, a vertex too far from the origin for the resolution, unpackable ``meta``.
+        with contributor masks or robots, a fused map with more than 4,096 robots
+        (``MAX_ROBOTS``) or a mask bit beyond them, a vertex too far from the origin for the
+        resolution, unpackable ``meta``.
     """
     return _encode(message, cached=True)[0]
+
+
+def version_for(n_robots: int) -> int:
+    """The format version written for a message listing ``n_robots`` robots: 1 up to 64
+    robots (every robot map), else 2."""
+    return 1 if n_robots <= MAX_ROBOTS_V1 else 2
 
 
 # The bodies of the last few maps encoded, by the Wireframe object (immutable: frozen, read-only
@@ -148,7 +164,7 @@ def _encode(message: MapMessage, cached: bool) -> tuple[bytes, EncodedBody | Non
     else:
         body = encode_body(wf, res_mm / 1e3, n_robots)
         data = body.data
-    fields = [VERSION, int(kind), sender, seq, stamp, pose, frame, origin, res_mm, list(robots), meta, data]
+    fields = [version_for(len(robots)), int(kind), sender, seq, stamp, pose, frame, origin, res_mm, list(robots), meta, data]
     try:
         packed = msgpack.packb(fields, use_bin_type=True)
     except (TypeError, ValueError, OverflowError) as exc:
@@ -235,14 +251,14 @@ def decode_with(
     data = bytes(data)
     if len(data) > limits.max_bytes:
         raise LimitError(f"payload is {len(data)} bytes, the limit is {limits.max_bytes}")
-    if len(data) >= 2 and 0x90 <= data[0] <= 0x9F and data[1] <= 0x7F and data[1] != VERSION:
-        raise VersionError(f"format version {data[1]}, this decoder reads version {VERSION}")
+    if len(data) >= 2 and 0x90 <= data[0] <= 0x9F and data[1] <= 0x7F and data[1] not in VERSIONS:
+        raise VersionError(f"format version {data[1]}, this decoder reads versions 1 and 2")
     if len(data) < MIN_MESSAGE_BYTES:
         raise TruncatedError(f"payload is {len(data)} bytes, a message is at least {MIN_MESSAGE_BYTES}")
     obj = _unpack(data, limits)
     if not isinstance(obj, list) or len(obj) != N_FIELDS:
-        if isinstance(obj, list) and obj and _is_int(obj[0]) and obj[0] != VERSION:
-            raise VersionError(f"format version {obj[0]}, this decoder reads version {VERSION}")
+        if isinstance(obj, list) and obj and _is_int(obj[0]) and obj[0] not in VERSIONS:
+            raise VersionError(f"format version {obj[0]}, this decoder reads versions 1 and 2")
         raise FormatError(f"expected a msgpack array of {N_FIELDS} fields")
     if data[-5] != _CRC_MARK or not _is_int(obj[-1]):
         raise FormatError("the message does not end with a uint32 CRC-32")
@@ -250,8 +266,8 @@ def decode_with(
     if obj[-1] != crc:
         raise ChecksumError(f"CRC-32 mismatch: payload says {obj[-1]:08x}, bytes give {crc:08x}")
     version, kind_v, sender, seq, stamp, pose_v, frame, origin_v, res_mm, robots_v, meta, body, _ = obj
-    if not _is_int(version) or version != VERSION:
-        raise VersionError(f"format version {version!r}, this decoder reads version {VERSION}")
+    if not _is_int(version) or version not in VERSIONS:
+        raise VersionError(f"format version {version!r}, this decoder reads versions 1 and 2")
     if not _is_int(kind_v) or kind_v not in (k.value for k in MessageKind):
         raise FormatError(f"unknown message kind {kind_v!r}")
     kind = MessageKind(kind_v)
@@ -273,8 +289,9 @@ def decode_with(
             raise FormatError("a robot map carries a robots list")
         n_robots: int | None = None
     else:
-        if len(robots) > MAX_ROBOTS:
-            raise LimitError(f"a fused map has at most {MAX_ROBOTS} robots, got {len(robots)}")
+        bound = MAX_ROBOTS_V1 if version == 1 else min(MAX_ROBOTS, limits.max_robots)
+        if len(robots) > bound:
+            raise LimitError(f"a version {version} fused map has at most {bound} robots, got {len(robots)}")
         n_robots = len(robots)
     if not isinstance(meta, dict):
         raise FormatError("meta must be a map")

@@ -60,6 +60,8 @@ class Limits:
         Largest accepted ``|x|`` or ``|y|`` of a vertex or of a pose, in metres.
     max_string : int
         Longest accepted sender, frame or robot id, in UTF-8 bytes.
+    max_robots : int
+        Most robots a fused map may list (the format's own bound is 4,096; version 1: 64).
 
     The defaults comfortably admit a 5,000-vertex fused map of a 64-robot fleet (about 20 kB).
     """
@@ -69,9 +71,10 @@ class Limits:
     max_edges: int = 200_000
     max_coordinate: float = 1.0e7
     max_string: int = 256
+    max_robots: int = 4096
 
     def __post_init__(self) -> None:
-        for name in ("max_bytes", "max_vertices", "max_edges", "max_string"):
+        for name in ("max_bytes", "max_vertices", "max_edges", "max_string", "max_robots"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 0:
                 raise ValueError(f"Limits.{name} must be a non-negative int, got {value!r}")

@@ -11,7 +11,7 @@ import itertools
 
 import numpy as np
 
-from mapping.wireframe import Wireframe
+from mapping.wireframe import Wireframe, as_masks
 from wire_codec.errors import ExtraDataError, FormatError, LimitError, Limits, TruncatedError
 
 MAX_EG_BITS = 53
@@ -202,5 +202,5 @@ def decode_body(data: bytes, resolution_mm: int, n_robots: int | None, limits: L
         np.array(edges, dtype=np.int64).reshape(-1, 2),
         np.array(labels, dtype=np.uint8),
         np.array(lik, dtype=np.float64) / 15.0,
-        np.array(sources, dtype=np.uint64),
+        as_masks(sources),
     )

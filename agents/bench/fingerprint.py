@@ -51,9 +51,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def _wireframe_hash(wf: Any) -> str:
     h = hashlib.sha256()
+    from mapping.wireframe import mask_bytes
+
     for a in (wf.points, wf.labels, wf.edges, wf.likelihood, wf.sources):
         arr = np.ascontiguousarray(a)
-        h.update(arr.tobytes())
+        h.update(mask_bytes(arr) if a is wf.sources else arr.tobytes())  # the same bytes for uint64
         h.update(str(arr.shape).encode())
     return h.hexdigest()
 

@@ -35,6 +35,7 @@ import time
 import uuid
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -59,11 +60,12 @@ def robot_colour(index: int) -> tuple[int, int, int]:
     return PALETTE[int(index) % len(PALETTE)]
 
 
-def mask_colours(sources: NDArray[np.uint64], n_robots: int) -> NDArray[np.uint8]:
-    """One RGB colour per edge: a single contributor's colour, or the mean of several."""
+def mask_colours(sources: NDArray[Any], n_robots: int) -> NDArray[np.uint8]:
+    """One RGB colour per edge: a single contributor's colour, or the mean of several (masks
+    of any width: ``uint64`` or Python ints, ``mapping.wireframe.as_masks``)."""
     out = np.full((len(sources), 3), 200, dtype=np.uint8)
-    for e, mask in enumerate(np.asarray(sources, dtype=np.uint64).tolist()):
-        ks = [k for k in range(min(n_robots, 64)) if (int(mask) >> k) & 1]
+    for e, mask in enumerate(np.asarray(sources).tolist()):
+        ks = [k for k in range(n_robots) if (int(mask) >> k) & 1]
         if ks:
             out[e] = np.mean([robot_colour(k) for k in ks], axis=0).astype(np.uint8)
     return out

@@ -186,7 +186,10 @@ def others_walls(fused: Wireframe, bit: int | None) -> Wireframe:
     when ``bit`` is None)."""
     if bit is None or fused.n_edges == 0:
         return fused
-    mine = np.uint64(1) << np.uint64(bit)
-    keep = (fused.sources & ~mine) != 0
+    if fused.sources.dtype == object or bit >= 64:  # masks past bit 63: Python ints
+        mine = 1 << bit
+        keep = np.array([(int(s) & ~mine) != 0 for s in fused.sources.tolist()], dtype=bool)
+    else:
+        keep = (fused.sources & ~(np.uint64(1) << np.uint64(bit))) != 0
     return Wireframe(fused.points, fused.labels, fused.edges[keep], fused.likelihood[keep],
                      fused.sources[keep])

@@ -47,7 +47,7 @@ from agents.fleet.fusion.store import LATENCY_LOG, StoreDamaged, StoreJob, read_
 from agents.fleet.fusion.tree import merge_on_grid, prefix_spans, wire_snap
 from mapping.fleet import align_maps, close_frontiers, fold_split
 from mapping.se2 import Pose
-from mapping.wireframe import Wireframe
+from mapping.wireframe import Wireframe, mask_array
 from wire_codec import MAX_ROBOTS
 from wire_codec.message import MapMessage, MessageKind
 
@@ -670,7 +670,7 @@ class FusionState:
         # one Wireframe (one validation) for origin, correction and contributor bit together
         wf = Wireframe(
             pose.apply(src.points), src.labels, src.edges, src.likelihood,
-            np.full(src.n_edges, np.uint64(1) << np.uint64(k), dtype=np.uint64),
+            mask_array(src.n_edges, 1 << k),  # uint64 up to bit 63, Python ints past it
         )
         wf = wire_snap(wf, self._grid)
         self._prepared[rid] = (key, wf)

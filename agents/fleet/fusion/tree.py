@@ -40,7 +40,7 @@ import numpy as np
 from agents.errors import UserError
 from mapping.fleet import close_frontiers, fold_split
 from mapping.se2 import Pose
-from mapping.wireframe import Wireframe
+from mapping.wireframe import Wireframe, as_masks
 from wire_codec.message import MapMessage, MessageKind
 
 __all__ = [
@@ -283,23 +283,23 @@ def prefix_spans(k: int, n: int) -> list[tuple[int, int]]:
 
 def remap_sources(sources: np.ndarray, positions: Sequence[int]) -> np.ndarray:
     """Masks with bit ``j`` moved to bit ``positions[j]`` (a partial's local robot order to the
-    fleet-wide one). Work per distinct mask (a map has few)."""
-    if len(sources) == 0:
-        return sources.astype(np.uint64)
-    if list(positions) == list(range(len(positions))):
-        return sources.astype(np.uint64)
-    uniq, inv = np.unique(sources.astype(np.uint64), return_inverse=True)
-    out = np.zeros(len(uniq), dtype=np.uint64)
-    for u, mask in enumerate(uniq.tolist()):
+    fleet-wide one), of any width (:func:`mapping.wireframe.as_masks`: ``uint64`` while every
+    mask fits, Python ints past bit 63). Work per distinct mask (a map has few)."""
+    if len(sources) == 0 or list(positions) == list(range(len(positions))):
+        return as_masks(sources)
+    vals = [int(v) for v in sources.tolist()]
+    table: dict[int, int] = {}
+    for mask in set(vals):
         m = 0
         j = 0
-        while mask:
-            if mask & 1:
+        rest = mask
+        while rest:
+            if rest & 1:
                 m |= 1 << positions[j]
-            mask >>= 1
+            rest >>= 1
             j += 1
-        out[u] = np.uint64(m)
-    return out[inv.reshape(-1)]
+        table[mask] = m
+    return as_masks([table[v] for v in vals])
 
 
 # ---------------------------------------------------------------------- the root
@@ -360,9 +360,9 @@ class RootState:
 
         others = {r for g, p in self.partials.items() if g != group for r in p.message.robots}
         if len(others | set(msg.robots)) > MAX_ROBOTS:
-            # the fused map's contributor masks are 64 bits (wire_codec/FORMAT.md 3.6,
-            # Wireframe.sources): the partial that would make the 65th robot is refused, the
-            # group's last one (if any) stays in the map
+            # a fused map carries at most MAX_ROBOTS robots (4,096; wire_codec/FORMAT.md 3.6):
+            # the partial that would make one more is refused, the group's last one (if any)
+            # stays in the map
             self.refused[group] = self.refused.get(group, 0) + 1
             return False
         meta = msg.meta if isinstance(msg.meta, dict) else {}
