@@ -6,6 +6,7 @@ from hypothesis import HealthCheck, assume, example, given, settings
 from hypothesis import strategies as st
 
 from mapping.merge import MergeConfig, merge, merge_all, merge_traced, normalize
+from mapping.se2 import Pose
 from mapping.wireframe import Label, Wireframe
 
 N, OC, F = int(Label.NOMINAL), int(Label.OCCLUSION), int(Label.FRONTIER)
@@ -277,6 +278,52 @@ def test_merge_all_and_sources_for_fusion():
     assert m.n_vertices == 4 and m.n_edges == 3
     by_wall = {w: int(sv) for w, sv in zip([tuple(e) for e in m.edges.tolist()], m.sources)}
     assert sorted(by_wall.values()) == [1, 2, 3]  # the wall both saw has both bits
+    assert merge_all([r2, r1], CFG).almost_equal(m)
+
+
+def _shifted(wf: Wireframe, by: int) -> Wireframe:
+    """``wf`` with every contributor bit moved up by ``by`` (past bit 63: Python-int masks)."""
+    return wf.replace(sources=np.array([int(v) << by for v in wf.sources.tolist()], dtype=object))
+
+
+@pytest.mark.parametrize("size", ["small", "large"])
+def test_merge_of_robots_past_bit_63_is_the_64_bit_merge_shifted(size):
+    """Contributor masks wider than 64 bits (robots 64 and up) merge exactly like 64-bit ones:
+    the same geometry, likelihoods and order, each mask the 64-bit result's shifted. Both step-6
+    paths (lists for small maps, arrays past 512 vertices)."""
+    from agents.sim.world import load_world
+
+    truth = load_world("museum" if size == "large" else "paper-small").truth
+    rng = np.random.default_rng(7)
+    pieces = []
+    for k in range(3):
+        keep = rng.random(truth.n_edges) < 0.7
+        wf = truth.subgraph_edges(keep).transformed(Pose(*rng.normal(0, 0.03, 2), float(rng.normal(0, 0.002))))
+        pieces.append(wf.replace(sources=np.full(wf.n_edges, 1 << k, dtype=np.uint64)))
+    first = merge(pieces[0], pieces[1], CFG)
+    narrow = merge(first, pieces[2], CFG)
+    assert narrow.sources.dtype == np.uint64
+    assert (first.n_vertices + pieces[2].n_vertices > 512) == (size == "large")
+    for by in (61, 64, 100, 197):
+        wide = merge(merge(_shifted(pieces[0], by), _shifted(pieces[1], by), CFG), _shifted(pieces[2], by), CFG)
+        assert np.array_equal(wide.points, narrow.points) and np.array_equal(wide.edges, narrow.edges)
+        assert np.array_equal(wide.labels, narrow.labels)
+        assert np.array_equal(wide.likelihood, narrow.likelihood)
+        assert [int(v) for v in wide.sources.tolist()] == [int(v) << by for v in narrow.sources.tolist()]
+        assert wide.sources.dtype == (object if by > 61 else np.uint64)  # uint64 while every mask fits
+    # robots 0..2 and 100..102 together: ORs across the 64-bit boundary
+    mixed = merge(merge(pieces[0], _shifted(pieces[1], 100), CFG), pieces[2], CFG)
+    both = {int(v) for v in mixed.sources.tolist()}
+    assert (1 << 101) | 1 in both or (1 << 101) | 1 | 4 in both
+
+
+def test_merge_all_and_sources_for_robot_200():
+    room = [(0, 0), (6, 0), (6, 4), (0, 4)]
+    r1 = Wireframe.from_polylines([room[:3]], closed=False).replace(sources=np.array([1, 1], np.uint64))
+    r2 = Wireframe.from_polylines([room[1:]], closed=False).replace(sources=[1 << 199] * 2)
+    assert r2.sources.dtype == object
+    m = merge_all([r1, r2], CFG)
+    assert sorted(int(v) for v in m.sources.tolist()) == [1, 1 << 199, (1 << 199) | 1]
     assert merge_all([r2, r1], CFG).almost_equal(m)
 
 

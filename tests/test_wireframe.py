@@ -159,3 +159,34 @@ def test_almost_equal_finds_a_matching_within_tolerance_when_one_exists():
     b = Wireframe.build([[0.0, 0.0], [0.2 * math.cos(ang), 0.2 * math.sin(ang)]])
     assert a.almost_equal(b, tol=0.25)
     assert not a.almost_equal(b, tol=0.15)
+
+
+def test_masks_of_any_width_are_canonical():
+    """uint64 while every mask fits (so maps of at most 64 robots are as they always were),
+    Python ints in an object array once a mask has bit 64 or above."""
+    from mapping.wireframe import as_masks, mask_array, mask_bytes, mask_or
+
+    assert as_masks([1, 2, (1 << 64) - 1]).dtype == np.uint64
+    assert as_masks(np.array([3, 4], dtype=object)).dtype == np.uint64
+    wide = as_masks([1, 1 << 64, 1 << 199])
+    assert wide.dtype == object and wide.tolist() == [1, 1 << 64, 1 << 199]
+    assert all(type(v) is int for v in wide.tolist())
+    for bad in ([-1, 1 << 70], [1.5, 1 << 70], [True, 1 << 70]):
+        with pytest.raises(ValueError):
+            as_masks(bad)
+    assert mask_array(2, 1 << 5).dtype == np.uint64 and mask_array(2, 1 << 80).tolist() == [1 << 80] * 2
+    assert mask_or(wide) == 1 | (1 << 64) | (1 << 199) and mask_or(as_masks([1, 6])) == 7
+    small = as_masks([1, 2])
+    assert mask_bytes(small) == small.tobytes()
+    wf = Wireframe.build([(0, 0), (1, 0), (1, 1)], [(0, 1), (1, 2)], sources=[1 << 70, 3])
+    assert wf.sources.dtype == object and not wf.sources.flags.writeable
+    other = wf.replace(sources=[1 << 71, 3])
+    assert wf.content_digest() != other.content_digest()
+    assert wf.content_digest() == wf.replace(sources=[1 << 70, 3]).content_digest()
+    assert not wf.almost_equal(other) and wf.almost_equal(wf.replace(sources=[1 << 70, 3]))
+    back = Wireframe.from_geojson(json.loads(json.dumps(wf.to_geojson())))
+    assert back.sources.tolist() == [1 << 70, 3]
+    with pytest.raises(ValueError, match="contributor mask"):
+        Wireframe.build([(0, 0), (1, 0)], [(0, 1)], sources=[-(1 << 70)])
+    with pytest.raises(ValueError, match="sources: a contributor mask"):
+        Wireframe(wf.points, wf.labels, wf.edges, wf.likelihood, np.array([-(1 << 70), 1], dtype=object))

@@ -77,7 +77,11 @@ from agents.fleet.bus import (
 from agents.fleet.proc import cpu_seconds, stop_processes
 from agents.mapping_run import SENSORS
 from agents.params import ConfigArgs, add_config_arguments, resolve, to_toml
-from wire_codec import MAX_ROBOTS
+
+MAX_ROBOTS = 64
+"""``run`` starts one process per robot on this machine: at most 64 (the fused map itself takes up
+to ``wire_codec.MAX_ROBOTS``, 4,096; larger fleets: ``wiremap bench fleet --synthetic``, or
+robots and fusers on several machines)."""
 
 HELP = "the main job: router, N robots and the fusion service"
 
