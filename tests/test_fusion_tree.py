@@ -391,26 +391,94 @@ def test_run_with_two_fusers_records_every_robot_and_the_fused_map(tmp_path):
     assert not list(out.glob("store*/*.rrd"))
 
 
-def test_the_root_refuses_a_partial_that_would_make_a_65th_robot():
-    """The fused map's masks are 64 bits: a partial that would bring the fleet past 64 robots is
-    refused (counted per group) and the group's previous partial stays; nothing raises."""
+def _partial(group: str, ids: list[str], seq: int) -> object:
+    """A partial of ``ids``: one wall per robot, robot ``j``'s wall with bit ``j`` only, the last
+    wall with every robot's bit (group ``gK``'s walls 10 K metres to the right of ``g0``'s)."""
     import dataclasses
 
     from mapping.wireframe import Wireframe
 
-    def partial(group: str, ids: list[str], seq: int) -> object:
-        wf = Wireframe.from_polylines([[(0.0, float(k)), (3.0, float(k))] for k in range(len(ids))])
-        wf = Wireframe(wf.points, wf.labels, wf.edges, wf.likelihood,
-                       np.array([1 << k for k in range(len(ids))], dtype=np.uint64))
-        m = robot_views("museum", 1)[0]
-        return dataclasses.replace(m, kind=m.kind.__class__.FUSED_MAP, sender=group, seq=seq,
-                                   robots=tuple(ids), wireframe=wf, frame="fleet", meta={"boot": 1})
+    x0 = 10.0 * int(group[1:])
+    wf = Wireframe.from_polylines([[(x0, float(k)), (x0 + 3.0, float(k))] for k in range(len(ids))],
+                                  closed=False)
+    masks = [1 << k for k in range(len(ids))]
+    masks[-1] = (1 << len(ids)) - 1
+    wf = Wireframe(wf.points, wf.labels, wf.edges, wf.likelihood, masks)
+    m = robot_views("museum", 1)[0]
+    return dataclasses.replace(m, kind=m.kind.__class__.FUSED_MAP, sender=group, seq=seq,
+                               robots=tuple(ids), wireframe=wf, frame="fleet",
+                               meta={"boot": 1, "group": group})
 
+
+def test_the_root_takes_partials_past_64_robots():
+    """Partials of 40 and 60 robots (and then 100 and 5): the fused map has every robot, robot
+    ``b59`` owns bit 99, ``b58`` bit 98 (masks past bit 63), and it travels as format version 2; the partial of
+    100 robots itself travels too."""
     root = RootState(THR)
-    assert root.offer("g0", partial("g0", [f"a{k:02d}" for k in range(40)], 1))
-    assert root.offer("g1", partial("g1", [f"b{k:02d}" for k in range(24)], 1))
+    a = [f"a{k:02d}" for k in range(40)]
+    b = [f"b{k:02d}" for k in range(60)]
+    assert root.offer("g0", decode_message(encode_message(_partial("g0", a, 1))))
+    assert root.offer("g1", decode_message(encode_message(_partial("g1", b, 1))))
+    assert root.fuse() and len(root.fused_robots) == 100 and not root.refused
+    data = encode_message(root.fused_message(0))
+    assert data[1] == 2
+    out = decode_message(data)
+    assert out.robots == tuple(a + b)
+    masks = {int(v) for v in out.wireframe.sources.tolist()}
+    assert {1 << 98, 1 << 40, 1, (1 << 100) - (1 << 40), (1 << 40) - 1} <= masks, sorted(masks)
+    wide = [f"c{k:03d}" for k in range(100)]
+    assert root.offer("g0", decode_message(encode_message(_partial("g0", wide, 2))))
+    assert root.offer("g1", decode_message(encode_message(_partial("g1", [f"d{k}" for k in range(5)], 2))))
+    assert root.fuse() and len(root.fused_robots) == 105
+    masks = {int(v) for v in decode_message(encode_message(root.fused_message(0))).wireframe.sources.tolist()}
+    assert (1 << 100) - 1 in masks and 1 << 104 in masks
+
+
+def test_the_root_refuses_a_partial_past_the_format_bound(monkeypatch):
+    """A partial that would bring the fleet past ``wire_codec.MAX_ROBOTS`` (4,096; lowered here
+    to 64 to keep the test small) is refused (counted per group) and the group's previous
+    partial stays; nothing raises."""
+    import wire_codec
+
+    monkeypatch.setattr(wire_codec, "MAX_ROBOTS", 64)
+    root = RootState(THR)
+    assert root.offer("g0", _partial("g0", [f"a{k:02d}" for k in range(40)], 1))
+    assert root.offer("g1", _partial("g1", [f"b{k:02d}" for k in range(24)], 1))
     assert root.fuse() and len(root.fused_robots) == 64
-    assert not root.offer("g1", partial("g1", [f"b{k:02d}" for k in range(25)], 2))
+    assert not root.offer("g1", _partial("g1", [f"b{k:02d}" for k in range(25)], 2))
     assert root.refused == {"g1": 1} and root.partials["g1"].key == (1, 1)
     assert not root.fuse() and len(root.fused_robots) == 64
     decode_message(encode_message(root.fused_message(0)))  # still a valid message
+
+
+def test_one_process_and_tree_past_64_robots():
+    """70 robots: one FusionState takes the 65th robot and on (robot k owns bit k, up to 69) and
+    a tree of the fold's subtrees (64 + 6: the second partial's bits land at 64..69 at the
+    root) gives the same walls, robots and sources; the fused map is format version 2."""
+    from mapping.wireframe import mask_or
+
+    raws = {m.sender: encode_message(m) for m in robot_views("museum", 70, seed=4, radius=10)}
+    st, ref = _one_process(raws, refine=False)
+    assert st.stats.rejected == 0 and len(ref.robots) == 70
+    assert encode_message(st.fused_message(0))[1] == 2
+    assert mask_or(ref.wireframe.sources) == (1 << 70) - 1  # every robot, bits 64..69 included
+    groups = fold_groups(list(raws), 2)
+    assert [len(g) for g in groups] == [64, 6]
+    root, out = _tree(raws, groups, refine=False)
+    assert root.exact and not root.refused
+    _same_map(ref, out)
+
+
+def test_the_fusion_state_refuses_a_robot_past_the_bound(monkeypatch):
+    """One more robot than ``MAX_ROBOTS`` (4,096; lowered to 66 here) is counted and dropped
+    (``rejected_by.too_many_robots``); the 65th and 66th are taken."""
+    import agents.fleet.fusion.state as state_mod
+
+    monkeypatch.setattr(state_mod, "MAX_ROBOTS", 66)
+    msgs = robot_views("museum", 67, seed=5, radius=8)
+    st = FusionState(FusionConfig(threshold=THR, refine=False))
+    took = [st.offer(encode_message(m), m.sender) for m in msgs]
+    assert took == [True] * 66 + [False]
+    assert st.stats.rejected_by == {"too_many_robots": 1}
+    st.fuse(full=True)
+    assert len(decode_message(encode_message(st.fused_message(0))).robots) == 66
