@@ -130,6 +130,55 @@ def test_groups_that_are_not_subtrees_keep_provenance_but_say_so():
 
 # ---------------------------------------------------------------------- over Zenoh
 @pytest.mark.fleet
+@pytest.mark.fleet
+def test_seventy_robots_through_one_service_and_through_a_tree(tmp_path, record_property):
+    """Past 64 robots on the bus: 70 robots' maps (with tokens) reach a one-process fusion
+    service (fleet ``one``) and a tree of two regional fusers (64 + 6 robots) under a root
+    (fleet ``tree``), all real processes; each publishes the one-process map of the 70 robots
+    (format version 2, robots r65..r70 on bits 64..69)."""
+    t0 = time.monotonic()
+    raws = {m.sender: encode_message(m) for m in robot_views("museum", 70, seed=4, radius=10)}
+    _, ref = _one_process(raws)
+    assert len(ref.robots) == 70
+    one, tree = FleetKeys("one"), FleetKeys("tree")
+    with in_process_router() as ep, Fleet(tmp_path) as fleet, client(ep) as s:
+        fleet.start("one", ["fuse", "--connect", ep, "--fleet", "one", "--threshold", repr(THR)])
+        bus = ["--connect", ep, "--fleet", "tree", "--threshold", repr(THR)]
+        fleet.start("g0", ["fuse", "--group", "g0", "--robots", "range::r65", *bus])
+        fleet.start("g1", ["fuse", "--group", "g1", "--robots", "range:r65:", *bus])
+        fleet.start("root", ["fuse", "--of-groups", "g0,g1", *bus])
+        for name in ("one", "g0", "g1", "root"):
+            fleet.wait_log(name, "ready", 60.0)
+        tokens = [s.liveliness().declare_token(k.alive(r)) for k in (one, tree) for r in raws]
+        watchers = {k.fleet: FusedWatcher(s, k) for k in (one, tree)}
+        try:
+            for k in (one, tree):
+                for rid, raw in raws.items():
+                    s.put(k.robot_map(rid), raw)
+
+            def same(m) -> bool:
+                try:
+                    _same_map(ref, m)
+                except AssertionError:
+                    return False
+                return True
+
+            for name, w in watchers.items():
+                got = w.wait_for(same, 90.0, f"the one-process map of 70 robots ({name})")
+                assert got.robots == tuple(sorted(raws)) and got.meta["stale"] == []
+            stats = query_stats(s, one, 2.0)
+            assert stats is not None and stats["stats"]["rejected"] == 0
+        finally:
+            for w in watchers.values():
+                w.close()
+            for t in tokens:
+                t.undeclare()
+        for name in ("one", "g0", "g1", "root"):
+            assert fleet.stop(name, timeout=30) == 0, fleet.log(name)
+            assert "Traceback" not in fleet.log(name)
+    record_property("seventy_robots_wall_s", round(time.monotonic() - t0, 1))
+
+
 def test_two_regional_fusers_and_a_root_publish_the_one_process_map(tmp_path):
     """A recorded fleet of 8 robots on the bus (each with its token), two regional fusers over
     the fold's two subtrees and a root as processes: the root's fused map (as a subscriber
