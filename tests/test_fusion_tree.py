@@ -130,7 +130,6 @@ def test_groups_that_are_not_subtrees_keep_provenance_but_say_so():
 
 # ---------------------------------------------------------------------- over Zenoh
 @pytest.mark.fleet
-@pytest.mark.fleet
 def test_seventy_robots_through_one_service_and_through_a_tree(tmp_path, record_property):
     """Past 64 robots on the bus: 70 robots' maps (with tokens) reach a one-process fusion
     service (fleet ``one``) and a tree of two regional fusers (64 + 6 robots) under a root
@@ -179,6 +178,7 @@ def test_seventy_robots_through_one_service_and_through_a_tree(tmp_path, record_
     record_property("seventy_robots_wall_s", round(time.monotonic() - t0, 1))
 
 
+@pytest.mark.fleet
 def test_two_regional_fusers_and_a_root_publish_the_one_process_map(tmp_path):
     """A recorded fleet of 8 robots on the bus (each with its token), two regional fusers over
     the fold's two subtrees and a root as processes: the root's fused map (as a subscriber
