@@ -493,7 +493,10 @@ def _valid_wireframe(
         ("sources", sources, np.uint64),
     ):
         # masks past bit 63 (fleets of more than 64 robots) stay Python ints (as_masks)
-        a = as_masks(arr) if name == "sources" and arr.dtype == object else np.array(arr, dtype=dtype, order="C")
+        if name == "sources" and arr.dtype == object:
+            a = as_masks(arr)
+        else:
+            a = np.array(arr, dtype=dtype, order="C")
         a.setflags(write=False)
         object.__setattr__(wf, name, a)
     return wf

@@ -51,7 +51,9 @@ def main() -> int:
     seeds = {
         v["name"]: bytes.fromhex(v["hex"])
         for version in wire_codec.VERSIONS
-        for v in json.loads((Path(__file__).with_name("golden") / f"codec_v{version}.json").read_text())["vectors"]
+        for v in json.loads(
+            (Path(__file__).with_name("golden") / f"codec_v{version}.json").read_text()
+        )["vectors"]
     }
     robot_fields = list(msgpack.unpackb(seeds["room_mixed"], raw=False)[:-1])
     fused_fields = list(msgpack.unpackb(seeds["fused_three_robots"], raw=False)[:-1])

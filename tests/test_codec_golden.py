@@ -82,7 +82,8 @@ VERSIONED = {1: golden_messages, 2: golden_messages_v2}
 
 
 def _load(version: int = 1) -> dict[str, str]:
-    return {v["name"]: v["hex"] for v in json.loads((GOLDEN_DIR / f"codec_v{version}.json").read_text())["vectors"]}
+    doc = json.loads((GOLDEN_DIR / f"codec_v{version}.json").read_text())
+    return {v["name"]: v["hex"] for v in doc["vectors"]}
 
 
 CASES = [(v, name) for v, make in VERSIONED.items() for name in make()]

@@ -461,7 +461,8 @@ def _partial(group: str, ids: list[str], seq: int) -> object:
 
 def test_the_root_takes_partials_past_64_robots():
     """Partials of 40 and 60 robots (and then 100 and 5): the fused map has every robot, robot
-    ``b59`` owns bit 99, ``b58`` bit 98 (masks past bit 63), and it travels as format version 2; the partial of
+    ``b59`` owns bit 99, ``b58`` bit 98 (masks past bit 63), and it travels as format version 2;
+    the partial of
     100 robots itself travels too."""
     root = RootState(THR)
     a = [f"a{k:02d}" for k in range(40)]

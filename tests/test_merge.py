@@ -298,14 +298,16 @@ def test_merge_of_robots_past_bit_63_is_the_64_bit_merge_shifted(size):
     pieces = []
     for k in range(3):
         keep = rng.random(truth.n_edges) < 0.7
-        wf = truth.subgraph_edges(keep).transformed(Pose(*rng.normal(0, 0.03, 2), float(rng.normal(0, 0.002))))
+        jitter = Pose(*rng.normal(0, 0.03, 2), float(rng.normal(0, 0.002)))
+        wf = truth.subgraph_edges(keep).transformed(jitter)
         pieces.append(wf.replace(sources=np.full(wf.n_edges, 1 << k, dtype=np.uint64)))
     first = merge(pieces[0], pieces[1], CFG)
     narrow = merge(first, pieces[2], CFG)
     assert narrow.sources.dtype == np.uint64
     assert (first.n_vertices + pieces[2].n_vertices > 512) == (size == "large")
     for by in (61, 64, 100, 197):
-        wide = merge(merge(_shifted(pieces[0], by), _shifted(pieces[1], by), CFG), _shifted(pieces[2], by), CFG)
+        p0, p1, p2 = (_shifted(p, by) for p in pieces)
+        wide = merge(merge(p0, p1, CFG), p2, CFG)
         assert np.array_equal(wide.points, narrow.points) and np.array_equal(wide.edges, narrow.edges)
         assert np.array_equal(wide.labels, narrow.labels)
         assert np.array_equal(wide.likelihood, narrow.likelihood)

@@ -243,7 +243,8 @@ def test_acl_config_fusion_tree_grants() -> None:
                                   ("liveliness_token", "wiremap/f/alive/r1")}
     assert writes["observer-monitor"] == set()
     both = {s["id"]: s for s in acl_config("f", ["r1"], identity="both", fusers=["g0"])["subjects"]}
-    assert both["fuser-g0"] == {"id": "fuser-g0", "usernames": ["fuser-g0"], "cert_common_names": ["fuser-g0"]}
+    assert both["fuser-g0"] == {"id": "fuser-g0", "usernames": ["fuser-g0"],
+                                "cert_common_names": ["fuser-g0"]}
     assert "fuser-g0" in next(p for p in acl_config("f", ["r1"], identity="both", fusers=["g0"])["policies"]
                               if p["id"] == "any")["subjects"]
     # without a tree nothing of it is granted

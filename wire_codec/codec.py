@@ -164,7 +164,8 @@ def _encode(message: MapMessage, cached: bool) -> tuple[bytes, EncodedBody | Non
     else:
         body = encode_body(wf, res_mm / 1e3, n_robots)
         data = body.data
-    fields = [version_for(len(robots)), int(kind), sender, seq, stamp, pose, frame, origin, res_mm, list(robots), meta, data]
+    fields = [version_for(len(robots)), int(kind), sender, seq, stamp, pose, frame, origin, res_mm,
+              list(robots), meta, data]
     try:
         packed = msgpack.packb(fields, use_bin_type=True)
     except (TypeError, ValueError, OverflowError) as exc:

@@ -260,7 +260,8 @@ class FusionState:
         Returns whether the robot's latest map changed. Dropped and counted (the reason also
         in :attr:`last_drop`): a payload the codec refuses under :class:`InputLimits`
         (``malformed``); a fused map, a sender that is not a valid robot id or does not match
-        the key, a robot beyond the ``wire_codec.MAX_ROBOTS``-th, 4,096 (``rejected``); absurd content (``absurd``, see
+        the key, a robot beyond the ``wire_codec.MAX_ROBOTS``-th, 4,096 (``rejected``); absurd
+        content (``absurd``, see
         :func:`implausible`; ``now_ns`` enables the clock check).
         """
         self.stats.received += 1
