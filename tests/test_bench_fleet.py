@@ -167,7 +167,8 @@ def test_sent_log_and_rss_slope(tmp_path: Path) -> None:
 
 def test_parse_sizes() -> None:
     assert parse_sizes("1,2, 4") == [1, 2, 4]
-    for bad in ("", "a", "0", "65", "1,,x"):
+    assert parse_sizes("64,200") == [64, 200]  # past 64 robots: format version 2 (wire_codec.MAX_ROBOTS)
+    for bad in ("", "a", "0", "4097", "1,,x"):
         with pytest.raises(UserError):
             parse_sizes(bad)
 
