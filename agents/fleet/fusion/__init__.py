@@ -18,8 +18,9 @@ Modules, from the bytes in to the map out:
 
 Order independence: a robot's latest map is the one with the greatest ``(meta["boot"], seq,
 sha256 of its bytes)``, whatever the order of arrival, and duplicates are no-ops. Robot ``k`` of
-the sorted ids owns bit ``k`` of ``Wireframe.sources`` (``MapMessage.robots`` lists them), so at
-most 64 robots.
+the sorted ids owns bit ``k`` of ``Wireframe.sources`` (``MapMessage.robots`` lists them): at
+most ``wire_codec.MAX_ROBOTS`` (4,096) robots; past 64 the masks are Python ints
+(:func:`mapping.wireframe.as_masks`) and the fused map travels as format version 2.
 
 Fleet frame and merge, per robot in sorted-id order (choices where the paper and the issue are
 silent):
@@ -69,8 +70,8 @@ Hostile or broken input (choices; the counters are in :class:`FusionStats`, serv
   ``queue_bytes`` plus one payload per side channel and robot, whatever arrives;
 * in the main thread (:meth:`FusionState.offer`): the codec with the fusion's tighter
   :class:`~wire_codec.Limits` (``malformed``, by error class); a key whose id chunk is not a
-  valid name, a fused map on a robot key, an envelope sender that differs from the key, a 65th
-  robot (``rejected``, by reason); a decodable map with absurd content -- coordinates beyond
+  valid name, a fused map on a robot key, an envelope sender that differs from the key, a
+  robot past the 4,096th (``rejected``, by reason); a decodable map with absurd content -- coordinates beyond
   ``max_extent_m`` in the fleet frame, a resolution over ``max_resolution_m``, a non-finite or
   negative ``meta.t``, a ``meta.boot`` that is not an integer or lies in the future
   (``absurd``, by reason).
