@@ -183,8 +183,9 @@ def slam_increments(
 ) -> tuple[list[Pose], LidarSlam]:
     """The motion between consecutive scans after lidar SLAM over the whole log
     (:class:`mapping.lidar_slam.LidarSlam`: every scan point matched against the recent
-    scans, loops closed against old ones, the pose graph optimised), from each scan's points
-    and the wheel odometry's increments (``odometry[0]`` is ignored). Returns the increments
+    scans, loops closed against old ones, the pose graph optimised, then
+    ``config.refine_passes`` passes of :meth:`~mapping.lidar_slam.LidarSlam.refine`), from each
+    scan's points and the wheel odometry's increments (``odometry[0]`` is ignored). Returns the increments
     of the final, smoothed trajectory (the first is the identity) and the SLAM itself (its
     ``online`` poses are what it knew at each scan).
 
@@ -194,6 +195,8 @@ def slam_increments(
     slam = LidarSlam(config)
     for k, (pts, odo) in enumerate(zip(points, odometry)):
         slam.add(pts, np.zeros(3) if k == 0 else np.array(odo.as_tuple()))
+    for _ in range(config.refine_passes):
+        slam.refine()
     poses = [Pose(*map(float, p)) for p in slam.poses]
     return [Pose.identity(), *(a.between(b) for a, b in itertools.pairwise(poses))], slam
 

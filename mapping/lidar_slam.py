@@ -112,6 +112,11 @@ class SlamConfig:
         the local submap (4.0; 0: the recent scans only).
     map_scans : int
         At most this many of them, nearest first (15).
+    refine_passes : int
+        Offline passes of :meth:`LidarSlam.refine` after the last scan (2; 0: none).
+    refine_visit_gap : int
+        Old scans near a scan form one *visit* of its place while their indices are at most this
+        far apart (3).
     enabled : bool
         Used by the front end (:attr:`mapping.lidar_frontend.FrontendConfig.slam`): run the SLAM
         under the filter (False).
@@ -150,6 +155,8 @@ class SlamConfig:
     loop_max_chi2: float = 25.0
     map_radius: float = 4.0
     map_scans: int = 15
+    refine_passes: int = 2
+    refine_visit_gap: int = 3
     enabled: bool = False
 
     def __post_init__(self) -> None:
@@ -159,6 +166,8 @@ class SlamConfig:
             raise ValueError("need gate_start >= gate_end > 0")
         if self.voxel <= 0 or self.kernel <= 0 or self.sigma <= 0 or self.information_scale <= 0:
             raise ValueError("voxel, kernel, sigma and information_scale must be > 0")
+        if self.refine_passes < 0 or self.refine_visit_gap < 1:
+            raise ValueError("refine_passes must be >= 0 and refine_visit_gap >= 1")
         if not (0 < self.loop_min_inliers <= 1):
             raise ValueError("loop_min_inliers must be in (0, 1]")
 
@@ -677,3 +686,48 @@ class LidarSlam:
         self.loops.append((j, k))
         self._last_loop = (here, j)
         self.poses = poses
+
+    def refine(self) -> None:
+        """One offline pass over the whole trajectory (the log in hand): every scan is matched
+        again, from its current pose, against each other *visit* of its place -- the scans taken
+        within ``map_radius`` of it, at least ``loop_min_travel`` of driving away, split into runs
+        of consecutive scans (``refine_visit_gap``), the nearest ``map_scans`` of each run -- and
+        each match with ``loop_min_inliers`` becomes a robust edge from the run's nearest scan;
+        the graph is optimised with them, those still strained past ``loop_max_chi2`` are
+        dropped and it is optimised again. ``edges`` and ``loops`` are left as they were (the
+        pass's edges are rebuilt from the poses on every pass).
+
+        The online pass folds its scan-to-map matches into the edge from the previous scan, so
+        the graph forgets them when a loop moves the poses; and a corridor driven back the
+        other way rarely passes the loop search. Matched from poses the loops have already
+        corrected, every revisit becomes a constraint. One visit per edge: a submap mixing
+        visits is blurred by the very error the pass corrects."""
+        cfg = self.config
+        x = self.poses
+        if len(x) < 2:
+            return
+        travel = np.array([nd.travel for nd in self._nodes])
+        edges: list[Edge] = []
+        for k in range(len(x)):
+            d = np.hypot(*(x[:, :2] - x[k, :2]).T)
+            old = np.flatnonzero((np.abs(travel - travel[k]) >= cfg.loop_min_travel) & (d <= cfg.map_radius))
+            if len(old) < 2:
+                continue
+            runs = np.split(old, np.flatnonzero(np.diff(old) > cfg.refine_visit_gap) + 1)
+            for run in runs:
+                if len(run) < 2:
+                    continue
+                run = run[np.argsort(d[run], kind="stable")[: cfg.map_scans]]
+                sub = Submap.build([self._cloud(int(i)) for i in np.sort(run)], cfg.voxel)
+                m = match_scan(self._nodes[k].points, sub, x[k], cfg,
+                               inlier_distance=cfg.loop_inlier_distance)
+                if m.inliers < cfg.loop_min_inliers or m.matched < 10:
+                    continue
+                j = int(run[0])
+                edges.append(Edge(j, k, _between(x[j], m.pose), self._edge_information(m.hessian, m.pose[2]),
+                                  robust=True))
+        if not edges:
+            return
+        moved = optimize(x, [*self.edges, *edges], kernel=cfg.loop_kernel)
+        kept = [e for e, c in zip(edges, _chi2(moved, edges)) if c <= cfg.loop_max_chi2]
+        self.poses = optimize(x, [*self.edges, *kept], kernel=cfg.loop_kernel)
