@@ -241,9 +241,9 @@ LIDAR_PROFILE: dict[str, Any] = {
 #: loops closed against old ones, the pose graph optimised over the whole log), the filter then
 #: mapping at the SLAM's poses. Its own pose corrections (the corner ICP, the compass, its loop
 #: closer, the refinement) only pull a held pose off, so they are off. Against ``lidar`` on the
-#: seven logs: worst ATE 7.09 -> 2.59 m, relative error 0.057 -> 0.026 m, better on 4 logs of 7,
-#: but median ATE 0.313 -> 0.352 m and precision 0.841 -> 0.620 (docs/experiments.md, "Lidar
-#: SLAM under the filter").
+#: seven logs (seed 1): worst ATE 6.54 -> 1.26 m, relative error 0.059 -> 0.027 m, but median ATE
+#: 0.313 -> 0.323 m and precision 0.841 -> 0.794 (docs/experiments.md, "Lidar SLAM under the
+#: filter" and "Offline refinement").
 LIDAR_SLAM_PROFILE: dict[str, Any] = {
     **LIDAR_PROFILE,
     "slam.enabled": True,

@@ -272,3 +272,25 @@ def test_map_with_the_slam_profile_on_the_real_excerpt(tmp_path: Path) -> None:
     report = json.loads((out / "report.json").read_text())
     assert report["lidar_profile"] == "lidar-slam"
     assert report["ate_rmse_m"] < 0.2
+
+
+def test_bench_slam_on_the_real_excerpt(capsys: pytest.CaptureFixture[str]) -> None:
+    """``wiremap bench slam LOG --starts 3 --json``: one ATE per start frame, each in the truth's
+    frame (so all close to each other and well below the odometry's), their median reported;
+    a bad flag is a one-line error."""
+    import json
+
+    from agents.cli import main
+
+    log = str(DATA / "freiburg-101-head.log.gz")
+    assert main(["bench", "slam", log, "--starts", "3", "--json"]) == 0
+    last = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    r = last["logs"]["freiburg-101-head"]
+    by = r["ate_rmse_m_by_start"]
+    assert len(by) == 3 and last["starts"] == 3
+    assert r["ate_rmse_m"] == pytest.approx(sorted(by)[1], abs=1e-6)
+    assert max(by) < 0.5 * r["odometry_ate_rmse_m"], r
+    assert max(by) - min(by) < 0.05, by
+    assert last["settings"]["slam.enabled"] is True
+    assert main(["bench", "slam", log, "--starts", "0"]) == 2
+    assert "--starts must be >= 1" in capsys.readouterr().err

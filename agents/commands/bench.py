@@ -1,4 +1,4 @@
-"""``wiremap bench {accuracy,speed,codec,fleet,soak,sensor,register,lidar,fingerprint}``: dispatches to
+"""``wiremap bench {accuracy,speed,codec,fleet,soak,sensor,register,lidar,slam,fingerprint}``: dispatches to
 :mod:`agents.bench`."""
 
 from __future__ import annotations
@@ -18,6 +18,7 @@ BENCHES: dict[str, tuple[str, str]] = {
     "sensor": ("agents.bench.sensor", "corner-sensor label accuracy and split-and-merge corner error"),
     "register": ("agents.bench.register", "global registration of map pairs in unrelated frames"),
     "lidar": ("agents.bench.lidar", "the mapper on real CARMEN lidar logs against their truth"),
+    "slam": ("agents.bench.slam", "the lidar SLAM alone on real CARMEN logs, median over start frames"),
     "fingerprint": ("agents.bench.fingerprint",
                     "hash the filter's poses and particle sets (bit-identity check)"),
 }
