@@ -421,6 +421,23 @@ def _scanner(world: Any, options: SimOptions, route: NDArray[np.float64], scene_
     return lidar_scan
 
 
+def carmen_points(scans: Sequence[Any], frontend: Any) -> list[NDArray[np.float64]]:
+    """Each CARMEN scan's points to match (:func:`mapping.lidar_frontend.scan_points` under the
+    front end's settings ``frontend``): every return short of the scanner's saturation value,
+    up to the front end's range."""
+    from mapping.lidar_frontend import scan_points
+
+    return [scan_points(np.where(np.asarray(ls.ranges) >= float(ls.max_range), np.inf,
+                                 np.asarray(ls.ranges, dtype=np.float64)),
+                        np.asarray(ls.angles, dtype=np.float64), frontend) for ls in scans]
+
+
+def wheel_increments(scans: Sequence[Any]) -> list[Pose]:
+    """The wheel odometry's motion into each CARMEN scan from the previous one (the identity for
+    the first)."""
+    return [Pose.identity(), *(a.odom.between(b.odom) for a, b in itertools.pairwise(scans))]
+
+
 def carmen_inputs(
     log: str | Sequence[Any],
     max_range: float | None = None,
@@ -451,7 +468,7 @@ def carmen_inputs(
         Which returns become ``points`` (its defaults without).
     """
     from mapping.extract import ExtractConfig, extract_corners
-    from mapping.lidar_frontend import FrontendConfig, scan_increment, scan_points
+    from mapping.lidar_frontend import FrontendConfig, scan_increment
 
     ecfg = extract if extract is not None else ExtractConfig()
     fcfg = frontend if frontend is not None else FrontendConfig()
@@ -464,18 +481,14 @@ def carmen_inputs(
         scans = log
     if steps is not None:
         scans = scans[:steps]
-    # Points: every return short of the scanner's saturation value, up to the front end's range.
-    pts = [scan_points(np.where(np.asarray(ls.ranges) >= float(ls.max_range), np.inf,
-                                np.asarray(ls.ranges, dtype=np.float64)),
-                       np.asarray(ls.angles, dtype=np.float64), fcfg) for ls in scans]
+    pts = carmen_points(scans, fcfg)
     smoothed: list[Pose] | None = None
     if fcfg.slam.enabled:
         # Lidar SLAM over the whole log first (mapping.lidar_slam); the filter then maps on its
         # smoothed increments.
         from mapping.lidar_frontend import slam_increments
 
-        wheel = [Pose.identity(), *(a.odom.between(b.odom) for a, b in itertools.pairwise(scans))]
-        smoothed = slam_increments(pts, wheel, fcfg.slam)[0]
+        smoothed = slam_increments(pts, wheel_increments(scans), fcfg.slam)[0]
     prev: Pose | None = None
     prev_points: NDArray[np.float64] | None = None
     for k, ls in enumerate(scans):

@@ -46,8 +46,8 @@ from mapping.wireframe import Wireframe
 
 FloatArray = NDArray[np.float64]
 
-__all__ = ["FrontendConfig", "LidarFrontend", "odometry_overrides", "scan_increment", "scan_points",
-           "scan_polyline", "slam_increments"]
+__all__ = ["FrontendConfig", "LidarFrontend", "odometry_overrides", "run_slam", "scan_increment",
+           "scan_points", "scan_polyline", "slam_increments"]
 
 
 @dataclass(frozen=True)
@@ -178,25 +178,32 @@ def scan_points(ranges: FloatArray, angles: FloatArray, config: FrontendConfig) 
     return np.stack([r[ok] * np.cos(a[ok]), r[ok] * np.sin(a[ok])], axis=1)
 
 
-def slam_increments(
-    points: list[FloatArray], odometry: list[Pose], config: SlamConfig
-) -> tuple[list[Pose], LidarSlam]:
-    """The motion between consecutive scans after lidar SLAM over the whole log
-    (:class:`mapping.lidar_slam.LidarSlam`: every scan point matched against the recent
-    scans, loops closed against old ones, the pose graph optimised, then
-    ``config.refine_passes`` passes of :meth:`~mapping.lidar_slam.LidarSlam.refine`), from each
-    scan's points and the wheel odometry's increments (``odometry[0]`` is ignored). Returns the increments
-    of the final, smoothed trajectory (the first is the identity) and the SLAM itself (its
-    ``online`` poses are what it knew at each scan).
-
-    This is the offline (whole log in hand) use, like Cartographer's offline mode: a loop
-    closed at the end straightens the increments of the whole loop before the filter maps it.
-    """
-    slam = LidarSlam(config)
+def run_slam(points: list[FloatArray], odometry: list[Pose], config: SlamConfig,
+             start: FloatArray | None = None) -> LidarSlam:
+    """Lidar SLAM over a whole log (:class:`mapping.lidar_slam.LidarSlam`): every scan added
+    in order (its points, robot frame; the wheel odometry's increment since the previous scan,
+    ``odometry[0]`` ignored), then ``config.refine_passes`` passes of
+    :meth:`~mapping.lidar_slam.LidarSlam.refine`. ``start``: the first pose (the origin)."""
+    slam = LidarSlam(config, start=np.zeros(3) if start is None else np.asarray(start, dtype=np.float64))
     for k, (pts, odo) in enumerate(zip(points, odometry)):
         slam.add(pts, np.zeros(3) if k == 0 else np.array(odo.as_tuple()))
     for _ in range(config.refine_passes):
         slam.refine()
+    return slam
+
+
+def slam_increments(
+    points: list[FloatArray], odometry: list[Pose], config: SlamConfig
+) -> tuple[list[Pose], LidarSlam]:
+    """The motion between consecutive scans after lidar SLAM over the whole log
+    (:func:`run_slam`), from each scan's points and the wheel odometry's increments. Returns the
+    increments of the final, smoothed trajectory (the first is the identity) and the SLAM itself
+    (its ``online`` poses are what it knew at each scan).
+
+    This is the offline (whole log in hand) use, like Cartographer's offline mode: a loop
+    closed at the end straightens the increments of the whole loop before the filter maps it.
+    """
+    slam = run_slam(points, odometry, config)
     poses = [Pose(*map(float, p)) for p in slam.poses]
     return [Pose.identity(), *(a.between(b) for a, b in itertools.pairwise(poses))], slam
 

@@ -10,9 +10,8 @@ from __future__ import annotations
 
 import hashlib
 
-from agents.fleet.fusion import FusionConfig, FusionState, decode_message, encode_message
-from agents.fleet.fusion.tree import RootState
-from tests.tree_util import robot_views
+from agents.fleet.fusion import FusionConfig, FusionState, encode_message
+from tests.tree_util import robot_views, tree_fuse
 
 THR = 0.4
 
@@ -37,16 +36,7 @@ def _fleet(n: int, out: dict[str, str]) -> None:
     full = encode_message(st.fused_message(0))
     ids = sorted(raws)
     half = len(ids) // 2 if n > 3 else 2
-    groups = [ids[:half], ids[half:]]
-    root = RootState(THR)
-    for g, gids in enumerate(groups):
-        s = FusionState(FusionConfig(threshold=THR, close_frontiers=False), sender=f"g{g}")
-        for r in gids:
-            s.offer(raws[r], r)
-        s.base = root.prefix_before(gids)
-        s.fuse(full=True)
-        root.offer(f"g{g}", decode_message(encode_message(s.fused_message(0, {"boot": 1}))))
-    root.fuse()
+    root, _ = tree_fuse(raws, [ids[:half], ids[half:]], THR)
     tree = encode_message(root.fused_message(0))
     for name, b in (("fast", fast), ("full", full), ("tree", tree)):
         out[f"{n}-{name}"] = hashlib.sha256(b).hexdigest()[:16] + f" {len(b)}B"

@@ -22,7 +22,7 @@ from agents.fleet.fusion.tree import (
     remap_sources,
 )
 from tests.fleet_util import Fleet, FusedWatcher, client, in_process_router, query_stats, wait_until
-from tests.tree_util import robot_views
+from tests.tree_util import robot_views, tree_fuse
 
 THR = 0.4
 
@@ -36,18 +36,7 @@ def _one_process(raws: dict[str, bytes], refine: bool = True) -> tuple[FusionSta
 
 
 def _tree(raws: dict[str, bytes], groups: list[list[str]], refine: bool = True) -> tuple[RootState, object]:
-    """Each group a regional FusionState (full path, aligned onto the partials before it), its
-    partial through the codec, the root's merge through the codec."""
-    root = RootState(THR)
-    for g, ids in enumerate(groups):
-        st = FusionState(FusionConfig(threshold=THR, refine=refine, close_frontiers=False), sender=f"g{g}")
-        for r in ids:
-            st.offer(raws[r], r)
-        st.base = root.prefix_before(ids)
-        st.fuse(full=True)
-        root.offer(f"g{g}", decode_message(encode_message(st.fused_message(0, {"boot": 1}))))
-    root.fuse()
-    return root, decode_message(encode_message(root.fused_message(0)))
+    return tree_fuse(raws, groups, THR, refine)
 
 
 def _same_map(a, b) -> None:
@@ -56,6 +45,19 @@ def _same_map(a, b) -> None:
     assert (wa.n_vertices, wa.n_edges) == (wb.n_vertices, wb.n_edges)
     assert wa.almost_equal(wb, tol=1e-9, likelihood_tol=1e-9)
     assert np.array_equal(np.sort(wa.sources), np.sort(wb.sources))
+
+
+def _is_same_map(ref):
+    """A predicate for :meth:`FusedWatcher.wait_for`: the map is ``ref`` (:func:`_same_map`)."""
+
+    def same(m) -> bool:
+        try:
+            _same_map(ref, m)
+        except AssertionError:
+            return False
+        return True
+
+    return same
 
 
 # ---------------------------------------------------------------------- the fold's subtrees
@@ -155,12 +157,7 @@ def test_seventy_robots_through_one_service_and_through_a_tree(tmp_path, record_
                 for rid, raw in raws.items():
                     s.put(k.robot_map(rid), raw)
 
-            def same(m) -> bool:
-                try:
-                    _same_map(ref, m)
-                except AssertionError:
-                    return False
-                return True
+            same = _is_same_map(ref)
 
             for name, w in watchers.items():
                 got = w.wait_for(same, 90.0, f"the one-process map of 70 robots ({name})")
@@ -201,12 +198,7 @@ def test_two_regional_fusers_and_a_root_publish_the_one_process_map(tmp_path):
             for rid, raw in raws.items():
                 s.put(keys.robot_map(rid), raw)
 
-            def same(m) -> bool:
-                try:
-                    _same_map(ref, m)
-                except AssertionError:
-                    return False
-                return True
+            same = _is_same_map(ref)
 
             got = watcher.wait_for(same, 60.0, "the one-process map")
             assert got.meta["exact"] and got.meta["stale"] == []

@@ -1,10 +1,13 @@
 """Robot maps for the fusion-tree tests: views of a world's true walls as robots would send them
-(a window of the walls around each robot, a little noise, in the robot's odometry frame)."""
+(a window of the walls around each robot, a little noise, in the robot's odometry frame), and the
+tree's merge of them in one process."""
 
 from __future__ import annotations
 
 import numpy as np
 
+from agents.fleet.fusion import FusionConfig, FusionState, decode_message, encode_message
+from agents.fleet.fusion.tree import RootState
 from mapping.se2 import Pose
 from mapping.wireframe import Label, Wireframe
 from wire_codec.message import MapMessage, MessageKind
@@ -47,3 +50,21 @@ def robot_views(world: str, n: int, seed: int = 0, radius: float = 25.0, noise: 
             meta={"boot": 1, "t": 1.0},
         ))
     return out
+
+
+def tree_fuse(raws: dict[str, bytes], groups: list[list[str]], threshold: float,
+              refine: bool = True) -> tuple[RootState, MapMessage]:
+    """The fusion tree in one process: each group a regional FusionState (full path, aligned
+    onto the partials before it), its partial through the codec, the root's merge through the
+    codec. Returns the root and its fused map as a subscriber decodes it."""
+    root = RootState(threshold)
+    for g, ids in enumerate(groups):
+        st = FusionState(FusionConfig(threshold=threshold, refine=refine, close_frontiers=False),
+                         sender=f"g{g}")
+        for r in ids:
+            st.offer(raws[r], r)
+        st.base = root.prefix_before(ids)
+        st.fuse(full=True)
+        root.offer(f"g{g}", decode_message(encode_message(st.fused_message(0, {"boot": 1}))))
+    root.fuse()
+    return root, decode_message(encode_message(root.fused_message(0)))

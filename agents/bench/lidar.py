@@ -219,7 +219,8 @@ def wire_bytes(wf: Any, pose: Any) -> int:
     return len(encode(msg))
 
 
-def _poses(ps: list[Any]) -> np.ndarray:
+def pose_array(ps: list[Any]) -> np.ndarray:
+    """Poses (objects with x, y, theta) as an (n, 3) array."""
     return np.array([[p.x, p.y, p.theta] for p in ps], dtype=np.float64).reshape(-1, 3)
 
 
@@ -253,8 +254,8 @@ def run_log(
     inputs = list(mr.carmen_inputs(scans, max_range=cap, truth=truth, extract=extract_cfg,
                                    frontend=frontend_cfg))
     extract_s = time.perf_counter() - t0
-    true_xyt = _poses(truth)
-    odom_xyt = _poses([s.odom for s in scans])
+    true_xyt = pose_array(truth)
+    odom_xyt = pose_array([s.odom for s in scans])
     endpoints = scan_endpoints(true_xyt, [s.ranges for s in scans], [s.angles for s in scans], max_range=cap)
     fov = mr.scan_fov(scans[0].angles)
 
@@ -269,7 +270,7 @@ def run_log(
             show.update(f"{name} {method}: scan {st.index + 1}/{len(inputs)}, "
                         f"{filt.best.n_edges} walls, {(st.index + 1) / busy if busy else 0:.1f} scans/s")
         best = filt.best
-        est_xyt = _poses(est)
+        est_xyt = pose_array(est)
         secs = extract_s + busy
         row = {
             "scans": len(inputs),

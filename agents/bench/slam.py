@@ -22,8 +22,6 @@ Output: an aligned table, and with ``--json`` one last line::
 from __future__ import annotations
 
 import argparse
-import functools
-import itertools
 import json
 import math
 import time
@@ -62,12 +60,13 @@ def start_frames(k: int, seed: int) -> list[tuple[float, float, float] | None]:
 
 
 def run_one(path: str, start: tuple[float, float, float] | None, settings: dict[str, Any]) -> dict[str, Any]:
-    """The SLAM over one log from one start frame, scored in the truth's frame."""
+    """The SLAM over one log from one start frame, scored in the truth's frame; the odometry's
+    error as ``wiremap bench lidar`` gives it (the log's own poses)."""
     from agents import mapping_run as mr
+    from agents.bench.lidar import pose_array
     from agents.files.carmen import read_carmen_log, scan_truth
-    from mapping.lidar_frontend import scan_points
+    from mapping.lidar_frontend import run_slam
     from mapping.lidar_metrics import ate, rpe
-    from mapping.lidar_slam import LidarSlam
     from mapping.se2 import Pose
 
     _, _, fcfg = mr.split_profile(settings)
@@ -76,28 +75,18 @@ def run_one(path: str, start: tuple[float, float, float] | None, settings: dict[
     if truth is None:
         raise UserError(f"{path}: no truth (NAME.truth.tsv or TRUEPOS lines)")
     scans = log.scans
-    pts = [scan_points(np.where(np.asarray(s.ranges) >= float(s.max_range), np.inf,
-                                np.asarray(s.ranges, dtype=np.float64)),
-                       np.asarray(s.angles, dtype=np.float64), fcfg) for s in scans]
-    wheel = [Pose.identity(), *(a.odom.between(b.odom) for a, b in itertools.pairwise(scans))]
+    pts = mr.carmen_points(scans, fcfg)
     st = truth[0] if start is None else Pose(*start)
-    slam = LidarSlam(fcfg.slam, start=np.array(st.as_tuple()))
     t0 = time.process_time()
-    for k, (p, o) in enumerate(zip(pts, wheel)):
-        slam.add(p, np.zeros(3) if k == 0 else np.array(o.as_tuple()))
-    for _ in range(fcfg.slam.refine_passes):
-        slam.refine()
+    slam = run_slam(pts, mr.wheel_increments(scans), fcfg.slam, start=np.array(st.as_tuple()))
     cpu = time.process_time() - t0
     to_truth = truth[0].compose(st.inverse())
     est = np.array([to_truth.compose(Pose(*map(float, p))).as_tuple() for p in slam.poses])
-    tr = np.array([p.as_tuple() for p in truth])
-    odo = [truth[0]]
-    for w in wheel[1:]:
-        odo.append(odo[-1].compose(w))
+    tr = pose_array(truth)
     rmse, mx = ate(est, tr)
     return {"ate_rmse_m": rmse, "ate_max_m": mx, "rpe_1m_m": rpe(est, tr), "loops": len(slam.loops),
             "ms_per_scan": 1000.0 * cpu / max(1, len(scans)), "scans": len(scans),
-            "odometry_ate_rmse_m": ate(np.array([p.as_tuple() for p in odo]), tr)[0]}
+            "odometry_ate_rmse_m": ate(pose_array([s.odom for s in scans]), tr)[0]}
 
 
 def summarise(runs: list[dict[str, Any]]) -> dict[str, Any]:
@@ -123,13 +112,14 @@ def run(args: argparse.Namespace) -> int:
             raise UserError(f"{p}: no such file")
     settings = settings_for("lidar-slam", list(args.sets))
     starts = start_frames(args.starts, args.seed)
-    jobs = [(str(p), s) for p in paths for s in starts]
-    one = functools.partial(_run_job, settings=settings)
+    logs_in = [str(p) for p in paths for _ in starts]
+    starts_in = starts * len(paths)
+    same = [settings] * len(logs_in)
     if args.jobs == 1:
-        done = [one(j) for j in jobs]
+        done = list(map(run_one, logs_in, starts_in, same))
     else:
         with ProcessPoolExecutor(max_workers=args.jobs) as pool:
-            done = list(pool.map(one, jobs))
+            done = list(pool.map(run_one, logs_in, starts_in, same))
     logs: dict[str, dict[str, Any]] = {}
     for i, p in enumerate(paths):
         logs[log_name(p)] = summarise(done[i * len(starts):(i + 1) * len(starts)])
@@ -152,6 +142,3 @@ def run(args: argparse.Namespace) -> int:
                           "settings": settings}))
     return 0
 
-
-def _run_job(job: tuple[str, tuple[float, float, float] | None], settings: dict[str, Any]) -> dict[str, Any]:
-    return run_one(job[0], job[1], settings)
