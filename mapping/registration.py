@@ -167,6 +167,15 @@ class RegistrationConfig:
         Depths of the free probes in front of every wall sample.
     free_clearance : float
         Probes closer than this to a wall of their own map are dropped (corners, clutter).
+    free_reach, free_reach_step : float
+        A wall sample whose normal, on its free side, first meets a wall of the same map that
+        faces it back (the two walls look at each other across open space: a room's opposite
+        walls, a pillar seen from the room) within ``free_reach`` also gets probes every
+        ``free_reach_step`` beyond the deepest of ``free_depths``, up to ``free_clearance``
+        before that wall. Without it the seen-free space is a strip ``free_depths`` deep along
+        the walls, and a copy of the map turned onto itself (a rotation-symmetric room whose
+        pillar is what tells the two apart) puts the pillar in the middle of the room without
+        conflict. 0 turns it off.
     probe_end_margin : float
         Probes only in front of the part of a wall at least this far from its ends.
     direction_bins : int
@@ -294,6 +303,8 @@ class RegistrationConfig:
     min_wall: float = 0.15
     free_depths: tuple[float, ...] = (0.35, 0.7, 1.05)
     free_clearance: float = 0.3
+    free_reach: float = 6.0
+    free_reach_step: float = 0.35
     probe_end_margin: float = 0.3
     direction_bins: int = 720
     direction_smooth: float = math.radians(1.0)
@@ -343,14 +354,14 @@ class RegistrationConfig:
     contested_runner_up_ratio: float = 0.55
 
     def __post_init__(self) -> None:
-        for name in ("sample_spacing", "free_clearance", "direction_smooth", "feature_angle_tol",
+        for name in ("sample_spacing", "free_clearance", "free_reach_step", "direction_smooth", "feature_angle_tol",
                      "vote_cell", "vote_weight_cap", "peak_separation", "coarse_match_dist",
                      "match_dist", "match_angle", "conflict_radius", "huber", "distinct_translation",
                      "distinct_rotation", "max_rmse", "displaced_dist", "rival_corner_dist"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
                 raise ValueError(f"RegistrationConfig.{name} must be a positive number, got {v!r}")
-        for name in ("min_wall", "probe_end_margin", "conflict_weight", "min_support", "max_conflict",
+        for name in ("min_wall", "probe_end_margin", "conflict_weight", "free_reach", "min_support", "max_conflict",
                      "max_conflict_fraction", "min_cross_support", "conflict_min_wall", "frontier_margin"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0):
@@ -646,6 +657,8 @@ def prepare(wf: Wireframe, config: RegistrationConfig | None = None) -> MapFeatu
         if len(pts)
         else np.zeros((0, 2))
     )
+    if cfg.free_reach > max(cfg.free_depths) and len(pts):
+        probes = np.concatenate([probes, _facing_probes(pts[inner], nor[inner], seg, nrm, cfg)])
     if len(probes) and len(pts):
         dist, _ = tree.query(probes, k=1, distance_upper_bound=cfg.free_clearance)
         probes = probes[~np.isfinite(dist)]
@@ -689,6 +702,47 @@ def prepare(wf: Wireframe, config: RegistrationConfig | None = None) -> MapFeatu
         owner=kept[owner].astype(np.int64), corner_points=corner_points,
         conflict_weights=np.asarray(cw, dtype=np.float64), config=cfg,
     )
+
+
+def _facing_probes(
+    origins: FloatArray, normals: FloatArray, seg: FloatArray, seg_normals: FloatArray, cfg: RegistrationConfig
+) -> FloatArray:
+    """Probes deeper than ``free_depths`` in front of the wall samples ``origins`` whose normal
+    first crosses a wall that faces back (``free_reach`` in :class:`RegistrationConfig`).
+
+    The first crossing of each ray ``o + t n`` (``0 < t <= free_reach``) with the map's segments
+    is found exactly (every ray against every segment, in chunks); the probes are placed every
+    ``free_reach_step`` from the deepest of ``free_depths`` to ``free_clearance`` before it.
+    """
+    if len(origins) == 0 or len(seg) == 0:
+        return np.zeros((0, 2))
+    p0 = seg[:, 0]
+    e = seg[:, 1] - seg[:, 0]
+    first = np.full(len(origins), np.inf)
+    facing = np.zeros(len(origins), dtype=bool)
+    chunk = max(1, 2_000_000 // len(seg))
+    for k in range(0, len(origins), chunk):
+        o, n = origins[k : k + chunk], normals[k : k + chunk]
+        den = n[:, 0:1] * e[None, :, 1] - n[:, 1:2] * e[None, :, 0]  # cross(n, e)
+        wx = p0[None, :, 0] - o[:, 0:1]
+        wy = p0[None, :, 1] - o[:, 1:2]
+        ok = np.abs(den) > 1e-9
+        dd = np.where(ok, den, 1.0)
+        t = (wx * e[None, :, 1] - wy * e[None, :, 0]) / dd  # cross(w, e) / cross(n, e)
+        s = (wx * n[:, 1:2] - wy * n[:, 0:1]) / dd  # cross(w, n) / cross(n, e)
+        hit = ok & (t > 1e-6) & (t <= cfg.free_reach) & (s >= 0.0) & (s <= 1.0)
+        t = np.where(hit, t, np.inf)
+        j = np.argmin(t, axis=1)
+        first[k : k + chunk] = t[np.arange(len(o)), j]
+        facing[k : k + chunk] = np.einsum("ij,ij->i", seg_normals[j], n) < 0.0
+    deep = np.arange(max(cfg.free_depths) + cfg.free_reach_step, cfg.free_reach, cfg.free_reach_step)
+    use = np.isfinite(first) & facing
+    if not use.any() or len(deep) == 0:
+        return np.zeros((0, 2))
+    o, n, lim = origins[use], normals[use], first[use] - cfg.free_clearance
+    keep = deep[None, :] <= lim[:, None]
+    i, d = np.nonzero(keep)
+    return np.asarray(o[i] + deep[d][:, None] * n[i], dtype=np.float64)
 
 
 # ------------------------------------------------------------------------------ rotation
