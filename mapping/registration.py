@@ -17,8 +17,11 @@ Pipeline
      edge's direction and whether the edge starts or ends there;
    * *free probes*: points ``free_depths`` metres to the left (the free side, see
      :mod:`mapping.wireframe`) of every wall sample that is at least ``probe_end_margin`` from
-     the wall's ends, dropped when closer than ``free_clearance`` to any wall of the map. The
-     robot saw the wall from its left, through that strip: it is space the map has *seen free*.
+     the wall's ends, dropped when closer than ``free_clearance`` to any wall of the map, and
+     deeper, every ``free_reach_step`` up to the wall in front, where that wall (within
+     ``free_reach``) faces back. The robot saw the wall from its left, through that strip, and
+     two walls that look at each other were seen across the space between them: it is space
+     the map has *seen free*.
      This is the map's free space without a trajectory and without closed faces
      (:func:`mapping.metrics.free_space` needs closed rooms, which partial maps rarely have);
    * the *direction histogram*: wall length per directed direction (``direction_bins`` bins,
@@ -96,7 +99,8 @@ Pipeline
      the overlap's structure repeated (identical offices, pillar rows, the sides of a symmetric
      ring) is in a building where the other robot may have seen a *different* copy, which no
      agreement between the two maps can rule out. With a runner-up ratio above
-     ``contested_runner_up_ratio`` the limit is ``contested_self_ratio``.
+     ``contested_runner_up_ratio``, or less than ``partial_support_fraction`` of the smaller
+     map matched, the limit is ``contested_self_ratio``.
 
 Confidence
 ----------
@@ -291,6 +295,13 @@ class RegistrationConfig:
         half-strength signs of repetition together refuse (the benchmark's filter-built maps of
         two identical offices matched at 97 % of the smaller map, the rival at 58 %, the
         overlap recurring within each map at 59 %).
+    partial_support_fraction : float
+        When the best hypothesis matches less than this fraction of the smaller map, the largest
+        accepted self-similarity is ``contested_self_ratio`` too: the rest of that map lies where
+        the other has seen nothing, so the match rests on the overlap alone, and an overlap that
+        recurs within a map may be another copy (the benchmark's filter-built maps of a
+        warehouse's pillar grid merged 18 m and 90 degrees off: 49 % of the smaller map matched,
+        the overlap recurring within one map at 73 %, no distinct rival above 45 %).
 
     Raises
     ------
@@ -352,6 +363,7 @@ class RegistrationConfig:
     max_self_ratio: float = 0.75
     contested_self_ratio: float = 0.55
     contested_runner_up_ratio: float = 0.55
+    partial_support_fraction: float = 0.6
 
     def __post_init__(self) -> None:
         for name in ("sample_spacing", "free_clearance", "free_reach_step", "direction_smooth", "feature_angle_tol",
@@ -374,7 +386,8 @@ class RegistrationConfig:
         if int(self.rival_refine) < 0 or int(self.rival_min_ends) < 0:
             raise ValueError("RegistrationConfig.rival_refine must be >= 0")
         for name in ("rotation_peak_ratio", "min_support_fraction", "max_runner_up_ratio", "displaced_weight",
-                     "unique_runner_up_ratio", "contested_self_ratio", "contested_runner_up_ratio"):
+                     "unique_runner_up_ratio", "contested_self_ratio", "contested_runner_up_ratio",
+                     "partial_support_fraction"):
             v = getattr(self, name)
             if not 0.0 <= v <= 1.0:
                 raise ValueError(f"RegistrationConfig.{name} must be within [0, 1], got {v!r}")
@@ -1295,7 +1308,8 @@ def register_prepared(
         ib, ia = _match(fa, fb, best.transform, cfg.match_dist, cfg)
         self_a = _self_ratio(fa, ia, cfg)
         self_b = _self_ratio(fb, ib, cfg)
-        limit = cfg.contested_self_ratio if ratio > cfg.contested_runner_up_ratio else cfg.max_self_ratio
+        contested = ratio > cfg.contested_runner_up_ratio or frac < cfg.partial_support_fraction
+        limit = cfg.contested_self_ratio if contested else cfg.max_self_ratio
         if max(self_a, self_b) > limit:
             reason = f"repetitive: the overlap recurs within one map ({max(self_a, self_b):.0%})"
     conf = (
