@@ -724,18 +724,24 @@ def _facing_probes(
     first crosses a wall that faces back (``free_reach`` in :class:`RegistrationConfig`).
 
     The first crossing of each ray ``o + t n`` (``0 < t <= free_reach``) with the map's segments
-    is found exactly (every ray against every segment, in chunks); the probes are placed every
-    ``free_reach_step`` from the deepest of ``free_depths`` to ``free_clearance`` before it.
+    is found exactly, in chunks of consecutive samples (mostly along one wall) against the
+    segments whose bounding box comes within ``free_reach`` of the chunk's; the probes are placed
+    every ``free_reach_step`` from the deepest of ``free_depths`` to ``free_clearance`` before it.
     """
     if len(origins) == 0 or len(seg) == 0:
         return np.zeros((0, 2))
-    p0 = seg[:, 0]
-    e = seg[:, 1] - seg[:, 0]
+    lo_s, hi_s = seg.min(axis=1), seg.max(axis=1)
     first = np.full(len(origins), np.inf)
     facing = np.zeros(len(origins), dtype=bool)
-    chunk = max(1, 2_000_000 // len(seg))
+    chunk = 64
     for k in range(0, len(origins), chunk):
         o, n = origins[k : k + chunk], normals[k : k + chunk]
+        lo, hi = o.min(axis=0) - cfg.free_reach, o.max(axis=0) + cfg.free_reach
+        near = np.flatnonzero(np.all(hi_s >= lo, axis=1) & np.all(lo_s <= hi, axis=1))
+        if len(near) == 0:
+            continue
+        p0 = seg[near, 0]
+        e = seg[near, 1] - p0
         den = n[:, 0:1] * e[None, :, 1] - n[:, 1:2] * e[None, :, 0]  # cross(n, e)
         wx = p0[None, :, 0] - o[:, 0:1]
         wy = p0[None, :, 1] - o[:, 1:2]
@@ -747,7 +753,7 @@ def _facing_probes(
         t = np.where(hit, t, np.inf)
         j = np.argmin(t, axis=1)
         first[k : k + chunk] = t[np.arange(len(o)), j]
-        facing[k : k + chunk] = np.einsum("ij,ij->i", seg_normals[j], n) < 0.0
+        facing[k : k + chunk] = np.einsum("ij,ij->i", seg_normals[near[j]], n) < 0.0
     deep = np.arange(max(cfg.free_depths) + cfg.free_reach_step, cfg.free_reach, cfg.free_reach_step)
     use = np.isfinite(first) & facing
     if not use.any() or len(deep) == 0:
