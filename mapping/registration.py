@@ -268,7 +268,9 @@ class RegistrationConfig:
     min_corners : int
         Least number of B's real corners that land within ``corner_match_dist`` of a real
         corner of A. One room corner (an L of two walls) looks like every other corner of
-        its kind: four were needed to keep the corners of a symmetric ring apart.
+        its kind: four were needed to keep the corners of a symmetric ring apart, five to keep
+        two museum maps of long walls apart (the benchmark merged them 22 m and 30 m off, four
+        corners matched each time; the true overlap was wall without corners).
     min_corners_unique : int
         Least matched corners when the hypothesis is *unique*: its runner-up ratio (corner
         based, step 6) at most ``unique_runner_up_ratio`` and its support at least twice
@@ -295,6 +297,12 @@ class RegistrationConfig:
         half-strength signs of repetition together refuse (the benchmark's filter-built maps of
         two identical offices matched at 97 % of the smaller map, the rival at 58 %, the
         overlap recurring within each map at 59 %).
+    contested_max_conflict : float
+        When the runner-up ratio exceeds ``contested_runner_up_ratio``, the largest accepted
+        conflict is this (no part proportional to the support): a rival half as good and walls
+        on seen-free space are two signs together (the benchmark merged two maps of the
+        corridor world one office apart, rival at 56 %, the other map's end wall across the
+        corridor: 2.0 m of conflict, under the 2.6 m the proportional limit allowed).
     partial_support_fraction : float
         When the best hypothesis matches less than this fraction of the smaller map, the largest
         accepted self-similarity is ``contested_self_ratio`` too: the rest of that map lies where
@@ -356,14 +364,15 @@ class RegistrationConfig:
     rival_min_ends: int = 8
     min_cross_support: float = 1.5
     max_rmse: float = 0.08
-    min_corners: int = 4
-    min_corners_unique: int = 4
+    min_corners: int = 5
+    min_corners_unique: int = 5
     unique_runner_up_ratio: float = 0.5
     corner_match_dist: float = 0.25
     max_self_ratio: float = 0.75
     contested_self_ratio: float = 0.55
     contested_runner_up_ratio: float = 0.55
     partial_support_fraction: float = 0.6
+    contested_max_conflict: float = 0.5
 
     def __post_init__(self) -> None:
         for name in ("sample_spacing", "free_clearance", "free_reach_step", "direction_smooth", "feature_angle_tol",
@@ -373,7 +382,7 @@ class RegistrationConfig:
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
                 raise ValueError(f"RegistrationConfig.{name} must be a positive number, got {v!r}")
-        for name in ("min_wall", "probe_end_margin", "conflict_weight", "free_reach", "min_support", "max_conflict",
+        for name in ("min_wall", "probe_end_margin", "conflict_weight", "free_reach", "contested_max_conflict", "min_support", "max_conflict",
                      "max_conflict_fraction", "min_cross_support", "conflict_min_wall", "frontier_margin"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0):
@@ -1300,6 +1309,9 @@ def register_prepared(
         reason = f"walls on seen-free space ({best.conflict:.1f} m)"
     elif ratio > cfg.max_runner_up_ratio:
         reason = f"ambiguous: a distinct hypothesis scores {ratio:.0%} of the best"
+    elif ratio > cfg.contested_runner_up_ratio and best.conflict > cfg.contested_max_conflict:
+        reason = (f"contested: a distinct hypothesis scores {ratio:.0%} of the best, whose walls lie on "
+                  f"seen-free space ({best.conflict:.1f} m)")
     elif best.cross_support < cfg.min_cross_support:
         reason = f"translation not constrained in every direction ({best.cross_support:.1f} m)"
     elif best.rmse > cfg.max_rmse:
