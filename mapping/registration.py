@@ -290,7 +290,8 @@ class RegistrationConfig:
         has itself seen the overlap's structure twice (identical offices along a corridor, the
         sides of a symmetric ring) lives in a repetitive building, where the other robot may
         well have seen a *different* copy: no amount of agreement between the two maps can
-        tell which (step 6 of the module docstring).
+        tell which (step 6 of the module docstring). 0.75 let filter-built maps of the office
+        world merge turned 180 degrees and 6-12 m off (the overlap recurring at 71-75 %).
     contested_self_ratio, contested_runner_up_ratio : float
         When the runner-up ratio exceeds ``contested_runner_up_ratio`` (a rival half as good),
         the largest accepted self-similarity is ``contested_self_ratio`` instead: two
@@ -368,7 +369,7 @@ class RegistrationConfig:
     min_corners_unique: int = 5
     unique_runner_up_ratio: float = 0.5
     corner_match_dist: float = 0.25
-    max_self_ratio: float = 0.75
+    max_self_ratio: float = 0.7
     contested_self_ratio: float = 0.55
     contested_runner_up_ratio: float = 0.55
     partial_support_fraction: float = 0.6
