@@ -99,8 +99,8 @@ Pipeline
      the overlap's structure repeated (identical offices, pillar rows, the sides of a symmetric
      ring) is in a building where the other robot may have seen a *different* copy, which no
      agreement between the two maps can rule out. With a runner-up ratio above
-     ``contested_runner_up_ratio``, or less than ``partial_support_fraction`` of the smaller
-     map matched, the limit is ``contested_self_ratio``.
+     ``contested_runner_up_ratio`` the limit is ``contested_self_ratio``; recurring in both
+     maps, the limit is ``mutual_self_ratio``.
 
 Confidence
 ----------
@@ -290,8 +290,7 @@ class RegistrationConfig:
         has itself seen the overlap's structure twice (identical offices along a corridor, the
         sides of a symmetric ring) lives in a repetitive building, where the other robot may
         well have seen a *different* copy: no amount of agreement between the two maps can
-        tell which (step 6 of the module docstring). 0.75 let filter-built maps of the office
-        world merge turned 180 degrees and 6-12 m off (the overlap recurring at 71-75 %).
+        tell which (step 6 of the module docstring).
     contested_self_ratio, contested_runner_up_ratio : float
         When the runner-up ratio exceeds ``contested_runner_up_ratio`` (a rival half as good),
         the largest accepted self-similarity is ``contested_self_ratio`` instead: two
@@ -304,13 +303,12 @@ class RegistrationConfig:
         on seen-free space are two signs together (the benchmark merged two maps of the
         corridor world one office apart, rival at 56 %, the other map's end wall across the
         corridor: 2.0 m of conflict, under the 2.6 m the proportional limit allowed).
-    partial_support_fraction : float
-        When the best hypothesis matches less than this fraction of the smaller map, the largest
-        accepted self-similarity is ``contested_self_ratio`` too: the rest of that map lies where
-        the other has seen nothing, so the match rests on the overlap alone, and an overlap that
-        recurs within a map may be another copy (the benchmark's filter-built maps of a
-        warehouse's pillar grid merged 18 m and 90 degrees off: 49 % of the smaller map matched,
-        the overlap recurring within one map at 73 %, no distinct rival above 45 %).
+    mutual_self_ratio : float
+        Largest accepted self-similarity of the overlap in *both* maps at once: when each robot
+        has itself seen the overlap's structure repeated, the building repeats by the evidence
+        of both (the benchmark's filter-built maps merged turned 90 or 180 degrees and 6-18 m
+        off, a warehouse's pillar grid recurring at 69 % and 73 %, offices alike on both sides
+        of a corridor at 71-75 %, all under ``max_self_ratio``).
 
     Raises
     ------
@@ -369,10 +367,10 @@ class RegistrationConfig:
     min_corners_unique: int = 5
     unique_runner_up_ratio: float = 0.5
     corner_match_dist: float = 0.25
-    max_self_ratio: float = 0.7
+    max_self_ratio: float = 0.75
     contested_self_ratio: float = 0.55
     contested_runner_up_ratio: float = 0.55
-    partial_support_fraction: float = 0.6
+    mutual_self_ratio: float = 0.6
     contested_max_conflict: float = 0.5
 
     def __post_init__(self) -> None:
@@ -397,7 +395,7 @@ class RegistrationConfig:
             raise ValueError("RegistrationConfig.rival_refine must be >= 0")
         for name in ("rotation_peak_ratio", "min_support_fraction", "max_runner_up_ratio", "displaced_weight",
                      "unique_runner_up_ratio", "contested_self_ratio", "contested_runner_up_ratio",
-                     "partial_support_fraction"):
+                     "mutual_self_ratio"):
             v = getattr(self, name)
             if not 0.0 <= v <= 1.0:
                 raise ValueError(f"RegistrationConfig.{name} must be within [0, 1], got {v!r}")
@@ -1327,10 +1325,11 @@ def register_prepared(
         ib, ia = _match(fa, fb, best.transform, cfg.match_dist, cfg)
         self_a = _self_ratio(fa, ia, cfg)
         self_b = _self_ratio(fb, ib, cfg)
-        contested = ratio > cfg.contested_runner_up_ratio or frac < cfg.partial_support_fraction
-        limit = cfg.contested_self_ratio if contested else cfg.max_self_ratio
+        limit = cfg.contested_self_ratio if ratio > cfg.contested_runner_up_ratio else cfg.max_self_ratio
         if max(self_a, self_b) > limit:
             reason = f"repetitive: the overlap recurs within one map ({max(self_a, self_b):.0%})"
+        elif min(self_a, self_b) > cfg.mutual_self_ratio:
+            reason = f"repetitive: the overlap recurs within both maps ({min(self_a, self_b):.0%})"
     conf = (
         max(0.0, 1.0 - ratio) * best.support / (best.support + cfg.min_support) if best.support > 0 else 0.0
     )
