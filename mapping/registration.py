@@ -297,12 +297,13 @@ class RegistrationConfig:
         half-strength signs of repetition together refuse (the benchmark's filter-built maps of
         two identical offices matched at 97 % of the smaller map, the rival at 58 %, the
         overlap recurring within each map at 59 %).
-    contested_max_conflict : float
-        When the runner-up ratio exceeds ``contested_runner_up_ratio``, the largest accepted
-        conflict is this (no part proportional to the support): a rival half as good and walls
-        on seen-free space are two signs together (the benchmark merged two maps of the
-        corridor world one office apart, rival at 56 %, the other map's end wall across the
-        corridor: 2.0 m of conflict, under the 2.6 m the proportional limit allowed).
+    contested_max_conflict, conflict_runner_up_ratio : float
+        When the runner-up ratio exceeds ``conflict_runner_up_ratio``, the largest accepted
+        conflict is ``contested_max_conflict`` (no part proportional to the support): a rival
+        of some strength and walls on seen-free space are two signs together (the benchmark
+        merged maps of the corridor world one office apart, rivals at 47 % and 56 %, the other
+        map's end wall across the corridor: 2.0 m of conflict, under the 2.6 m the
+        proportional limit allowed).
     mutual_self_ratio : float
         Largest accepted self-similarity of the overlap in *both* maps at once: when each robot
         has itself seen the overlap's structure repeated, the building repeats by the evidence
@@ -372,6 +373,7 @@ class RegistrationConfig:
     contested_runner_up_ratio: float = 0.55
     mutual_self_ratio: float = 0.6
     contested_max_conflict: float = 0.5
+    conflict_runner_up_ratio: float = 0.4
 
     def __post_init__(self) -> None:
         for name in ("sample_spacing", "free_clearance", "free_reach_step", "direction_smooth", "feature_angle_tol",
@@ -395,7 +397,7 @@ class RegistrationConfig:
             raise ValueError("RegistrationConfig.rival_refine must be >= 0")
         for name in ("rotation_peak_ratio", "min_support_fraction", "max_runner_up_ratio", "displaced_weight",
                      "unique_runner_up_ratio", "contested_self_ratio", "contested_runner_up_ratio",
-                     "mutual_self_ratio"):
+                     "mutual_self_ratio", "conflict_runner_up_ratio"):
             v = getattr(self, name)
             if not 0.0 <= v <= 1.0:
                 raise ValueError(f"RegistrationConfig.{name} must be within [0, 1], got {v!r}")
@@ -1308,7 +1310,7 @@ def register_prepared(
         reason = f"walls on seen-free space ({best.conflict:.1f} m)"
     elif ratio > cfg.max_runner_up_ratio:
         reason = f"ambiguous: a distinct hypothesis scores {ratio:.0%} of the best"
-    elif ratio > cfg.contested_runner_up_ratio and best.conflict > cfg.contested_max_conflict:
+    elif ratio > cfg.conflict_runner_up_ratio and best.conflict > cfg.contested_max_conflict:
         reason = (f"contested: a distinct hypothesis scores {ratio:.0%} of the best, whose walls lie on "
                   f"seen-free space ({best.conflict:.1f} m)")
     elif best.cross_support < cfg.min_cross_support:
