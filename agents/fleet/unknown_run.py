@@ -307,9 +307,9 @@ def _carmen_figure(
         for rid, (i0, i1) in sorted(stretches.items())
     }
     islands = [m for m in (fr.get("islands") or {}).values()]
-    title = (f"{log}: {len(in_map & set(stretches))} of {len(stretches)} robots fused without a shared frame "
-             f"(frame of {root}; islands: {', '.join('+'.join(map(str, m)) for m in islands) or 'none'}); "
-             f"endpoint precision {precision:.3f}")
+    fused = "+".join(sorted(in_map & set(stretches))) or "none"
+    alone = f", island {' '.join('+'.join(map(str, m)) for m in islands)}" if islands else ""
+    title = f"{log}: fused {fused}{alone}, precision {precision:.2f}"
     return map_figure(placed, None, title=title, trajectories=paths, points=ends,
                       points_label="real scan endpoints (truth poses)")
 
