@@ -381,14 +381,16 @@ class RegistrationConfig:
     conflict_runner_up_ratio: float = 0.4
 
     def __post_init__(self) -> None:
-        for name in ("sample_spacing", "free_clearance", "free_reach_step", "direction_smooth", "feature_angle_tol",
+        for name in ("sample_spacing", "free_clearance", "free_reach_step", "direction_smooth",
+                     "feature_angle_tol",
                      "vote_cell", "vote_weight_cap", "peak_separation", "coarse_match_dist",
                      "match_dist", "match_angle", "conflict_radius", "huber", "distinct_translation",
                      "distinct_rotation", "max_rmse", "displaced_dist", "rival_corner_dist"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
                 raise ValueError(f"RegistrationConfig.{name} must be a positive number, got {v!r}")
-        for name in ("min_wall", "probe_end_margin", "conflict_weight", "free_reach", "contested_max_conflict", "min_support", "max_conflict",
+        for name in ("min_wall", "probe_end_margin", "conflict_weight", "free_reach",
+                     "contested_max_conflict", "min_support", "max_conflict",
                      "max_conflict_fraction", "min_cross_support", "conflict_min_wall", "frontier_margin"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0):
@@ -733,7 +735,8 @@ def prepare(wf: Wireframe, config: RegistrationConfig | None = None) -> MapFeatu
 
 
 def _facing_probes(
-    origins: FloatArray, normals: FloatArray, seg: FloatArray, seg_normals: FloatArray, cfg: RegistrationConfig
+    origins: FloatArray, normals: FloatArray, seg: FloatArray, seg_normals: FloatArray,
+    cfg: RegistrationConfig,
 ) -> FloatArray:
     """Probes deeper than ``free_depths`` in front of the wall samples ``origins`` whose normal
     first crosses a wall that faces back (``free_reach`` in :class:`RegistrationConfig`).

@@ -425,7 +425,8 @@ def test_run_carmen_log_as_two_robots(tmp_path: Path):
     out = tmp_path / "out"
     log = Path(__file__).parent / "data" / "freiburg-101-head.log.gz"
     with Fleet(tmp_path) as fleet:
-        fleet.start("run", ["run", "--carmen", log, "--robots", "2", "--rate", "20", "--out", out, "--no-progress"])
+        fleet.start("run", ["run", "--carmen", log, "--robots", "2", "--rate", "20", "--out", out,
+                            "--no-progress"])
         p = fleet.procs["run"]
         wait_until(lambda: p.poll() is not None, 180, "wiremap run --carmen to finish")
         assert p.returncode == 0, fleet.log("run")

@@ -691,8 +691,9 @@ def map_figure(
         texts.append((int(x + 38), int(y - 7), "truth", 13))
         x += 90
     if len(pts):
+        grey = np.asarray(POINTS_COLOR, dtype=np.uint8)
         for k in range(5):
-            panel.image[int(y) - 4 + 2 * k, int(x) : int(x) + 24 : 3] = np.asarray(POINTS_COLOR, dtype=np.uint8)
+            panel.image[int(y) - 4 + 2 * k, int(x) : int(x) + 24 : 3] = grey
         texts.append((int(x + 30), int(y - 7), points_label, 13))
         x += 40 + 7 * len(points_label)
     if free is not None:
