@@ -17,8 +17,11 @@ Pipeline
      edge's direction and whether the edge starts or ends there;
    * *free probes*: points ``free_depths`` metres to the left (the free side, see
      :mod:`mapping.wireframe`) of every wall sample that is at least ``probe_end_margin`` from
-     the wall's ends, dropped when closer than ``free_clearance`` to any wall of the map. The
-     robot saw the wall from its left, through that strip: it is space the map has *seen free*.
+     the wall's ends, dropped when closer than ``free_clearance`` to any wall of the map, and
+     deeper, every ``free_reach_step`` up to the wall in front, where that wall (within
+     ``free_reach``) faces back. The robot saw the wall from its left, through that strip, and
+     two walls that look at each other were seen across the space between them: it is space
+     the map has *seen free*.
      This is the map's free space without a trajectory and without closed faces
      (:func:`mapping.metrics.free_space` needs closed rooms, which partial maps rarely have);
    * the *direction histogram*: wall length per directed direction (``direction_bins`` bins,
@@ -70,7 +73,8 @@ Pipeline
    corridor) gives two similar scores and is refused rather than guessed. Accepted when all of
 
    * ``support >= min_support`` metres and ``support >= min_support_fraction`` of the smaller map;
-   * ``conflict <= max_conflict + max_conflict_fraction * support``;
+   * ``conflict <= max_conflict + max_conflict_fraction * support``, and at most
+     ``contested_max_conflict`` when the runner-up ratio exceeds ``conflict_runner_up_ratio``;
    * ``runner_up_ratio <= max_runner_up_ratio``. A distinct rival's ratio is the smaller of
      its *corner ratio* (B's wall ends it lands on A's wall ends of the same role and direction,
      over the best's count; the rivals of most support refined first) and the larger of its
@@ -96,7 +100,8 @@ Pipeline
      the overlap's structure repeated (identical offices, pillar rows, the sides of a symmetric
      ring) is in a building where the other robot may have seen a *different* copy, which no
      agreement between the two maps can rule out. With a runner-up ratio above
-     ``contested_runner_up_ratio`` the limit is ``contested_self_ratio``.
+     ``contested_runner_up_ratio`` the limit is ``contested_self_ratio``; recurring in both
+     maps, the limit is ``mutual_self_ratio``.
 
 Confidence
 ----------
@@ -115,7 +120,8 @@ corners, 2.5 km of wall each; 175-190 ms before the exact speed-ups of ``docs/ex
 same-direction wall-end pair of a rectilinear map votes, about 41,000 pairs per rotation for the
 museum; the coarse vote bounds the fine grid), the self-similarity check of an accepted match
 (step 6, a vote of the overlap against each whole map), the refinement and the scoring (k-d tree
-queries; a :class:`CellMask` skips the points with nothing near). :func:`prepare` is a small part
+queries; a :class:`CellMask` skips the points with nothing near). :func:`prepare` (about 11 ms for
+the whole museum, most of it finding the wall each free-probe ray meets) is a small part
 and can be cached per map; what it derives lazily (trees over wall ends and corners, the masks)
 is kept with the features.
 """
@@ -167,6 +173,15 @@ class RegistrationConfig:
         Depths of the free probes in front of every wall sample.
     free_clearance : float
         Probes closer than this to a wall of their own map are dropped (corners, clutter).
+    free_reach, free_reach_step : float
+        A wall sample whose normal, on its free side, first meets a wall of the same map that
+        faces it back (the two walls look at each other across open space: a room's opposite
+        walls, a pillar seen from the room) within ``free_reach`` also gets probes every
+        ``free_reach_step`` beyond the deepest of ``free_depths``, up to ``free_clearance``
+        before that wall. Without it the seen-free space is a strip ``free_depths`` deep along
+        the walls, and a copy of the map turned onto itself (a rotation-symmetric room whose
+        pillar is what tells the two apart) puts the pillar in the middle of the room without
+        conflict. 0 turns it off.
     probe_end_margin : float
         Probes only in front of the part of a wall at least this far from its ends.
     direction_bins : int
@@ -255,7 +270,9 @@ class RegistrationConfig:
     min_corners : int
         Least number of B's real corners that land within ``corner_match_dist`` of a real
         corner of A. One room corner (an L of two walls) looks like every other corner of
-        its kind: four were needed to keep the corners of a symmetric ring apart.
+        its kind: four were needed to keep the corners of a symmetric ring apart, five to keep
+        two museum maps of long walls apart (the benchmark merged them 22 m and 30 m off, four
+        corners matched each time; the true overlap was wall without corners).
     min_corners_unique : int
         Least matched corners when the hypothesis is *unique*: its runner-up ratio (corner
         based, step 6) at most ``unique_runner_up_ratio`` and its support at least twice
@@ -281,7 +298,23 @@ class RegistrationConfig:
         the largest accepted self-similarity is ``contested_self_ratio`` instead: two
         half-strength signs of repetition together refuse (the benchmark's filter-built maps of
         two identical offices matched at 97 % of the smaller map, the rival at 58 %, the
-        overlap recurring within each map at 59 %).
+        overlap recurring within each map at 59 %; at 0.55, a map of one office merged onto
+        another office of a map that had seen several, 22 m off: rival at 53 %, recurring
+        at 67 %).
+    contested_max_conflict, conflict_runner_up_ratio : float
+        When the runner-up ratio exceeds ``conflict_runner_up_ratio``, the largest accepted
+        conflict is ``contested_max_conflict`` (no part proportional to the support): a rival
+        of some strength and walls on seen-free space are two signs together (the benchmark
+        merged maps of the corridor world one office apart, rivals at 47 % and 56 %, the other
+        map's end wall across the corridor: 2.0 m of conflict, under the 2.6 m the
+        proportional limit allowed).
+    mutual_self_ratio : float
+        Largest accepted self-similarity of the overlap in *both* maps at once: when each robot
+        has itself seen the overlap's structure repeated, the building repeats by the evidence
+        of both (the benchmark's filter-built maps merged turned 90 or 180 degrees and 6-18 m
+        off, a warehouse's pillar grid recurring at 69 % and 73 %, offices alike on both sides
+        of a corridor at 71-75 %, all under ``max_self_ratio``; at 0.6, two disjoint parts of
+        the pillar grid merged 36 m off, recurring at 56 % and 67 %).
 
     Raises
     ------
@@ -294,6 +327,8 @@ class RegistrationConfig:
     min_wall: float = 0.15
     free_depths: tuple[float, ...] = (0.35, 0.7, 1.05)
     free_clearance: float = 0.3
+    free_reach: float = 6.0
+    free_reach_step: float = 0.35
     probe_end_margin: float = 0.3
     direction_bins: int = 720
     direction_smooth: float = math.radians(1.0)
@@ -334,23 +369,28 @@ class RegistrationConfig:
     rival_min_ends: int = 8
     min_cross_support: float = 1.5
     max_rmse: float = 0.08
-    min_corners: int = 4
-    min_corners_unique: int = 4
+    min_corners: int = 5
+    min_corners_unique: int = 5
     unique_runner_up_ratio: float = 0.5
     corner_match_dist: float = 0.25
     max_self_ratio: float = 0.75
     contested_self_ratio: float = 0.55
-    contested_runner_up_ratio: float = 0.55
+    contested_runner_up_ratio: float = 0.5
+    mutual_self_ratio: float = 0.55
+    contested_max_conflict: float = 0.5
+    conflict_runner_up_ratio: float = 0.4
 
     def __post_init__(self) -> None:
-        for name in ("sample_spacing", "free_clearance", "direction_smooth", "feature_angle_tol",
+        for name in ("sample_spacing", "free_clearance", "free_reach_step", "direction_smooth",
+                     "feature_angle_tol",
                      "vote_cell", "vote_weight_cap", "peak_separation", "coarse_match_dist",
                      "match_dist", "match_angle", "conflict_radius", "huber", "distinct_translation",
                      "distinct_rotation", "max_rmse", "displaced_dist", "rival_corner_dist"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
                 raise ValueError(f"RegistrationConfig.{name} must be a positive number, got {v!r}")
-        for name in ("min_wall", "probe_end_margin", "conflict_weight", "min_support", "max_conflict",
+        for name in ("min_wall", "probe_end_margin", "conflict_weight", "free_reach",
+                     "contested_max_conflict", "min_support", "max_conflict",
                      "max_conflict_fraction", "min_cross_support", "conflict_min_wall", "frontier_margin"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0):
@@ -363,7 +403,8 @@ class RegistrationConfig:
         if int(self.rival_refine) < 0 or int(self.rival_min_ends) < 0:
             raise ValueError("RegistrationConfig.rival_refine must be >= 0")
         for name in ("rotation_peak_ratio", "min_support_fraction", "max_runner_up_ratio", "displaced_weight",
-                     "unique_runner_up_ratio", "contested_self_ratio", "contested_runner_up_ratio"):
+                     "unique_runner_up_ratio", "contested_self_ratio", "contested_runner_up_ratio",
+                     "mutual_self_ratio", "conflict_runner_up_ratio"):
             v = getattr(self, name)
             if not 0.0 <= v <= 1.0:
                 raise ValueError(f"RegistrationConfig.{name} must be within [0, 1], got {v!r}")
@@ -646,6 +687,8 @@ def prepare(wf: Wireframe, config: RegistrationConfig | None = None) -> MapFeatu
         if len(pts)
         else np.zeros((0, 2))
     )
+    if cfg.free_reach > max(cfg.free_depths) and len(pts):
+        probes = np.concatenate([probes, _facing_probes(pts[inner], nor[inner], seg, nrm, cfg)])
     if len(probes) and len(pts):
         dist, _ = tree.query(probes, k=1, distance_upper_bound=cfg.free_clearance)
         probes = probes[~np.isfinite(dist)]
@@ -689,6 +732,54 @@ def prepare(wf: Wireframe, config: RegistrationConfig | None = None) -> MapFeatu
         owner=kept[owner].astype(np.int64), corner_points=corner_points,
         conflict_weights=np.asarray(cw, dtype=np.float64), config=cfg,
     )
+
+
+def _facing_probes(
+    origins: FloatArray, normals: FloatArray, seg: FloatArray, seg_normals: FloatArray,
+    cfg: RegistrationConfig,
+) -> FloatArray:
+    """Probes deeper than ``free_depths`` in front of the wall samples ``origins`` whose normal
+    first crosses a wall that faces back (``free_reach`` in :class:`RegistrationConfig`).
+
+    The first crossing of each ray ``o + t n`` (``0 < t <= free_reach``) with the map's segments
+    is found exactly, in chunks of consecutive samples (mostly along one wall) against the
+    segments whose bounding box comes within ``free_reach`` of the chunk's; the probes are placed
+    every ``free_reach_step`` from the deepest of ``free_depths`` to ``free_clearance`` before it.
+    """
+    if len(origins) == 0 or len(seg) == 0:
+        return np.zeros((0, 2))
+    lo_s, hi_s = seg.min(axis=1), seg.max(axis=1)
+    first = np.full(len(origins), np.inf)
+    facing = np.zeros(len(origins), dtype=bool)
+    chunk = 64
+    for k in range(0, len(origins), chunk):
+        o, n = origins[k : k + chunk], normals[k : k + chunk]
+        lo, hi = o.min(axis=0) - cfg.free_reach, o.max(axis=0) + cfg.free_reach
+        near = np.flatnonzero(np.all(hi_s >= lo, axis=1) & np.all(lo_s <= hi, axis=1))
+        if len(near) == 0:
+            continue
+        p0 = seg[near, 0]
+        e = seg[near, 1] - p0
+        den = n[:, 0:1] * e[None, :, 1] - n[:, 1:2] * e[None, :, 0]  # cross(n, e)
+        wx = p0[None, :, 0] - o[:, 0:1]
+        wy = p0[None, :, 1] - o[:, 1:2]
+        ok = np.abs(den) > 1e-9
+        dd = np.where(ok, den, 1.0)
+        t = (wx * e[None, :, 1] - wy * e[None, :, 0]) / dd  # cross(w, e) / cross(n, e)
+        s = (wx * n[:, 1:2] - wy * n[:, 0:1]) / dd  # cross(w, n) / cross(n, e)
+        hit = ok & (t > 1e-6) & (t <= cfg.free_reach) & (s >= 0.0) & (s <= 1.0)
+        t = np.where(hit, t, np.inf)
+        j = np.argmin(t, axis=1)
+        first[k : k + chunk] = t[np.arange(len(o)), j]
+        facing[k : k + chunk] = np.einsum("ij,ij->i", seg_normals[near[j]], n) < 0.0
+    deep = np.arange(max(cfg.free_depths) + cfg.free_reach_step, cfg.free_reach, cfg.free_reach_step)
+    use = np.isfinite(first) & facing
+    if not use.any() or len(deep) == 0:
+        return np.zeros((0, 2))
+    o, n, lim = origins[use], normals[use], first[use] - cfg.free_clearance
+    keep = deep[None, :] <= lim[:, None]
+    i, d = np.nonzero(keep)
+    return np.asarray(o[i] + deep[d][:, None] * n[i], dtype=np.float64)
 
 
 # ------------------------------------------------------------------------------ rotation
@@ -1227,6 +1318,9 @@ def register_prepared(
         reason = f"walls on seen-free space ({best.conflict:.1f} m)"
     elif ratio > cfg.max_runner_up_ratio:
         reason = f"ambiguous: a distinct hypothesis scores {ratio:.0%} of the best"
+    elif ratio > cfg.conflict_runner_up_ratio and best.conflict > cfg.contested_max_conflict:
+        reason = (f"contested: a distinct hypothesis scores {ratio:.0%} of the best, whose walls lie on "
+                  f"seen-free space ({best.conflict:.1f} m)")
     elif best.cross_support < cfg.min_cross_support:
         reason = f"translation not constrained in every direction ({best.cross_support:.1f} m)"
     elif best.rmse > cfg.max_rmse:
@@ -1244,6 +1338,8 @@ def register_prepared(
         limit = cfg.contested_self_ratio if ratio > cfg.contested_runner_up_ratio else cfg.max_self_ratio
         if max(self_a, self_b) > limit:
             reason = f"repetitive: the overlap recurs within one map ({max(self_a, self_b):.0%})"
+        elif min(self_a, self_b) > cfg.mutual_self_ratio:
+            reason = f"repetitive: the overlap recurs within both maps ({min(self_a, self_b):.0%})"
     conf = (
         max(0.0, 1.0 - ratio) * best.support / (best.support + cfg.min_support) if best.support > 0 else 0.0
     )

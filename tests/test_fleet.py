@@ -414,6 +414,31 @@ def test_run_unknown_starts_on_paper_small(tmp_path: Path):
     assert (out / "fused.png").is_file() and (out / "fused.geojson").is_file()
 
 
+def test_run_carmen_log_as_two_robots(tmp_path: Path):
+    """`wiremap run --carmen LOG --robots 2` on the committed excerpt (60 scans): the robots start
+    without ``--particles`` (it used to reach them as "None"), every robot is either registered
+    or an island, and fused.png is the map over the log's real scan endpoints (grey pixels)."""
+    import json
+
+    from agents.files.render import POINTS_COLOR, decode_png
+
+    out = tmp_path / "out"
+    log = Path(__file__).parent / "data" / "freiburg-101-head.log.gz"
+    with Fleet(tmp_path) as fleet:
+        fleet.start("run", ["run", "--carmen", log, "--robots", "2", "--rate", "20", "--out", out,
+                            "--no-progress"])
+        p = fleet.procs["run"]
+        wait_until(lambda: p.poll() is not None, 180, "wiremap run --carmen to finish")
+        assert p.returncode == 0, fleet.log("run")
+    report = json.loads((out / "report.json").read_text())
+    assert set(report["per_robot"]) == {"r1", "r2"}
+    regs = set(report["registered"])
+    isl = {m for ms in report["islands"].values() for m in ms}
+    assert regs | isl == {"r1", "r2"} and not regs & isl
+    img = decode_png((out / "fused.png").read_bytes())
+    assert (img == np.asarray(POINTS_COLOR, dtype=np.uint8)).all(axis=2).sum() > 200
+
+
 def test_run_with_the_realistic_lidar(tmp_path: Path):
     """`wiremap run --sensor lidar-real`: every robot process simulates the realistic lidar
     (its log says so), the report records the sensor, and the fused map of two robots keeps

@@ -208,12 +208,22 @@ def test_long_walls_do_not_mask_a_distinctive_corner_constellation() -> None:
 
 
 def test_periodic_alcoves_are_refused() -> None:
-    """The same hall with alcoves every 8 m: a rival one period away keeps the corners too."""
+    """The same hall with alcoves every 8 m: a rival one period away keeps the corners too, unless
+    the other map saw the hall's end, which the rival puts across the seen-free hall."""
     rng = np.random.default_rng(11)
     hall = _hall([4.0, 12.0, 20.0, 28.0, 36.0])
-    res = register(_noisy(hall, rng), _noisy(_west(hall, 30.0), rng).transformed(Pose(3.0, 4.0, 1.0)))
+    a = _noisy(hall, rng)
+    mid = hall.segments().mean(axis=1)[:, 0]
+    middle = hall.subgraph_edges((mid > 2.0) & (mid < 30.0))  # neither end wall
+    res = register(a, _noisy(middle, rng).transformed(Pose(3.0, 4.0, 1.0)))
     assert not res.accepted
     assert "ambiguous" in res.reason or "repetitive" in res.reason
+    move = Pose(3.0, 4.0, 1.0)
+    res = register(a, _noisy(_west(hall, 30.0), rng).transformed(move))
+    assert res.accepted, res.reason
+    assert res.transform is not None
+    te, re = _error(res.transform, move.inverse(), np.array([15.0, 2.5]))
+    assert te <= 0.1 and re <= math.radians(1.0)
 
 
 def _with_wall(wf: Wireframe, a: tuple[float, float], b: tuple[float, float], likelihood: float,
@@ -239,8 +249,10 @@ def test_unlikely_spurious_wall_does_not_conflict_but_a_likely_one_does() -> Non
     across = ((20.0, 0.6), (20.0, 4.4))
     weak = prepare(_with_wall(a, *across, likelihood=0.05))
     strong = prepare(_with_wall(a, *across, likelihood=1.0))
-    assert _conflict(fa, weak, Pose.identity(), cfg) < 0.1
-    assert _conflict(fa, strong, Pose.identity(), cfg) >= 0.9
+    # Across the hall, whose walls face each other: all of its 3.8 m lies on seen-free space,
+    # counted at its likelihood.
+    assert _conflict(fa, weak, Pose.identity(), cfg) <= 0.05 * 3.8 + 1e-6 < cfg.max_conflict
+    assert _conflict(fa, strong, Pose.identity(), cfg) >= 3.0
     # Short slivers never conflict, nor do walls near a frontier end.
     sliver = prepare(_with_wall(a, (20.0, 1.0), (20.0, 1.4), likelihood=1.0))
     assert _conflict(fa, sliver, Pose.identity(), cfg) == 0.0
@@ -372,3 +384,35 @@ def test_contested_matches_refuse_at_half_the_self_similarity() -> None:
     assert res.accepted, res.reason
     res = register(a, b, RegistrationConfig(contested_self_ratio=0.05, contested_runner_up_ratio=0.0))
     assert not res.accepted and res.reason.startswith("repetitive")
+
+
+def test_facing_walls_see_the_space_between_them_free() -> None:
+    """A closed room: its opposite walls face each other, so probes reach its middle; a lone wall
+    keeps the shallow strip."""
+    room = Wireframe.from_polylines([[(0, 0), (10, 0), (10, 6), (0, 6), (0, 0)]])
+    deep = prepare(room)
+    shallow = prepare(room, RegistrationConfig(free_reach=0.0))
+    assert np.min(np.hypot(*(deep.probes - [5.0, 3.0]).T)) < 0.4
+    assert np.min(np.hypot(*(shallow.probes - [5.0, 3.0]).T)) > 1.5
+    # Never beyond the facing wall, nor within free_clearance of it.
+    assert np.all((deep.probes > 0.29) & (deep.probes < [9.71, 5.71]))
+    lone = prepare(Wireframe.from_polylines([[(0, 0), (10, 0)]]))
+    assert lone.probes[:, 1].max() <= max(RegistrationConfig().free_depths) + 1e-9
+
+
+def test_a_turned_copy_of_a_symmetric_room_is_told_apart_by_its_pillar() -> None:
+    """The angled world: a hexagon that is its own copy turned 180 degrees, told apart only by the
+    triangle inside it. Turned, the triangle stands in the middle of the other map's seen-free
+    room; with the shallow strip alone it stood where nothing was seen, and the overlap counted as
+    recurring within the map."""
+    rng = np.random.default_rng(5)
+    wf = _truth("tests/worlds/angled.geojson")
+    move = Pose(-20.0, 13.0, 2.2)
+    a, b = _noisy(wf, rng), _noisy(wf, rng).transformed(move)
+    res = register(a, b)
+    assert res.accepted, res.reason
+    assert res.transform is not None
+    te, re = _error(res.transform, move.inverse(), b.points.mean(axis=0))
+    assert te <= 0.1 and re <= math.radians(1.0)
+    old = register(a, b, RegistrationConfig(free_reach=0.0))
+    assert not old.accepted and "repetitive" in old.reason

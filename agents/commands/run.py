@@ -726,7 +726,7 @@ def _start_fleet(
         if args.carmen:
             procs[rid] = _spawn(rid,
                                 _carmen_robot_argv(args, out, rid, k, r, threshold,
-                                                   bus + cred_args(rid)), logs)
+                                                   bus + cred_args(rid), filter_args), logs)
             continue
         s0 = start_pose_of(r)
         unknown = ["--unknown-start"] if args.unknown_starts else []
@@ -748,13 +748,16 @@ def _start_fleet(
 
 
 def _carmen_robot_argv(
-    args: argparse.Namespace, out: Path, rid: str, k: int, stretch: Any, threshold: float, bus: list[str]
+    args: argparse.Namespace, out: Path, rid: str, k: int, stretch: Any, threshold: float, bus: list[str],
+    filter_args: list[str],
 ) -> list[str]:
-    """A robot replaying scans ``stretch = (i0, i1)`` of the log in its own frame."""
+    """A robot replaying scans ``stretch = (i0, i1)`` of the log in its own frame (``filter_args``:
+    its particles and settings as resolved, like a simulated robot's; ``args.particles`` is None
+    unless given)."""
     i0, i1 = stretch
     return [
         "robot", "--id", rid, "--carmen", str(args.carmen), "--scans", f"{i0}:{i1}",
-        "--rate", str(args.rate), "--seed", str(args.seed + k + 1), "--particles", str(args.particles),
+        "--rate", str(args.rate), "--seed", str(args.seed + k + 1), *filter_args,
         "--resolution", repr(float(args.resolution)), "--threshold", repr(threshold),
         "--status-file", str(out / "status" / f"{rid}.json"), *bus,
     ]

@@ -70,6 +70,8 @@ ROBOT_COLORS: tuple[Color, ...] = (
     (127, 127, 127),
 )
 TRAJECTORY_COLOR: Color = (0, 160, 60)
+#: Points under a map (a real log's scan endpoints).
+POINTS_COLOR: Color = (150, 150, 150)
 _LOW: Color = (255, 160, 40)  # likelihood 0
 _HIGH: Color = (20, 70, 200)  # likelihood 1
 
@@ -303,6 +305,13 @@ class Canvas:
         """One marker at world ``xy``: ``circle``, ``square`` or ``triangle`` (pointing up),
         ``radius`` pixels from centre to edge (square: half side; triangle: circumradius)."""
         self.points(np.asarray(xy, dtype=np.float64).reshape(1, 2), color, radius, shape)
+
+    def dots(self, xy: ArrayLike, color: Color) -> None:
+        """One pixel at each world point ``(k, 2)`` (many points: scan endpoints); points outside
+        the image are skipped."""
+        p = np.floor(self.to_px(xy)).astype(np.int64)
+        ok = (p[:, 0] >= 0) & (p[:, 1] >= 0) & (p[:, 0] < self.width) & (p[:, 1] < self.height)
+        self.image[p[ok, 1], p[ok, 0]] = np.asarray(color, dtype=np.uint8)
 
     def points(self, xy: ArrayLike, color: Color, radius: float = 3.0, shape: str = "circle") -> None:
         """Markers at world points ``(k, 2)``."""
@@ -605,6 +614,8 @@ def map_figure(
     trajectories: Mapping[str, ArrayLike] | None = None,
     free: Any = None,
     max_px: int = 1000,
+    points: ArrayLike | None = None,
+    points_label: str = "scan endpoints",
 ) -> bytes:
     """The picture every command writes (``wiremap map``, ``run``, ``watch --save``,
     ``export --format png``), as PNG bytes: a self-explanatory figure.
@@ -613,11 +624,16 @@ def map_figure(
     ``truth`` underneath as wide blue-grey lines, each robot's trajectory in its colour, then
     the map's walls coloured by likelihood and its corners by label); below it the legend (the
     corner symbols, the wall colours, the truth, the shading, one line per trajectory), a scale
-    bar and a north arrow (north is +y, up).
+    bar and a north arrow (north is +y, up). ``points`` (``(k, 2)``, such as a real log's scan
+    endpoints) are drawn as grey pixels under everything, in the legend as ``points_label``; the
+    picture's extent takes in all but their outer 0.5 % on each axis (stray long returns).
     """
     tracks = {str(k): np.asarray(v, dtype=np.float64).reshape(-1, 2) for k, v in (trajectories or {}).items()}
     tracks = {k: v for k, v in tracks.items() if len(v)}
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 2) if points is not None else np.zeros((0, 2))
     items: list[Any] = [wf, truth, *tracks.values()]
+    if len(pts):
+        items.append(np.percentile(pts, [0.5, 99.5], axis=0))
     if free is not None and not getattr(free, "is_empty", True):
         xmin, ymin, xmax, ymax = free.bounds
         items.append(np.array([[xmin, ymin], [xmax, ymax]]))
@@ -629,6 +645,8 @@ def map_figure(
         canvas.image[:] = np.asarray(OUTSIDE_COLOR, dtype=np.uint8)
         canvas.polygon_fill(free, (255, 255, 255))
     w = max(1.5, min(3.0, canvas.scale * 0.08))
+    if len(pts):
+        canvas.dots(pts, POINTS_COLOR)
     if truth is not None:
         draw_wireframe(canvas, truth, edge_color=FIGURE_TRUTH_COLOR, label_colors={}, width=w + 5.0)
     colours: dict[str, Color] = {}
@@ -668,10 +686,17 @@ def map_figure(
         panel.line(at(x + 5 * t * 7, y), at(x + 5 * t * 7 + 5, y), (int(c[0]), int(c[1]), int(c[2])), w)
     texts.append((int(x + 46), int(y - 7), "wall, likelihood low to high", 13))
     x += 250
-    panel.line(at(x, y), at(x + 30, y), FIGURE_TRUTH_COLOR, w + 5.0)
-    texts.append((int(x + 38), int(y - 7), "truth", 13))
-    if free is not None:
+    if truth is not None or not len(pts):
+        panel.line(at(x, y), at(x + 30, y), FIGURE_TRUTH_COLOR, w + 5.0)
+        texts.append((int(x + 38), int(y - 7), "truth", 13))
         x += 90
+    if len(pts):
+        grey = np.asarray(POINTS_COLOR, dtype=np.uint8)
+        for k in range(5):
+            panel.image[int(y) - 4 + 2 * k, int(x) : int(x) + 24 : 3] = grey
+        texts.append((int(x + 30), int(y - 7), points_label, 13))
+        x += 40 + 7 * len(points_label)
+    if free is not None:
         panel.image[int(y - 7) : int(y + 7), int(x) : int(x + 24)] = np.asarray(OUTSIDE_COLOR, dtype=np.uint8)
         texts.append((int(x + 30), int(y - 7), "outside the world", 13))
     if tracks:

@@ -242,7 +242,6 @@ def write_outputs_carmen(
 ) -> dict[str, Any]:
     """``report.json`` (and ``fused.*``) of a CARMEN fleet run (module docstring); ``published``
     and ``tracks`` as :func:`write_outputs_unknown`."""
-    from agents.files.render import map_png
     from agents.fleet.carmen_fleet import endpoint_precision, endpoints
 
     raw, msg = _fused(out)
@@ -266,7 +265,8 @@ def write_outputs_carmen(
         ends = endpoints(world.scans, truth)
         placed = wf.transformed(starts[root]) if root in starts else wf
         fused["endpoint_precision"] = round(endpoint_precision(placed, ends), 4)
-        write_atomic(out / "fused.png", map_png(placed))
+        write_atomic(out / "fused.png", _carmen_figure(world.name, placed, ends, truth, stretches, fr, root,
+                                                       fused["endpoint_precision"]))
         write_json(out / "fused.geojson",
                    placed.to_geojson({"kind": "fused_map", "log": world.name, "robots": robots,
                                                               "frame": "truth"}))
@@ -289,6 +289,29 @@ def write_outputs_carmen(
     report.update(_common(out, ids, duration_s, extra, raw, msg))
     write_json(out / "report.json", report)
     return _summary_shape(report, ids)
+
+
+def _carmen_figure(
+    log: str, placed: Wireframe, ends: Any, truth: list[Pose], stretches: dict[str, tuple[int, int]],
+    fr: dict[str, Any], root: Any, precision: float,
+) -> bytes:
+    """The fused map of a CARMEN fleet run in the truth frame, over the log's real scan endpoints
+    (at the truth poses), with each robot's true path over its stretch in its colour (a robot
+    left as an island is marked so: its walls are not in this map)."""
+    from agents.files.render import map_figure
+
+    in_map = {str(root), *map(str, fr.get("registered", []))}
+    paths = {
+        (rid if rid in in_map else f"{rid} (island, not in this map)"):
+            np.array([[p.x, p.y] for p in truth[i0:i1]], dtype=np.float64)
+        for rid, (i0, i1) in sorted(stretches.items())
+    }
+    islands = [m for m in (fr.get("islands") or {}).values()]
+    fused = "+".join(sorted(in_map & set(stretches))) or "none"
+    alone = f", island {' '.join('+'.join(map(str, m)) for m in islands)}" if islands else ""
+    title = f"{log}: fused {fused}{alone}, precision {precision:.2f}"
+    return map_figure(placed, None, title=title, trajectories=paths, points=ends,
+                      points_label="real scan endpoints (truth poses)")
 
 
 def _summary_shape(report: dict[str, Any], ids: list[str]) -> dict[str, Any]:

@@ -33,7 +33,7 @@ import numpy as np
 from mapping.se2 import Pose
 from mapping.wireframe import Wireframe
 
-MAX_SIM_T = 1.0e8  # simulated or log seconds (three years): Rerun's time axis and the progress line
+MAX_SIM_T = 1.0e10  # simulated or log seconds: a log stamped in Unix time (belgioioso: 1.02e9) fits, to 2286
 MAX_NS = (1 << 63) - 1  # a wall clock in ns, a sequence number
 MAX_COUNT = 1 << 53  # counters in a status (exact in a float)
 MAX_COORD = 1.0e5  # metres in any frame of a pose (a building is a few hundred)
