@@ -407,6 +407,8 @@ def test_run_unknown_starts_on_paper_small(tmp_path: Path):
     assert report["fleet_root"] in regs
     for rid, err in report["registration_errors"].items():
         assert err["trans_err_m"] <= 0.5 and err["rot_err_deg"] <= 2.0, (rid, err)
+    assert report["registration_truth"]["accepted_wrong"] == 0
+    assert sum(report["registration_truth"].values()) <= len(report["registrations"])
     log = (out / "logs" / "fuse.log").read_text()
     entities, _ = read_recording(out / "recording.rrd")
     if "registration " in log:

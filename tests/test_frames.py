@@ -168,3 +168,28 @@ def test_retry_only_after_growth() -> None:
     assert fr.next_pair(length) is None
     lengths["r2"] = 25.0
     assert fr.next_pair(length) == ("r1", "r2")
+
+
+def test_report_scores_every_attempt_against_the_true_starts():
+    """report.json's attempts carry their transform's error against the true relative start,
+    and the tally tells a merge lost to caution (refused, right) from a false merge avoided."""
+    from agents.fleet.unknown_run import _attempts_against_truth
+
+    starts = {"r1": Pose(2.0, 1.0, 0.3), "r2": Pose(-4.0, 6.0, -1.2), "r3": Pose(0.0, 0.0, 0.0)}
+    right = starts["r1"].inverse().compose(starts["r2"])
+    off = right.compose(Pose(3.0, 0.0, 0.0))  # one office along
+    recs = [
+        {"a": "r1", "b": "r2", "accepted": True, "transform": list(right.as_tuple())},
+        {"a": "r1", "b": "r2", "accepted": False, "transform": list(off.as_tuple())},
+        {"a": "r1", "b": "r2", "accepted": False, "transform": list(right.as_tuple())},
+        {"a": "r1", "b": "r3", "accepted": False, "transform": None},
+        {"a": "fleet", "b": "r3", "accepted": True, "transform": [0.0, 0.0, 0.0]},
+    ]
+    out = _attempts_against_truth(recs, starts)
+    regs = out["registrations"]
+    assert regs[0]["truth_err_m"] < 1e-6 and regs[0]["truth_err_deg"] < 1e-6
+    assert abs(regs[1]["truth_err_m"] - 3.0) < 1e-6
+    assert "truth_err_m" not in regs[3] and "truth_err_m" not in regs[4]
+    assert out["registration_truth"] == {"accepted_right": 1, "accepted_wrong": 0, "refused_right": 1,
+                                         "refused_wrong": 1}
+    assert _attempts_against_truth(recs, {})["registration_truth"] == {}

@@ -6,7 +6,10 @@
   root robot (the first registered, or ``--anchor``). ``report.json`` (:func:`write_outputs_unknown`)
   scores it against the truth after one rigid alignment: the root robot's true start pose,
   then :func:`mapping.metrics.align_to_truth`; it lists ``registered`` robots (with the error of
-  each registered pose against the true relative start) and ``islands``.
+  each registered pose against the true relative start), ``islands``, and every registration
+  attempt with its transform's error against the truth, tallied in ``registration_truth``
+  (accepted right or wrong, refused right or wrong: a refusal of a right transform is a merge
+  lost to caution).
 * **CARMEN fleets** (:mod:`agents.fleet.carmen_fleet`): the log split into overlapping
   stretches, one robot each, in its own odometry frame. ``report.json``
   (:func:`write_outputs_carmen`) scores each robot's map and the fused map by endpoint precision
@@ -161,8 +164,34 @@ def _registration_report(fr: dict[str, Any], root: Any, starts: dict[str, Pose])
         "registered": list(fr.get("registered", [])),
         "islands": fr.get("islands", {}),
         "registration_errors": _pose_errors(fr, starts),
-        "registrations": fr.get("registrations", []),
+        **_attempts_against_truth(fr.get("registrations", []), starts),
     }
+
+
+#: An attempt's transform is wrong past these (the registration bench's false-merge limits).
+WRONG_M, WRONG_DEG = 0.5, 2.0
+
+
+def _attempts_against_truth(records: list[dict[str, Any]], starts: dict[str, Pose]) -> dict[str, Any]:
+    """The attempts (``registrations``), each with its transform's error against the true
+    relative start of its two components' roots (``truth_err_m``, ``truth_err_deg``) when both
+    are known, and their tally (``registration_truth``): accepted right or wrong (a false merge),
+    refused with a right transform (a merge lost to caution) or a wrong one (a false merge
+    avoided). A component rooted in the fleet frame has no single true start and is left out."""
+    from agents.fleet.carmen_fleet import pose_error
+
+    out: list[dict[str, Any]] = []
+    tally = {"accepted_right": 0, "accepted_wrong": 0, "refused_right": 0, "refused_wrong": 0}
+    for rec in records:
+        rec = dict(rec)
+        a, b, tf = rec.get("a"), rec.get("b"), rec.get("transform")
+        if a in starts and b in starts and tf is not None:
+            te, re = pose_error(Pose(*tf), starts[a].inverse().compose(starts[b]))
+            rec["truth_err_m"], rec["truth_err_deg"] = round(te, 4), round(re, 3)
+            right = te <= WRONG_M and re <= WRONG_DEG
+            tally[f"{'accepted' if rec.get('accepted') else 'refused'}_{'right' if right else 'wrong'}"] += 1
+        out.append(rec)
+    return {"registrations": out, "registration_truth": tally if starts else {}}
 
 
 def _pose_errors(fr: dict[str, Any], starts: dict[str, Pose]) -> dict[str, Any]:
