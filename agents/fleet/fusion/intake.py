@@ -2,7 +2,8 @@
 
 * :class:`InputLimits`: sizes, rates and content bounds (choices, see there);
 * :class:`Intake`: the bounded FIFO between Zenoh's callback thread and the fusion loop, which
-  drops (and counts) payloads before anything is decoded;
+  drops (and counts) payloads before anything is decoded; :func:`by_key` groups what it drains
+  by robot key (only each key's newest payload is decoded);
 * :func:`implausible`: the content checks of a decoded robot map; :func:`over_budget` and
   :func:`too_dense`: what one robot map may cost;
 * :class:`DropLog`: at most one line per period summarising what was dropped.
@@ -14,7 +15,7 @@ import math
 import threading
 import time
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -177,6 +178,19 @@ def too_dense(wf: Wireframe, limits: InputLimits) -> tuple[str, str] | None:
             f"{float(metres.max()):.0f} m of walls in one square metre (budget {limits.max_cell_wall_m:g} m)",
         )
     return None
+
+
+def by_key(items: Sequence[tuple[str, bytes, int]]) -> list[tuple[str, list[tuple[bytes, int]]]]:
+    """The payloads of one drained batch (:meth:`Intake.drain_timed`: ``(key, bytes, arrival
+    ns)`` in arrival order) grouped by key: each key's ``(bytes, arrival ns)`` in arrival order,
+    the keys in the order of their newest payload's arrival (the one the fusion decodes,
+    :meth:`~agents.fleet.fusion.state.FusionState.offer_latest`)."""
+    groups: dict[str, list[tuple[bytes, int]]] = {}
+    last: dict[str, int] = {}
+    for i, (key, data, at) in enumerate(items):
+        groups.setdefault(key, []).append((data, at))
+        last[key] = i
+    return [(key, groups[key]) for key in sorted(groups, key=last.__getitem__)]
 
 
 class Intake:
