@@ -63,6 +63,7 @@ MAX_UINT64 = (1 << 64) - 1
 MAX_RESOLUTION_MM = 10**6
 MAX_THETA_URAD = 3_141_593
 _CRC_MARK = 0xCE
+_KINDS = frozenset(k.value for k in MessageKind)
 
 
 # ---------------------------------------------------------------------------------------- encode
@@ -351,7 +352,7 @@ def _envelope(data: Any, limits: Limits) -> list[Any]:
 def _version_and_kind(version: Any, kind_v: Any) -> MessageKind:
     if not _is_int(version) or version not in VERSIONS:
         raise VersionError(f"format version {version!r}, this decoder reads versions 1 and 2")
-    if not _is_int(kind_v) or kind_v not in (k.value for k in MessageKind):
+    if not _is_int(kind_v) or kind_v not in _KINDS:
         raise FormatError(f"unknown message kind {kind_v!r}")
     return MessageKind(kind_v)
 
