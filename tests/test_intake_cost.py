@@ -47,9 +47,10 @@ def too_dense_reference(wf: Wireframe, limits: InputLimits) -> tuple[str, str] |
     pts = seg[owner, 0] + t[:, None] * (seg[owner, 1] - seg[owner, 0])
     cells, inv = np.unique(codes(pts), return_inverse=True)
     metres = np.bincount(inv, weights=(length / k)[owner], minlength=len(cells))
-    if float(metres.max()) > limits.max_cell_wall_m:
+    most = float(metres.max())
+    if most > limits.max_cell_wall_m:
         return ("budget_density",
-                f"{float(metres.max()):.0f} m of walls in one square metre (budget {limits.max_cell_wall_m:g} m)")
+                f"{most:.0f} m of walls in one square metre (budget {limits.max_cell_wall_m:g} m)")
     return None
 
 
@@ -166,5 +167,5 @@ def test_checked_refuses_arrays_of_the_wrong_kind() -> None:
         (pts.tolist(), lab, e, lik, src),
     ]
     for args in bad:
-        with pytest.raises(ValueError, match="Wireframe.checked"):
+        with pytest.raises(ValueError, match=r"Wireframe\.checked"):
             Wireframe.checked(*args)  # type: ignore[arg-type]
