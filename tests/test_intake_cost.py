@@ -4,7 +4,9 @@
   against the former implementation, kept here as the reference, on honest maps, hostile
   stacks and random maps (also spans over ``DENSE_CELLS``, the ``np.unique`` fallback);
 * :meth:`Wireframe.checked` (the decoder's constructor without value checks) against the
-  checking constructor on decoded maps of every shape; its dtype and shape checks.
+  checking constructor on decoded maps of every shape; its dtype and shape checks;
+* :meth:`FleetSamples.view` (each robot's view of the other robots' walls, cut from samples
+  taken once per fused version) against :meth:`FleetView.of` over :func:`others_walls`.
 """
 
 from __future__ import annotations
@@ -15,7 +17,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import wire_codec
+from agents.fleet.fusion import FusionConfig, FusionState, encode_message
 from agents.fleet.fusion.intake import DENSITY_STEP_M, InputLimits, over_budget, too_dense
+from agents.fleet.fusion.quarantine import FleetSamples, FleetView, QuarantineConfig, others_walls
 from agents.sim.world import load_world
 from mapping.se2 import Pose
 from mapping.wireframe import Wireframe
@@ -169,3 +173,31 @@ def test_checked_refuses_arrays_of_the_wrong_kind() -> None:
     for args in bad:
         with pytest.raises(ValueError, match=r"Wireframe\.checked"):
             Wireframe.checked(*args)  # type: ignore[arg-type]
+
+
+# ---------------------------------------------------------------------- FleetSamples.view
+def same_view(a: FleetView, b: FleetView) -> None:
+    assert np.array_equal(a.cells, b.cells) and a.cells.dtype == b.cells.dtype
+    assert (a.near is None) == (b.near is None)
+    if a.near is not None and b.near is not None:
+        assert a.near.data.tobytes() == b.near.data.tobytes()
+
+
+@pytest.mark.parametrize("n", [3, 16])
+def test_each_robots_fleet_view_is_cut_exactly(n: int) -> None:
+    st = FusionState(FusionConfig(threshold=0.4, refine=False))
+    for m in robot_views("museum", n, seed=0):
+        st.offer(encode_message(m), m.sender)
+    st.fuse()
+    fused = st.fused
+    assert fused.n_edges and len(np.unique(fused.sources)) > 2
+    for cfg in (QuarantineConfig(), QuarantineConfig(sample_m=0.7, cell_m=3.0)):
+        samples = FleetSamples.of(fused, cfg)
+        for bit in [None, *range(n), n + 3, 70]:
+            same_view(samples.view(bit), FleetView.of(others_walls(fused, bit), cfg))
+    wide = fused.replace(sources=np.array([int(s) << 60 for s in fused.sources.tolist()], dtype=object))
+    samples = FleetSamples.of(wide, QuarantineConfig())
+    for bit in [None, 60, 61, 64, 66]:
+        same_view(samples.view(bit), FleetView.of(others_walls(wide, bit), QuarantineConfig()))
+    empty = FleetSamples.of(Wireframe.empty(), QuarantineConfig()).view(2)
+    assert empty.near is None and len(empty.cells) == 0

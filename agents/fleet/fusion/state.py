@@ -35,12 +35,12 @@ from agents.fleet.fusion.frames import (
 )
 from agents.fleet.fusion.intake import InputLimits, implausible, over_budget
 from agents.fleet.fusion.quarantine import (
+    FleetSamples,
     FleetView,
     Quarantine,
     QuarantineConfig,
     against_fleet,
     against_history,
-    others_walls,
 )
 from agents.fleet.fusion.stats import MAX_LATENCIES, FusionStats
 from agents.fleet.fusion.store import LATENCY_LOG, StoreDamaged, StoreJob, read_latency_log, read_store
@@ -259,6 +259,7 @@ class FusionState:
         self.quarantine_config = quarantine
         self.quarantine = Quarantine()
         self._fleet_view: tuple[tuple[int, int | None], FleetView] | None = None
+        self._fleet_samples: FleetSamples | None = None  # the fused map's, cut per robot (quarantine.py)
         self._first_seen: dict[str, int] = {}  # robot id -> first map (ns) while none was accepted
         self._born_ns: int | None = None  # the first offer with a clock (see _inconsistent)
         # a work budget per robot (budget.py; None: off): maps of a robot whose fusion CPU
@@ -538,7 +539,10 @@ class FusionState:
         bit = self.fused_robots.index(rid) if rid in self.fused_robots else None
         key = (self.version, bit)
         if self._fleet_view is None or self._fleet_view[0] != key:
-            self._fleet_view = (key, FleetView.of(others_walls(self.fused, bit), cfg))
+            samples = self._fleet_samples
+            if samples is None or samples.fused is not self.fused or samples.cfg != cfg:
+                samples = self._fleet_samples = FleetSamples.of(self.fused, cfg)
+            self._fleet_view = (key, samples.view(bit))
         return against_fleet(wf.transformed(msg.origin), self._fleet_view[1], cfg)
 
     def _add(self, msg: MapMessage, raw: bytes, now_ns: int | None = None) -> bool:
