@@ -226,6 +226,52 @@ class Wireframe:
 
     # ------------------------------------------------------------------ construction
     @classmethod
+    def checked(
+        cls,
+        points: FloatArray,
+        labels: LabelArray,
+        edges: IndexArray,
+        likelihood: FloatArray,
+        sources: MaskArray,
+    ) -> Wireframe:
+        """A wireframe from arrays whose values the caller has already checked, without
+        :meth:`__post_init__`'s value checks and copies.
+
+        For the wire codec's decoder, which establishes every invariant while it reads the
+        bits (finite coordinates on a bounded grid, labels 0..2, edge indices in range and no
+        self-loop, likelihoods in fifteenths of [0, 1], non-negative masks): checking them
+        again cost a robot map's decode a third of its time (issue 21). Only what is O(1) is
+        checked here -- dtypes (float64 points and likelihoods, uint8 labels, int32 edges,
+        uint64 or object masks), shapes and C order -- so a caller passing arrays of the
+        wrong kind still gets a ``ValueError``; the values are trusted. The arrays are taken
+        as they are (made read-only, not copied): the caller must hold no other reference it
+        writes through. The result is the wireframe ``Wireframe(points, labels, edges,
+        likelihood, sources)`` makes from the same valid arrays, bit for bit.
+        """
+        def fits(a: Any, dtypes: tuple[Any, ...], shape: tuple[int, ...]) -> bool:
+            return (isinstance(a, np.ndarray) and a.dtype in dtypes and a.shape == shape
+                    and a.flags.c_contiguous)
+
+        n = points.shape[0] if isinstance(points, np.ndarray) and points.ndim == 2 else -1
+        m = edges.shape[0] if isinstance(edges, np.ndarray) and edges.ndim == 2 else -1
+        for name, a, dtypes, shape in (
+            ("points", points, (np.float64,), (n, 2)),
+            ("labels", labels, (np.uint8,), (n,)),
+            ("edges", edges, (np.int32,), (m, 2)),
+            ("likelihood", likelihood, (np.float64,), (m,)),
+            ("sources", sources, (np.uint64, object), (m,)),
+        ):
+            if not fits(a, dtypes, shape):
+                kinds = " or ".join(np.dtype(d).name for d in dtypes)
+                raise ValueError(f"Wireframe.checked: {name} must be a C-ordered {kinds} array of shape "
+                                 f"({'n' if name in ('points', 'labels') else 'm'}, ...) matching the others")
+        wf = object.__new__(cls)
+        for name, a in (("points", points), ("labels", labels), ("edges", edges), ("likelihood", likelihood),
+                        ("sources", sources)):
+            object.__setattr__(wf, name, _readonly(a))
+        return wf
+
+    @classmethod
     def build(
         cls,
         points: ArrayLike,
@@ -397,14 +443,25 @@ class Wireframe:
         bytes
             ``blake2b(digest_size=16)`` over ``str(a.shape)`` and ``a.tobytes()`` of each array
             (:func:`mask_bytes` for the sources: the same bytes for ``uint64`` masks).
+
+        Notes
+        -----
+        Computed once per object and kept (the arrays are read-only: the content cannot
+        change); the fusion service compares each robot's new map with its last one, which
+        recomputed the old map's digest for every arrival.
         """
+        cached: bytes | None = self.__dict__.get("_digest")
+        if cached is not None:
+            return cached
         h = hashlib.blake2b(digest_size=16)
         for a in (self.points, self.labels, self.edges, self.likelihood):
             h.update(str(a.shape).encode())
             h.update(np.ascontiguousarray(a).tobytes())
         h.update(str(self.sources.shape).encode())
         h.update(mask_bytes(self.sources))
-        return h.digest()
+        digest = h.digest()
+        object.__setattr__(self, "_digest", digest)
+        return digest
 
     # ------------------------------------------------------------------ storage
     def paper_storage_bytes(self) -> int:

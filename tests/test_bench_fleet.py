@@ -97,8 +97,8 @@ def test_corrupt_is_seeded_and_does_both_kinds() -> None:
 
 
 def test_merge_counts_definition() -> None:
-    stats = {"received": 20, "accepted": 12, "outdated": 3, "duplicates": 1, "malformed": 3, "rejected": 1,
-             "overflow": 2, "rate_limited": 1, "oversized": 1, "dropped": 8}
+    stats = {"received": 20, "accepted": 10, "outdated": 3, "duplicates": 1, "superseded": 2, "malformed": 3,
+             "rejected": 1, "overflow": 2, "rate_limited": 1, "oversized": 1, "dropped": 8}
     c = merge_counts(stats)
     assert (c["arrived"], c["received"], c["merged"], c["dropped"]) == (24, 20, 16, 8)
     assert (c["overflow"], c["rate_limited"]) == (2, 1)

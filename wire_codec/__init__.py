@@ -1,11 +1,12 @@
 """Bytes <-> wireframe messages. See FORMAT.md.
 
-``encode(MapMessage) -> bytes`` and ``decode(bytes, *, limits=Limits()) -> MapMessage``; every
-decoding failure is a :class:`CodecError`. No I/O, no zenoh, no rerun.
+``encode(MapMessage) -> bytes`` and ``decode(bytes, *, limits=Limits()) -> MapMessage``;
+``peek(bytes, *, limits=Limits()) -> Header`` reads kind, sender, seq and stamp without the
+body. Every decoding failure is a :class:`CodecError`. No I/O, no zenoh, no rerun.
 """
 
 from wire_codec.body import MAX_ROBOTS, MAX_ROBOTS_V1
-from wire_codec.codec import VERSION, VERSIONS, decode, encode, version_for
+from wire_codec.codec import VERSION, VERSIONS, decode, encode, peek, version_for
 from wire_codec.errors import (
     ChecksumError,
     CodecError,
@@ -17,7 +18,7 @@ from wire_codec.errors import (
     TruncatedError,
     VersionError,
 )
-from wire_codec.message import MapMessage, MessageKind
+from wire_codec.message import Header, MapMessage, MessageKind
 
 __all__ = [
     "MAX_ROBOTS",
@@ -29,6 +30,7 @@ __all__ = [
     "EncodeError",
     "ExtraDataError",
     "FormatError",
+    "Header",
     "LimitError",
     "Limits",
     "MapMessage",
@@ -37,5 +39,6 @@ __all__ = [
     "VersionError",
     "decode",
     "encode",
+    "peek",
     "version_for",
 ]

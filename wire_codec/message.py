@@ -1,13 +1,14 @@
 """The message that travels: a wireframe with its sender's metadata.
 
-``wire_codec.encode(MapMessage) -> bytes`` and ``wire_codec.decode(bytes) -> MapMessage``.
+``wire_codec.encode(MapMessage) -> bytes`` and ``wire_codec.decode(bytes) -> MapMessage``;
+``wire_codec.peek(bytes) -> Header`` reads the envelope's first fields alone.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
 from enum import IntEnum
-from typing import Any
+from typing import Any, NamedTuple
 
 from mapping.se2 import Pose
 from mapping.wireframe import Wireframe
@@ -48,3 +49,23 @@ class MapMessage:
     wireframe: Wireframe
     robots: tuple[str, ...] = ()
     meta: dict[str, Any] = field(default_factory=dict)
+
+
+class Header(NamedTuple):
+    """The first five fields of a message's envelope, as :func:`wire_codec.peek` reads them
+    without decoding the body (FORMAT.md, section 2.2).
+
+    Attributes
+    ----------
+    version : the format version (1 or 2).
+    kind : robot map or fused map.
+    sender : the sender's id.
+    seq : the sender's sequence number.
+    stamp_ns : the sender's clock when the map was made (ns).
+    """
+
+    version: int
+    kind: MessageKind
+    sender: str
+    seq: int
+    stamp_ns: int

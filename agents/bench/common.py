@@ -609,7 +609,9 @@ def merge_counts(stats: dict[str, Any]) -> dict[str, int]:
       (``received``);
     * ``merged``: valid robot maps the service took in: ``accepted`` (became that robot's
       latest map) + ``outdated`` (arrived after a newer map of the same robot: already
-      superseded) + ``duplicates`` (the same map again);
+      superseded) + ``duplicates`` (the same map again) + ``superseded`` (a newer map of the
+      same robot arrived in the same batch, so it was not decoded; its envelope and CRC hold:
+      a damaged payload is counted ``malformed`` even then);
     * ``dropped``: ``arrived - merged``: malformed, rejected, absurd, and the intake's drops.
       An intake ``overflow`` may be a map superseded in the queue by a newer one of its robot,
       but the counter does not tell, so it counts as dropped (and shows as lost when valid).
@@ -623,7 +625,7 @@ def merge_counts(stats: dict[str, Any]) -> dict[str, int]:
 
     received = get("received")
     arrived = received + get("oversized") + get("rate_limited") + get("overflow")
-    merged = get("accepted") + get("outdated") + get("duplicates")
+    merged = get("accepted") + get("outdated") + get("duplicates") + get("superseded")
     return {
         "arrived": arrived,
         "received": received,

@@ -275,7 +275,8 @@ def run(args: argparse.Namespace) -> int:
     lat = s["latency_ms"]
     say(
         f"stopped at v{state.version}: {state.fused.n_vertices} vertices, {state.fused.n_edges} edges from "
-        f"{len(state.robots)} robots; {s['accepted']} maps accepted, {s['malformed']} malformed, "
+        f"{len(state.robots)} robots; {s['accepted']} maps accepted, {s['superseded']} superseded, "
+        f"{s['malformed']} malformed, "
         f"{s['rejected']} rejected, {s['absurd']} absurd, {s['oversized']} oversized, "
         f"{s['rate_limited']} rate-limited, {s['overflow']} overflowed; "
         f"latency p50 {_ms(lat['p50'])} ms p99 {_ms(lat['p99'])} ms"

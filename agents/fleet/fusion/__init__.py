@@ -55,9 +55,10 @@ of CPU on paper-small, a merge ~1 ms):
   realign_fraction * n)`` vertices, its start pose or boot changed, or its stale alignment is
   ``realign_s`` old), and the next fuse applies the new correction.
 
-The service drains the whole inbox, fuses once and publishes once per loop iteration, so a
-burst of maps costs one fold. The store is written by a background thread
-(:class:`~agents.fleet.fusion.store.StoreWriter`); publish latencies go to an append-only ``latency.log``.
+The service drains the whole inbox, decodes each robot's newest map of it, fuses once and
+publishes once per loop iteration, so a burst of maps costs one fold. The store is written by a
+background thread (:class:`~agents.fleet.fusion.store.StoreWriter`); publish latencies go to an
+append-only ``latency.log``.
 
 Hostile or broken input (choices; the counters are in :class:`FusionStats`, served on
 ``wiremap/<fleet>/fused/stats`` and written to the store's ``state.json``):
@@ -68,6 +69,9 @@ Hostile or broken input (choices; the counters are in :class:`FusionStats`, serv
   payloads (the oldest goes: maps are whole states) and all queues together at most
   ``queue_bytes`` (``overflow``); at most ``max_keys`` keys are tracked. Memory is bounded by
   ``queue_bytes`` plus one payload per side channel and robot, whatever arrives;
+* in the main thread, of each key's payloads drained together only the newest is decoded; the
+  older ones are read up to their header (``superseded``, or counted below when the header
+  fails; :meth:`FusionState.offer_latest`, which says why that lets no bad map through);
 * in the main thread (:meth:`FusionState.offer`): the codec with the fusion's tighter
   :class:`~wire_codec.Limits` (``malformed``, by error class); a key whose id chunk is not a
   valid name, a fused map on a robot key, an envelope sender that differs from the key, a

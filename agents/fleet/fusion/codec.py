@@ -37,6 +37,20 @@ def decode_message(data: bytes, limits: wire_codec.Limits | None = None) -> MapM
     return wire_codec.decode(data, limits=limits)
 
 
+def peek_header(data: bytes, limits: wire_codec.Limits | None = None) -> wire_codec.Header:
+    """Kind, sender, seq and stamp of codec bytes without decoding the body
+    (:func:`wire_codec.peek`: the envelope and its CRC are checked).
+
+    Raises
+    ------
+    wire_codec.CodecError
+        (a ``ValueError``) on a payload whose envelope is malformed or beyond ``limits``.
+    """
+    if limits is None:
+        return wire_codec.peek(data)
+    return wire_codec.peek(data, limits=limits)
+
+
 def order_key(msg: MapMessage, raw: bytes) -> tuple[int, int, str]:
     """``(boot, seq, sha256)``: a restarted robot (new ``meta["boot"]``) supersedes its old
     maps even though its ``seq`` starts again; the hash breaks (unexpected) ties the same way

@@ -2,7 +2,8 @@
 
 * :class:`InputLimits`: sizes, rates and content bounds (choices, see there);
 * :class:`Intake`: the bounded FIFO between Zenoh's callback thread and the fusion loop, which
-  drops (and counts) payloads before anything is decoded;
+  drops (and counts) payloads before anything is decoded; :func:`by_key` groups what it drains
+  by robot key (only each key's newest payload is decoded);
 * :func:`implausible`: the content checks of a decoded robot map; :func:`over_budget` and
   :func:`too_dense`: what one robot map may cost;
 * :class:`DropLog`: at most one line per period summarising what was dropped.
@@ -14,7 +15,7 @@ import math
 import threading
 import time
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -115,16 +116,19 @@ def over_budget(msg: MapMessage, limits: InputLimits, now_ns: int | None = None)
     """``(reason, detail)`` when a robot map is beyond what one robot may cost or could have
     seen, else None: ``budget_vertices``, ``budget_walls`` (total wall length), ``reach`` (a
     vertex further from the start pose than the robot could have seen since its boot; only
-    checked with ``now_ns``). Cheap: one pass over the arrays."""
+    checked with ``now_ns``). Cheap: one pass over the arrays (the wall lengths are computed
+    once, for the budget and :func:`too_dense`)."""
     wf = msg.wireframe
     if wf.n_vertices > limits.max_robot_vertices:
         return "budget_vertices", f"{wf.n_vertices} vertices (budget {limits.max_robot_vertices})"
+    lengths = None
     if wf.n_edges:
         seg = wf.points[wf.edges]
-        length = float(np.hypot(*(seg[:, 1] - seg[:, 0]).T).sum())
+        lengths = np.hypot(*(seg[:, 1] - seg[:, 0]).T)
+        length = float(lengths.sum())
         if length > limits.max_robot_wall_m:
             return "budget_walls", f"{length:.0f} m of walls (budget {limits.max_robot_wall_m:g} m)"
-    bad = too_dense(wf, limits)
+    bad = too_dense(wf, limits, lengths)
     if bad is not None:
         return bad
     if now_ns is not None and wf.n_vertices:
@@ -142,41 +146,85 @@ def over_budget(msg: MapMessage, limits: InputLimits, now_ns: int | None = None)
 
 DENSITY_STEP_M = 0.5  # walls are sampled this often to measure their length per cell
 
+#: The most wall length one edge can put into one cell, as :func:`too_dense` measures it: its
+#: samples in a 1 m cell lie on a run of at most sqrt(2) m (the cell's diagonal), at most
+#: ``run / spacing + 1`` of them, each weighing the spacing (at most ``DENSITY_STEP_M``):
+#: sqrt(2) + 0.5 = 1.91 m, rounded up to leave room for rounding.
+EDGE_CELL_BOUND_M = 2.0
 
-def _cell_codes(xy: np.ndarray) -> np.ndarray:
-    """One integer per 1 m grid cell (coordinates are bounded by the codec's limits)."""
+#: Cells of a map's bounding box up to which :func:`too_dense` counts per cell with a dense
+#: ``bincount`` (256 KiB of float64) instead of sorting the cell codes (``np.unique``).
+DENSE_CELLS = 32_768
+
+
+def _per_cell(xy: np.ndarray, weights: np.ndarray | None = None) -> float:
+    """The largest count (or sum of ``weights``) of the points ``xy`` in one 1 m grid cell.
+
+    Where the points' bounding box spans at most ``DENSE_CELLS`` cells, one ``bincount`` over
+    the cells' indices in the box; else ``np.unique`` over one integer code per cell (the
+    coordinates are bounded by the codec's limits), then ``bincount`` over the inverse. Both
+    add each cell's weights one by one in the points' order, so the sums are bit for bit the
+    same (and so the verdicts of :func:`too_dense`)."""
     c = np.floor(xy).astype(np.int64)
-    return (c[:, 0] << 32) + c[:, 1]
+    lo = c.min(axis=0)
+    span = c.max(axis=0) - lo + 1
+    if int(span[0]) * int(span[1]) <= DENSE_CELLS:
+        index = (c[:, 0] - lo[0]) * span[1] + (c[:, 1] - lo[1])
+        return float(np.bincount(index, weights=weights).max())
+    cells, inv = np.unique((c[:, 0] << 32) + c[:, 1], return_inverse=True)
+    return float(np.bincount(inv, weights=weights, minlength=len(cells)).max())
 
 
-def too_dense(wf: Wireframe, limits: InputLimits) -> tuple[str, str] | None:
+def too_dense(
+    wf: Wireframe, limits: InputLimits, lengths: np.ndarray | None = None
+) -> tuple[str, str] | None:
     """``("budget_density", detail)`` when a square metre of the map (a 1 m grid cell) holds
     more than ``limits.max_cell_vertices`` vertices or ``limits.max_cell_wall_m`` metres of
-    walls (measured on points every ``DENSITY_STEP_M`` along the walls), else None."""
+    walls (measured on points every ``DENSITY_STEP_M`` along the walls), else None.
+
+    ``lengths``: the edges' lengths when the caller has them (:func:`over_budget`). Skipped
+    because they cannot fail, so that small maps cost almost nothing (issue 21: this was a
+    quarter of a robot map's intake): the vertex count when the map has at most
+    ``max_cell_vertices`` vertices, the wall length when ``EDGE_CELL_BOUND_M`` per edge cannot
+    reach ``max_cell_wall_m``. The counts themselves are :func:`_per_cell`'s, the same numbers
+    as before these shortcuts."""
     if wf.n_vertices == 0:
         return None
-    _, per_cell = np.unique(_cell_codes(wf.points), return_counts=True)
-    if int(per_cell.max()) > limits.max_cell_vertices:
-        return (
-            "budget_density",
-            f"{int(per_cell.max())} vertices in one square metre (budget {limits.max_cell_vertices})",
-        )
-    if wf.n_edges == 0:
+    if wf.n_vertices > limits.max_cell_vertices:
+        most = int(_per_cell(wf.points))
+        if most > limits.max_cell_vertices:
+            return (
+                "budget_density",
+                f"{most} vertices in one square metre (budget {limits.max_cell_vertices})",
+            )
+    if wf.n_edges == 0 or EDGE_CELL_BOUND_M * wf.n_edges <= limits.max_cell_wall_m:
         return None
     seg = wf.points[wf.edges]
-    length = np.hypot(*(seg[:, 1] - seg[:, 0]).T)
+    length = np.hypot(*(seg[:, 1] - seg[:, 0]).T) if lengths is None else lengths
     k = np.maximum(1, np.ceil(length / DENSITY_STEP_M).astype(np.int64))  # samples per edge (midpoints)
     owner = np.repeat(np.arange(len(seg)), k)
     t = (np.arange(int(k.sum())) - np.repeat(np.cumsum(k) - k, k) + 0.5) / k[owner]
     pts = seg[owner, 0] + t[:, None] * (seg[owner, 1] - seg[owner, 0])
-    cells, inv = np.unique(_cell_codes(pts), return_inverse=True)
-    metres = np.bincount(inv, weights=(length / k)[owner], minlength=len(cells))
-    if float(metres.max()) > limits.max_cell_wall_m:
+    metres = _per_cell(pts, (length / k)[owner])
+    if metres > limits.max_cell_wall_m:
         return (
             "budget_density",
-            f"{float(metres.max()):.0f} m of walls in one square metre (budget {limits.max_cell_wall_m:g} m)",
+            f"{metres:.0f} m of walls in one square metre (budget {limits.max_cell_wall_m:g} m)",
         )
     return None
+
+
+def by_key(items: Sequence[tuple[str, bytes, int]]) -> list[tuple[str, list[tuple[bytes, int]]]]:
+    """The payloads of one drained batch (:meth:`Intake.drain_timed`: ``(key, bytes, arrival
+    ns)`` in arrival order) grouped by key: each key's ``(bytes, arrival ns)`` in arrival order,
+    the keys in the order of their newest payload's arrival (the one the fusion decodes,
+    :meth:`~agents.fleet.fusion.state.FusionState.offer_latest`)."""
+    groups: dict[str, list[tuple[bytes, int]]] = {}
+    last: dict[str, int] = {}
+    for i, (key, data, at) in enumerate(items):
+        groups.setdefault(key, []).append((data, at))
+        last[key] = i
+    return [(key, groups[key]) for key in sorted(groups, key=last.__getitem__)]
 
 
 class Intake:

@@ -20,7 +20,7 @@ from agents.fleet import validate
 from agents.fleet.fusion.budget import BudgetConfig, WorkBudget
 from agents.fleet.fusion.codec import decode_message, encode_message
 from agents.fleet.fusion.frames import FramesConfig
-from agents.fleet.fusion.intake import DropLog, InputLimits, Intake
+from agents.fleet.fusion.intake import DropLog, InputLimits, Intake, by_key
 from agents.fleet.fusion.islands import IslandShell, frames_section
 from agents.fleet.fusion.quarantine import QuarantineConfig
 from agents.fleet.fusion.state import FusionConfig, FusionState
@@ -355,25 +355,34 @@ class FusionService:
         for rid in st.release_held(now_ns):  # maps that waited for their robot's work budget
             self.dirty.add(rid)
             self.last_change = time.monotonic()
-        for key, data, arrived_ns in items:
+        # of each robot key's payloads only the newest is decoded (FusionState.offer_latest)
+        for key, group in by_key(items):
             rid = self.keys.robot_of(key)
             if rid is None:
-                st.reject_key(key)
-            elif st.offer(data, rid, now_ns):
+                for _ in group:
+                    st.reject_key(key)
+                    if st.last_drop is not None:
+                        self._note_drop(key, None, st.last_drop)
+                continue
+            taken = st.offer_latest([data for data, _ in group], rid, now_ns)
+            if taken.changed:
                 self.dirty.add(rid)
                 self.last_change = time.monotonic()
                 # robot publish -> in the fusion service's inbox (transport and the robot's own put)
+                arrived_ns = group[taken.index][1]
                 self.transport_ms.extend([max(0.0, (arrived_ns - st.robots[rid].message.stamp_ns) / 1e6)])
-            if st.last_drop is not None:
-                counter, reason, detail = st.last_drop
-                self.drops.note(counter, key, f"{reason}: {detail}")
-                if counter == "quarantined" and rid is not None and self.recorder is not None:
-                    q = st.quarantine.maps.get(rid)
-                    if q is not None:
-                        m = decode_message(q.raw)
-                        t = float(m.meta.get("t", 0.0)) if isinstance(m.meta.get("t"), (int, float)) else 0.0
-                        self.recorder.log_quarantine(rid, t, f"{reason}: {detail}",
-                                                     m.wireframe.transformed(m.origin))
+            for drop in taken.drops:
+                self._note_drop(key, rid, drop)
+
+    def _note_drop(self, key: str, rid: str | None, drop: tuple[str, str, str]) -> None:
+        counter, reason, detail = drop
+        self.drops.note(counter, key, f"{reason}: {detail}")
+        if counter == "quarantined" and rid is not None and self.recorder is not None:
+            q = self.state.quarantine.maps.get(rid)
+            if q is not None:
+                m = decode_message(q.raw)
+                t = float(m.meta.get("t", 0.0)) if isinstance(m.meta.get("t"), (int, float)) else 0.0
+                self.recorder.log_quarantine(rid, t, f"{reason}: {detail}", m.wireframe.transformed(m.origin))
 
     def _update_stale(self, publish: bool = True) -> None:
         """Recompute the stale list; on a change re-publish the same version with the new

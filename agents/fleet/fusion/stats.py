@@ -84,6 +84,9 @@ class FusionStats:
     received : payloads offered to :meth:`~agents.fleet.fusion.state.FusionState.offer` (decoded or not).
     accepted : became their robot's latest map; duplicates / outdated: identical to, or older
         than, the latest (not errors: maps are re-sent).
+    superseded : not decoded because a newer payload of the same robot key came in the same
+        drained batch (maps are whole states; only the header was read, see
+        :meth:`~agents.fleet.fusion.state.FusionState.offer_latest`); counted in ``received``.
     quarantined : kept aside as inconsistent with the robot's history or the fleet, not merged
         (:mod:`agents.fleet.fusion.quarantine`); ``quarantined_by`` by reason.
     held : maps that waited because their robot's fusion work budget was spent
@@ -105,6 +108,7 @@ class FusionStats:
     accepted: int = 0
     duplicates: int = 0
     outdated: int = 0
+    superseded: int = 0
     malformed: int = 0
     rejected: int = 0
     absurd: int = 0
@@ -144,6 +148,7 @@ class FusionStats:
             "accepted": self.accepted,
             "duplicates": self.duplicates,
             "outdated": self.outdated,
+            "superseded": self.superseded,
             "malformed": self.malformed,
             "rejected": self.rejected,
             "absurd": self.absurd,
