@@ -74,8 +74,9 @@ class Taken:
     changed : the robot's latest map changed.
     index : the payload decoded last (the one taken, or the oldest one tried when every one
         tried was dropped), an index into the payloads given.
-    drops : ``(counter, reason, detail)`` of every payload dropped, newest first (also those
-        refused by their header alone).
+    drops : ``(counter, reason, detail)`` of every payload dropped, in the order they were
+        looked at: the walk back from the newest, then the older ones refused by their header
+        alone, oldest first.
     """
 
     changed: bool
