@@ -93,29 +93,6 @@ def test_envelope_errors_as_decode_says_them() -> None:
     assert peek_outcome(seal(f[:-1])) is wire_codec.FormatError  # 12 elements
 
 
-@pytest.mark.parametrize(
-    ("index", "value", "error"),
-    [
-        (0, 3, wire_codec.VersionError),
-        (1, 3, wire_codec.FormatError),  # no such kind
-        (1, True, wire_codec.FormatError),
-        (2, "", wire_codec.FormatError),
-        (2, b"r1", wire_codec.FormatError),
-        (2, "x" * 300, wire_codec.LimitError),
-        (3, -1, wire_codec.FormatError),
-        (3, 1.0, wire_codec.FormatError),
-        (4, True, wire_codec.FormatError),
-        (4, float("nan"), wire_codec.FormatError),
-    ],
-)
-def test_bad_header_fields(index: int, value: Any, error: type) -> None:
-    f = fields_of(SMALL_BYTES)
-    f[index] = value
-    data = seal(f)
-    assert peek_outcome(data) is error
-    assert decode_outcome(data) is error
-
-
 def test_the_rest_is_not_read() -> None:
     # a broken body (or a broken later field) behind a valid CRC: decode refuses, peek does not
     f = fields_of(SMALL_BYTES)

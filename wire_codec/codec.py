@@ -249,12 +249,9 @@ def decode_with(
 ) -> MapMessage:
     """:func:`decode` with another body decoder (the tests run :mod:`wire_codec.reference`)."""
     obj = _envelope(data, limits)
-    version, kind_v, sender, seq, stamp, pose_v, frame, origin_v, res_mm, robots_v, meta, body, _ = obj
-    kind = _version_and_kind(version, kind_v)
-    sender = _str_in(sender, "sender", limits, allow_empty=False)
+    version, kind, sender, seq, stamp = _header(obj, limits)
+    pose_v, frame, origin_v, res_mm, robots_v, meta, body = obj[5:12]
     frame = _str_in(frame, "frame", limits, allow_empty=True)
-    seq = _uint_in(seq, "seq")
-    stamp = _uint_in(stamp, "stamp_ns")
     pose = _pose_in(pose_v, "pose", limits)
     origin = _pose_in(origin_v, "origin", limits)
     if not _is_int(res_mm) or not 1 <= res_mm <= MAX_RESOLUTION_MM:
@@ -313,15 +310,7 @@ def peek(data: bytes | bytearray | memoryview, *, limits: Limits = DEFAULT_LIMIT
         As :func:`decode` for those checks. Every failure is a :class:`CodecError` (a
         ``ValueError``); nothing else escapes.
     """
-    obj = _envelope(data, limits)
-    kind = _version_and_kind(obj[0], obj[1])
-    return Header(
-        version=obj[0],
-        kind=kind,
-        sender=_str_in(obj[2], "sender", limits, allow_empty=False),
-        seq=_uint_in(obj[3], "seq"),
-        stamp_ns=_uint_in(obj[4], "stamp_ns"),
-    )
+    return _header(_envelope(data, limits), limits)
 
 
 def _envelope(data: Any, limits: Limits) -> list[Any]:
@@ -349,12 +338,21 @@ def _envelope(data: Any, limits: Limits) -> list[Any]:
     return obj
 
 
-def _version_and_kind(version: Any, kind_v: Any) -> MessageKind:
+def _header(obj: list[Any], limits: Limits) -> Header:
+    """The envelope's first five fields (:func:`_envelope`'s values), checked: what
+    :func:`peek` returns and :func:`decode_with` starts from."""
+    version, kind_v = obj[0], obj[1]
     if not _is_int(version) or version not in VERSIONS:
         raise VersionError(f"format version {version!r}, this decoder reads versions 1 and 2")
     if not _is_int(kind_v) or kind_v not in _KINDS:
         raise FormatError(f"unknown message kind {kind_v!r}")
-    return MessageKind(kind_v)
+    return Header(
+        version=version,
+        kind=MessageKind(kind_v),
+        sender=_str_in(obj[2], "sender", limits, allow_empty=False),
+        seq=_uint_in(obj[3], "seq"),
+        stamp_ns=_uint_in(obj[4], "stamp_ns"),
+    )
 
 
 def _unpack(data: bytes, limits: Limits) -> Any:

@@ -11,14 +11,14 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import ArrayLike
 
-from agents.files.render import Canvas, draw_wireframe
+from agents.files.render import POINTS_COLOR, Canvas, draw_wireframe
 from mapping.wireframe import Wireframe
 
 Color = tuple[int, int, int]
 
-ENDPOINT_COLOR: Color = (150, 150, 150)
+ENDPOINT_COLOR: Color = POINTS_COLOR
 TRUE_PATH_COLOR: Color = (90, 90, 90)
 ESTIMATE_COLOR: Color = (0, 160, 60)
 WALL_COLOR: Color = (20, 70, 200)
@@ -118,7 +118,7 @@ def lidar_png(
     allp = np.concatenate(pts) if pts else np.zeros((1, 2))
     lo, hi = allp.min(axis=0), allp.max(axis=0)
     canvas = Canvas((lo[0], lo[1], hi[0], hi[1]), max_px=max_px, margin_px=60)
-    _stamp_points(canvas, ep, ENDPOINT_COLOR)
+    canvas.dots(ep, ENDPOINT_COLOR)
     if len(truth) >= 2:
         canvas.polyline(truth, TRUE_PATH_COLOR, 1.5)
     if est is not None and len(est) >= 2:
@@ -157,11 +157,3 @@ def lidar_png(
     _text(canvas, r + 7, c0, f"{bar_m:g} m")
     return canvas.to_png()
 
-
-def _stamp_points(canvas: Canvas, xy: NDArray[np.float64], color: Color) -> None:
-    """One pixel per point (many thousands of endpoints: no anti-aliasing)."""
-    if len(xy) == 0:
-        return
-    px = np.floor(canvas.to_px(xy)).astype(np.int64)
-    ok = (px[:, 0] >= 0) & (px[:, 0] < canvas.width) & (px[:, 1] >= 0) & (px[:, 1] < canvas.height)
-    canvas.image[px[ok, 1], px[ok, 0]] = color

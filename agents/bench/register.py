@@ -67,6 +67,7 @@ from typing import Any
 import numpy as np
 
 from agents.errors import UserError
+from agents.fleet.carmen_fleet import WRONG_DEG, WRONG_M
 
 HELP = "global registration of map pairs in unrelated frames"
 
@@ -77,7 +78,7 @@ MAX_RANGE = 8.0
 POSE_STEP = 0.5
 BANDS = ((0.0, 0.0), (0.0, 0.1), (0.1, 0.2), (0.2, 0.3), (0.3, 0.5), (0.5, 0.7), (0.7, 1.01))
 SUCCESS_T, SUCCESS_R = 0.10, math.radians(1.0)
-FALSE_T, FALSE_R = 0.5, math.radians(2.0)
+FALSE_T, FALSE_R = WRONG_M, math.radians(WRONG_DEG)
 FILTER_STRETCHES = 12
 FILTER_CACHE_VERSION = 1
 AMBIGUOUS_SUPPORT, AMBIGUOUS_CORNERS = 0.9, 0.9

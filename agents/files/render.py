@@ -309,6 +309,8 @@ class Canvas:
     def dots(self, xy: ArrayLike, color: Color) -> None:
         """One pixel at each world point ``(k, 2)`` (many points: scan endpoints); points outside
         the image are skipped."""
+        if len(np.asarray(xy).reshape(-1, 2)) == 0:
+            return
         p = np.floor(self.to_px(xy)).astype(np.int64)
         ok = (p[:, 0] >= 0) & (p[:, 1] >= 0) & (p[:, 0] < self.width) & (p[:, 1] < self.height)
         self.image[p[ok, 1], p[ok, 0]] = np.asarray(color, dtype=np.uint8)

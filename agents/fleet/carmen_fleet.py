@@ -98,6 +98,11 @@ def endpoint_precision(
     return map_precision(wf, ends, tol, step)
 
 
+#: A registration whose transform is off by more than this (metres, degrees) is wrong: a false
+#: merge when accepted (``wiremap bench register``, the runs' ``registration_truth``).
+WRONG_M, WRONG_DEG = 0.5, 2.0
+
+
 def pose_error(found: Pose, true: Pose) -> tuple[float, float]:
     """Translation (m) and rotation (deg) error of a registered pose."""
     return (

@@ -156,20 +156,16 @@ def _common(
     }
 
 
-def _registration_report(fr: dict[str, Any], root: Any, starts: dict[str, Pose]) -> dict[str, Any]:
+def _registration_report(fr: dict[str, Any], starts: dict[str, Pose]) -> dict[str, Any]:
     """The report's registration keys (both kinds of run): the fleet frame's root, who joined
     it, the islands, each registration's error against the true starts, and the attempts."""
     return {
-        "fleet_root": root,
+        "fleet_root": fr.get("fleet_root"),
         "registered": list(fr.get("registered", [])),
         "islands": fr.get("islands", {}),
         "registration_errors": _pose_errors(fr, starts),
         **_attempts_against_truth(fr.get("registrations", []), starts),
     }
-
-
-#: An attempt's transform is wrong past these (the registration bench's false-merge limits).
-WRONG_M, WRONG_DEG = 0.5, 2.0
 
 
 def _attempts_against_truth(records: list[dict[str, Any]], starts: dict[str, Pose]) -> dict[str, Any]:
@@ -178,7 +174,7 @@ def _attempts_against_truth(records: list[dict[str, Any]], starts: dict[str, Pos
     are known, and their tally (``registration_truth``): accepted right or wrong (a false merge),
     refused with a right transform (a merge lost to caution) or a wrong one (a false merge
     avoided). A component rooted in the fleet frame has no single true start and is left out."""
-    from agents.fleet.carmen_fleet import pose_error
+    from agents.fleet.carmen_fleet import WRONG_DEG, WRONG_M
 
     out: list[dict[str, Any]] = []
     tally = {"accepted_right": 0, "accepted_wrong": 0, "refused_right": 0, "refused_wrong": 0}
@@ -186,8 +182,8 @@ def _attempts_against_truth(records: list[dict[str, Any]], starts: dict[str, Pos
         rec = dict(rec)
         a, b, tf = rec.get("a"), rec.get("b"), rec.get("transform")
         if a in starts and b in starts and tf is not None:
-            te, re = pose_error(Pose(*tf), starts[a].inverse().compose(starts[b]))
-            rec["truth_err_m"], rec["truth_err_deg"] = round(te, 4), round(re, 3)
+            te, re = _truth_error(tf, starts[a], starts[b])
+            rec["truth_err_m"], rec["truth_err_deg"] = te, re
             right = te <= WRONG_M and re <= WRONG_DEG
             tally[f"{'accepted' if rec.get('accepted') else 'refused'}_{'right' if right else 'wrong'}"] += 1
         out.append(rec)
@@ -196,18 +192,24 @@ def _attempts_against_truth(records: list[dict[str, Any]], starts: dict[str, Pos
 
 def _pose_errors(fr: dict[str, Any], starts: dict[str, Pose]) -> dict[str, Any]:
     """Each registered robot's pose in the fleet frame against the true relative start."""
-    from agents.fleet.carmen_fleet import pose_error
-
     root = fr.get("fleet_root")
     out: dict[str, Any] = {}
     if root not in starts:
         return out
     for rid, p in (fr.get("poses") or {}).items():
         if rid in starts:
-            true = starts[root].inverse().compose(starts[rid])
-            te, re = pose_error(Pose(*p), true)
-            out[rid] = {"trans_err_m": round(te, 4), "rot_err_deg": round(re, 3)}
+            te, re = _truth_error(p, starts[root], starts[rid])
+            out[rid] = {"trans_err_m": te, "rot_err_deg": re}
     return out
+
+
+def _truth_error(found: Any, start_a: Pose, start_b: Pose) -> tuple[float, float]:
+    """``found`` (x, y, theta: b's frame in a's) against the true ``start_a^-1 start_b``: metres
+    (4 decimals) and degrees (3)."""
+    from agents.fleet.carmen_fleet import pose_error
+
+    te, re = pose_error(Pose(*found), start_a.inverse().compose(start_b))
+    return round(te, 4), round(re, 3)
 
 
 def write_outputs_unknown(
@@ -255,7 +257,7 @@ def write_outputs_unknown(
     report = {
         "world": world.name,
         "unknown_starts": True,
-        **_registration_report(fr, root, starts),
+        **_registration_report(fr, starts),
         "fused": fused,
         "per_robot": per_robot,
         "resolution": res,
@@ -311,7 +313,7 @@ def write_outputs_carmen(
     report = {
         "log": world.name,
         "carmen": world.path,
-        **_registration_report(fr, root, starts),
+        **_registration_report(fr, starts),
         "fused": fused,
         "per_robot": per_robot,
     }

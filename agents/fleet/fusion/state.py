@@ -84,6 +84,19 @@ class Taken:
     drops: tuple[tuple[str, str, str], ...] = ()
 
 
+def _not_robots_own(kind: MessageKind, sender: str, key_robot: str | None) -> tuple[str, str] | None:
+    """``(reason, detail)`` when a payload's header says it is not a robot map of the robot
+    whose key it came on (:meth:`FusionState.offer` after decoding, :meth:`FusionState.offer_latest`
+    from the header alone), else None."""
+    if kind != MessageKind.ROBOT_MAP:
+        return "not_robot_map", f"a {kind.name} on a robot key"
+    if not valid_name(sender):
+        return "bad_sender", f"sender {sender[:80]!r} is not a robot id"
+    if key_robot is not None and sender != key_robot:
+        return "sender_mismatch", f"sender {sender!r} on the key of {key_robot!r}"
+    return None
+
+
 def default_merge(base: Wireframe, new: Wireframe, threshold: float) -> Wireframe:
     """:func:`mapping.merge.merge` with ``MergeConfig(threshold=threshold)``."""
     from mapping.merge import MergeConfig, merge
@@ -296,13 +309,9 @@ class FusionState:
             msg = decode_message(raw, self._codec_limits)
         except ValueError as exc:
             return self._drop("malformed", type(exc).__name__, str(exc))
-        if msg.kind != MessageKind.ROBOT_MAP:
-            return self._drop("rejected", "not_robot_map", f"a {msg.kind.name} on a robot key")
-        if not valid_name(msg.sender):
-            return self._drop("rejected", "bad_sender", f"sender {msg.sender[:80]!r} is not a robot id")
-        if key_robot is not None and msg.sender != key_robot:
-            return self._drop("rejected", "sender_mismatch",
-                              f"sender {msg.sender!r} on the key of {key_robot!r}")
+        refused = _not_robots_own(msg.kind, msg.sender, key_robot)
+        if refused is not None:
+            return self._drop("rejected", *refused)
         bad = implausible(msg, self.limits, now_ns)
         if bad is None:
             bad = over_budget(msg, self.limits, now_ns)
@@ -372,17 +381,13 @@ class FusionState:
             try:
                 head = peek_header(raw, self._codec_limits)
             except ValueError as exc:
-                drops.append(self._drop_info("malformed", type(exc).__name__, str(exc)))
+                self._drop("malformed", type(exc).__name__, str(exc))
+                drops.append(("malformed", type(exc).__name__, str(exc)))
                 continue
-            if head.kind != MessageKind.ROBOT_MAP:
-                drops.append(self._drop_info("rejected", "not_robot_map",
-                                             f"a {head.kind.name} on a robot key"))
-            elif not valid_name(head.sender):
-                drops.append(self._drop_info("rejected", "bad_sender",
-                                             f"sender {head.sender[:80]!r} is not a robot id"))
-            elif head.sender != key_robot:
-                drops.append(self._drop_info("rejected", "sender_mismatch",
-                                             f"sender {head.sender!r} on the key of {key_robot!r}"))
+            refused = _not_robots_own(head.kind, head.sender, key_robot)
+            if refused is not None:
+                self._drop("rejected", *refused)
+                drops.append(("rejected", *refused))
             else:
                 self.stats.superseded += 1
                 stamps.append(head.stamp_ns)
@@ -392,11 +397,6 @@ class FusionState:
                 oldest = max(oldest, now_ns - MAX_TRANSPORT_NS)
             self._pending[key_robot] = min(self._pending[key_robot], oldest)
         return Taken(changed, max(i, 0), tuple(drops))
-
-    def _drop_info(self, counter: str, reason: str, detail: str) -> tuple[str, str, str]:
-        self._drop(counter, reason, detail)
-        assert self.last_drop is not None
-        return self.last_drop
 
     def reject_key(self, key: str) -> bool:
         """Count a payload that arrived on a key whose id chunk is not a valid robot id."""
