@@ -36,11 +36,10 @@ from agents.fleet.fusion.frames import (
 from agents.fleet.fusion.intake import InputLimits, implausible, over_budget
 from agents.fleet.fusion.quarantine import (
     FleetSamples,
-    FleetView,
     Quarantine,
     QuarantineConfig,
-    against_fleet,
-    against_history,
+    edge_keys,
+    history_judge,
 )
 from agents.fleet.fusion.stats import MAX_LATENCIES, FusionStats
 from agents.fleet.fusion.store import LATENCY_LOG, StoreDamaged, StoreJob, read_latency_log, read_store
@@ -272,8 +271,8 @@ class FusionState:
         # the fleet are kept aside, never merged; ids that never sent a plausible map are forgotten
         self.quarantine_config = quarantine
         self.quarantine = Quarantine()
-        self._fleet_view: tuple[tuple[int, int | None], FleetView] | None = None
-        self._fleet_samples: FleetSamples | None = None  # the fused map's, cut per robot (quarantine.py)
+        self._fleet_samples: FleetSamples | None = None  # the fused map's, judges every robot (quarantine)
+        self._old_keys: dict[str, tuple[Wireframe, set[bytes]]] = {}  # robot -> accepted map's edge keys
         self._first_seen: dict[str, int] = {}  # robot id -> first map (ns) while none was accepted
         self._born_ns: int | None = None  # the first offer with a clock (see _inconsistent)
         # a work budget per robot (budget.py; None: off): maps of a robot whose fusion CPU
@@ -447,7 +446,7 @@ class FusionState:
         records ``why`` (:attr:`forgotten`). Returns whether it had a map."""
         had = self.robots.pop(rid, None) is not None
         for cache in (self.alignments, self.corrections, self._in_fleet, self._prepared, self._pending,
-                      self.quarantine.maps, self._first_seen, self.token_gen, self.held, self._held_restart):  # fmt: skip  # noqa: E501
+                      self._old_keys, self.quarantine.maps, self._first_seen, self.token_gen, self.held, self._held_restart):  # fmt: skip  # noqa: E501
             cache.pop(rid, None)
         if self.budget is not None:
             self.budget.forget(rid)
@@ -508,8 +507,11 @@ class FusionState:
             old is not None and old.at_ns and _origin_of(old.message) == _origin_of(msg)
         ):  # same boot and start
             seconds = (now_ns - old.at_ns) / 1e9
-            bad = against_history(wf, old.message.wireframe, seconds, lim.max_speed_mps,
-                                  lim.sensor_range_m, cfg)
+            owf = old.message.wireframe
+            hit = self._old_keys.get(msg.sender)
+            if hit is None or hit[0] is not owf:
+                hit = self._old_keys[msg.sender] = (owf, set(edge_keys(owf)))
+            bad = history_judge(wf, owf, seconds, lim.max_speed_mps, lim.sensor_range_m, cfg, hit[1])
             if bad is not None:
                 return bad
         elif (
@@ -538,13 +540,10 @@ class FusionState:
             return None
         rid = msg.sender
         bit = self.fused_robots.index(rid) if rid in self.fused_robots else None
-        key = (self.version, bit)
-        if self._fleet_view is None or self._fleet_view[0] != key:
-            samples = self._fleet_samples
-            if samples is None or samples.fused is not self.fused or samples.cfg != cfg:
-                samples = self._fleet_samples = FleetSamples.of(self.fused, cfg)
-            self._fleet_view = (key, samples.view(bit))
-        return against_fleet(wf.transformed(msg.origin), self._fleet_view[1], cfg)
+        samples = self._fleet_samples
+        if samples is None or samples.fused is not self.fused or samples.cfg != cfg:
+            samples = self._fleet_samples = FleetSamples.of(self.fused, cfg)
+        return samples.judge(wf.transformed(msg.origin), bit)
 
     def _add(self, msg: MapMessage, raw: bytes, now_ns: int | None = None) -> bool:
         rid = msg.sender
