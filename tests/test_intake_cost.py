@@ -5,6 +5,8 @@
   stacks and random maps (also spans over ``DENSE_CELLS``, the ``np.unique`` fallback);
 * :meth:`Wireframe.checked` (the decoder's constructor without value checks) against the
   checking constructor on decoded maps of every shape; its dtype and shape checks;
+* :meth:`Wireframe.transformed` (only the moved points checked) against the checking
+  constructor;
 * :meth:`FleetSamples.view` (each robot's view of the other robots' walls, cut from samples
   taken once per fused version) against :meth:`FleetView.of` over :func:`others_walls`.
 """
@@ -139,6 +141,28 @@ def test_the_decoders_wireframe_is_the_checking_constructors(msg: wire_codec.Map
         assert a.dtype == b.dtype and a.shape == b.shape and a.tobytes() == b.tobytes(), name
         assert not a.flags.writeable and a.flags.c_contiguous
     assert out.content_digest() == again.content_digest()
+
+
+@settings(max_examples=200, deadline=2000)
+@given(messages(), st.floats(-1e4, 1e4), st.floats(-1e4, 1e4), st.floats(-7.0, 7.0))
+def test_transformed_is_the_checking_constructors(msg: wire_codec.MapMessage, x: float, y: float,
+                                                  theta: float) -> None:
+    wf = wire_codec.decode(wire_codec.encode(msg)).wireframe
+    pose = Pose(x, y, theta)
+    out = wf.transformed(pose)
+    ref = Wireframe(pose.apply(wf.points), wf.labels, wf.edges, wf.likelihood, wf.sources)  # every check
+    for name in ("points", "labels", "edges", "likelihood", "sources"):
+        a, b = getattr(out, name), getattr(ref, name)
+        assert a.dtype == b.dtype and a.shape == b.shape and a.tobytes() == b.tobytes(), name
+        assert not a.flags.writeable and a.flags.c_contiguous
+    wide = wf.replace(sources=np.array([int(s) << 64 for s in wf.sources.tolist()], dtype=object))
+    assert wide.transformed(pose).sources.tolist() == wide.sources.tolist()
+
+
+def test_transformed_still_refuses_points_it_cannot_hold() -> None:
+    wf = Wireframe.build(np.array([[1e308, 0.0], [0.0, 1.0]]), np.array([[0, 1]]))
+    with np.errstate(over="ignore"), pytest.raises(ValueError, match="non-finite"):
+        wf.transformed(Pose(1e308, 0.0, 0.0))
 
 
 def test_small_reader_uses_checked() -> None:
