@@ -77,7 +77,8 @@ def run(n: int, rounds: int) -> list[str]:
             near = np.hypot(*(a - a[0]).T) < 30.0  # within 30 m of the first
             a, d = a[near], d[near]
             m = len(a)
-            junk = Wireframe.build(np.concatenate([a, a + 2.0 * d]), np.stack([np.arange(m), np.arange(m, 2 * m)], 1))
+            pairs = np.stack([np.arange(m), np.arange(m, 2 * m)], 1)
+            junk = Wireframe.build(np.concatenate([a, a + 2.0 * d]), pairs)
             start = Pose(*a.mean(axis=0), 0.0)
             put("h2", start, junk.transformed(start.inverse()), j, now)
         if j % 5 == 3:  # h3: random walls over the building, near its own start
@@ -97,8 +98,8 @@ def run(n: int, rounds: int) -> list[str]:
     final = encode_message(st.fused_message(0))
     s = st.stats
     return [
-        f"{n} robots, {rounds} rounds: fused maps {digest.hexdigest()[:16]}, final {hashlib.sha256(final).hexdigest()[:16]} "
-        f"{len(final)}B v{st.version}",
+        f"{n} robots, {rounds} rounds: fused maps {digest.hexdigest()[:16]}, "
+        f"final {hashlib.sha256(final).hexdigest()[:16]} {len(final)}B v{st.version}",
         f"{n} counters: received {s.received} accepted {s.accepted} duplicates {s.duplicates} "
         f"quarantined {sorted(s.quarantined_by.items())} absurd {sorted(s.absurd_by.items())} "
         f"rejected {sorted(s.rejected_by.items())}",
