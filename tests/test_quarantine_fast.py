@@ -33,6 +33,7 @@ CONFIGS = [
     QuarantineConfig(sample_m=0.7, cell_m=3.0, far_m=0.5),
     QuarantineConfig(min_overlap_m=0.0, max_disagree=0.05),  # judges nearly everything
     QuarantineConfig(min_overlap_m=5.0, max_disagree=0.2, far_m=0.3),
+    QuarantineConfig(min_overlap_m=0.0, max_disagree=-1.0),  # nothing passes that is judged at all
 ]
 
 
@@ -134,12 +135,13 @@ def test_history_judge_is_against_history() -> None:
     rng = np.random.default_rng(5)
     maps = [m.wireframe for m in robot_views("museum", 12, seed=2, radius=30.0)]
     verdicts = set()
-    shortcut = 0
+    shortcut = 0  # the last new map lies wholly outside the old one's box (nothing inside)
     for cfg in CONFIGS:
         for old in maps:
             news = [old, grown(old, rng, 3, 0.5), grown(old, rng, 40, 0.5), grown(old, rng, 200, 3.0),
                     grown(old, rng, 40, 30.0), old.transformed(Pose(2.0, 1.0, 0.1)),
                     old.transformed(Pose(0.2, 0.0, 0.0)), old.subgraph_edges(rng.random(old.n_edges) < 0.7),
+                    Wireframe.build(old.points.max(axis=0) + np.array([[1.0, 1.0], [3.0, 1.0]]), [[0, 1]]),
                     Wireframe.empty()]  # fmt: skip
             keys = set(edge_keys(old))
             for new in news:
