@@ -443,6 +443,23 @@ def _default_merge(base: Wireframe, new: Wireframe, threshold: float) -> Wirefra
     return merge(base, new, MergeConfig(threshold=threshold))
 
 
+class _CachedMerge:
+    """The default merge with a :class:`mapping.merge.MergeCache`: the particles a scan is
+    merged into often have the same part near it (they differ where old mutations dropped
+    edges), and the merge's work on that part is then done once per step. The same results
+    as :func:`_default_merge`."""
+
+    def __init__(self) -> None:
+        from mapping.merge import MergeCache
+
+        self.cache = MergeCache()
+
+    def __call__(self, base: Wireframe, new: Wireframe, threshold: float) -> Wireframe:
+        from mapping.merge import MergeConfig, merge
+
+        return merge(base, new, MergeConfig(threshold=threshold), cache=self.cache)
+
+
 # ------------------------------------------------------------------------------ the filter
 @dataclass
 class _StepContext:
@@ -545,7 +562,8 @@ class WireframeFilter:
         self._drift = np.zeros((3, 3))
         self._pending_spans = np.zeros((0, 2, 2))
         self._view_fn: ViewFn = view_fn or _default_view
-        self._merge_fn: MergeFn = merge_fn or _default_merge
+        self._cached_merge = _CachedMerge() if merge_fn is None else None
+        self._merge_fn: MergeFn = merge_fn or self._cached_merge or _default_merge
         self._loops = LoopCloser(config.loops, self._pose)
         self._directions = Directions(
             config.compass.anchor or 0.0, config.compass.min_support, config.compass.max_gate,
@@ -770,6 +788,8 @@ class WireframeFilter:
         """
         cfg = self.config
         self._steps += 1
+        if self._cached_merge is not None:
+            self._cached_merge.cache.clear()  # keyed by content: only this step's scan can hit
         ctx = self._predict(odometry, clean_scan(scan, cfg.cleanup, cfg.max_scan_vertices), fault)
         if cfg.point_match.enabled and points is not None:
             ctx.points = np.asarray(points, dtype=np.float64).reshape(-1, 2)

@@ -26,6 +26,7 @@ Overview of one merge (details and the choices made where the paper is silent ar
 
 from __future__ import annotations
 
+import hashlib
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -35,9 +36,9 @@ from numpy.typing import NDArray
 from scipy.optimize import linear_sum_assignment
 from scipy.spatial import cKDTree
 
-from mapping.wireframe import Label, MaskArray, Wireframe, as_masks
+from mapping.wireframe import Label, MaskArray, Wireframe, as_masks, mask_bytes
 
-__all__ = ["MergeConfig", "merge", "merge_all", "merge_traced", "normalize"]
+__all__ = ["MergeCache", "MergeConfig", "merge", "merge_all", "merge_traced", "normalize"]
 
 _NOMINAL = int(Label.NOMINAL)
 _FRONTIER = int(Label.FRONTIER)
@@ -598,7 +599,9 @@ def _combine(liks: list[float]) -> float:
 # the merge
 
 
-def merge(base: Wireframe, new: Wireframe, config: MergeConfig | None = None) -> Wireframe:
+def merge(
+    base: Wireframe, new: Wireframe, config: MergeConfig | None = None, cache: MergeCache | None = None
+) -> Wireframe:
     """Merge ``new`` into ``base`` (paper Sec. IV-E); both must be in the same (world) frame.
 
     Parameters
@@ -609,6 +612,10 @@ def merge(base: Wireframe, new: Wireframe, config: MergeConfig | None = None) ->
         A scan already moved by the estimated pose, or another robot's map.
     config : MergeConfig, optional
         Thresholds; ``MergeConfig()`` when omitted.
+    cache : MergeCache, optional
+        Reuses the work on the local part (steps 2 to 5) of an earlier merge in the same cache
+        whose local part and ``new`` were the same (:class:`MergeCache`); the result is the
+        same without it.
 
     Returns
     -------
@@ -715,7 +722,69 @@ def merge(base: Wireframe, new: Wireframe, config: MergeConfig | None = None) ->
     Wireframe Mapping for Resource-Constrained Robots, Sec. III-A (labels, directions),
     IV-C (correspondences), IV-E (merging).
     """
-    return _merge(base, new, config if config is not None else MergeConfig(), False)[0]
+    return _merge(base, new, config if config is not None else MergeConfig(), False, cache)[0]
+
+
+class MergeCache:
+    """The local work of merges (steps 2 to 5 of :func:`merge`), kept by the content of their
+    local part, for :func:`merge` calls whose local parts may repeat.
+
+    The particle filter merges one scan into up to ten particles per step; particles that
+    differ only away from the scan (an edge dropped there by an old mutation) have the same
+    local part, and steps 2 to 5 -- most of a merge's time -- depend on nothing else: the
+    local corners (positions, labels, in order), the local edges between them (likelihoods,
+    sources), ``new`` and the configuration. Step 6 (:func:`_assemble`) puts the result back
+    into each base. The key is a BLAKE2b digest of those arrays' bytes, so a hit is the same
+    computation's result, bit for bit (up to the digest's collision odds of 2**-128).
+
+    Entries are dropped when there are more than ``max_entries`` (all at once); :meth:`clear`
+    drops them (the filter clears it at every step, whose scan is new).
+    """
+
+    def __init__(self, max_entries: int = 256) -> None:
+        self.max_entries = int(max_entries)
+        self._store: dict[bytes, tuple[_Corners, _Edges, _Walls, list[int], list[int]]] = {}
+        self.hits = 0
+        self.misses = 0
+
+    def clear(self) -> None:
+        self._store.clear()
+
+    def __len__(self) -> int:
+        return len(self._store)
+
+    def get(self, key: bytes) -> tuple[_Corners, _Edges, _Walls, list[int], list[int]] | None:
+        out = self._store.get(key)
+        if out is None:
+            self.misses += 1
+        else:
+            self.hits += 1
+        return out
+
+    def put(self, key: bytes, value: tuple[_Corners, _Edges, _Walls, list[int], list[int]]) -> None:
+        if len(self._store) >= self.max_entries:
+            self._store.clear()
+        self._store[key] = value
+
+
+def _local_key(base: Wireframe, new: Wireframe, loc: _Local, cfg: MergeConfig) -> bytes:
+    """What steps 2 to 5 of a merge depend on, as a digest (:class:`MergeCache`): the
+    configuration, the local corners' positions and labels (base's local ones, then new's), the
+    local base edges in local corner ids with their likelihoods and sources, and new's edges,
+    likelihoods and sources."""
+    h = hashlib.blake2b(digest_size=16)
+    le_l = loc.le if loc.all_v else np.searchsorted(loc.lb, loc.le)
+    if loc.all_e:
+        lik, src = base.likelihood, base.sources
+    else:
+        lik, src = base.likelihood[loc.local_e], base.sources[loc.local_e]
+    h.update(repr((cfg.threshold, cfg.angle_tol, cfg.snap_to_lines, loc.nlb, loc.nn, loc.mbl,
+                   new.n_edges)).encode())
+    for a in (loc.pos, loc.lab, le_l.astype(np.int64), lik, new.edges, new.likelihood):
+        h.update(np.ascontiguousarray(a).tobytes())
+    h.update(mask_bytes(src))
+    h.update(mask_bytes(new.sources))
+    return h.digest()
 
 
 def merge_traced(
@@ -737,7 +806,7 @@ def merge_traced(
 
 
 def _merge(
-    base: Wireframe, new: Wireframe, cfg: MergeConfig, trace: bool
+    base: Wireframe, new: Wireframe, cfg: MergeConfig, trace: bool, cache: MergeCache | None = None
 ) -> tuple[Wireframe, list[list[int]]]:
     """The body of :func:`merge`; with ``trace`` also the provenance of :func:`merge_traced`.
 
@@ -745,7 +814,11 @@ def _merge(
     inputs (a scan, a robot's map): numpy for what is quadratic in their size, plain lists for
     the per-corner and per-wall bookkeeping (numpy's per-call cost dominates at a few dozen
     elements). Every number is computed by the same operations in the same order either way
-    (``np.hypot`` where a length is vectorised, ``math.hypot`` where it is not)."""
+    (``np.hypot`` where a length is vectorised, ``math.hypot`` where it is not).
+
+    With a ``cache`` (not when tracing: the provenance holds global edge ids) steps 2 to 5 are
+    looked up by the local part's content first (:class:`MergeCache`); step 6 reads their
+    results and changes none of them, so one result serves every base it fits."""
     if new.n_edges == 0:
         return base, [[k] for k in range(base.n_edges)] if trace else []
     thr = cfg.threshold
@@ -753,6 +826,11 @@ def _merge(
     sin_tol = math.sin(cfg.angle_tol)
     new = new.compacted()
     loc = _local_part(base, new, cfg)  # 1
+    key = _local_key(base, new, loc, cfg) if cache is not None and not trace else None
+    hit = cache.get(key) if cache is not None and key is not None else None
+    if hit is not None:
+        cs, ed, walls, root_l, lab_out = hit
+        return _assemble(base, new, loc, cs, ed, walls, root_l, lab_out, trace)  # 6
     cs, raw = _correspond(base, new, loc, thr, cos_tol)  # 2
     ed = _kept_edges(base, new, loc, cs, raw, thr)
     comp_l, members = _collinear_groups(ed, thr, cos_tol)  # 3
@@ -761,6 +839,8 @@ def _merge(
     plan = _plan_walls(cs, ed, grp, splits, cfg.snap_to_lines)  # 4c
     root_l, lab_out = _settle_corners(cs, ed, plan, thr, cos_tol)  # 5
     walls = _emit_walls(cs, ed, plan, root_l, thr, cos_tol, trace)  # 5b
+    if cache is not None and key is not None:
+        cache.put(key, (cs, ed, walls, root_l, lab_out))
     return _assemble(base, new, loc, cs, ed, walls, root_l, lab_out, trace)  # 6
 
 

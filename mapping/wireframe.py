@@ -288,7 +288,10 @@ class Wireframe:
         ``self``, the same result and the same ``ValueError``s. Only what can have changed is
         checked and copied: the new arrays, and the unchanged ones whose validity depends on a
         count that changed (labels and edges on the vertex count, likelihoods and sources on the
-        edge count); the others are this wireframe's own read-only arrays, shared."""
+        edge count); the others are this wireframe's own read-only arrays, shared.
+        ``replace()`` without changes checks and copies every array (a full re-validation)."""
+        if not changes:
+            return Wireframe(self.points, self.labels, self.edges, self.likelihood, self.sources)
         unknown = set(changes) - _FIELDS
         if unknown:
             raise TypeError(f"replace() got an unexpected keyword argument {sorted(unknown)[0]!r}")
@@ -379,7 +382,8 @@ class Wireframe:
         if used.all():
             return self
         remap = (np.cumsum(used) - 1).astype(np.int32)
-        return _trusted(self.points[used], self.labels[used], remap[self.edges], self.likelihood, self.sources)
+        return _trusted(self.points[used], self.labels[used], remap[self.edges], self.likelihood,
+                        self.sources)
 
     # ------------------------------------------------------------------ comparison
     def almost_equal(self, other: Wireframe, tol: float = 1e-9, likelihood_tol: float = 1e-9) -> bool:
