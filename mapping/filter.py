@@ -1030,7 +1030,7 @@ class WireframeFilter:
         """
         cfg = self.config
         lcfg = cfg.likelihood
-        evidence, scan, place = ctx.evidence, ctx.scan, ctx.place
+        evidence, place = ctx.evidence, ctx.place
         view, src, unreported = self.predicted_view(p, place)
         key = view.content_digest() if by_view is not None else b""
         known = by_view.get(key) if by_view is not None else None

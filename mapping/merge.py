@@ -45,7 +45,7 @@ _FRONTIER = int(Label.FRONTIER)
 _DENSE_SNAP_MAX = 4096  # candidate vertex pairs from a dense distance matrix up to this many entries
 _DENSE_PAIRS_MAX = 160
 _COS_45 = math.sqrt(0.5)
-_LIST_ASSEMBLY_MAX = 512  # vertices (base + new) up to which step 6 runs on lists
+_LIST_ASSEMBLY_MAX = 96  # vertices (base + new) up to which step 6 runs on lists (faster there)
 # (corner, wall) pairs tested densely up to this many, else via a grid  # all edge pairs are tested
 # up to this many local edges, else angle windows
 _DENSE_NEAR_MAX = 20000
@@ -1620,25 +1620,25 @@ def _assemble(
                 prov_l = [[x] for x in far_l] + prov_l
         kept_v = None if loc.all_v else (~loc.local_v).tolist()
         return _assemble_lists(all_pos_l, all_lab_l, kept_v, eu_l, ev_l, el_l, es_l, prov_l, trace)
+    gid = np.concatenate([loc.lb, np.arange(nb, total)]) if nn else loc.lb
     all_pos = np.concatenate([bpts, new.points])
-    all_pos[gid_l] = fpos
+    all_pos[gid] = np.array(fpos, dtype=np.float64).reshape(-1, 2)
     all_lab = np.concatenate([base.labels, new.labels])
-    all_lab[gid_l] = np.asarray(lab_out, dtype=np.uint8)
+    all_lab[gid] = np.array(lab_out, dtype=np.uint8)
     prov: list[list[int]] = []
+    local_edges = np.ascontiguousarray(np.array([eu_l, ev_l], dtype=np.int64).reshape(2, -1).T)
     if loc.all_e:
-        eu = np.asarray(eu_l, dtype=np.int64)
-        ev = np.asarray(ev_l, dtype=np.int64)
-        el = np.asarray(el_l, dtype=np.float64)
+        edges = local_edges
+        el = np.array(el_l, dtype=np.float64)
         es = as_masks(es_l)
         if trace:
             prov = w.out_p + [[orig_l[e]] for e in pass_idx]
     else:
         gmap = np.arange(total)
-        gmap[gid_l] = [gid_l[rx_l[snap_l[x]]] for x in range(loc.nl)]
+        gmap[gid] = gid[np.array(rx_l, dtype=np.intp)[snap_l]]
         far = ~loc.local_e
-        eu = np.concatenate([gmap[bedges[far, 0]], np.asarray(eu_l, dtype=np.int64)])
-        ev = np.concatenate([gmap[bedges[far, 1]], np.asarray(ev_l, dtype=np.int64)])
-        el = np.concatenate([base.likelihood[far], np.asarray(el_l, dtype=np.float64)])
+        edges = np.concatenate([gmap[bedges[far]], local_edges])
+        el = np.concatenate([base.likelihood[far], np.array(el_l, dtype=np.float64)])
         es = as_masks(es_l)
         if base.sources.dtype == object or es.dtype == object:  # masks past bit 63: Python ints
             es = as_masks(base.sources[far].tolist() + es_l)
@@ -1646,43 +1646,42 @@ def _assemble(
             es = np.concatenate([base.sources[far], es])
         if trace:
             prov = [[x] for x in np.flatnonzero(far).tolist()] + w.out_p + [[orig_l[e]] for e in pass_idx]
-    kept_b = ~loc.local_v
-    return _assemble_arrays(all_pos, all_lab, kept_b, eu, ev, el, es, prov, trace)
+    return _assemble_arrays(all_pos, all_lab, ~loc.local_v, edges, el, es, prov, trace)
 
 
 def _assemble_arrays(
     all_pos: NDArray[np.float64],
     all_lab: NDArray[np.uint8],
     kept_b: NDArray[np.bool_],
-    eu: NDArray[np.int64],
-    ev: NDArray[np.int64],
+    edges: NDArray[np.int64],
     el: NDArray[np.float64],
     es: MaskArray,
     prov: list[list[int]],
     trace: bool,
 ) -> tuple[Wireframe, list[list[int]]]:
     """Step 6 of :func:`_merge` for a large map, vectorised (global ids; ``kept_b``: base
-    vertices kept whether used or not): degenerate edges dropped, duplicate directed edges
-    combined like any merge, unused vertices dropped. The same result as
-    :func:`_assemble_lists`."""
+    vertices kept whether used or not; ``edges`` (k, 2) int64, untouched base edges first):
+    degenerate edges dropped, duplicate directed edges combined like any merge, unused
+    vertices dropped. The same result as :func:`_assemble_lists`. The arrays are fresh ones,
+    the result is built of them (:meth:`Wireframe.checked`: valid by construction)."""
     total = len(all_pos)
-    pu, pv = all_pos[eu], all_pos[ev]
-    ok = (eu != ev) & ((pu[:, 0] != pv[:, 0]) | (pu[:, 1] != pv[:, 1]))
+    ends = all_pos[edges]
+    ok = (edges[:, 0] != edges[:, 1]) & (ends[:, 0] != ends[:, 1]).any(axis=1)
     if not ok.all():
-        eu, ev, el, es = eu[ok], ev[ok], el[ok], es[ok]
+        edges, el, es = edges[ok], el[ok], es[ok]
         if trace:
             prov = [x for x, o in zip(prov, ok.tolist()) if o]
-    if len(eu) > 1:
-        key = eu * total + ev
-        key_l = key.tolist()
-        if len(set(key_l)) < len(key_l):  # duplicate directed edges: combined like any merge
+    if len(edges) > 1:
+        key = edges[:, 0] * total + edges[:, 1]
+        ks = np.sort(key)
+        if (ks[1:] == ks[:-1]).any():  # duplicate directed edges: combined like any merge
             uk, first, inv = np.unique(key, return_index=True, return_inverse=True)
             order = np.argsort(first, kind="stable")  # keep first-occurrence order
             q = np.ones(len(uk))
             np.multiply.at(q, inv, 1.0 - el)
             s_acc = np.zeros(len(uk), dtype=es.dtype)  # object: masks past bit 63, OR-ed as ints
             np.bitwise_or.at(s_acc, inv, es)
-            eu, ev = eu[first][order], ev[first][order]
+            edges = edges[first][order]
             if trace:
                 acc: list[list[int]] = [[] for _ in range(len(uk))]
                 for x, g in zip(prov, inv.tolist()):
@@ -1692,9 +1691,9 @@ def _assemble_arrays(
             es = s_acc[order]
     keep = np.zeros(total, dtype=bool)
     keep[: len(kept_b)] = kept_b
-    keep[eu] = True
-    keep[ev] = True
-    remap = np.cumsum(keep) - 1
-    out_edges = np.stack([remap[eu], remap[ev]], axis=1)
-    merged = _valid_wireframe(all_pos[keep], all_lab[keep], out_edges, el, es)
+    keep[edges.reshape(-1)] = True
+    remap = np.cumsum(keep, dtype=np.int32) - 1
+    if es.dtype == object:  # the canonical mask array (uint64 if every mask left fits)
+        es = as_masks(es)
+    merged = Wireframe.checked(all_pos[keep], all_lab[keep], remap[edges], np.ascontiguousarray(el), es)
     return merged, [sorted(set(x)) for x in prov]
