@@ -204,7 +204,7 @@ def _related(
       noisy piece of it.
     """
     # (the same element-wise operations as one pair at a time, on stacked arrays)
-    ui, uj = u[i], u[j]
+    ui, uj = u.take(i, axis=0), u.take(j, axis=0)  # (take: row gathers, faster than [ ])
     cos = ui[:, 0] * uj[:, 0] + ui[:, 1] * uj[:, 1]
     li, lj = length[i], length[j]
     shortest = np.minimum(li, lj)
@@ -218,10 +218,11 @@ def _related(
     swap = lj > li
     lg = np.where(swap, j, i)  # the longer edge defines the line
     sh = np.where(swap, i, j)
-    ul, al, ll = u[lg], a[lg], np.where(swap, lj, li)
+    ul, al, ll = u.take(lg, axis=0), a.take(lg, axis=0), np.where(swap, lj, li)
     # positions along the longer edge's line (and offsets across it) of the shorter edge's ends,
     # then, as measured, of both edges' ends
-    rel = np.stack((a[sh], b[sh], a0[lg], b0[lg], a0[sh], b0[sh])) - al
+    rel = np.stack((a.take(sh, axis=0), b.take(sh, axis=0), a0.take(lg, axis=0), b0.take(lg, axis=0),
+                    a0.take(sh, axis=0), b0.take(sh, axis=0))) - al
     ux, uy = ul[:, 0], ul[:, 1]
     t = ux * rel[..., 0] + uy * rel[..., 1]
     off = ux * rel[:2, :, 1] - uy * rel[:2, :, 0]
@@ -883,19 +884,19 @@ def _local_part(base: Wireframe, new: Wireframe, cfg: MergeConfig) -> _Local:
             local_e = np.ones(mb, dtype=bool)
             local_v = np.ones(nb, dtype=bool)
         else:
-            pa, pb = bpts[bedges[:, 0]], bpts[bedges[:, 1]]
+            pa, pb = bpts.take(bedges[:, 0], axis=0), bpts.take(bedges[:, 1], axis=0)
             local_e = ((np.maximum(pa, pb) >= lo) & (np.minimum(pa, pb) <= hi)).all(axis=1)
             local_v = ((bpts >= lo) & (bpts <= hi)).all(axis=1)
     else:
         local_e = np.ones(mb, dtype=bool)
         local_v = np.ones(nb, dtype=bool)
     all_e = bool(local_e.all())
-    le = bedges if all_e else bedges[local_e]
+    le = bedges if all_e else bedges.compress(local_e, axis=0)
     local_v[le.reshape(-1)] = True
     all_v = bool(local_v.all())
     lb = np.arange(nb) if all_v else np.flatnonzero(local_v)
     nlb = len(lb)
-    pos = np.concatenate([bpts if all_v else bpts[lb], new.points])
+    pos = np.concatenate([bpts if all_v else bpts.take(lb, axis=0), new.points])
     lab = np.concatenate([base.labels if all_v else base.labels[lb], new.labels]).astype(np.int64)
     return _Local(local_e, local_v, all_e, all_v, le, lb, nlb, nn, nlb + nn, len(le), pos, lab)
 
@@ -942,8 +943,8 @@ def _correspond(
         le_l = g2l[loc.le]
     edges = np.concatenate([le_l, new.edges.astype(np.int64) + nlb])
     e0, e1 = edges[:, 0], edges[:, 1]
-    raw_a = pos[e0]  # edge starts and directions as measured
-    raw_d = pos[e1] - raw_a
+    raw_a = pos.take(e0, axis=0)  # edge starts and directions as measured
+    raw_d = pos.take(e1, axis=0) - raw_a
     raw_n = np.hypot(raw_d[:, 0], raw_d[:, 1])
     glimpse = ((lab[e0] == _FRONTIER) | (lab[e1] == _FRONTIER)) & (raw_n < thr)
 
@@ -1025,16 +1026,17 @@ def _kept_edges(
         src_l = base.sources[local_e].tolist() + new.sources.tolist()
         orig_l = np.flatnonzero(local_e).tolist() + list(range(mb, mb + new.n_edges))
     edges, pos = cs.edges, cs.pos
-    a = pos[edges[:, 0]]
-    b = pos[edges[:, 1]]
+    a = pos.take(edges[:, 0], axis=0)
+    b = pos.take(edges[:, 1], axis=0)
     d = b - a
     length = np.hypot(d[:, 0], d[:, 1])
     ok = (edges[:, 0] != edges[:, 1]) & (length > 0.0) & ~glimpse
     e_new_l = [False] * mbl + [True] * new.n_edges
     if not ok.all():
-        edges = edges[ok]
-        raw_a, raw_d = raw_a[ok], raw_d[ok]
-        a, b, d, length = a[ok], b[ok], d[ok], length[ok]
+        edges = edges.compress(ok, axis=0)
+        raw_a, raw_d = raw_a.compress(ok, axis=0), raw_d.compress(ok, axis=0)
+        a, b, d = a.compress(ok, axis=0), b.compress(ok, axis=0), d.compress(ok, axis=0)
+        length = length[ok]
         ok_l = ok.tolist()
         e_new_l = [x for x, o in zip(e_new_l, ok_l) if o]
         lik_l = [x for x, o in zip(lik_l, ok_l) if o]
@@ -1240,7 +1242,7 @@ def _t_junctions(
     gt0 = np.array(grp.g_t0 + [0.0] * len(single_list), dtype=np.float64)
     gt1 = np.array(grp.g_t1 + [len_l[e] for e in single_list], dtype=np.float64)
     if ng * len(cand_l) <= _DENSE_NEAR_MAX:
-        rel = cs.pos[cand_v][:, None, :] - go[None, :, :]
+        rel = cs.pos.take(cand_v, axis=0)[:, None, :] - go[None, :, :]
         off = gu[None, :, 0] * rel[..., 1] - gu[None, :, 1] * rel[..., 0]
         tt = gu[None, :, 0] * rel[..., 0] + gu[None, :, 1] * rel[..., 1]
         near = (np.abs(off) <= thr) & (tt > gt0[None, :] + thr) & (tt < gt1[None, :] - thr)
@@ -1248,7 +1250,7 @@ def _t_junctions(
     else:  # many: candidate (corner, wall) pairs from a grid first
         ends0 = go + gt0[:, None] * gu
         ends1 = go + gt1[:, None] * gu
-        pv_ = cs.pos[cand_v]
+        pv_ = cs.pos.take(cand_v, axis=0)
         cell = max(4.0 * thr, float(np.median(gt1 - gt0)))
         vi, gi = _box_pairs(pv_, pv_, np.minimum(ends0, ends1) - thr, np.maximum(ends0, ends1) + thr, cell)
         rel = pv_[vi] - go[gi]
@@ -1637,7 +1639,7 @@ def _assemble(
         gmap = np.arange(total)
         gmap[gid] = gid[np.array(rx_l, dtype=np.intp)[snap_l]]
         far = ~loc.local_e
-        edges = np.concatenate([gmap[bedges[far]], local_edges])
+        edges = np.concatenate([gmap[bedges.compress(far, axis=0)], local_edges])
         el = np.concatenate([base.likelihood[far], np.array(el_l, dtype=np.float64)])
         es = as_masks(es_l)
         if base.sources.dtype == object or es.dtype == object:  # masks past bit 63: Python ints
@@ -1665,10 +1667,10 @@ def _assemble_arrays(
     vertices dropped. The same result as :func:`_assemble_lists`. The arrays are fresh ones,
     the result is built of them (:meth:`Wireframe.checked`: valid by construction)."""
     total = len(all_pos)
-    ends = all_pos[edges]
+    ends = all_pos.take(edges, axis=0)
     ok = (edges[:, 0] != edges[:, 1]) & (ends[:, 0] != ends[:, 1]).any(axis=1)
     if not ok.all():
-        edges, el, es = edges[ok], el[ok], es[ok]
+        edges, el, es = edges.compress(ok, axis=0), el[ok], es[ok]
         if trace:
             prov = [x for x, o in zip(prov, ok.tolist()) if o]
     if len(edges) > 1:
@@ -1681,7 +1683,7 @@ def _assemble_arrays(
             np.multiply.at(q, inv, 1.0 - el)
             s_acc = np.zeros(len(uk), dtype=es.dtype)  # object: masks past bit 63, OR-ed as ints
             np.bitwise_or.at(s_acc, inv, es)
-            edges = edges[first][order]
+            edges = edges.take(first, axis=0).take(order, axis=0)
             if trace:
                 acc: list[list[int]] = [[] for _ in range(len(uk))]
                 for x, g in zip(prov, inv.tolist()):
@@ -1695,5 +1697,6 @@ def _assemble_arrays(
     remap = np.cumsum(keep, dtype=np.int32) - 1
     if es.dtype == object:  # the canonical mask array (uint64 if every mask left fits)
         es = as_masks(es)
-    merged = Wireframe.checked(all_pos[keep], all_lab[keep], remap[edges], np.ascontiguousarray(el), es)
+    merged = Wireframe.checked(all_pos.compress(keep, axis=0), all_lab[keep], remap[edges],
+                               np.ascontiguousarray(el), es)
     return merged, [sorted(set(x)) for x in prov]
