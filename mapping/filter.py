@@ -1097,7 +1097,8 @@ class WireframeFilter:
             unm = np.flatnonzero(~lik.scan_edge_matched[ctx.kept])
             if len(unm):
                 free = in_known_free_space(
-                    view, scan.segments()[unm], cfg.likelihood.occlusion_margin, cfg.keep_threshold
+                    view, scan.segments().take(unm, axis=0), cfg.likelihood.occlusion_margin,
+                    cfg.keep_threshold,
                 )
                 merge_mask[unm[free]] = False
         return merge_mask
