@@ -443,6 +443,23 @@ def _default_merge(base: Wireframe, new: Wireframe, threshold: float) -> Wirefra
     return merge(base, new, MergeConfig(threshold=threshold))
 
 
+class _CachedMerge:
+    """The default merge with a :class:`mapping.merge.MergeCache`: the particles a scan is
+    merged into often have the same part near it (they differ where old mutations dropped
+    edges), and the merge's work on that part is then done once per step. The same results
+    as :func:`_default_merge`."""
+
+    def __init__(self) -> None:
+        from mapping.merge import MergeCache
+
+        self.cache = MergeCache()
+
+    def __call__(self, base: Wireframe, new: Wireframe, threshold: float) -> Wireframe:
+        from mapping.merge import MergeConfig, merge
+
+        return merge(base, new, MergeConfig(threshold=threshold), cache=self.cache)
+
+
 # ------------------------------------------------------------------------------ the filter
 @dataclass
 class _StepContext:
@@ -545,7 +562,8 @@ class WireframeFilter:
         self._drift = np.zeros((3, 3))
         self._pending_spans = np.zeros((0, 2, 2))
         self._view_fn: ViewFn = view_fn or _default_view
-        self._merge_fn: MergeFn = merge_fn or _default_merge
+        self._cached_merge = _CachedMerge() if merge_fn is None else None
+        self._merge_fn: MergeFn = merge_fn or self._cached_merge or _default_merge
         self._loops = LoopCloser(config.loops, self._pose)
         self._directions = Directions(
             config.compass.anchor or 0.0, config.compass.min_support, config.compass.max_gate,
@@ -770,6 +788,8 @@ class WireframeFilter:
         """
         cfg = self.config
         self._steps += 1
+        if self._cached_merge is not None:
+            self._cached_merge.cache.clear()  # keyed by content: only this step's scan can hit
         ctx = self._predict(odometry, clean_scan(scan, cfg.cleanup, cfg.max_scan_vertices), fault)
         if cfg.point_match.enabled and points is not None:
             ctx.points = np.asarray(points, dtype=np.float64).reshape(-1, 2)
@@ -964,14 +984,20 @@ class WireframeFilter:
         anchored = icp_res is None or icp_res.consistent or not self.config.gating.anchored_evidence
         evals: dict[int, _Eval] = {}
         seen_spans: list[FloatArray] = []
+        by_view: dict[bytes, tuple[ScanLikelihood, BoolArray]] = {}
         for p in self._particles:
             if id(p) not in evals:
-                evals[id(p)] = self._evaluate_particle(p, ctx, anchored, seen_spans)
+                evals[id(p)] = self._evaluate_particle(p, ctx, anchored, seen_spans, by_view)
         self._pending_spans = np.concatenate(seen_spans) if seen_spans else np.zeros((0, 2, 2))
         return evals
 
     def _evaluate_particle(
-        self, p: Wireframe, ctx: _StepContext, anchored: bool, seen_spans: list[FloatArray]
+        self,
+        p: Wireframe,
+        ctx: _StepContext,
+        anchored: bool,
+        seen_spans: list[FloatArray],
+        by_view: dict[bytes, tuple[ScanLikelihood, BoolArray]] | None = None,
     ) -> _Eval:
         """One particle's predicted scan, likelihood and evidence-updated map (Sec. IV-B, IV-D).
 
@@ -993,6 +1019,10 @@ class WireframeFilter:
             Whether negative evidence may be applied (:meth:`_evaluate`).
         seen_spans : list
             Collects this step's seen-through spans (map frame segments).
+        by_view : dict, optional
+            This step's likelihoods and free-space verdicts by predicted scan
+            (:meth:`Wireframe.content_digest`): both depend on nothing else, and distinct
+            particles often predict the same scan (they differ out of sight).
 
         Returns
         -------
@@ -1000,9 +1030,17 @@ class WireframeFilter:
         """
         cfg = self.config
         lcfg = cfg.likelihood
-        evidence, scan, place = ctx.evidence, ctx.scan, ctx.place
+        evidence, place = ctx.evidence, ctx.place
         view, src, unreported = self.predicted_view(p, place)
-        lik = scan_likelihood(evidence, view, lcfg, max_range=cfg.max_range)
+        key = view.content_digest() if by_view is not None else b""
+        known = by_view.get(key) if by_view is not None else None
+        if known is None:
+            lik = scan_likelihood(evidence, view, lcfg, max_range=cfg.max_range)
+            free_mask = self._free_space_mask(ctx, view, lik)
+            if by_view is not None:
+                by_view[key] = (lik, free_mask)
+        else:
+            lik, free_mask = known
         in_sight, observed, contra = edge_states(p.n_edges, src, lik.predicted_edge_state)
         through = self._seen_through_unreported(p, place, evidence, unreported & ~observed)
         if through.any():
@@ -1037,16 +1075,7 @@ class WireframeFilter:
                 np.round(p.points[p.edges[through]], 6).tobytes(),
             )
         )
-        # New scan edges where this particle is sure there is free space are not merged into
-        # it (static world: a false positive or a passer-by).
-        merge_mask = np.ones(scan.n_edges, dtype=bool)
-        if cfg.evidence.reject_in_free_space and scan.n_edges and view.n_edges:
-            unm = np.flatnonzero(~lik.scan_edge_matched[ctx.kept])
-            if len(unm):
-                free = in_known_free_space(
-                    view, scan.segments()[unm], lcfg.occlusion_margin, cfg.keep_threshold
-                )
-                merge_mask[unm[free]] = False
+        merge_mask = free_mask.copy()
         # Candidates for mutation (Sec. IV-F, "within sight (or predicted sight)"): every edge
         # in view, reported or not, that this scan does not observe.
         cands = (in_sight | unreported) & ~observed
@@ -1055,6 +1084,24 @@ class WireframeFilter:
             updated, origin = carve(updated, spans)
             in_sight, cands = in_sight[origin], cands[origin]
         return _Eval(lik, updated, in_sight, cands, lik.scan_edge_likelihood[ctx.kept], group, merge_mask)
+
+    def _free_space_mask(self, ctx: _StepContext, view: Wireframe, lik: ScanLikelihood) -> BoolArray:
+        """Which edges of the merge scan may be merged into a particle whose predicted scan is
+        ``view`` (likelihood ``lik``): not the new ones (unmatched) where the particle is sure
+        there is free space (``evidence.reject_in_free_space``; static world: a false
+        positive or a passer-by)."""
+        cfg = self.config
+        scan = ctx.scan
+        merge_mask = np.ones(scan.n_edges, dtype=bool)
+        if cfg.evidence.reject_in_free_space and scan.n_edges and view.n_edges:
+            unm = np.flatnonzero(~lik.scan_edge_matched[ctx.kept])
+            if len(unm):
+                free = in_known_free_space(
+                    view, scan.segments().take(unm, axis=0), cfg.likelihood.occlusion_margin,
+                    cfg.keep_threshold,
+                )
+                merge_mask[unm[free]] = False
+        return merge_mask
 
     def _seen_through_unreported(
         self, p: Wireframe, place: Pose, evidence: Wireframe, candidates: BoolArray

@@ -347,8 +347,31 @@ def project_onto_segments(
     return idx.astype(np.int64), c[rows, idx], np.sqrt(dist2[rows, idx])
 
 
+@dataclass(frozen=True)
+class _RefGeometry:
+    """What :func:`edge_overlap` computes of the reference segments alone: the segments
+    ``r`` (m, 2, 2), their lengths, unit directions and left normals. An ICP's reference is
+    the same at every iteration: :func:`icp` computes this once."""
+
+    r: FloatArray
+    lr: FloatArray
+    ur: FloatArray
+    nr: FloatArray
+
+    @classmethod
+    def of(cls, ref_segments: FloatArray) -> _RefGeometry:
+        r = np.asarray(ref_segments, dtype=np.float64).reshape(-1, 2, 2)
+        dr = r[:, 1] - r[:, 0]
+        lr = np.hypot(dr[:, 0], dr[:, 1])
+        ur = dr / np.where(lr > 0, lr, 1.0)[:, None]
+        nr = np.empty_like(ur)  # left normals of the reference edges
+        nr[:, 0] = -ur[:, 1]
+        nr[:, 1] = ur[:, 0]
+        return cls(r, lr, ur, nr)
+
+
 def edge_overlap(
-    scan_segments: FloatArray, ref_segments: FloatArray
+    scan_segments: FloatArray, ref_segments: FloatArray, *, _ref: _RefGeometry | None = None
 ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
     """Pairwise geometry of two sets of directed segments.
 
@@ -356,22 +379,20 @@ def edge_overlap(
     between the directions; the overlap ``[lo, hi]`` of the reference segment's projection with
     the scan segment, as arc length along the scan segment (empty when ``hi <= lo``); the
     largest distance from the scan segment to the reference line over that overlap; and the
-    reference lengths broadcast.
+    reference lengths broadcast. ``_ref``: :class:`_RefGeometry` of ``ref_segments``, when the
+    caller has it.
     """
     s = np.asarray(scan_segments, dtype=np.float64).reshape(-1, 2, 2)
-    r = np.asarray(ref_segments, dtype=np.float64).reshape(-1, 2, 2)
+    rg = _ref if _ref is not None else _RefGeometry.of(ref_segments)
+    r, lr, ur, nr = rg.r, rg.lr, rg.ur, rg.nr
     ds = s[:, 1] - s[:, 0]
-    dr = r[:, 1] - r[:, 0]
     ls = np.hypot(ds[:, 0], ds[:, 1])
-    lr = np.hypot(dr[:, 0], dr[:, 1])
     us = ds / np.where(ls > 0, ls, 1.0)[:, None]
-    ur = dr / np.where(lr > 0, lr, 1.0)[:, None]
     cos = us @ ur.T
     t1 = np.einsum("smi,si->sm", r[None, :, 0, :] - s[:, None, 0, :], us)
     t2 = np.einsum("smi,si->sm", r[None, :, 1, :] - s[:, None, 0, :], us)
     lo = np.maximum(0.0, np.minimum(t1, t2))
     hi = np.minimum(ls[:, None], np.maximum(t1, t2))
-    nr = np.stack([-ur[:, 1], ur[:, 0]], axis=1)  # left normals of the reference edges
     p_lo = s[:, None, 0, :] + lo[..., None] * us[:, None, :]
     p_hi = s[:, None, 0, :] + hi[..., None] * us[:, None, :]
     d_lo = np.einsum("smi,mi->sm", p_lo - r[None, :, 0, :], nr)
@@ -483,7 +504,7 @@ def match_vertices(
         dv = sdm["v"].astype(np.float64)
     if len(ia) == 0:
         return empty
-    if len(np.unique(ia)) == len(ia) and len(np.unique(ib)) == len(ib):
+    if len(set(ia.tolist())) == len(ia) and len(set(ib.tolist())) == len(ib):
         # Unambiguous: every candidate pair is disjoint from the others.
         order = np.argsort(ia, kind="stable")
         return np.stack([ia[order], ib[order]], axis=1), dv[order]
@@ -515,6 +536,8 @@ def match_edges(
     max_angle: float,
     min_overlap: float = 0.1,
     scan_points: FloatArray | None = None,
+    *,
+    _ref: _RefGeometry | None = None,
 ) -> tuple[IntArray, FloatArray, FloatArray, FloatArray]:
     """Edge correspondences, duplicates allowed (paper Sec. IV-C).
 
@@ -536,12 +559,12 @@ def match_edges(
     if scan.n_edges == 0 or ref.n_edges == 0:
         return empty
     sp = scan.points if scan_points is None else np.asarray(scan_points, dtype=np.float64)
-    ss = sp[scan.edges]
-    rs = ref.segments()
+    ss = sp.take(scan.edges, axis=0)
+    rs = ref.segments() if _ref is None else _ref.r
     cos_max = math.cos(max_angle)
     if scan.n_edges * ref.n_edges > _DENSE_EDGE_MAX and cos_max > 0.01:
         return _match_edges_near(scan, ref, vertex_pairs, ss, rs, max_offset, cos_max, min_overlap)
-    cos, lo, hi, offset, lr = edge_overlap(ss, rs)
+    cos, lo, hi, offset, lr = edge_overlap(ss, rs, _ref=_ref)
     ls = np.hypot(*(ss[:, 1] - ss[:, 0]).T)
     need = np.minimum(min_overlap, 0.5 * np.minimum(ls[:, None], lr))
     geo = (cos >= cos_max) & (hi - lo >= need) & (offset <= max_offset)
@@ -563,7 +586,9 @@ def match_edges(
             lo = np.where(hit, 0.0, lo)
             hi = np.where(hit, np.maximum(hi, ls[:, None]), hi)
     si, ri = np.nonzero(geo)
-    pairs = np.stack([si, ri], axis=1).astype(np.int64)
+    pairs = np.empty((len(si), 2), dtype=np.int64)
+    pairs[:, 0] = si
+    pairs[:, 1] = ri
     return pairs, offset[si, ri], lo[si, ri], hi[si, ri]
 
 
@@ -639,12 +664,14 @@ def correspond(
     min_overlap: float = 0.1,
     frontier_penalty: float = 0.25,
     scan_points: FloatArray | None = None,
+    *,
+    _ref: _RefGeometry | None = None,
 ) -> Correspondences:
     """Vertex and edge correspondences of ``scan`` (optionally moved: ``scan_points``) against
     ``ref``, with one gate (metres) for vertex distance and edge offset."""
     sp = scan.points if scan_points is None else np.asarray(scan_points, dtype=np.float64)
     vp, vd = match_vertices(sp, ref.points, gate, scan.labels, ref.labels, frontier_penalty)
-    ep, eo, elo, ehi = match_edges(scan, ref, vp, gate, max_angle, min_overlap, scan_points=sp)
+    ep, eo, elo, ehi = match_edges(scan, ref, vp, gate, max_angle, min_overlap, scan_points=sp, _ref=_ref)
     return Correspondences(vp, vd, ep, eo, elo, ehi)
 
 
@@ -677,10 +704,10 @@ def constraints(
         real = np.zeros(len(Label), dtype=bool)
         real[list(corner_labels)] = True
         keep = real[scan.labels[vp[:, 0]]] & real[ref.labels[vp[:, 1]]]
-        vp = vp[keep]
+        vp = vp.compress(keep, axis=0)
     if len(vp):
-        p = sp[vp[:, 0]]
-        q = ref.points[vp[:, 1]]
+        p = sp.take(vp[:, 0], axis=0)
+        q = ref.points.take(vp[:, 1], axis=0)
         k = len(vp)
         jx = np.zeros((k, 3))
         jx[:, 0] = 1.0
@@ -692,17 +719,21 @@ def constraints(
         rows_r += [p[:, 0] - q[:, 0], p[:, 1] - q[:, 1]]
     ep = corr.edge_pairs
     if len(ep):
-        a = sp[scan.edges[ep[:, 0], 0]]
-        b = sp[scan.edges[ep[:, 0], 1]]
+        se = scan.edges.take(ep[:, 0], axis=0)  # (take: row gathers, faster than [ ] here)
+        a = sp.take(se[:, 0], axis=0)
+        b = sp.take(se[:, 1], axis=0)
         d = b - a
         ln = np.hypot(d[:, 0], d[:, 1])
         u = d / np.where(ln > 0, ln, 1.0)[:, None]
-        ra = ref.points[ref.edges[ep[:, 1], 0]]
-        rb = ref.points[ref.edges[ep[:, 1], 1]]
+        re = ref.edges.take(ep[:, 1], axis=0)
+        ra = ref.points.take(re[:, 0], axis=0)
+        rb = ref.points.take(re[:, 1], axis=0)
         dr = rb - ra
         lr = np.hypot(dr[:, 0], dr[:, 1])
         ur = dr / np.where(lr > 0, lr, 1.0)[:, None]
-        n = np.stack([-ur[:, 1], ur[:, 0]], axis=1)
+        n = np.empty_like(ur)
+        n[:, 0] = -ur[:, 1]
+        n[:, 1] = ur[:, 0]
         for t in (corr.edge_lo, corr.edge_hi):
             p = a + t[:, None] * u
             j = np.empty((len(ep), 3))
@@ -810,10 +841,11 @@ def icp(
     if scan.n_vertices == 0 or ref.n_vertices == 0:
         return ICPResult(T, False, empty, math.inf, 0, 0, "empty scan or reference", covariance=P.copy())
     scale = cfg.information_scale / cfg.sigma**2
-    t, it = _map_iterations(scan, ref, cfg, P, scale, t)
+    rg = _RefGeometry.of(ref.segments())  # the same at every iteration
+    t, it = _map_iterations(scan, ref, cfg, P, scale, t, rg)
     T = Pose(float(t[0]), float(t[1]), float(t[2]))
     t = np.array([T.x, T.y, T.theta])
-    corr, r, H, g, L, lam, V, good = _linearise(scan, ref, cfg, P, scale, T, cfg.gate_end)
+    corr, r, H, g, L, lam, V, good = _linearise(scan, ref, cfg, P, scale, T, cfg.gate_end, rg)
     cov = _posterior_covariance(L, lam, V, good)
     maha = _prior_mahalanobis(t, g, L, lam, V)
     n_c, rmse, frac_matched, cost0, cost1 = _fit_quality(scan, ref, cfg, corr, r)
@@ -868,6 +900,7 @@ def _linearise(
     scale: float,
     at: Pose,
     gate: float,
+    rg: _RefGeometry | None = None,
 ) -> tuple[
     Correspondences, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray, BoolArray
 ]:
@@ -901,7 +934,8 @@ def _linearise(
         The split against the prior (:func:`information_split`).
     """
     sp = at.apply(scan.points)
-    corr = correspond(scan, ref, gate, cfg.max_angle, cfg.min_overlap, cfg.frontier_penalty, scan_points=sp)
+    corr = correspond(scan, ref, gate, cfg.max_angle, cfg.min_overlap, cfg.frontier_penalty, scan_points=sp,
+                      _ref=rg)
     J, r = constraints(scan, ref, sp, corr, cfg.corner_labels)
     Jw = J * (_huber_weights(r, cfg.huber) * scale)[:, None]
     H, g = Jw.T @ J, Jw.T @ r
@@ -911,6 +945,7 @@ def _linearise(
 
 def _map_iterations(
     scan: Wireframe, ref: Wireframe, cfg: ICPConfig, P: FloatArray, scale: float, t: FloatArray,
+    rg: _RefGeometry | None = None,
 ) -> tuple[FloatArray, int]:
     """Iteratively reweighted MAP Gauss-Newton with a shrinking gate (paper Sec. IV-C).
 
@@ -944,7 +979,7 @@ def _map_iterations(
     for it in range(1, cfg.max_iterations + 1):
         frac = min(1.0, (it - 1) / anneal) if anneal else 1.0
         gate = cfg.gate_start + (cfg.gate_end - cfg.gate_start) * frac
-        _, _, _, g, L, lam, V, good = _linearise(scan, ref, cfg, P, scale, Pose(*t), gate)
+        _, _, _, g, L, lam, V, good = _linearise(scan, ref, cfg, P, scale, Pose(*t), gate, rg)
         Vg = V[:, good]
         z0 = np.linalg.solve(L, t)
         a0 = Vg.T @ z0

@@ -255,10 +255,24 @@ class Submap:
         if len(p):
             keys = np.floor(p / voxel).astype(np.int64)
             # Last occurrence of each cell: unique over the reversed order.
-            _, first_rev = np.unique(keys[::-1], axis=0, return_index=True)
+            first_rev = _first_of_each_row(keys[::-1])
             keep = np.sort(len(p) - 1 - first_rev)
             p, n = p[keep], n[keep]
         return cls(p, n, cKDTree(p if len(p) else np.zeros((1, 2)) + 1e9))
+
+
+def _first_of_each_row(keys: NDArray[np.int64]) -> NDArray[np.intp]:
+    """The index of the first occurrence of each distinct row of ``keys`` (n, 2), in the order
+    of the distinct rows sorted: ``numpy.unique(keys, axis=0, return_index=True)[1]``. The
+    rows are numbered as single integers first (row-major over their bounding box) when that
+    fits 62 bits: a one-dimensional sort of integers, several times faster than ``unique``'s
+    sort of rows as records; the same order and the same indices."""
+    lo = keys.min(axis=0)
+    span = keys.max(axis=0) - lo + 1
+    if int(span[0]) * int(span[1]) < 2**62:
+        code = (keys[:, 0] - lo[0]) * span[1] + (keys[:, 1] - lo[1])
+        return np.asarray(np.unique(code, return_index=True)[1])
+    return np.asarray(np.unique(keys, axis=0, return_index=True)[1])
 
 
 # --------------------------------------------------------------------------------------- match

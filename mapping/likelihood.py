@@ -287,7 +287,7 @@ def _temporary_dist(points: FloatArray, other: Wireframe, margin: float) -> Floa
     gap = in_gap(other, points, margin)
     out = np.zeros(len(points))
     if np.any(~gap):
-        _, _, dist = project_onto_segments(points[~gap], other.segments())
+        _, _, dist = project_onto_segments(points.compress(~gap, axis=0), other.segments())
         out[~gap] = dist
     return out
 
@@ -352,8 +352,9 @@ def scan_likelihood(
         d_p[corr.vertex_pairs[:, 1]] = corr.vertex_dist
     um_s = s_match < 0
     um_p = p_match < 0
-    d_s[um_s] = _temporary_dist(scan.points[um_s], predicted, cfg.gap_margin)
-    d_p[um_p] = _temporary_dist(predicted.points[um_p], scan, cfg.gap_margin)
+    # (take / compress: row gathers, faster than [ ] on 2-D arrays at these sizes)
+    d_s[um_s] = _temporary_dist(scan.points.compress(um_s, axis=0), predicted, cfg.gap_margin)
+    d_p[um_p] = _temporary_dist(predicted.points.compress(um_p, axis=0), scan, cfg.gap_margin)
 
     inv = 0.5 / cfg.sigma**2
     g_s = np.exp(-inv * d_s**2)
@@ -368,7 +369,7 @@ def scan_likelihood(
     state = np.full(mp, OBSERVED, dtype=np.int8)
     unm = np.flatnonzero(~p_edge)
     if len(unm):
-        seg = predicted.segments()[unm]
+        seg = predicted.segments().take(unm, axis=0)
         mid = 0.5 * (seg[:, 0] + seg[:, 1])
         rng_mid = np.hypot(mid[:, 0], mid[:, 1])
         rng_scan = ray_ranges(scan, np.arctan2(mid[:, 1], mid[:, 0]))

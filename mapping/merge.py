@@ -26,6 +26,7 @@ Overview of one merge (details and the choices made where the paper is silent ar
 
 from __future__ import annotations
 
+import hashlib
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -35,16 +36,16 @@ from numpy.typing import NDArray
 from scipy.optimize import linear_sum_assignment
 from scipy.spatial import cKDTree
 
-from mapping.wireframe import Label, MaskArray, Wireframe, as_masks
+from mapping.wireframe import Label, MaskArray, Wireframe, as_masks, mask_bytes
 
-__all__ = ["MergeConfig", "merge", "merge_all", "merge_traced", "normalize"]
+__all__ = ["MergeCache", "MergeConfig", "merge", "merge_all", "merge_traced", "normalize"]
 
 _NOMINAL = int(Label.NOMINAL)
 _FRONTIER = int(Label.FRONTIER)
 _DENSE_SNAP_MAX = 4096  # candidate vertex pairs from a dense distance matrix up to this many entries
 _DENSE_PAIRS_MAX = 160
 _COS_45 = math.sqrt(0.5)
-_LIST_ASSEMBLY_MAX = 512  # vertices (base + new) up to which step 6 runs on lists
+_LIST_ASSEMBLY_MAX = 96  # vertices (base + new) up to which step 6 runs on lists (faster there)
 # (corner, wall) pairs tested densely up to this many, else via a grid  # all edge pairs are tested
 # up to this many local edges, else angle windows
 _DENSE_NEAR_MAX = 20000
@@ -203,7 +204,7 @@ def _related(
       noisy piece of it.
     """
     # (the same element-wise operations as one pair at a time, on stacked arrays)
-    ui, uj = u[i], u[j]
+    ui, uj = u.take(i, axis=0), u.take(j, axis=0)  # (take: row gathers, faster than [ ])
     cos = ui[:, 0] * uj[:, 0] + ui[:, 1] * uj[:, 1]
     li, lj = length[i], length[j]
     shortest = np.minimum(li, lj)
@@ -217,10 +218,11 @@ def _related(
     swap = lj > li
     lg = np.where(swap, j, i)  # the longer edge defines the line
     sh = np.where(swap, i, j)
-    ul, al, ll = u[lg], a[lg], np.where(swap, lj, li)
+    ul, al, ll = u.take(lg, axis=0), a.take(lg, axis=0), np.where(swap, lj, li)
     # positions along the longer edge's line (and offsets across it) of the shorter edge's ends,
     # then, as measured, of both edges' ends
-    rel = np.stack((a[sh], b[sh], a0[lg], b0[lg], a0[sh], b0[sh])) - al
+    rel = np.stack((a.take(sh, axis=0), b.take(sh, axis=0), a0.take(lg, axis=0), b0.take(lg, axis=0),
+                    a0.take(sh, axis=0), b0.take(sh, axis=0))) - al
     ux, uy = ul[:, 0], ul[:, 1]
     t = ux * rel[..., 0] + uy * rel[..., 1]
     off = ux * rel[:2, :, 1] - uy * rel[:2, :, 0]
@@ -598,7 +600,9 @@ def _combine(liks: list[float]) -> float:
 # the merge
 
 
-def merge(base: Wireframe, new: Wireframe, config: MergeConfig | None = None) -> Wireframe:
+def merge(
+    base: Wireframe, new: Wireframe, config: MergeConfig | None = None, cache: MergeCache | None = None
+) -> Wireframe:
     """Merge ``new`` into ``base`` (paper Sec. IV-E); both must be in the same (world) frame.
 
     Parameters
@@ -609,6 +613,10 @@ def merge(base: Wireframe, new: Wireframe, config: MergeConfig | None = None) ->
         A scan already moved by the estimated pose, or another robot's map.
     config : MergeConfig, optional
         Thresholds; ``MergeConfig()`` when omitted.
+    cache : MergeCache, optional
+        Reuses the work on the local part (steps 2 to 5) of an earlier merge in the same cache
+        whose local part and ``new`` were the same (:class:`MergeCache`); the result is the
+        same without it.
 
     Returns
     -------
@@ -715,7 +723,69 @@ def merge(base: Wireframe, new: Wireframe, config: MergeConfig | None = None) ->
     Wireframe Mapping for Resource-Constrained Robots, Sec. III-A (labels, directions),
     IV-C (correspondences), IV-E (merging).
     """
-    return _merge(base, new, config if config is not None else MergeConfig(), False)[0]
+    return _merge(base, new, config if config is not None else MergeConfig(), False, cache)[0]
+
+
+class MergeCache:
+    """The local work of merges (steps 2 to 5 of :func:`merge`), kept by the content of their
+    local part, for :func:`merge` calls whose local parts may repeat.
+
+    The particle filter merges one scan into up to ten particles per step; particles that
+    differ only away from the scan (an edge dropped there by an old mutation) have the same
+    local part, and steps 2 to 5 -- most of a merge's time -- depend on nothing else: the
+    local corners (positions, labels, in order), the local edges between them (likelihoods,
+    sources), ``new`` and the configuration. Step 6 (:func:`_assemble`) puts the result back
+    into each base. The key is a BLAKE2b digest of those arrays' bytes, so a hit is the same
+    computation's result, bit for bit (up to the digest's collision odds of 2**-128).
+
+    Entries are dropped when there are more than ``max_entries`` (all at once); :meth:`clear`
+    drops them (the filter clears it at every step, whose scan is new).
+    """
+
+    def __init__(self, max_entries: int = 256) -> None:
+        self.max_entries = int(max_entries)
+        self._store: dict[bytes, tuple[_Corners, _Edges, _Walls, list[int], list[int]]] = {}
+        self.hits = 0
+        self.misses = 0
+
+    def clear(self) -> None:
+        self._store.clear()
+
+    def __len__(self) -> int:
+        return len(self._store)
+
+    def get(self, key: bytes) -> tuple[_Corners, _Edges, _Walls, list[int], list[int]] | None:
+        out = self._store.get(key)
+        if out is None:
+            self.misses += 1
+        else:
+            self.hits += 1
+        return out
+
+    def put(self, key: bytes, value: tuple[_Corners, _Edges, _Walls, list[int], list[int]]) -> None:
+        if len(self._store) >= self.max_entries:
+            self._store.clear()
+        self._store[key] = value
+
+
+def _local_key(base: Wireframe, new: Wireframe, loc: _Local, cfg: MergeConfig) -> bytes:
+    """What steps 2 to 5 of a merge depend on, as a digest (:class:`MergeCache`): the
+    configuration, the local corners' positions and labels (base's local ones, then new's), the
+    local base edges in local corner ids with their likelihoods and sources, and new's edges,
+    likelihoods and sources."""
+    h = hashlib.blake2b(digest_size=16)
+    le_l = loc.le if loc.all_v else np.searchsorted(loc.lb, loc.le)
+    if loc.all_e:
+        lik, src = base.likelihood, base.sources
+    else:
+        lik, src = base.likelihood[loc.local_e], base.sources[loc.local_e]
+    h.update(repr((cfg.threshold, cfg.angle_tol, cfg.snap_to_lines, loc.nlb, loc.nn, loc.mbl,
+                   new.n_edges)).encode())
+    for a in (loc.pos, loc.lab, le_l.astype(np.int64), lik, new.edges, new.likelihood):
+        h.update(np.ascontiguousarray(a).tobytes())
+    h.update(mask_bytes(src))
+    h.update(mask_bytes(new.sources))
+    return h.digest()
 
 
 def merge_traced(
@@ -737,7 +807,7 @@ def merge_traced(
 
 
 def _merge(
-    base: Wireframe, new: Wireframe, cfg: MergeConfig, trace: bool
+    base: Wireframe, new: Wireframe, cfg: MergeConfig, trace: bool, cache: MergeCache | None = None
 ) -> tuple[Wireframe, list[list[int]]]:
     """The body of :func:`merge`; with ``trace`` also the provenance of :func:`merge_traced`.
 
@@ -745,7 +815,11 @@ def _merge(
     inputs (a scan, a robot's map): numpy for what is quadratic in their size, plain lists for
     the per-corner and per-wall bookkeeping (numpy's per-call cost dominates at a few dozen
     elements). Every number is computed by the same operations in the same order either way
-    (``np.hypot`` where a length is vectorised, ``math.hypot`` where it is not)."""
+    (``np.hypot`` where a length is vectorised, ``math.hypot`` where it is not).
+
+    With a ``cache`` (not when tracing: the provenance holds global edge ids) steps 2 to 5 are
+    looked up by the local part's content first (:class:`MergeCache`); step 6 reads their
+    results and changes none of them, so one result serves every base it fits."""
     if new.n_edges == 0:
         return base, [[k] for k in range(base.n_edges)] if trace else []
     thr = cfg.threshold
@@ -753,6 +827,11 @@ def _merge(
     sin_tol = math.sin(cfg.angle_tol)
     new = new.compacted()
     loc = _local_part(base, new, cfg)  # 1
+    key = _local_key(base, new, loc, cfg) if cache is not None and not trace else None
+    hit = cache.get(key) if cache is not None and key is not None else None
+    if hit is not None:
+        cs, ed, walls, root_l, lab_out = hit
+        return _assemble(base, new, loc, cs, ed, walls, root_l, lab_out, trace)  # 6
     cs, raw = _correspond(base, new, loc, thr, cos_tol)  # 2
     ed = _kept_edges(base, new, loc, cs, raw, thr)
     comp_l, members = _collinear_groups(ed, thr, cos_tol)  # 3
@@ -761,6 +840,8 @@ def _merge(
     plan = _plan_walls(cs, ed, grp, splits, cfg.snap_to_lines)  # 4c
     root_l, lab_out = _settle_corners(cs, ed, plan, thr, cos_tol)  # 5
     walls = _emit_walls(cs, ed, plan, root_l, thr, cos_tol, trace)  # 5b
+    if cache is not None and key is not None:
+        cache.put(key, (cs, ed, walls, root_l, lab_out))
     return _assemble(base, new, loc, cs, ed, walls, root_l, lab_out, trace)  # 6
 
 
@@ -803,19 +884,19 @@ def _local_part(base: Wireframe, new: Wireframe, cfg: MergeConfig) -> _Local:
             local_e = np.ones(mb, dtype=bool)
             local_v = np.ones(nb, dtype=bool)
         else:
-            pa, pb = bpts[bedges[:, 0]], bpts[bedges[:, 1]]
+            pa, pb = bpts.take(bedges[:, 0], axis=0), bpts.take(bedges[:, 1], axis=0)
             local_e = ((np.maximum(pa, pb) >= lo) & (np.minimum(pa, pb) <= hi)).all(axis=1)
             local_v = ((bpts >= lo) & (bpts <= hi)).all(axis=1)
     else:
         local_e = np.ones(mb, dtype=bool)
         local_v = np.ones(nb, dtype=bool)
     all_e = bool(local_e.all())
-    le = bedges if all_e else bedges[local_e]
+    le = bedges if all_e else bedges.compress(local_e, axis=0)
     local_v[le.reshape(-1)] = True
     all_v = bool(local_v.all())
     lb = np.arange(nb) if all_v else np.flatnonzero(local_v)
     nlb = len(lb)
-    pos = np.concatenate([bpts if all_v else bpts[lb], new.points])
+    pos = np.concatenate([bpts if all_v else bpts.take(lb, axis=0), new.points])
     lab = np.concatenate([base.labels if all_v else base.labels[lb], new.labels]).astype(np.int64)
     return _Local(local_e, local_v, all_e, all_v, le, lb, nlb, nn, nlb + nn, len(le), pos, lab)
 
@@ -862,8 +943,8 @@ def _correspond(
         le_l = g2l[loc.le]
     edges = np.concatenate([le_l, new.edges.astype(np.int64) + nlb])
     e0, e1 = edges[:, 0], edges[:, 1]
-    raw_a = pos[e0]  # edge starts and directions as measured
-    raw_d = pos[e1] - raw_a
+    raw_a = pos.take(e0, axis=0)  # edge starts and directions as measured
+    raw_d = pos.take(e1, axis=0) - raw_a
     raw_n = np.hypot(raw_d[:, 0], raw_d[:, 1])
     glimpse = ((lab[e0] == _FRONTIER) | (lab[e1] == _FRONTIER)) & (raw_n < thr)
 
@@ -945,16 +1026,17 @@ def _kept_edges(
         src_l = base.sources[local_e].tolist() + new.sources.tolist()
         orig_l = np.flatnonzero(local_e).tolist() + list(range(mb, mb + new.n_edges))
     edges, pos = cs.edges, cs.pos
-    a = pos[edges[:, 0]]
-    b = pos[edges[:, 1]]
+    a = pos.take(edges[:, 0], axis=0)
+    b = pos.take(edges[:, 1], axis=0)
     d = b - a
     length = np.hypot(d[:, 0], d[:, 1])
     ok = (edges[:, 0] != edges[:, 1]) & (length > 0.0) & ~glimpse
     e_new_l = [False] * mbl + [True] * new.n_edges
     if not ok.all():
-        edges = edges[ok]
-        raw_a, raw_d = raw_a[ok], raw_d[ok]
-        a, b, d, length = a[ok], b[ok], d[ok], length[ok]
+        edges = edges.compress(ok, axis=0)
+        raw_a, raw_d = raw_a.compress(ok, axis=0), raw_d.compress(ok, axis=0)
+        a, b, d = a.compress(ok, axis=0), b.compress(ok, axis=0), d.compress(ok, axis=0)
+        length = length[ok]
         ok_l = ok.tolist()
         e_new_l = [x for x, o in zip(e_new_l, ok_l) if o]
         lik_l = [x for x, o in zip(lik_l, ok_l) if o]
@@ -1160,7 +1242,7 @@ def _t_junctions(
     gt0 = np.array(grp.g_t0 + [0.0] * len(single_list), dtype=np.float64)
     gt1 = np.array(grp.g_t1 + [len_l[e] for e in single_list], dtype=np.float64)
     if ng * len(cand_l) <= _DENSE_NEAR_MAX:
-        rel = cs.pos[cand_v][:, None, :] - go[None, :, :]
+        rel = cs.pos.take(cand_v, axis=0)[:, None, :] - go[None, :, :]
         off = gu[None, :, 0] * rel[..., 1] - gu[None, :, 1] * rel[..., 0]
         tt = gu[None, :, 0] * rel[..., 0] + gu[None, :, 1] * rel[..., 1]
         near = (np.abs(off) <= thr) & (tt > gt0[None, :] + thr) & (tt < gt1[None, :] - thr)
@@ -1168,7 +1250,7 @@ def _t_junctions(
     else:  # many: candidate (corner, wall) pairs from a grid first
         ends0 = go + gt0[:, None] * gu
         ends1 = go + gt1[:, None] * gu
-        pv_ = cs.pos[cand_v]
+        pv_ = cs.pos.take(cand_v, axis=0)
         cell = max(4.0 * thr, float(np.median(gt1 - gt0)))
         vi, gi = _box_pairs(pv_, pv_, np.minimum(ends0, ends1) - thr, np.maximum(ends0, ends1) + thr, cell)
         rel = pv_[vi] - go[gi]
@@ -1540,25 +1622,25 @@ def _assemble(
                 prov_l = [[x] for x in far_l] + prov_l
         kept_v = None if loc.all_v else (~loc.local_v).tolist()
         return _assemble_lists(all_pos_l, all_lab_l, kept_v, eu_l, ev_l, el_l, es_l, prov_l, trace)
+    gid = np.concatenate([loc.lb, np.arange(nb, total)]) if nn else loc.lb
     all_pos = np.concatenate([bpts, new.points])
-    all_pos[gid_l] = fpos
+    all_pos[gid] = np.array(fpos, dtype=np.float64).reshape(-1, 2)
     all_lab = np.concatenate([base.labels, new.labels])
-    all_lab[gid_l] = np.asarray(lab_out, dtype=np.uint8)
+    all_lab[gid] = np.array(lab_out, dtype=np.uint8)
     prov: list[list[int]] = []
+    local_edges = np.ascontiguousarray(np.array([eu_l, ev_l], dtype=np.int64).reshape(2, -1).T)
     if loc.all_e:
-        eu = np.asarray(eu_l, dtype=np.int64)
-        ev = np.asarray(ev_l, dtype=np.int64)
-        el = np.asarray(el_l, dtype=np.float64)
+        edges = local_edges
+        el = np.array(el_l, dtype=np.float64)
         es = as_masks(es_l)
         if trace:
             prov = w.out_p + [[orig_l[e]] for e in pass_idx]
     else:
         gmap = np.arange(total)
-        gmap[gid_l] = [gid_l[rx_l[snap_l[x]]] for x in range(loc.nl)]
+        gmap[gid] = gid[np.array(rx_l, dtype=np.intp)[snap_l]]
         far = ~loc.local_e
-        eu = np.concatenate([gmap[bedges[far, 0]], np.asarray(eu_l, dtype=np.int64)])
-        ev = np.concatenate([gmap[bedges[far, 1]], np.asarray(ev_l, dtype=np.int64)])
-        el = np.concatenate([base.likelihood[far], np.asarray(el_l, dtype=np.float64)])
+        edges = np.concatenate([gmap[bedges.compress(far, axis=0)], local_edges])
+        el = np.concatenate([base.likelihood[far], np.array(el_l, dtype=np.float64)])
         es = as_masks(es_l)
         if base.sources.dtype == object or es.dtype == object:  # masks past bit 63: Python ints
             es = as_masks(base.sources[far].tolist() + es_l)
@@ -1566,43 +1648,42 @@ def _assemble(
             es = np.concatenate([base.sources[far], es])
         if trace:
             prov = [[x] for x in np.flatnonzero(far).tolist()] + w.out_p + [[orig_l[e]] for e in pass_idx]
-    kept_b = ~loc.local_v
-    return _assemble_arrays(all_pos, all_lab, kept_b, eu, ev, el, es, prov, trace)
+    return _assemble_arrays(all_pos, all_lab, ~loc.local_v, edges, el, es, prov, trace)
 
 
 def _assemble_arrays(
     all_pos: NDArray[np.float64],
     all_lab: NDArray[np.uint8],
     kept_b: NDArray[np.bool_],
-    eu: NDArray[np.int64],
-    ev: NDArray[np.int64],
+    edges: NDArray[np.int64],
     el: NDArray[np.float64],
     es: MaskArray,
     prov: list[list[int]],
     trace: bool,
 ) -> tuple[Wireframe, list[list[int]]]:
     """Step 6 of :func:`_merge` for a large map, vectorised (global ids; ``kept_b``: base
-    vertices kept whether used or not): degenerate edges dropped, duplicate directed edges
-    combined like any merge, unused vertices dropped. The same result as
-    :func:`_assemble_lists`."""
+    vertices kept whether used or not; ``edges`` (k, 2) int64, untouched base edges first):
+    degenerate edges dropped, duplicate directed edges combined like any merge, unused
+    vertices dropped. The same result as :func:`_assemble_lists`. The arrays are fresh ones,
+    the result is built of them (:meth:`Wireframe.checked`: valid by construction)."""
     total = len(all_pos)
-    pu, pv = all_pos[eu], all_pos[ev]
-    ok = (eu != ev) & ((pu[:, 0] != pv[:, 0]) | (pu[:, 1] != pv[:, 1]))
+    ends = all_pos.take(edges, axis=0)
+    ok = (edges[:, 0] != edges[:, 1]) & (ends[:, 0] != ends[:, 1]).any(axis=1)
     if not ok.all():
-        eu, ev, el, es = eu[ok], ev[ok], el[ok], es[ok]
+        edges, el, es = edges.compress(ok, axis=0), el[ok], es[ok]
         if trace:
             prov = [x for x, o in zip(prov, ok.tolist()) if o]
-    if len(eu) > 1:
-        key = eu * total + ev
-        key_l = key.tolist()
-        if len(set(key_l)) < len(key_l):  # duplicate directed edges: combined like any merge
+    if len(edges) > 1:
+        key = edges[:, 0] * total + edges[:, 1]
+        ks = np.sort(key)
+        if (ks[1:] == ks[:-1]).any():  # duplicate directed edges: combined like any merge
             uk, first, inv = np.unique(key, return_index=True, return_inverse=True)
             order = np.argsort(first, kind="stable")  # keep first-occurrence order
             q = np.ones(len(uk))
             np.multiply.at(q, inv, 1.0 - el)
             s_acc = np.zeros(len(uk), dtype=es.dtype)  # object: masks past bit 63, OR-ed as ints
             np.bitwise_or.at(s_acc, inv, es)
-            eu, ev = eu[first][order], ev[first][order]
+            edges = edges.take(first, axis=0).take(order, axis=0)
             if trace:
                 acc: list[list[int]] = [[] for _ in range(len(uk))]
                 for x, g in zip(prov, inv.tolist()):
@@ -1612,9 +1693,10 @@ def _assemble_arrays(
             es = s_acc[order]
     keep = np.zeros(total, dtype=bool)
     keep[: len(kept_b)] = kept_b
-    keep[eu] = True
-    keep[ev] = True
-    remap = np.cumsum(keep) - 1
-    out_edges = np.stack([remap[eu], remap[ev]], axis=1)
-    merged = _valid_wireframe(all_pos[keep], all_lab[keep], out_edges, el, es)
+    keep[edges.reshape(-1)] = True
+    remap = np.cumsum(keep, dtype=np.int32) - 1
+    if es.dtype == object:  # the canonical mask array (uint64 if every mask left fits)
+        es = as_masks(es)
+    merged = Wireframe.checked(all_pos.compress(keep, axis=0), all_lab[keep], remap[edges],
+                               np.ascontiguousarray(el), es)
     return merged, [sorted(set(x)) for x in prov]

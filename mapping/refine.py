@@ -83,7 +83,8 @@ def corner_pairs(wf: Wireframe, scan: Wireframe, threshold: float) -> tuple[IntA
     empty = np.zeros(0, dtype=np.int64)
     if len(mi) == 0 or len(si) == 0:
         return empty, empty
-    d, j = cKDTree(wf.points[mi]).query(scan.points[si], k=1, distance_upper_bound=threshold)
+    d, j = cKDTree(wf.points.take(mi, axis=0)).query(scan.points.take(si, axis=0), k=1,
+                                                      distance_upper_bound=threshold)
     ok = np.flatnonzero(np.isfinite(d))
     if len(ok) == 0:
         return empty, empty

@@ -294,3 +294,18 @@ def test_bench_slam_on_the_real_excerpt(capsys: pytest.CaptureFixture[str]) -> N
     assert last["settings"]["slam.enabled"] is True
     assert main(["bench", "slam", log, "--starts", "0"]) == 2
     assert "--starts must be >= 1" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("scale", [1, 10**6, 2**40])
+def test_first_of_each_row_is_uniques_index(scale):
+    """Submap thinning finds each voxel's row by one integer per row; the indices (and their
+    order) are numpy.unique(axis=0)'s, also for spans too wide to number (its fallback)."""
+    from mapping.lidar_slam import _first_of_each_row
+
+    rng = np.random.default_rng(scale % 1000)
+    for n in (1, 2, 50, 3000):
+        keys = rng.integers(-20, 20, (n, 2)) * scale
+        expected = np.unique(keys, axis=0, return_index=True)[1]
+        np.testing.assert_array_equal(_first_of_each_row(keys), expected)
+        np.testing.assert_array_equal(_first_of_each_row(keys[::-1]), np.unique(keys[::-1], axis=0,
+                                                                                 return_index=True)[1])

@@ -5,7 +5,7 @@ import pytest
 from hypothesis import HealthCheck, assume, example, given, settings
 from hypothesis import strategies as st
 
-from mapping.merge import MergeConfig, merge, merge_all, merge_traced, normalize
+from mapping.merge import MergeCache, MergeConfig, merge, merge_all, merge_traced, normalize
 from mapping.se2 import Pose
 from mapping.wireframe import Label, Wireframe
 
@@ -622,6 +622,53 @@ def test_any_input_gives_a_valid_bounded_deterministic_result(a, b, thr, cull):
     again = merge(a, b, cfg)
     for f in ("points", "labels", "edges", "likelihood", "sources"):
         np.testing.assert_array_equal(getattr(m, f), getattr(again, f))
+
+
+def _arrays_equal(a: Wireframe, b: Wireframe) -> None:
+    for f in ("points", "labels", "edges", "likelihood", "sources"):
+        x, y = getattr(a, f), getattr(b, f)
+        assert x.dtype == y.dtype
+        np.testing.assert_array_equal(x, y)
+
+
+@SETTINGS
+@given(any_world, thr_st, st.integers(0, 2**32 - 1))
+def test_cache_reuses_the_local_work_for_bases_that_differ_far_away(w, thr, seed):
+    """Bases that differ only away from the scan (other walls far off, before or after the
+    shared ones in vertex and edge order) share one local result: the cached merges are the
+    uncached ones, array for array."""
+    cfg = MergeConfig(threshold=thr)
+    rng = np.random.default_rng(seed)
+    scan = noisy_subset(w, rng, thr)
+    far = w.transformed(Pose(500.0, -300.0, 0.3))
+    far_first = Wireframe.build(
+        np.concatenate([far.points, w.points]),
+        np.concatenate([far.edges, w.edges + far.n_vertices]),
+        np.concatenate([far.labels, w.labels]),
+        np.concatenate([far.likelihood, w.likelihood]),
+        np.concatenate([far.sources, w.sources]),
+    )
+    bases = [w, far_first, merge(w, far, cfg), w.subgraph_edges(np.arange(w.n_edges) != 0)]
+    cache = MergeCache()
+    for base in bases:
+        _arrays_equal(merge(base, scan, cfg, cache=cache), merge(base, scan, cfg))
+    assert cache.hits >= 2  # the two bases with w's walls and far-off ones
+    assert cache.hits + cache.misses == len(bases)
+    again = MergeCache()
+    cfg2 = MergeConfig(threshold=2 * thr)
+    _arrays_equal(merge(w, scan, cfg2, cache=again), merge(w, scan, cfg2))
+    assert again.misses == 1
+
+
+@settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(st.lists(garbage_wireframe(), min_size=1, max_size=4), garbage_wireframe(),
+       st.sampled_from([0.05, 0.2, 1.0]))
+def test_cache_gives_the_uncached_merge_for_any_input(bases, scan, thr):
+    cfg = MergeConfig(threshold=thr)
+    cache = MergeCache(max_entries=2)
+    for base in bases + bases:
+        _arrays_equal(merge(base, scan, cfg, cache=cache), merge(base, scan, cfg))
+    assert len(cache) <= 2
 
 
 # ------------------------------------------------------------------ what a merge may create

@@ -190,3 +190,79 @@ def test_masks_of_any_width_are_canonical():
         Wireframe.build([(0, 0), (1, 0)], [(0, 1)], sources=[-(1 << 70)])
     with pytest.raises(ValueError, match="sources: a contributor mask"):
         Wireframe(wf.points, wf.labels, wf.edges, wf.likelihood, np.array([-(1 << 70), 1], dtype=object))
+
+
+# ------------------------------------------- replace / subgraph_edges / compacted fast paths
+def _full(wf: Wireframe) -> Wireframe:
+    """The same arrays through the checking constructor."""
+    return Wireframe(wf.points, wf.labels, wf.edges, wf.likelihood, wf.sources)
+
+
+def _same_arrays(a: Wireframe, b: Wireframe) -> None:
+    for f in ("points", "labels", "edges", "likelihood", "sources"):
+        x, y = getattr(a, f), getattr(b, f)
+        assert x.dtype == y.dtype and x.shape == y.shape and not x.flags.writeable
+        np.testing.assert_array_equal(x, y)
+
+
+@st.composite
+def random_wireframe(draw, wide: bool = False):
+    n = draw(st.integers(0, 12))
+    pts = draw(st.lists(st.tuples(st.floats(-5, 5), st.floats(-5, 5)), min_size=n, max_size=n))
+    edges = []
+    if n >= 2:
+        pair = st.tuples(st.integers(0, n - 1), st.integers(0, n - 1)).filter(lambda e: e[0] != e[1])
+        edges = draw(st.lists(pair, max_size=2 * n))
+    m = len(edges)
+    top = 2**70 if wide else 2**64 - 1
+    return Wireframe.build(
+        np.array(pts, dtype=float).reshape(-1, 2), edges,
+        draw(st.lists(st.integers(0, 2), min_size=n, max_size=n)),
+        draw(st.lists(st.floats(0.0, 1.0), min_size=m, max_size=m)),
+        draw(st.lists(st.integers(0, top), min_size=m, max_size=m)),
+    )
+
+
+@settings(max_examples=80, deadline=None)
+@given(st.one_of(random_wireframe(), random_wireframe(wide=True)), st.integers(0, 2**32 - 1))
+def test_fast_paths_give_the_checking_constructors_arrays(wf, seed):
+    """replace, subgraph_edges and compacted skip the checks of arrays that cannot have become
+    invalid; their results are the arrays Wireframe(...) makes of the same input."""
+    rng = np.random.default_rng(seed)
+    keep = rng.random(wf.n_edges) < 0.6
+    sub = wf.subgraph_edges(keep)
+    expected = Wireframe(wf.points, wf.labels, wf.edges[keep], wf.likelihood[keep],
+                         wf.sources[keep]).compacted()
+    _same_arrays(sub, _full(expected))
+    _same_arrays(sub, _full(sub))
+    moved = wf.replace(points=wf.points + 1.0)
+    _same_arrays(moved, Wireframe(wf.points + 1.0, wf.labels, wf.edges, wf.likelihood, wf.sources))
+    lik = rng.random(wf.n_edges)
+    _same_arrays(wf.replace(likelihood=lik), Wireframe(wf.points, wf.labels, wf.edges, lik, wf.sources))
+    _same_arrays(wf.replace(), _full(wf))
+
+
+def test_replace_still_rejects_what_the_constructor_rejects():
+    wf = square()
+    with pytest.raises(ValueError, match="non-finite"):
+        wf.replace(points=np.array([[0, 0], [1, 0], [1, 1], [np.nan, 1]]))
+    with pytest.raises(ValueError, match="outside"):  # fewer vertices: the old edges are checked again
+        wf.replace(points=np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0]]), labels=np.zeros(3, np.uint8))
+    with pytest.raises(ValueError, match="labels"):
+        wf.replace(points=np.zeros((5, 2)))
+    with pytest.raises(ValueError, match="likelihood"):  # fewer edges: the old likelihoods no longer fit
+        wf.replace(edges=np.array([[0, 1]]))
+    with pytest.raises(ValueError, match="within"):
+        wf.replace(likelihood=np.full(4, 2.0))
+    with pytest.raises(TypeError):
+        wf.replace(colour=1)
+    with pytest.raises(ValueError, match="edge mask"):
+        wf.subgraph_edges(np.ones(3, dtype=bool))
+
+
+def test_replace_copies_what_it_is_given():
+    wf = square()
+    pts = wf.points.copy()
+    moved = wf.replace(points=pts)
+    pts[0, 0] = 9.0
+    assert moved.points[0, 0] == 0.0 and not moved.points.flags.writeable
