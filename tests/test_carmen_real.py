@@ -79,7 +79,8 @@ def test_bench_lidar_json_on_the_excerpt(tmp_path: Path, capsys: pytest.CaptureF
     lines = capsys.readouterr().out.strip().splitlines()
     summary = json.loads(lines[-1])
     assert set(summary) == {"logs", "median", "profile", "settings"}
-    assert summary["profile"] == "lidar" and summary["settings"]["odometry.rot_per_m"] == 0.05
+    assert summary["profile"] == "lidar-slam" and summary["settings"]["slam.enabled"] is True
+    assert summary["settings"]["odometry.rot_per_m"] == 0.05
     row = summary["logs"]["freiburg-101-head"]
     for key in ("scans", "ate_rmse_m", "ate_max_m", "rpe_1m_m", "map_precision", "map_coverage",
                 "best_map_bytes", "particle_bytes", "time_s", "ms_per_scan", "odometry_ate_rmse_m"):

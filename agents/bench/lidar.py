@@ -88,9 +88,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", default="out/bench-lidar", metavar="DIR", help="where the PNGs go")
     parser.add_argument("--jobs", type=int, default=1, metavar="N",
                         help="run N logs at once in separate processes (default 1; they share the cores)")
-    parser.add_argument("--profile", choices=("lidar", "lidar-slam", "none"), default="lidar",
-                        help="real-lidar settings (agents.mapping_run.lidar_profile; default lidar), "
-                             "lidar-slam (lidar SLAM under the filter) or none")
+    parser.add_argument("--profile", choices=("lidar", "lidar-slam", "none"), default="lidar-slam",
+                        help="real-lidar settings (agents.mapping_run.LIDAR_PROFILES): lidar-slam "
+                             "(lidar SLAM under the filter; default), lidar (the filter's own corner "
+                             "ICP holds the pose) or none")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", dest="sets",
                         help="override one setting (dotted key, e.g. odometry.rot_per_m=0.05); repeatable")
     parser.add_argument("--quiet", action="store_true", help="no progress on stderr")

@@ -99,9 +99,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     bag.add_argument("--truth-topic", metavar="TOPIC",
                      help="a topic with the robot's true pose (nav_msgs/Odometry or "
                           "geometry_msgs/PoseStamped) to start from and score against (default: none)")
-    parser.add_argument("--lidar-profile", choices=("lidar", "lidar-slam"), default="lidar",
-                        help="real scans (--carmen, --rosbag): the real-lidar profile (default) or "
-                             "lidar-slam, lidar SLAM under the filter (agents.mapping_run.LIDAR_PROFILES)")
+    parser.add_argument("--lidar-profile", choices=("lidar", "lidar-slam"), default="lidar-slam",
+                        help="real scans (--carmen, --rosbag): lidar-slam, lidar SLAM under the filter "
+                             "(default), or lidar, the filter's corner ICP alone "
+                             "(agents.mapping_run.LIDAR_PROFILES)")
     parser.add_argument("--quiet", action="store_true", help="no progress line")
     add_config_arguments(parser, "--particles, --merge-threshold, --max-range")
 
