@@ -24,8 +24,9 @@ Scores (:mod:`mapping.lidar_metrics`), per log and method:
 
 Real-log settings, passed from here and never changed in the mapper: the range cap (default
 20 m, as ``wiremap map``), the merge threshold (0.2 m), the field of view from the log's beams,
-and the real-lidar profile (:func:`agents.mapping_run.lidar_profile`: odometry noise, point
-match, extractor; ``--profile none`` for the simulator's defaults) with any ``--set KEY=VALUE``
+and a real-lidar profile (:data:`agents.mapping_run.LIDAR_PROFILES`: ``lidar-slam``, the default,
+lidar SLAM under the filter; ``lidar``, the filter's corner ICP alone; ``none`` for the
+simulator's defaults) with any ``--set KEY=VALUE``
 on top (dotted keys: ``extract.*``, ``frontend.*``, else :class:`mapping.filter.FilterConfig`'s).
 The settings applied are in the JSON as ``"settings"``.
 
@@ -33,7 +34,7 @@ Output: an aligned table on stdout, a PNG per log in ``--out`` (the map over the
 the true and estimated paths, a legend and a scale bar), and with ``--json`` one last line::
 
     {"logs": {NAME: {"scans", "ate_rmse_m", ..., ["baseline": {...}]}}, "median": {...},
-     "profile": "lidar", "settings": {KEY: VALUE, ...}}
+     "profile": "lidar-slam", "settings": {KEY: VALUE, ...}}
 
 where ``median`` holds the medians over logs of every numeric key (and of the baseline's under
 ``"baseline"``).
