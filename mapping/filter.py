@@ -437,17 +437,11 @@ def _default_view(wf: Wireframe, pose: Pose, max_range: float, fov: float) -> Vi
     return visible_view(wf, pose, max_range, fov)
 
 
-def _default_merge(base: Wireframe, new: Wireframe, threshold: float) -> Wireframe:
-    from mapping.merge import MergeConfig, merge
-
-    return merge(base, new, MergeConfig(threshold=threshold))
-
-
 class _CachedMerge:
-    """The default merge with a :class:`mapping.merge.MergeCache`: the particles a scan is
-    merged into often have the same part near it (they differ where old mutations dropped
-    edges), and the merge's work on that part is then done once per step. The same results
-    as :func:`_default_merge`."""
+    """The default merge (:func:`mapping.merge.merge`) with a :class:`mapping.merge.MergeCache`:
+    the particles a scan is merged into often have the same part near it (they differ where
+    old mutations dropped edges), and the merge's work on that part is then done once per
+    step. The same results as without the cache."""
 
     def __init__(self) -> None:
         from mapping.merge import MergeCache
@@ -562,8 +556,10 @@ class WireframeFilter:
         self._drift = np.zeros((3, 3))
         self._pending_spans = np.zeros((0, 2, 2))
         self._view_fn: ViewFn = view_fn or _default_view
-        self._cached_merge = _CachedMerge() if merge_fn is None else None
-        self._merge_fn: MergeFn = merge_fn or self._cached_merge or _default_merge
+        self._cached_merge: _CachedMerge | None = None
+        if merge_fn is None:
+            merge_fn = self._cached_merge = _CachedMerge()
+        self._merge_fn: MergeFn = merge_fn
         self._loops = LoopCloser(config.loops, self._pose)
         self._directions = Directions(
             config.compass.anchor or 0.0, config.compass.min_support, config.compass.max_gate,
@@ -997,7 +993,7 @@ class WireframeFilter:
         ctx: _StepContext,
         anchored: bool,
         seen_spans: list[FloatArray],
-        by_view: dict[bytes, tuple[ScanLikelihood, BoolArray]] | None = None,
+        by_view: dict[bytes, tuple[ScanLikelihood, BoolArray]],
     ) -> _Eval:
         """One particle's predicted scan, likelihood and evidence-updated map (Sec. IV-B, IV-D).
 
@@ -1019,7 +1015,7 @@ class WireframeFilter:
             Whether negative evidence may be applied (:meth:`_evaluate`).
         seen_spans : list
             Collects this step's seen-through spans (map frame segments).
-        by_view : dict, optional
+        by_view : dict
             This step's likelihoods and free-space verdicts by predicted scan
             (:meth:`Wireframe.content_digest`): both depend on nothing else, and distinct
             particles often predict the same scan (they differ out of sight).
@@ -1032,15 +1028,14 @@ class WireframeFilter:
         lcfg = cfg.likelihood
         evidence, place = ctx.evidence, ctx.place
         view, src, unreported = self.predicted_view(p, place)
-        key = view.content_digest() if by_view is not None else b""
-        known = by_view.get(key) if by_view is not None else None
+        key = view.content_digest()
+        known = by_view.get(key)
         if known is None:
             lik = scan_likelihood(evidence, view, lcfg, max_range=cfg.max_range)
-            free_mask = self._free_space_mask(ctx, view, lik)
-            if by_view is not None:
-                by_view[key] = (lik, free_mask)
+            merge_mask = self._free_space_mask(ctx, view, lik)
+            by_view[key] = (lik, merge_mask)
         else:
-            lik, free_mask = known
+            lik, merge_mask = known  # (shared between particles: read, never written)
         in_sight, observed, contra = edge_states(p.n_edges, src, lik.predicted_edge_state)
         through = self._seen_through_unreported(p, place, evidence, unreported & ~observed)
         if through.any():
@@ -1075,7 +1070,6 @@ class WireframeFilter:
                 np.round(p.points[p.edges[through]], 6).tobytes(),
             )
         )
-        merge_mask = free_mask.copy()
         # Candidates for mutation (Sec. IV-F, "within sight (or predicted sight)"): every edge
         # in view, reported or not, that this scan does not observe.
         cands = (in_sight | unreported) & ~observed

@@ -364,10 +364,15 @@ class _RefGeometry:
         dr = r[:, 1] - r[:, 0]
         lr = np.hypot(dr[:, 0], dr[:, 1])
         ur = dr / np.where(lr > 0, lr, 1.0)[:, None]
-        nr = np.empty_like(ur)  # left normals of the reference edges
-        nr[:, 0] = -ur[:, 1]
-        nr[:, 1] = ur[:, 0]
-        return cls(r, lr, ur, nr)
+        return cls(r, lr, ur, _left_normals(ur))
+
+
+def _left_normals(u: FloatArray) -> FloatArray:
+    """The left normals ``(-u_y, u_x)`` of unit directions ``u`` (m, 2)."""
+    n = np.empty_like(u)
+    n[:, 0] = -u[:, 1]
+    n[:, 1] = u[:, 0]
+    return n
 
 
 def edge_overlap(
@@ -423,7 +428,7 @@ def edge_overlap_pairs(
     t2 = np.einsum("pi,pi->p", r[ri, 1] - s0, us)
     lo = np.maximum(0.0, np.minimum(t1, t2))
     hi = np.minimum(ls[si], np.maximum(t1, t2))
-    nr = np.stack([-ur[:, 1], ur[:, 0]], axis=1)
+    nr = _left_normals(ur)
     p_lo = s0 + lo[:, None] * us
     p_hi = s0 + hi[:, None] * us
     d_lo = np.einsum("pi,pi->p", p_lo - r0, nr)
@@ -731,9 +736,7 @@ def constraints(
         dr = rb - ra
         lr = np.hypot(dr[:, 0], dr[:, 1])
         ur = dr / np.where(lr > 0, lr, 1.0)[:, None]
-        n = np.empty_like(ur)
-        n[:, 0] = -ur[:, 1]
-        n[:, 1] = ur[:, 0]
+        n = _left_normals(ur)
         for t in (corr.edge_lo, corr.edge_hi):
             p = a + t[:, None] * u
             j = np.empty((len(ep), 3))

@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import hashlib
 import json
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 from enum import IntEnum
 from typing import Any
@@ -229,11 +229,7 @@ class Wireframe:
                 kinds = " or ".join(np.dtype(d).name for d in dtypes)
                 raise ValueError(f"Wireframe.checked: {name} must be a C-ordered {kinds} array of shape "
                                  f"({'n' if name in ('points', 'labels') else 'm'}, ...) matching the others")
-        wf = object.__new__(cls)
-        for name, a in (("points", points), ("labels", labels), ("edges", edges), ("likelihood", likelihood),
-                        ("sources", sources)):
-            object.__setattr__(wf, name, _readonly(a))
-        return wf
+        return _trusted(points, labels, edges, likelihood, sources)
 
     @classmethod
     def build(
@@ -295,19 +291,18 @@ class Wireframe:
         unknown = set(changes) - _FIELDS
         if unknown:
             raise TypeError(f"replace() got an unexpected keyword argument {sorted(unknown)[0]!r}")
+        def pick(name: str, same_count: bool, check: Callable[[Any, int], Any], count: int) -> Any:
+            if name not in changes and same_count:
+                return getattr(self, name)  # valid for this count already
+            return check(changes.get(name, getattr(self, name)), count)
+
         pts = _checked_points(changes["points"]) if "points" in changes else self.points
         n = pts.shape[0]
-        n_same = n == self.points.shape[0]
-        labels = self.labels if "labels" not in changes and n_same else _checked_labels(
-            changes.get("labels", self.labels), n)
-        edges = self.edges if "edges" not in changes and n_same else _checked_edges(
-            changes.get("edges", self.edges), n)
+        labels = pick("labels", n == self.n_vertices, _checked_labels, n)
+        edges = pick("edges", n == self.n_vertices, _checked_edges, n)
         m = edges.shape[0]
-        m_same = m == self.edges.shape[0]
-        lik = self.likelihood if "likelihood" not in changes and m_same else _checked_likelihood(
-            changes.get("likelihood", self.likelihood), m)
-        src = self.sources if "sources" not in changes and m_same else _checked_sources(
-            changes.get("sources", self.sources), m)
+        lik = pick("likelihood", m == self.n_edges, _checked_likelihood, m)
+        src = pick("sources", m == self.n_edges, _checked_sources, m)
         return _trusted(pts, labels, edges, lik, src)
 
     # ------------------------------------------------------------------ queries
@@ -359,15 +354,25 @@ class Wireframe:
 
     # ------------------------------------------------------------------ transforms
     def transformed(self, pose: Pose) -> Wireframe:
-        """This wireframe moved by ``pose`` (its points mapped from pose's frame to the parent).
+        """This wireframe moved by ``pose`` (its points mapped from pose's frame to the parent)."""
+        return self.moved_to(pose.apply(self.points))
 
-        Only the points change, so only they are checked (finite): the other arrays are this
-        valid wireframe's, shared read-only (:meth:`checked`; the full checks cost a robot
-        map's quarantine a fifth of its time, issue 21)."""
-        pts = pose.apply(self.points)
-        if not np.isfinite(pts).all():
-            return self.replace(points=pts)  # raises, naming the vertex
-        return type(self).checked(pts, self.labels, self.edges, self.likelihood, self.sources)
+    def moved_to(
+        self, points: FloatArray, *, likelihood: FloatArray | None = None, sources: MaskArray | None = None
+    ) -> Wireframe:
+        """This wireframe's labels and edges with new ``points`` (float64, ``(n, 2)``, C order:
+        a transform or a rounding of this wireframe's), and optionally new ``likelihood`` and
+        ``sources`` (valid arrays of the stored kinds, :meth:`checked`).
+
+        Only the points are checked (finite; a non-finite one raises the constructor's
+        ``ValueError``, naming the vertex): the other arrays are this valid wireframe's,
+        shared read-only. The full checks cost a robot map's quarantine a fifth of its time
+        and the fold's leaves as much (issue 21)."""
+        lik = self.likelihood if likelihood is None else likelihood
+        src = self.sources if sources is None else sources
+        if not np.isfinite(points).all():
+            return Wireframe(points, self.labels, self.edges, lik, src)  # raises
+        return Wireframe.checked(points, self.labels, self.edges, lik, src)
 
     def subgraph_edges(self, keep: NDArray[np.bool_]) -> Wireframe:
         """Keep the edges where ``keep`` is true; vertices left without an edge are dropped."""

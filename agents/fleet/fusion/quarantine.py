@@ -210,10 +210,10 @@ class FleetSamples:
         fused = self.fused
         if new.n_edges == 0 or fused.n_edges == 0:
             return None
-        keep = _others_keep(fused, bit)
-        kept = np.ones(fused.n_edges, dtype=bool) if keep is None else keep
         if len(self.cells) == 0:
             return None
+        keep = _others_keep(fused, bit)
+        kept = np.ones(fused.n_edges, dtype=bool) if keep is None else keep
         others = np.logical_or.reduceat(kept[self.cell_edges], self.cell_starts)  # cells of the view
         if not others.any():
             return None  # the view has no cells
@@ -274,11 +274,27 @@ def against_history(
     map of the same boot, ``seconds`` earlier, same frame), else None."""
     if old.n_vertices == 0 or new.n_vertices == 0:
         return None
+    return _extent_jump(new, old, seconds, reach_per_s, sensor_range, cfg) or _history_walls(new, old, cfg)
+
+
+def _extent_jump(
+    new: Wireframe, old: Wireframe, seconds: float, reach_per_s: float, sensor_range: float,
+    cfg: QuarantineConfig
+) -> tuple[str, str] | None:
+    """:func:`against_history`'s first test: walls farther beyond the old map's box than
+    ``seconds`` of driving and the sensor's range could add."""
     lo, hi = old.points.min(axis=0), old.points.max(axis=0)
     grow = sensor_range + reach_per_s * max(0.0, seconds) + cfg.growth_slack_m
     beyond = float(np.max(np.maximum(lo - grow - new.points, new.points - hi - grow)))
     if beyond > 0:
         return "extent_jump", f"walls {beyond:.0f} m beyond what {seconds:.1f} s could add to its last map"
+    return None
+
+
+def _history_walls(new: Wireframe, old: Wireframe, cfg: QuarantineConfig) -> tuple[str, str] | None:
+    """:func:`against_history`'s second test: new walls within the old map's box, far from
+    its walls."""
+    lo, hi = old.points.min(axis=0), old.points.max(axis=0)
     pts = wall_samples(new, cfg.sample_m)
     inside = pts[np.all((pts >= lo) & (pts <= hi), axis=1)]
     metres, frac = _disagreement(inside, _near(old, cfg), cfg)
@@ -292,7 +308,7 @@ def against_history(
 
 def edge_keys(wf: Wireframe) -> list[bytes]:
     """Each edge's two end points' coordinates as bytes (the same wall, exactly, has the same key)."""
-    seg = np.ascontiguousarray(wf.points[wf.edges].reshape(wf.n_edges, 4), dtype=np.float64)
+    seg = np.ascontiguousarray(wf.segments().reshape(wf.n_edges, 4))
     keys = seg.view(np.dtype((np.void, 32))).ravel().tolist()
     return keys  # type: ignore[return-value]  # void items are bytes
 
@@ -309,30 +325,29 @@ def history_judge(
     points (:func:`_near`), so it agrees whenever ``far_m`` is positive. Only the points of
     the other walls can disagree: when they are too few to pass ``max_disagree`` even if all
     disagreed, or the overlap is too short to judge, the map passes without the tree;
-    otherwise :func:`against_history` judges it. ``old_keys``: :func:`edge_keys` of ``old``
-    (computed when not given)."""
+    otherwise its wall test judges it (:func:`_history_walls`). ``old_keys``: :func:`edge_keys`
+    of ``old`` (computed when not given)."""
     if old.n_vertices == 0 or new.n_vertices == 0:
         return None
+    jump = _extent_jump(new, old, seconds, reach_per_s, sensor_range, cfg)
+    if jump is not None:
+        return jump
     if not cfg.far_m >= 1e-6 or new.n_edges == 0:  # a point on an old wall agrees with room to spare
-        return against_history(new, old, seconds, reach_per_s, sensor_range, cfg)
+        return _history_walls(new, old, cfg)
     lo, hi = old.points.min(axis=0), old.points.max(axis=0)
-    grow = sensor_range + reach_per_s * max(0.0, seconds) + cfg.growth_slack_m
-    beyond = float(np.max(np.maximum(lo - grow - new.points, new.points - hi - grow)))
-    if beyond > 0:
-        return "extent_jump", f"walls {beyond:.0f} m beyond what {seconds:.1f} s could add to its last map"
     pts, owner = _samples(new, cfg.sample_m)
     inside = np.all((pts >= lo) & (pts <= hi), axis=1)
     n_inside = int(np.count_nonzero(inside))
     if n_inside * cfg.sample_m < cfg.min_overlap_m:
         return None
     if n_inside == 0:  # only with min_overlap_m <= 0: as the reference does
-        return against_history(new, old, seconds, reach_per_s, sensor_range, cfg)
+        return _history_walls(new, old, cfg)
     known = set(edge_keys(old)) if old_keys is None else old_keys
     kept = np.fromiter((k in known for k in edge_keys(new)), dtype=bool, count=new.n_edges)
     judged = owner[inside][:: -(-n_inside // MAX_JUDGED)]  # as _disagreement subsamples
     if float(np.mean(~kept[judged])) <= cfg.max_disagree:
         return None  # even if every new wall's point disagreed
-    return against_history(new, old, seconds, reach_per_s, sensor_range, cfg)
+    return _history_walls(new, old, cfg)
 
 
 def against_fleet(new: Wireframe, fleet: FleetView, cfg: QuarantineConfig) -> tuple[str, str] | None:

@@ -779,15 +779,10 @@ class FusionState:
         m = e.message
         src = m.wireframe
         pose = m.origin if corr is None else corr.compose(m.origin)
-        # one Wireframe for origin, correction and contributor bit together; only the moved
-        # points need checking (the rest is the valid robot map's, shared read-only)
-        pts = pose.apply(src.points)
+        # one Wireframe for origin, correction and contributor bit together (moved_to: only
+        # the moved points are checked)
         masks = mask_array(src.n_edges, 1 << k)  # uint64 up to bit 63, Python ints past it
-        if np.isfinite(pts).all():
-            wf = Wireframe.checked(pts, src.labels, src.edges, src.likelihood, masks)
-        else:
-            wf = Wireframe(pts, src.labels, src.edges, src.likelihood, masks)  # raises
-        wf = wire_snap(wf, self._grid)
+        wf = wire_snap(src.moved_to(pose.apply(src.points), sources=masks), self._grid)
         self._prepared[rid] = (key, wf)
         return wf
 

@@ -123,10 +123,7 @@ def wire_snap(wf: Wireframe, resolution: float) -> Wireframe:
     lik = np.rint(wf.likelihood * LIKELIHOOD_LEVELS) / LIKELIHOOD_LEVELS
     if np.array_equal(pts, wf.points) and np.array_equal(lik, wf.likelihood):
         return wf
-    if not np.isfinite(pts).all():
-        return Wireframe(pts, wf.labels, wf.edges, lik, wf.sources)  # raises, naming the vertex
-    # the rest of a valid wireframe, likelihoods rounded within [0, 1]: no value to check again
-    return Wireframe.checked(pts, wf.labels, wf.edges, lik, wf.sources)
+    return wf.moved_to(pts, likelihood=lik)  # likelihoods rounded within [0, 1]: still valid
 
 
 # ---------------------------------------------------------------------- robot selection
