@@ -418,8 +418,8 @@ def test_run_unknown_starts_on_paper_small(tmp_path: Path):
 
 def test_run_carmen_log_as_two_robots(tmp_path: Path):
     """`wiremap run --carmen LOG --robots 2` on the committed excerpt (60 scans): the robots start
-    without ``--particles`` (it used to reach them as "None"), every robot is either registered
-    or an island, and fused.png is the map over the log's real scan endpoints (grey pixels)."""
+    without ``--particles`` (it used to reach them as "None") and with the real-lidar profile,
+    every robot is either registered or an island, and fused.png is the map over the log's real scan endpoints (grey pixels)."""
     import json
 
     from agents.files.render import POINTS_COLOR, decode_png
@@ -434,6 +434,9 @@ def test_run_carmen_log_as_two_robots(tmp_path: Path):
         assert p.returncode == 0, fleet.log("run")
     report = json.loads((out / "report.json").read_text())
     assert set(report["per_robot"]) == {"r1", "r2"}
+    # The robots map through the default real-lidar profile, as `wiremap map --carmen` does.
+    assert report["lidar_profile"] == "lidar-slam"
+    assert "(lidar profile lidar-slam)" in (out / "logs" / "r1.log").read_text()
     regs = set(report["registered"])
     isl = {m for ms in report["islands"].values() for m in ms}
     assert regs | isl == {"r1", "r2"} and not regs & isl

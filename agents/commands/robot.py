@@ -25,7 +25,7 @@ from agents.fleet.bus import (
     watch_parent,
 )
 from agents.fleet.robot import DEFAULT_RESOLUTION, DEFAULT_THRESHOLD
-from agents.mapping_run import SENSORS
+from agents.mapping_run import LIDAR_PROFILES, SENSORS
 from agents.params import ConfigArgs, Resolved, add_config_arguments, resolve
 from mapping.se2 import Pose
 
@@ -46,6 +46,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--carmen", metavar="LOG",
                         help="replay this CARMEN log instead of simulating a world")
     parser.add_argument("--scans", metavar="I0:I1", help="with --carmen: replay the log's scans I0 to I1-1")
+    parser.add_argument(
+        "--lidar-profile", choices=tuple(LIDAR_PROFILES), default="lidar-slam",
+        help="with --carmen: lidar-slam, lidar SLAM over the stretch under the filter (default), or "
+        "lidar, the filter's corner ICP alone (as wiremap map --lidar-profile)",
+    )
     parser.add_argument(
         "--start", metavar="X,Y[,THETA]",
         help="start position in the fleet frame, metres (default: the route's start); the simulated robot "
@@ -207,7 +212,7 @@ def _carmen_options(args: argparse.Namespace, rid: str) -> RobotOptions:
         particles=resolved.config.particles, resolution=args.resolution,
         threshold=resolved.config.merge_threshold, heartbeat_s=args.heartbeat,
         viz_hz=max(0.0, args.viz_rate), duration=args.duration, unknown_start=True, carmen=args.carmen,
-        scans=scans, filter_overrides=resolved.overrides,
+        scans=scans, filter_overrides=resolved.overrides, lidar_profile=args.lidar_profile,
     )
 
 
@@ -252,7 +257,8 @@ def run(args: argparse.Namespace) -> int:
         agent = RobotAgent(session, keys, opts, steps, say)
         try:
             agent.start()
-            sensor = "" if opts.carmen else f" (sensor {opts.extra.get('sensor', 'corners')})"
+            sensor = (f" (lidar profile {opts.lidar_profile})" if opts.carmen
+                      else f" (sensor {opts.extra.get('sensor', 'corners')})")
             say(f"on the bus as {keys.robot_map(rid)}{sensor}")
             st = agent.run(stop)
         finally:

@@ -75,7 +75,7 @@ from agents.fleet.bus import (
     tcp_endpoint,
 )
 from agents.fleet.proc import cpu_seconds, stop_processes
-from agents.mapping_run import SENSORS
+from agents.mapping_run import LIDAR_PROFILES, SENSORS
 from agents.params import ConfigArgs, add_config_arguments, resolve, to_toml
 
 MAX_ROBOTS = 64
@@ -98,6 +98,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--carmen", metavar="LOG",
         help="split a real CARMEN log into --robots robots (overlapping stretches, each in its own frame)",
+    )
+    parser.add_argument(
+        "--lidar-profile", choices=tuple(LIDAR_PROFILES), default="lidar-slam",
+        help="with --carmen: the robots' real-lidar profile, lidar-slam (lidar SLAM over each robot's "
+        "stretch under its filter; default) or lidar (the filter's corner ICP alone)",
     )
     parser.add_argument("--robots", required=True, type=int, metavar="N", help="number of robots (1-64)")
     parser.add_argument(
@@ -502,7 +507,7 @@ def run(args: argparse.Namespace) -> int:
             "cpu_s": cpu,
             "exit_codes": codes,
             "seed": args.seed,
-            **({} if args.carmen else {"sensor": args.sensor}),
+            **({"lidar_profile": args.lidar_profile} if args.carmen else {"sensor": args.sensor}),
             "rate_hz": args.rate,
             "particles": resolved.config.particles,
             "config_overrides": resolved.recorded,
@@ -757,7 +762,8 @@ def _carmen_robot_argv(
     i0, i1 = stretch
     return [
         "robot", "--id", rid, "--carmen", str(args.carmen), "--scans", f"{i0}:{i1}",
-        "--rate", str(args.rate), "--seed", str(args.seed + k + 1), *filter_args,
+        "--rate", str(args.rate), "--seed", str(args.seed + k + 1), "--lidar-profile", args.lidar_profile,
+        *filter_args,
         "--resolution", repr(float(args.resolution)), "--threshold", repr(threshold),
         "--status-file", str(out / "status" / f"{rid}.json"), *bus,
     ]

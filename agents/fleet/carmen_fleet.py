@@ -4,7 +4,10 @@ Robot ``k`` replays scans ``[i0, i1)`` of the log (:func:`split`: N stretches of
 along the log, each running on into the next by ``overlap`` of a stretch, so that neighbours
 see common walls) through its own particle filter, in its own odometry frame starting at the
 origin (the first scan of its stretch is the identity), and publishes with an unknown origin:
-only global registration can put the robots together.
+only global registration can put the robots together. Its scans go through the real-lidar
+profile ``--lidar-profile`` as in ``wiremap map --carmen`` (default ``lidar-slam``: the robot
+runs the lidar SLAM over its whole stretch before it maps, as a replay can; the filter's
+defaults, which these robots used before, are the simulator's and map real scans poorly).
 
 Scoring (:func:`score_map`): a map in some robot's frame is placed in the log's truth frame by
 that robot's true first pose (``NAME.truth.tsv``, one row per laser line) -- no fitting -- and
@@ -58,7 +61,8 @@ def split(n_scans: int, robots: int, overlap: float = 0.3) -> list[tuple[int, in
 
 def robot_steps(opts: Any) -> Iterator[Any]:
     """The robot's loop (:func:`agents.mapping_run.run_filter`) over scans ``opts.scans`` of
-    ``opts.carmen``, its filter starting at the identity (its own odometry frame)."""
+    ``opts.carmen`` through the real-lidar profile ``opts.lidar_profile``, its filter starting at
+    the identity (its own odometry frame)."""
     from agents import mapping_run as mr
     from mapping.filter import WireframeFilter
 
@@ -68,11 +72,15 @@ def robot_steps(opts: Any) -> Iterator[Any]:
     if not part:
         raise ValueError(f"no scans in {i0}:{i1} of {opts.carmen}")
     max_range = min(float(part[0].max_range), MAX_RANGE)
+    # The real-lidar profile as `wiremap map --carmen` applies it (the user's settings on top);
+    # with lidar-slam the SLAM runs over the whole stretch before the first map is published.
+    profile, extract, frontend = mr.split_profile(mr.lidar_profile(opts.lidar_profile))
     cfg = mr.filter_config_for(int(opts.particles), float(opts.threshold), max_range,
                                fov=mr.scan_fov(part[0].angles),
-                               overrides=getattr(opts, "filter_overrides", None) or None)
+                               overrides={**profile, **(opts.filter_overrides or {})})
     filt = WireframeFilter(cfg, mr.seeds_for(int(opts.seed))["filter"], initial_pose=Pose.identity())
-    return mr.run_filter(mr.carmen_inputs(part, max_range=max_range), filt, total=len(part))
+    inputs = mr.carmen_inputs(part, max_range=max_range, extract=extract, frontend=frontend)
+    return mr.run_filter(inputs, filt, total=len(part))
 
 
 def endpoints(scans: list[Any], truth: list[Pose], max_range: float = MAX_RANGE) -> FloatArray:

@@ -87,6 +87,7 @@ class RobotOptions:
     unknown_start: bool = False  # publish in its own frame: origin identity, meta origin_unknown
     carmen: str | None = None  # replay this CARMEN log instead of simulating (agents.fleet.carmen_fleet)
     scans: tuple[int, int] | None = None  # the log's scans [i0, i1) this robot replays
+    lidar_profile: str = "lidar-slam"  # the replayed scans' real-lidar profile (mapping_run.LIDAR_PROFILES)
     #: False when ``--start`` gave no heading: the simulated robot's heading (along its route)
     #: is taken without a word.
     heading_given: bool = True
