@@ -81,6 +81,8 @@ SUCCESS_T, SUCCESS_R = 0.10, math.radians(1.0)
 FALSE_T, FALSE_R = WRONG_M, math.radians(WRONG_DEG)
 FILTER_STRETCHES = 12
 FILTER_CACHE_VERSION = 1
+#: CARMEN stretches' cache version: 2 since they map through the ``lidar-slam`` profile.
+LOG_CACHE_VERSION = 2
 AMBIGUOUS_SUPPORT, AMBIGUOUS_CORNERS = 0.9, 0.9
 
 
@@ -423,7 +425,8 @@ def _build_world_maps(name: str, seed: int, k: int) -> list[dict[str, Any]]:
 
 
 def _build_log_maps(path: Path, seed: int, k: int) -> list[dict[str, Any]]:
-    """Filter maps of ``k`` stretches of a CARMEN log (as ``wiremap run --carmen`` robots)."""
+    """Filter maps of ``k`` stretches of a CARMEN log (as ``wiremap run --carmen`` robots map
+    them: the ``lidar-slam`` profile)."""
     from agents import mapping_run as mr
     from agents.files.carmen import read_carmen_log, scan_truth
     from mapping.filter import WireframeFilter
@@ -444,25 +447,26 @@ def _build_log_maps(path: Path, seed: int, k: int) -> list[dict[str, Any]]:
         if len(stretches) < k:
             b0 = int(np.clip(a0 + int(rng.integers(-lb, la)), 0, max(0, n - lb)))
             stretches.append((b0, min(n, b0 + lb)))
+    profile, extract, frontend = mr.split_profile(mr.lidar_profile("lidar-slam"))
     out = []
     for i0, i1 in stretches:
         part = scans[i0:i1]
         max_range = min(float(part[0].max_range), MAX_RANGE)
-        cfg = mr.filter_config_for(6, 0.2, max_range, fov=mr.scan_fov(part[0].angles))
+        cfg = mr.filter_config_for(6, 0.2, max_range, fov=mr.scan_fov(part[0].angles), overrides=profile)
         run_seed = int(rng.integers(0, 2**31))
         filt = WireframeFilter(cfg, mr.seeds_for(run_seed)["filter"], initial_pose=Pose.identity())
-        for inp in mr.carmen_inputs(part, max_range=max_range):
+        for inp in mr.carmen_inputs(part, max_range=max_range, extract=extract, frontend=frontend):
             filt.step(inp.odometry, inp.scan)
         out.append({"wf": filt.best.to_geojson(), "start": list(truth[i0].as_tuple()), "xy": [],
                     "source": path.name.replace(".log.gz", ""), "stretch": [i0, i1]})
     return out
 
 
-def _cached(cache: Path, key: str, build: Any) -> list[FilterMap]:
+def _cached(cache: Path, key: str, build: Any, version: int = FILTER_CACHE_VERSION) -> list[FilterMap]:
     from mapping.se2 import Pose
     from mapping.wireframe import Wireframe
 
-    f = cache / f"{key}-v{FILTER_CACHE_VERSION}.json"
+    f = cache / f"{key}-v{version}.json"
     if f.is_file():
         rows = json.loads(f.read_text())
     else:
@@ -492,7 +496,7 @@ def _world_job(item: tuple[str, int, int, str]) -> list[FilterMap]:
 def _log_job(item: tuple[str, int, int, str]) -> list[FilterMap]:
     path, seed, k, cache = item
     return _cached(Path(cache), f"carmen-{Path(path).name.replace('.log.gz', '')}-s{seed}-k{k}",
-                   lambda: _build_log_maps(Path(path), seed, k))
+                   lambda: _build_log_maps(Path(path), seed, k), LOG_CACHE_VERSION)
 
 
 def _as_sample(fm: FilterMap, truth: Any, rng: np.random.Generator) -> Sample:
