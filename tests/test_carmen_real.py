@@ -94,6 +94,25 @@ def test_bench_lidar_json_on_the_excerpt(tmp_path: Path, capsys: pytest.CaptureF
             and (tmp_path / "freiburg-101-head-baseline.png").is_file())
 
 
+def test_bench_register_pairs_from_the_excerpt(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """`wiremap bench register --data DIR`: CARMEN pairs from the excerpt (read by the project's
+    reader, at its truth) register, none falsely, and the JSON has the issue's keys; a missing
+    --data is one line, exit 2."""
+    args = ["bench", "register", "--pairs", "6", "--cross", "2", "--carmen", "4", "--data", str(DATA),
+            "--worlds", "paper-small", "--seed", "3", "--json", "--quiet"]
+    assert main(args) == 0
+    summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    for key in ("pairs", "cross_pairs", "false_merges", "success_rate_overlap_ge_30", "trans_err_m_p95",
+                "rot_err_deg_p95", "ms_per_attempt_p50", "by_overlap"):
+        assert key in summary, key
+    assert summary["carmen_pairs"] == 4 and summary["pairs"] == 12
+    assert summary["false_merges"] == 0 and summary["false_merges_cross"] == 0
+    assert summary["success_rate_overlap_ge_30"] > 0.0
+    assert main(["bench", "register", "--quick", "--data", str(tmp_path / "none")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--data" in err[0], err
+
+
 def test_bench_lidar_profile_and_set(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     args = ["bench", "lidar", str(EXCERPT), "--steps", "5", "--particles", "2", "--json", "--quiet",
             "--out", str(tmp_path), "--profile", "none", "--set", "odometry.rot_per_m=0.02",

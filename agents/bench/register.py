@@ -13,10 +13,11 @@ Map pairs
   its robot's start frame: the start is the stretch's first point with a uniformly random heading,
   so the two frames are unrelated. Stretch lengths and the offset between the two stretches are
   random, from fully overlapping to disjoint.
-* **CARMEN logs** (``/work/shared/data/carmen``, ``--carmen``): stretches of consecutive scans;
-  each scan through split-and-merge (:func:`mapping.extract.extract_corners`) and the scans
-  merged at the *true* poses (``*.truth.tsv``) with :func:`mapping.merge.merge`. A small loader
-  reads the FLASER lines only (the project reader rejects these logs' ``PARAM`` lines for now).
+* **CARMEN logs** (``--data DIR``, default ``../shared/data/carmen`` beside the repository;
+  ``--carmen`` pairs): stretches of consecutive scans, read by the project's reader
+  (:func:`agents.files.carmen.read_carmen_log`); each scan through split-and-merge
+  (:func:`mapping.extract.extract_corners`) and the scans merged at the *true* poses
+  (``*.truth.tsv``) with :func:`mapping.merge.merge`.
   Their overlap is measured on the maps themselves (matched wall length at the true transform).
 * **Filter-built maps** (``--maps filter``): per world (and per CARMEN log), ``--stretches``
   stretches in overlapping pairs; each robot's map is built by a :class:`mapping.filter.WireframeFilter`
@@ -53,7 +54,6 @@ Prints a table by overlap band and, with ``--json``, one JSON object on the last
 from __future__ import annotations
 
 import argparse
-import gzip
 import json
 import math
 import os
@@ -73,7 +73,8 @@ HELP = "global registration of map pairs in unrelated frames"
 
 WORLDS = ("paper-small", "museum", "office", "warehouse")
 TEST_WORLDS = Path(__file__).resolve().parents[2] / "tests" / "worlds"
-CARMEN_DIR = Path("/work/shared/data/carmen")
+#: The shared real logs beside the repository (``--data`` names another folder).
+CARMEN_DIR = Path(__file__).resolve().parents[3] / "shared" / "data" / "carmen"
 MAX_RANGE = 8.0
 POSE_STEP = 0.5
 BANDS = ((0.0, 0.0), (0.0, 0.1), (0.1, 0.2), (0.2, 0.3), (0.3, 0.5), (0.5, 0.7), (0.7, 1.01))
@@ -98,6 +99,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="worlds (default the built-ins and tests/worlds/*.geojson)")
     parser.add_argument("--carmen", type=int, default=None, metavar="N",
                         help="CARMEN stretch pairs (default a tenth of --pairs; 0 for none)")
+    parser.add_argument("--data", metavar="DIR", default=None,
+                        help="CARMEN logs with their truth (*.log.gz, NAME.truth.tsv) for the CARMEN pairs "
+                             "(default ../shared/data/carmen beside the repository; skipped when absent)")
     parser.add_argument("--maps", choices=("truth", "filter"), default="truth",
                         help="truth: cropped true walls plus noise (default); filter: maps built by the "
                              "particle filter over route stretches and CARMEN log stretches (cached)")
@@ -283,38 +287,20 @@ class Log:
 
 
 def _read_log(path: Path, max_range: float = MAX_RANGE) -> Log:
-    """FLASER lines only (PARAM and everything else skipped), scans through split-and-merge,
-    poses from the sibling ``.truth.tsv`` (one row per FLASER line, in order)."""
+    """The log's laser scans (:func:`agents.files.carmen.read_carmen_log`: its own geometry,
+    unreadable lines skipped) through split-and-merge, at their truth poses (the sibling
+    ``.truth.tsv`` or the log's ``TRUEPOS``; a log without a truth gives no scans)."""
+    from agents.files.carmen import read_carmen_log, scan_truth
     from mapping.extract import extract_corners
-    from mapping.se2 import Pose
 
-    truth_rows = [
-        ln.split()
-        for ln in path.with_name(path.name.replace(".log.gz", ".truth.tsv")).read_text().splitlines()
-    ]
-    truth_rows = [r for r in truth_rows if r and not r[0].startswith("#")]
-    poses = []
-    for r in truth_rows:
-        try:
-            poses.append(Pose(float(r[1]), float(r[2]), float(r[3])))
-        except (ValueError, IndexError):
-            continue
+    log = read_carmen_log(path)
+    poses = scan_truth(log) or []
     scans = []
-    with gzip.open(path, "rt") as fh:
-        for line in fh:
-            tok = line.split()
-            if not tok or tok[0] != "FLASER":
-                continue
-            n = int(tok[1])
-            ranges = np.asarray(tok[2 : 2 + n], dtype=np.float64)
-            angles = np.asarray(
-                -math.pi / 2 + np.arange(n) * (math.pi / max(1, n - 1)) if n > 1 else np.zeros(n),
-                dtype=np.float64,
-            )
-            ranges = np.where(ranges >= max_range, np.inf, ranges)
-            scans.append(extract_corners(ranges, angles, max_range))
-    k = min(len(scans), len(poses))
-    return Log(path.name.replace(".log.gz", ""), scans[:k], poses[:k])
+    for ls in log.scans[: len(poses)]:
+        rmax = min(float(ls.max_range), max_range)
+        ranges = np.asarray(ls.ranges, dtype=np.float64)
+        scans.append(extract_corners(np.where(ranges >= rmax, np.inf, ranges), ls.angles, rmax))
+    return Log(path.name.replace(".log.gz", ""), scans, list(poses[: len(scans)]))
 
 
 def _log_map(log: Log, i0: int, i1: int, rng: np.random.Generator) -> Sample:
@@ -757,15 +743,18 @@ def run(args: argparse.Namespace) -> int:
         if args.worlds
         else [*WORLDS, *sorted(str(p) for p in TEST_WORLDS.glob("*.geojson"))]
     )
+    data = Path(args.data) if args.data else CARMEN_DIR
+    if args.data and not data.is_dir():
+        raise UserError(f"--data {args.data}: no such directory")
+    log_paths = sorted(data.glob("*.log.gz")) if n_carmen else []
     log = (lambda msg: None) if args.quiet else (lambda msg: sys.stderr.write(msg + "\n"))
+    if n_carmen and not log_paths:
+        log(f"no CARMEN logs in {data}: CARMEN pairs skipped")
     log(f"planning routes in {len(names)} worlds")
     worlds = _load_worlds(names, rng)
     logs: list[Log] = []
-    if n_carmen and args.maps == "truth":
-        paths = sorted(CARMEN_DIR.glob("*.log.gz"))
-        if not paths:
-            log(f"no CARMEN logs in {CARMEN_DIR}: skipped")
-        for p in paths:
+    if args.maps == "truth":
+        for p in log_paths:
             logs.append(_read_log(p))
             log(f"read {p.name}: {len(logs[-1].scans)} scans")
     fworlds: list[list[FilterMap]] = []
@@ -775,11 +764,9 @@ def run(args: argparse.Namespace) -> int:
         cache = str(cache_dir(args.cache))
         log(f"filter maps: {k} per world and log (cache {cache}; building what is missing)")
         fworlds = _jobs_map(_world_job, [(n, int(args.seed), k, cache) for n in names], int(args.jobs))
-        if n_carmen:
-            paths = sorted(CARMEN_DIR.glob("*.log.gz"))
-            flogs = [m for m in _jobs_map(_log_job, [(str(p), int(args.seed), k, cache) for p in paths],
-                                          int(args.jobs))
-                     if len(m) >= 2]
+        flogs = [m for m in _jobs_map(_log_job, [(str(p), int(args.seed), k, cache) for p in log_paths],
+                                      int(args.jobs))
+                 if len(m) >= 2]
     rows: list[dict[str, Any]] = []
     t_start = time.perf_counter()
     have_logs = bool(flogs) if args.maps == "filter" else bool(logs)
