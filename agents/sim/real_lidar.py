@@ -1,7 +1,7 @@
 """The realistic simulated lidar: what real scans have and the clean ray caster lacks.
 
 :func:`agents.sim.lidar.raycast` returns a wall's exact range plus 1 cm of Gaussian noise. Real
-scanners (the CARMEN logs in ``/work/shared/data/carmen``, looked at in docs/experiments.md,
+scanners (the CARMEN logs in ``../shared/data/carmen``, looked at in docs/experiments.md,
 "A realistic simulated lidar") add, and this module simulates:
 
 * **range noise that grows with range**: ``sigma = a + b * range``, readings rounded to the
