@@ -409,6 +409,8 @@ def test_run_unknown_starts_on_paper_small(tmp_path: Path):
         assert err["trans_err_m"] <= 0.5 and err["rot_err_deg"] <= 2.0, (rid, err)
     assert report["registration_truth"]["accepted_wrong"] == 0
     assert sum(report["registration_truth"].values()) <= len(report["registrations"])
+    # every attempt is listed (the fused map's meta carries only the last few)
+    assert len(report["registrations"]) == report["registration_attempts"] >= 1
     log = (out / "logs" / "fuse.log").read_text()
     entities, _ = read_recording(out / "recording.rrd")
     if "registration " in log:

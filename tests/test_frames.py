@@ -162,12 +162,44 @@ def test_retry_only_after_growth() -> None:
         return sum(lengths[m] for m in members)
 
     assert fr.next_pair(length) == ("r1", "r2")
-    fr._tried[(("r1",), ("r2",))] = (20.0, 20.0)
+    fr._tried[(("r1",), ("r2",))] = (20.0, 20.0, None)
     assert fr.next_pair(length) is None
     lengths["r2"] = 24.0
     assert fr.next_pair(length) is None
     lengths["r2"] = 25.0
     assert fr.next_pair(length) == ("r1", "r2")
+
+
+def test_a_map_that_stopped_growing_is_tried_again_after_a_while() -> None:
+    """Short of the growth rule, a pair whose maps changed by ``retry_min_m`` is tried again once
+    ``retry_after_s`` passed on the caller's clock (never without a clock, never unchanged)."""
+    cfg = FramesConfig(retry_growth_m=5.0, retry_growth_fraction=0.2, retry_after_s=5.0, retry_min_m=1.0,
+                       min_length_m=1.0)
+    fr = FleetFrames(cfg)
+    fr.track("r1")
+    fr.track("r2")
+    lengths = {"r1": 100.0, "r2": 100.0}
+
+    def length(members: tuple[str, ...], root: str | None) -> float:
+        return sum(lengths[m] for m in members)
+
+    a, b = _halves("office")
+    maps = {"r1": a, "r2": b.transformed(Pose(40.0, 40.0, 2.0))}  # far apart: refused, not joined
+    rec = fr.attempt(("r1", "r2"), lambda ms, root: maps[ms[0]], now=100.0)
+    assert not rec.accepted and fr._tried[(("r1",), ("r2",))][2] == 100.0  # the attempt's clock
+    fr._tried[(("r1",), ("r2",))] = (100.0, 100.0, 100.0)  # at the lengths this test's `length` gives
+    lengths["r2"] = 110.0  # grew, but short of max(5 m, 20 %)
+    assert fr.next_pair(length, now=104.9) is None
+    assert fr.next_pair(length) is None  # without a clock: the growth rule only
+    assert fr.next_pair(length, now=105.0) == ("r1", "r2")
+    lengths["r2"] = 100.5  # back within retry_min_m of the last attempt: nothing new to try
+    assert fr.next_pair(length, now=200.0) is None
+    off = FleetFrames(FramesConfig(retry_after_s=0.0, min_length_m=1.0))
+    off.track("r1")
+    off.track("r2")
+    off._tried[(("r1",), ("r2",))] = (100.0, 100.0, 100.0)
+    lengths["r2"] = 110.0
+    assert off.next_pair(length, now=1e6) is None
 
 
 def test_report_scores_every_attempt_against_the_true_starts():

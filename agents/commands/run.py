@@ -79,6 +79,10 @@ from agents.mapping_run import LIDAR_PROFILES, SENSORS
 from agents.params import ConfigArgs, add_config_arguments, resolve, to_toml
 
 MAX_ROBOTS = 64
+#: Seconds a fleet of robots without a shared frame runs on after every robot is done while
+#: some are islands: the fusion service tries a pair whose maps stopped growing again after
+#: FramesConfig.retry_after_s (5 s), and an attempt takes up to a fraction of a second.
+SETTLE_S = 8.0
 """``run`` starts one process per robot on this machine: at most 64 (the fused map itself takes up
 to ``wire_codec.MAX_ROBOTS``, 4,096; larger fleets: ``wiremap bench fleet --synthetic``, or
 robots and fusers on several machines)."""
@@ -789,6 +793,10 @@ def _watch_fleet(
     n = len(progress.ids)
     t_map: float | None = None
     done_at: float | None = None
+    in_fleet: set[str] = set()  # robots in the last fused map
+    # Robots without a shared frame: islands left when the robots are done get the fusion's
+    # retry of maps that stopped growing (FramesConfig.retry_after_s) before the fleet stops.
+    settle_s = SETTLE_S if (args.carmen or args.unknown_starts) else 0.0
     while not stop.is_set():
         now = time.monotonic()
         while (s := sub_pose.handler.try_recv()) is not None:
@@ -803,6 +811,7 @@ def _watch_fleet(
                 raw = s.payload.to_bytes()
                 m = validate.fused_map(raw)
                 progress.set_fused(raw, m.seq, m.wireframe.n_vertices, m.wireframe.n_edges, list(m.robots))
+                in_fleet = set(m.robots)
             except ValueError:
                 pass
         if t_map is None and (
@@ -817,7 +826,8 @@ def _watch_fleet(
             st.get("finished") for st in progress.status.values()
         ):
             done_at = now if done_at is None else done_at
-            if now - done_at >= 1.0:  # the last maps reach the fusion service
+            islands = not set(progress.ids) <= in_fleet
+            if now - done_at >= (settle_s if islands else 1.0):  # the last maps reach the fusion service
                 break
         dead = [k for k, p in procs.items() if p.poll() is not None]
         if dead:

@@ -112,10 +112,19 @@ def _fused(out: Path) -> tuple[bytes, Any]:
     return raw, decode_message(raw)
 
 
-def _frames(msg: Any, robots: list[str]) -> dict[str, Any]:
+def _frames(msg: Any, robots: list[str], out: Path | None = None) -> dict[str, Any]:
+    """The registration graph's summary from the fused map's meta, with every attempt from the
+    store's ``state.json`` when it has them (the meta carries the last few)."""
     fr = msg.meta.get("frames") if isinstance(msg.meta, dict) else None
     if not isinstance(fr, dict):  # no registration graph: every robot is in the fleet frame
         return {"fleet_root": robots[0] if robots else None, "registered": robots, "islands": {}, "poses": {}}
+    if out is not None:
+        try:
+            every = json.loads((out / "store" / "state.json").read_text()).get("registrations")
+        except (OSError, ValueError):
+            every = None
+        if isinstance(every, list) and len(every) >= len(fr.get("registrations", [])):
+            fr = {**fr, "registrations": every}
     return fr
 
 
@@ -164,6 +173,7 @@ def _registration_report(fr: dict[str, Any], starts: dict[str, Pose]) -> dict[st
         "registered": list(fr.get("registered", [])),
         "islands": fr.get("islands", {}),
         "registration_errors": _pose_errors(fr, starts),
+        "registration_attempts": fr.get("attempts", 0),
         **_attempts_against_truth(fr.get("registrations", []), starts),
     }
 
@@ -227,7 +237,7 @@ def write_outputs_unknown(
     raw, msg = _fused(out)
     wf = msg.wireframe
     robots = list(msg.robots)
-    fr = _frames(msg, robots)
+    fr = _frames(msg, robots, out)
     starts: dict[str, Pose] = {}
     for rid in ids:
         try:
@@ -278,7 +288,7 @@ def write_outputs_carmen(
     raw, msg = _fused(out)
     wf = msg.wireframe
     robots = list(msg.robots)
-    fr = _frames(msg, robots)
+    fr = _frames(msg, robots, out)
     stretches: dict[str, tuple[int, int]] = {}
     for rid in ids:
         try:

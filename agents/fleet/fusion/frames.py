@@ -25,7 +25,10 @@ frame is the fleet frame and its members are fused into ``fused/map``; the other
 Registration attempts (:meth:`FleetFrames.next_pair`): every pair of components, when it was
 never tried for the present memberships, or when the wall length of either side grew by
 ``max(retry_growth_m, retry_growth_fraction * length)`` since the pair's last attempt (maps
-grow by a scan at a time: re-registering on every update would cost ~0.1 s per map). Pairs
+grow by a scan at a time: re-registering on every update would cost ~0.1 s per map), or --
+given the caller's clock -- when either side changed by ``retry_min_m`` and ``retry_after_s``
+passed since that attempt: a map that stops growing short of the growth rule (a robot done, a
+replayed stretch at its end) still gets its last word, at most every ``retry_after_s``. Pairs
 with the fleet first, then larger maps first. The caller runs at most one attempt at a time
 (the service: after a publish, when no map waits). An accepted registration joins the two
 components: the one holding the fleet (or anchor, or else the lower root id) keeps its root,
@@ -66,6 +69,11 @@ class FramesConfig:
     anchor : robot whose frame is the fleet frame (None: the first registration decides).
     retry_growth_m, retry_growth_fraction : a pair is tried again when a side's wall length
         grew by ``max(retry_growth_m, retry_growth_fraction * length_at_last_attempt)``.
+    retry_after_s, retry_min_m : and, on the caller's clock (``now``), when a side's wall length
+        moved by ``retry_min_m`` and ``retry_after_s`` passed since the last attempt (0: off).
+        The CARMEN fleets of three robots left near-correct pairs refused on maps 10-50 m short
+        of the growth rule, which the robots' final maps pass (docs/experiments.md, "The last
+        word of a map that stopped growing").
     min_length_m : a component with less wall than this is not tried (registration needs
         8 m of matched wall anyway).
     registration : :class:`mapping.registration.RegistrationConfig`.
@@ -75,6 +83,8 @@ class FramesConfig:
     anchor: str | None = None
     retry_growth_m: float = 6.0
     retry_growth_fraction: float = 0.2
+    retry_after_s: float = 5.0
+    retry_min_m: float = 1.0
     min_length_m: float = 10.0
     registration: RegistrationConfig = field(default_factory=RegistrationConfig)
     history: int = 200
@@ -134,7 +144,8 @@ class FleetFrames:
         self.has_known = False  # robots of known origin exist: they are the fleet
         self.records: list[RegistrationRecord] = []
         self.attempts = 0
-        self._tried: dict[tuple[tuple[str, ...], tuple[str, ...]], tuple[float, float]] = {}
+        # (members a, members b) -> (length a, length b, clock) at the pair's last attempt
+        self._tried: dict[tuple[tuple[str, ...], tuple[str, ...]], tuple[float, float, float | None]] = {}
         self.epoch = 0  # bumps on every change of membership or pose
         self._lengths: dict[tuple[str, ...], float] = {}  # of the last next_pair, by members
 
@@ -227,12 +238,15 @@ class FleetFrames:
         }
 
     # ------------------------------------------------------------------ attempts
-    def next_pair(self, lengths: Callable[[tuple[str, ...], str | None], float]) -> tuple[str, str] | None:
+    def next_pair(
+        self, lengths: Callable[[tuple[str, ...], str | None], float], now: float | None = None
+    ) -> tuple[str, str] | None:
         """The pair of components to try next ``(a, b)`` (``b`` registers onto ``a``; ``a`` may
         be :data:`FLEET`, the known robots' fused map), or None when none is due.
 
         ``lengths(members, root)`` is the wall length of a component's map (``root`` None for
-        the known robots' fleet)."""
+        the known robots' fleet); ``now``: the caller's clock in seconds (None: only the growth
+        rule)."""
         cfg = self.config
         comps = self.components()
         fc = self.fleet_component()
@@ -252,7 +266,8 @@ class FleetFrames:
                     continue
                 key = (self._members(a, comps), self._members(b, comps))
                 last = self._tried.get(key)
-                if last is not None and not (_grew(la, last[0], cfg) or _grew(lb, last[1], cfg)):
+                if last is not None and not (_grew(la, last[0], cfg) or _grew(lb, last[1], cfg)
+                                             or _settled(la, lb, now, last, cfg)):
                     continue
                 fleet_pair = a in (fc, FLEET) or b in (fc, FLEET)
                 rank = (0 if fleet_pair else 1, -(la + lb))
@@ -279,9 +294,11 @@ class FleetFrames:
         pair: tuple[str, str],
         maps: Callable[[tuple[str, ...], str | None], Wireframe],
         t: float = 0.0,
+        now: float | None = None,
     ) -> RegistrationRecord:
         """Register component ``b`` onto ``a`` (``maps(members, root)`` gives each one's map in
-        its root frame, or the fleet frame for :data:`FLEET`) and join them when accepted."""
+        its root frame, or the fleet frame for :data:`FLEET`) and join them when accepted.
+        ``t``: the record's time; ``now``: the clock :meth:`next_pair` is given."""
         a, b = pair
         comps = self.components()
         ma, mb = self._members(a, comps), self._members(b, comps)
@@ -293,7 +310,7 @@ class FleetFrames:
         ms = 1000.0 * (time.perf_counter() - t0)
         self.attempts += 1
         # the lengths next_pair measured (the same measure as the growth test's)
-        self._tried[(ma, mb)] = (self._lengths.get(ma, _length(wa)), self._lengths.get(mb, _length(wb)))
+        self._tried[(ma, mb)] = (self._lengths.get(ma, _length(wa)), self._lengths.get(mb, _length(wb)), now)
         if res.accepted and res.transform is not None:
             self._join(a, b, res.transform)
         rec = RegistrationRecord(
@@ -328,6 +345,14 @@ def _length(wf: Wireframe) -> float:
 
 def _grew(now: float, then: float, cfg: FramesConfig) -> bool:
     return now - then >= max(cfg.retry_growth_m, cfg.retry_growth_fraction * then)
+
+
+def _settled(la: float, lb: float, now: float | None, last: tuple[float, float, float | None],
+             cfg: FramesConfig) -> bool:
+    """A side changed by ``retry_min_m`` and ``retry_after_s`` passed since the last attempt."""
+    if now is None or last[2] is None or cfg.retry_after_s <= 0 or now - last[2] < cfg.retry_after_s:
+        return False
+    return abs(la - last[0]) >= cfg.retry_min_m or abs(lb - last[1]) >= cfg.retry_min_m
 
 
 def fold_maps(maps: Iterable[Wireframe], merge: Callable[[Wireframe, Wireframe], Wireframe]) -> Wireframe:

@@ -714,20 +714,21 @@ class FusionState:
             del self._island_cache[gone]
         return out
 
-    def register_due(self) -> bool:
+    def register_due(self, now: float | None = None) -> bool:
         """Whether :meth:`register_step` has a pair of components to try."""
-        return self.frames.active and self.frames.next_pair(self._component_length) is not None
+        return self.frames.active and self.frames.next_pair(self._component_length, now) is not None
 
-    def register_step(self, t: float = 0.0) -> RegistrationRecord | None:
+    def register_step(self, t: float = 0.0, now: float | None = None) -> RegistrationRecord | None:
         """One registration attempt of the registration graph (:mod:`.frames`), the pair it
-        finds due; on acceptance the moved robots get their fleet poses (the next :meth:`fuse`
-        includes them). None when no pair is due (and always for known-start fleets)."""
+        finds due (``now``: the service's clock for the retry of maps that stopped growing); on
+        acceptance the moved robots get their fleet poses (the next :meth:`fuse` includes them).
+        None when no pair is due (and always for known-start fleets)."""
         if not self.frames.active:
             return None
-        pair = self.frames.next_pair(self._component_length)
+        pair = self.frames.next_pair(self._component_length, now)
         if pair is None:
             return None
-        rec = self.frames.attempt(pair, self._component_map, t)
+        rec = self.frames.attempt(pair, self._component_map, t, now)
         if rec.accepted:
             self._replace_origins()
         return rec
@@ -1071,6 +1072,9 @@ class FusionState:
                 "stats": self.stats.as_dict(fresh_latency),
                 "latency_total": lat.total,
                 "latency_log": LATENCY_LOG,
+                # every registration attempt kept (FramesConfig.history), for report.json
+                **({"registrations": [r.as_dict() for r in self.frames.records]}
+                   if self.frames.active else {}),
             },
             latencies=[
                 (first + i, v, t) for i, (v, t) in enumerate(zip(*(a.tolist() for a in lat.tail(new))))
