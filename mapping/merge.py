@@ -366,28 +366,43 @@ def _not_other_face(
     def allowed(r: NDArray[np.intp], c: NDArray[np.intp]) -> NDArray[np.bool_]:
         if mbl == 0 or mbl == len(edges):
             return np.ones(len(r), dtype=bool)
-        # every (base wall, new wall) pair is tested once, as dense matrices; a candidate is
-        # vetoed when a vetoing pair has one wall at each of its corners
-        u = raw_d / np.where(raw_n > 0.0, raw_n, 1.0)[:, None]
-        ub, un = u[:mbl, None, :], u[None, mbl:, :]
-        anti = ub[..., 0] * un[..., 0] + ub[..., 1] * un[..., 1] <= -cos_tol  # pointing opposite ways
-        if not anti.any():
+        # Only the walls at a candidate's two corners can veto it, and a candidate has a few:
+        # each (base wall, new wall) pair at a candidate is tested in plain floats, by the same
+        # operations in the same order as the dense (base wall x new wall) matrices would
+        # (unit vectors, dot product, cross product with the offset), so the same vetoes.
+        r_l, c_l = r.tolist(), c.tolist()
+        want_b, want_n = set(r_l), {x + nlb for x in c_l}
+        walls: dict[int, list[int]] = {}
+        for k, (x, y) in enumerate(edges.tolist()):
+            mine = want_b if k < mbl else want_n
+            if x in mine:
+                walls.setdefault(x, []).append(k)
+            if y in mine:
+                walls.setdefault(y, []).append(k)
+        if not walls:
             return np.ones(len(r), dtype=bool)
-        rel = raw_a[None, mbl:, :] - raw_a[:mbl, None, :]
-        veto = anti & (np.abs(ub[..., 0] * rel[..., 1] - ub[..., 1] * rel[..., 0]) > 0.25 * thr)  # apart
-        if not veto.any():
-            return np.ones(len(r), dtype=bool)
-        eb, en = edges[:mbl], edges[mbl:] - nlb
-        inc_b = np.zeros((nlb, mbl))  # base corner x base wall at it (counts: exact in floats)
-        ar_b = np.arange(mbl)
-        inc_b[eb[:, 0], ar_b] = 1.0
-        inc_b[eb[:, 1], ar_b] = 1.0
-        inc_n = np.zeros((len(en), int(max(en.max(), c.max())) + 1))  # new wall x new corner
-        ar_n = np.arange(len(en))
-        inc_n[ar_n, en[:, 0]] = 1.0
-        inc_n[ar_n, en[:, 1]] = 1.0
-        hits = (inc_b[r] @ veto.astype(np.float64)) * inc_n.T[c]
-        return np.asarray(hits.sum(axis=1) == 0.0)
+        ks = sorted({k for ws in walls.values() for k in ws})
+        rd, rn, ra = raw_d[ks].tolist(), raw_n[ks].tolist(), raw_a[ks].tolist()
+        unit = {}
+        for k, (dx, dy), n, p in zip(ks, rd, rn, ra):
+            den = n if n > 0.0 else 1.0
+            unit[k] = (dx / den, dy / den, p[0], p[1])
+        lim = 0.25 * thr
+        out = []
+        for x, y in zip(r_l, c_l):
+            ok = True
+            for kb in walls.get(x, ()):
+                bx, by, ax, ay = unit[kb]
+                for kn in walls.get(y + nlb, ()):
+                    nx, ny, qx, qy = unit[kn]
+                    # pointing opposite ways, along lines more than thr / 4 apart
+                    if bx * nx + by * ny <= -cos_tol and abs(bx * (qy - ay) - by * (qx - ax)) > lim:
+                        ok = False
+                        break
+                if not ok:
+                    break
+            out.append(ok)
+        return np.array(out, dtype=bool)
 
     return allowed
 
