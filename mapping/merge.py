@@ -895,9 +895,17 @@ def _local_part(base: Wireframe, new: Wireframe, cfg: MergeConfig) -> _Local:
         grow = 2.0 * thr
         lo = new.points.min(axis=0) - grow
         hi = new.points.max(axis=0) + grow
-        if bool((bpts.min(axis=0) >= lo).all() and (bpts.max(axis=0) <= hi).all()):  # all of base is near
+        (lx, ly), (hx, hy) = lo.tolist(), hi.tolist()
+        (bx0, by0), (bx1, by1) = bpts.min(axis=0).tolist(), bpts.max(axis=0).tolist()
+        if bx0 >= lx and by0 >= ly and bx1 <= hx and by1 <= hy:  # all of base is near
             local_e = np.ones(mb, dtype=bool)
             local_v = np.ones(nb, dtype=bool)
+        elif bx1 < lx or by1 < ly or bx0 > hx or by0 > hy:
+            # base's box misses the grown box: so does every edge's box (inside base's) and
+            # every vertex, which the tests below would find one by one; nothing is local
+            lb = np.zeros(0, dtype=np.intp)
+            return _Local(np.zeros(mb, dtype=bool), np.zeros(nb, dtype=bool), False, False, bedges[:0], lb,
+                          0, nn, nn, 0, new.points.copy(), new.labels.astype(np.int64))
         else:
             pa, pb = bpts.take(bedges[:, 0], axis=0), bpts.take(bedges[:, 1], axis=0)
             local_e = ((np.maximum(pa, pb) >= lo) & (np.minimum(pa, pb) <= hi)).all(axis=1)
@@ -952,6 +960,8 @@ def _correspond(
     nlb, nn, nl, pos, lab = loc.nlb, loc.nn, loc.nl, loc.pos, loc.lab
     if loc.all_v:
         le_l = loc.le.astype(np.int64)
+    elif loc.mbl == 0:  # no local base edge
+        le_l = np.zeros((0, 2), dtype=np.int64)
     else:
         g2l = np.full(base.n_vertices, -1, dtype=np.int64)
         g2l[loc.lb] = np.arange(nlb)
@@ -1036,6 +1046,10 @@ def _kept_edges(
         lik_l = base.likelihood.tolist() + new.likelihood.tolist()
         src_l = base.sources.tolist() + new.sources.tolist()
         orig_l = list(range(mb + new.n_edges))  # input edge ids
+    elif mbl == 0:  # no local base edge
+        lik_l = new.likelihood.tolist()
+        src_l = new.sources.tolist()
+        orig_l = list(range(mb, mb + new.n_edges))
     else:
         lik_l = base.likelihood[local_e].tolist() + new.likelihood.tolist()
         src_l = base.sources[local_e].tolist() + new.sources.tolist()
@@ -1090,6 +1104,8 @@ def _collinear_groups(ed: _Edges, thr: float, cos_tol: float) -> tuple[list[int]
         pi_, pj_ = pi_[same_dir], pj_[same_dir]
     if len(pi_):
         pi_, pj_ = _related(a, b, u, length, pi_, pj_, thr, cos_tol, ed.raw_a, ed.raw_a + ed.raw_d)
+    if len(pi_) == 0:  # nothing related (most merges of maps apart): every edge alone
+        return list(range(k)), {}
     # Union-find by hand, roots the smallest index: scipy.sparse.csgraph.connected_components
     # gives the same groups (renumbered by their smallest edge) but costs 410 us per filter
     # merge against 12 us (530 vs 700 us on 600-860-edge fusion merges; medians, recorded calls).
@@ -1229,7 +1245,10 @@ def _group_spans(
 
     # singletons, and the edges of multi-edge groups skipped above, pass as singletons
     handled = {info[0] for info in grp_info}
-    single_list = [x for x, cx in enumerate(comp_l) if cx == x and x not in members]
+    if members:
+        single_list = [x for x, cx in enumerate(comp_l) if cx == x and x not in members]
+    else:  # no groups: every edge passes alone
+        single_list = list(range(len(comp_l)))
     skipped = [e for cid, eds in members.items() if cid not in handled for e in eds]
     if skipped:
         single_list = sorted(single_list + skipped)
@@ -1276,11 +1295,15 @@ def _t_junctions(
         vi, gi = vi[near], gi[near]
     if len(vi):
         gcomp = [info[0] for info in grp.grp_info] + [comp_l[e] for e in single_list]
-        incident: dict[int, list[int]] = {}
+        vs_l = cand_v[vi].tolist()
+        wanted = set(vs_l)
+        incident: dict[int, list[int]] = {}  # the walls at those corners, in edge order
         for f, (x, y) in enumerate(edges_l):
-            incident.setdefault(x, []).append(f)
-            incident.setdefault(y, []).append(f)
-        for v, g in zip(cand_v[vi].tolist(), gi.tolist()):
+            if x in wanted:
+                incident.setdefault(x, []).append(f)
+            if y in wanted:
+                incident.setdefault(y, []).append(f)
+        for v, g in zip(vs_l, gi.tolist()):
             gx, gy = gu_l[g]
             own = gcomp[g]
             px, py = pos_l[v]
@@ -1627,14 +1650,14 @@ def _assemble(
             gmap_l = list(range(total))
             for x, g in enumerate(gid_l):
                 gmap_l[g] = gid_l[rx_l[snap_l[x]]]
-            far_l = np.flatnonzero(~loc.local_e).tolist()
-            be_l = bedges[far_l].tolist()
+            far = ~loc.local_e
+            be_l = bedges.compress(far, axis=0).tolist()
             eu_l = [gmap_l[x] for x, _ in be_l] + eu_l
             ev_l = [gmap_l[y] for _, y in be_l] + ev_l
-            el_l = base.likelihood[far_l].tolist() + el_l
-            es_l = base.sources[far_l].tolist() + es_l
+            el_l = base.likelihood.compress(far).tolist() + el_l
+            es_l = base.sources.compress(far).tolist() + es_l
             if trace:
-                prov_l = [[x] for x in far_l] + prov_l
+                prov_l = [[x] for x in np.flatnonzero(far).tolist()] + prov_l
         kept_v = None if loc.all_v else (~loc.local_v).tolist()
         return _assemble_lists(all_pos_l, all_lab_l, kept_v, eu_l, ev_l, el_l, es_l, prov_l, trace)
     gid = np.concatenate([loc.lb, np.arange(nb, total)]) if nn else loc.lb
