@@ -23,6 +23,7 @@ from __future__ import annotations
 import argparse
 import cProfile
 import hashlib
+import importlib
 import pickle
 import pstats
 import statistics
@@ -42,9 +43,11 @@ def main() -> None:
     from agents.bench.common import DEFAULT_CACHE, load_recording
     from agents.bench.tree import synthetic_recordings
     from agents.fleet.fusion import FusionConfig, FusionState, encode_message
-    from agents.fleet.fusion.state import default_merge
     from agents.fleet.robot import robot_map_message
     from mapping.se2 import Pose
+
+    merge_module = importlib.import_module("mapping.merge")  # (``mapping.merge`` is also the function)
+    plain_merge = merge_module.merge
 
     recs = [load_recording(p) for p in synthetic_recordings("museum", args.robots, 0, DEFAULT_CACHE, 0.05)]
     t0 = 1_700_000_000 * 10**9
@@ -53,16 +56,17 @@ def main() -> None:
     counting = [False]
     j_now = [0]
 
-    def timed_merge(a: Any, b: Any, thr: float) -> Any:
+    def timed_merge(a: Any, b: Any, config: Any = None, cache: Any = None) -> Any:
         t = time.thread_time()
-        out = default_merge(a, b, thr)
+        out = plain_merge(a, b, config, cache)
         if counting[0]:
             inside[0] += time.thread_time() - t
             if args.dump:
-                dumped.append((j_now[0], a, b, thr))
+                dumped.append((j_now[0], a, b, config.threshold))
         return out
 
-    st = FusionState(FusionConfig(threshold=0.4), merge_fn=timed_merge)
+    merge_module.merge = timed_merge  # the fusion's default merge function calls it (any checkout)
+    st = FusionState(FusionConfig(threshold=0.4))
     digest = hashlib.sha256()
     prof = cProfile.Profile()
     per_fuse: list[float] = []
@@ -102,7 +106,8 @@ def main() -> None:
           f"(median; mean {1000 * statistics.fmean(per_fuse):.2f}), merges per fuse "
           f"{statistics.median(merges):g} (mean {statistics.fmean(merges):.1f}), "
           f"{1000 * in_merge / n:.2f} ms per fuse inside merge; then a realign "
-          f"{1000 * statistics.fmean(aligning):.2f} ms (mean); fused maps {digest.hexdigest()[:16]}")
+          f"{1000 * statistics.fmean(aligning):.2f} ms (mean); fused maps {digest.hexdigest()[:16]}"
+          + (f"; merge cache hits {st.merge_fn.cache.hits}" if hasattr(st.merge_fn, "cache") else ""))
     if args.profile:
         pstats.Stats(prof).sort_stats("tottime").print_stats(30)
     if args.dump:
