@@ -371,16 +371,21 @@ def _not_other_face(
         # operations in the same order as the dense (base wall x new wall) matrices would
         # (unit vectors, dot product, cross product with the offset), so the same vetoes.
         r_l, c_l = r.tolist(), c.tolist()
-        want_b, want_n = set(r_l), {x + nlb for x in c_l}
-        walls: dict[int, list[int]] = {}
-        for k, (x, y) in enumerate(edges.tolist()):
-            mine = want_b if k < mbl else want_n
-            if x in mine:
-                walls.setdefault(x, []).append(k)
-            if y in mine:
-                walls.setdefault(y, []).append(k)
-        if not walls:
+        # the walls at a candidate corner (base walls join base corners < nlb, new walls new
+        # ones), in edge order
+        at = np.zeros(max(int(edges.max()), nlb + int(c.max())) + 1, dtype=bool)
+        at[r] = True
+        at[c + nlb] = True
+        sel = np.flatnonzero(at[edges[:, 0]] | at[edges[:, 1]])
+        if len(sel) == 0:
             return np.ones(len(r), dtype=bool)
+        at_l = at.tolist()
+        walls: dict[int, list[int]] = {}
+        for k, (x, y) in zip(sel.tolist(), edges.take(sel, axis=0).tolist()):
+            if at_l[x]:
+                walls.setdefault(x, []).append(k)
+            if at_l[y]:
+                walls.setdefault(y, []).append(k)
         ks = sorted({k for ws in walls.values() for k in ws})
         rd, rn, ra = raw_d[ks].tolist(), raw_n[ks].tolist(), raw_a[ks].tolist()
         unit = {}
@@ -490,35 +495,6 @@ def _may_absorb(
     return True
 
 
-def _valid_wireframe(
-    points: NDArray[np.float64],
-    labels: NDArray[np.uint8],
-    edges: NDArray[np.int64],
-    likelihood: NDArray[np.float64],
-    sources: MaskArray,
-) -> Wireframe:
-    """``Wireframe(points, labels, edges, likelihood, sources)`` for arrays that are valid by
-    construction (a merge's result: indices in range, no self-loops, finite coordinates,
-    likelihoods in [0, 1]): the same fresh read-only arrays of the same dtypes, without
-    ``Wireframe.__post_init__``'s checks, which cost as much as a tenth of a small merge."""
-    wf = object.__new__(Wireframe)
-    for name, arr, dtype in (
-        ("points", points.reshape(-1, 2), np.float64),
-        ("labels", labels, np.uint8),
-        ("edges", edges.reshape(-1, 2), np.int32),
-        ("likelihood", likelihood, np.float64),
-        ("sources", sources, np.uint64),
-    ):
-        # masks past bit 63 (fleets of more than 64 robots) stay Python ints (as_masks)
-        if name == "sources" and arr.dtype == object:
-            a = as_masks(arr)
-        else:
-            a = np.array(arr, dtype=dtype, order="C")
-        a.setflags(write=False)
-        object.__setattr__(wf, name, a)
-    return wf
-
-
 def _assemble_lists(
     pos: list[list[float]],
     lab: list[int],
@@ -577,17 +553,19 @@ def _assemble_lists(
         used[x] = True
     for x in ev:
         used[x] = True
-    remap = [0] * total
-    kept: list[int] = []
-    for x in range(total):
-        if used[x]:
-            remap[x] = len(kept)
-            kept.append(x)
-    merged = _valid_wireframe(
-        np.array([pos[x] for x in kept], dtype=np.float64),
+    kept = [x for x, u in enumerate(used) if u]
+    if len(kept) == total:  # every vertex stays: the ids do not change
+        pairs = list(zip(eu, ev))
+    else:
+        remap = [0] * total
+        for i, x in enumerate(kept):
+            remap[x] = i
+        pairs = [(remap[x], remap[y]) for x, y in zip(eu, ev)]
+    # fresh arrays of the stored dtypes, valid by construction (Wireframe.checked: no copies)
+    merged = Wireframe.checked(
+        np.array([pos[x] for x in kept], dtype=np.float64).reshape(-1, 2),
         np.array([lab[x] for x in kept], dtype=np.uint8),
-        np.stack((np.array([remap[x] for x in eu], dtype=np.int64),
-                  np.array([remap[y] for y in ev], dtype=np.int64)), axis=1),
+        np.array(pairs, dtype=np.int32).reshape(-1, 2),
         np.array(el, dtype=np.float64),
         as_masks(es),
     )
