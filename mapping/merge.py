@@ -1095,7 +1095,14 @@ def _collinear_groups(ed: _Edges, thr: float, cos_tol: float) -> tuple[list[int]
                 eparent[ry] = rx
             else:
                 eparent[rx] = ry
-    comp_l = [_find(eparent, x) for x in range(k)]
+    # a parent always has a smaller index than its child (a root takes the larger root as its
+    # child; compression points at the root): in increasing order, each edge's root is known
+    # from its parent's (the same roots as _find on each edge)
+    comp_l = list(range(k))
+    for x in range(k):
+        px = eparent[x]
+        if px != x:
+            comp_l[x] = comp_l[px]
     members: dict[int, list[int]] = {}
     multi = sorted({cx for x, cx in enumerate(comp_l) if cx != x})
     if multi:
@@ -1249,10 +1256,16 @@ def _t_junctions(
     if not (ng and cand_l):
         return splits
     cand_v = np.array(cand_l, dtype=np.intp)
-    gu = np.array(gu_l, dtype=np.float64)
-    go = np.array(grp.go_l, dtype=np.float64)
-    gt0 = np.array(grp.g_t0 + [0.0] * len(single_list), dtype=np.float64)
-    gt1 = np.array(grp.g_t1 + [len_l[e] for e in single_list], dtype=np.float64)
+    if grp.n_multi == 0 and len(single_list) == ed.k:
+        # no group: the walls are the edges in order, their lines the edges' own (the same
+        # floats as the lists hold: u_l, a_l and len_l are these arrays' tolist())
+        gu, go, gt1 = ed.u, ed.a, ed.length
+        gt0 = np.zeros(ng, dtype=np.float64)
+    else:
+        gu = np.array(gu_l, dtype=np.float64)
+        go = np.array(grp.go_l, dtype=np.float64)
+        gt0 = np.array(grp.g_t0 + [0.0] * len(single_list), dtype=np.float64)
+        gt1 = np.array(grp.g_t1 + [len_l[e] for e in single_list], dtype=np.float64)
     if ng * len(cand_l) <= _DENSE_NEAR_MAX:
         rel = cs.pos.take(cand_v, axis=0)[:, None, :] - go[None, :, :]
         off = gu[None, :, 0] * rel[..., 1] - gu[None, :, 1] * rel[..., 0]
