@@ -379,6 +379,19 @@ def _not_other_face(
         sel = np.flatnonzero(at[edges[:, 0]] | at[edges[:, 1]])
         if len(sel) == 0:
             return np.ones(len(r), dtype=bool)
+        if len(r) > 8:
+            # many candidates (two maps of the same walls): first whether any base wall at a
+            # candidate corner and any new wall at one point opposite ways at all (rarely:
+            # the two faces of a wall); if none, nothing is vetoed
+            kb, kn = sel[sel < mbl], sel[sel >= mbl]
+            if len(kb) == 0 or len(kn) == 0:
+                return np.ones(len(r), dtype=bool)
+            nb_, nn_ = raw_n[kb], raw_n[kn]
+            ub = raw_d.take(kb, axis=0) / np.where(nb_ > 0.0, nb_, 1.0)[:, None]
+            un = raw_d.take(kn, axis=0) / np.where(nn_ > 0.0, nn_, 1.0)[:, None]
+            if not (np.multiply.outer(ub[:, 0], un[:, 0]) + np.multiply.outer(ub[:, 1], un[:, 1])
+                    <= -cos_tol).any():
+                return np.ones(len(r), dtype=bool)
         at_l = at.tolist()
         walls: dict[int, list[int]] = {}
         for k, (x, y) in zip(sel.tolist(), edges.take(sel, axis=0).tolist()):
@@ -1420,8 +1433,15 @@ def _settle_corners(
     which takes the best label in the class (paper Sec. IV-E's label order: nominal, occlusion,
     frontier) and that member's position; split corners are nominal; then
     :func:`_snap_to_lines`. Returns each local corner's root and the labels (by local id)."""
-    nl = len(cs.parent)
-    root_l = [_find(cs.parent, x) for x in range(nl)]
+    parent = cs.parent
+    nl = len(parent)
+    root_l = list(parent)  # each corner's root (the forest is not read after this step)
+    for x in range(nl):
+        rx = root_l[x]
+        if rx != x:
+            while parent[rx] != rx:
+                rx = parent[rx]
+            root_l[x] = rx
     pos_l, fixed_l = cs.pos_l, cs.fixed_l
     lab_out = cs.lab_l  # (cs.lab_l is not used after this step)
     for v in plan.nominal:
