@@ -50,9 +50,6 @@ class ServeOptions:
         (the counters themselves are always current).
     align_wait_s : an ICP re-alignment (the slow path) runs after a publish when no map is
         waiting, or when none has run for this long even though maps keep waiting.
-    catch_up : after taking the queue, take the maps that arrived meanwhile (while the queue
-        was decoded) before fusing, up to this many more times: each would otherwise wait for
-        this fuse and the next one (issue 21). 0: fuse what the first drain took.
     limits : :class:`InputLimits` (what is accepted from the bus).
     reset : start empty when the store cannot be recovered (its files moved aside) instead of
         refusing to start (:class:`~agents.fleet.fusion.store.StoreDamaged`).
@@ -78,7 +75,6 @@ class ServeOptions:
     full_after_s: float = 0.5
     latency_summary_s: float = 1.0
     align_wait_s: float = 0.5
-    catch_up: int = 2
     reset: bool = False
     frames: FramesConfig = field(default_factory=FramesConfig)
     quarantine: QuarantineConfig | None = field(default_factory=QuarantineConfig)
@@ -499,8 +495,8 @@ class FusionService:
             self._stats_doc = data
 
     def poll(self, timeout: float = 0.05) -> None:
-        """One iteration: take every map that arrived (the whole queue, then what arrived
-        while it was decoded, ``catch_up`` times at most), fuse once (the fast path), publish once, hand the store to the writer thread, log. When no map has
+        """One iteration: take every map that arrived (the whole queue), fuse once (the fast
+        path), publish once, hand the store to the writer thread, log. When no map has
         changed for ``full_after_s`` and the fused map is not the full path's, the full path
         runs instead (at most once per quiet period: afterwards it is converged)."""
         st = self.state
@@ -513,10 +509,6 @@ class FusionService:
         items = self.intake.drain_timed(timeout)
         t1 = clock()
         self._take(items)
-        for _ in range(self.opts.catch_up):  # what came while those were decoded joins this fuse
-            if self.intake.empty:
-                break
-            self._take(self.intake.drain_timed(0.0))
         t2 = clock()
         self.timing["wait"] += t1 - t0
         self.timing["decode"] += t2 - t1
