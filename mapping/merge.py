@@ -383,12 +383,12 @@ def _not_other_face(
             # many candidates (two maps of the same walls): first whether any base wall at a
             # candidate corner and any new wall at one point opposite ways at all (rarely:
             # the two faces of a wall); if none, nothing is vetoed
-            kb, kn = sel[sel < mbl], sel[sel >= mbl]
-            if len(kb) == 0 or len(kn) == 0:
+            sel_b, sel_n = sel[sel < mbl], sel[sel >= mbl]
+            if len(sel_b) == 0 or len(sel_n) == 0:
                 return np.ones(len(r), dtype=bool)
-            nb_, nn_ = raw_n[kb], raw_n[kn]
-            ub = raw_d.take(kb, axis=0) / np.where(nb_ > 0.0, nb_, 1.0)[:, None]
-            un = raw_d.take(kn, axis=0) / np.where(nn_ > 0.0, nn_, 1.0)[:, None]
+            nb_, nn_ = raw_n[sel_b], raw_n[sel_n]
+            ub = raw_d.take(sel_b, axis=0) / np.where(nb_ > 0.0, nb_, 1.0)[:, None]
+            un = raw_d.take(sel_n, axis=0) / np.where(nn_ > 0.0, nn_, 1.0)[:, None]
             if not (np.multiply.outer(ub[:, 0], un[:, 0]) + np.multiply.outer(ub[:, 1], un[:, 1])
                     <= -cos_tol).any():
                 return np.ones(len(r), dtype=bool)

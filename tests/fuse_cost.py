@@ -2,17 +2,18 @@
 [--profile] [--dump FILE]``): ``--robots`` synthetic museum robots
 (:func:`agents.bench.tree.synthetic_recordings`, as ``wiremap bench fleet --synthetic`` replays
 them), robot ``k``'s ``j``-th map its recording's frame ``(j + k) mod frames`` (they loop, as
-the bench's replay robots do), two robots of three sending each round (about 43 of 64 leaves
-change between two fuses, as in the bench at 64 robots), a fast fuse after every round
-(``max_realign=0``, timed: what a map waits for) then one re-alignment (``realign(limit=1)``,
-timed apart: the service runs it after the publish); the first ``--warm`` rounds are not counted (the fleet's first fuses
-align every robot).
+the bench's replay robots do), two robots of three sending each round: at 64 robots about 20
+of the 64 leaves change between two fuses (28 of those recordings have one frame only). After
+every round a fast fuse (``max_realign=0``, timed: what a map waits for), then one
+re-alignment (``realign(limit=1)``, timed apart: the service runs it after the publish); the
+first ``--warm`` rounds are not counted (the fleet's first fuses align every robot).
 
-Prints the median and mean thread-time milliseconds per fuse (and the mean per realign), the merges per fuse (node merges
-with two non-empty sides), the milliseconds inside the merge function, and a hash of every
-fused map in turn (two checkouts fuse alike exactly when the hashes agree). ``--profile``
-adds cProfile's top 30 over the counted fuses; ``--dump FILE`` pickles every merge's inputs
-``(round, base, new, threshold)`` of the counted fuses (to time the merge alone).
+Prints the median and mean thread-time milliseconds per fuse (and the mean per realign), the
+merges per fuse (node merges with two non-empty sides), the milliseconds inside the merge
+function, and a hash of every fused map in turn (two checkouts fuse alike exactly when the
+hashes agree). ``--profile`` adds cProfile's top 30 over the counted fuses; ``--dump FILE``
+pickles every merge's inputs ``(round, base, new, threshold)`` of the counted fuses (to time
+the merge alone).
 
 A development measurement (figures in ``docs/experiments.md``), not one of ``wiremap bench``'s
 benchmarks. To compare two checkouts: ``PYTHONPATH=CHECKOUT python tests/fuse_cost.py``.
