@@ -366,28 +366,61 @@ def _not_other_face(
     def allowed(r: NDArray[np.intp], c: NDArray[np.intp]) -> NDArray[np.bool_]:
         if mbl == 0 or mbl == len(edges):
             return np.ones(len(r), dtype=bool)
-        # every (base wall, new wall) pair is tested once, as dense matrices; a candidate is
-        # vetoed when a vetoing pair has one wall at each of its corners
-        u = raw_d / np.where(raw_n > 0.0, raw_n, 1.0)[:, None]
-        ub, un = u[:mbl, None, :], u[None, mbl:, :]
-        anti = ub[..., 0] * un[..., 0] + ub[..., 1] * un[..., 1] <= -cos_tol  # pointing opposite ways
-        if not anti.any():
+        # Only the walls at a candidate's two corners can veto it, and a candidate has a few:
+        # each (base wall, new wall) pair at a candidate is tested in plain floats, by the same
+        # operations in the same order as the dense (base wall x new wall) matrices would
+        # (unit vectors, dot product, cross product with the offset), so the same vetoes.
+        r_l, c_l = r.tolist(), c.tolist()
+        # the walls at a candidate corner (base walls join base corners < nlb, new walls new
+        # ones), in edge order
+        at = np.zeros(max(int(edges.max()), nlb + int(c.max())) + 1, dtype=bool)
+        at[r] = True
+        at[c + nlb] = True
+        sel = np.flatnonzero(at[edges[:, 0]] | at[edges[:, 1]])
+        if len(sel) == 0:
             return np.ones(len(r), dtype=bool)
-        rel = raw_a[None, mbl:, :] - raw_a[:mbl, None, :]
-        veto = anti & (np.abs(ub[..., 0] * rel[..., 1] - ub[..., 1] * rel[..., 0]) > 0.25 * thr)  # apart
-        if not veto.any():
-            return np.ones(len(r), dtype=bool)
-        eb, en = edges[:mbl], edges[mbl:] - nlb
-        inc_b = np.zeros((nlb, mbl))  # base corner x base wall at it (counts: exact in floats)
-        ar_b = np.arange(mbl)
-        inc_b[eb[:, 0], ar_b] = 1.0
-        inc_b[eb[:, 1], ar_b] = 1.0
-        inc_n = np.zeros((len(en), int(max(en.max(), c.max())) + 1))  # new wall x new corner
-        ar_n = np.arange(len(en))
-        inc_n[ar_n, en[:, 0]] = 1.0
-        inc_n[ar_n, en[:, 1]] = 1.0
-        hits = (inc_b[r] @ veto.astype(np.float64)) * inc_n.T[c]
-        return np.asarray(hits.sum(axis=1) == 0.0)
+        if len(r) > 8:
+            # many candidates (two maps of the same walls): first whether any base wall at a
+            # candidate corner and any new wall at one point opposite ways at all (rarely:
+            # the two faces of a wall); if none, nothing is vetoed
+            sel_b, sel_n = sel[sel < mbl], sel[sel >= mbl]
+            if len(sel_b) == 0 or len(sel_n) == 0:
+                return np.ones(len(r), dtype=bool)
+            nb_, nn_ = raw_n[sel_b], raw_n[sel_n]
+            ub = raw_d.take(sel_b, axis=0) / np.where(nb_ > 0.0, nb_, 1.0)[:, None]
+            un = raw_d.take(sel_n, axis=0) / np.where(nn_ > 0.0, nn_, 1.0)[:, None]
+            if not (np.multiply.outer(ub[:, 0], un[:, 0]) + np.multiply.outer(ub[:, 1], un[:, 1])
+                    <= -cos_tol).any():
+                return np.ones(len(r), dtype=bool)
+        at_l = at.tolist()
+        walls: dict[int, list[int]] = {}
+        for k, (x, y) in zip(sel.tolist(), edges.take(sel, axis=0).tolist()):
+            if at_l[x]:
+                walls.setdefault(x, []).append(k)
+            if at_l[y]:
+                walls.setdefault(y, []).append(k)
+        ks = sorted({k for ws in walls.values() for k in ws})
+        rd, rn, ra = raw_d[ks].tolist(), raw_n[ks].tolist(), raw_a[ks].tolist()
+        unit = {}
+        for k, (dx, dy), n, p in zip(ks, rd, rn, ra):
+            den = n if n > 0.0 else 1.0
+            unit[k] = (dx / den, dy / den, p[0], p[1])
+        lim = 0.25 * thr
+        out = []
+        for x, y in zip(r_l, c_l):
+            ok = True
+            for kb in walls.get(x, ()):
+                bx, by, ax, ay = unit[kb]
+                for kn in walls.get(y + nlb, ()):
+                    nx, ny, qx, qy = unit[kn]
+                    # pointing opposite ways, along lines more than thr / 4 apart
+                    if bx * nx + by * ny <= -cos_tol and abs(bx * (qy - ay) - by * (qx - ax)) > lim:
+                        ok = False
+                        break
+                if not ok:
+                    break
+            out.append(ok)
+        return np.array(out, dtype=bool)
 
     return allowed
 
@@ -475,35 +508,6 @@ def _may_absorb(
     return True
 
 
-def _valid_wireframe(
-    points: NDArray[np.float64],
-    labels: NDArray[np.uint8],
-    edges: NDArray[np.int64],
-    likelihood: NDArray[np.float64],
-    sources: MaskArray,
-) -> Wireframe:
-    """``Wireframe(points, labels, edges, likelihood, sources)`` for arrays that are valid by
-    construction (a merge's result: indices in range, no self-loops, finite coordinates,
-    likelihoods in [0, 1]): the same fresh read-only arrays of the same dtypes, without
-    ``Wireframe.__post_init__``'s checks, which cost as much as a tenth of a small merge."""
-    wf = object.__new__(Wireframe)
-    for name, arr, dtype in (
-        ("points", points.reshape(-1, 2), np.float64),
-        ("labels", labels, np.uint8),
-        ("edges", edges.reshape(-1, 2), np.int32),
-        ("likelihood", likelihood, np.float64),
-        ("sources", sources, np.uint64),
-    ):
-        # masks past bit 63 (fleets of more than 64 robots) stay Python ints (as_masks)
-        if name == "sources" and arr.dtype == object:
-            a = as_masks(arr)
-        else:
-            a = np.array(arr, dtype=dtype, order="C")
-        a.setflags(write=False)
-        object.__setattr__(wf, name, a)
-    return wf
-
-
 def _assemble_lists(
     pos: list[list[float]],
     lab: list[int],
@@ -562,17 +566,19 @@ def _assemble_lists(
         used[x] = True
     for x in ev:
         used[x] = True
-    remap = [0] * total
-    kept: list[int] = []
-    for x in range(total):
-        if used[x]:
-            remap[x] = len(kept)
-            kept.append(x)
-    merged = _valid_wireframe(
-        np.array([pos[x] for x in kept], dtype=np.float64),
+    kept = [x for x, u in enumerate(used) if u]
+    if len(kept) == total:  # every vertex stays: the ids do not change
+        pairs = list(zip(eu, ev))
+    else:
+        remap = [0] * total
+        for i, x in enumerate(kept):
+            remap[x] = i
+        pairs = [(remap[x], remap[y]) for x, y in zip(eu, ev)]
+    # fresh arrays of the stored dtypes, valid by construction (Wireframe.checked: no copies)
+    merged = Wireframe.checked(
+        np.array([pos[x] for x in kept], dtype=np.float64).reshape(-1, 2),
         np.array([lab[x] for x in kept], dtype=np.uint8),
-        np.stack((np.array([remap[x] for x in eu], dtype=np.int64),
-                  np.array([remap[y] for y in ev], dtype=np.int64)), axis=1),
+        np.array(pairs, dtype=np.int32).reshape(-1, 2),
         np.array(el, dtype=np.float64),
         as_masks(es),
     )
@@ -880,9 +886,17 @@ def _local_part(base: Wireframe, new: Wireframe, cfg: MergeConfig) -> _Local:
         grow = 2.0 * thr
         lo = new.points.min(axis=0) - grow
         hi = new.points.max(axis=0) + grow
-        if bool((bpts.min(axis=0) >= lo).all() and (bpts.max(axis=0) <= hi).all()):  # all of base is near
+        (lx, ly), (hx, hy) = lo.tolist(), hi.tolist()
+        (bx0, by0), (bx1, by1) = bpts.min(axis=0).tolist(), bpts.max(axis=0).tolist()
+        if bx0 >= lx and by0 >= ly and bx1 <= hx and by1 <= hy:  # all of base is near
             local_e = np.ones(mb, dtype=bool)
             local_v = np.ones(nb, dtype=bool)
+        elif bx1 < lx or by1 < ly or bx0 > hx or by0 > hy:
+            # base's box misses the grown box: so does every edge's box (inside base's) and
+            # every vertex, which the tests below would find one by one; nothing is local
+            lb = np.zeros(0, dtype=np.intp)
+            return _Local(np.zeros(mb, dtype=bool), np.zeros(nb, dtype=bool), False, False, bedges[:0], lb,
+                          0, nn, nn, 0, new.points.copy(), new.labels.astype(np.int64))
         else:
             pa, pb = bpts.take(bedges[:, 0], axis=0), bpts.take(bedges[:, 1], axis=0)
             local_e = ((np.maximum(pa, pb) >= lo) & (np.minimum(pa, pb) <= hi)).all(axis=1)
@@ -937,6 +951,8 @@ def _correspond(
     nlb, nn, nl, pos, lab = loc.nlb, loc.nn, loc.nl, loc.pos, loc.lab
     if loc.all_v:
         le_l = loc.le.astype(np.int64)
+    elif loc.mbl == 0:  # no local base edge
+        le_l = np.zeros((0, 2), dtype=np.int64)
     else:
         g2l = np.full(base.n_vertices, -1, dtype=np.int64)
         g2l[loc.lb] = np.arange(nlb)
@@ -1021,6 +1037,10 @@ def _kept_edges(
         lik_l = base.likelihood.tolist() + new.likelihood.tolist()
         src_l = base.sources.tolist() + new.sources.tolist()
         orig_l = list(range(mb + new.n_edges))  # input edge ids
+    elif mbl == 0:  # no local base edge
+        lik_l = new.likelihood.tolist()
+        src_l = new.sources.tolist()
+        orig_l = list(range(mb, mb + new.n_edges))
     else:
         lik_l = base.likelihood[local_e].tolist() + new.likelihood.tolist()
         src_l = base.sources[local_e].tolist() + new.sources.tolist()
@@ -1075,6 +1095,8 @@ def _collinear_groups(ed: _Edges, thr: float, cos_tol: float) -> tuple[list[int]
         pi_, pj_ = pi_[same_dir], pj_[same_dir]
     if len(pi_):
         pi_, pj_ = _related(a, b, u, length, pi_, pj_, thr, cos_tol, ed.raw_a, ed.raw_a + ed.raw_d)
+    if len(pi_) == 0:  # nothing related (most merges of maps apart): every edge alone
+        return list(range(k)), {}
     # Union-find by hand, roots the smallest index: scipy.sparse.csgraph.connected_components
     # gives the same groups (renumbered by their smallest edge) but costs 410 us per filter
     # merge against 12 us (530 vs 700 us on 600-860-edge fusion merges; medians, recorded calls).
@@ -1086,7 +1108,14 @@ def _collinear_groups(ed: _Edges, thr: float, cos_tol: float) -> tuple[list[int]
                 eparent[ry] = rx
             else:
                 eparent[rx] = ry
-    comp_l = [_find(eparent, x) for x in range(k)]
+    # a parent always has a smaller index than its child (a root takes the larger root as its
+    # child; compression points at the root): in increasing order, each edge's root is known
+    # from its parent's (the same roots as _find on each edge)
+    comp_l = list(range(k))
+    for x in range(k):
+        px = eparent[x]
+        if px != x:
+            comp_l[x] = comp_l[px]
     members: dict[int, list[int]] = {}
     multi = sorted({cx for x, cx in enumerate(comp_l) if cx != x})
     if multi:
@@ -1214,7 +1243,10 @@ def _group_spans(
 
     # singletons, and the edges of multi-edge groups skipped above, pass as singletons
     handled = {info[0] for info in grp_info}
-    single_list = [x for x, cx in enumerate(comp_l) if cx == x and x not in members]
+    if members:
+        single_list = [x for x, cx in enumerate(comp_l) if cx == x and x not in members]
+    else:  # no groups: every edge passes alone
+        single_list = list(range(len(comp_l)))
     skipped = [e for cid, eds in members.items() if cid not in handled for e in eds]
     if skipped:
         single_list = sorted(single_list + skipped)
@@ -1237,10 +1269,16 @@ def _t_junctions(
     if not (ng and cand_l):
         return splits
     cand_v = np.array(cand_l, dtype=np.intp)
-    gu = np.array(gu_l, dtype=np.float64)
-    go = np.array(grp.go_l, dtype=np.float64)
-    gt0 = np.array(grp.g_t0 + [0.0] * len(single_list), dtype=np.float64)
-    gt1 = np.array(grp.g_t1 + [len_l[e] for e in single_list], dtype=np.float64)
+    if grp.n_multi == 0 and len(single_list) == ed.k:
+        # no group: the walls are the edges in order, their lines the edges' own (the same
+        # floats as the lists hold: u_l, a_l and len_l are these arrays' tolist())
+        gu, go, gt1 = ed.u, ed.a, ed.length
+        gt0 = np.zeros(ng, dtype=np.float64)
+    else:
+        gu = np.array(gu_l, dtype=np.float64)
+        go = np.array(grp.go_l, dtype=np.float64)
+        gt0 = np.array(grp.g_t0 + [0.0] * len(single_list), dtype=np.float64)
+        gt1 = np.array(grp.g_t1 + [len_l[e] for e in single_list], dtype=np.float64)
     if ng * len(cand_l) <= _DENSE_NEAR_MAX:
         rel = cs.pos.take(cand_v, axis=0)[:, None, :] - go[None, :, :]
         off = gu[None, :, 0] * rel[..., 1] - gu[None, :, 1] * rel[..., 0]
@@ -1261,11 +1299,15 @@ def _t_junctions(
         vi, gi = vi[near], gi[near]
     if len(vi):
         gcomp = [info[0] for info in grp.grp_info] + [comp_l[e] for e in single_list]
-        incident: dict[int, list[int]] = {}
+        vs_l = cand_v[vi].tolist()
+        wanted = set(vs_l)
+        incident: dict[int, list[int]] = {}  # the walls at those corners, in edge order
         for f, (x, y) in enumerate(edges_l):
-            incident.setdefault(x, []).append(f)
-            incident.setdefault(y, []).append(f)
-        for v, g in zip(cand_v[vi].tolist(), gi.tolist()):
+            if x in wanted:
+                incident.setdefault(x, []).append(f)
+            if y in wanted:
+                incident.setdefault(y, []).append(f)
+        for v, g in zip(vs_l, gi.tolist()):
             gx, gy = gu_l[g]
             own = gcomp[g]
             px, py = pos_l[v]
@@ -1391,8 +1433,15 @@ def _settle_corners(
     which takes the best label in the class (paper Sec. IV-E's label order: nominal, occlusion,
     frontier) and that member's position; split corners are nominal; then
     :func:`_snap_to_lines`. Returns each local corner's root and the labels (by local id)."""
-    nl = len(cs.parent)
-    root_l = [_find(cs.parent, x) for x in range(nl)]
+    parent = cs.parent
+    nl = len(parent)
+    root_l = list(parent)  # each corner's root (the forest is not read after this step)
+    for x in range(nl):
+        rx = root_l[x]
+        if rx != x:
+            while parent[rx] != rx:
+                rx = parent[rx]
+            root_l[x] = rx
     pos_l, fixed_l = cs.pos_l, cs.fixed_l
     lab_out = cs.lab_l  # (cs.lab_l is not used after this step)
     for v in plan.nominal:
@@ -1612,14 +1661,14 @@ def _assemble(
             gmap_l = list(range(total))
             for x, g in enumerate(gid_l):
                 gmap_l[g] = gid_l[rx_l[snap_l[x]]]
-            far_l = np.flatnonzero(~loc.local_e).tolist()
-            be_l = bedges[far_l].tolist()
+            far = ~loc.local_e
+            be_l = bedges.compress(far, axis=0).tolist()
             eu_l = [gmap_l[x] for x, _ in be_l] + eu_l
             ev_l = [gmap_l[y] for _, y in be_l] + ev_l
-            el_l = base.likelihood[far_l].tolist() + el_l
-            es_l = base.sources[far_l].tolist() + es_l
+            el_l = base.likelihood.compress(far).tolist() + el_l
+            es_l = base.sources.compress(far).tolist() + es_l
             if trace:
-                prov_l = [[x] for x in far_l] + prov_l
+                prov_l = [[x] for x in np.flatnonzero(far).tolist()] + prov_l
         kept_v = None if loc.all_v else (~loc.local_v).tolist()
         return _assemble_lists(all_pos_l, all_lab_l, kept_v, eu_l, ev_l, el_l, es_l, prov_l, trace)
     gid = np.concatenate([loc.lb, np.arange(nb, total)]) if nn else loc.lb

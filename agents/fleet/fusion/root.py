@@ -14,7 +14,8 @@ partial maps (``wiremap/<fleet>/groups/<NAME>/map``) into the fleet's fused map.
   fused publish that includes it (end to end, the figure of the one-process service);
   ``root_ms`` from a partial's publish to that fused publish (the root's level); with
   ``--store DIR`` the end-to-end samples go to ``DIR/latency.log`` and the map to
-  ``DIR/fused.wfm`` and ``DIR/state.json`` (as the one-process store's views).
+  ``DIR/fused.wfm`` and ``DIR/state.json`` (as the one-process store's views), written once a
+  second by a background thread (the loop never waits for the disk).
 
 **Several roots** (failover; the choice made here). Any number of roots may run; each holds the
 liveliness token ``wiremap/<fleet>/fusers/root/<boot>`` (``boot``: its start, ns) and the
@@ -66,6 +67,67 @@ def _atomic_write(path: Path, data: bytes) -> None:
 
 #: A robot alive this long that no group's partial includes is listed as ``uncovered``.
 UNCOVERED_AFTER_S = 10.0
+
+
+class _StoreThread:
+    """The root's store writes (``latency.log``, ``fused.wfm``, ``state.json``, each
+    fsynced) in a background thread, so that the root's loop never waits for a disk: they
+    were written in the loop once a second, a stall of tens of milliseconds in the root's
+    latency. A write still waiting when the next comes is combined with it (the newest
+    files, every latency row of both), so the files are written in order."""
+
+    def __init__(self, store: Path, say: Callable[[str], None]) -> None:
+        self.store = store
+        self.say = say
+        self._cond = threading.Condition()
+        self._job: tuple[list[tuple[int, float, int]], bytes | None, bytes] | None = None
+        self._stop = False
+        self._error = ""
+        self._thread = threading.Thread(target=self._run, name="root-store", daemon=True)
+        self._thread.start()
+
+    def submit(self, rows: list[tuple[int, float, int]], fused: bytes | None, state: bytes) -> None:
+        with self._cond:
+            if self._job is not None:
+                old_rows, old_fused, _ = self._job
+                rows = old_rows + rows
+                fused = fused if fused is not None else old_fused
+            self._job = (rows, fused, state)
+            self._cond.notify_all()
+
+    def _run(self) -> None:
+        while True:
+            with self._cond:
+                while self._job is None and not self._stop:
+                    self._cond.wait()
+                job, self._job = self._job, None
+            if job is None:
+                return
+            try:
+                write_root_store(self.store, *job)
+                self._error = ""
+            except OSError as exc:  # reported once per message; the next write tries again
+                if str(exc) != self._error:
+                    self._error = str(exc)
+                    self.say(f"cannot write the store {self.store}: {exc}")
+
+    def close(self) -> None:
+        """Write what is waiting, then stop."""
+        with self._cond:
+            self._stop = True
+            self._cond.notify_all()
+        self._thread.join()
+
+
+def write_root_store(store: Path, rows: list[tuple[int, float, int]], fused: bytes | None,
+                     state: bytes) -> None:
+    """The root's store files: latency rows appended, the fused map and the state replaced."""
+    store.mkdir(parents=True, exist_ok=True)
+    if rows:
+        append_latency_log(store, rows)
+    if fused is not None:
+        _atomic_write(store / "fused.wfm", fused)
+    _atomic_write(store / "state.json", state)
 
 
 def read_root_store(store: str | os.PathLike[str], reset: bool = False) -> bytes | None:
@@ -136,6 +198,7 @@ class RootService:
         self.lat_total = 0
         self._unsaved: list[tuple[int, float, int]] = []
         self._saved_at = 0.0
+        self._writer: _StoreThread | None = None  # the store's writes, off the loop
         self._stats_doc = b"{}"
         self._entities: list[Any] = []
         self.received = 0
@@ -366,8 +429,9 @@ class RootService:
                 self.current = data
             self._put(data)
         if now - self._saved_at >= 1.0:
-            self._save()
-            self._update_stats()
+            doc = self.stats_doc()  # once for both (its latency percentiles are fresh)
+            self._save(doc, wait=False)
+            self._update_stats(doc)
 
     def _put(self, data: bytes) -> None:
         self.session.put(self.keys.fused_map, data, congestion_control=self._zenoh.CongestionControl.BLOCK)
@@ -397,17 +461,22 @@ class RootService:
               if isinstance(p.message.meta, dict)]
         return max((float(t) for t in ts if isinstance(t, (int, float))), default=0.0)
 
-    def _save(self) -> None:
+    def _save(self, doc: dict[str, Any] | None = None, wait: bool = True) -> None:
+        """Write the store: at once (``wait``), or handed to the store thread."""
         self._saved_at = time.monotonic()
         if self.store is None:
             return
-        self.store.mkdir(parents=True, exist_ok=True)
-        if self._unsaved:
-            append_latency_log(self.store, self._unsaved)
-            self._unsaved = []
-        if self.current is not None:
-            _atomic_write(self.store / "fused.wfm", self.current)
-        _atomic_write(self.store / "state.json", json.dumps(self.stats_doc(), indent=1).encode())
+        rows, self._unsaved = self._unsaved, []
+        state = json.dumps(self.stats_doc() if doc is None else doc, indent=1).encode()
+        if wait:
+            if self._writer is not None:
+                self._writer.close()  # what it holds first, in order
+                self._writer = None
+            write_root_store(self.store, rows, self.current, state)
+            return
+        if self._writer is None:
+            self._writer = _StoreThread(self.store, self.say)
+        self._writer.submit(rows, self.current, state)
 
     def stats_doc(self) -> dict[str, Any]:
         st = self.state
@@ -448,8 +517,8 @@ class RootService:
         self.uncovered = out
         return out
 
-    def _update_stats(self) -> None:
-        data = json.dumps(self.stats_doc()).encode()
+    def _update_stats(self, doc: dict[str, Any] | None = None) -> None:
+        data = json.dumps(self.stats_doc() if doc is None else doc).encode()
         with self.lock:
             self._stats_doc = data
 
@@ -462,7 +531,10 @@ class RootService:
         self._entities.clear()
         self._active_entities = []
         if self.active:
-            self._save()
+            self._save()  # (after what the store thread holds)
+        elif self._writer is not None:
+            self._writer.close()
+            self._writer = None
         if self.recorder is not None:
             self.recorder.close()
 

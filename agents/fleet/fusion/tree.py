@@ -121,7 +121,8 @@ def wire_snap(wf: Wireframe, resolution: float) -> Wireframe:
     res_mm = max(1, round(resolution * 1e3))
     pts = np.rint(wf.points / (res_mm / 1e3)) * res_mm / 1e3
     lik = np.rint(wf.likelihood * LIKELIHOOD_LEVELS) / LIKELIHOOD_LEVELS
-    if np.array_equal(pts, wf.points) and np.array_equal(lik, wf.likelihood):
+    # (same shapes, finite values: == over every element is array_equal)
+    if bool((pts == wf.points).all()) and bool((lik == wf.likelihood).all()):
         return wf
     return wf.moved_to(pts, likelihood=lik)  # likelihoods rounded within [0, 1]: still valid
 
