@@ -317,6 +317,7 @@ def match_scan(
     pose = np.asarray(guess, dtype=np.float64).copy()
     prior = np.zeros((3, 3)) if prior_information is None else prior_information
     w_sigma = 1.0 / config.sigma**2
+    tiny = 1e-9 * np.eye(3)
     hess = np.zeros((3, 3))
     matched = 0
     n_it = config.iterations
@@ -327,27 +328,31 @@ def match_scan(
         world = _apply(pose, points)
         dist, idx = submap.tree.query(world, distance_upper_bound=gate)
         ok = np.isfinite(dist)
-        matched = int(ok.sum())
+        matched = int(np.count_nonzero(ok))
         d = pose - guess
         d[2] = wrap_angle(d[2])
         if matched < 3:
             hess = np.zeros((3, 3))
             g = prior @ d
-            h = prior + 1e-9 * np.eye(3)
+            h = prior + tiny
         else:
-            q = submap.points[idx[ok]]
-            nr = submap.normals[idx[ok]]
-            w_ = world[ok]
-            r = np.einsum("ij,ij->i", nr, w_ - q)
+            # Row gathers by take/compress: the same rows as fancy indexing, several times faster.
+            sel = idx.compress(ok)
+            nr = submap.normals.take(sel, axis=0)
+            w_ = world.compress(ok, axis=0)
+            r = np.einsum("ij,ij->i", nr, w_ - submap.points.take(sel, axis=0))
             rel = w_ - pose[:2]
-            jac = np.stack([nr[:, 0], nr[:, 1], -nr[:, 0] * rel[:, 1] + nr[:, 1] * rel[:, 0]], axis=1)
+            jac = np.empty((matched, 3))
+            jac[:, :2] = nr
+            jac[:, 2] = -nr[:, 0] * rel[:, 1] + nr[:, 1] * rel[:, 0]
             # Neighbouring returns' errors are correlated (and the truth itself is only good to a
             # few cm): the data term counts as ``effective_points`` independent points at most.
             scale = min(1.0, config.effective_points / matched)
             wts = scale * w_sigma / (1.0 + (r / config.kernel) ** 2)
-            hess = (jac * wts[:, None]).T @ jac
-            g = (jac * wts[:, None]).T @ r + prior @ d
-            h = hess + prior + 1e-9 * np.eye(3)
+            jw = jac * wts[:, None]
+            hess = jw.T @ jac
+            g = jw.T @ r + prior @ d
+            h = hess + prior + tiny
         step = -np.linalg.solve(h, g)
         pose = pose + step
         pose[2] = wrap_angle(pose[2])
@@ -357,7 +362,9 @@ def match_scan(
     dist, idx = submap.tree.query(world, distance_upper_bound=max(config.gate_end, inlier_distance))
     ok = np.isfinite(dist)
     if ok.any():
-        r = np.abs(np.einsum("ij,ij->i", submap.normals[idx[ok]], world[ok] - submap.points[idx[ok]]))
+        sel = idx.compress(ok)
+        r = np.abs(np.einsum("ij,ij->i", submap.normals.take(sel, axis=0),
+                             world.compress(ok, axis=0) - submap.points.take(sel, axis=0)))
         inl = float(np.count_nonzero(r <= inlier_distance)) / max(1, len(points))
     else:
         inl = 0.0
