@@ -572,6 +572,10 @@ def _chi2(x: FloatArray, edges: list[Edge]) -> FloatArray:
 # ------------------------------------------------------------------------------------- the SLAM
 
 
+#: Submaps :meth:`LidarSlam.refine` keeps for reuse (at most about 15 MB on the logs).
+_REFINE_SUBMAPS = 256
+
+
 @dataclass
 class _Node:
     points: FloatArray  # robot frame
@@ -595,11 +599,22 @@ class LidarSlam:
     rejected: list[tuple[int, int]] = field(default_factory=list)
     _nodes: list[_Node] = field(default_factory=list)
     _last_loop: tuple[float, int] = (-math.inf, -(10**9))
+    _clouds: dict[int, tuple[bytes, tuple[FloatArray, FloatArray]]] = field(default_factory=dict)
 
     def _cloud(self, k: int) -> tuple[FloatArray, FloatArray]:
-        nd = self._nodes[k]
+        """Scan ``k``'s points and normals in the world frame at its current pose. Kept with
+        the pose they were computed at and reused while the pose is the same bytes: a scan
+        joins the submaps of many later scans, and only a loop closure or the refinement
+        moves it (the same function of the same numbers, so the same arrays)."""
         pose = self.poses[k]
-        return _apply(pose, nd.points), nd.normals @ _rot(pose[2]).T
+        key = pose.tobytes()
+        kept = self._clouds.get(k)
+        if kept is not None and kept[0] == key:
+            return kept[1]
+        nd = self._nodes[k]
+        cloud = (_apply(pose, nd.points), nd.normals @ _rot(pose[2]).T)
+        self._clouds[k] = (key, cloud)
+        return cloud
 
     def _edge_information(self, hessian: FloatArray, theta_j: float) -> FloatArray:
         cfg = self.config
@@ -731,6 +746,10 @@ class LidarSlam:
             return
         travel = np.array([nd.travel for nd in self._nodes])
         edges: list[Edge] = []
+        # The poses stay put during the pass, so a submap is a function of its scans: the
+        # last _REFINE_SUBMAPS submaps are kept, since nearby scans see the same visits (about
+        # 40 % of the submaps repeat).
+        submaps: dict[tuple[int, ...], Submap] = {}
         for k in range(len(x)):
             d = np.hypot(*(x[:, :2] - x[k, :2]).T)
             old = np.flatnonzero((np.abs(travel - travel[k]) >= cfg.loop_min_travel) & (d <= cfg.map_radius))
@@ -741,7 +760,13 @@ class LidarSlam:
                 if len(run) < 2:
                     continue
                 run = run[np.argsort(d[run], kind="stable")[: cfg.map_scans]]
-                sub = Submap.build([self._cloud(int(i)) for i in np.sort(run)], cfg.voxel)
+                ids = tuple(np.sort(run).tolist())
+                sub = submaps.pop(ids, None)
+                if sub is None:
+                    sub = Submap.build([self._cloud(i) for i in ids], cfg.voxel)
+                    if len(submaps) >= _REFINE_SUBMAPS:
+                        del submaps[next(iter(submaps))]  # the least recently used
+                submaps[ids] = sub
                 m = match_scan(self._nodes[k].points, sub, x[k], cfg,
                                inlier_distance=cfg.loop_inlier_distance)
                 if m.inliers < cfg.loop_min_inliers or m.matched < 10:
