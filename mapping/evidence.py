@@ -159,19 +159,23 @@ def seen_through_spans(
     if len(edge_pairs) == 0 or view.n_edges == 0:
         return out
     src = np.asarray(edge_source, dtype=np.int64)
-    ends = pose.apply_inverse(wf.points[wf.edges].reshape(-1, 2)).reshape(-1, 2, 2)
     vseg = view.segments()
     sseg = evidence.segments()
     by_pred: dict[int, list[int]] = {}
     for si, pj in edge_pairs.tolist():
         by_pred.setdefault(int(pj), []).append(int(si))
+    # The robot-frame ends of the matched map edges only (a point's transform does not depend
+    # on the others': the same numbers as transforming every edge of the map).
+    used = sorted({e for e in src.take(list(by_pred)).tolist() if e >= 0})
+    row = {e: k for k, e in enumerate(used)}
+    ends = pose.apply_inverse(wf.points.take(wf.edges.take(used, axis=0).reshape(-1), axis=0)).reshape(-1, 2, 2)
     samples: list[FloatArray] = []
     meta: list[tuple[int, float, float]] = []
     for pj, scan_edges in by_pred.items():
         e = int(src[pj])
         if e < 0:
             continue
-        a, b = ends[e]
+        a, b = ends[row[e]]
         d = b - a
         length = float(math.hypot(d[0], d[1]))
         if length < min_span:
