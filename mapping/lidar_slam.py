@@ -411,7 +411,7 @@ class _Field:
                 & (ij[:, 1] + lo[1] >= 0) & (ij[:, 1] + hi[1] < h))
         base = ij[keep, 1] * w + ij[keep, 0]
         flat = base[None, :] + (offsets[:, 1] * w + offsets[:, 0])[:, None]
-        return np.asarray(grid.ravel()[flat].sum(axis=1) / max(1, len(pts)))
+        return np.asarray(grid.ravel().take(flat).sum(axis=1) / max(1, len(pts)))
 
 
 def search_loop(
