@@ -577,6 +577,7 @@ class WireframeFilter:
         if merge_fn is None:
             merge_fn = self._cached_merge = _CachedMerge()
         self._merge_fn: MergeFn = merge_fn
+        self._through: dict[bytes, bool] = {}  # _seen_through_unreported's answers this step
         self._loops = LoopCloser(config.loops, self._pose)
         self._directions = Directions(
             config.compass.anchor or 0.0, config.compass.min_support, config.compass.max_gate,
@@ -803,6 +804,7 @@ class WireframeFilter:
         self._steps += 1
         if self._cached_merge is not None:
             self._cached_merge.clear()  # keyed by content: only this step's scan can hit
+        self._through.clear()  # answers for this step's scan and pose only
         ctx = self._predict(odometry, clean_scan(scan, cfg.cleanup, cfg.max_scan_vertices), fault)
         if cfg.point_match.enabled and points is not None:
             ctx.points = np.asarray(points, dtype=np.float64).reshape(-1, 2)
@@ -1124,10 +1126,22 @@ class WireframeFilter:
         through = np.zeros(p.n_edges, dtype=bool)
         cand_hidden = np.flatnonzero(candidates)
         if len(cand_hidden) and evidence.n_edges:
-            segs = place.apply_inverse(p.points[p.edges[cand_hidden]].reshape(-1, 2)).reshape(-1, 2, 2)
-            through[cand_hidden] = seen_through(
-                evidence, segs, lcfg.occlusion_margin, self.config.max_range, min_incidence=lcfg.min_incidence
-            )
+            # seen_through answers each segment on its own, and the step's particles share most
+            # of their hidden walls: answers are kept for the step by the wall's map-frame
+            # coordinates (``place`` and ``evidence`` are the step's), and only new walls are
+            # moved to the robot frame (elementwise: the same numbers) and asked.
+            world = p.points.take(p.edges.take(cand_hidden, axis=0).reshape(-1), axis=0).reshape(-1, 4)
+            keys = [row.tobytes() for row in world]
+            kept = self._through
+            ask = [i for i, k in enumerate(keys) if k not in kept]
+            if ask:
+                segs = place.apply_inverse(world.take(ask, axis=0).reshape(-1, 2)).reshape(-1, 2, 2)
+                found = seen_through(
+                    evidence, segs, lcfg.occlusion_margin, self.config.max_range, min_incidence=lcfg.min_incidence
+                )
+                for i, f in zip(ask, found.tolist()):
+                    kept[keys[i]] = f
+            through[cand_hidden] = [kept[k] for k in keys]
         return through
 
     def _reweight(self, evals: dict[int, _Eval]) -> tuple[FloatArray, int, FloatArray]:
