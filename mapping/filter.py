@@ -578,6 +578,7 @@ class WireframeFilter:
             merge_fn = self._cached_merge = _CachedMerge()
         self._merge_fn: MergeFn = merge_fn
         self._through: dict[bytes, bool] = {}  # _seen_through_unreported's answers this step
+        self._spans: dict[Any, list[tuple[float, float, bool]]] = {}  # seen_through_spans' memo
         self._loops = LoopCloser(config.loops, self._pose)
         self._directions = Directions(
             config.compass.anchor or 0.0, config.compass.min_support, config.compass.max_gate,
@@ -805,6 +806,7 @@ class WireframeFilter:
         if self._cached_merge is not None:
             self._cached_merge.clear()  # keyed by content: only this step's scan can hit
         self._through.clear()  # answers for this step's scan and pose only
+        self._spans.clear()  # (the same)
         ctx = self._predict(odometry, clean_scan(scan, cfg.cleanup, cfg.max_scan_vertices), fault)
         if cfg.point_match.enabled and points is not None:
             ctx.points = np.asarray(points, dtype=np.float64).reshape(-1, 2)
@@ -1078,6 +1080,7 @@ class WireframeFilter:
             found = seen_through_spans(
                 p, place, view, src, lik.correspondences.edge_pairs, evidence,
                 2.5 * cfg.merge_threshold, cfg.merge_threshold, lcfg.occlusion_margin, cfg.max_range,
+                memo=self._spans,
             )
             spans = self._confirmed(p, found, seen_spans)
         group = b"".join(
@@ -1136,9 +1139,8 @@ class WireframeFilter:
             ask = [i for i, k in enumerate(keys) if k not in kept]
             if ask:
                 segs = place.apply_inverse(world.take(ask, axis=0).reshape(-1, 2)).reshape(-1, 2, 2)
-                found = seen_through(
-                    evidence, segs, lcfg.occlusion_margin, self.config.max_range, min_incidence=lcfg.min_incidence
-                )
+                found = seen_through(evidence, segs, lcfg.occlusion_margin, self.config.max_range,
+                                     min_incidence=lcfg.min_incidence)
                 for i, f in zip(ask, found.tolist()):
                     kept[keys[i]] = f
             through[cand_hidden] = [kept[k] for k in keys]
