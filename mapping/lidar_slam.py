@@ -253,13 +253,13 @@ class Submap:
             p = np.zeros((0, 2))
             n = np.zeros((0, 2))
         ok = np.isfinite(n[:, 0])
-        p, n = p[ok], n[ok]
+        p, n = p.compress(ok, axis=0), n.compress(ok, axis=0)  # (row gathers: faster than [ ])
         if len(p):
             keys = np.floor(p / voxel).astype(np.int64)
             # Last occurrence of each cell: unique over the reversed order.
             first_rev = _first_of_each_row(keys[::-1])
             keep = np.sort(len(p) - 1 - first_rev)
-            p, n = p[keep], n[keep]
+            p, n = p.take(keep, axis=0), n.take(keep, axis=0)
         return cls(p, n, cKDTree(p if len(p) else np.zeros((1, 2)) + 1e9))
 
 
