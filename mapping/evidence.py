@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -121,6 +122,7 @@ def seen_through_spans(
     cover_margin: float,
     margin: float,
     max_range: float,
+    memo: dict[Any, list[tuple[float, float, bool]]] | None = None,
 ) -> dict[int, list[tuple[float, float]]]:
     """Parts of map edges that this scan observed in part and saw through elsewhere.
 
@@ -149,6 +151,12 @@ def seen_through_spans(
         Edge correspondences between ``evidence`` and ``view``.
     evidence : Wireframe
         The scan (robot frame).
+    memo : dict, optional
+        Answers kept between calls with the same ``evidence``, ``min_span``, ``cover_margin``,
+        ``margin`` and ``max_range`` (the caller clears it when one changes): each matched
+        predicted edge's stretches and verdicts depend only on its map edge and view piece
+        (robot frame) and on the scan edges matching it, so particles that share them (most
+        of a filter step's) share the work. The same answers as without it.
 
     Returns
     -------
@@ -159,59 +167,101 @@ def seen_through_spans(
     if len(edge_pairs) == 0 or view.n_edges == 0:
         return out
     src = np.asarray(edge_source, dtype=np.int64)
-    ends = pose.apply_inverse(wf.points[wf.edges].reshape(-1, 2)).reshape(-1, 2, 2)
     vseg = view.segments()
     sseg = evidence.segments()
     by_pred: dict[int, list[int]] = {}
     for si, pj in edge_pairs.tolist():
         by_pred.setdefault(int(pj), []).append(int(si))
+    # The robot-frame ends of the matched map edges only (a point's transform does not depend
+    # on the others': the same numbers as transforming every edge of the map).
+    used = sorted({e for e in src.take(list(by_pred)).tolist() if e >= 0})
+    row = {e: k for k, e in enumerate(used)}
+    corners = wf.points.take(wf.edges.take(used, axis=0).reshape(-1), axis=0)
+    ends = pose.apply_inverse(corners).reshape(-1, 2, 2)
     samples: list[FloatArray] = []
-    meta: list[tuple[int, float, float]] = []
+    # Per matched predicted edge, in order: its map edge and its stretches with their verdicts
+    # (None until the ray test below), and where its memo entry goes.
+    items: list[tuple[int, list[tuple[float, float, bool]] | None, Any, list[tuple[float, float]]]] = []
     for pj, scan_edges in by_pred.items():
         e = int(src[pj])
         if e < 0:
             continue
-        a, b = ends[e]
-        d = b - a
-        length = float(math.hypot(d[0], d[1]))
-        if length < min_span:
-            continue
-        u = d / length
-        v0, v1 = sorted(float((q - a) @ u) for q in vseg[pj])
-        v0, v1 = max(v0, 0.0), min(v1, length)
-        if v1 - v0 < min_span:
-            continue
-        cov = sorted(
-            (min(t0, t1) - cover_margin, max(t0, t1) + cover_margin)
-            for t0, t1 in (((sseg[i, 0] - a) @ u, (sseg[i, 1] - a) @ u) for i in scan_edges)
-        )
-        gaps: list[tuple[float, float]] = []
-        cur = v0
-        for c0, c1 in cov:
-            if c0 > cur:
-                gaps.append((cur, min(c0, v1)))
-            cur = max(cur, c1)
-            if cur >= v1:
-                break
-        if cur < v1:
-            gaps.append((cur, v1))
-        for g0, g1 in gaps:
-            if g1 - g0 >= min_span:
-                t = g0 + (g1 - g0) * np.array([0.25, 0.5, 0.75])
-                samples.append(a + t[:, None] * u)
-                meta.append((e, float(g0), float(g1)))
-    if not samples:
-        return out
-    pts = np.concatenate(samples)
-    dist = np.hypot(pts[:, 0], pts[:, 1])
-    rng_scan = ray_ranges(evidence, np.arctan2(pts[:, 1], pts[:, 0]))
-    seen = np.asarray((rng_scan > dist + margin) & (dist <= max_range - margin), dtype=bool)
-    all_seen: list[bool] = np.asarray(seen.reshape(-1, 3).all(axis=1), dtype=bool).tolist()
-    for (e, g0, g1), good in zip(meta, all_seen):
-        if good:
-            out.setdefault(e, []).append((g0, g1))
+        a, b = ends[row[e]]
+        key = None
+        if memo is not None:
+            key = (a.tobytes(), b.tobytes(), vseg[pj].tobytes(), tuple(scan_edges))
+            kept = memo.get(key)
+            if kept is not None:
+                items.append((e, kept, None, []))
+                continue
+        gaps = _uncovered(a, b, vseg[pj], sseg, scan_edges, min_span, cover_margin, samples)
+        items.append((e, None, key, gaps))
+    if samples:
+        pts = np.concatenate(samples)
+        dist = np.hypot(pts[:, 0], pts[:, 1])
+        rng_scan = ray_ranges(evidence, np.arctan2(pts[:, 1], pts[:, 0]))
+        seen = np.asarray((rng_scan > dist + margin) & (dist <= max_range - margin), dtype=bool)
+        all_seen: list[bool] = np.asarray(seen.reshape(-1, 3).all(axis=1), dtype=bool).tolist()
+    else:
+        all_seen = []
+    k = 0
+    for e, kept, key, gaps in items:
+        if kept is None:
+            kept = [(g0, g1, good) for (g0, g1), good in zip(gaps, all_seen[k : k + len(gaps)])]
+            k += len(gaps)
+            if memo is not None:
+                memo[key] = kept
+        for g0, g1, good in kept:
+            if good:
+                out.setdefault(e, []).append((g0, g1))
     for e in out:
         out[e].sort()
+    return out
+
+
+def _uncovered(
+    a: FloatArray,
+    b: FloatArray,
+    piece: FloatArray,
+    sseg: FloatArray,
+    scan_edges: list[int],
+    min_span: float,
+    cover_margin: float,
+    samples: list[FloatArray],
+) -> list[tuple[float, float]]:
+    """:func:`seen_through_spans` for one predicted edge: the stretches of map edge ``a -> b``
+    (robot frame) within its view ``piece`` that the matched scan edges do not cover and that
+    are at least ``min_span`` long, as arc-length intervals; each one's three sample points are
+    appended to ``samples``."""
+    d = b - a
+    length = float(math.hypot(d[0], d[1]))
+    if length < min_span:
+        return []
+    u = d / length
+    v0, v1 = sorted(float((q - a) @ u) for q in piece)
+    v0, v1 = max(v0, 0.0), min(v1, length)
+    if v1 - v0 < min_span:
+        return []
+    cov = sorted(
+        (min(t0, t1) - cover_margin, max(t0, t1) + cover_margin)
+        for t0, t1 in (((sseg[i, 0] - a) @ u, (sseg[i, 1] - a) @ u) for i in scan_edges)
+    )
+    gaps: list[tuple[float, float]] = []
+    cur = v0
+    for c0, c1 in cov:
+        if c0 > cur:
+            gaps.append((cur, min(c0, v1)))
+        cur = max(cur, c1)
+        if cur >= v1:
+            break
+    if cur < v1:
+        gaps.append((cur, v1))
+    out: list[tuple[float, float]] = []
+    for g0, g1 in gaps:
+        if g1 - g0 >= min_span:
+            t = g0 + (g1 - g0) * np.array([0.25, 0.5, 0.75])
+            samples.append(a + t[:, None] * u)
+            out.append((float(g0), float(g1)))
     return out
 
 

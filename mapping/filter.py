@@ -438,20 +438,37 @@ def _default_view(wf: Wireframe, pose: Pose, max_range: float, fov: float) -> Vi
 
 
 class _CachedMerge:
-    """The default merge (:func:`mapping.merge.merge`) with a :class:`mapping.merge.MergeCache`:
-    the particles a scan is merged into often have the same part near it (they differ where
-    old mutations dropped edges), and the merge's work on that part is then done once per
-    step. The same results as without the cache."""
+    """The default merge (:func:`mapping.merge.merge`) with two caches, cleared at every step
+    (:meth:`clear`), the same results as without them.
+
+    * Whole merges by the content of their inputs (:meth:`Wireframe.content_digest` of the
+      base and of the scan, and the threshold): a merge is a pure function of them, and about
+      40 % of a step's merges on the real logs repeat one already made (particles whose maps
+      and scan likelihoods came out byte for byte equal, as different objects).
+    * A :class:`mapping.merge.MergeCache`: the particles a scan is merged into often have the
+      same part near it (they differ where old mutations dropped edges), and the merge's work
+      on that part is then done once per step.
+    """
 
     def __init__(self) -> None:
         from mapping.merge import MergeCache
 
         self.cache = MergeCache()
+        self.results: dict[tuple[bytes, bytes, float], Wireframe] = {}
+
+    def clear(self) -> None:
+        """Forget everything (keyed by content: only the same step's scan can hit)."""
+        self.cache.clear()
+        self.results.clear()
 
     def __call__(self, base: Wireframe, new: Wireframe, threshold: float) -> Wireframe:
         from mapping.merge import MergeConfig, merge
 
-        return merge(base, new, MergeConfig(threshold=threshold), cache=self.cache)
+        key = (base.content_digest(), new.content_digest(), threshold)
+        out = self.results.get(key)
+        if out is None:
+            out = self.results[key] = merge(base, new, MergeConfig(threshold=threshold), cache=self.cache)
+        return out
 
 
 # ------------------------------------------------------------------------------ the filter
@@ -560,6 +577,8 @@ class WireframeFilter:
         if merge_fn is None:
             merge_fn = self._cached_merge = _CachedMerge()
         self._merge_fn: MergeFn = merge_fn
+        self._through: dict[bytes, bool] = {}  # _seen_through_unreported's answers this step
+        self._spans: dict[Any, list[tuple[float, float, bool]]] = {}  # seen_through_spans' memo
         self._loops = LoopCloser(config.loops, self._pose)
         self._directions = Directions(
             config.compass.anchor or 0.0, config.compass.min_support, config.compass.max_gate,
@@ -785,7 +804,9 @@ class WireframeFilter:
         cfg = self.config
         self._steps += 1
         if self._cached_merge is not None:
-            self._cached_merge.cache.clear()  # keyed by content: only this step's scan can hit
+            self._cached_merge.clear()  # keyed by content: only this step's scan can hit
+        self._through.clear()  # answers for this step's scan and pose only
+        self._spans.clear()  # (the same)
         ctx = self._predict(odometry, clean_scan(scan, cfg.cleanup, cfg.max_scan_vertices), fault)
         if cfg.point_match.enabled and points is not None:
             ctx.points = np.asarray(points, dtype=np.float64).reshape(-1, 2)
@@ -1059,6 +1080,7 @@ class WireframeFilter:
             found = seen_through_spans(
                 p, place, view, src, lik.correspondences.edge_pairs, evidence,
                 2.5 * cfg.merge_threshold, cfg.merge_threshold, lcfg.occlusion_margin, cfg.max_range,
+                memo=self._spans,
             )
             spans = self._confirmed(p, found, seen_spans)
         group = b"".join(
@@ -1107,10 +1129,21 @@ class WireframeFilter:
         through = np.zeros(p.n_edges, dtype=bool)
         cand_hidden = np.flatnonzero(candidates)
         if len(cand_hidden) and evidence.n_edges:
-            segs = place.apply_inverse(p.points[p.edges[cand_hidden]].reshape(-1, 2)).reshape(-1, 2, 2)
-            through[cand_hidden] = seen_through(
-                evidence, segs, lcfg.occlusion_margin, self.config.max_range, min_incidence=lcfg.min_incidence
-            )
+            # seen_through answers each segment on its own, and the step's particles share most
+            # of their hidden walls: answers are kept for the step by the wall's map-frame
+            # coordinates (``place`` and ``evidence`` are the step's), and only new walls are
+            # moved to the robot frame (elementwise: the same numbers) and asked.
+            world = p.points.take(p.edges.take(cand_hidden, axis=0).reshape(-1), axis=0).reshape(-1, 4)
+            keys = [row.tobytes() for row in world]
+            kept = self._through
+            ask = [i for i, k in enumerate(keys) if k not in kept]
+            if ask:
+                segs = place.apply_inverse(world.take(ask, axis=0).reshape(-1, 2)).reshape(-1, 2, 2)
+                found = seen_through(evidence, segs, lcfg.occlusion_margin, self.config.max_range,
+                                     min_incidence=lcfg.min_incidence)
+                for i, f in zip(ask, found.tolist()):
+                    kept[keys[i]] = f
+            through[cand_hidden] = [kept[k] for k in keys]
         return through
 
     def _reweight(self, evals: dict[int, _Eval]) -> tuple[FloatArray, int, FloatArray]:

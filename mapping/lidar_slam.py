@@ -253,13 +253,13 @@ class Submap:
             p = np.zeros((0, 2))
             n = np.zeros((0, 2))
         ok = np.isfinite(n[:, 0])
-        p, n = p[ok], n[ok]
+        p, n = p.compress(ok, axis=0), n.compress(ok, axis=0)  # (row gathers: faster than [ ])
         if len(p):
             keys = np.floor(p / voxel).astype(np.int64)
             # Last occurrence of each cell: unique over the reversed order.
             first_rev = _first_of_each_row(keys[::-1])
             keep = np.sort(len(p) - 1 - first_rev)
-            p, n = p[keep], n[keep]
+            p, n = p.take(keep, axis=0), n.take(keep, axis=0)
         return cls(p, n, cKDTree(p if len(p) else np.zeros((1, 2)) + 1e9))
 
 
@@ -317,6 +317,7 @@ def match_scan(
     pose = np.asarray(guess, dtype=np.float64).copy()
     prior = np.zeros((3, 3)) if prior_information is None else prior_information
     w_sigma = 1.0 / config.sigma**2
+    tiny = 1e-9 * np.eye(3)
     hess = np.zeros((3, 3))
     matched = 0
     n_it = config.iterations
@@ -327,27 +328,31 @@ def match_scan(
         world = _apply(pose, points)
         dist, idx = submap.tree.query(world, distance_upper_bound=gate)
         ok = np.isfinite(dist)
-        matched = int(ok.sum())
+        matched = int(np.count_nonzero(ok))
         d = pose - guess
         d[2] = wrap_angle(d[2])
         if matched < 3:
             hess = np.zeros((3, 3))
             g = prior @ d
-            h = prior + 1e-9 * np.eye(3)
+            h = prior + tiny
         else:
-            q = submap.points[idx[ok]]
-            nr = submap.normals[idx[ok]]
-            w_ = world[ok]
-            r = np.einsum("ij,ij->i", nr, w_ - q)
+            # Row gathers by take/compress: the same rows as fancy indexing, several times faster.
+            sel = idx.compress(ok)
+            nr = submap.normals.take(sel, axis=0)
+            w_ = world.compress(ok, axis=0)
+            r = np.einsum("ij,ij->i", nr, w_ - submap.points.take(sel, axis=0))
             rel = w_ - pose[:2]
-            jac = np.stack([nr[:, 0], nr[:, 1], -nr[:, 0] * rel[:, 1] + nr[:, 1] * rel[:, 0]], axis=1)
+            jac = np.empty((matched, 3))
+            jac[:, :2] = nr
+            jac[:, 2] = -nr[:, 0] * rel[:, 1] + nr[:, 1] * rel[:, 0]
             # Neighbouring returns' errors are correlated (and the truth itself is only good to a
             # few cm): the data term counts as ``effective_points`` independent points at most.
             scale = min(1.0, config.effective_points / matched)
             wts = scale * w_sigma / (1.0 + (r / config.kernel) ** 2)
-            hess = (jac * wts[:, None]).T @ jac
-            g = (jac * wts[:, None]).T @ r + prior @ d
-            h = hess + prior + 1e-9 * np.eye(3)
+            jw = jac * wts[:, None]
+            hess = jw.T @ jac
+            g = jw.T @ r + prior @ d
+            h = hess + prior + tiny
         step = -np.linalg.solve(h, g)
         pose = pose + step
         pose[2] = wrap_angle(pose[2])
@@ -357,7 +362,9 @@ def match_scan(
     dist, idx = submap.tree.query(world, distance_upper_bound=max(config.gate_end, inlier_distance))
     ok = np.isfinite(dist)
     if ok.any():
-        r = np.abs(np.einsum("ij,ij->i", submap.normals[idx[ok]], world[ok] - submap.points[idx[ok]]))
+        sel = idx.compress(ok)
+        r = np.abs(np.einsum("ij,ij->i", submap.normals.take(sel, axis=0),
+                             world.compress(ok, axis=0) - submap.points.take(sel, axis=0)))
         inl = float(np.count_nonzero(r <= inlier_distance)) / max(1, len(points))
     else:
         inl = 0.0
@@ -404,7 +411,7 @@ class _Field:
                 & (ij[:, 1] + lo[1] >= 0) & (ij[:, 1] + hi[1] < h))
         base = ij[keep, 1] * w + ij[keep, 0]
         flat = base[None, :] + (offsets[:, 1] * w + offsets[:, 0])[:, None]
-        return np.asarray(grid.ravel()[flat].sum(axis=1) / max(1, len(pts)))
+        return np.asarray(grid.ravel().take(flat).sum(axis=1) / max(1, len(pts)))
 
 
 def search_loop(
@@ -565,6 +572,10 @@ def _chi2(x: FloatArray, edges: list[Edge]) -> FloatArray:
 # ------------------------------------------------------------------------------------- the SLAM
 
 
+#: Submaps :meth:`LidarSlam.refine` keeps for reuse (at most about 15 MB on the logs).
+_REFINE_SUBMAPS = 256
+
+
 @dataclass
 class _Node:
     points: FloatArray  # robot frame
@@ -588,11 +599,22 @@ class LidarSlam:
     rejected: list[tuple[int, int]] = field(default_factory=list)
     _nodes: list[_Node] = field(default_factory=list)
     _last_loop: tuple[float, int] = (-math.inf, -(10**9))
+    _clouds: dict[int, tuple[bytes, tuple[FloatArray, FloatArray]]] = field(default_factory=dict)
 
     def _cloud(self, k: int) -> tuple[FloatArray, FloatArray]:
-        nd = self._nodes[k]
+        """Scan ``k``'s points and normals in the world frame at its current pose. Kept with
+        the pose they were computed at and reused while the pose is the same bytes: a scan
+        joins the submaps of many later scans, and only a loop closure or the refinement
+        moves it (the same function of the same numbers, so the same arrays)."""
         pose = self.poses[k]
-        return _apply(pose, nd.points), nd.normals @ _rot(pose[2]).T
+        key = pose.tobytes()
+        kept = self._clouds.get(k)
+        if kept is not None and kept[0] == key:
+            return kept[1]
+        nd = self._nodes[k]
+        cloud = (_apply(pose, nd.points), nd.normals @ _rot(pose[2]).T)
+        self._clouds[k] = (key, cloud)
+        return cloud
 
     def _edge_information(self, hessian: FloatArray, theta_j: float) -> FloatArray:
         cfg = self.config
@@ -724,6 +746,10 @@ class LidarSlam:
             return
         travel = np.array([nd.travel for nd in self._nodes])
         edges: list[Edge] = []
+        # The poses stay put during the pass, so a submap is a function of its scans: the
+        # last _REFINE_SUBMAPS submaps are kept, since nearby scans see the same visits (about
+        # 40 % of the submaps repeat).
+        submaps: dict[tuple[int, ...], Submap] = {}
         for k in range(len(x)):
             d = np.hypot(*(x[:, :2] - x[k, :2]).T)
             old = np.flatnonzero((np.abs(travel - travel[k]) >= cfg.loop_min_travel) & (d <= cfg.map_radius))
@@ -734,7 +760,13 @@ class LidarSlam:
                 if len(run) < 2:
                     continue
                 run = run[np.argsort(d[run], kind="stable")[: cfg.map_scans]]
-                sub = Submap.build([self._cloud(int(i)) for i in np.sort(run)], cfg.voxel)
+                ids = tuple(np.sort(run).tolist())
+                sub = submaps.pop(ids, None)
+                if sub is None:
+                    sub = Submap.build([self._cloud(i) for i in ids], cfg.voxel)
+                    if len(submaps) >= _REFINE_SUBMAPS:
+                        del submaps[next(iter(submaps))]  # the least recently used
+                submaps[ids] = sub
                 m = match_scan(self._nodes[k].points, sub, x[k], cfg,
                                inlier_distance=cfg.loop_inlier_distance)
                 if m.inliers < cfg.loop_min_inliers or m.matched < 10:

@@ -378,14 +378,21 @@ class LoopCloser:
         self._known, self._birth, self._count = keys, births[first], cnt[first]
 
     def stamp(self, particles: Sequence[Wireframe]) -> None:
-        """Stamp the corners of ``particles`` not seen before with the current keyframe."""
+        """Stamp the corners of ``particles`` not seen before with the current keyframe.
+
+        All particles' corners are looked up at once: every new corner gets the same keyframe
+        and count, so one stamp of their union leaves the same keys, births and counts as one
+        stamp per particle did (the particles share most of their corners)."""
         seen: set[int] = set()
+        points: list[FloatArray] = []
         for p in particles:
             if id(p) in seen or p.n_vertices == 0:
                 continue
             seen.add(id(p))
-            b = self.births(p.points)
-            new = np.unique(_keys(p.points[b < 0]))
+            points.append(p.points)
+        if points:
+            allp = np.concatenate(points)
+            new = np.unique(_keys(allp[self.births(allp) < 0]))
             if len(new):
                 self._pending.append((new, self.current_keyframe))
         self._flush()

@@ -636,13 +636,16 @@ def _view(
     xy = np.array(out_xy, dtype=np.complex128)[used]
     remap = np.cumsum(used, dtype=np.int32) - 1
     src_edges = np.array(e_src, dtype=np.int32)
-    scan = Wireframe(
-        np.stack([xy.real, xy.imag], axis=1),
-        np.array(ends.lab, dtype=np.uint8)[used],
-        remap[ed_arr],
-        wf.likelihood[src_edges],
-        wf.sources[src_edges],
-    )
+    points = np.stack([xy.real, xy.imag], axis=1)
+    labels = np.array(ends.lab, dtype=np.uint8)[used]
+    sources = wf.sources[src_edges]
+    if np.isfinite(points).all() and sources.dtype != object:
+        # Valid by construction (no value checks): labels 0..2, two distinct used vertices per
+        # edge, likelihoods and masks copied from the valid input; the same arrays the
+        # checking constructor makes.
+        scan = Wireframe.checked(points, labels, remap[ed_arr], wf.likelihood[src_edges], sources)
+    else:  # the checks decide (a non-finite point raises; wide masks take their canonical kind)
+        scan = Wireframe(points, labels, remap[ed_arr], wf.likelihood[src_edges], sources)
     visible = np.zeros(m, bool)
     visible[src_edges] = True
     return View(

@@ -326,6 +326,28 @@ def test_a_wall_seen_through_in_part_is_carved():
     ) == {}
 
 
+def test_seen_through_spans_memo_gives_the_same_answers():
+    """The memo a filter step shares between its particles: a second call (another particle
+    with the same wall, here a map with an extra wall elsewhere) answers from it, the same."""
+    from mapping.likelihood import scan_likelihood
+    from mapping.visibility import visible_view
+
+    pose = Pose(5.0, 2.0, 0.0)
+    wall = Wireframe.build([(0, 0), (10, 0), (12, -4), (-2, -4)], [(0, 1), (2, 3)])
+    other = Wireframe.build([(30, 30), (31, 30), (0, 0), (10, 0), (12, -4), (-2, -4)],
+                            [(0, 1), (2, 3), (4, 5)])
+    truth = Wireframe.build([(4, 0), (6, 0), (12, -4), (-2, -4)], [(0, 1), (2, 3)])
+    scan = visible_view(truth, pose, 8.0, 2 * math.pi).scan
+    memo: dict = {}
+    for wf in (wall, other, wall):
+        view = visible_view(wf, pose, 8.0, 2 * math.pi)
+        pairs = scan_likelihood(scan, view.scan).correspondences.edge_pairs
+        args = (wf, pose, view.scan, view.edge_source, pairs, scan, 0.5, 0.2, 0.2, 8.0)
+        plain = seen_through_spans(*args)
+        assert plain and seen_through_spans(*args, memo=memo) == plain
+    assert memo
+
+
 def test_frontiers_snap_onto_a_longer_established_wall():
     ref = Wireframe.build([(0, 0), (10, 0)], [(0, 1)])
     scan = Wireframe.build([(5, 0.05), (12, 0.15)], [(0, 1)], labels=[Label.NOMINAL, Label.FRONTIER])
