@@ -421,7 +421,8 @@ def test_run_unknown_starts_on_paper_small(tmp_path: Path):
 def test_run_carmen_log_as_two_robots(tmp_path: Path):
     """`wiremap run --carmen LOG --robots 2` on the committed excerpt (60 scans): the robots start
     without ``--particles`` (it used to reach them as "None") and with the real-lidar profile,
-    every robot is either registered or an island, and fused.png is the map over the log's real scan endpoints (grey pixels)."""
+    every robot is either registered or an island, and fused.png is the map over the log's real
+    scan endpoints (grey pixels)."""
     import json
 
     from agents.files.render import POINTS_COLOR, decode_png
