@@ -42,13 +42,14 @@ import os
 import threading
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from agents.errors import UserError
 from agents.fleet.fusion.codec import decode_message, encode_message
 from agents.fleet.fusion.stats import LatencyWindow
-from agents.fleet.fusion.store import append_latency_log
+from agents.fleet.fusion.store import StoreWriter, append_latency_log
 from agents.fleet.fusion.tree import GroupKeys, RootState
 from agents.fleet.proc import freeze_heap, rss_kb
 from mapping.wireframe import Wireframe
@@ -69,54 +70,27 @@ def _atomic_write(path: Path, data: bytes) -> None:
 UNCOVERED_AFTER_S = 10.0
 
 
-class _StoreThread:
-    """The root's store writes (``latency.log``, ``fused.wfm``, ``state.json``, each
-    fsynced) in a background thread, so that the root's loop never waits for a disk: they
-    were written in the loop once a second, a stall of tens of milliseconds in the root's
-    latency. A write still waiting when the next comes is combined with it (the newest
-    files, every latency row of both), so the files are written in order."""
+@dataclass
+class _RootStoreJob:
+    """The root's store files to write (``latency.log`` rows, ``fused.wfm``, ``state.json``,
+    each fsynced), as a job for :class:`~agents.fleet.fusion.store.StoreWriter`: written in a
+    background thread so that the root's loop never waits for a disk (they were written in the
+    loop once a second, a stall of tens of milliseconds in the root's latency)."""
 
-    def __init__(self, store: Path, say: Callable[[str], None]) -> None:
-        self.store = store
-        self.say = say
-        self._cond = threading.Condition()
-        self._job: tuple[list[tuple[int, float, int]], bytes | None, bytes] | None = None
-        self._stop = False
-        self._error = ""
-        self._thread = threading.Thread(target=self._run, name="root-store", daemon=True)
-        self._thread.start()
+    store: Path
+    rows: list[tuple[int, float, int]]
+    fused: bytes | None
+    state: bytes
+    version: int = 0
 
-    def submit(self, rows: list[tuple[int, float, int]], fused: bytes | None, state: bytes) -> None:
-        with self._cond:
-            if self._job is not None:
-                old_rows, old_fused, _ = self._job
-                rows = old_rows + rows
-                fused = fused if fused is not None else old_fused
-            self._job = (rows, fused, state)
-            self._cond.notify_all()
+    def then(self, later: _RootStoreJob) -> _RootStoreJob:
+        """This job and a later one as one: the newest files, every latency row of both."""
+        return _RootStoreJob(self.store, self.rows + later.rows,
+                             later.fused if later.fused is not None else self.fused, later.state,
+                             later.version)
 
-    def _run(self) -> None:
-        while True:
-            with self._cond:
-                while self._job is None and not self._stop:
-                    self._cond.wait()
-                job, self._job = self._job, None
-            if job is None:
-                return
-            try:
-                write_root_store(self.store, *job)
-                self._error = ""
-            except OSError as exc:  # reported once per message; the next write tries again
-                if str(exc) != self._error:
-                    self._error = str(exc)
-                    self.say(f"cannot write the store {self.store}: {exc}")
-
-    def close(self) -> None:
-        """Write what is waiting, then stop."""
-        with self._cond:
-            self._stop = True
-            self._cond.notify_all()
-        self._thread.join()
+    def write(self) -> None:
+        write_root_store(self.store, self.rows, self.fused, self.state)
 
 
 def write_root_store(store: Path, rows: list[tuple[int, float, int]], fused: bytes | None,
@@ -198,7 +172,7 @@ class RootService:
         self.lat_total = 0
         self._unsaved: list[tuple[int, float, int]] = []
         self._saved_at = 0.0
-        self._writer: _StoreThread | None = None  # the store's writes, off the loop
+        self._writer: StoreWriter | None = None  # the store's writes, off the loop
         self._stats_doc = b"{}"
         self._entities: list[Any] = []
         self.received = 0
@@ -475,8 +449,8 @@ class RootService:
             write_root_store(self.store, rows, self.current, state)
             return
         if self._writer is None:
-            self._writer = _StoreThread(self.store, self.say)
-        self._writer.submit(rows, self.current, state)
+            self._writer = StoreWriter(self.say)
+        self._writer.submit(_RootStoreJob(self.store, rows, self.current, state, self.state.version))
 
     def stats_doc(self) -> dict[str, Any]:
         st = self.state

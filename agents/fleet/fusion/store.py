@@ -16,7 +16,7 @@ import threading
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol, Self
 
 import msgpack
 
@@ -416,9 +416,20 @@ def read_store(store: str | os.PathLike[str], warn: Callable[[str], None] | None
     )
 
 
+class WriteJob(Protocol):
+    """What :class:`StoreWriter` writes: :class:`StoreJob`, or the root's files."""
+
+    store: Path
+    version: int
+
+    def then(self, newer: Self) -> Self: ...
+
+    def write(self) -> None: ...
+
+
 class StoreWriter:
-    """Writes :class:`StoreJob` s in a background thread, so that the fusion loop never waits
-    for a disk (each store write fsyncs several files).
+    """Writes :class:`StoreJob` s (any :class:`WriteJob`) in a background thread, so that the
+    fusion loop never waits for a disk (each store write fsyncs several files).
 
     :meth:`submit` hands over a job; a job still waiting when the next arrives is combined
     with it (:meth:`StoreJob.then`: the newest contents, every view and latency of both), so
@@ -430,7 +441,7 @@ class StoreWriter:
     def __init__(self, say: Callable[[str], None] | None = None) -> None:
         self.say = say or (lambda _s: None)
         self._cond = threading.Condition()
-        self._job: StoreJob | None = None
+        self._job: WriteJob | None = None
         self._busy = False
         self._stop = False
         self.errors = 0
@@ -441,7 +452,7 @@ class StoreWriter:
         self._thread = threading.Thread(target=self._run, name="fusion-store", daemon=True)
         self._thread.start()
 
-    def submit(self, job: StoreJob) -> None:
+    def submit(self, job: WriteJob) -> None:
         """Hand over ``job`` (combined with a job still waiting, if any)."""
         with self._cond:
             self._job = job if self._job is None else self._job.then(job)
