@@ -56,6 +56,7 @@ import numpy as np
 
 from agents.bench.common import aligned_rows, fmt_cell
 from agents.errors import UserError
+from agents.mapping_run import LIDAR_PROFILES
 
 HELP = "the mapper on real CARMEN lidar logs against their truth (ATE, map precision, bytes)"
 
@@ -89,7 +90,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", default="out/bench-lidar", metavar="DIR", help="where the PNGs go")
     parser.add_argument("--jobs", type=int, default=1, metavar="N",
                         help="run N logs at once in separate processes (default 1; they share the cores)")
-    parser.add_argument("--profile", choices=("lidar", "lidar-slam", "none"), default="lidar-slam",
+    parser.add_argument("--profile", choices=(*LIDAR_PROFILES, "none"), default="lidar-slam",
                         help="real-lidar settings (agents.mapping_run.LIDAR_PROFILES): lidar-slam "
                              "(lidar SLAM under the filter; default), lidar (the filter's own corner "
                              "ICP holds the pose) or none")

@@ -53,6 +53,7 @@ import numpy as np
 
 from agents.errors import INTERRUPTED, UserError
 from agents.files.rosbag import DEFAULT_BASE_FRAME, DEFAULT_ODOM_FRAME
+from agents.mapping_run import LIDAR_PROFILES
 from agents.params import ConfigArgs, Resolved, add_config_arguments, resolve
 
 HELP = "run one robot (simulated, CARMEN log, ROS bag), write its map"
@@ -99,7 +100,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     bag.add_argument("--truth-topic", metavar="TOPIC",
                      help="a topic with the robot's true pose (nav_msgs/Odometry or "
                           "geometry_msgs/PoseStamped) to start from and score against (default: none)")
-    parser.add_argument("--lidar-profile", choices=("lidar", "lidar-slam"), default="lidar-slam",
+    parser.add_argument("--lidar-profile", choices=tuple(LIDAR_PROFILES), default="lidar-slam",
                         help="real scans (--carmen, --rosbag): lidar-slam, lidar SLAM under the filter "
                              "(default), or lidar, the filter's corner ICP alone "
                              "(agents.mapping_run.LIDAR_PROFILES)")
