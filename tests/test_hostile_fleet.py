@@ -70,11 +70,17 @@ def attacks(doc: dict[str, Any]) -> list[tuple[str, bytes]]:
 ABSURD_KINDS = {"budget_walls", "reach", "future", "seq_jump"}
 
 
+SIDE_KINDS = ("pose_time", "pose_not_finite", "viz_not_finite")
+
+
 def _every_attack_counted(st: dict) -> bool:
-    """Each absurd kind, the restart claim and the oversized map counted at least once."""
+    """Each absurd kind, the restart claim, the oversized map and each bad pose or scan counted
+    at least once (the maps and the side channel are counted on their own paths)."""
+    side = st.get("side_dropped_by", {})
     return (ABSURD_KINDS <= set(st.get("absurd_by", {}))
             and st.get("rejected_by", {}).get("boot_without_restart", 0) >= 1
-            and st.get("malformed", 0) >= 1)
+            and st.get("malformed", 0) >= 1
+            and all(side.get(k, 0) for k in SIDE_KINDS))
 
 
 def test_one_stolen_robot_does_not_take_the_fleet_down(tmp_path: Path) -> None:
@@ -120,7 +126,7 @@ def test_one_stolen_robot_does_not_take_the_fleet_down(tmp_path: Path) -> None:
     print(json.dumps(st, indent=1))
     assert ABSURD_KINDS <= set(st["absurd_by"]), st
     by = st["side_dropped_by"]
-    assert by.get("pose_time", 0) and by.get("pose_not_finite", 0) and by.get("viz_not_finite", 0), st
+    assert all(by.get(k, 0) for k in SIDE_KINDS), st
     # every round sends a map claiming a restart r3's session never made; at least one is
     # counted under that reason (a round's may be stopped first by another guard: the count
     # was 2 of 3 in some runs, and why is not yet traced)
