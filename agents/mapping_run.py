@@ -517,6 +517,20 @@ def scan_fov(angles: Any) -> float:
     return float(min(2.0 * math.pi, a[-1] - a[0] + step))
 
 
+def profiled_inputs(
+    scans: Sequence[Any], profile: str, particles: int, threshold: float, max_range: float,
+    overrides: Mapping[str, Any] | None = None,
+) -> tuple[FilterConfig, Iterator[ScanInput]]:
+    """Real scans through the real-lidar profile ``profile`` (a key of :data:`LIDAR_PROFILES`):
+    the filter's settings (the profile's, then ``overrides``) and its inputs
+    (:func:`carmen_inputs` with the profile's extractor and front end; with ``lidar-slam`` the
+    SLAM runs over all of ``scans`` when the first input is drawn)."""
+    settings, extract, frontend = split_profile(lidar_profile(profile))
+    cfg = filter_config_for(particles, threshold, max_range, fov=scan_fov(scans[0].angles),
+                            overrides={**settings, **(overrides or {})})
+    return cfg, carmen_inputs(scans, max_range=max_range, extract=extract, frontend=frontend)
+
+
 def run_filter(
     inputs: Iterable[ScanInput], filt: WireframeFilter, total: int | None = None
 ) -> Iterator[RunStep]:

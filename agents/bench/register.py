@@ -433,15 +433,13 @@ def _build_log_maps(path: Path, seed: int, k: int) -> list[dict[str, Any]]:
         if len(stretches) < k:
             b0 = int(np.clip(a0 + int(rng.integers(-lb, la)), 0, max(0, n - lb)))
             stretches.append((b0, min(n, b0 + lb)))
-    profile, extract, frontend = mr.split_profile(mr.lidar_profile("lidar-slam"))
     out = []
     for i0, i1 in stretches:
         part = scans[i0:i1]
-        max_range = min(float(part[0].max_range), MAX_RANGE)
-        cfg = mr.filter_config_for(6, 0.2, max_range, fov=mr.scan_fov(part[0].angles), overrides=profile)
+        cfg, inputs = mr.profiled_inputs(part, "lidar-slam", 6, 0.2, min(float(part[0].max_range), MAX_RANGE))
         run_seed = int(rng.integers(0, 2**31))
         filt = WireframeFilter(cfg, mr.seeds_for(run_seed)["filter"], initial_pose=Pose.identity())
-        for inp in mr.carmen_inputs(part, max_range=max_range, extract=extract, frontend=frontend):
+        for inp in inputs:
             filt.step(inp.odometry, inp.scan)
         out.append({"wf": filt.best.to_geojson(), "start": list(truth[i0].as_tuple()), "xy": [],
                     "source": path.name.replace(".log.gz", ""), "stretch": [i0, i1]})

@@ -224,6 +224,7 @@ class Progress:
         self.status: dict[str, dict[str, Any]] = {}
         self.fused = ""
         self.fused_raw: bytes | None = None
+        self.fused_robots: set[str] = set()  # the robots in the latest fused map
         self.tracks: dict[str, list[tuple[float, float]]] = {}
         self._drawn = 0
         self._last = 0.0
@@ -231,6 +232,7 @@ class Progress:
     def set_fused(self, raw: bytes, version: int, vertices: int, edges: int, robots: list[str]) -> None:
         """The latest fused map seen on the bus; its size is the payload's (what fused.wfm holds)."""
         self.fused_raw = raw
+        self.fused_robots = set(robots)
         self.fused = (
             f"fused v{version}: {vertices} corners, {edges} walls, {len(raw)} bytes, from {' '.join(robots)}"
         )
@@ -793,7 +795,6 @@ def _watch_fleet(
     n = len(progress.ids)
     t_map: float | None = None
     done_at: float | None = None
-    in_fleet: set[str] = set()  # robots in the last fused map
     # Robots without a shared frame: islands left when the robots are done get the fusion's
     # retry of maps that stopped growing (FramesConfig.retry_after_s) before the fleet stops.
     settle_s = SETTLE_S if (args.carmen or args.unknown_starts) else 0.0
@@ -811,7 +812,6 @@ def _watch_fleet(
                 raw = s.payload.to_bytes()
                 m = validate.fused_map(raw)
                 progress.set_fused(raw, m.seq, m.wireframe.n_vertices, m.wireframe.n_edges, list(m.robots))
-                in_fleet = set(m.robots)
             except ValueError:
                 pass
         if t_map is None and (
@@ -826,7 +826,7 @@ def _watch_fleet(
             st.get("finished") for st in progress.status.values()
         ):
             done_at = now if done_at is None else done_at
-            islands = not set(progress.ids) <= in_fleet
+            islands = not set(progress.ids) <= progress.fused_robots
             if now - done_at >= (settle_s if islands else 1.0):  # the last maps reach the fusion service
                 break
         dead = [k for k, p in procs.items() if p.poll() is not None]

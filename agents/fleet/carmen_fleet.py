@@ -74,12 +74,9 @@ def robot_steps(opts: Any) -> Iterator[Any]:
     max_range = min(float(part[0].max_range), MAX_RANGE)
     # The real-lidar profile as `wiremap map --carmen` applies it (the user's settings on top);
     # with lidar-slam the SLAM runs over the whole stretch before the first map is published.
-    profile, extract, frontend = mr.split_profile(mr.lidar_profile(opts.lidar_profile))
-    cfg = mr.filter_config_for(int(opts.particles), float(opts.threshold), max_range,
-                               fov=mr.scan_fov(part[0].angles),
-                               overrides={**profile, **(opts.filter_overrides or {})})
+    cfg, inputs = mr.profiled_inputs(part, opts.lidar_profile, int(opts.particles), float(opts.threshold),
+                                     max_range, opts.filter_overrides)
     filt = WireframeFilter(cfg, mr.seeds_for(int(opts.seed))["filter"], initial_pose=Pose.identity())
-    inputs = mr.carmen_inputs(part, max_range=max_range, extract=extract, frontend=frontend)
     return mr.run_filter(inputs, filt, total=len(part))
 
 

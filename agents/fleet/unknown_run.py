@@ -112,19 +112,24 @@ def _fused(out: Path) -> tuple[bytes, Any]:
     return raw, decode_message(raw)
 
 
-def _frames(msg: Any, robots: list[str], out: Path | None = None) -> dict[str, Any]:
+def _store_state(out: Path) -> dict[str, Any]:
+    """The fusion store's ``state.json`` ({} when missing or unreadable)."""
+    try:
+        state = json.loads((out / "store" / "state.json").read_text())
+    except (OSError, ValueError):
+        return {}
+    return state if isinstance(state, dict) else {}
+
+
+def _frames(msg: Any, robots: list[str], state: dict[str, Any]) -> dict[str, Any]:
     """The registration graph's summary from the fused map's meta, with every attempt from the
-    store's ``state.json`` when it has them (the meta carries the last few)."""
+    store's ``state`` when it has them (the meta carries the last few)."""
     fr = msg.meta.get("frames") if isinstance(msg.meta, dict) else None
     if not isinstance(fr, dict):  # no registration graph: every robot is in the fleet frame
         return {"fleet_root": robots[0] if robots else None, "registered": robots, "islands": {}, "poses": {}}
-    if out is not None:
-        try:
-            every = json.loads((out / "store" / "state.json").read_text()).get("registrations")
-        except (OSError, ValueError):
-            every = None
-        if isinstance(every, list) and len(every) >= len(fr.get("registrations", [])):
-            fr = {**fr, "registrations": every}
+    every = state.get("registrations")
+    if isinstance(every, list) and len(every) >= len(fr.get("registrations", [])):
+        fr = {**fr, "registrations": every}
     return fr
 
 
@@ -140,15 +145,11 @@ def _robot_maps(out: Path, ids: list[str]) -> dict[str, Wireframe]:
 
 
 def _common(
-    out: Path, ids: list[str], duration_s: float, extra: dict[str, Any], raw: bytes, msg: Any
+    out: Path, ids: list[str], duration_s: float, extra: dict[str, Any], raw: bytes, msg: Any,
+    state: dict[str, Any],
 ) -> dict[str, Any]:
     from agents.fleet.fusion import merge_threshold_of
 
-    state: dict[str, Any] = {}
-    try:
-        state = json.loads((out / "store" / "state.json").read_text())
-    except (OSError, ValueError):
-        pass
     lat = (state.get("stats") or {}).get("latency_ms") or {}
     write_atomic(out / "fused.wfm", raw)
     statuses = extra.get("robot_status", {})
@@ -231,13 +232,15 @@ def write_outputs_unknown(
     fused map is read from the store, and the robots' tracks are in their own frames."""
     from agents.commands.run import _metrics
     from agents.files.render import map_png
+    from agents.fleet.fusion import merge_threshold_of
     from agents.fleet.robot import start_pose_of
     from mapping.metrics import align_to_truth
 
     raw, msg = _fused(out)
     wf = msg.wireframe
     robots = list(msg.robots)
-    fr = _frames(msg, robots, out)
+    state = _store_state(out)
+    fr = _frames(msg, robots, state)
     starts: dict[str, Pose] = {}
     for rid in ids:
         try:
@@ -248,7 +251,7 @@ def write_outputs_unknown(
             continue
     root = fr.get("fleet_root")
     placed = wf.transformed(starts[root]) if root in starts else wf
-    res = float(_common(out, ids, duration_s, extra, raw, msg)["merge_threshold"])
+    res = float(merge_threshold_of(msg))
     align = align_to_truth(world.truth, placed, 0.1) if placed.n_edges else Pose.identity()
     aligned = placed.transformed(align)
     fused = _metrics(world.truth, aligned, res)
@@ -272,7 +275,7 @@ def write_outputs_unknown(
         "per_robot": per_robot,
         "resolution": res,
     }
-    report.update(_common(out, ids, duration_s, extra, raw, msg))
+    report.update(_common(out, ids, duration_s, extra, raw, msg, state))
     write_json(out / "report.json", report)
     return _summary_shape(report, ids)
 
@@ -288,7 +291,8 @@ def write_outputs_carmen(
     raw, msg = _fused(out)
     wf = msg.wireframe
     robots = list(msg.robots)
-    fr = _frames(msg, robots, out)
+    state = _store_state(out)
+    fr = _frames(msg, robots, state)
     stretches: dict[str, tuple[int, int]] = {}
     for rid in ids:
         try:
@@ -327,7 +331,7 @@ def write_outputs_carmen(
         "fused": fused,
         "per_robot": per_robot,
     }
-    report.update(_common(out, ids, duration_s, extra, raw, msg))
+    report.update(_common(out, ids, duration_s, extra, raw, msg, state))
     write_json(out / "report.json", report)
     return _summary_shape(report, ids)
 

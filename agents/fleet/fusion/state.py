@@ -714,10 +714,6 @@ class FusionState:
             del self._island_cache[gone]
         return out
 
-    def register_due(self, now: float | None = None) -> bool:
-        """Whether :meth:`register_step` has a pair of components to try."""
-        return self.frames.active and self.frames.next_pair(self._component_length, now) is not None
-
     def register_step(self, t: float = 0.0, now: float | None = None) -> RegistrationRecord | None:
         """One registration attempt of the registration graph (:mod:`.frames`), the pair it
         finds due (``now``: the service's clock for the retry of maps that stopped growing); on
