@@ -83,7 +83,7 @@ class SlamConfig:
         are 1 degree apart, 0.35 m at 20 m on a wall square to the beam; at 0.3 the far walls,
         which hold the heading best, had no normals and took no part in a match).
     loop_every : int
-        Try to close a loop every this many scans (3).
+        Try to close a loop every this many scans (2).
     loop_query_scans : int
         The recent scans searched for in an old submap (5).
     loop_submap_scans : int
@@ -102,7 +102,7 @@ class SlamConfig:
     loop_kernel : float
         Cauchy scale of a loop edge's chi (3.0).
     effective_points : float
-        A match's data term counts as this many independent points at most (4): neighbouring
+        A match's data term counts as this many independent points at most (2): neighbouring
         returns' errors are correlated, and a raw scan matched against raw scans is good to a
         couple of centimetres, not to ``sigma / sqrt(n)``; with more, the match overrules the
         odometry's translation, which on the logs is better.
@@ -115,7 +115,7 @@ class SlamConfig:
     map_scans : int
         At most this many of them, nearest first (15).
     refine_passes : int
-        Offline passes of :meth:`LidarSlam.refine` after the last scan (2; 0: none).
+        Offline passes of :meth:`LidarSlam.refine` after the last scan (3; 0: none).
     refine_visit_gap : int
         Old scans near a scan form one *visit* of its place while their indices are at most this
         far apart (3).
@@ -140,7 +140,7 @@ class SlamConfig:
     odo_floor_xy: float = 0.01
     odo_floor_theta: float = 0.005
     normal_gap: float = 0.6
-    loop_every: int = 3
+    loop_every: int = 2
     loop_query_scans: int = 5
     loop_submap_scans: int = 8
     loop_min_travel: float = 12.0
@@ -153,11 +153,11 @@ class SlamConfig:
     loop_min_inliers: float = 0.6
     loop_inlier_distance: float = 0.1
     loop_kernel: float = 3.0
-    effective_points: float = 4.0
+    effective_points: float = 2.0
     loop_max_chi2: float = 25.0
     map_radius: float = 4.0
     map_scans: int = 15
-    refine_passes: int = 2
+    refine_passes: int = 3
     refine_visit_gap: int = 3
     enabled: bool = False
 
