@@ -54,6 +54,7 @@ Prints a table by overlap band and, with ``--json``, one JSON object on the last
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import math
 import os
@@ -479,8 +480,17 @@ def _world_job(item: tuple[str, int, int, str]) -> list[FilterMap]:
 
 def _log_job(item: tuple[str, int, int, str]) -> list[FilterMap]:
     path, seed, k, cache = item
-    return _cached(Path(cache), f"carmen-{Path(path).name.replace('.log.gz', '')}-s{seed}-k{k}",
+    name = Path(path).name.replace(".log.gz", "")
+    return _cached(Path(cache), f"carmen-{name}-s{seed}-k{k}-{_profile_digest()}",
                    lambda: _build_log_maps(Path(path), seed, k), LOG_CACHE_VERSION)
+
+
+def _profile_digest() -> str:
+    """8 hex digits of the ``lidar-slam`` profile's configs as they stand (the SLAM's and the
+    extractor's defaults included): cached stretch maps are rebuilt when a default changes."""
+    from agents import mapping_run as mr
+
+    return hashlib.sha256(repr(mr.split_profile(mr.lidar_profile("lidar-slam"))).encode()).hexdigest()[:8]
 
 
 def _as_sample(fm: FilterMap, truth: Any, rng: np.random.Generator) -> Sample:
