@@ -28,7 +28,8 @@ import shapely
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial import cKDTree
 
-from mapping.metrics import sample_walls, wall_pieces
+from mapping.metrics import rigid_fit, sample_walls, wall_pieces
+from mapping.se2 import Pose
 from mapping.wireframe import Wireframe
 
 FloatArray = NDArray[np.float64]
@@ -176,6 +177,50 @@ def map_precision(wf: Wireframe, endpoints: ArrayLike, tol: float = 0.2, spacing
         return 0.0
     d, _ = cKDTree(pts).query(samples, k=1, distance_upper_bound=tol)
     return float(np.mean(d <= tol))
+
+
+def align_to_points(
+    wf: Wireframe, endpoints: ArrayLike, step: float = 0.1, max_dist: float = 1.0, keep: float = 0.8,
+    iterations: int = 50,
+) -> Pose:
+    """The rigid motion that lays the map's walls best onto scan endpoints (a map whose frame
+    is arbitrary -- robots that never shared one -- scored after one rigid alignment, as
+    :func:`mapping.metrics.align_to_truth` does against true walls).
+
+    Trimmed ICP from the identity: the walls sampled every ``step`` metres, each sample paired
+    with its nearest endpoint within ``max_dist``, the ``keep`` share of closest pairs aligned
+    in closed form (length-weighted), until it stops moving or ``iterations`` times. A local
+    refinement: a map off by more than ``max_dist`` is not found.
+
+    Returns
+    -------
+    Pose
+        ``T`` such that ``wf.transformed(T)`` is the aligned map (identity when fewer than 10
+        samples pair up).
+    """
+    if not (math.isfinite(step) and step > 0 and math.isfinite(max_dist) and max_dist > 0):
+        raise ValueError(f"step and max_dist must be positive numbers of metres, got {step}, {max_dist}")
+    if not (0.0 < keep <= 1.0):
+        raise ValueError(f"keep must be within (0, 1], got {keep}")
+    pts = _poses(endpoints, "endpoints", 2)[:, :2]
+    mp, mw, _ = sample_walls(wf, step)
+    if len(mp) < 10 or len(pts) < 10:
+        return Pose.identity()
+    tree = cKDTree(pts)
+    R, t = np.eye(2), np.zeros(2)
+    for _ in range(iterations):
+        q = mp @ R.T + t
+        d, j = tree.query(q, k=1, distance_upper_bound=max_dist)
+        ok = np.isfinite(d)
+        if ok.sum() < 10:
+            break
+        sel = ok & (d <= np.quantile(d[ok], keep))
+        R_new, t_new = rigid_fit(mp[sel], pts[j[sel]], mw[sel])
+        done = np.abs(R_new - R).max() < 1e-9 and np.abs(t_new - t).max() < 1e-7
+        R, t = R_new, t_new
+        if done:
+            break
+    return Pose(float(t[0]), float(t[1]), math.atan2(R[1, 0], R[0, 0]))
 
 
 def map_coverage(wf: Wireframe, endpoints: ArrayLike, tol: float = 0.2) -> float:

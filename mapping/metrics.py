@@ -410,6 +410,18 @@ def distance_to_truth(truth: Wireframe, wf: Wireframe, step: float) -> tuple[flo
     return mean, _weighted_quantile(dist, weights, 0.95)
 
 
+def rigid_fit(a: FloatArray, b: FloatArray, w: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """``(R, t)`` minimising the ``w``-weighted squared distances of ``R a + t`` to ``b`` (2D
+    Kabsch / Umeyama, no scale, no reflection)."""
+    ca = (a * w[:, None]).sum(0) / w.sum()
+    cb = (b * w[:, None]).sum(0) / w.sum()
+    H = ((a - ca) * w[:, None]).T @ (b - cb)
+    U, _, Vt = np.linalg.svd(H)
+    D = np.diag([1.0, float(np.sign(np.linalg.det(Vt.T @ U.T)) or 1.0)])
+    R = Vt.T @ D @ U.T
+    return R, cb - R @ ca
+
+
 def align_to_truth(
     truth: Wireframe, wf: Wireframe, step: float, iterations: int = 100, keep: float = 0.9
 ) -> Pose:
@@ -451,14 +463,7 @@ def align_to_truth(
         target = a0 + u[:, None] * d0
         d = np.hypot(*(q[src] - target).T)
         sel = d <= np.quantile(d, keep)
-        a, b, w = mp[src[sel]], target[sel], mw[src[sel]]
-        ca = (a * w[:, None]).sum(0) / w.sum()
-        cb = (b * w[:, None]).sum(0) / w.sum()
-        H = ((a - ca) * w[:, None]).T @ (b - cb)
-        U, _, Vt = np.linalg.svd(H)
-        D = np.diag([1.0, float(np.sign(np.linalg.det(Vt.T @ U.T)) or 1.0)])
-        R_new = Vt.T @ D @ U.T
-        t_new = cb - R_new @ ca
+        R_new, t_new = rigid_fit(mp[src[sel]], target[sel], mw[src[sel]])
         done = np.abs(R_new - R).max() < 1e-9 and np.abs(t_new - t).max() < 1e-7
         R, t = R_new, t_new
         if done:

@@ -287,6 +287,7 @@ def write_outputs_carmen(
     """``report.json`` (and ``fused.*``) of a CARMEN fleet run (module docstring); ``published``
     and ``tracks`` as :func:`write_outputs_unknown`."""
     from agents.fleet.carmen_fleet import endpoint_precision, endpoints
+    from mapping.lidar_metrics import align_to_points
 
     raw, msg = _fused(out)
     wf = msg.wireframe
@@ -310,6 +311,12 @@ def write_outputs_carmen(
         ends = endpoints(world.scans, truth)
         placed = wf.transformed(starts[root]) if root in starts else wf
         fused["endpoint_precision"] = round(endpoint_precision(placed, ends), 4)
+        # the fleet frame is the root robot's odometry frame, placed at its true start; its own
+        # drift turns the whole map about that start. Scored also after one rigid alignment to
+        # the endpoints, as an unknown-starts simulation is scored against the true walls.
+        align = align_to_points(placed, ends)
+        fused["endpoint_precision_aligned"] = round(endpoint_precision(placed.transformed(align), ends), 4)
+        fused["alignment"] = [round(v, 6) for v in align.as_tuple()]
         write_atomic(out / "fused.png", _carmen_figure(world.name, placed, ends, truth, stretches, fr, root,
                                                        fused["endpoint_precision"]))
         write_json(out / "fused.geojson",
