@@ -129,7 +129,7 @@ is kept with the features.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import cached_property
 
 import numpy as np
@@ -535,6 +535,9 @@ class MapFeatures:
     corner_points: FloatArray
     conflict_weights: FloatArray
     config: RegistrationConfig
+    probe_owner: IntArray = field(default_factory=lambda: np.zeros(0, np.int64))
+    end_owner: IntArray = field(default_factory=lambda: np.zeros(0, np.int64))
+    end_vertex: IntArray = field(default_factory=lambda: np.zeros(0, np.int64))
 
     @cached_property
     def end_tree(self) -> cKDTree:
@@ -684,16 +687,21 @@ def prepare(wf: Wireframe, config: RegistrationConfig | None = None) -> MapFeatu
     # Free probes in front of the inner part of every wall.
     along = t * ln[owner]
     inner = (along >= cfg.probe_end_margin) & (ln[owner] - along >= cfg.probe_end_margin)
+    inner_idx = np.flatnonzero(inner)
     probes = (
         np.concatenate([pts[inner] + dep * nor[inner] for dep in cfg.free_depths])
         if len(pts)
         else np.zeros((0, 2))
     )
+    probe_owner = np.tile(inner_idx, len(cfg.free_depths)) if len(pts) else np.zeros(0, np.int64)
     if len(pts):
-        probes = np.concatenate([probes, _facing_probes(pts[inner], nor[inner], seg, nrm, cfg)])
+        deep, deep_owner = _facing_probes(pts[inner], nor[inner], seg, nrm, cfg)
+        probes = np.concatenate([probes, deep])
+        probe_owner = np.concatenate([probe_owner, inner_idx[deep_owner]])
     if len(probes) and len(pts):
         dist, _ = tree.query(probes, k=1, distance_upper_bound=cfg.free_clearance)
-        probes = probes[~np.isfinite(dist)]
+        clear = ~np.isfinite(dist)
+        probes, probe_owner = probes[clear], probe_owner[clear]
     probe_tree = cKDTree(probes) if len(probes) else None
     # Wall ends at real corners.
     real = np.zeros(len(Label), dtype=bool)
@@ -705,6 +713,8 @@ def prepare(wf: Wireframe, config: RegistrationConfig | None = None) -> MapFeatu
     end_angles = np.concatenate([ang[s_ok], ang[e_ok]])
     end_starts = np.concatenate([np.ones(int(s_ok.sum()), bool), np.zeros(int(e_ok.sum()), bool)])
     end_weights = np.concatenate([ln[s_ok], ln[e_ok]])
+    end_owner = np.concatenate([kept[s_ok], kept[e_ok]]).astype(np.int64)
+    end_vertex = np.concatenate([edges[s_ok, 0], edges[e_ok, 1]]).astype(np.int64)
     # What a sample weighs in a conflict (likelihood, short walls, frontier ends).
     front = int(Label.FRONTIER)
     s_fr = wf.labels[edges[:, 0]] == front if len(edges) else np.zeros(0, bool)
@@ -713,9 +723,21 @@ def prepare(wf: Wireframe, config: RegistrationConfig | None = None) -> MapFeatu
         e_fr[owner] & (ln[owner] - along < cfg.frontier_margin)
     )
     cw = w * wf.likelihood[kept][owner] * (ln[owner] >= cfg.conflict_min_wall) * ~near_fr
-    used = np.unique(np.concatenate([edges[s_ok, 0], edges[e_ok, 1]]))
+    used = np.unique(end_vertex)
     corner_points = np.asarray(wf.points[used], dtype=np.float64).reshape(-1, 2)
-    # Direction histogram, circularly smoothed.
+    return MapFeatures(
+        wireframe=wf, centre=np.asarray(centre, dtype=np.float64), points=pts, directions=dirs, normals=nor,
+        weights=w, tree=tree, probes=probes, probe_tree=probe_tree, end_points=end_points,
+        end_angles=end_angles, end_starts=end_starts, end_weights=end_weights,
+        histogram=_histogram(ang, ln, cfg), length=total,
+        owner=kept[owner].astype(np.int64), corner_points=corner_points,
+        conflict_weights=np.asarray(cw, dtype=np.float64), config=cfg,
+        probe_owner=probe_owner.astype(np.int64), end_owner=end_owner, end_vertex=end_vertex,
+    )
+
+
+def _histogram(ang: FloatArray, ln: FloatArray, cfg: RegistrationConfig) -> FloatArray:
+    """Wall length ``ln`` per direction ``ang``, circularly smoothed (step 1)."""
     nb = cfg.direction_bins
     width = 2.0 * math.pi / nb
     # Linear binning (each wall split between its two nearest bins) keeps the sub-bin direction.
@@ -726,20 +748,61 @@ def prepare(wf: Wireframe, config: RegistrationConfig | None = None) -> MapFeatu
                        weights=np.concatenate([ln * (1 - fr), ln * fr]), minlength=nb).astype(np.float64)
     k = np.fft.rfftfreq(nb, d=1.0 / nb)
     sig = cfg.direction_smooth / width
-    hist = np.fft.irfft(np.fft.rfft(hist) * np.exp(-2.0 * (math.pi * sig * k / nb) ** 2), n=nb)
+    return np.asarray(np.fft.irfft(np.fft.rfft(hist) * np.exp(-2.0 * (math.pi * sig * k / nb) ** 2), n=nb),
+                      dtype=np.float64)
+
+
+def _part(f: MapFeatures, edges: BoolArray) -> MapFeatures:
+    """The features of the part of ``f``'s map made of the edges ``edges`` (a mask over
+    ``f.wireframe``'s edges), taken from ``f`` instead of :func:`prepare` of the subgraph.
+
+    Samples, wall ends and corners are ``f``'s on those edges (at ``f``'s sample spacing); the
+    free probes are ``f``'s in front of those samples -- the space the whole map saw free, so a
+    probe ray stops at the first wall of the *map*, not of the part (:func:`prepare` of the part
+    alone would carry seen-free space through the walls left out).
+    """
+    cfg = f.config
+    wf = f.wireframe.subgraph_edges(edges)
+    smask = edges[f.owner]
+    emask = edges[f.end_owner]
+    pts = f.points[smask]
+    w = f.weights[smask]
+    total = float(w.sum())
+    centre = (pts * w[:, None]).sum(0) / total if total > 0 else np.zeros(2)
+    pmask = smask[f.probe_owner]
+    probes = f.probes[pmask]
+    # Sample indexes of the part (for the probes' owners).
+    renum = np.cumsum(smask) - 1
+    # Vertex numbering of the subgraph (``compacted`` keeps the order of the vertices left).
+    used = np.zeros(f.wireframe.n_vertices, dtype=bool)
+    used[f.wireframe.edges[edges].reshape(-1)] = True
+    vmap = np.cumsum(used) - 1
+    emap = np.cumsum(edges) - 1
+    end_vertex = f.end_vertex[emask]
+    corners = np.unique(end_vertex)
+    seg = f.wireframe.segments()[edges]
+    d = seg[:, 1] - seg[:, 0]
+    ln = np.hypot(d[:, 0], d[:, 1])
+    keep = ln >= max(cfg.min_wall, 1e-9)
     return MapFeatures(
-        wireframe=wf, centre=np.asarray(centre, dtype=np.float64), points=pts, directions=dirs, normals=nor,
-        weights=w, tree=tree, probes=probes, probe_tree=probe_tree, end_points=end_points,
-        end_angles=end_angles, end_starts=end_starts, end_weights=end_weights, histogram=hist, length=total,
-        owner=kept[owner].astype(np.int64), corner_points=corner_points,
-        conflict_weights=np.asarray(cw, dtype=np.float64), config=cfg,
+        wireframe=wf, centre=np.asarray(centre, dtype=np.float64), points=pts, directions=f.directions[smask],
+        normals=f.normals[smask], weights=w, tree=cKDTree(pts if len(pts) else np.zeros((0, 2))),
+        probes=probes, probe_tree=cKDTree(probes) if len(probes) else None,
+        end_points=f.end_points[emask], end_angles=f.end_angles[emask], end_starts=f.end_starts[emask],
+        end_weights=f.end_weights[emask],
+        histogram=_histogram(np.arctan2(d[keep, 1], d[keep, 0]), ln[keep], cfg), length=total,
+        owner=emap[f.owner[smask]].astype(np.int64),
+        corner_points=np.asarray(f.wireframe.points[corners], dtype=np.float64).reshape(-1, 2),
+        conflict_weights=f.conflict_weights[smask], config=cfg,
+        probe_owner=renum[f.probe_owner[pmask]].astype(np.int64), end_owner=emap[f.end_owner[emask]].astype(np.int64),
+        end_vertex=vmap[end_vertex].astype(np.int64),
     )
 
 
 def _facing_probes(
     origins: FloatArray, normals: FloatArray, seg: FloatArray, seg_normals: FloatArray,
     cfg: RegistrationConfig,
-) -> FloatArray:
+) -> tuple[FloatArray, IntArray]:
     """Probes deeper than ``free_depths`` in front of the wall samples ``origins`` whose normal
     first crosses a wall that faces back (``free_reach`` in :class:`RegistrationConfig`).
 
@@ -747,10 +810,12 @@ def _facing_probes(
     is found exactly, in chunks of consecutive samples (mostly along one wall) against the
     segments whose bounding box comes within ``free_reach`` of the chunk's; the probes are placed
     every ``free_reach_step`` from the deepest of ``free_depths`` to ``free_clearance`` before it.
+    Returns the probes and the index in ``origins`` of each one's wall sample.
     """
     deep = np.arange(max(cfg.free_depths) + cfg.free_reach_step, cfg.free_reach, cfg.free_reach_step)
+    none = (np.zeros((0, 2)), np.zeros(0, np.int64))
     if len(origins) == 0 or len(seg) == 0 or len(deep) == 0:
-        return np.zeros((0, 2))
+        return none
     lo_s, hi_s = seg.min(axis=1), seg.max(axis=1)
     first = np.full(len(origins), np.inf)
     facing = np.zeros(len(origins), dtype=bool)
@@ -777,11 +842,11 @@ def _facing_probes(
         facing[k : k + chunk] = np.einsum("ij,ij->i", seg_normals[near[j]], n) < 0.0
     use = np.isfinite(first) & facing
     if not use.any():
-        return np.zeros((0, 2))
+        return none
     o, n, lim = origins[use], normals[use], first[use] - cfg.free_clearance
     keep = deep[None, :] <= lim[:, None]
     i, d = np.nonzero(keep)
-    return np.asarray(o[i] + deep[d][:, None] * n[i], dtype=np.float64)
+    return np.asarray(o[i] + deep[d][:, None] * n[i], dtype=np.float64), np.flatnonzero(use)[i]
 
 
 # ------------------------------------------------------------------------------ rotation
@@ -1042,11 +1107,13 @@ def _residuals(fa: MapFeatures, fb: MapFeatures, T: Pose, ib: IntArray, ia: IntA
 
 def _score(
     fa: MapFeatures, fb: MapFeatures, T: Pose, gate: float, cfg: RegistrationConfig, votes: float,
-    stride: int = 1, refined: bool = False,
+    stride: int = 1, refined: bool = False, conflict: bool = True,
 ) -> Hypothesis:
+    """The hypothesis ``T`` scored at ``gate`` (every ``stride``-th sample). Without
+    ``conflict``, its conflict and score are left NaN (:func:`_with_conflict` fills them in)."""
     ib, ia = _match(fa, fb, T, gate, cfg, stride)
     support = float(fb.weights[ib].sum()) * stride
-    conflict = _conflict(fa, fb, T, cfg, stride)
+    c = _conflict(fa, fb, T, cfg, stride) if conflict else math.nan
     if len(ib):
         r = _residuals(fa, fb, T, ib, ia)
         rmse = float(np.sqrt(np.average(r**2, weights=fb.weights[ib])))
@@ -1056,16 +1123,25 @@ def _score(
         cross = float(np.linalg.eigvalsh(M)[0])
     else:
         rmse, cross = math.inf, 0.0
-    return Hypothesis(T, votes, support, conflict, support - cfg.conflict_weight * conflict, rmse,
-                      cross, refined)
+    return Hypothesis(T, votes, support, c, support - cfg.conflict_weight * c, rmse, cross, refined)
 
 
-def _refine(fa: MapFeatures, fb: MapFeatures, T: Pose, cfg: RegistrationConfig) -> Pose:
-    """Iteratively re-matched point-to-line least squares (step 5), about B's wall centre."""
+def _with_conflict(fa: MapFeatures, fb: MapFeatures, h: Hypothesis, cfg: RegistrationConfig, stride: int) -> Hypothesis:
+    """``h`` (scored without its conflict, every ``stride``-th sample) with conflict and score."""
+    if not math.isnan(h.conflict):
+        return h
+    c = _conflict(fa, fb, h.transform, cfg, stride)
+    return replace(h, conflict=c, score=h.support - cfg.conflict_weight * c)
+
+
+def _refine(fa: MapFeatures, fb: MapFeatures, T: Pose, cfg: RegistrationConfig, stride: int = 1) -> Pose:
+    """Iteratively re-matched point-to-line least squares (step 5), about B's wall centre; every
+    ``stride``-th sample of B in all iterations but the last."""
+    last = cfg.refine_iterations - 1
     for it in range(cfg.refine_iterations):
-        frac = it / max(1, cfg.refine_iterations - 1)
+        frac = it / max(1, last)
         gate = cfg.coarse_match_dist + (cfg.match_dist - cfg.coarse_match_dist) * frac
-        ib, ia = _match(fa, fb, T, gate, cfg)
+        ib, ia = _match(fa, fb, T, gate, cfg, stride if it < last else 1)
         if len(ib) < 3:
             break
         q = T.apply(fb.points[ib])
@@ -1175,7 +1251,7 @@ def _self_ratio(f: MapFeatures, samples: IntArray, cfg: RegistrationConfig) -> f
         # are at hand.
         region = f
     else:
-        region = prepare(wf.subgraph_edges(mask), cfg)
+        region = _part(f, mask)
     if len(region.end_points) == 0 or len(region.corner_points) == 0:
         return 0.0
     cands: list[tuple[float, Pose]] = []
@@ -1199,8 +1275,14 @@ def _self_ratio(f: MapFeatures, samples: IntArray, cfg: RegistrationConfig) -> f
     return best
 
 
+def _score_key(h: Hypothesis) -> float:
+    """Sort key, best score first; a hypothesis not yet scored (NaN) after all scored ones."""
+    return math.inf if math.isnan(h.score) else -h.score
+
+
 def _runner_up(
-    fa: MapFeatures, fb: MapFeatures, best: Hypothesis, rivals: list[Hypothesis], cfg: RegistrationConfig
+    fa: MapFeatures, fb: MapFeatures, best: Hypothesis, rivals: list[Hypothesis], cfg: RegistrationConfig,
+    stride: int = 1,
 ) -> tuple[Hypothesis | None, float, float]:
     """The best distinct runner-up and its ratio (step 6): ``(runner, ratio, corner_ratio)``.
 
@@ -1217,9 +1299,12 @@ def _runner_up(
     a few centimetres; the others count corners within twice ``rival_corner_dist``. When the
     best matches fewer than ``rival_min_ends`` typed wall ends, the corner ratio is not trusted
     (one corner swings it) and is taken as 1.
+
+    A rival scored without its conflict (NaN score, every ``stride``-th sample) gets it only when
+    its support (an upper bound of its score) could make it the runner-up.
     """
     if not rivals or best.score <= 0:
-        top = rivals[0] if rivals else None
+        top = _with_conflict(fa, fb, rivals[0], cfg, stride) if rivals else None
         return top, (1.0 if top is not None and top.score > 0 else 0.0), 0.0
     n_best = max(1, _matched_ends(fa, fb, best.transform, cfg, cfg.corner_match_dist))
     few = n_best < cfg.rival_min_ends
@@ -1228,7 +1313,7 @@ def _runner_up(
     for k, h in enumerate(sorted(rivals, key=lambda h: -h.support)):
         if k < cfg.rival_refine:
             if not h.refined:
-                h = _score(fa, fb, _refine(fa, fb, h.transform, cfg), cfg.match_dist, cfg, h.votes,
+                h = _score(fa, fb, _refine(fa, fb, h.transform, cfg, stride), cfg.match_dist, cfg, h.votes,
                            refined=True)
                 if not _distinct(h.transform, best.transform, fb, cfg):
                     continue  # it was the best hypothesis, voted off its cell
@@ -1241,6 +1326,12 @@ def _runner_up(
         if few:
             c = 1.0
         sup = h.support / best.support if best.support > 0 else 1.0
+        if math.isnan(h.score):
+            # score <= support: when even the support cannot beat the ratio, the score cannot.
+            bound = min(max(0.0, h.support / best.score, sup if sup >= 1.0 else 0.0), c, 1.0)
+            if runner is not None and bound <= ratio:
+                continue
+            h = _with_conflict(fa, fb, h, cfg, stride)
         r = min(max(0.0, h.score / best.score, sup if sup >= 1.0 else 0.0), c, 1.0)
         if r > ratio or runner is None:
             runner, ratio, corner_ratio = h, r, c
@@ -1289,13 +1380,23 @@ def register_prepared(
     cands.sort(key=lambda c: -c[0])
     n_cands = len(cands)
     stride = 2 if len(fb.points) + len(fa.points) > 2000 else 1
+    # Matched wall first; the conflict (the costlier half) only where the score may count: in
+    # order of support, until the support (an upper bound of the score) is below the
+    # ``refine_candidates``-th score. The others are rivals at most, scored when needed.
     scored = [
-        _score(fa, fb, T, cfg.coarse_match_dist, cfg, v, stride) for v, T in cands[: cfg.verify_candidates]
+        _score(fa, fb, T, cfg.coarse_match_dist, cfg, v, stride, conflict=False)
+        for v, T in cands[: cfg.verify_candidates]
     ]
-    scored.sort(key=lambda h: -h.score)
+    known: list[float] = []
+    for i in sorted(range(len(scored)), key=lambda i: -scored[i].support):
+        if len(known) >= cfg.refine_candidates and scored[i].support < known[cfg.refine_candidates - 1]:
+            break
+        scored[i] = _with_conflict(fa, fb, scored[i], cfg, stride)
+        known = sorted(known + [scored[i].score], reverse=True)
+    scored.sort(key=_score_key)
     refined = []
     for h in scored[: cfg.refine_candidates]:
-        T = _refine(fa, fb, h.transform, cfg)
+        T = _refine(fa, fb, h.transform, cfg, stride)
         refined.append(_score(fa, fb, T, cfg.match_dist, cfg, h.votes, refined=True))
     refined.sort(key=lambda h: -h.score)
     best = refined[0]
@@ -1305,9 +1406,8 @@ def register_prepared(
     # refined score; a coarse score at the coarse gate is an overestimate, which errs on the
     # side of refusing).
     pool = refined[1:] + scored[cfg.refine_candidates:]
-    rivals = sorted((h for h in pool if _distinct(h.transform, best.transform, fb, cfg)),
-                    key=lambda h: -h.score)
-    runner, ratio, corner_ratio = _runner_up(fa, fb, best, rivals, cfg)
+    rivals = sorted((h for h in pool if _distinct(h.transform, best.transform, fb, cfg)), key=_score_key)
+    runner, ratio, corner_ratio = _runner_up(fa, fb, best, rivals, cfg, stride)
     smaller = min(fa.length, fb.length)
     frac = best.support / smaller if smaller > 0 else 0.0
     reason = ""
