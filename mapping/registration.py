@@ -556,6 +556,16 @@ class MapFeatures:
         return np.ascontiguousarray((self.end_points - self.centre).T, dtype=np.float64)
 
     @cached_property
+    def end_cells(self) -> CellMask | None:
+        """Cells near a wall end (``corner_match_dist``): an upper bound of :func:`_matched_ends`."""
+        return _cell_mask(self.end_points, self.config.corner_match_dist)
+
+    @cached_property
+    def corner_cells(self) -> CellMask | None:
+        """Cells near a corner (``corner_match_dist``): an upper bound of :func:`_matched_corners`."""
+        return _cell_mask(self.corner_points, self.config.corner_match_dist)
+
+    @cached_property
     def probe_cells(self) -> CellMask | None:
         """Cells near a free probe (``conflict_radius``): points elsewhere need no probe query."""
         return _cell_mask(self.probes, self.config.conflict_radius)
@@ -699,10 +709,15 @@ def prepare(wf: Wireframe, config: RegistrationConfig | None = None) -> MapFeatu
         probes = np.concatenate([probes, deep])
         probe_owner = np.concatenate([probe_owner, inner_idx[deep_owner]])
     if len(probes) and len(pts):
-        dist, _ = tree.query(probes, k=1, distance_upper_bound=cfg.free_clearance)
-        clear = ~np.isfinite(dist)
+        # Only probes in a cell near a sample can be within the clearance (most are not).
+        cells = _cell_mask(pts, cfg.free_clearance) if len(probes) >= MIN_MASK_QUERY else None
+        clear = np.ones(len(probes), dtype=bool)
+        ask = np.ones(len(probes), dtype=bool) if cells is None else cells.near(probes)
+        if ask.any():
+            dist, _ = tree.query(probes[ask], k=1, distance_upper_bound=cfg.free_clearance)
+            clear[ask] = ~np.isfinite(dist)
         probes, probe_owner = probes[clear], probe_owner[clear]
-    probe_tree = cKDTree(probes) if len(probes) else None
+    probe_tree = _probe_tree(probes)
     # Wall ends at real corners.
     real = np.zeros(len(Label), dtype=bool)
     real[[int(Label.NOMINAL), int(Label.OCCLUSION)]] = True
@@ -734,6 +749,13 @@ def prepare(wf: Wireframe, config: RegistrationConfig | None = None) -> MapFeatu
         conflict_weights=np.asarray(cw, dtype=np.float64), config=cfg,
         probe_owner=probe_owner.astype(np.int64), end_owner=end_owner, end_vertex=end_vertex,
     )
+
+
+def _probe_tree(probes: FloatArray) -> cKDTree | None:
+    """k-d tree over the free probes (None when there are none). Only whether a probe lies
+    within a radius is ever asked, which does not depend on the tree's shape: the sliding
+    midpoint tree (``balanced_tree=False``) builds in half the time of the median one."""
+    return cKDTree(probes, balanced_tree=False) if len(probes) else None
 
 
 def _histogram(ang: FloatArray, ln: FloatArray, cfg: RegistrationConfig) -> FloatArray:
@@ -787,7 +809,7 @@ def _part(f: MapFeatures, edges: BoolArray) -> MapFeatures:
     return MapFeatures(
         wireframe=wf, centre=np.asarray(centre, dtype=np.float64), points=pts, directions=f.directions[smask],
         normals=f.normals[smask], weights=w, tree=cKDTree(pts if len(pts) else np.zeros((0, 2))),
-        probes=probes, probe_tree=cKDTree(probes) if len(probes) else None,
+        probes=probes, probe_tree=_probe_tree(probes),
         end_points=f.end_points[emask], end_angles=f.end_angles[emask], end_starts=f.end_starts[emask],
         end_weights=f.end_weights[emask],
         histogram=_histogram(np.arctan2(d[keep, 1], d[keep, 0]), ln[keep], cfg), length=total,
@@ -819,10 +841,19 @@ def _facing_probes(
     lo_s, hi_s = seg.min(axis=1), seg.max(axis=1)
     first = np.full(len(origins), np.inf)
     facing = np.zeros(len(origins), dtype=bool)
-    chunk = 64
+    chunk = 128
+    # Chunks of rays near each other (origins in ``free_reach`` cells, in cell order), each
+    # against the segments that meet the bounding box of its rays (origin to ``free_reach``
+    # along the normal): a superset of those any of its rays can cross, so the result does not
+    # depend on the chunks.
+    tips = origins + cfg.free_reach * normals
+    cell = np.floor(origins / cfg.free_reach).astype(np.int64)
+    order = np.lexsort((cell[:, 1], cell[:, 0]))
     for k in range(0, len(origins), chunk):
-        o, n = origins[k : k + chunk], normals[k : k + chunk]
-        lo, hi = o.min(axis=0) - cfg.free_reach, o.max(axis=0) + cfg.free_reach
+        idx = order[k : k + chunk]
+        o, n = origins[idx], normals[idx]
+        lo = np.minimum(o.min(axis=0), tips[idx].min(axis=0))
+        hi = np.maximum(o.max(axis=0), tips[idx].max(axis=0))
         near = np.flatnonzero(np.all(hi_s >= lo, axis=1) & np.all(lo_s <= hi, axis=1))
         if len(near) == 0:
             continue
@@ -838,8 +869,8 @@ def _facing_probes(
         hit = ok & (t > 1e-6) & (t <= cfg.free_reach) & (s >= 0.0) & (s <= 1.0)
         t = np.where(hit, t, np.inf)
         j = np.argmin(t, axis=1)
-        first[k : k + chunk] = t[np.arange(len(o)), j]
-        facing[k : k + chunk] = np.einsum("ij,ij->i", seg_normals[near[j]], n) < 0.0
+        first[idx] = t[np.arange(len(o)), j]
+        facing[idx] = np.einsum("ij,ij->i", seg_normals[near[j]], n) < 0.0
     use = np.isfinite(first) & facing
     if not use.any():
         return none
@@ -1264,7 +1295,17 @@ def _self_ratio(f: MapFeatures, samples: IntArray, cfg: RegistrationConfig) -> f
                 cands.append((v, T))
     cands.sort(key=lambda c: -c[0])
     best = 0.0
+    # Below the lowest limit a value decides nothing: a hypothesis that cannot land more than
+    # that share of the part's ends or corners near the map's (a cell-mask count, an upper bound
+    # of the matched count) is not verified.
+    floor = min(cfg.max_self_ratio, cfg.contested_self_ratio, cfg.mutual_self_ratio)
+    ends_cells, corner_cells = f.end_cells, f.corner_cells
     for v, T in cands[: cfg.verify_candidates]:
+        if ends_cells is not None and corner_cells is not None:
+            bound = max(int(ends_cells.near(T.apply(region.end_points)).sum()) / len(region.end_points),
+                        int(corner_cells.near(T.apply(region.corner_points)).sum()) / len(region.corner_points))
+            if bound <= max(best, floor):
+                continue
         n = max(_matched_ends(f, region, T, cfg, cfg.corner_match_dist) / len(region.end_points),
                 _matched_corners(f, region, T, cfg) / len(region.corner_points))
         if n <= best:
