@@ -449,6 +449,7 @@ class CellMask:
 
 MAX_MASK_CELLS = 4_000_000  # larger maps do without a cell mask (memory)
 MIN_MASK_QUERY = 500  # fewer query points go straight to the tree (the mask's fixed cost)
+SELF_VOTE_ENDS = 200  # a part with more wall ends votes with its walls' starts (self-similarity check)
 
 
 def _cell_mask(points: FloatArray, radius: float) -> CellMask | None:
@@ -999,15 +1000,23 @@ def _coarse_select(
 
 
 def _vote(
-    fa: MapFeatures, fb: MapFeatures, theta: float, cfg: RegistrationConfig
+    fa: MapFeatures, fb: MapFeatures, theta: float, cfg: RegistrationConfig, sel: IntArray | None = None
 ) -> list[tuple[FloatArray, float]]:
-    """Candidate translations (centred coordinates) under rotation ``theta``, strongest first."""
+    """Candidate translations (centred coordinates) under rotation ``theta``, strongest first;
+    with ``sel``, only those of B's wall ends vote."""
     if len(fa.end_points) == 0 or len(fb.end_points) == 0:
         return []
-    ia, ib = _angle_pairs(
-        fa.end_angles, fa.end_starts.astype(np.int64),
-        _wrap(fb.end_angles + theta), fb.end_starts.astype(np.int64), cfg.feature_angle_tol,
-    )
+    if sel is None:
+        ia, ib = _angle_pairs(
+            fa.end_angles, fa.end_starts.astype(np.int64),
+            _wrap(fb.end_angles + theta), fb.end_starts.astype(np.int64), cfg.feature_angle_tol,
+        )
+    else:
+        ia, ib = _angle_pairs(
+            fa.end_angles, fa.end_starts.astype(np.int64),
+            _wrap(fb.end_angles[sel] + theta), fb.end_starts[sel].astype(np.int64), cfg.feature_angle_tol,
+        )
+        ib = sel[ib]
     if len(ia) == 0:
         return []
     c, s = math.cos(theta), math.sin(theta)
@@ -1074,22 +1083,35 @@ def _match(
     q = T.apply(fb.points[sel])
     cells = fa.sample_cells
     if cells is None or gate > cells.radius or len(q) < MIN_MASK_QUERY:
-        dist, idx = fa.tree.query(q, k=3, distance_upper_bound=gate)
+        rows = np.arange(len(q))
     else:  # only the points near a sample are asked; the others have no neighbour
-        dist = np.full((len(q), 3), np.inf)
-        idx = np.full((len(q), 3), len(fa.points), dtype=np.int64)
-        near = cells.near(q)
-        if near.any():
-            dist[near], idx[near] = fa.tree.query(q[near], k=3, distance_upper_bound=gate)
+        rows = np.flatnonzero(cells.near(q))
+    none = np.zeros(0, np.int64)
+    if len(rows) == 0:
+        return none, none
+    # The nearest sample first: most points match it (same direction); only the others ask for
+    # the three nearest and take the first of the same direction.
+    d1, i1 = fa.tree.query(q[rows], k=1, distance_upper_bound=gate)
+    hit = np.isfinite(d1)
+    if not hit.any():
+        return none, none
+    rows, i1 = rows[hit], i1[hit]
     R = _rot(T.theta)
-    db = fb.directions[sel] @ R.T
-    ok = np.isfinite(dist)
-    idx_c = np.where(ok, idx, 0)
-    cosang = np.einsum("ijk,ik->ij", fa.directions[idx_c], db)
-    ok &= cosang >= math.cos(cfg.match_angle)
-    first = np.argmax(ok, axis=1)
-    has = ok[np.arange(len(sel)), first]
-    return sel[has], idx_c[np.arange(len(sel)), first][has]
+    db = fb.directions[sel[rows]] @ R.T
+    cos_min = math.cos(cfg.match_angle)
+    ok1 = np.einsum("ij,ij->i", fa.directions[i1], db) >= cos_min
+    match = np.where(ok1, i1, -1)
+    rest = np.flatnonzero(~ok1)
+    if len(rest):
+        dist, idx = fa.tree.query(q[rows[rest]], k=3, distance_upper_bound=gate)
+        ok = np.isfinite(dist)
+        idx_c = np.where(ok, idx, 0)
+        ok &= np.einsum("ijk,ik->ij", fa.directions[idx_c], db[rest]) >= cos_min
+        first = np.argmax(ok, axis=1)
+        k = np.arange(len(rest))
+        match[rest] = np.where(ok[k, first], idx_c[k, first], -1)
+    has = match >= 0
+    return sel[rows[has]], match[has]
 
 
 def _conflict_one(fp: MapFeatures, fw: MapFeatures, T: Pose, cfg: RegistrationConfig, stride: int) -> float:
@@ -1167,9 +1189,12 @@ def _with_conflict(fa: MapFeatures, fb: MapFeatures, h: Hypothesis, cfg: Registr
 
 def _refine(fa: MapFeatures, fb: MapFeatures, T: Pose, cfg: RegistrationConfig, stride: int = 1) -> Pose:
     """Iteratively re-matched point-to-line least squares (step 5), about B's wall centre; every
-    ``stride``-th sample of B in all iterations but the last."""
-    last = cfg.refine_iterations - 1
-    for it in range(cfg.refine_iterations):
+    ``stride``-th sample of B in all iterations but the last. A strided (large) map takes half
+    the iterations (at least two), over the same gates from ``coarse_match_dist`` to
+    ``match_dist``: with thousands of samples each step is already close to its fixed point."""
+    iterations = cfg.refine_iterations if stride <= 1 else max(2, (cfg.refine_iterations + 1) // 2)
+    last = iterations - 1
+    for it in range(iterations):
         frac = it / max(1, last)
         gate = cfg.coarse_match_dist + (cfg.match_dist - cfg.coarse_match_dist) * frac
         ib, ia = _match(fa, fb, T, gate, cfg, stride if it < last else 1)
@@ -1286,9 +1311,12 @@ def _self_ratio(f: MapFeatures, samples: IntArray, cfg: RegistrationConfig) -> f
     if len(region.end_points) == 0 or len(region.corner_points) == 0:
         return 0.0
     cands: list[tuple[float, Pose]] = []
+    # A large part votes with the starts of its walls only: each corner of a wall chain once
+    # instead of twice (its two walls), half the pairs; the hypotheses are verified on all ends.
+    sel = np.flatnonzero(region.end_starts) if len(region.end_points) > SELF_VOTE_ENDS else None
     for theta in rotation_candidates(f, region, cfg).tolist():
         R = _rot(theta)
-        for t, v in _vote(f, region, theta, cfg):
+        for t, v in _vote(f, region, theta, cfg, sel):
             tt = f.centre + t - R @ region.centre
             T = Pose(float(tt[0]), float(tt[1]), theta)
             if _distinct(T, Pose.identity(), region, cfg):
@@ -1345,7 +1373,7 @@ def _runner_up(
     its support (an upper bound of its score) could make it the runner-up.
     """
     if not rivals or best.score <= 0:
-        top = _with_conflict(fa, fb, rivals[0], cfg, stride) if rivals else None
+        top = _with_conflict(fa, fb, rivals[0], cfg, 1 if rivals[0].refined else stride) if rivals else None
         return top, (1.0 if top is not None and top.score > 0 else 0.0), 0.0
     n_best = max(1, _matched_ends(fa, fb, best.transform, cfg, cfg.corner_match_dist))
     few = n_best < cfg.rival_min_ends
@@ -1372,7 +1400,7 @@ def _runner_up(
             bound = min(max(0.0, h.support / best.score, sup if sup >= 1.0 else 0.0), c, 1.0)
             if runner is not None and bound <= ratio:
                 continue
-            h = _with_conflict(fa, fb, h, cfg, stride)
+            h = _with_conflict(fa, fb, h, cfg, 1 if h.refined else stride)
         r = min(max(0.0, h.score / best.score, sup if sup >= 1.0 else 0.0), c, 1.0)
         if r > ratio or runner is None:
             runner, ratio, corner_ratio = h, r, c
@@ -1435,11 +1463,18 @@ def register_prepared(
         scored[i] = _with_conflict(fa, fb, scored[i], cfg, stride)
         known = sorted(known + [scored[i].score], reverse=True)
     scored.sort(key=_score_key)
-    refined = []
-    for h in scored[: cfg.refine_candidates]:
-        T = _refine(fa, fb, h.transform, cfg, stride)
-        refined.append(_score(fa, fb, T, cfg.match_dist, cfg, h.votes, refined=True))
-    refined.sort(key=lambda h: -h.score)
+    refined = [
+        _score(fa, fb, _refine(fa, fb, h.transform, cfg, stride), cfg.match_dist, cfg, h.votes, refined=True,
+               conflict=False)
+        for h in scored[: cfg.refine_candidates]
+    ]
+    top = -math.inf  # the best score so far: a refined hypothesis with less support cannot win
+    for i in sorted(range(len(refined)), key=lambda i: -refined[i].support):
+        if refined[i].support < top:
+            break
+        refined[i] = _with_conflict(fa, fb, refined[i], cfg, 1)
+        top = max(top, refined[i].score)
+    refined.sort(key=_score_key)
     best = refined[0]
     if cfg.use_icp and best.score > 0:
         best = _polish(fa, fb, best, cfg)
