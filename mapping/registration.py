@@ -484,12 +484,8 @@ class MapFeatures:
         Wall samples: midpoints, unit directions, left (free-side) unit normals.
     weights : (k,)
         Wall length per sample.
-    tree : cKDTree
-        Over ``points``.
     probes : (p, 2)
         Free probes (module docstring).
-    probe_tree : cKDTree or None
-        Over ``probes`` (None when there are none).
     end_points : (f, 2)
         Wall ends at real corners.
     end_angles : (f,)
@@ -511,10 +507,14 @@ class MapFeatures:
         edges shorter than ``conflict_min_wall`` and within ``frontier_margin`` of a frontier.
     config : RegistrationConfig
         The configuration it was prepared with.
+    probe_owner : (p,) int64
+        Index of each probe's wall sample (in ``points``).
+    end_owner, end_vertex : (f,) int64
+        Each wall end's edge and vertex in ``wireframe``.
 
     Derived data is built on first use and kept (once per map, not per hypothesis):
-    :attr:`end_tree`, :attr:`corner_tree`, :attr:`end_centred`, :attr:`probe_cells`,
-    :attr:`sample_cells`.
+    :attr:`tree`, :attr:`probe_tree`, :attr:`end_tree`, :attr:`corner_tree`, :attr:`end_centred`,
+    :attr:`end_cells`, :attr:`corner_cells`, :attr:`probe_cells`, :attr:`sample_cells`.
     """
 
     wireframe: Wireframe
@@ -523,9 +523,7 @@ class MapFeatures:
     directions: FloatArray
     normals: FloatArray
     weights: FloatArray
-    tree: cKDTree
     probes: FloatArray
-    probe_tree: cKDTree | None
     end_points: FloatArray
     end_angles: FloatArray
     end_starts: BoolArray
@@ -539,6 +537,18 @@ class MapFeatures:
     probe_owner: IntArray = field(default_factory=lambda: np.zeros(0, np.int64))
     end_owner: IntArray = field(default_factory=lambda: np.zeros(0, np.int64))
     end_vertex: IntArray = field(default_factory=lambda: np.zeros(0, np.int64))
+
+    @cached_property
+    def tree(self) -> cKDTree:
+        """k-d tree over ``points``."""
+        return cKDTree(self.points if len(self.points) else np.zeros((0, 2)))
+
+    @cached_property
+    def probe_tree(self) -> cKDTree | None:
+        """k-d tree over ``probes`` (None when there are none). Only whether a probe lies within
+        a radius is ever asked, which does not depend on the tree's shape: the sliding midpoint
+        tree (``balanced_tree=False``) builds in half the time of the median one."""
+        return cKDTree(self.probes, balanced_tree=False) if len(self.probes) else None
 
     @cached_property
     def end_tree(self) -> cKDTree:
@@ -718,7 +728,6 @@ def prepare(wf: Wireframe, config: RegistrationConfig | None = None) -> MapFeatu
             dist, _ = tree.query(probes[ask], k=1, distance_upper_bound=cfg.free_clearance)
             clear[ask] = ~np.isfinite(dist)
         probes, probe_owner = probes[clear], probe_owner[clear]
-    probe_tree = _probe_tree(probes)
     # Wall ends at real corners.
     real = np.zeros(len(Label), dtype=bool)
     real[[int(Label.NOMINAL), int(Label.OCCLUSION)]] = True
@@ -741,22 +750,17 @@ def prepare(wf: Wireframe, config: RegistrationConfig | None = None) -> MapFeatu
     cw = w * wf.likelihood[kept][owner] * (ln[owner] >= cfg.conflict_min_wall) * ~near_fr
     used = np.unique(end_vertex)
     corner_points = np.asarray(wf.points[used], dtype=np.float64).reshape(-1, 2)
-    return MapFeatures(
+    f = MapFeatures(
         wireframe=wf, centre=np.asarray(centre, dtype=np.float64), points=pts, directions=dirs, normals=nor,
-        weights=w, tree=tree, probes=probes, probe_tree=probe_tree, end_points=end_points,
+        weights=w, probes=probes, end_points=end_points,
         end_angles=end_angles, end_starts=end_starts, end_weights=end_weights,
         histogram=_histogram(ang, ln, cfg), length=total,
         owner=kept[owner].astype(np.int64), corner_points=corner_points,
         conflict_weights=np.asarray(cw, dtype=np.float64), config=cfg,
         probe_owner=probe_owner.astype(np.int64), end_owner=end_owner, end_vertex=end_vertex,
     )
-
-
-def _probe_tree(probes: FloatArray) -> cKDTree | None:
-    """k-d tree over the free probes (None when there are none). Only whether a probe lies
-    within a radius is ever asked, which does not depend on the tree's shape: the sliding
-    midpoint tree (``balanced_tree=False``) builds in half the time of the median one."""
-    return cKDTree(probes, balanced_tree=False) if len(probes) else None
+    f.__dict__["tree"] = tree  # built for the clearance test: kept (what ``cached_property`` stores)
+    return f
 
 
 def _histogram(ang: FloatArray, ln: FloatArray, cfg: RegistrationConfig) -> FloatArray:
@@ -809,8 +813,7 @@ def _part(f: MapFeatures, edges: BoolArray) -> MapFeatures:
     keep = ln >= max(cfg.min_wall, 1e-9)
     return MapFeatures(
         wireframe=wf, centre=np.asarray(centre, dtype=np.float64), points=pts, directions=f.directions[smask],
-        normals=f.normals[smask], weights=w, tree=cKDTree(pts if len(pts) else np.zeros((0, 2))),
-        probes=probes, probe_tree=_probe_tree(probes),
+        normals=f.normals[smask], weights=w, probes=probes,
         end_points=f.end_points[emask], end_angles=f.end_angles[emask], end_starts=f.end_starts[emask],
         end_weights=f.end_weights[emask],
         histogram=_histogram(np.arctan2(d[keep, 1], d[keep, 0]), ln[keep], cfg), length=total,
