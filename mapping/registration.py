@@ -820,7 +820,8 @@ def _part(f: MapFeatures, edges: BoolArray) -> MapFeatures:
         owner=emap[f.owner[smask]].astype(np.int64),
         corner_points=np.asarray(f.wireframe.points[corners], dtype=np.float64).reshape(-1, 2),
         conflict_weights=f.conflict_weights[smask], config=cfg,
-        probe_owner=renum[f.probe_owner[pmask]].astype(np.int64), end_owner=emap[f.end_owner[emask]].astype(np.int64),
+        probe_owner=renum[f.probe_owner[pmask]].astype(np.int64),
+        end_owner=emap[f.end_owner[emask]].astype(np.int64),
         end_vertex=vmap[end_vertex].astype(np.int64),
     )
 
@@ -1182,7 +1183,9 @@ def _score(
     return Hypothesis(T, votes, support, c, support - cfg.conflict_weight * c, rmse, cross, refined)
 
 
-def _with_conflict(fa: MapFeatures, fb: MapFeatures, h: Hypothesis, cfg: RegistrationConfig, stride: int) -> Hypothesis:
+def _with_conflict(
+    fa: MapFeatures, fb: MapFeatures, h: Hypothesis, cfg: RegistrationConfig, stride: int
+) -> Hypothesis:
     """``h`` (scored without its conflict, every ``stride``-th sample) with conflict and score."""
     if not math.isnan(h.conflict):
         return h
@@ -1333,8 +1336,9 @@ def _self_ratio(f: MapFeatures, samples: IntArray, cfg: RegistrationConfig) -> f
     ends_cells, corner_cells = f.end_cells, f.corner_cells
     for v, T in cands[: cfg.verify_candidates]:
         if ends_cells is not None and corner_cells is not None:
-            bound = max(int(ends_cells.near(T.apply(region.end_points)).sum()) / len(region.end_points),
-                        int(corner_cells.near(T.apply(region.corner_points)).sum()) / len(region.corner_points))
+            n_ends = int(ends_cells.near(T.apply(region.end_points)).sum())
+            n_corners = int(corner_cells.near(T.apply(region.corner_points)).sum())
+            bound = max(n_ends / len(region.end_points), n_corners / len(region.corner_points))
             if bound <= max(best, floor):
                 continue
         n = max(_matched_ends(f, region, T, cfg, cfg.corner_match_dist) / len(region.end_points),
@@ -1464,7 +1468,7 @@ def register_prepared(
         if len(known) >= cfg.refine_candidates and scored[i].support < known[cfg.refine_candidates - 1]:
             break
         scored[i] = _with_conflict(fa, fb, scored[i], cfg, stride)
-        known = sorted(known + [scored[i].score], reverse=True)
+        known = sorted([*known, scored[i].score], reverse=True)
     scored.sort(key=_score_key)
     refined = [
         _score(fa, fb, _refine(fa, fb, h.transform, cfg, stride), cfg.match_dist, cfg, h.votes, refined=True,

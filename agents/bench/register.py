@@ -123,7 +123,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--jobs", type=int, default=1, metavar="N",
                         help="--maps filter: processes that build missing filter maps (default 1)")
     parser.add_argument("--large", type=int, default=LARGE_PAIRS, metavar="N",
-                        help=f"pairs of ~300-corner museum maps timed apart (default {LARGE_PAIRS}; 0 for none)")
+                        help=f"pairs of ~300-corner museum maps timed apart (default {LARGE_PAIRS}; "
+                             "0 for none)")
     parser.add_argument("--quick", action="store_true", help="100 pairs, 30 cross, 10 CARMEN")
     parser.add_argument("--json", action="store_true", help="print the JSON summary as the last line")
     parser.add_argument("--quiet", action="store_true", help="no progress on stderr")
@@ -164,7 +165,8 @@ def _pose_views(truth: Any, xy: np.ndarray) -> list[list[tuple[int, float, float
     out = []
     for x, y in xy:
         v = visible_view(truth, Pose(float(x), float(y), 0.0), MAX_RANGE)
-        out.append([(int(src), float(t0), float(t1)) for src, (t0, t1) in zip(v.edge_source.tolist(), v.edge_t.tolist())])
+        out.append([(int(src), float(t0), float(t1))
+                    for src, (t0, t1) in zip(v.edge_source.tolist(), v.edge_t.tolist())])
     return out
 
 
@@ -326,7 +328,8 @@ def large_pairs(n: int, seed: int, noise: float) -> list[tuple[str, Sample, Samp
             start = Pose(float(rng.uniform(0.0, 200.0)), float(rng.uniform(0.0, 200.0)),
                          float(rng.uniform(-math.pi, math.pi)))
             crop = _crop(w.truth, seen, noise, rng)
-            maps.append(Sample(crop.transformed(start.inverse()), start, seen, _seen_length(w.truth, seen), w.name))
+            maps.append(Sample(crop.transformed(start.inverse()), start, seen, _seen_length(w.truth, seen),
+                               w.name))
         out.append((kind, maps[0], maps[1]))
     return out
 
@@ -351,7 +354,8 @@ def large_rows(pairs: list[tuple[str, Sample, Sample]], repeats: int = LARGE_REP
             rot = abs(math.remainder(res.transform.theta - true.theta, 2 * math.pi))
             ok = err <= SUCCESS_T and rot <= SUCCESS_R
             wrong = err > FALSE_T or rot > FALSE_R
-        rows.append({"kind": kind, "corners": (sa.wf.n_vertices, sb.wf.n_vertices), "ms": float(np.median(times)),
+        rows.append({"kind": kind, "corners": (sa.wf.n_vertices, sb.wf.n_vertices),
+                     "ms": float(np.median(times)),
                      "accepted": res.accepted, "success": ok, "false_merge": wrong})
     return rows
 
@@ -808,7 +812,8 @@ def _print_table(summary: dict[str, Any], rows: list[dict[str, Any]],
                   sum(r["false_merge"] for r in cross), "-"])
     if large:
         table.append(["300 corners", len(large), summary["accepted_300_corners"],
-                      f"{summary['success_300_corners'] / len(large):.1%}", summary["false_merges_300_corners"],
+                      f"{summary['success_300_corners'] / len(large):.1%}",
+                      summary["false_merges_300_corners"],
                       f"{summary['ms_per_attempt_300_corners_p50']:.1f}"])
     print_table(["overlap", "pairs", "accepted", "success", "false merges", "CPU ms p50"], table)
     for src in ("sim", "carmen"):
