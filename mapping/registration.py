@@ -101,7 +101,11 @@ Pipeline
      ring) is in a building where the other robot may have seen a *different* copy, which no
      agreement between the two maps can rule out. With a runner-up ratio above
      ``contested_runner_up_ratio`` the limit is ``contested_self_ratio``; recurring in both
-     maps, the limit is ``mutual_self_ratio``.
+     maps, the limit is ``mutual_self_ratio``. The part's features are the map's on its edges
+     (its free probes the map's: the space the whole map saw free); a part of more than
+     ``SELF_VOTE_ENDS`` wall ends votes with its walls' starts only, and a hypothesis that a
+     cell-mask count shows cannot exceed the lowest of the three limits is not verified (so
+     ``extra["self_a"]`` and ``["self_b"]`` are exact above that limit and may read 0 below).
 
 Confidence
 ----------
@@ -113,17 +117,17 @@ uses the individual gates above, all reported in :class:`Registration`.
 Determinism: no randomness at all (exhaustive voting, not RANSAC); ties are broken by index.
 
 Cost (CPU time of one process on a shared 2-core machine, ``time.process_time``): about 25-30 ms
-(median) for the bench's map pairs; about 65 ms for two museum halves cut at the median with 10 m
-of overlap (164 and 161 corners) and 115-135 ms for two noisy copies of the whole museum (281
-corners, 2.5 km of wall each; 175-190 ms before the exact speed-ups of ``docs/experiments.md``)
--- over the 50 ms target for 300 corners. The time goes to the translation vote (every
-same-direction wall-end pair of a rectilinear map votes, about 41,000 pairs per rotation for the
-museum; the coarse vote bounds the fine grid), the self-similarity check of an accepted match
-(step 6, a vote of the overlap against each whole map), the refinement and the scoring (k-d tree
-queries; a :class:`CellMask` skips the points with nothing near). :func:`prepare` (about 11 ms for
-the whole museum, most of it finding the wall each free-probe ray meets) is a small part
-and can be cached per map; what it derives lazily (trees over wall ends and corners, the masks)
-is kept with the features.
+(median) for the bench's map pairs; for two maps of about 300 corners (the whole museum twice,
+281 corners and 2.5 km of wall each, or two halves of its coverage route, 200-270 corners) about
+60-80 ms at a load of 4-8 on the two cores, against 115-145 ms for the code before
+``docs/experiments.md``'s "Registration speed, part 2" -- still over the 50 ms target. The time
+goes to :func:`prepare` (the wall each free-probe ray meets, the clearance test; about 6 ms per
+large map), the translation votes (every same-direction wall-end pair of a rectilinear map votes,
+about 41,000 pairs per rotation for the museum; the coarse vote bounds the fine grid: 4 votes for
+the pair and 4 for each self-similarity check), the scoring of the candidates (matched wall
+first; the conflict only where the score can count), the refinement (large maps: every second
+sample, half the iterations) and the runner-up's refinement. :func:`prepare` can be cached per
+map; what it derives lazily (k-d trees, the cell masks) is kept with the features.
 """
 
 from __future__ import annotations
