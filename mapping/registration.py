@@ -101,7 +101,11 @@ Pipeline
      ring) is in a building where the other robot may have seen a *different* copy, which no
      agreement between the two maps can rule out. With a runner-up ratio above
      ``contested_runner_up_ratio`` the limit is ``contested_self_ratio``; recurring in both
-     maps, the limit is ``mutual_self_ratio``.
+     maps, the limit is ``mutual_self_ratio``. The part's features are the map's on its edges
+     (its free probes the map's: the space the whole map saw free); a part of more than
+     ``SELF_VOTE_ENDS`` wall ends votes with its walls' starts only, and a hypothesis that a
+     cell-mask count shows cannot exceed the lowest of the three limits is not verified (so
+     ``extra["self_a"]`` and ``["self_b"]`` are exact above that limit and may read 0 below).
 
 Confidence
 ----------
@@ -113,23 +117,23 @@ uses the individual gates above, all reported in :class:`Registration`.
 Determinism: no randomness at all (exhaustive voting, not RANSAC); ties are broken by index.
 
 Cost (CPU time of one process on a shared 2-core machine, ``time.process_time``): about 25-30 ms
-(median) for the bench's map pairs; about 65 ms for two museum halves cut at the median with 10 m
-of overlap (164 and 161 corners) and 115-135 ms for two noisy copies of the whole museum (281
-corners, 2.5 km of wall each; 175-190 ms before the exact speed-ups of ``docs/experiments.md``)
--- over the 50 ms target for 300 corners. The time goes to the translation vote (every
-same-direction wall-end pair of a rectilinear map votes, about 41,000 pairs per rotation for the
-museum; the coarse vote bounds the fine grid), the self-similarity check of an accepted match
-(step 6, a vote of the overlap against each whole map), the refinement and the scoring (k-d tree
-queries; a :class:`CellMask` skips the points with nothing near). :func:`prepare` (about 11 ms for
-the whole museum, most of it finding the wall each free-probe ray meets) is a small part
-and can be cached per map; what it derives lazily (trees over wall ends and corners, the masks)
-is kept with the features.
+(median) for the bench's map pairs; for two maps of about 300 corners (the whole museum twice,
+281 corners and 2.5 km of wall each, or two halves of its coverage route, 200-270 corners) about
+60-80 ms at a load of 4-8 on the two cores, against 115-145 ms for the code before
+``docs/experiments.md``'s "Registration speed, part 2" -- still over the 50 ms target. The time
+goes to :func:`prepare` (the wall each free-probe ray meets, the clearance test; about 6 ms per
+large map), the translation votes (every same-direction wall-end pair of a rectilinear map votes,
+about 41,000 pairs per rotation for the museum; the coarse vote bounds the fine grid: 4 votes for
+the pair and 4 for each self-similarity check), the scoring of the candidates (matched wall
+first; the conflict only where the score can count), the refinement (large maps: every second
+sample, half the iterations) and the runner-up's refinement. :func:`prepare` can be cached per
+map; what it derives lazily (k-d trees, the cell masks) is kept with the features.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import cached_property
 
 import numpy as np
@@ -449,6 +453,7 @@ class CellMask:
 
 MAX_MASK_CELLS = 4_000_000  # larger maps do without a cell mask (memory)
 MIN_MASK_QUERY = 500  # fewer query points go straight to the tree (the mask's fixed cost)
+SELF_VOTE_ENDS = 200  # a part with more wall ends votes with its walls' starts (self-similarity check)
 
 
 def _cell_mask(points: FloatArray, radius: float) -> CellMask | None:
@@ -483,12 +488,8 @@ class MapFeatures:
         Wall samples: midpoints, unit directions, left (free-side) unit normals.
     weights : (k,)
         Wall length per sample.
-    tree : cKDTree
-        Over ``points``.
     probes : (p, 2)
         Free probes (module docstring).
-    probe_tree : cKDTree or None
-        Over ``probes`` (None when there are none).
     end_points : (f, 2)
         Wall ends at real corners.
     end_angles : (f,)
@@ -510,10 +511,14 @@ class MapFeatures:
         edges shorter than ``conflict_min_wall`` and within ``frontier_margin`` of a frontier.
     config : RegistrationConfig
         The configuration it was prepared with.
+    probe_owner : (p,) int64
+        Index of each probe's wall sample (in ``points``).
+    end_owner, end_vertex : (f,) int64
+        Each wall end's edge and vertex in ``wireframe``.
 
     Derived data is built on first use and kept (once per map, not per hypothesis):
-    :attr:`end_tree`, :attr:`corner_tree`, :attr:`end_centred`, :attr:`probe_cells`,
-    :attr:`sample_cells`.
+    :attr:`tree`, :attr:`probe_tree`, :attr:`end_tree`, :attr:`corner_tree`, :attr:`end_centred`,
+    :attr:`end_cells`, :attr:`corner_cells`, :attr:`probe_cells`, :attr:`sample_cells`.
     """
 
     wireframe: Wireframe
@@ -522,9 +527,7 @@ class MapFeatures:
     directions: FloatArray
     normals: FloatArray
     weights: FloatArray
-    tree: cKDTree
     probes: FloatArray
-    probe_tree: cKDTree | None
     end_points: FloatArray
     end_angles: FloatArray
     end_starts: BoolArray
@@ -535,6 +538,21 @@ class MapFeatures:
     corner_points: FloatArray
     conflict_weights: FloatArray
     config: RegistrationConfig
+    probe_owner: IntArray = field(default_factory=lambda: np.zeros(0, np.int64))
+    end_owner: IntArray = field(default_factory=lambda: np.zeros(0, np.int64))
+    end_vertex: IntArray = field(default_factory=lambda: np.zeros(0, np.int64))
+
+    @cached_property
+    def tree(self) -> cKDTree:
+        """k-d tree over ``points``."""
+        return cKDTree(self.points if len(self.points) else np.zeros((0, 2)))
+
+    @cached_property
+    def probe_tree(self) -> cKDTree | None:
+        """k-d tree over ``probes`` (None when there are none). Only whether a probe lies within
+        a radius is ever asked, which does not depend on the tree's shape: the sliding midpoint
+        tree (``balanced_tree=False``) builds in half the time of the median one."""
+        return cKDTree(self.probes, balanced_tree=False) if len(self.probes) else None
 
     @cached_property
     def end_tree(self) -> cKDTree:
@@ -551,6 +569,16 @@ class MapFeatures:
         """``(end_points - centre).T``, ``(2, f)``: the vote's coordinates, one contiguous row
         per axis (a gather from a row is faster than a row gather of an ``(f, 2)`` array)."""
         return np.ascontiguousarray((self.end_points - self.centre).T, dtype=np.float64)
+
+    @cached_property
+    def end_cells(self) -> CellMask | None:
+        """Cells near a wall end (``corner_match_dist``): an upper bound of :func:`_matched_ends`."""
+        return _cell_mask(self.end_points, self.config.corner_match_dist)
+
+    @cached_property
+    def corner_cells(self) -> CellMask | None:
+        """Cells near a corner (``corner_match_dist``): an upper bound of :func:`_matched_corners`."""
+        return _cell_mask(self.corner_points, self.config.corner_match_dist)
 
     @cached_property
     def probe_cells(self) -> CellMask | None:
@@ -684,17 +712,26 @@ def prepare(wf: Wireframe, config: RegistrationConfig | None = None) -> MapFeatu
     # Free probes in front of the inner part of every wall.
     along = t * ln[owner]
     inner = (along >= cfg.probe_end_margin) & (ln[owner] - along >= cfg.probe_end_margin)
+    inner_idx = np.flatnonzero(inner)
     probes = (
         np.concatenate([pts[inner] + dep * nor[inner] for dep in cfg.free_depths])
         if len(pts)
         else np.zeros((0, 2))
     )
+    probe_owner = np.tile(inner_idx, len(cfg.free_depths)) if len(pts) else np.zeros(0, np.int64)
     if len(pts):
-        probes = np.concatenate([probes, _facing_probes(pts[inner], nor[inner], seg, nrm, cfg)])
+        deep, deep_owner = _facing_probes(pts[inner], nor[inner], seg, nrm, cfg)
+        probes = np.concatenate([probes, deep])
+        probe_owner = np.concatenate([probe_owner, inner_idx[deep_owner]])
     if len(probes) and len(pts):
-        dist, _ = tree.query(probes, k=1, distance_upper_bound=cfg.free_clearance)
-        probes = probes[~np.isfinite(dist)]
-    probe_tree = cKDTree(probes) if len(probes) else None
+        # Only probes in a cell near a sample can be within the clearance (most are not).
+        cells = _cell_mask(pts, cfg.free_clearance) if len(probes) >= MIN_MASK_QUERY else None
+        clear = np.ones(len(probes), dtype=bool)
+        ask = np.ones(len(probes), dtype=bool) if cells is None else cells.near(probes)
+        if ask.any():
+            dist, _ = tree.query(probes[ask], k=1, distance_upper_bound=cfg.free_clearance)
+            clear[ask] = ~np.isfinite(dist)
+        probes, probe_owner = probes[clear], probe_owner[clear]
     # Wall ends at real corners.
     real = np.zeros(len(Label), dtype=bool)
     real[[int(Label.NOMINAL), int(Label.OCCLUSION)]] = True
@@ -705,6 +742,8 @@ def prepare(wf: Wireframe, config: RegistrationConfig | None = None) -> MapFeatu
     end_angles = np.concatenate([ang[s_ok], ang[e_ok]])
     end_starts = np.concatenate([np.ones(int(s_ok.sum()), bool), np.zeros(int(e_ok.sum()), bool)])
     end_weights = np.concatenate([ln[s_ok], ln[e_ok]])
+    end_owner = np.concatenate([kept[s_ok], kept[e_ok]]).astype(np.int64)
+    end_vertex = np.concatenate([edges[s_ok, 0], edges[e_ok, 1]]).astype(np.int64)
     # What a sample weighs in a conflict (likelihood, short walls, frontier ends).
     front = int(Label.FRONTIER)
     s_fr = wf.labels[edges[:, 0]] == front if len(edges) else np.zeros(0, bool)
@@ -713,9 +752,23 @@ def prepare(wf: Wireframe, config: RegistrationConfig | None = None) -> MapFeatu
         e_fr[owner] & (ln[owner] - along < cfg.frontier_margin)
     )
     cw = w * wf.likelihood[kept][owner] * (ln[owner] >= cfg.conflict_min_wall) * ~near_fr
-    used = np.unique(np.concatenate([edges[s_ok, 0], edges[e_ok, 1]]))
+    used = np.unique(end_vertex)
     corner_points = np.asarray(wf.points[used], dtype=np.float64).reshape(-1, 2)
-    # Direction histogram, circularly smoothed.
+    f = MapFeatures(
+        wireframe=wf, centre=np.asarray(centre, dtype=np.float64), points=pts, directions=dirs, normals=nor,
+        weights=w, probes=probes, end_points=end_points,
+        end_angles=end_angles, end_starts=end_starts, end_weights=end_weights,
+        histogram=_histogram(ang, ln, cfg), length=total,
+        owner=kept[owner].astype(np.int64), corner_points=corner_points,
+        conflict_weights=np.asarray(cw, dtype=np.float64), config=cfg,
+        probe_owner=probe_owner.astype(np.int64), end_owner=end_owner, end_vertex=end_vertex,
+    )
+    f.__dict__["tree"] = tree  # built for the clearance test: kept (what ``cached_property`` stores)
+    return f
+
+
+def _histogram(ang: FloatArray, ln: FloatArray, cfg: RegistrationConfig) -> FloatArray:
+    """Wall length ``ln`` per direction ``ang``, circularly smoothed (step 1)."""
     nb = cfg.direction_bins
     width = 2.0 * math.pi / nb
     # Linear binning (each wall split between its two nearest bins) keeps the sub-bin direction.
@@ -726,20 +779,61 @@ def prepare(wf: Wireframe, config: RegistrationConfig | None = None) -> MapFeatu
                        weights=np.concatenate([ln * (1 - fr), ln * fr]), minlength=nb).astype(np.float64)
     k = np.fft.rfftfreq(nb, d=1.0 / nb)
     sig = cfg.direction_smooth / width
-    hist = np.fft.irfft(np.fft.rfft(hist) * np.exp(-2.0 * (math.pi * sig * k / nb) ** 2), n=nb)
+    return np.asarray(np.fft.irfft(np.fft.rfft(hist) * np.exp(-2.0 * (math.pi * sig * k / nb) ** 2), n=nb),
+                      dtype=np.float64)
+
+
+def _part(f: MapFeatures, edges: BoolArray) -> MapFeatures:
+    """The features of the part of ``f``'s map made of the edges ``edges`` (a mask over
+    ``f.wireframe``'s edges), taken from ``f`` instead of :func:`prepare` of the subgraph.
+
+    Samples, wall ends and corners are ``f``'s on those edges (at ``f``'s sample spacing); the
+    free probes are ``f``'s in front of those samples -- the space the whole map saw free, so a
+    probe ray stops at the first wall of the *map*, not of the part (:func:`prepare` of the part
+    alone would carry seen-free space through the walls left out).
+    """
+    cfg = f.config
+    wf = f.wireframe.subgraph_edges(edges)
+    smask = edges[f.owner]
+    emask = edges[f.end_owner]
+    pts = f.points[smask]
+    w = f.weights[smask]
+    total = float(w.sum())
+    centre = (pts * w[:, None]).sum(0) / total if total > 0 else np.zeros(2)
+    pmask = smask[f.probe_owner]
+    probes = f.probes[pmask]
+    # Sample indexes of the part (for the probes' owners).
+    renum = np.cumsum(smask) - 1
+    # Vertex numbering of the subgraph (``compacted`` keeps the order of the vertices left).
+    used = np.zeros(f.wireframe.n_vertices, dtype=bool)
+    used[f.wireframe.edges[edges].reshape(-1)] = True
+    vmap = np.cumsum(used) - 1
+    emap = np.cumsum(edges) - 1
+    end_vertex = f.end_vertex[emask]
+    corners = np.unique(end_vertex)
+    seg = f.wireframe.segments()[edges]
+    d = seg[:, 1] - seg[:, 0]
+    ln = np.hypot(d[:, 0], d[:, 1])
+    keep = ln >= max(cfg.min_wall, 1e-9)
     return MapFeatures(
-        wireframe=wf, centre=np.asarray(centre, dtype=np.float64), points=pts, directions=dirs, normals=nor,
-        weights=w, tree=tree, probes=probes, probe_tree=probe_tree, end_points=end_points,
-        end_angles=end_angles, end_starts=end_starts, end_weights=end_weights, histogram=hist, length=total,
-        owner=kept[owner].astype(np.int64), corner_points=corner_points,
-        conflict_weights=np.asarray(cw, dtype=np.float64), config=cfg,
+        wireframe=wf, centre=np.asarray(centre, dtype=np.float64), points=pts, directions=f.directions[smask],
+        normals=f.normals[smask], weights=w, probes=probes,
+        end_points=f.end_points[emask], end_angles=f.end_angles[emask], end_starts=f.end_starts[emask],
+        end_weights=f.end_weights[emask],
+        histogram=_histogram(np.arctan2(d[keep, 1], d[keep, 0]), ln[keep], cfg), length=total,
+        owner=emap[f.owner[smask]].astype(np.int64),
+        corner_points=np.asarray(f.wireframe.points[corners], dtype=np.float64).reshape(-1, 2),
+        conflict_weights=f.conflict_weights[smask], config=cfg,
+        probe_owner=renum[f.probe_owner[pmask]].astype(np.int64),
+        end_owner=emap[f.end_owner[emask]].astype(np.int64),
+        end_vertex=vmap[end_vertex].astype(np.int64),
     )
 
 
 def _facing_probes(
     origins: FloatArray, normals: FloatArray, seg: FloatArray, seg_normals: FloatArray,
     cfg: RegistrationConfig,
-) -> FloatArray:
+) -> tuple[FloatArray, IntArray]:
     """Probes deeper than ``free_depths`` in front of the wall samples ``origins`` whose normal
     first crosses a wall that faces back (``free_reach`` in :class:`RegistrationConfig`).
 
@@ -747,17 +841,28 @@ def _facing_probes(
     is found exactly, in chunks of consecutive samples (mostly along one wall) against the
     segments whose bounding box comes within ``free_reach`` of the chunk's; the probes are placed
     every ``free_reach_step`` from the deepest of ``free_depths`` to ``free_clearance`` before it.
+    Returns the probes and the index in ``origins`` of each one's wall sample.
     """
     deep = np.arange(max(cfg.free_depths) + cfg.free_reach_step, cfg.free_reach, cfg.free_reach_step)
+    none = (np.zeros((0, 2)), np.zeros(0, np.int64))
     if len(origins) == 0 or len(seg) == 0 or len(deep) == 0:
-        return np.zeros((0, 2))
+        return none
     lo_s, hi_s = seg.min(axis=1), seg.max(axis=1)
     first = np.full(len(origins), np.inf)
     facing = np.zeros(len(origins), dtype=bool)
-    chunk = 64
+    chunk = 128
+    # Chunks of rays near each other (origins in ``free_reach`` cells, in cell order), each
+    # against the segments that meet the bounding box of its rays (origin to ``free_reach``
+    # along the normal): a superset of those any of its rays can cross, so the result does not
+    # depend on the chunks.
+    tips = origins + cfg.free_reach * normals
+    cell = np.floor(origins / cfg.free_reach).astype(np.int64)
+    order = np.lexsort((cell[:, 1], cell[:, 0]))
     for k in range(0, len(origins), chunk):
-        o, n = origins[k : k + chunk], normals[k : k + chunk]
-        lo, hi = o.min(axis=0) - cfg.free_reach, o.max(axis=0) + cfg.free_reach
+        idx = order[k : k + chunk]
+        o, n = origins[idx], normals[idx]
+        lo = np.minimum(o.min(axis=0), tips[idx].min(axis=0))
+        hi = np.maximum(o.max(axis=0), tips[idx].max(axis=0))
         near = np.flatnonzero(np.all(hi_s >= lo, axis=1) & np.all(lo_s <= hi, axis=1))
         if len(near) == 0:
             continue
@@ -773,15 +878,15 @@ def _facing_probes(
         hit = ok & (t > 1e-6) & (t <= cfg.free_reach) & (s >= 0.0) & (s <= 1.0)
         t = np.where(hit, t, np.inf)
         j = np.argmin(t, axis=1)
-        first[k : k + chunk] = t[np.arange(len(o)), j]
-        facing[k : k + chunk] = np.einsum("ij,ij->i", seg_normals[near[j]], n) < 0.0
+        first[idx] = t[np.arange(len(o)), j]
+        facing[idx] = np.einsum("ij,ij->i", seg_normals[near[j]], n) < 0.0
     use = np.isfinite(first) & facing
     if not use.any():
-        return np.zeros((0, 2))
+        return none
     o, n, lim = origins[use], normals[use], first[use] - cfg.free_clearance
     keep = deep[None, :] <= lim[:, None]
     i, d = np.nonzero(keep)
-    return np.asarray(o[i] + deep[d][:, None] * n[i], dtype=np.float64)
+    return np.asarray(o[i] + deep[d][:, None] * n[i], dtype=np.float64), np.flatnonzero(use)[i]
 
 
 # ------------------------------------------------------------------------------ rotation
@@ -903,15 +1008,23 @@ def _coarse_select(
 
 
 def _vote(
-    fa: MapFeatures, fb: MapFeatures, theta: float, cfg: RegistrationConfig
+    fa: MapFeatures, fb: MapFeatures, theta: float, cfg: RegistrationConfig, sel: IntArray | None = None
 ) -> list[tuple[FloatArray, float]]:
-    """Candidate translations (centred coordinates) under rotation ``theta``, strongest first."""
+    """Candidate translations (centred coordinates) under rotation ``theta``, strongest first;
+    with ``sel``, only those of B's wall ends vote."""
     if len(fa.end_points) == 0 or len(fb.end_points) == 0:
         return []
-    ia, ib = _angle_pairs(
-        fa.end_angles, fa.end_starts.astype(np.int64),
-        _wrap(fb.end_angles + theta), fb.end_starts.astype(np.int64), cfg.feature_angle_tol,
-    )
+    if sel is None:
+        ia, ib = _angle_pairs(
+            fa.end_angles, fa.end_starts.astype(np.int64),
+            _wrap(fb.end_angles + theta), fb.end_starts.astype(np.int64), cfg.feature_angle_tol,
+        )
+    else:
+        ia, ib = _angle_pairs(
+            fa.end_angles, fa.end_starts.astype(np.int64),
+            _wrap(fb.end_angles[sel] + theta), fb.end_starts[sel].astype(np.int64), cfg.feature_angle_tol,
+        )
+        ib = sel[ib]
     if len(ia) == 0:
         return []
     c, s = math.cos(theta), math.sin(theta)
@@ -978,22 +1091,35 @@ def _match(
     q = T.apply(fb.points[sel])
     cells = fa.sample_cells
     if cells is None or gate > cells.radius or len(q) < MIN_MASK_QUERY:
-        dist, idx = fa.tree.query(q, k=3, distance_upper_bound=gate)
+        rows = np.arange(len(q))
     else:  # only the points near a sample are asked; the others have no neighbour
-        dist = np.full((len(q), 3), np.inf)
-        idx = np.full((len(q), 3), len(fa.points), dtype=np.int64)
-        near = cells.near(q)
-        if near.any():
-            dist[near], idx[near] = fa.tree.query(q[near], k=3, distance_upper_bound=gate)
+        rows = np.flatnonzero(cells.near(q))
+    none = np.zeros(0, np.int64)
+    if len(rows) == 0:
+        return none, none
+    # The nearest sample first: most points match it (same direction); only the others ask for
+    # the three nearest and take the first of the same direction.
+    d1, i1 = fa.tree.query(q[rows], k=1, distance_upper_bound=gate)
+    hit = np.isfinite(d1)
+    if not hit.any():
+        return none, none
+    rows, i1 = rows[hit], i1[hit]
     R = _rot(T.theta)
-    db = fb.directions[sel] @ R.T
-    ok = np.isfinite(dist)
-    idx_c = np.where(ok, idx, 0)
-    cosang = np.einsum("ijk,ik->ij", fa.directions[idx_c], db)
-    ok &= cosang >= math.cos(cfg.match_angle)
-    first = np.argmax(ok, axis=1)
-    has = ok[np.arange(len(sel)), first]
-    return sel[has], idx_c[np.arange(len(sel)), first][has]
+    db = fb.directions[sel[rows]] @ R.T
+    cos_min = math.cos(cfg.match_angle)
+    ok1 = np.einsum("ij,ij->i", fa.directions[i1], db) >= cos_min
+    match = np.where(ok1, i1, -1)
+    rest = np.flatnonzero(~ok1)
+    if len(rest):
+        dist, idx = fa.tree.query(q[rows[rest]], k=3, distance_upper_bound=gate)
+        ok = np.isfinite(dist)
+        idx_c = np.where(ok, idx, 0)
+        ok &= np.einsum("ijk,ik->ij", fa.directions[idx_c], db[rest]) >= cos_min
+        first = np.argmax(ok, axis=1)
+        k = np.arange(len(rest))
+        match[rest] = np.where(ok[k, first], idx_c[k, first], -1)
+    has = match >= 0
+    return sel[rows[has]], match[has]
 
 
 def _conflict_one(fp: MapFeatures, fw: MapFeatures, T: Pose, cfg: RegistrationConfig, stride: int) -> float:
@@ -1042,11 +1168,13 @@ def _residuals(fa: MapFeatures, fb: MapFeatures, T: Pose, ib: IntArray, ia: IntA
 
 def _score(
     fa: MapFeatures, fb: MapFeatures, T: Pose, gate: float, cfg: RegistrationConfig, votes: float,
-    stride: int = 1, refined: bool = False,
+    stride: int = 1, refined: bool = False, conflict: bool = True,
 ) -> Hypothesis:
+    """The hypothesis ``T`` scored at ``gate`` (every ``stride``-th sample). Without
+    ``conflict``, its conflict and score are left NaN (:func:`_with_conflict` fills them in)."""
     ib, ia = _match(fa, fb, T, gate, cfg, stride)
     support = float(fb.weights[ib].sum()) * stride
-    conflict = _conflict(fa, fb, T, cfg, stride)
+    c = _conflict(fa, fb, T, cfg, stride) if conflict else math.nan
     if len(ib):
         r = _residuals(fa, fb, T, ib, ia)
         rmse = float(np.sqrt(np.average(r**2, weights=fb.weights[ib])))
@@ -1056,16 +1184,30 @@ def _score(
         cross = float(np.linalg.eigvalsh(M)[0])
     else:
         rmse, cross = math.inf, 0.0
-    return Hypothesis(T, votes, support, conflict, support - cfg.conflict_weight * conflict, rmse,
-                      cross, refined)
+    return Hypothesis(T, votes, support, c, support - cfg.conflict_weight * c, rmse, cross, refined)
 
 
-def _refine(fa: MapFeatures, fb: MapFeatures, T: Pose, cfg: RegistrationConfig) -> Pose:
-    """Iteratively re-matched point-to-line least squares (step 5), about B's wall centre."""
-    for it in range(cfg.refine_iterations):
-        frac = it / max(1, cfg.refine_iterations - 1)
+def _with_conflict(
+    fa: MapFeatures, fb: MapFeatures, h: Hypothesis, cfg: RegistrationConfig, stride: int
+) -> Hypothesis:
+    """``h`` (scored without its conflict, every ``stride``-th sample) with conflict and score."""
+    if not math.isnan(h.conflict):
+        return h
+    c = _conflict(fa, fb, h.transform, cfg, stride)
+    return replace(h, conflict=c, score=h.support - cfg.conflict_weight * c)
+
+
+def _refine(fa: MapFeatures, fb: MapFeatures, T: Pose, cfg: RegistrationConfig, stride: int = 1) -> Pose:
+    """Iteratively re-matched point-to-line least squares (step 5), about B's wall centre; every
+    ``stride``-th sample of B in all iterations but the last. A strided (large) map takes half
+    the iterations (at least two), over the same gates from ``coarse_match_dist`` to
+    ``match_dist``: with thousands of samples each step is already close to its fixed point."""
+    iterations = cfg.refine_iterations if stride <= 1 else max(2, (cfg.refine_iterations + 1) // 2)
+    last = iterations - 1
+    for it in range(iterations):
+        frac = it / max(1, last)
         gate = cfg.coarse_match_dist + (cfg.match_dist - cfg.coarse_match_dist) * frac
-        ib, ia = _match(fa, fb, T, gate, cfg)
+        ib, ia = _match(fa, fb, T, gate, cfg, stride if it < last else 1)
         if len(ib) < 3:
             break
         q = T.apply(fb.points[ib])
@@ -1175,20 +1317,34 @@ def _self_ratio(f: MapFeatures, samples: IntArray, cfg: RegistrationConfig) -> f
         # are at hand.
         region = f
     else:
-        region = prepare(wf.subgraph_edges(mask), cfg)
+        region = _part(f, mask)
     if len(region.end_points) == 0 or len(region.corner_points) == 0:
         return 0.0
     cands: list[tuple[float, Pose]] = []
+    # A large part votes with the starts of its walls only: each corner of a wall chain once
+    # instead of twice (its two walls), half the pairs; the hypotheses are verified on all ends.
+    sel = np.flatnonzero(region.end_starts) if len(region.end_points) > SELF_VOTE_ENDS else None
     for theta in rotation_candidates(f, region, cfg).tolist():
         R = _rot(theta)
-        for t, v in _vote(f, region, theta, cfg):
+        for t, v in _vote(f, region, theta, cfg, sel):
             tt = f.centre + t - R @ region.centre
             T = Pose(float(tt[0]), float(tt[1]), theta)
             if _distinct(T, Pose.identity(), region, cfg):
                 cands.append((v, T))
     cands.sort(key=lambda c: -c[0])
     best = 0.0
+    # Below the lowest limit a value decides nothing: a hypothesis that cannot land more than
+    # that share of the part's ends or corners near the map's (a cell-mask count, an upper bound
+    # of the matched count) is not verified.
+    floor = min(cfg.max_self_ratio, cfg.contested_self_ratio, cfg.mutual_self_ratio)
+    ends_cells, corner_cells = f.end_cells, f.corner_cells
     for v, T in cands[: cfg.verify_candidates]:
+        if ends_cells is not None and corner_cells is not None:
+            n_ends = int(ends_cells.near(T.apply(region.end_points)).sum())
+            n_corners = int(corner_cells.near(T.apply(region.corner_points)).sum())
+            bound = max(n_ends / len(region.end_points), n_corners / len(region.corner_points))
+            if bound <= max(best, floor):
+                continue
         n = max(_matched_ends(f, region, T, cfg, cfg.corner_match_dist) / len(region.end_points),
                 _matched_corners(f, region, T, cfg) / len(region.corner_points))
         if n <= best:
@@ -1199,8 +1355,14 @@ def _self_ratio(f: MapFeatures, samples: IntArray, cfg: RegistrationConfig) -> f
     return best
 
 
+def _score_key(h: Hypothesis) -> float:
+    """Sort key, best score first; a hypothesis not yet scored (NaN) after all scored ones."""
+    return math.inf if math.isnan(h.score) else -h.score
+
+
 def _runner_up(
-    fa: MapFeatures, fb: MapFeatures, best: Hypothesis, rivals: list[Hypothesis], cfg: RegistrationConfig
+    fa: MapFeatures, fb: MapFeatures, best: Hypothesis, rivals: list[Hypothesis], cfg: RegistrationConfig,
+    stride: int = 1,
 ) -> tuple[Hypothesis | None, float, float]:
     """The best distinct runner-up and its ratio (step 6): ``(runner, ratio, corner_ratio)``.
 
@@ -1217,9 +1379,12 @@ def _runner_up(
     a few centimetres; the others count corners within twice ``rival_corner_dist``. When the
     best matches fewer than ``rival_min_ends`` typed wall ends, the corner ratio is not trusted
     (one corner swings it) and is taken as 1.
+
+    A rival scored without its conflict (NaN score, every ``stride``-th sample) gets it only when
+    its support (an upper bound of its score) could make it the runner-up.
     """
     if not rivals or best.score <= 0:
-        top = rivals[0] if rivals else None
+        top = _with_conflict(fa, fb, rivals[0], cfg, 1 if rivals[0].refined else stride) if rivals else None
         return top, (1.0 if top is not None and top.score > 0 else 0.0), 0.0
     n_best = max(1, _matched_ends(fa, fb, best.transform, cfg, cfg.corner_match_dist))
     few = n_best < cfg.rival_min_ends
@@ -1228,7 +1393,7 @@ def _runner_up(
     for k, h in enumerate(sorted(rivals, key=lambda h: -h.support)):
         if k < cfg.rival_refine:
             if not h.refined:
-                h = _score(fa, fb, _refine(fa, fb, h.transform, cfg), cfg.match_dist, cfg, h.votes,
+                h = _score(fa, fb, _refine(fa, fb, h.transform, cfg, stride), cfg.match_dist, cfg, h.votes,
                            refined=True)
                 if not _distinct(h.transform, best.transform, fb, cfg):
                     continue  # it was the best hypothesis, voted off its cell
@@ -1241,6 +1406,12 @@ def _runner_up(
         if few:
             c = 1.0
         sup = h.support / best.support if best.support > 0 else 1.0
+        if math.isnan(h.score):
+            # score <= support: when even the support cannot beat the ratio, the score cannot.
+            bound = min(max(0.0, h.support / best.score, sup if sup >= 1.0 else 0.0), c, 1.0)
+            if runner is not None and bound <= ratio:
+                continue
+            h = _with_conflict(fa, fb, h, cfg, 1 if h.refined else stride)
         r = min(max(0.0, h.score / best.score, sup if sup >= 1.0 else 0.0), c, 1.0)
         if r > ratio or runner is None:
             runner, ratio, corner_ratio = h, r, c
@@ -1289,15 +1460,32 @@ def register_prepared(
     cands.sort(key=lambda c: -c[0])
     n_cands = len(cands)
     stride = 2 if len(fb.points) + len(fa.points) > 2000 else 1
+    # Matched wall first; the conflict (the costlier half) only where the score may count: in
+    # order of support, until the support (an upper bound of the score) is below the
+    # ``refine_candidates``-th score. The others are rivals at most, scored when needed.
     scored = [
-        _score(fa, fb, T, cfg.coarse_match_dist, cfg, v, stride) for v, T in cands[: cfg.verify_candidates]
+        _score(fa, fb, T, cfg.coarse_match_dist, cfg, v, stride, conflict=False)
+        for v, T in cands[: cfg.verify_candidates]
     ]
-    scored.sort(key=lambda h: -h.score)
-    refined = []
-    for h in scored[: cfg.refine_candidates]:
-        T = _refine(fa, fb, h.transform, cfg)
-        refined.append(_score(fa, fb, T, cfg.match_dist, cfg, h.votes, refined=True))
-    refined.sort(key=lambda h: -h.score)
+    known: list[float] = []
+    for i in sorted(range(len(scored)), key=lambda i: -scored[i].support):
+        if len(known) >= cfg.refine_candidates and scored[i].support < known[cfg.refine_candidates - 1]:
+            break
+        scored[i] = _with_conflict(fa, fb, scored[i], cfg, stride)
+        known = sorted([*known, scored[i].score], reverse=True)
+    scored.sort(key=_score_key)
+    refined = [
+        _score(fa, fb, _refine(fa, fb, h.transform, cfg, stride), cfg.match_dist, cfg, h.votes, refined=True,
+               conflict=False)
+        for h in scored[: cfg.refine_candidates]
+    ]
+    top = -math.inf  # the best score so far: a refined hypothesis with less support cannot win
+    for i in sorted(range(len(refined)), key=lambda i: -refined[i].support):
+        if refined[i].support < top:
+            break
+        refined[i] = _with_conflict(fa, fb, refined[i], cfg, 1)
+        top = max(top, refined[i].score)
+    refined.sort(key=_score_key)
     best = refined[0]
     if cfg.use_icp and best.score > 0:
         best = _polish(fa, fb, best, cfg)
@@ -1305,9 +1493,8 @@ def register_prepared(
     # refined score; a coarse score at the coarse gate is an overestimate, which errs on the
     # side of refusing).
     pool = refined[1:] + scored[cfg.refine_candidates:]
-    rivals = sorted((h for h in pool if _distinct(h.transform, best.transform, fb, cfg)),
-                    key=lambda h: -h.score)
-    runner, ratio, corner_ratio = _runner_up(fa, fb, best, rivals, cfg)
+    rivals = sorted((h for h in pool if _distinct(h.transform, best.transform, fb, cfg)), key=_score_key)
+    runner, ratio, corner_ratio = _runner_up(fa, fb, best, rivals, cfg, stride)
     smaller = min(fa.length, fb.length)
     frac = best.support / smaller if smaller > 0 else 0.0
     reason = ""

@@ -416,3 +416,167 @@ def test_a_turned_copy_of_a_symmetric_room_is_told_apart_by_its_pillar() -> None
     assert te <= 0.1 and re <= math.radians(1.0)
     old = register(a, b, RegistrationConfig(free_reach=0.0))
     assert not old.accepted and "repetitive" in old.reason
+
+
+# ------------------------------------------------------------------------------ speed-ups (issue 20)
+def test_part_features_are_the_maps_on_those_edges() -> None:
+    """``_part`` (the self-similarity check's overlap) takes samples, typed ends and corners from
+    the map's features, as ``prepare`` of the subgraph finds them (same spacing on a small map),
+    and keeps only the map's free probes in front of its samples."""
+    from mapping.registration import _part
+
+    rng = np.random.default_rng(21)
+    wf = _noisy(_truth("office"), rng)
+    f = prepare(wf)
+    keep = wf.segments().mean(axis=1)[:, 0] < np.median(wf.points[:, 0])
+    part, sub = _part(f, keep), prepare(wf.subgraph_edges(keep))
+    assert 0 < len(part.points) < len(f.points)
+    assert np.allclose(part.points, sub.points) and np.allclose(part.weights, sub.weights)
+    assert np.allclose(part.centre, sub.centre) and part.length == pytest.approx(sub.length)
+    assert np.allclose(part.end_points, sub.end_points) and np.array_equal(part.end_starts, sub.end_starts)
+    assert np.allclose(part.corner_points, sub.corner_points)
+    assert np.allclose(part.histogram, sub.histogram)
+    # Its probes are the map's, each in front of (to the left of) its own sample of the part.
+    fp = {tuple(p) for p in f.probes.round(9).tolist()}
+    assert all(tuple(p) in fp for p in part.probes.round(9).tolist())
+    ahead = np.einsum("ij,ij->i", part.probes - part.points[part.probe_owner], part.normals[part.probe_owner])
+    assert len(part.probes) > 0 and np.all(ahead > 0.3)
+    assert np.array_equal(np.unique(part.owner), np.arange(part.wireframe.n_edges))
+
+
+def test_facing_probes_match_a_ray_cast_against_every_wall() -> None:
+    """The free-probe rays, cast in chunks of nearby rays against nearby walls, meet the same
+    first wall as each ray cast against every wall of the map."""
+    from mapping.registration import _facing_probes
+
+    rng = np.random.default_rng(22)
+    wf = _noisy(_truth("museum"), rng)
+    cfg = RegistrationConfig()
+    f = prepare(wf, cfg)
+    seg = wf.segments()
+    d = seg[:, 1] - seg[:, 0]
+    u = d / np.hypot(d[:, 0], d[:, 1])[:, None]
+    nrm = np.stack([-u[:, 1], u[:, 0]], axis=1)
+    o, n = f.points[::7], f.normals[::7]
+    probes, owner = _facing_probes(o, n, seg, nrm, cfg)
+    # Brute force: every ray against every segment.
+    p0, e = seg[:, 0], seg[:, 1] - seg[:, 0]
+    den = n[:, 0:1] * e[None, :, 1] - n[:, 1:2] * e[None, :, 0]
+    wx, wy = p0[None, :, 0] - o[:, 0:1], p0[None, :, 1] - o[:, 1:2]
+    ok = np.abs(den) > 1e-9
+    dd = np.where(ok, den, 1.0)
+    t = (wx * e[None, :, 1] - wy * e[None, :, 0]) / dd
+    s = (wx * n[:, 1:2] - wy * n[:, 0:1]) / dd
+    t = np.where(ok & (t > 1e-6) & (t <= cfg.free_reach) & (s >= 0) & (s <= 1), t, np.inf)
+    j = np.argmin(t, axis=1)
+    first = t[np.arange(len(o)), j]
+    facing = np.isfinite(first) & (np.einsum("ij,ij->i", nrm[j], n) < 0)
+    deep = np.arange(max(cfg.free_depths) + cfg.free_reach_step, cfg.free_reach, cfg.free_reach_step)
+    expect = sum(int(np.sum(deep <= first[i] - cfg.free_clearance)) for i in np.flatnonzero(facing))
+    assert len(probes) == expect > 100
+    assert set(owner.tolist()) <= set(np.flatnonzero(facing).tolist())
+    depth = np.einsum("ij,ij->i", probes - o[owner], n[owner])
+    assert np.all(depth <= first[owner] - cfg.free_clearance + 1e-9)
+
+
+def test_match_takes_the_nearest_sample_of_the_same_direction() -> None:
+    """``_match`` (nearest sample first, the three nearest only when its direction differs)
+    gives, for every B sample, the first of its three nearest A samples within the gate whose
+    direction is within ``match_angle``."""
+    from mapping.registration import _match
+
+    rng = np.random.default_rng(23)
+    a = _noisy(_truth("office"), rng)
+    move = Pose(3.0, -7.0, 0.4)
+    b = _noisy(_truth("office"), rng).transformed(move)
+    cfg = RegistrationConfig()
+    fa, fb = prepare(a, cfg), prepare(b, cfg)
+    for k in range(12):
+        T = Pose(*(np.array(move.inverse().as_tuple()) + rng.normal(0, [0.1, 0.1, 0.005]) * (k > 0)))
+        for gate, stride in ((cfg.coarse_match_dist, 2), (cfg.match_dist, 1)):
+            ib, ia = _match(fa, fb, T, gate, cfg, stride)
+            sel = np.arange(0, len(fb.points), stride)
+            dist, idx = fa.tree.query(T.apply(fb.points[sel]), k=3, distance_upper_bound=gate)
+            db = fb.directions[sel] @ np.array([[math.cos(T.theta), -math.sin(T.theta)],
+                                                [math.sin(T.theta), math.cos(T.theta)]]).T
+            want_b, want_a = [], []
+            for r in range(len(sel)):
+                for c in range(3):
+                    if not np.isfinite(dist[r, c]):
+                        break  # the rest are farther than the gate too
+                    if fa.directions[idx[r, c]] @ db[r] >= math.cos(cfg.match_angle):
+                        want_b.append(sel[r])
+                        want_a.append(idx[r, c])
+                        break
+            assert len(ib) > 100 and ib.tolist() == want_b and ia.tolist() == want_a
+
+
+def test_lazy_conflict_gives_the_eager_decision(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Scoring computes a hypothesis's conflict only where its support (an upper bound of its
+    score) can still count; computing every conflict up front gives the same registration."""
+    import mapping.registration as rg
+
+    rng = np.random.default_rng(24)
+    office = _truth("office")
+    move = Pose(-3.0, 40.0, -1.0)
+    pairs = [(_noisy(_crop(office, lo_a, hi_a), rng),
+              _noisy(_crop(office, lo_b, hi_b), rng).transformed(move))
+             for lo_a, hi_a, lo_b, hi_b in [(0, 16, 9, 26), (0, 30, 6, 19), (5, 21, 0, 14), (0, 22, 0, 22)]]
+    lazy = [register(a, b) for a, b in pairs]
+    score = rg._score
+
+    def eager(*args: object, **kw: object) -> rg.Hypothesis:
+        kw["conflict"] = True
+        return score(*args, **kw)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(rg, "_score", eager)
+    for (a, b), res in zip(pairs, lazy):
+        ref = register(a, b)
+        assert (res.accepted, res.reason, res.transform, res.support) == (
+            ref.accepted, ref.reason, ref.transform, ref.support)
+        assert res.runner_up_ratio == ref.runner_up_ratio and res.conflict == ref.conflict
+        assert res.runner_up is None or not math.isnan(res.runner_up.score)
+    assert any(r.runner_up_ratio > 0 for r in lazy)
+
+
+def test_self_similarity_above_the_lowest_limit_is_exact() -> None:
+    """The self-similarity check skips hypotheses that cannot exceed the lowest self limit (a
+    cell-mask bound): a value above that limit is the one found when every hypothesis is
+    verified (a config whose limits are all near 0), and one below it reads as 0."""
+    from mapping.registration import _self_ratio
+
+    rng = np.random.default_rng(25)
+    office = _noisy(_truth("office"), rng)
+    paper = _noisy(_truth("paper-small"), rng)
+    low = RegistrationConfig(max_self_ratio=0.01, contested_self_ratio=0.01, mutual_self_ratio=0.01)
+    cfg = RegistrationConfig()
+    f_off, f_off_low = prepare(office, cfg), prepare(office, low)
+    part = np.flatnonzero(f_off.points[:, 0] < np.percentile(f_off.points[:, 0], 40))
+    rep = _self_ratio(f_off, part, cfg)
+    assert rep > cfg.contested_self_ratio  # identical offices recur
+    assert rep == _self_ratio(f_off_low, part, low)
+    f_pap, f_pap_low = prepare(paper, cfg), prepare(paper, low)
+    every = np.arange(len(f_pap.points))
+    below = _self_ratio(f_pap_low, every, low)
+    assert _self_ratio(f_pap, every, cfg) == 0.0 < below <= cfg.contested_self_ratio
+
+
+def test_strided_refinement_of_a_large_map_is_as_precise() -> None:
+    """On a large map (two copies of the whole museum) the refinement with every second sample
+    and half the iterations ends within a centimetre and 0.02 degree of the full one."""
+    from mapping.registration import _refine
+
+    rng = np.random.default_rng(26)
+    move = Pose(20.0, -35.0, 2.0)
+    a = _noisy(_truth("museum"), rng)
+    b = _noisy(_truth("museum"), rng).transformed(move)
+    cfg = RegistrationConfig()
+    fa, fb = prepare(a, cfg), prepare(b, cfg)
+    assert len(fa.points) + len(fb.points) > 2000
+    t = move.inverse()
+    start = Pose(t.x + 0.15, t.y - 0.1, t.theta + 0.004)
+    full, fast = _refine(fa, fb, start, cfg), _refine(fa, fb, start, cfg, stride=2)
+    te, re = _error(fast, full, fb.centre)
+    assert te <= 0.01 and re <= math.radians(0.02)
+    te, re = _error(fast, move.inverse(), fb.centre)
+    assert te <= 0.05 and re <= math.radians(0.1)

@@ -32,6 +32,13 @@ Map pairs
   counts against the start poses too. Overlap: on the true walls seen from the stretch's true
   poses (simulated), on the maps at the start-pose truth within 0.3 m (logs).
 * **Cross pairs**: two maps from two different worlds (or logs). Any acceptance is a false merge.
+* **300-corner pairs** (``--large``, default 4; 2 with ``--quick``): issue 20's speed target, two
+  maps of about 300 corners each. Alternately the whole museum (281 corners) twice, each copy
+  with its own vertex noise and frame, and what the sensor saw along the first and the last 65 %
+  of a museum coverage route (200-270 corners each). Each pair is registered three times; its
+  time is the median CPU time (``time.process_time``: one core, whatever the other load), and the
+  table's ``300 corners`` line and ``ms_per_attempt_300_corners_p50`` give the median over the
+  pairs. They are counted apart from the other pairs (``*_300_corners`` keys).
 
 Measures
 --------
@@ -86,6 +93,9 @@ FILTER_CACHE_VERSION = 1
 #: CARMEN stretches' cache version: 2 since they map through the ``lidar-slam`` profile.
 LOG_CACHE_VERSION = 2
 AMBIGUOUS_SUPPORT, AMBIGUOUS_CORNERS = 0.9, 0.9
+#: The 300-corner pairs (issue 20's speed target): how many, and the registrations timed per pair.
+LARGE_PAIRS, LARGE_REPEATS = 4, 3
+LARGE_WORLD = "museum"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -113,6 +123,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "~/.cache/wiremap, subdirectory bench-register)")
     parser.add_argument("--jobs", type=int, default=1, metavar="N",
                         help="--maps filter: processes that build missing filter maps (default 1)")
+    parser.add_argument("--large", type=int, default=LARGE_PAIRS, metavar="N",
+                        help=f"pairs of ~300-corner museum maps timed apart (default {LARGE_PAIRS}; "
+                             "0 for none)")
     parser.add_argument("--quick", action="store_true", help="100 pairs, 30 cross, 10 CARMEN")
     parser.add_argument("--json", action="store_true", help="print the JSON summary as the last line")
     parser.add_argument("--quiet", action="store_true", help="no progress on stderr")
@@ -145,15 +158,29 @@ def _poses_along(w: SimWorld, s0: float, s1: float) -> np.ndarray:
     return np.column_stack([np.interp(s, w.cum, w.route[:, 0]), np.interp(s, w.cum, w.route[:, 1])])
 
 
-def _seen_intervals(truth: Any, xy: np.ndarray) -> dict[int, list[tuple[float, float]]]:
-    """Per truth edge, the merged parameter intervals seen from the poses ``xy``."""
+def _pose_views(truth: Any, xy: np.ndarray) -> list[list[tuple[int, float, float]]]:
+    """Per pose of ``xy``, the truth edges seen from it: ``(edge, t0, t1)``."""
     from mapping.se2 import Pose
     from mapping.visibility import visible_view
 
-    raw: dict[int, list[tuple[float, float]]] = {}
+    out = []
     for x, y in xy:
         v = visible_view(truth, Pose(float(x), float(y), 0.0), MAX_RANGE)
-        for src, (t0, t1) in zip(v.edge_source.tolist(), v.edge_t.tolist()):
+        out.append([(int(src), float(t0), float(t1))
+                    for src, (t0, t1) in zip(v.edge_source.tolist(), v.edge_t.tolist())])
+    return out
+
+
+def _seen_intervals(truth: Any, xy: np.ndarray) -> dict[int, list[tuple[float, float]]]:
+    """Per truth edge, the merged parameter intervals seen from the poses ``xy``."""
+    return _merged(_pose_views(truth, xy))
+
+
+def _merged(views: list[list[tuple[int, float, float]]]) -> dict[int, list[tuple[float, float]]]:
+    """Per truth edge, the merged parameter intervals of the views (:func:`_pose_views`)."""
+    raw: dict[int, list[tuple[float, float]]] = {}
+    for view in views:
+        for src, t0, t1 in view:
             raw.setdefault(src, []).append((t0, t1))
     out: dict[int, list[tuple[float, float]]] = {}
     for e, iv in raw.items():
@@ -277,6 +304,61 @@ def sim_pair(w: SimWorld, rng: np.random.Generator, noise: float) -> tuple[Sampl
     smaller = min(sa.length, sb.length)
     overlap = _shared(w.truth, sa.seen, sb.seen) / smaller if smaller > 0 else 0.0
     return sa, sb, overlap
+
+
+# ------------------------------------------------------------------------------ 300-corner maps
+def large_pairs(n: int, seed: int, noise: float) -> list[tuple[str, Sample, Sample]]:
+    """``n`` pairs of large maps of the museum (281 corners in all), alternately *whole* (the
+    whole world twice, each copy with its own vertex noise and in its own random frame) and
+    *halves* (what the sensor saw along the first and the last 65 % of a coverage route: 200-270
+    corners each, 30 % of the route in common)."""
+    from mapping.se2 import Pose
+
+    rng = np.random.default_rng([seed, 300])
+    w = _load_worlds([LARGE_WORLD], rng)[0]
+    total = float(w.cum[-1])
+    views = _pose_views(w.truth, _poses_along(w, 0.0, total))
+    whole = {e: [(0.0, 1.0)] for e in range(w.truth.n_edges)}
+    first = _merged(views[: int(0.65 * len(views))])
+    last = _merged(views[int(0.35 * len(views)):])
+    out = []
+    for k in range(n):
+        kind = "whole" if k % 2 == 0 else "halves"
+        maps = []
+        for seen in ((whole, whole) if kind == "whole" else (first, last)):
+            start = Pose(float(rng.uniform(0.0, 200.0)), float(rng.uniform(0.0, 200.0)),
+                         float(rng.uniform(-math.pi, math.pi)))
+            crop = _crop(w.truth, seen, noise, rng)
+            maps.append(Sample(crop.transformed(start.inverse()), start, seen, _seen_length(w.truth, seen),
+                               w.name))
+        out.append((kind, maps[0], maps[1]))
+    return out
+
+
+def large_rows(pairs: list[tuple[str, Sample, Sample]], repeats: int = LARGE_REPEATS) -> list[dict[str, Any]]:
+    """Each pair registered ``repeats`` times: the median CPU time of one process
+    (``time.process_time``, preparation included) and the outcome against the truth."""
+    from mapping.registration import prepare, register
+
+    rows = []
+    for kind, sa, sb in pairs:
+        times = []
+        for _ in range(max(1, repeats)):
+            t0 = time.process_time()
+            res = register(sa.wf, sb.wf)
+            times.append(1e3 * (time.process_time() - t0))
+        true = _true_transform(sa, sb)
+        ok = wrong = False
+        if res.accepted and res.transform is not None:
+            cb = prepare(sb.wf).centre
+            err = float(math.hypot(*(res.transform.apply(cb[None, :])[0] - true.apply(cb[None, :])[0])))
+            rot = abs(math.remainder(res.transform.theta - true.theta, 2 * math.pi))
+            ok = err <= SUCCESS_T and rot <= SUCCESS_R
+            wrong = err > FALSE_T or rot > FALSE_R
+        rows.append({"kind": kind, "corners": (sa.wf.n_vertices, sb.wf.n_vertices),
+                     "ms": float(np.median(times)),
+                     "accepted": res.accepted, "success": ok, "false_merge": wrong})
+    return rows
 
 
 # ------------------------------------------------------------------------------ CARMEN maps
@@ -715,17 +797,35 @@ def _reasons(rows: list[dict[str, Any]]) -> dict[str, int]:
     return dict(sorted(out.items(), key=lambda kv: -kv[1]))
 
 
-def _print_table(summary: dict[str, Any], rows: list[dict[str, Any]]) -> None:
+def large_summary(large: list[dict[str, Any]]) -> dict[str, Any]:
+    """The JSON keys of the 300-corner pairs (None for the rates and times without any)."""
+    return {
+        "pairs_300_corners": len(large),
+        "accepted_300_corners": sum(r["accepted"] for r in large),
+        "success_300_corners": sum(r["success"] for r in large),
+        "false_merges_300_corners": sum(r["false_merge"] for r in large),
+        "ms_per_attempt_300_corners_p50": _pct([r["ms"] for r in large], 50),
+        "ms_per_attempt_300_corners_max": _pct([r["ms"] for r in large], 100),
+    }
+
+
+def _print_table(summary: dict[str, Any], rows: list[dict[str, Any]],
+                 large: list[dict[str, Any]] | None = None) -> None:
     from agents.bench.common import print_table
 
     table = [
-        [band, v["pairs"], v["accepted"], f"{v['success_rate']:.1%}", v["false_merges"]]
+        [band, v["pairs"], v["accepted"], f"{v['success_rate']:.1%}", v["false_merges"], "-"]
         for band, v in summary["by_overlap"].items()
     ]
     cross = [r for r in rows if not r["same"]]
     table.append(["cross-world", len(cross), sum(r["accepted"] for r in cross), "-",
-                  sum(r["false_merge"] for r in cross)])
-    print_table(["overlap", "pairs", "accepted", "success", "false merges"], table)
+                  sum(r["false_merge"] for r in cross), "-"])
+    if large:
+        table.append(["300 corners", len(large), summary["accepted_300_corners"],
+                      f"{summary['success_300_corners'] / len(large):.1%}",
+                      summary["false_merges_300_corners"],
+                      f"{summary['ms_per_attempt_300_corners_p50']:.1f}"])
+    print_table(["overlap", "pairs", "accepted", "success", "false merges", "CPU ms p50"], table)
     for src in ("sim", "carmen"):
         rs = [r for r in rows if r["source"] == src and r["same"] and r["overlap"] >= 0.3]
         if rs:
@@ -844,13 +944,21 @@ def run(args: argparse.Namespace) -> int:
             record("cross", False, maps[0], maps[1], 0.0)
     summary = summarise(rows)
     summary["maps"] = args.maps
-    _print_table(summary, rows)
+    n_large = 2 if args.quick else int(args.large)
+    large: list[dict[str, Any]] = []
+    if n_large > 0:
+        log(f"{n_large} pairs of large maps ({LARGE_WORLD})")
+        large = large_rows(large_pairs(n_large, int(args.seed), args.noise))
+    summary.update(large_summary(large))
+    _print_table(summary, rows, large)
     print(f"false merges {summary['false_merges']} (cross {summary['false_merges_cross']}), "
           f"success at >= 30 % overlap {summary['success_rate_overlap_ge_30']} "
           f"(unambiguous {summary['success_rate_overlap_ge_30_unambiguous']} of "
           f"{summary['pairs_overlap_ge_30_unambiguous']}), "
           f"p95 error {summary['trans_err_m_p95']} m / {summary['rot_err_deg_p95']} deg, "
-          f"{summary['ms_per_attempt_p50']} ms per attempt (p50)")
+          f"{summary['ms_per_attempt_p50']} ms per attempt (p50)"
+          + (f"; 300-corner maps: {summary['ms_per_attempt_300_corners_p50']} ms of CPU per attempt (p50 of "
+             f"{summary['pairs_300_corners']} pairs)" if summary["pairs_300_corners"] else ""))
     if args.json:
         print(json.dumps(summary))
     return 0
