@@ -31,6 +31,7 @@ verdicts and details exactly (tested) at a fraction of the cost (issue 21).
 
 from __future__ import annotations
 
+from collections.abc import Set
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -348,6 +349,17 @@ def edge_keys(wf: Wireframe) -> list[bytes]:
     return keys  # type: ignore[return-value]  # void items are bytes
 
 
+def _keys_of(wf: Wireframe, facts: MapFacts | None) -> list[bytes]:
+    """:func:`edge_keys`, kept in ``facts`` (when they are ``wf``'s)."""
+    return facts_of(wf, facts).get(("keys",), lambda: edge_keys(wf))
+
+
+def key_set(wf: Wireframe, facts: MapFacts | None = None) -> frozenset[bytes]:
+    """The set of :func:`edge_keys` of ``wf`` (kept in ``facts``: a robot's accepted map is the
+    old map of its next ones, and its keys were listed when it was the new one)."""
+    return facts_of(wf, facts).get(("key_set",), lambda: frozenset(_keys_of(wf, facts)))
+
+
 def _passes_itself(
     wf: Wireframe, seconds: float, reach_per_s: float, sensor_range: float, cfg: QuarantineConfig
 ) -> bool:
@@ -374,7 +386,7 @@ def _passes_itself(
 
 def history_judge(
     new: Wireframe, old: Wireframe, seconds: float, reach_per_s: float, sensor_range: float,
-    cfg: QuarantineConfig, old_keys: set[bytes] | None = None, new_facts: MapFacts | None = None,
+    cfg: QuarantineConfig, old_keys: Set[bytes] | None = None, new_facts: MapFacts | None = None,
     old_facts: MapFacts | None = None,
 ) -> tuple[str, str] | None:
     """:func:`against_history`'s verdict and detail (tested against it), without its k-d tree
@@ -411,8 +423,8 @@ def history_judge(
     if new is old:  # the same arrays: every key is an old key
         kept = np.ones(new.n_edges, dtype=bool)
     else:
-        known = set(edge_keys(old)) if old_keys is None else old_keys
-        kept = np.fromiter((k in known for k in edge_keys(new)), dtype=bool, count=new.n_edges)
+        known = old_keys if old_keys is not None else key_set(old, old_facts)
+        kept = np.fromiter((k in known for k in _keys_of(new, new_facts)), dtype=bool, count=new.n_edges)
     judged = owner[inside][:: -(-n_inside // MAX_JUDGED)]  # as _disagreement subsamples
     if float(np.mean(~kept[judged])) <= cfg.max_disagree:
         return None  # even if every new wall's point disagreed

@@ -39,8 +39,8 @@ from agents.fleet.fusion.quarantine import (
     FleetSamples,
     Quarantine,
     QuarantineConfig,
-    edge_keys,
     history_judge,
+    key_set,
 )
 from agents.fleet.fusion.stats import MAX_LATENCIES, FusionStats
 from agents.fleet.fusion.store import LATENCY_LOG, StoreDamaged, StoreJob, read_latency_log, read_store
@@ -280,7 +280,6 @@ class FusionState:
         self.quarantine_config = quarantine
         self.quarantine = Quarantine()
         self._fleet_samples: FleetSamples | None = None  # the fused map's, judges every robot (quarantine)
-        self._old_keys: dict[str, tuple[Wireframe, set[bytes]]] = {}  # robot -> accepted map's edge keys
         self._first_seen: dict[str, int] = {}  # robot id -> first map (ns) while none was accepted
         self._born_ns: int | None = None  # the first offer with a clock (see _inconsistent)
         # a work budget per robot (budget.py; None: off): maps of a robot whose fusion CPU
@@ -488,7 +487,7 @@ class FusionState:
         records ``why`` (:attr:`forgotten`). Returns whether it had a map."""
         had = self.robots.pop(rid, None) is not None
         for cache in (self.alignments, self.corrections, self._in_fleet, self._prepared, self._pending,
-                      self._old_keys, self.quarantine.maps, self._first_seen, self.token_gen, self.held, self._held_restart):  # fmt: skip  # noqa: E501
+                      self.quarantine.maps, self._first_seen, self.token_gen, self.held, self._held_restart):  # fmt: skip  # noqa: E501
             cache.pop(rid, None)
         if self.budget is not None:
             self.budget.forget(rid)
@@ -551,11 +550,8 @@ class FusionState:
         ):  # same boot and start
             seconds = (now_ns - old.at_ns) / 1e9
             owf = old.message.wireframe
-            hit = self._old_keys.get(msg.sender)
-            if hit is None or hit[0] is not owf:
-                hit = self._old_keys[msg.sender] = (owf, set(edge_keys(owf)))
-            bad = history_judge(wf, owf, seconds, lim.max_speed_mps, lim.sensor_range_m, cfg, hit[1],
-                                facts, old.facts)
+            bad = history_judge(wf, owf, seconds, lim.max_speed_mps, lim.sensor_range_m, cfg,
+                                key_set(owf, old.facts), facts, old.facts)
             if bad is not None:
                 return bad
         elif (
@@ -694,7 +690,8 @@ class FusionState:
             pose = self.frames.fleet_pose(rid) or Pose.identity()
             if pose.as_tuple() != e.message.origin.as_tuple():
                 self._rev += 1
-                self.robots[rid] = RobotEntry(replace(e.message, origin=pose), e.raw, e.key, self._rev)
+                self.robots[rid] = RobotEntry(replace(e.message, origin=pose), e.raw, e.key, self._rev,
+                                              body=e.body, facts=e.facts)
                 self._pending.setdefault(rid, int(e.message.stamp_ns))
                 moved.append(rid)
         return moved
