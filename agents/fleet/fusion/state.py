@@ -50,7 +50,6 @@ from mapping.se2 import Pose
 from mapping.wireframe import Wireframe, mask_array
 from wire_codec import MAX_ROBOTS
 from wire_codec.body import decode_body
-from wire_codec.codec import decode_with
 from wire_codec.errors import Limits
 from wire_codec.message import MapMessage, MessageKind
 
@@ -352,7 +351,7 @@ class FusionState:
                 return prior.message.wireframe
             return decode_body(data, res_mm, n_robots, limits)
 
-        msg = decode_with(raw, self._codec_limits, body_decoder)
+        msg = decode_message(raw, self._codec_limits, body_decoder)
         if read.get("same"):
             assert prior is not None
             self.stats.same_body += 1
