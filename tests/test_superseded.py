@@ -59,9 +59,9 @@ class Decodes:
         self.n = 0
         self._real = state_mod.decode_message
 
-    def __call__(self, data: bytes, limits=None):  # type: ignore[no-untyped-def]
+    def __call__(self, data: bytes, limits=None, *rest):  # type: ignore[no-untyped-def]
         self.n += 1
-        return self._real(data, limits)
+        return self._real(data, limits, *rest)
 
 
 def offer_latest(st: FusionState, payloads: list[bytes], rid: str = "r1", now: int = NOW):

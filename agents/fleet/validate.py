@@ -24,7 +24,7 @@ function and every consumer with hostile values).
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from typing import Any
 
 import msgpack
@@ -261,13 +261,18 @@ def map_meta(meta: object, *, fused: bool = False) -> dict[str, Any]:
     return out
 
 
-def robot_map(msg: Any, max_extent_m: float, max_resolution_m: float) -> tuple[str, str] | None:
+def robot_map(
+    msg: Any, max_extent_m: float, max_resolution_m: float,
+    fleet_points: Callable[[], np.ndarray] | None = None,
+) -> tuple[str, str] | None:
     """``(reason, detail)`` when a decoded robot map's content is absurd, else None.
 
     Reasons: ``resolution`` (not in ``(0, max_resolution_m]``), ``extent`` (origin or a vertex
     beyond ``max_extent_m`` in the fleet frame), ``meta`` (:func:`map_meta`: ``boot`` not a
     non-negative int, ``t`` not a time in ``[0, MAX_SIM_T]``, ``step`` not a count), ``seq`` (not
-    in ``[0, 2^63)``), ``stamp`` (``stamp_ns`` not in ``[0, 2^63)``). Never raises."""
+    in ``[0, 2^63)``), ``stamp`` (``stamp_ns`` not in ``[0, 2^63)``). Never raises.
+    ``fleet_points``: gives ``msg.origin.apply(msg.wireframe.points)`` when the caller keeps it
+    (the fusion's intake, :mod:`agents.fleet.fusion.facts`)."""
     try:
         res = float(msg.resolution)
         if not (0.0 < res <= max_resolution_m):
@@ -277,7 +282,7 @@ def robot_map(msg: Any, max_extent_m: float, max_resolution_m: float) -> tuple[s
             return "extent", f"origin ({o.x:.1f}, {o.y:.1f}) is over {max_extent_m:g} m away"
         wf = msg.wireframe
         if wf.n_vertices:
-            far = float(np.abs(o.apply(wf.points)).max())
+            far = float(np.abs(o.apply(wf.points) if fleet_points is None else fleet_points()).max())
             if not math.isfinite(far) or far > max_extent_m:
                 return "extent", f"a vertex is {far:.1f} m from the fleet origin (limit {max_extent_m:g} m)"
         try:

@@ -71,7 +71,10 @@ Hostile or broken input (choices; the counters are in :class:`FusionStats`, serv
   ``queue_bytes`` plus one payload per side channel and robot, whatever arrives;
 * in the main thread, of each key's payloads drained together only the newest is decoded; the
   older ones are read up to their header (``superseded``, or counted below when the header
-  fails; :meth:`FusionState.offer_latest`, which says why that lets no bad map through);
+  fails; :meth:`FusionState.offer_latest`, which says why that lets no bad map through); a
+  map whose body is byte for byte its robot's latest accepted body is not read again, its
+  wireframe is the latest one's, and every check below runs on it (``same_body``;
+  :mod:`agents.fleet.fusion.facts` says why each gives the full path's answer);
 * in the main thread (:meth:`FusionState.offer`): the codec with the fusion's tighter
   :class:`~wire_codec.Limits` (``malformed``, by error class); a key whose id chunk is not a
   valid name, a fused map on a robot key, an envelope sender that differs from the key, a

@@ -10,6 +10,7 @@ from __future__ import annotations
 import hashlib
 
 import wire_codec
+from wire_codec.codec import BodyDecoder, decode_with
 from wire_codec.message import MapMessage
 
 
@@ -18,7 +19,9 @@ def encode_message(msg: MapMessage) -> bytes:
     return wire_codec.encode(msg)
 
 
-def decode_message(data: bytes, limits: wire_codec.Limits | None = None) -> MapMessage:
+def decode_message(
+    data: bytes, limits: wire_codec.Limits | None = None, body_decoder: BodyDecoder | None = None
+) -> MapMessage:
     """Decode codec bytes.
 
     Parameters
@@ -26,12 +29,18 @@ def decode_message(data: bytes, limits: wire_codec.Limits | None = None) -> MapM
     data : bytes
     limits : wire_codec.Limits, optional
         What the decoder accepts (default: the codec's).
+    body_decoder : optional
+        Reads the body (``(body, resolution_mm, n_robots, limits) -> Wireframe``, as
+        :func:`wire_codec.body.decode_body`; :func:`wire_codec.codec.decode_with`); default the
+        codec's.
 
     Raises
     ------
     wire_codec.CodecError
         (a ``ValueError``) on a malformed payload or one beyond ``limits``.
     """
+    if body_decoder is not None:
+        return decode_with(data, wire_codec.Limits() if limits is None else limits, body_decoder)
     if limits is None:
         return wire_codec.decode(data)
     return wire_codec.decode(data, limits=limits)

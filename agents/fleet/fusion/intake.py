@@ -23,6 +23,7 @@ import numpy as np
 
 import wire_codec
 from agents.fleet import validate
+from agents.fleet.fusion.facts import MapFacts, facts_of
 from mapping.wireframe import Wireframe
 from wire_codec import MAX_ROBOTS
 from wire_codec.message import MapMessage
@@ -90,15 +91,24 @@ class InputLimits:
         )
 
 
-def implausible(msg: MapMessage, limits: InputLimits, now_ns: int | None = None) -> tuple[str, str] | None:
+def implausible(
+    msg: MapMessage, limits: InputLimits, now_ns: int | None = None, facts: MapFacts | None = None
+) -> tuple[str, str] | None:
     """``(reason, detail)`` when a decoded robot map's content is absurd, else None.
 
     The field checks are :func:`agents.fleet.validate.robot_map`'s (reasons ``resolution``,
     ``extent``, ``meta``, ``seq``, ``stamp``); with ``now_ns`` also ``future``: ``meta.boot`` or
     ``stamp_ns`` more than ``max_clock_skew_s`` after ``now_ns`` (a map from the future would
-    outrank every real one of its robot: it is refused, never stored).
+    outrank every real one of its robot: it is refused, never stored). ``facts``: the
+    wireframe's :class:`~agents.fleet.fusion.facts.MapFacts` (the vertices in the fleet frame
+    are kept there, for the fleet test).
     """
-    bad = validate.robot_map(msg, limits.max_extent_m, limits.max_resolution_m)
+    wf = msg.wireframe
+    fleet_points = None
+    if facts is not None and facts.wf is wf:
+        f, origin = facts, msg.origin
+        fleet_points = lambda: f.applied(origin)  # noqa: E731
+    bad = validate.robot_map(msg, limits.max_extent_m, limits.max_resolution_m, fleet_points)
     if bad is not None:
         return bad
     if now_ns is not None:
@@ -112,13 +122,41 @@ def implausible(msg: MapMessage, limits: InputLimits, now_ns: int | None = None)
     return None
 
 
-def over_budget(msg: MapMessage, limits: InputLimits, now_ns: int | None = None) -> tuple[str, str] | None:
+def over_budget(
+    msg: MapMessage, limits: InputLimits, now_ns: int | None = None, facts: MapFacts | None = None
+) -> tuple[str, str] | None:
     """``(reason, detail)`` when a robot map is beyond what one robot may cost or could have
-    seen, else None: ``budget_vertices``, ``budget_walls`` (total wall length), ``reach`` (a
-    vertex further from the start pose than the robot could have seen since its boot; only
-    checked with ``now_ns``). Cheap: one pass over the arrays (the wall lengths are computed
-    once, for the budget and :func:`too_dense`)."""
+    seen, else None: ``budget_vertices``, ``budget_walls`` (total wall length), ``budget_density``
+    (:func:`content_budget`), ``reach`` (a vertex further from the start pose than the robot
+    could have seen since its boot; only checked with ``now_ns``).
+
+    ``facts``: the wireframe's :class:`~agents.fleet.fusion.facts.MapFacts` (ignored when they
+    are another wireframe's), where :func:`content_budget`'s verdict and the farthest vertex's
+    distance are kept: both are functions of the arrays (and the limits) alone, so a map sent
+    again costs only the clock's part of the reach check."""
     wf = msg.wireframe
+    f = facts_of(wf, facts)
+    bad = f.get(("budget", limits), lambda: content_budget(wf, limits))
+    if bad is not None:
+        return bad
+    if now_ns is not None and wf.n_vertices:
+        meta = msg.meta if isinstance(msg.meta, dict) else {}
+        elapsed = max(0.0, (now_ns - int(meta.get("boot", 0))) / 1e9)
+        reach = limits.sensor_range_m + limits.max_speed_mps * elapsed + limits.reach_slack_m
+        # odometry frame: from the start
+        far = f.get(("far",), lambda: float(np.hypot(wf.points[:, 0], wf.points[:, 1]).max()))
+        if far > reach:
+            return (
+                "reach",
+                f"a vertex {far:.0f} m from the start, {elapsed:.0f} s after boot (reach {reach:.0f} m)",
+            )
+    return None
+
+
+def content_budget(wf: Wireframe, limits: InputLimits) -> tuple[str, str] | None:
+    """:func:`over_budget`'s tests of the arrays alone: ``budget_vertices``, ``budget_walls``
+    (total wall length) and :func:`too_dense`. Cheap: one pass over the arrays (the wall
+    lengths are computed once, for the budget and :func:`too_dense`)."""
     if wf.n_vertices > limits.max_robot_vertices:
         return "budget_vertices", f"{wf.n_vertices} vertices (budget {limits.max_robot_vertices})"
     lengths = None
@@ -128,20 +166,7 @@ def over_budget(msg: MapMessage, limits: InputLimits, now_ns: int | None = None)
         length = float(lengths.sum())
         if length > limits.max_robot_wall_m:
             return "budget_walls", f"{length:.0f} m of walls (budget {limits.max_robot_wall_m:g} m)"
-    bad = too_dense(wf, limits, lengths)
-    if bad is not None:
-        return bad
-    if now_ns is not None and wf.n_vertices:
-        meta = msg.meta if isinstance(msg.meta, dict) else {}
-        elapsed = max(0.0, (now_ns - int(meta.get("boot", 0))) / 1e9)
-        reach = limits.sensor_range_m + limits.max_speed_mps * elapsed + limits.reach_slack_m
-        far = float(np.hypot(wf.points[:, 0], wf.points[:, 1]).max())  # odometry frame: from the start
-        if far > reach:
-            return (
-                "reach",
-                f"a vertex {far:.0f} m from the start, {elapsed:.0f} s after boot (reach {reach:.0f} m)",
-            )
-    return None
+    return too_dense(wf, limits, lengths)
 
 
 DENSITY_STEP_M = 0.5  # walls are sampled this often to measure their length per cell

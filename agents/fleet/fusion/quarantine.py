@@ -31,12 +31,14 @@ verdicts and details exactly (tested) at a fraction of the cost (issue 21).
 
 from __future__ import annotations
 
+from collections.abc import Set
 from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
+from agents.fleet.fusion.facts import MapFacts, facts_of
 from mapping.wireframe import Wireframe
 
 FloatArray = NDArray[np.float64]
@@ -105,13 +107,33 @@ def _samples(wf: Wireframe, step: float) -> tuple[FloatArray, NDArray[np.int64]]
     only, so the points of a subset of the edges are exactly these points of those edges."""
     if wf.n_edges == 0:
         return np.zeros((0, 2)), np.zeros(0, dtype=np.int64)
+    # fewer numpy calls than the plain statement (a robot map has a handful of walls: their
+    # fixed cost was most of it), the same operations on the same values (tested)
     seg = wf.points[wf.edges]
-    length = np.hypot(*(seg[:, 1] - seg[:, 0]).T)
-    k = np.maximum(1, np.ceil(length / step).astype(np.int64))
-    owner = np.repeat(np.arange(len(seg)), k)
-    t = (np.arange(int(k.sum())) - np.repeat(np.cumsum(k) - k, k) + 0.5) / k[owner]
-    out: FloatArray = seg[owner, 0] + t[:, None] * (seg[owner, 1] - seg[owner, 0])
+    a = seg[:, 0]
+    d = seg[:, 1] - a
+    length = np.hypot(d[:, 0], d[:, 1])
+    k = np.ceil(length / step).astype(np.int64)
+    np.maximum(k, 1, out=k)
+    owner = np.repeat(np.arange(len(k)), k)
+    start = np.cumsum(k) - k
+    t = (np.arange(len(owner)) - start[owner] + 0.5) / k[owner]
+    out: FloatArray = a[owner] + t[:, None] * d[owner]
     return out, owner
+
+
+def _samples_of(
+    wf: Wireframe, step: float, facts: MapFacts | None
+) -> tuple[FloatArray, NDArray[np.int64]]:
+    """:func:`_samples`, kept in ``facts`` (when they are ``wf``'s)."""
+    return facts_of(wf, facts).get(("samples", step), lambda: _readonly(_samples(wf, step)))
+
+
+def _readonly(arrays: tuple[FloatArray, NDArray[np.int64]]) -> tuple[FloatArray, NDArray[np.int64]]:
+    """The arrays, made read-only (they are kept and shared: :class:`MapFacts`)."""
+    for a in arrays:
+        a.setflags(write=False)
+    return arrays
 
 
 def _near(walls: Wireframe, cfg: QuarantineConfig) -> cKDTree | None:
@@ -193,7 +215,7 @@ class FleetSamples:
         near = cKDTree(pts, balanced_tree=False, compact_nodes=False) if len(pts) else None
         return FleetView(near, np.unique(codes))
 
-    def judge(self, new: Wireframe, bit: int | None) -> tuple[str, str] | None:
+    def judge(self, new: Wireframe, bit: int | None, facts: MapFacts | None = None) -> tuple[str, str] | None:
         """``against_fleet(new, self.view(bit), self.cfg)`` without building the view: the same
         verdict and detail (tested against it), at a fraction of the cost (issue 21).
 
@@ -205,7 +227,9 @@ class FleetSamples:
         so the answer is the one the view's tree gives (the same pairwise distances, the same
         bound). A cell is the view's when a kept edge has a point in it. The disagreement is
         only measured when the overlap is long enough to judge: below ``min_overlap_m`` the
-        verdict does not depend on it."""
+        verdict does not depend on it. ``facts``: ``new``'s :class:`MapFacts` (its wall points
+        and their cells are kept there: a map sent again is judged against the present fleet
+        without sampling its walls again)."""
         cfg = self.cfg
         fused = self.fused
         if new.n_edges == 0 or fused.n_edges == 0:
@@ -217,8 +241,9 @@ class FleetSamples:
         others = np.logical_or.reduceat(kept[self.cell_edges], self.cell_starts)  # cells of the view
         if not others.any():
             return None  # the view has no cells
-        pts = wall_samples(new, cfg.sample_m)
-        codes = _cell_codes(pts, cfg.cell_m)
+        step, cell = cfg.sample_m, cfg.cell_m
+        pts, codes = facts_of(new, facts).get(("cells", step, cell),
+                                              lambda: _readonly(_points_cells(new, step, cell)))
         i = np.minimum(np.searchsorted(self.cells, codes), len(self.cells) - 1)
         inside = pts[(self.cells[i] == codes) & others[i]]
         if len(inside) == 0:
@@ -260,6 +285,12 @@ class FleetSamples:
         return out
 
 
+def _points_cells(wf: Wireframe, step: float, cell: float) -> tuple[FloatArray, NDArray[np.int64]]:
+    """:func:`wall_samples` of ``wf`` and their cells (:meth:`FleetSamples.judge`)."""
+    pts = wall_samples(wf, step)
+    return pts, _cell_codes(pts, cell)
+
+
 def _cell_codes(xy: FloatArray, cell: float) -> NDArray[np.int64]:
     c = np.floor(xy / cell).astype(np.int64)
     out: NDArray[np.int64] = (c[:, 0] << 32) + c[:, 1]
@@ -291,13 +322,18 @@ def _extent_jump(
     return None
 
 
-def _history_walls(new: Wireframe, old: Wireframe, cfg: QuarantineConfig) -> tuple[str, str] | None:
+def _history_walls(
+    new: Wireframe, old: Wireframe, cfg: QuarantineConfig, new_facts: MapFacts | None = None,
+    old_facts: MapFacts | None = None
+) -> tuple[str, str] | None:
     """:func:`against_history`'s second test: new walls within the old map's box, far from
-    its walls."""
+    its walls. ``new_facts``, ``old_facts``: the maps' :class:`MapFacts` (keep the samples and
+    the old map's k-d tree)."""
     lo, hi = old.points.min(axis=0), old.points.max(axis=0)
-    pts = wall_samples(new, cfg.sample_m)
+    pts = _samples_of(new, cfg.sample_m, new_facts)[0]
     inside = pts[np.all((pts >= lo) & (pts <= hi), axis=1)]
-    metres, frac = _disagreement(inside, _near(old, cfg), cfg)
+    near = facts_of(old, old_facts).get(("near", cfg.sample_m / 2), lambda: _near(old, cfg))
+    metres, frac = _disagreement(inside, near, cfg)
     if metres >= cfg.min_overlap_m and frac > cfg.max_disagree:
         return (
             "history_walls",
@@ -313,9 +349,45 @@ def edge_keys(wf: Wireframe) -> list[bytes]:
     return keys  # type: ignore[return-value]  # void items are bytes
 
 
+def _keys_of(wf: Wireframe, facts: MapFacts | None) -> list[bytes]:
+    """:func:`edge_keys`, kept in ``facts`` (when they are ``wf``'s)."""
+    return facts_of(wf, facts).get(("keys",), lambda: edge_keys(wf))
+
+
+def key_set(wf: Wireframe, facts: MapFacts | None = None) -> frozenset[bytes]:
+    """The set of :func:`edge_keys` of ``wf`` (kept in ``facts``: a robot's accepted map is the
+    old map of its next ones, and its keys were listed when it was the new one)."""
+    return facts_of(wf, facts).get(("key_set",), lambda: frozenset(_keys_of(wf, facts)))
+
+
+def _passes_itself(
+    wf: Wireframe, seconds: float, reach_per_s: float, sensor_range: float, cfg: QuarantineConfig
+) -> bool:
+    """Whether :func:`against_history` passes a map judged against itself (the same arrays) for
+    these parameters, known without computing it: when the growth it allows is not negative,
+    ``far_m >= 1e-6``, the map has walls, ``sample_m > 0``, ``min_overlap_m > 0`` and
+    ``max_disagree >= 0`` (each false for NaN). Why (tested against it):
+
+    * ``extent_jump``: every point ``p`` lies in its own box ``[lo, hi]``, so ``lo - grow - p``
+      and ``p - hi - grow`` are at most 0 when ``grow >= 0`` (floating-point subtraction is
+      monotone and exact at equality), and ``beyond > 0`` is false; a NaN ``grow`` makes
+      ``beyond`` NaN, also not above 0.
+    * ``history_walls`` (as :func:`history_judge` decides it): the points in the overlap are
+      all on walls of the old map, none can disagree, so either the overlap is under
+      ``min_overlap_m`` (no verdict) or it holds a point and the disagreeing fraction is 0,
+      not above ``max_disagree``.
+    """
+    grow = sensor_range + reach_per_s * max(0.0, seconds) + cfg.growth_slack_m
+    return bool(
+        not grow < 0 and cfg.far_m >= 1e-6 and wf.n_edges and cfg.sample_m > 0
+        and cfg.min_overlap_m > 0 and cfg.max_disagree >= 0
+    )
+
+
 def history_judge(
     new: Wireframe, old: Wireframe, seconds: float, reach_per_s: float, sensor_range: float,
-    cfg: QuarantineConfig, old_keys: set[bytes] | None = None,
+    cfg: QuarantineConfig, old_keys: Set[bytes] | None = None, new_facts: MapFacts | None = None,
+    old_facts: MapFacts | None = None,
 ) -> tuple[str, str] | None:
     """:func:`against_history`'s verdict and detail (tested against it), without its k-d tree
     when the verdict cannot depend on it (issue 21).
@@ -326,28 +398,37 @@ def history_judge(
     the other walls can disagree: when they are too few to pass ``max_disagree`` even if all
     disagreed, or the overlap is too short to judge, the map passes without the tree;
     otherwise its wall test judges it (:func:`_history_walls`). ``old_keys``: :func:`edge_keys`
-    of ``old`` (computed when not given)."""
+    of ``old`` (computed when not given). ``new_facts``, ``old_facts``: the maps'
+    :class:`MapFacts`, where the samples and the old map's k-d tree are kept. When ``new`` *is*
+    ``old`` (a map sent again: the fusion hands on the same object, :mod:`~agents.fleet.fusion.facts`)
+    every wall is an old wall, without comparing the keys; with the thresholds of any sensible
+    configuration (:func:`_passes_itself`) such a map passes without a test."""
     if old.n_vertices == 0 or new.n_vertices == 0:
+        return None
+    if new is old and _passes_itself(new, seconds, reach_per_s, sensor_range, cfg):
         return None
     jump = _extent_jump(new, old, seconds, reach_per_s, sensor_range, cfg)
     if jump is not None:
         return jump
     if not cfg.far_m >= 1e-6 or new.n_edges == 0:  # a point on an old wall agrees with room to spare
-        return _history_walls(new, old, cfg)
+        return _history_walls(new, old, cfg, new_facts, old_facts)
     lo, hi = old.points.min(axis=0), old.points.max(axis=0)
-    pts, owner = _samples(new, cfg.sample_m)
+    pts, owner = _samples_of(new, cfg.sample_m, new_facts)
     inside = np.all((pts >= lo) & (pts <= hi), axis=1)
     n_inside = int(np.count_nonzero(inside))
     if n_inside * cfg.sample_m < cfg.min_overlap_m:
         return None
     if n_inside == 0:  # only with min_overlap_m <= 0: as the reference does
-        return _history_walls(new, old, cfg)
-    known = set(edge_keys(old)) if old_keys is None else old_keys
-    kept = np.fromiter((k in known for k in edge_keys(new)), dtype=bool, count=new.n_edges)
+        return _history_walls(new, old, cfg, new_facts, old_facts)
+    if new is old:  # the same arrays: every key is an old key
+        kept = np.ones(new.n_edges, dtype=bool)
+    else:
+        known = old_keys if old_keys is not None else key_set(old, old_facts)
+        kept = np.fromiter((k in known for k in _keys_of(new, new_facts)), dtype=bool, count=new.n_edges)
     judged = owner[inside][:: -(-n_inside // MAX_JUDGED)]  # as _disagreement subsamples
     if float(np.mean(~kept[judged])) <= cfg.max_disagree:
         return None  # even if every new wall's point disagreed
-    return _history_walls(new, old, cfg)
+    return _history_walls(new, old, cfg, new_facts, old_facts)
 
 
 def against_fleet(new: Wireframe, fleet: FleetView, cfg: QuarantineConfig) -> tuple[str, str] | None:

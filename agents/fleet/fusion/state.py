@@ -26,6 +26,7 @@ from agents.errors import UserError
 from agents.fleet.bus import valid_name
 from agents.fleet.fusion.budget import WorkBudget
 from agents.fleet.fusion.codec import decode_message, encode_message, order_key, peek_header
+from agents.fleet.fusion.facts import MapFacts, facts_of
 from agents.fleet.fusion.frames import (
     FleetFrames,
     FramesConfig,
@@ -38,8 +39,8 @@ from agents.fleet.fusion.quarantine import (
     FleetSamples,
     Quarantine,
     QuarantineConfig,
-    edge_keys,
     history_judge,
+    key_set,
 )
 from agents.fleet.fusion.stats import MAX_LATENCIES, FusionStats
 from agents.fleet.fusion.store import LATENCY_LOG, StoreDamaged, StoreJob, read_latency_log, read_store
@@ -48,6 +49,8 @@ from mapping.fleet import align_maps, close_frontiers, fold_split
 from mapping.se2 import Pose
 from mapping.wireframe import Wireframe, mask_array
 from wire_codec import MAX_ROBOTS
+from wire_codec.body import decode_body
+from wire_codec.errors import Limits
 from wire_codec.message import MapMessage, MessageKind
 
 #: How long (seconds) a map claiming a restart waits for its robot's liveliness token.
@@ -146,6 +149,10 @@ class RobotEntry:
     gen: int = 0  # the robot's liveliness generation when this boot was first accepted
     since_ns: int = 0  # when this boot was first accepted (the fusion's clock, ns; 0: unknown)
     at_ns: int = 0  # when this map was accepted (0: unknown)
+    # the payload's body and resolution (mm) as they travelled, when known: a payload with the
+    # same body is not read again (FusionState.offer); the facts computed from the wireframe
+    body: tuple[bytes, int] | None = None
+    facts: MapFacts | None = None
 
 
 @dataclass(frozen=True)
@@ -272,7 +279,6 @@ class FusionState:
         self.quarantine_config = quarantine
         self.quarantine = Quarantine()
         self._fleet_samples: FleetSamples | None = None  # the fused map's, judges every robot (quarantine)
-        self._old_keys: dict[str, tuple[Wireframe, set[bytes]]] = {}  # robot -> accepted map's edge keys
         self._first_seen: dict[str, int] = {}  # robot id -> first map (ns) while none was accepted
         self._born_ns: int | None = None  # the first offer with a clock (see _inconsistent)
         # a work budget per robot (budget.py; None: off): maps of a robot whose fusion CPU
@@ -296,6 +302,13 @@ class FusionState:
         the key, a robot beyond the ``wire_codec.MAX_ROBOTS``-th, 4,096 (``rejected``); absurd
         content (``absurd``, see
         :func:`implausible`; ``now_ns`` enables the clock check).
+
+        A payload whose body is byte for byte the body of its key's robot's latest accepted
+        map, at the same resolution (a map sent again), is decoded without reading the body:
+        its wireframe is the latest map's object, with its :class:`~agents.fleet.fusion.facts.MapFacts`
+        (values computed from the arrays, kept). Everything else is read and checked as for
+        any payload, every check below runs, and each gives the answer it gives on a fresh
+        decode (see :mod:`agents.fleet.fusion.facts`); counted in ``stats.same_body``.
         """
         self.stats.received += 1
         self.last_drop = None
@@ -304,19 +317,46 @@ class FusionState:
             self._born_ns = now_ns  # the first payload with a clock: when this state began listening
         if now_ns is not None and key_robot is not None and key_robot not in self.robots:
             self._note_unproven(key_robot, now_ns)
+        prior = self.robots.get(key_robot) if key_robot is not None else None
         try:
-            msg = decode_message(raw, self._codec_limits)
+            msg, body, facts = self._decode(raw, prior)
         except ValueError as exc:
             return self._drop("malformed", type(exc).__name__, str(exc))
         refused = _not_robots_own(msg.kind, msg.sender, key_robot)
         if refused is not None:
             return self._drop("rejected", *refused)
-        bad = implausible(msg, self.limits, now_ns)
+        bad = implausible(msg, self.limits, now_ns, facts)
         if bad is None:
-            bad = over_budget(msg, self.limits, now_ns)
+            bad = over_budget(msg, self.limits, now_ns, facts)
         if bad is not None:
             return self._drop("absurd", *bad)
-        return self._add(msg, raw, now_ns)
+        return self._add(msg, raw, now_ns, body, facts)
+
+    def _decode(
+        self, raw: bytes, prior: RobotEntry | None
+    ) -> tuple[MapMessage, tuple[bytes, int] | None, MapFacts]:
+        """:func:`decode_message` under the state's limits, also returning the body's bytes and
+        resolution (mm) and the wireframe's facts; a robot map's body equal, byte for byte and
+        at the same resolution, to ``prior``'s (the robot's latest accepted map) is not read
+        again: its wireframe is ``prior``'s (the body decoder is a function of the body's bytes,
+        the resolution, the kind and the limits alone, and the limits are this state's)."""
+        same = prior.body if prior is not None else None
+        read: dict[str, Any] = {}
+
+        def body_decoder(data: bytes, res_mm: int, n_robots: int | None, limits: Limits) -> Wireframe:
+            read["body"] = (data, res_mm)
+            if same is not None and n_robots is None and res_mm == same[1] and data == same[0]:
+                assert prior is not None
+                read["same"] = True
+                return prior.message.wireframe
+            return decode_body(data, res_mm, n_robots, limits)
+
+        msg = decode_message(raw, self._codec_limits, body_decoder)
+        if read.get("same"):
+            assert prior is not None
+            self.stats.same_body += 1
+            return msg, read["body"], facts_of(msg.wireframe, prior.facts)
+        return msg, read.get("body"), MapFacts(msg.wireframe)
 
     def offer_latest(self, payloads: Sequence[bytes], key_robot: str, now_ns: int | None = None) -> Taken:
         """:meth:`offer` for the payloads of one robot key drained together, oldest first:
@@ -446,7 +486,7 @@ class FusionState:
         records ``why`` (:attr:`forgotten`). Returns whether it had a map."""
         had = self.robots.pop(rid, None) is not None
         for cache in (self.alignments, self.corrections, self._in_fleet, self._prepared, self._pending,
-                      self._old_keys, self.quarantine.maps, self._first_seen, self.token_gen, self.held, self._held_restart):  # fmt: skip  # noqa: E501
+                      self.quarantine.maps, self._first_seen, self.token_gen, self.held, self._held_restart):  # fmt: skip  # noqa: E501
             cache.pop(rid, None)
         if self.budget is not None:
             self.budget.forget(rid)
@@ -494,10 +534,11 @@ class FusionState:
         return due
 
     def _inconsistent(
-        self, msg: MapMessage, old: RobotEntry | None, now_ns: int | None
+        self, msg: MapMessage, old: RobotEntry | None, now_ns: int | None, facts: MapFacts | None = None
     ) -> tuple[str, str] | None:
         """Why ``msg`` contradicts its robot's last accepted map of the same boot or the other
-        robots' walls (:mod:`agents.fleet.fusion.quarantine`), else None."""
+        robots' walls (:mod:`agents.fleet.fusion.quarantine`), else None. ``facts``: the
+        wireframe's (:mod:`agents.fleet.fusion.facts`; the samples are kept there)."""
         cfg = self.quarantine_config
         if cfg is None or now_ns is None:
             return None
@@ -508,10 +549,8 @@ class FusionState:
         ):  # same boot and start
             seconds = (now_ns - old.at_ns) / 1e9
             owf = old.message.wireframe
-            hit = self._old_keys.get(msg.sender)
-            if hit is None or hit[0] is not owf:
-                hit = self._old_keys[msg.sender] = (owf, set(edge_keys(owf)))
-            bad = history_judge(wf, owf, seconds, lim.max_speed_mps, lim.sensor_range_m, cfg, hit[1])
+            bad = history_judge(wf, owf, seconds, lim.max_speed_mps, lim.sensor_range_m, cfg,
+                                key_set(owf, old.facts), facts, old.facts)
             if bad is not None:
                 return bad
         elif (
@@ -543,9 +582,13 @@ class FusionState:
         samples = self._fleet_samples
         if samples is None or samples.fused is not self.fused or samples.cfg != cfg:
             samples = self._fleet_samples = FleetSamples.of(self.fused, cfg)
-        return samples.judge(wf.transformed(msg.origin), bit)
+        moved = facts_of(wf, facts).moved(msg.origin)
+        return samples.judge(moved.wf, bit, moved)
 
-    def _add(self, msg: MapMessage, raw: bytes, now_ns: int | None = None) -> bool:
+    def _add(
+        self, msg: MapMessage, raw: bytes, now_ns: int | None = None, body: tuple[bytes, int] | None = None,
+        facts: MapFacts | None = None,
+    ) -> bool:
         rid = msg.sender
         key = order_key(msg, raw)
         given = msg
@@ -591,7 +634,8 @@ class FusionState:
             return False
         self.held.pop(rid, None)
         t0 = time.thread_time()
-        bad = self._inconsistent(msg, old, now_ns)
+        facts = facts_of(msg.wireframe, facts)
+        bad = self._inconsistent(msg, old, now_ns, facts)
         self._charge(rid, time.thread_time() - t0)
         if bad is not None:
             self.quarantine.put(rid, raw, *bad, now_ns or 0)
@@ -606,7 +650,7 @@ class FusionState:
         else:
             self._rev += 1
             rev = self._rev
-        self.robots[rid] = RobotEntry(msg, raw, key, rev, gen, since, now_ns or 0)
+        self.robots[rid] = RobotEntry(msg, raw, key, rev, gen, since, now_ns or 0, body, facts)
         self.stats.accepted += 1
         if not same:
             # a stamp over MAX_TRANSPORT_S old counts as that old: a forged stamp from the past
@@ -645,7 +689,8 @@ class FusionState:
             pose = self.frames.fleet_pose(rid) or Pose.identity()
             if pose.as_tuple() != e.message.origin.as_tuple():
                 self._rev += 1
-                self.robots[rid] = RobotEntry(replace(e.message, origin=pose), e.raw, e.key, self._rev)
+                self.robots[rid] = RobotEntry(replace(e.message, origin=pose), e.raw, e.key, self._rev,
+                                              body=e.body, facts=e.facts)
                 self._pending.setdefault(rid, int(e.message.stamp_ns))
                 moved.append(rid)
         return moved

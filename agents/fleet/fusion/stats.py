@@ -87,6 +87,11 @@ class FusionStats:
     superseded : not decoded because a newer payload of the same robot key came in the same
         drained batch (maps are whole states; only the header was read, see
         :meth:`~agents.fleet.fusion.state.FusionState.offer_latest`); counted in ``received``.
+    same_body : of the payloads decoded, those whose body was byte for byte the body of their
+        robot's latest accepted map (a map sent again): the body was not read again and the
+        values computed from its arrays were reused (:meth:`~agents.fleet.fusion.state.FusionState.offer`);
+        a cost counter (each is also counted under its outcome: ``accepted``, ``duplicates``,
+        ``absurd``, ...).
     quarantined : kept aside as inconsistent with the robot's history or the fleet, not merged
         (:mod:`agents.fleet.fusion.quarantine`); ``quarantined_by`` by reason.
     held : maps that waited because their robot's fusion work budget was spent
@@ -109,6 +114,7 @@ class FusionStats:
     duplicates: int = 0
     outdated: int = 0
     superseded: int = 0
+    same_body: int = 0
     malformed: int = 0
     rejected: int = 0
     absurd: int = 0
@@ -149,6 +155,7 @@ class FusionStats:
             "duplicates": self.duplicates,
             "outdated": self.outdated,
             "superseded": self.superseded,
+            "same_body": self.same_body,
             "malformed": self.malformed,
             "rejected": self.rejected,
             "absurd": self.absurd,
