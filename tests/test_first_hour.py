@@ -163,6 +163,10 @@ def test_map_ctrl_c_writes_what_there_is(tmp_path: Path) -> None:
     p = subprocess.Popen(
         [sys.executable, "-m", "agents", "map", "--world", "office", "--particles", "2", "--out", str(out)],
         cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env, text=True,
+        # Ctrl-C as a terminal delivers it: a suite started in the background of a
+        # non-interactive shell (CI, `make test &`) passes SIGINT on ignored, and Python then
+        # installs no KeyboardInterrupt handler (the map ran to its end: a flake under load)
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
     )
     try:
         assert p.stderr is not None
