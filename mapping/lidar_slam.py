@@ -425,7 +425,7 @@ def _field_values(occ: NDArray[np.bool_], res: float, sigma: float) -> FloatArra
     dy *= dy
     dx *= dx
     dy += dx
-    d = dy.astype(np.float64)
+    d: FloatArray = dy.astype(np.float64)
     np.sqrt(d, out=d)
     d *= res
     d /= sigma
