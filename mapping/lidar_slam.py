@@ -394,8 +394,7 @@ class _Field:
         occ = np.ones(tuple(shape), dtype=bool)
         ij = np.floor((pts - lo) / res).astype(int)
         occ[ij[:, 1], ij[:, 0]] = False
-        d = distance_transform_edt(occ) * res
-        fine = np.exp(-0.5 * (d / sigma) ** 2)
+        fine = _field_values(occ, res, sigma)
         coarse = maximum_filter(fine, size=factor, mode="constant", origin=-(factor // 2))
         return cls(lo, res, fine, coarse, factor)
 
@@ -412,6 +411,28 @@ class _Field:
         base = ij[keep, 1] * w + ij[keep, 0]
         flat = base[None, :] + (offsets[:, 1] * w + offsets[:, 0])[:, None]
         return np.asarray(grid.ravel().take(flat).sum(axis=1) / max(1, len(pts)))
+
+
+def _field_values(occ: NDArray[np.bool_], res: float, sigma: float) -> FloatArray:
+    """``exp(-0.5 * (distance_transform_edt(occ) * res / sigma) ** 2)``, the same numbers with
+    fewer passes over the grid: the nearest-feature indices from the transform, their squared
+    cell distances in integers (exact, as the transform's own sum of squared integer offsets
+    in floats is), then the same float operations in place."""
+    ft = distance_transform_edt(occ, return_distances=False, return_indices=True)
+    h, w = occ.shape
+    dy = ft[0] - np.arange(h, dtype=ft.dtype)[:, None]
+    dx = ft[1] - np.arange(w, dtype=ft.dtype)[None, :]
+    dy *= dy
+    dx *= dx
+    dy += dx
+    d: FloatArray = dy.astype(np.float64)
+    np.sqrt(d, out=d)
+    d *= res
+    d /= sigma
+    np.multiply(d, d, out=d)
+    d *= -0.5
+    np.exp(d, out=d)
+    return d
 
 
 def search_loop(
@@ -496,63 +517,130 @@ def _edge_errors(x: FloatArray, ii: NDArray[np.int64], jj: NDArray[np.int64], z:
                      (xj[:, 2] - xi[:, 2] - z[:, 2] + np.pi) % (2 * np.pi) - np.pi], axis=1)
 
 
+class _Assembly:
+    """How :func:`optimize` turns its blocks into the CSC matrix that
+    ``scipy.sparse.csc_matrix((vals, (rows, cols)))`` makes of them, for a fixed ``(rows,
+    cols)``: the constructor orders the entries by column (a stable counting sort), sorts each
+    column's rows in place (``sort_indices``, an unstable sort whose moves depend only on the
+    row indices) and adds up the duplicates left to right in the order that leaves. Run once on
+    the entries' own numbers as values, the same two steps give where each entry lands; each
+    Gauss-Newton iteration then adds its values in that order, the same float additions, and
+    the matrix is built from the finished arrays (already canonical, so ``spsolve`` does not
+    touch it)."""
+
+    def __init__(self, rows: NDArray[np.int64], cols: NDArray[np.int64], size: int) -> None:
+        order = np.argsort(cols, kind="stable")
+        indptr = np.zeros(size + 1, dtype=np.int64)
+        np.cumsum(np.bincount(cols, minlength=size), out=indptr[1:])
+        probe = sp.csc_matrix((order.astype(np.float64), rows.take(order), indptr), shape=(size, size))
+        probe.sort_indices()
+        src = probe.data.astype(np.int64)  # the entry at each position, in the summation order
+        pos_rows = probe.indices
+        pos_cols = cols.take(src)
+        new = np.ones(len(src), dtype=bool)
+        new[1:] = (pos_rows[1:] != pos_rows[:-1]) | (pos_cols[1:] != pos_cols[:-1])
+        starts = np.flatnonzero(new)
+        counts = np.diff(np.append(starts, len(src)))
+        self.first = src.take(starts)
+        # Entry t (t >= 1) of every group with more than t: (which groups, which entries).
+        self.more: list[tuple[NDArray[np.intp], NDArray[np.int64]]] = []
+        for t in range(1, int(counts.max(initial=1))):
+            g = np.flatnonzero(counts > t)
+            self.more.append((g, src.take(starts.take(g) + t)))
+        out_indptr = np.zeros(size + 1, dtype=np.int64)
+        np.cumsum(np.bincount(pos_cols.take(starts), minlength=size), out=out_indptr[1:])
+        idx_dtype = probe.indices.dtype
+        self.indices = pos_rows.take(starts).astype(idx_dtype)
+        self.indptr = out_indptr.astype(idx_dtype)
+        self.size = size
+
+    def matrix(self, vals: FloatArray) -> sp.csc_matrix:
+        data = vals.take(self.first)
+        for g, src in self.more:
+            data[g] += vals.take(src)
+        h = sp.csc_matrix((data, self.indices, self.indptr), shape=(self.size, self.size))
+        h.has_sorted_indices = True
+        h.has_canonical_format = True
+        return h
+
+
 def optimize(poses: FloatArray, edges: list[Edge], iterations: int = 10, kernel: float = 3.0) -> FloatArray:
     """Gauss-Newton over the poses ``(n, 3)`` with node 0 fixed; returns the new poses.
 
     The error of an edge is ``e = t2v(z^-1 (x_i^-1 x_j))`` and its Jacobians are those of
     Grisetti et al. (2010), eqs. 30-35; a robust edge's information is scaled by the Cauchy
-    weight ``1 / (1 + chi2 / kernel^2)``."""
+    weight ``1 / (1 + chi2 / kernel^2)``.
+
+    What does not change over the iterations (the edges' arrays, the matrix's structure and
+    its summation order, :class:`_Assembly`) is set up once; each iteration computes the same
+    numbers as the plain formulation (``tests/test_lidar_slam.py`` holds it and compares)."""
     x = np.array(poses, dtype=np.float64)
     n = len(x)
     if n < 2 or not edges:
         return x
+    m = len(edges)
     ii = np.array([e.i for e in edges])
     jj = np.array([e.j for e in edges])
     z = np.array([e.z for e in edges])
     omega0 = np.array([e.omega for e in edges])
     robust = np.array([e.robust for e in edges])
+    any_robust = bool(robust.any())
     cz, sz = np.cos(z[:, 2]), np.sin(z[:, 2])
+    zx, zy, zt = z[:, 0], z[:, 1], z[:, 2]
     # Block (p, q) of an edge goes to rows 3p.., cols 3q..: the 9 (row, col) pairs of each.
     r3, c3 = np.repeat(np.arange(3), 3), np.tile(np.arange(3), 3)
+    rows, cols = [], []
+    for np_ in (ii, jj):
+        for nq in (ii, jj):
+            rows.append((3 * np_[:, None] + r3).ravel())
+            cols.append((3 * nq[:, None] + c3).ravel())
+    rows.append(np.arange(3))
+    cols.append(np.arange(3))
+    asm = _Assembly(np.concatenate(rows), np.concatenate(cols), 3 * n)
+    at_i = (3 * ii[:, None] + np.arange(3)).ravel()
+    at_j = (3 * jj[:, None] + np.arange(3)).ravel()
+    vals = np.empty(36 * m + 3)
+    vals[36 * m:] = 1e12  # node 0 is the frame: a stiff prior holds it
+    a = np.zeros((m, 3, 3))
+    a[:, 2, 2] = -1.0
+    b_ = np.zeros((m, 3, 3))
+    b_[:, 2, 2] = 1.0
     for _ in range(iterations):
-        err = _edge_errors(x, ii, jj, z)
-        xi, xj = x[ii], x[jj]
-        ci, si = np.cos(xi[:, 2]), np.sin(xi[:, 2])
+        xi, xj = x.take(ii, axis=0), x.take(jj, axis=0)
+        ti = xi[:, 2]
+        ci, si = np.cos(ti), np.sin(ti)
         dx, dy = xj[:, 0] - xi[:, 0], xj[:, 1] - xi[:, 1]
+        # The edges' errors (as _edge_errors).
+        ax = ci * dx + si * dy - zx
+        ay = -si * dx + ci * dy - zy
+        err = np.stack([cz * ax + sz * ay, -sz * ax + cz * ay,
+                        (xj[:, 2] - ti - zt + np.pi) % (2 * np.pi) - np.pi], axis=1)
         # R_z^T R_i^T = R(-(th_i + th_z)).
-        c, s_ = np.cos(xi[:, 2] + z[:, 2]), np.sin(xi[:, 2] + z[:, 2])
-        rt = np.stack([np.stack([c, s_], 1), np.stack([-s_, c], 1)], 1)  # (m, 2, 2)
+        c, s_ = np.cos(ti + zt), np.sin(ti + zt)
         # d(R_i^T)/d th_i dt = (-si dx + ci dy, -ci dx - si dy); then R_z^T.
         ddx, ddy = -si * dx + ci * dy, -ci * dx - si * dy
-        a = np.zeros((len(edges), 3, 3))
-        a[:, :2, :2] = -rt
+        a[:, 0, 0] = -c
+        a[:, 0, 1] = -s_
+        a[:, 1, 0] = s_
+        a[:, 1, 1] = -c
         a[:, 0, 2] = cz * ddx + sz * ddy
         a[:, 1, 2] = -sz * ddx + cz * ddy
-        a[:, 2, 2] = -1.0
-        b_ = np.zeros((len(edges), 3, 3))
-        b_[:, :2, :2] = rt
-        b_[:, 2, 2] = 1.0
+        b_[:, 0, 0] = c
+        b_[:, 0, 1] = s_
+        b_[:, 1, 0] = -s_
+        b_[:, 1, 1] = c
         om = omega0.copy()
-        if robust.any():
+        if any_robust:
             chi2 = np.einsum("mi,mij,mj->m", err, omega0, err)
             om[robust] /= (1.0 + chi2[robust] / kernel**2)[:, None, None]
-        rows, cols, vals = [], [], []
         b = np.zeros(3 * n)
-        for (np_, jp) in ((ii, a), (jj, b_)):
+        out = vals[: 36 * m].reshape(4, m, 3, 3)
+        for p, (at, jp) in enumerate(((at_i, a), (at_j, b_))):
             jto = np.einsum("mki,mkl->mil", jp, om)  # J^T omega
-            np.add.at(b, (3 * np_[:, None] + np.arange(3)).ravel(), np.einsum("mil,ml->mi", jto, err).ravel())
-            for (nq, jq) in ((ii, a), (jj, b_)):
-                blk = np.einsum("mil,mlq->miq", jto, jq)
-                rows.append((3 * np_[:, None] + r3).ravel())
-                cols.append((3 * nq[:, None] + c3).ravel())
-                vals.append(blk.reshape(len(edges), 9).ravel())
-        # Node 0 is the frame: a stiff prior holds it.
-        rows.append(np.arange(3))
-        cols.append(np.arange(3))
-        vals.append(np.full(3, 1e12))
-        h = sp.csc_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
-                          shape=(3 * n, 3 * n))
-        dxs = spla.spsolve(h, -b)
+            np.add.at(b, at, np.einsum("mil,ml->mi", jto, err).ravel())
+            for q, jq in enumerate((a, b_)):
+                np.einsum("mil,mlq->miq", jto, jq, out=out[2 * p + q])
+        dxs = spla.spsolve(asm.matrix(vals), -b)
         x += dxs.reshape(-1, 3)
         x[:, 2] = (x[:, 2] + math.pi) % (2.0 * math.pi) - math.pi
         if float(np.abs(dxs).max()) < 1e-6:
