@@ -14,18 +14,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from scipy.ndimage import distance_transform_edt
 
-from mapping.lidar_slam import Edge, _field_values, optimize
-
-
-def _edge_errors_reference(x, ii, jj, z):
-    xi, xj = x[ii], x[jj]
-    ci, si = np.cos(xi[:, 2]), np.sin(xi[:, 2])
-    cz, sz = np.cos(z[:, 2]), np.sin(z[:, 2])
-    dx, dy = xj[:, 0] - xi[:, 0], xj[:, 1] - xi[:, 1]
-    ax = ci * dx + si * dy - z[:, 0]
-    ay = -si * dx + ci * dy - z[:, 1]
-    return np.stack([cz * ax + sz * ay, -sz * ax + cz * ay,
-                     (xj[:, 2] - xi[:, 2] - z[:, 2] + np.pi) % (2 * np.pi) - np.pi], axis=1)
+from mapping.lidar_slam import Edge, _edge_errors, _field_values, optimize
 
 
 def optimize_reference(poses, edges, iterations=10, kernel=3.0):
@@ -43,7 +32,7 @@ def optimize_reference(poses, edges, iterations=10, kernel=3.0):
     cz, sz = np.cos(z[:, 2]), np.sin(z[:, 2])
     r3, c3 = np.repeat(np.arange(3), 3), np.tile(np.arange(3), 3)
     for _ in range(iterations):
-        err = _edge_errors_reference(x, ii, jj, z)
+        err = _edge_errors(x, ii, jj, z)  # unchanged by the rewrite: shared
         xi, xj = x[ii], x[jj]
         ci, si = np.cos(xi[:, 2]), np.sin(xi[:, 2])
         dx, dy = xj[:, 0] - xi[:, 0], xj[:, 1] - xi[:, 1]
