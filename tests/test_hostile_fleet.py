@@ -103,11 +103,12 @@ def test_one_stolen_robot_does_not_take_the_fleet_down(tmp_path: Path) -> None:
     out = tmp_path / "out"
     keys = FleetKeys()
     with Fleet(tmp_path) as fleet:
-        # 20 s of mapping: the routes take about 11 s at 10 Hz; the attacks are counted about 8 s
-        # into the mapping (r3 in the fused map, 3 rounds of 10 attacks 0.2 s apart)
+        # 30 s of mapping: the routes take about 11 s at 10 Hz; the attacks start about 8 s into
+        # the mapping (r3 in the fused map), each sent until counted (about 0.2 s each when
+        # idle): the fusion must outlive them
         p = fleet.start(
             "run",
-            ["run", "--secure", "--world", "paper-small", "--robots", "3", "--duration", "20", "--rate", "10",
+            ["run", "--secure", "--world", "paper-small", "--robots", "3", "--duration", "30", "--rate", "10",
              "--particles", "3", "--out", out],
         )  # fmt: skip
         text = fleet.wait_log("run", "router on", 60)
