@@ -33,3 +33,16 @@ def test_large_pairs_are_300_corner_museum_maps_that_register(capsys: pytest.Cap
     br._print_table(table, [], rows)
     out = capsys.readouterr().out
     assert "300 corners" in out and "CPU ms p50" in out
+
+
+def test_large_flag_wins_over_quick() -> None:
+    """``--quick`` times 2 large pairs unless ``--large`` says otherwise (it used to override it)."""
+    import argparse
+
+    ap = argparse.ArgumentParser()
+    br.add_arguments(ap)
+    count = br.large_pair_count
+    assert count(ap.parse_args([])) == br.LARGE_PAIRS
+    assert count(ap.parse_args(["--quick"])) == 2
+    assert count(ap.parse_args(["--quick", "--large", "6"])) == 6
+    assert count(ap.parse_args(["--quick", "--large", "0"])) == 0

@@ -131,6 +131,7 @@ CASES: dict[str, list[str]] = {
     "export-bad-format": ["export", "{garbage}", "--out", "{dir}/e.svg", "--format", "bmp"],
     "bench-unknown": ["bench", "no-such-bench"],
     "bench-accuracy-bad-world": ["bench", "accuracy", "--world", "no-such-world", "--seeds", "1"],
+    "bench-register-negative-large": ["bench", "register", "--quick", "--large", "-1"],
 }  # fmt: skip
 
 

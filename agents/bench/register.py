@@ -32,13 +32,14 @@ Map pairs
   counts against the start poses too. Overlap: on the true walls seen from the stretch's true
   poses (simulated), on the maps at the start-pose truth within 0.3 m (logs).
 * **Cross pairs**: two maps from two different worlds (or logs). Any acceptance is a false merge.
-* **300-corner pairs** (``--large``, default 4; 2 with ``--quick``): issue 20's speed target, two
-  maps of about 300 corners each. Alternately the whole museum (281 corners) twice, each copy
-  with its own vertex noise and frame, and what the sensor saw along the first and the last 65 %
-  of a museum coverage route (200-270 corners each). Each pair is registered three times; its
-  time is the median CPU time (``time.process_time``: one core, whatever the other load), and the
-  table's ``300 corners`` line and ``ms_per_attempt_300_corners_p50`` give the median over the
-  pairs. They are counted apart from the other pairs (``*_300_corners`` keys).
+* **300-corner pairs** (``--large``, default 4; 2 with ``--quick`` unless ``--large`` is given):
+  issue 20's speed target, two maps of about 300 corners each. Alternately the whole museum (281
+  corners) twice, each copy with its own vertex noise and frame, and what the sensor saw along the
+  first and the last 65 % of a museum coverage route (200-270 corners each). Each pair is
+  registered three times; its time is the median CPU time (``time.process_time``: one core,
+  whatever the other load), and the table's ``300 corners`` line and
+  ``ms_per_attempt_300_corners_p50`` give the median over the pairs. They are counted apart from
+  the other pairs (``*_300_corners`` keys).
 
 Measures
 --------
@@ -123,9 +124,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "~/.cache/wiremap, subdirectory bench-register)")
     parser.add_argument("--jobs", type=int, default=1, metavar="N",
                         help="--maps filter: processes that build missing filter maps (default 1)")
-    parser.add_argument("--large", type=int, default=LARGE_PAIRS, metavar="N",
-                        help=f"pairs of ~300-corner museum maps timed apart (default {LARGE_PAIRS}; "
-                             "0 for none)")
+    parser.add_argument("--large", type=int, default=None, metavar="N",
+                        help=f"pairs of ~300-corner museum maps timed apart (default {LARGE_PAIRS}, 2 with "
+                             "--quick; 0 for none)")
     parser.add_argument("--quick", action="store_true", help="100 pairs, 30 cross, 10 CARMEN")
     parser.add_argument("--json", action="store_true", help="print the JSON summary as the last line")
     parser.add_argument("--quiet", action="store_true", help="no progress on stderr")
@@ -836,6 +837,11 @@ def _print_table(summary: dict[str, Any], rows: list[dict[str, Any]],
 
 
 # ------------------------------------------------------------------------------ main
+def large_pair_count(args: argparse.Namespace) -> int:
+    """``--large`` when given, else 2 with ``--quick``, else :data:`LARGE_PAIRS`."""
+    return int(args.large) if args.large is not None else 2 if args.quick else LARGE_PAIRS
+
+
 def run(args: argparse.Namespace) -> int:
     if args.quick:
         n_pairs, n_cross, n_carmen = 100, 30, 10
@@ -843,7 +849,7 @@ def run(args: argparse.Namespace) -> int:
         n_pairs = args.pairs
         n_cross = args.cross if args.cross is not None else max(1, n_pairs // 4)
         n_carmen = args.carmen if args.carmen is not None else n_pairs // 10
-    if n_pairs < 0 or n_cross < 0 or n_carmen < 0:
+    if n_pairs < 0 or n_cross < 0 or n_carmen < 0 or (args.large is not None and args.large < 0):
         raise UserError("pair counts must be >= 0")
     rng = np.random.default_rng(args.seed)
     names = (
@@ -944,7 +950,7 @@ def run(args: argparse.Namespace) -> int:
             record("cross", False, maps[0], maps[1], 0.0)
     summary = summarise(rows)
     summary["maps"] = args.maps
-    n_large = 2 if args.quick else int(args.large)
+    n_large = large_pair_count(args)
     large: list[dict[str, Any]] = []
     if n_large > 0:
         log(f"{n_large} pairs of large maps ({LARGE_WORLD})")
