@@ -15,6 +15,7 @@ The content digest of a map (its identity in caches) is :meth:`Wireframe.content
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -63,14 +64,9 @@ def close_frontiers(wf: Wireframe, threshold: float, max_angle: float = math.rad
     fr = np.flatnonzero(wf.labels == Label.FRONTIER)
     if len(fr) == 0 or wf.n_edges == 0:
         return wf
+    geo = EdgeFrame.of(wf)
+    A, L, ok, dirs = geo.A, geo.L, geo.ok, geo.dirs
     P, E = wf.points, wf.edges
-    A = P[E[:, 0]]
-    D = P[E[:, 1]] - A
-    L = np.hypot(D[:, 0], D[:, 1])
-    ok = L > 1e-12
-    dirs = np.zeros_like(D)
-    dirs[ok] = D[ok] / L[ok, None]
-    cos_max = math.cos(max_angle)
     # Which edges close each frontier: arc-length along (t) and distance across (d) every edge
     # for a block of frontiers at once (frontier x edge, blocks of at most ~2**18 entries): the
     # same element-wise operations, in the same order, as one frontier at a time, so the same
@@ -86,12 +82,46 @@ def close_frontiers(wf: Wireframe, threshold: float, max_angle: float = math.rad
         closing = ok & ~touches & (d <= threshold) & (t > threshold) & (t < L - threshold)
         for r in np.flatnonzero(closing.any(axis=1)).tolist():
             closing_of[b0 + r] = (touches[r], np.flatnonzero(closing[r]))
+    return apply_closings(wf, geo, [(int(fr[r]), tc[0], tc[1]) for r, tc in closing_of.items()], threshold,
+                          max_angle)
 
+
+@dataclass(frozen=True)
+class EdgeFrame:
+    """Each edge's start ``A``, length ``L``, whether it has one (``ok``) and unit direction
+    ``dirs`` (zero for a zero-length edge): :func:`close_frontiers`' view of the map."""
+
+    A: np.ndarray
+    L: np.ndarray
+    ok: np.ndarray
+    dirs: np.ndarray
+
+    @classmethod
+    def of(cls, wf: Wireframe) -> EdgeFrame:
+        P, E = wf.points, wf.edges
+        A = P[E[:, 0]]
+        D = P[E[:, 1]] - A
+        L = np.hypot(D[:, 0], D[:, 1])
+        ok = L > 1e-12
+        dirs = np.zeros_like(D)
+        dirs[ok] = D[ok] / L[ok, None]
+        return cls(A, L, ok, dirs)
+
+
+def apply_closings(
+    wf: Wireframe, geo: EdgeFrame, closings: list[tuple[int, np.ndarray, np.ndarray]], threshold: float,
+    max_angle: float,
+) -> Wireframe:
+    """:func:`close_frontiers`' decisions and their result, given for each frontier ``v`` that
+    some edge closes, in vertex order, ``(v, touches, closing)``: the mask of the edges at
+    ``v`` and the indices of the edges that close it."""
+    P, E = wf.points, wf.edges
+    A, L, ok, dirs = geo.A, geo.L, geo.ok, geo.dirs
+    cos_max = math.cos(max_angle)
     drop_edge = np.zeros(wf.n_edges, dtype=bool)
     edges = E.copy()
     relabel: list[int] = []
-    for r, (touches, closing) in closing_of.items():  # frontiers in order; the others stay
-        v = int(fr[r])
+    for v, touches, closing in closings:  # frontiers in order; the others stay
         inc = np.flatnonzero(touches)
         # an edge running the other way is the back of a thin wall, not a continuation
         usable = [int(k) for k in closing if not np.any(ok[inc] & (dirs[inc] @ dirs[k] <= -cos_max))]

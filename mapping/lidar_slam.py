@@ -507,14 +507,22 @@ class Edge:
 
 def _edge_errors(x: FloatArray, ii: NDArray[np.int64], jj: NDArray[np.int64], z: FloatArray) -> FloatArray:
     """``t2v(z^-1 (x_i^-1 x_j))`` of every edge ``(m, 3)``: ``e_xy = R_z^T (R_i^T (t_j - t_i) - t_z)``."""
-    xi, xj = x[ii], x[jj]
+    return _error_terms(x[ii], x[jj], z, np.cos(z[:, 2]), np.sin(z[:, 2]))[0]
+
+
+def _error_terms(
+    xi: FloatArray, xj: FloatArray, z: FloatArray, cz: FloatArray, sz: FloatArray
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
+    """:func:`_edge_errors` of the edges' end poses ``xi``, ``xj`` (``cz``, ``sz``: the cosine and
+    sine of ``z``'s angles), with what :func:`optimize`'s Jacobians reuse: ``(err, cos th_i,
+    sin th_i, dx, dy)``."""
     ci, si = np.cos(xi[:, 2]), np.sin(xi[:, 2])
-    cz, sz = np.cos(z[:, 2]), np.sin(z[:, 2])
     dx, dy = xj[:, 0] - xi[:, 0], xj[:, 1] - xi[:, 1]
     ax = ci * dx + si * dy - z[:, 0]
     ay = -si * dx + ci * dy - z[:, 1]
-    return np.stack([cz * ax + sz * ay, -sz * ax + cz * ay,
-                     (xj[:, 2] - xi[:, 2] - z[:, 2] + np.pi) % (2 * np.pi) - np.pi], axis=1)
+    err = np.stack([cz * ax + sz * ay, -sz * ax + cz * ay,
+                    (xj[:, 2] - xi[:, 2] - z[:, 2] + np.pi) % (2 * np.pi) - np.pi], axis=1)
+    return err, ci, si, dx, dy
 
 
 class _Assembly:
@@ -573,7 +581,7 @@ def optimize(poses: FloatArray, edges: list[Edge], iterations: int = 10, kernel:
 
     What does not change over the iterations (the edges' arrays, the matrix's structure and
     its summation order, :class:`_Assembly`) is set up once; each iteration computes the same
-    numbers as the plain formulation (``tests/test_lidar_slam.py`` holds it and compares)."""
+    numbers as the plain formulation (``tests/test_slam_speed.py`` holds it and compares)."""
     x = np.array(poses, dtype=np.float64)
     n = len(x)
     if n < 2 or not edges:
@@ -586,7 +594,7 @@ def optimize(poses: FloatArray, edges: list[Edge], iterations: int = 10, kernel:
     robust = np.array([e.robust for e in edges])
     any_robust = bool(robust.any())
     cz, sz = np.cos(z[:, 2]), np.sin(z[:, 2])
-    zx, zy, zt = z[:, 0], z[:, 1], z[:, 2]
+    zt = z[:, 2]
     # Block (p, q) of an edge goes to rows 3p.., cols 3q..: the 9 (row, col) pairs of each.
     r3, c3 = np.repeat(np.arange(3), 3), np.tile(np.arange(3), 3)
     rows, cols = [], []
@@ -608,13 +616,7 @@ def optimize(poses: FloatArray, edges: list[Edge], iterations: int = 10, kernel:
     for _ in range(iterations):
         xi, xj = x.take(ii, axis=0), x.take(jj, axis=0)
         ti = xi[:, 2]
-        ci, si = np.cos(ti), np.sin(ti)
-        dx, dy = xj[:, 0] - xi[:, 0], xj[:, 1] - xi[:, 1]
-        # The edges' errors (as _edge_errors).
-        ax = ci * dx + si * dy - zx
-        ay = -si * dx + ci * dy - zy
-        err = np.stack([cz * ax + sz * ay, -sz * ax + cz * ay,
-                        (xj[:, 2] - ti - zt + np.pi) % (2 * np.pi) - np.pi], axis=1)
+        err, ci, si, dx, dy = _error_terms(xi, xj, z, cz, sz)
         # R_z^T R_i^T = R(-(th_i + th_z)).
         c, s_ = np.cos(ti + zt), np.sin(ti + zt)
         # d(R_i^T)/d th_i dt = (-si dx + ci dy, -ci dx - si dy); then R_z^T.

@@ -1014,16 +1014,12 @@ def _vote(
     with ``sel``, only those of B's wall ends vote."""
     if len(fa.end_points) == 0 or len(fb.end_points) == 0:
         return []
-    if sel is None:
-        ia, ib = _angle_pairs(
-            fa.end_angles, fa.end_starts.astype(np.int64),
-            _wrap(fb.end_angles + theta), fb.end_starts.astype(np.int64), cfg.feature_angle_tol,
-        )
-    else:
-        ia, ib = _angle_pairs(
-            fa.end_angles, fa.end_starts.astype(np.int64),
-            _wrap(fb.end_angles[sel] + theta), fb.end_starts[sel].astype(np.int64), cfg.feature_angle_tol,
-        )
+    angles, starts = fb.end_angles, fb.end_starts
+    if sel is not None:
+        angles, starts = angles[sel], starts[sel]
+    ia, ib = _angle_pairs(fa.end_angles, fa.end_starts.astype(np.int64), _wrap(angles + theta),
+                          starts.astype(np.int64), cfg.feature_angle_tol)
+    if sel is not None:
         ib = sel[ib]
     if len(ia) == 0:
         return []
@@ -1355,6 +1351,20 @@ def _self_ratio(f: MapFeatures, samples: IntArray, cfg: RegistrationConfig) -> f
     return best
 
 
+def _conflicts_that_count(
+    fa: MapFeatures, fb: MapFeatures, hs: list[Hypothesis], cfg: RegistrationConfig, stride: int, k: int
+) -> None:
+    """Fill in, in place, the conflict (and score) of the hypotheses ``hs`` (scored without it)
+    that can rank among the ``k`` best: in order of support, until the support -- an upper
+    bound of the score -- is below the ``k``-th best score found. The others keep NaN."""
+    known: list[float] = []
+    for i in sorted(range(len(hs)), key=lambda i: -hs[i].support):
+        if len(known) >= k and hs[i].support < known[k - 1]:
+            break
+        hs[i] = _with_conflict(fa, fb, hs[i], cfg, stride)
+        known = sorted([*known, hs[i].score], reverse=True)
+
+
 def _score_key(h: Hypothesis) -> float:
     """Sort key, best score first; a hypothesis not yet scored (NaN) after all scored ones."""
     return math.inf if math.isnan(h.score) else -h.score
@@ -1467,24 +1477,15 @@ def register_prepared(
         _score(fa, fb, T, cfg.coarse_match_dist, cfg, v, stride, conflict=False)
         for v, T in cands[: cfg.verify_candidates]
     ]
-    known: list[float] = []
-    for i in sorted(range(len(scored)), key=lambda i: -scored[i].support):
-        if len(known) >= cfg.refine_candidates and scored[i].support < known[cfg.refine_candidates - 1]:
-            break
-        scored[i] = _with_conflict(fa, fb, scored[i], cfg, stride)
-        known = sorted([*known, scored[i].score], reverse=True)
+    _conflicts_that_count(fa, fb, scored, cfg, stride, cfg.refine_candidates)
     scored.sort(key=_score_key)
     refined = [
         _score(fa, fb, _refine(fa, fb, h.transform, cfg, stride), cfg.match_dist, cfg, h.votes, refined=True,
                conflict=False)
         for h in scored[: cfg.refine_candidates]
     ]
-    top = -math.inf  # the best score so far: a refined hypothesis with less support cannot win
-    for i in sorted(range(len(refined)), key=lambda i: -refined[i].support):
-        if refined[i].support < top:
-            break
-        refined[i] = _with_conflict(fa, fb, refined[i], cfg, 1)
-        top = max(top, refined[i].score)
+    # a refined hypothesis with less support than the best score so far cannot win
+    _conflicts_that_count(fa, fb, refined, cfg, 1, 1)
     refined.sort(key=_score_key)
     best = refined[0]
     if cfg.use_icp and best.score > 0:

@@ -14,7 +14,7 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from mapping.fleet import close_frontiers
+from mapping.fleet import EdgeFrame, apply_closings, close_frontiers
 from mapping.wireframe import Label, Wireframe
 
 merge_module = importlib.import_module("mapping.merge")  # (``mapping.merge`` is also the function)
@@ -30,59 +30,24 @@ def same_arrays(a: Wireframe, b: Wireframe) -> None:
 # ---------------------------------------------------------------------- frontier closing
 def close_frontiers_one_by_one(wf: Wireframe, threshold: float,
                                max_angle: float = math.radians(20.0)) -> Wireframe:
-    """The former :func:`close_frontiers`: each frontier's distances to every edge in turn."""
+    """The former :func:`close_frontiers`: each frontier's distances to every edge in turn (the
+    decisions made from them, :func:`apply_closings`, were not rewritten: shared)."""
     fr = np.flatnonzero(wf.labels == Label.FRONTIER)
     if len(fr) == 0 or wf.n_edges == 0:
         return wf
+    geo = EdgeFrame.of(wf)
     P, E = wf.points, wf.edges
-    A = P[E[:, 0]]
-    D = P[E[:, 1]] - A
-    L = np.hypot(D[:, 0], D[:, 1])
-    ok = L > 1e-12
-    dirs = np.zeros_like(D)
-    dirs[ok] = D[ok] / L[ok, None]
-    cos_max = math.cos(max_angle)
-    drop_edge = np.zeros(wf.n_edges, dtype=bool)
-    edges = E.copy()
-    relabel: list[int] = []
+    closings = []
     for v in fr.tolist():
         touches = (E[:, 0] == v) | (E[:, 1] == v)
-        rel = P[v] - A
-        t = rel[:, 0] * dirs[:, 0] + rel[:, 1] * dirs[:, 1]
-        d = np.abs(dirs[:, 0] * rel[:, 1] - dirs[:, 1] * rel[:, 0])
-        closing = np.flatnonzero(ok & ~touches & (d <= threshold) & (t > threshold) & (t < L - threshold))
-        if len(closing) == 0:
-            continue
-        inc = np.flatnonzero(touches)
-        usable = [int(k) for k in closing if not np.any(ok[inc] & (dirs[inc] @ dirs[k] <= -cos_max))]
-        if not usable:
-            continue
-        k = usable[0]
-        at_angle = 0
-        for j in inc.tolist():
-            if not ok[j] or float(dirs[j] @ dirs[k]) < cos_max:
-                at_angle += 1
-                continue
-            end_v = 0 if E[j, 0] == v else 1
-            u = int(E[j, 1 - end_v])
-            tu = float((P[u] - A[k]) @ dirs[k])
-            du = abs(float(dirs[k, 0] * (P[u] - A[k])[1] - dirs[k, 1] * (P[u] - A[k])[0]))
-            if du <= threshold and -threshold <= tu <= L[k] + threshold:
-                drop_edge[j] = True
-                continue
-            w = int(E[k, 0]) if tu < 0 else int(E[k, 1])
-            if float(np.hypot(*(P[w] - P[u]))) <= threshold:
-                drop_edge[j] = True
-            else:
-                edges[j, end_v] = w
-        if at_angle:
-            relabel.append(v)
-    if not drop_edge.any() and np.array_equal(edges, E) and not relabel:
-        return wf
-    labels = wf.labels.copy()
-    labels[relabel] = Label.NOMINAL
-    keep = ~drop_edge & (edges[:, 0] != edges[:, 1])
-    return Wireframe(P, labels, edges[keep], wf.likelihood[keep], wf.sources[keep]).compacted()
+        rel = P[v] - geo.A
+        t = rel[:, 0] * geo.dirs[:, 0] + rel[:, 1] * geo.dirs[:, 1]
+        d = np.abs(geo.dirs[:, 0] * rel[:, 1] - geo.dirs[:, 1] * rel[:, 0])
+        closing = np.flatnonzero(geo.ok & ~touches & (d <= threshold) & (t > threshold)
+                                 & (t < geo.L - threshold))
+        if len(closing):
+            closings.append((v, touches, closing))
+    return apply_closings(wf, geo, closings, threshold, max_angle)
 
 
 def random_walls(rng: np.random.Generator, n: int, span: float, frontier_p: float) -> Wireframe:

@@ -82,11 +82,17 @@ def counted(st: dict[str, Any], counter: tuple[str, str]) -> int:
     return int(v.get(reason, 0) if isinstance(v, dict) else v)
 
 
-def send_until_counted(thief: Any, mon: Any, key: str, payload: bytes, counter: tuple[str, str]) -> None:
+def send_until_counted(
+    thief: Any, mon: Any, keys: FleetKeys, key: str, payload: bytes, counter: tuple[str, str]
+) -> None:
     """Send one attack until the fusion counts it under its reason: the fusion decodes only the
     newest payload on a robot's key per batch (the others count as superseded) and looks only
     at the latest pose and scan, so r3's own honest traffic can hide one sending of an attack."""
-    stats = lambda: (d := query_stats(mon, FleetKeys())) and d["stats"]  # noqa: E731
+
+    def stats() -> dict[str, Any] | None:
+        d = query_stats(mon, keys)
+        return d["stats"] if d else None
+
     first = last = wait_until(stats, 10, "stats")
     for _ in range(20):
         thief.put(key, payload)
@@ -128,7 +134,7 @@ def test_one_stolen_robot_does_not_take_the_fleet_down(tmp_path: Path) -> None:
                     thief.put(key, payload)
                     time.sleep(0.2)
                 else:
-                    send_until_counted(thief, mon, key, payload, counter)
+                    send_until_counted(thief, mon, keys, key, payload, counter)
             # the honest robots keep merging: new versions keep coming
             wait_until(lambda: (d := query_stats(mon, keys)) and d["version"] > before + 3, 30,
                        "new versions")

@@ -79,13 +79,13 @@ from agents.mapping_run import LIDAR_PROFILES, SENSORS
 from agents.params import ConfigArgs, add_config_arguments, resolve, to_toml
 
 MAX_ROBOTS = 64
+"""``run`` starts one process per robot on this machine: at most 64 (the fused map itself takes up
+to ``wire_codec.MAX_ROBOTS``, 4,096; larger fleets: ``wiremap bench fleet --synthetic``, or
+robots and fusers on several machines)."""
 #: Seconds a fleet of robots without a shared frame runs on after every robot is done while
 #: some are islands: the fusion service tries a pair whose maps stopped growing again after
 #: FramesConfig.retry_after_s (5 s), and an attempt takes up to a fraction of a second.
 SETTLE_S = 8.0
-"""``run`` starts one process per robot on this machine: at most 64 (the fused map itself takes up
-to ``wire_codec.MAX_ROBOTS``, 4,096; larger fleets: ``wiremap bench fleet --synthetic``, or
-robots and fusers on several machines)."""
 
 HELP = "the main job: router, N robots and the fusion service"
 
