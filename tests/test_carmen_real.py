@@ -29,10 +29,10 @@ def test_real_excerpt_reads_as_it_is() -> None:
     # PARAM lines carry "nohost 0" after the value.
     assert log.params["robot_frontlaser_offset"] == "-0.04"
     assert s.max_range == 80.99  # robot_front_laser_max
-    # 360 beams at laser_front_laser_resolution 0.5 degrees, centred.
+    # 360 beams at laser_front_laser_resolution 0.5 degrees: from -90 to +89.5 (CARMEN's start angle).
     assert s.ranges.size == 360
-    assert (s.angles[0] == pytest.approx(-math.radians(89.75))
-            and s.angles[-1] == pytest.approx(math.radians(89.75)))
+    assert (s.angles[0] == pytest.approx(-math.radians(90.0))
+            and s.angles[-1] == pytest.approx(math.radians(89.5)))
     assert np.isfinite(s.ranges).sum() > 300
     # Both pose triples are equal: the odometry is the laser's own pose, no offset composed.
     assert s.mount.almost_equal(Pose())
@@ -345,4 +345,5 @@ def test_180_beams_without_parameters_are_one_degree_apart(tmp_path: Path) -> No
     log = write(tmp_path, f"FLASER 180 {ranges} 0 0 0 0 0 0 1.0 host 1.0\n")
     scan = read_carmen_log(log).scans[0]
     assert np.allclose(np.diff(scan.angles), math.radians(1.0))
-    assert scan.angles[0] == pytest.approx(-math.radians(89.5))
+    assert scan.angles[0] == pytest.approx(-math.radians(90.0))  # CARMEN's start angle, the last beam missing
+    assert scan.angles[-1] == pytest.approx(math.radians(89.0))

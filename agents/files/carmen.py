@@ -59,15 +59,16 @@ Parameters honoured
 -------------------
 For the front laser (``FLASER``; ``RLASER`` reads the same names with ``rear`` for ``front``):
 
-* field of view in **degrees**: ``laser_front_laser_fov``, ``robot_front_laser_fov``; else
-  the angular resolution in degrees, ``laser_front_laser_resolution`` (field of view
-  ``resolution * (num_readings - 1)``); else the standard resolution (1, 0.5 or 0.25 degrees)
-  within 2 % of ``180 / (num_readings - 1)``, so that 181 beams span 180 degrees and 180 beams
-  179 (a 1-degree scanner that logs 180 readings; spread over 180 degrees its turns come out
-  0.3 % too large, which the matcher then carries around every loop); else 180 degrees.
-  Bearings are ``-fov/2 .. +fov/2`` in
-  ``num_readings`` even steps (both edges included); a full 360 degrees does not repeat its
-  first beam (step ``fov / num_readings``).
+* field of view in **degrees**: ``laser_front_laser_fov``, ``robot_front_laser_fov``: bearings
+  ``-fov/2 .. +fov/2`` in ``num_readings`` even steps (both edges included); a full 360 degrees
+  does not repeat its first beam (step ``fov / num_readings``).
+* else the angular resolution in degrees, ``laser_front_laser_resolution`` or
+  ``laser_frontlaser_resolution``; else the standard resolution (1, 0.5 or 0.25 degrees) within
+  2 % of ``180 / (num_readings - 1)``, so that 181 beams are 1 degree apart and 180 too (a
+  1-degree scanner that logs 180 readings; spread over 180 degrees its turns come out 0.3 % too
+  large, which the matcher then carries around every loop); else 180 degrees over the beams.
+  The first beam is at -90 degrees, as CARMEN's own reader has it (``start_angle = -pi/2``):
+  180 beams span -90 .. +89 degrees (:func:`carmen_bearings`).
 * maximum range, metres: ``robot_front_laser_max`` (CARMEN's robot module),
   ``laser_front_laser_maxrange``, ``laser_front_laser_max_range``,
   ``robot_front_laser_maxrange``. Without one, the largest reading of the stream is taken as
@@ -115,7 +116,7 @@ LASERS = (
 #: Message types read (everything else is skipped).
 MESSAGES = (*LASERS, "ODOM", "TRUEPOS", "PARAM")
 FOV_PARAMS = ("laser_front_laser_fov", "robot_front_laser_fov")
-RESOLUTION_PARAMS = ("laser_front_laser_resolution",)
+RESOLUTION_PARAMS = ("laser_front_laser_resolution", "laser_frontlaser_resolution")
 MAX_RANGE_PARAMS = (
     "robot_front_laser_max",
     "laser_front_laser_maxrange",
@@ -132,6 +133,7 @@ __all__ = [
     "CarmenError",
     "CarmenLog",
     "LaserScan",
+    "carmen_bearings",
     "flaser_angles",
     "read_carmen",
     "read_carmen_log",
@@ -237,6 +239,22 @@ def default_width(n: int) -> float:
     if abs(res - guess) > 0.02 * res:
         return DEFAULT_FOV
     return math.radians(res * (n - 1))
+
+
+def carmen_bearings(n: int, width: float) -> FloatArray:
+    """Bearings of an ``n``-beam scan whose log gives its resolution (or none) but no field of
+    view, ``width`` radians from the first beam to the last. A half-turn scanner short of at
+    most one beam starts at -90 degrees, as CARMEN's own reader lays it (``start_angle =
+    -pi/2``): 180 beams 1 degree apart span -90 .. +89 degrees (CARMEN: "last beam ignored"),
+    not -89.5 .. +89.5. Centred, every such scan is turned half a beam and so is every motion
+    the matcher measures (docs/experiments.md, "Where a 180-beam scan starts"). Any other width
+    is centred (:func:`flaser_angles`)."""
+    if n < 2 or width >= 2.0 * math.pi - 1e-9:
+        return flaser_angles(n, width)
+    step = width / (n - 1)
+    if math.pi - width > step + 1e-9:
+        return flaser_angles(n, width)
+    return np.asarray(-0.5 * math.pi + step * np.arange(n), dtype=np.float64)
 
 
 def flaser_angles(n: int, fov: float) -> FloatArray:
@@ -558,12 +576,11 @@ def _to_scan(raw: _Raw, geometry: _Geometry, max_range: float | None) -> LaserSc
     if angles is None:
         n = raw.ranges.size
         if geometry.fov_deg is not None:
-            width = math.radians(geometry.fov_deg)
+            angles = flaser_angles(n, math.radians(geometry.fov_deg))
         elif geometry.res_deg is not None and 0.0 < geometry.res_deg * (n - 1) <= 360.0:
-            width = math.radians(geometry.res_deg * (n - 1))
+            angles = carmen_bearings(n, math.radians(geometry.res_deg * (n - 1)))
         else:
-            width = default_width(n)
-        angles = flaser_angles(n, width)
+            angles = carmen_bearings(n, default_width(n))
     rmax = max_range if max_range is not None else (raw.max_range or geometry.log_max)
     ranges = raw.ranges.copy()
     with np.errstate(invalid="ignore"):
