@@ -132,16 +132,18 @@ def test_every_format_maps_to_the_carmen_map(
         got = report_of(out)
         assert got["input"] == "rosbag" and got["scan_topic"] == "/scan" and got["scans"] == 60
         assert got["skipped_messages"] == 0 and got["unposed_scans"] == 0
-        # The same map: the same corners and walls, the same scores. The ranges went through
-        # float32 (LaserScan's type), so coordinates agree to micrometres, not to the bit.
+        # The same map: the same corners and walls, the same scores. The ranges and bearings went
+        # through float32 (LaserScan's types): micrometres per return, which 60 scans of SLAM
+        # (annealed gates, robust weights) carry to a few millimetres at most.
         shape, xy = corners_and_walls(out)
         assert shape == want_shape, fmt
-        assert np.abs(xy - want_xy).max() < 1e-4, fmt
-        for key in ("vertices", "edges", "ate_rmse_m", "ate_max_m", "map_precision", "map_coverage",
-                    "odometry_ate_rmse_m", "best_bytes", "particle_bytes"):
-            assert got[key] == pytest.approx(want[key], abs=1e-5), (fmt, key)
+        assert np.abs(xy - want_xy).max() < 0.01, fmt
+        for key in ("vertices", "edges", "best_bytes", "particle_bytes"):
+            assert got[key] == want[key], (fmt, key)
+        for key in ("ate_rmse_m", "ate_max_m", "map_precision", "map_coverage", "odometry_ate_rmse_m"):
+            assert got[key] == pytest.approx(want[key], abs=0.005), (fmt, key)
         traj = np.loadtxt(out / "trajectory.tsv")
-        assert np.abs(traj - want_traj).max() < 1e-4, fmt
+        assert np.abs(traj - want_traj).max() < 0.01, fmt
         # Between bags the scans are bit for bit the same, and so are the maps.
         mine = (json.loads((out / "map.geojson").read_text())["features"], traj.tolist())
         first_bag = first_bag or mine
