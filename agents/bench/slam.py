@@ -75,7 +75,7 @@ def run_one(path: str, start: tuple[float, float, float] | None, settings: dict[
     if truth is None:
         raise UserError(f"{path}: no truth (NAME.truth.tsv or TRUEPOS lines)")
     scans = log.scans
-    pts = mr.carmen_points(scans, fcfg)
+    pts, yaw = mr.calibrated_points(scans, fcfg)
     st = truth[0] if start is None else Pose(*start)
     t0 = time.process_time()
     slam = run_slam(pts, mr.wheel_increments(scans), fcfg.slam, start=np.array(st.as_tuple()))
@@ -86,7 +86,8 @@ def run_one(path: str, start: tuple[float, float, float] | None, settings: dict[
     rmse, mx = ate(est, tr)
     return {"ate_rmse_m": rmse, "ate_max_m": mx, "rpe_1m_m": rpe(est, tr), "loops": len(slam.loops),
             "ms_per_scan": 1000.0 * cpu / max(1, len(scans)), "scans": len(scans),
-            "odometry_ate_rmse_m": ate(pose_array([s.odom for s in scans]), tr)[0]}
+            "odometry_ate_rmse_m": ate(pose_array([s.odom for s in scans]), tr)[0],
+            **mr.yaw_report(yaw)}
 
 
 def summarise(runs: list[dict[str, Any]]) -> dict[str, Any]:
@@ -95,6 +96,7 @@ def summarise(runs: list[dict[str, Any]]) -> dict[str, Any]:
                            for k in ("ate_rmse_m", "ate_max_m", "rpe_1m_m", "loops", "ms_per_scan",
                                      "odometry_ate_rmse_m")}
     out["scans"] = runs[0]["scans"]
+    out["laser_yaw_deg"] = round(float(runs[0]["laser_yaw_deg"]), 6)  # the same from every start
     out["ate_rmse_m_by_start"] = [round(float(r["ate_rmse_m"]), 6) for r in runs]
     return out
 

@@ -344,13 +344,15 @@ def _real_source(
     resolved = _filter_config(args, cargs, 0.2, min(log_range, 20.0), mr.scan_fov(scans[0].angles),
                               log_range, base=filter_overrides)
     cfg = resolved.config
+    yaw = mr.calibrated_points(scans if args.steps is None else scans[: args.steps], frontend_cfg)[1]
     inputs = mr.carmen_inputs(scans, max_range=cfg.max_range, steps=args.steps, truth=true_scans,
-                              extract=extract_cfg, frontend=frontend_cfg)
+                              extract=extract_cfg, frontend=frontend_cfg,
+                              yaw=yaw.correction if yaw is not None else 0.0)
     start = true_scans[0] if true_scans is not None else scans[0].odom
     filt = WireframeFilter(cfg, mr.seeds_for(args.seed)["filter"], initial_pose=start)
     total = len(scans) if args.steps is None else min(len(scans), args.steps)
     return _Source(filt, inputs, total, source, resolved, name, scans=scans, true_scans=true_scans,
-                   max_range=cfg.max_range, extra={**extra, "lidar_profile": args.lidar_profile})
+                   max_range=cfg.max_range, extra={**extra, "lidar_profile": args.lidar_profile, **mr.yaw_report(yaw)})
 
 
 @dataclass
@@ -481,6 +483,9 @@ def _print_summary(report: dict[str, Any], out: Path) -> None:
     ]
     if report.get("skipped_lines"):
         lines.append(f"  log         skipped {report['skipped_lines']} unreadable lines")
+    if report.get("laser_yaw_deg"):
+        lines.append(f"  laser yaw   {report['laser_yaw_deg']:+.2f} degrees taken off every bearing "
+                     f"(+-{report['laser_yaw_se_deg']:.2f}, against the odometry's direction of travel)")
     if report.get("input") == "rosbag":
         line = (f"  bag         {report['scans']} scans from {report['scan_topic']}, "
                 f"odometry {report['odometry']}")
