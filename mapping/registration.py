@@ -946,7 +946,7 @@ def _angle_pairs(
         if tot == 0:
             continue
         jb = np.repeat(np.arange(len(kb)), cnt)
-        pos = np.arange(tot) - np.repeat(np.cumsum(cnt) - cnt, cnt) + np.repeat(lo, cnt)
+        pos = np.arange(tot) + np.repeat(lo - (np.cumsum(cnt) - cnt), cnt)
         ib_l.append(jb)
         ia_l.append(order[pos])
     if not ia_l:
@@ -1030,10 +1030,13 @@ def _vote(
     if len(ia) == 0:
         return []
     c, s = math.cos(theta), math.sin(theta)
-    bx, by = fb.end_centred[0][ib], fb.end_centred[1][ib]
-    tx = fa.end_centred[0][ia] - (c * bx - s * by)
-    ty = fa.end_centred[1][ia] - (s * bx + c * by)
-    wv = np.minimum(np.minimum(fa.end_weights[ia], fb.end_weights[ib]), cfg.vote_weight_cap)
+    # B's ends turned (and the weights capped) once per end rather than once per pair: an
+    # elementwise operation gives the same values before a gather as after it.
+    bx, by = fb.end_centred
+    tx = fa.end_centred[0][ia] - (c * bx - s * by)[ib]
+    ty = fa.end_centred[1][ia] - (s * bx + c * by)[ib]
+    cap = cfg.vote_weight_cap
+    wv = np.minimum(np.minimum(fa.end_weights, cap)[ia], np.minimum(fb.end_weights, cap)[ib])
     if len(wv) > cfg.coarse_vote_pairs:
         tx, ty, wv = _coarse_select(tx, ty, wv, cfg)
     gx, gy = tx / cfg.vote_cell, ty / cfg.vote_cell
@@ -1396,8 +1399,9 @@ def _runner_up(
     best matches fewer than ``rival_min_ends`` typed wall ends, the corner ratio is not trusted
     (one corner swings it) and is taken as 1.
 
-    A rival scored without its conflict (NaN score, every ``stride``-th sample) gets it only when
-    its support (an upper bound of its score) could make it the runner-up.
+    A rival scored without its conflict (NaN score: every ``stride``-th sample when unrefined,
+    every sample when refined here) gets it only when its support (an upper bound of its score)
+    could make it the runner-up.
     """
     if not rivals or best.score <= 0:
         top = _with_conflict(fa, fb, rivals[0], cfg, 1 if rivals[0].refined else stride) if rivals else None
@@ -1410,7 +1414,7 @@ def _runner_up(
         if k < cfg.rival_refine:
             if not h.refined:
                 h = _score(fa, fb, _refine(fa, fb, h.transform, cfg, stride), cfg.match_dist, cfg, h.votes,
-                           refined=True)
+                           refined=True, conflict=False)
                 if not _distinct(h.transform, best.transform, fb, cfg):
                     continue  # it was the best hypothesis, voted off its cell
             c = _matched_ends(fa, fb, h.transform, cfg, cfg.rival_corner_dist) / n_best
