@@ -1438,23 +1438,26 @@ def _runner_up(
     runner, ratio, corner_ratio = None, 0.0, 0.0
     # Strongest rivals by matched wall first: those are refined before their corners count.
     for k, h in enumerate(sorted(rivals, key=lambda h: -h.support)):
-        if k < cfg.rival_refine:
-            if not h.refined:
-                h = _score(fa, fb, _refine(fa, fb, h.transform, cfg, stride), cfg.match_dist, cfg, h.votes,
-                           refined=True, conflict=False)
-                if not _distinct(h.transform, best.transform, fb, cfg):
-                    continue  # it was the best hypothesis, voted off its cell
-            c = _matched_ends(fa, fb, h.transform, cfg, cfg.rival_corner_dist) / n_best
-        else:  # unrefined: a gate twice as loose
-            c = _matched_ends(fa, fb, h.transform, cfg, 2.0 * cfg.rival_corner_dist) / n_best
+        first = k < cfg.rival_refine
+        if first and not h.refined:
+            h = _score(fa, fb, _refine(fa, fb, h.transform, cfg, stride), cfg.match_dist, cfg, h.votes,
+                       refined=True, conflict=False)
+            if not _distinct(h.transform, best.transform, fb, cfg):
+                continue  # it was the best hypothesis, voted off its cell
         # A rival that matches more wall than the best counts even when its score is low: the
         # free-space conflict that lowers it may be the drift of a filter-built map, and then
         # the rival is the truth and the best a coincidence.
-        if few:
-            c = 1.0
         sup = h.support / best.support if best.support > 0 else 1.0
+        # Without its corners (and, unscored, with its support for its score: score <= support)
+        # the ratio is an upper bound of the rival's: when even that cannot beat the ratio so
+        # far, neither its corners nor its conflict are counted.
+        score = h.support if math.isnan(h.score) else h.score
+        if runner is not None and min(max(0.0, score / best.score, sup if sup >= 1.0 else 0.0), 1.0) <= ratio:
+            continue
+        # Corners of the refined rivals at ``rival_corner_dist``, of the others at twice that.
+        gate = cfg.rival_corner_dist if first else 2.0 * cfg.rival_corner_dist
+        c = 1.0 if few else _matched_ends(fa, fb, h.transform, cfg, gate) / n_best
         if math.isnan(h.score):
-            # score <= support: when even the support cannot beat the ratio, the score cannot.
             bound = min(max(0.0, h.support / best.score, sup if sup >= 1.0 else 0.0), c, 1.0)
             if runner is not None and bound <= ratio:
                 continue
