@@ -628,6 +628,10 @@ class Hypothesis:
         Smaller eigenvalue of the matched walls' normal scatter (metres of wall).
     refined : bool
         Whether it went through the refinement.
+    matched : (ib, ia) int arrays or None
+        The samples of B and of A it matched, when scored on every sample at ``match_dist``
+        (kept for the ICP polish and the self-similarity check, which need the same matches;
+        neither compared nor shown).
     """
 
     transform: Pose
@@ -638,6 +642,7 @@ class Hypothesis:
     rmse: float
     cross_support: float
     refined: bool = False
+    matched: tuple[IntArray, IntArray] | None = field(default=None, repr=False, compare=False)
 
 
 @dataclass(frozen=True)
@@ -1002,7 +1007,7 @@ def _sums_by_key(keys: IntArray, vals: FloatArray) -> tuple[IntArray, FloatArray
     np.not_equal(sk[1:], sk[:-1], out=first[1:])
     inv = np.empty(len(keys), dtype=np.int64)
     inv[order] = np.cumsum(first) - 1
-    return np.asarray(sk[first], dtype=np.int64), np.bincount(inv, weights=vals)
+    return np.asarray(sk[first], dtype=np.int64), np.asarray(np.bincount(inv, weights=vals), dtype=np.float64)
 
 
 def _coarse_select(
@@ -1072,8 +1077,8 @@ def _vote(
     top = 50 * cfg.peaks_per_rotation
     if nx * ny <= min(4_000_000, 16 * len(keys)):
         # Dense accumulation (a bincount is much cheaper than sorting the keys).
-        grid = np.bincount(keys, weights=vals, minlength=nx * ny)
-        uk = np.flatnonzero(grid)
+        grid = np.asarray(np.bincount(keys, weights=vals, minlength=nx * ny), dtype=np.float64)
+        uk = np.asarray(np.flatnonzero(grid), dtype=np.int64)
         acc = grid[uk]
     else:  # sparse: only the cells that got votes
         uk, acc = _sums_by_key(keys, vals)
@@ -1209,7 +1214,15 @@ def _score(
         cross = float(np.linalg.eigvalsh(M)[0])
     else:
         rmse, cross = math.inf, 0.0
-    return Hypothesis(T, votes, support, c, support - cfg.conflict_weight * c, rmse, cross, refined)
+    kept = (ib, ia) if stride == 1 and gate == cfg.match_dist else None
+    return Hypothesis(T, votes, support, c, support - cfg.conflict_weight * c, rmse, cross, refined, kept)
+
+
+def _final_matches(
+    fa: MapFeatures, fb: MapFeatures, h: Hypothesis, cfg: RegistrationConfig
+) -> tuple[IntArray, IntArray]:
+    """``(ib, ia)``: the samples ``h`` matches at ``match_dist`` (kept by :func:`_score`, or matched)."""
+    return h.matched if h.matched is not None else _match(fa, fb, h.transform, cfg.match_dist, cfg)
 
 
 def _with_conflict(
@@ -1263,7 +1276,7 @@ def _crop(wf: Wireframe, centre: FloatArray, radius: float) -> Wireframe:
 
 def _polish(fa: MapFeatures, fb: MapFeatures, h: Hypothesis, cfg: RegistrationConfig) -> Hypothesis:
     """The wireframe ICP on the overlap (step 5); kept only if accepted and the score holds."""
-    ib, _ = _match(fa, fb, h.transform, cfg.match_dist, cfg)
+    ib, _ = _final_matches(fa, fb, h, cfg)
     if len(ib) < 3:
         return h
     moved = h.transform.apply(fb.points[ib])
@@ -1561,7 +1574,7 @@ def register_prepared(
     if not reason and corners < need:
         reason = f"too few matched corners ({corners} < {need})"
     if not reason:
-        ib, ia = _match(fa, fb, best.transform, cfg.match_dist, cfg)
+        ib, ia = _final_matches(fa, fb, best, cfg)
         self_a = _self_ratio(fa, ia, cfg)
         self_b = _self_ratio(fb, ib, cfg)
         limit = cfg.contested_self_ratio if ratio > cfg.contested_runner_up_ratio else cfg.max_self_ratio
