@@ -450,8 +450,11 @@ class CellMask:
         iy = np.floor(q[:, 1] / self.cell).astype(np.int64)
         ix -= self.origin[0]
         iy -= self.origin[1]
-        np.clip(ix, 0, nx - 1, out=ix)  # outside the grid: onto its unmarked border
-        np.clip(iy, 0, ny - 1, out=iy)
+        # Outside the grid: onto its unmarked border (ufuncs: ``np.clip`` costs ~25 us a call).
+        np.maximum(ix, 0, out=ix)
+        np.minimum(ix, nx - 1, out=ix)
+        np.maximum(iy, 0, out=iy)
+        np.minimum(iy, ny - 1, out=iy)
         ix *= ny
         ix += iy
         return np.asarray(self.mask.reshape(-1)[ix], dtype=bool)
@@ -480,9 +483,15 @@ def _cell_mask(points: FloatArray, radius: float) -> CellMask | None:
     # point's neighbours do not wrap, as its cell is not in the first or last row or column.
     mask = np.zeros(nx * ny, dtype=bool)
     flat = (ix - lo[0]) * ny + (iy - lo[1])
-    for off in (-ny - 1, -ny, -ny + 1, -1, 0, 1, ny - 1, ny, ny + 1):
+    for off in _around(ny).tolist():  # nine scatters: faster than one of nine times the points
         mask[flat + off] = True
     return CellMask(radius=radius, cell=cell, origin=lo, mask=mask.reshape(nx, ny))
+
+
+def _around(ny: int) -> IntArray:
+    """Flat-index offsets of a cell and of its eight neighbours in a C-ordered grid of ``ny``
+    columns (they do not wrap for a cell outside the grid's first and last rows and columns)."""
+    return np.array([-ny - 1, -ny, -ny + 1, -1, 0, 1, ny - 1, ny, ny + 1], dtype=np.int64)
 
 
 @dataclass(frozen=True, eq=False)
@@ -1031,10 +1040,10 @@ def _coarse_select(
     grid = np.asarray(np.bincount(key, weights=wv, minlength=(int(cx.max()) + 2) * ny), dtype=np.float64)
     k = min(cfg.coarse_vote_cells, len(grid) - 1)
     strong = _top_cells(grid, k)
+    # Strong cells have votes, so they are inside the grid's border row and column: their
+    # neighbours are cells of the grid.
     keep = np.zeros(len(grid), dtype=bool)
-    for dx in (-1, 0, 1):
-        for dy in (-1, 0, 1):
-            keep[np.clip(strong + dx * ny + dy, 0, len(grid) - 1)] = True
+    keep[(strong[:, None] + _around(ny)).reshape(-1)] = True
     sel = keep[key]
     return tx[sel], ty[sel], wv[sel]
 
