@@ -1097,9 +1097,10 @@ def _vote(
     order = np.lexsort((uk, -acc))  # strongest first, ties by cell
     out: list[tuple[FloatArray, float]] = []
     sep2 = cfg.peak_separation**2
-    for o in order:
-        cx = (uk[o] // ny + xmin) * cfg.vote_cell
-        cy = (uk[o] % ny + ymin) * cfg.vote_cell
+    for o in order.tolist():
+        cell = int(uk[o])  # Python ints: the same values as numpy scalars, without their cost
+        cx = (cell // ny + xmin) * cfg.vote_cell
+        cy = (cell % ny + ymin) * cfg.vote_cell
         if any((cx - p[0]) ** 2 + (cy - p[1]) ** 2 < sep2 for p, _ in out):
             continue
         # Sub-cell position: weighted mean of the proposals near the peak cell.
@@ -1366,7 +1367,7 @@ def _self_ratio(f: MapFeatures, samples: IntArray, cfg: RegistrationConfig) -> f
     mask = np.zeros(f.wireframe.n_edges, dtype=bool)
     mask[f.owner[samples]] = True
     wf = f.wireframe
-    if mask.all() and f.config == cfg and np.isin(np.arange(wf.n_vertices), wf.edges).all():
+    if mask.all() and f.config == cfg and np.bincount(wf.edges.reshape(-1), minlength=wf.n_vertices).all():
         # The part is the whole map (same arrays: every vertex is on an edge), whose features
         # are at hand.
         region = f
