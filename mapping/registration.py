@@ -945,11 +945,13 @@ def rotation_candidates(
 def _angle_pairs(
     ang_a: FloatArray, key_a: IntArray, ang_b: FloatArray, key_b: IntArray, tol: float
 ) -> tuple[IntArray, IntArray]:
-    """All ``(i, j)`` with ``key_a[i] == key_b[j]`` and ``|wrap(ang_a[i] - ang_b[j])| <= tol``.
+    """All ``(i, j)`` with ``key_a[i] == key_b[j]`` and ``|wrap(ang_a[i] - ang_b[j])| <= tol``
+    (keys non-negative).
 
     Angles are binned by ``tol``; each B entry looks up its own and the two neighbouring bins
     (with the same key) through a sorted index, so the cost is the number of near pairs, not
-    ``len(a) * len(b)``.
+    ``len(a) * len(b)``. Pairs come by shift of B's bin (-1, 0, +1), then by B entry, then in
+    A's order.
     """
     nbin = max(3, int(2.0 * math.pi / tol))
     width = 2.0 * math.pi / nbin
@@ -957,24 +959,18 @@ def _angle_pairs(
     bb = ((ang_b + math.pi) / width).astype(np.int64) % nbin
     ka = key_a * nbin + ba
     order = np.argsort(ka, kind="stable")
-    sk = ka[order]
-    ib_l, ia_l = [], []
-    for shift in (-1, 0, 1):
-        kb = key_b * nbin + (bb + shift) % nbin
-        lo = np.searchsorted(sk, kb, side="left")
-        hi = np.searchsorted(sk, kb, side="right")
-        cnt = hi - lo
-        tot = int(cnt.sum())
-        if tot == 0:
-            continue
-        jb = np.repeat(np.arange(len(kb)), cnt)
-        pos = np.arange(tot) + np.repeat(lo - (np.cumsum(cnt) - cnt), cnt)
-        ib_l.append(jb)
-        ia_l.append(order[pos])
-    if not ia_l:
+    # Where each (key, bin) starts among A's entries sorted by it and how many it has (what a
+    # search of the sorted keys finds), for B's entries in their bin and the two beside it.
+    size = (max(int(key_a.max(initial=0)), int(key_b.max(initial=0))) + 1) * nbin
+    count = np.bincount(ka, minlength=size)
+    start = np.cumsum(count) - count
+    kb = ((key_b * nbin)[None, :] + (bb[None, :] + np.array([[-1], [0], [1]])) % nbin).reshape(-1)
+    cnt = count[kb]
+    tot = int(cnt.sum())
+    if tot == 0:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
-    ia = np.concatenate(ia_l)
-    ib = np.concatenate(ib_l)
+    ib = np.repeat(np.tile(np.arange(len(key_b)), 3), cnt)
+    ia = order[np.arange(tot) + np.repeat(start[kb] - (np.cumsum(cnt) - cnt), cnt)]
     d = ang_a[ia] - ang_b[ib]
     ad = np.abs(d)
     ok = ad <= tol
