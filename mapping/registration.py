@@ -741,14 +741,11 @@ def prepare(wf: Wireframe, config: RegistrationConfig | None = None) -> MapFeatu
     along = t * ln[owner]
     inner = (along >= cfg.probe_end_margin) & (ln[owner] - along >= cfg.probe_end_margin)
     inner_idx = np.flatnonzero(inner)
-    probes = (
-        np.concatenate([pts[inner] + dep * nor[inner] for dep in cfg.free_depths])
-        if len(pts)
-        else np.zeros((0, 2))
-    )
+    p_in, n_in = pts[inner], nor[inner]
+    probes = np.concatenate([p_in + dep * n_in for dep in cfg.free_depths]) if len(pts) else np.zeros((0, 2))
     probe_owner = np.tile(inner_idx, len(cfg.free_depths)) if len(pts) else np.zeros(0, np.int64)
     if len(pts):
-        deep, deep_owner = _facing_probes(pts[inner], nor[inner], seg, nrm, cfg)
+        deep, deep_owner = _facing_probes(p_in, n_in, seg, nrm, cfg)
         probes = np.concatenate([probes, deep])
         probe_owner = np.concatenate([probe_owner, inner_idx[deep_owner]])
     if len(probes) and len(pts):
@@ -875,23 +872,28 @@ def _facing_probes(
     none = (np.zeros((0, 2)), np.zeros(0, np.int64))
     if len(origins) == 0 or len(seg) == 0 or len(deep) == 0:
         return none
-    lo_s, hi_s = seg.min(axis=1), seg.max(axis=1)
-    first = np.full(len(origins), np.inf)
-    facing = np.zeros(len(origins), dtype=bool)
+    # Segment bounding boxes, one contiguous array per axis and side.
+    slx, sly = (np.ascontiguousarray(v) for v in seg.min(axis=1).T)
+    shx, shy = (np.ascontiguousarray(v) for v in seg.max(axis=1).T)
     chunk = 128
     # Chunks of rays near each other (origins in ``free_reach`` cells, in cell order), each
     # against the segments that meet the bounding box of its rays (origin to ``free_reach``
     # along the normal): a superset of those any of its rays can cross, so the result does not
-    # depend on the chunks.
+    # depend on the chunks. The rays are put in that order once (each chunk a slice), with
+    # their own bounding boxes per axis.
     tips = origins + cfg.free_reach * normals
     cell = np.floor(origins / cfg.free_reach).astype(np.int64)
     order = np.lexsort((cell[:, 1], cell[:, 0]))
+    ro, rn = origins[order], normals[order]
+    rlo = np.minimum(ro, tips[order]).T.copy()
+    rhi = np.maximum(ro, tips[order]).T.copy()
+    first_r = np.full(len(origins), np.inf)
+    facing_r = np.zeros(len(origins), dtype=bool)
     for k in range(0, len(origins), chunk):
-        idx = order[k : k + chunk]
-        o, n = origins[idx], normals[idx]
-        lo = np.minimum(o.min(axis=0), tips[idx].min(axis=0))
-        hi = np.maximum(o.max(axis=0), tips[idx].max(axis=0))
-        near = np.flatnonzero(np.all(hi_s >= lo, axis=1) & np.all(lo_s <= hi, axis=1))
+        part = slice(k, k + chunk)
+        o, n = ro[part], rn[part]
+        near = np.flatnonzero((shx >= rlo[0, part].min()) & (shy >= rlo[1, part].min())
+                              & (slx <= rhi[0, part].max()) & (sly <= rhi[1, part].max()))
         if len(near) == 0:
             continue
         p0 = seg[near, 0]
@@ -906,8 +908,11 @@ def _facing_probes(
         hit = ok & (t > 1e-6) & (t <= cfg.free_reach) & (s >= 0.0) & (s <= 1.0)
         t = np.where(hit, t, np.inf)
         j = np.argmin(t, axis=1)
-        first[idx] = t[np.arange(len(o)), j]
-        facing[idx] = np.einsum("ij,ij->i", seg_normals[near[j]], n) < 0.0
+        first_r[part] = t[np.arange(len(o)), j]
+        facing_r[part] = np.einsum("ij,ij->i", seg_normals[near[j]], n) < 0.0
+    first = np.empty(len(origins))
+    facing = np.empty(len(origins), dtype=bool)
+    first[order], facing[order] = first_r, facing_r
     use = np.isfinite(first) & facing
     if not use.any():
         return none
