@@ -445,9 +445,13 @@ class CellMask:
 
     def near(self, q: FloatArray) -> BoolArray:
         """Whether each of ``q`` (n, 2) lies in a marked cell."""
+        return self.near_xy(q[:, 0], q[:, 1])
+
+    def near_xy(self, x: FloatArray, y: FloatArray) -> BoolArray:
+        """Whether each point ``(x, y)`` (arrays of one shape) lies in a marked cell."""
         nx, ny = self.mask.shape
-        ix = np.floor(q[:, 0] / self.cell).astype(np.int64)
-        iy = np.floor(q[:, 1] / self.cell).astype(np.int64)
+        ix = np.floor(x / self.cell).astype(np.int64)
+        iy = np.floor(y / self.cell).astype(np.int64)
         ix -= self.origin[0]
         iy -= self.origin[1]
         # Outside the grid: onto its unmarked border (ufuncs: ``np.clip`` costs ~25 us a call).
@@ -1393,14 +1397,17 @@ def _self_ratio(f: MapFeatures, samples: IntArray, cfg: RegistrationConfig) -> f
     # that share of the part's ends or corners near the map's (a cell-mask count, an upper bound
     # of the matched count) is not verified.
     floor = min(cfg.max_self_ratio, cfg.contested_self_ratio, cfg.mutual_self_ratio)
+    top = cands[: cfg.verify_candidates]
+    bounds = [math.inf] * len(top)  # without cell masks every hypothesis is verified
     ends_cells, corner_cells = f.end_cells, f.corner_cells
-    for v, T in cands[: cfg.verify_candidates]:
-        if ends_cells is not None and corner_cells is not None:
-            n_ends = int(ends_cells.near(T.apply(region.end_points)).sum())
-            n_corners = int(corner_cells.near(T.apply(region.corner_points)).sum())
-            bound = max(n_ends / len(region.end_points), n_corners / len(region.corner_points))
-            if bound <= max(best, floor):
-                continue
+    if ends_cells is not None and corner_cells is not None and top:
+        poses = [T for _, T in top]
+        n_ends = _near_counts(ends_cells, poses, region.end_points)
+        n_corners = _near_counts(corner_cells, poses, region.corner_points)
+        bounds = np.maximum(n_ends / len(region.end_points), n_corners / len(region.corner_points)).tolist()
+    for (v, T), bound in zip(top, bounds):
+        if bound <= max(best, floor):
+            continue
         n = max(_matched_ends(f, region, T, cfg, cfg.corner_match_dist) / len(region.end_points),
                 _matched_corners(f, region, T, cfg) / len(region.corner_points))
         if n <= best:
@@ -1409,6 +1416,16 @@ def _self_ratio(f: MapFeatures, samples: IntArray, cfg: RegistrationConfig) -> f
         if h.conflict <= cfg.max_conflict + cfg.max_conflict_fraction * h.support:
             best = n
     return best
+
+
+def _near_counts(cells: CellMask, poses: list[Pose], pts: FloatArray) -> IntArray:
+    """For each of ``poses``, how many of ``pts`` it moves into a marked cell of ``cells``: all
+    poses at once, each point moved by the operations of :meth:`Pose.apply`."""
+    c = np.array([math.cos(T.theta) for T in poses])[:, None]
+    s = np.array([math.sin(T.theta) for T in poses])[:, None]
+    x, y = np.array([T.x for T in poses])[:, None], np.array([T.y for T in poses])[:, None]
+    px, py = pts[:, 0][None, :], pts[:, 1][None, :]
+    return np.asarray(cells.near_xy(c * px - s * py + x, s * px + c * py + y).sum(axis=1), dtype=np.int64)
 
 
 def _conflicts_that_count(
