@@ -980,16 +980,23 @@ def _angle_pairs(
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
     ib = np.repeat(np.tile(np.arange(len(key_b)), 3), cnt)
     ia = order[np.arange(tot) + np.repeat(start[kb] - (np.cumsum(cnt) - cnt), cnt)]
-    d = ang_a[ia] - ang_b[ib]
+    ok = _within(ang_a[ia] - ang_b[ib], tol)
+    return ia[ok], ib[ok]
+
+
+def _within(d: FloatArray, tol: float) -> BoolArray:
+    """``|_wrap(d)| <= tol`` for differences ``d`` of two angles in ``[-pi, pi]``.
+
+    ``_wrap`` (a float remainder, the costly part) changes a difference well inside (-pi, pi)
+    by an ulp at most: only differences near ``tol`` or beyond 3 rad (across the wrap) need it
+    for the same decision.
+    """
     ad = np.abs(d)
     ok = ad <= tol
-    # ``_wrap`` (a float remainder, the costly part) changes a difference well inside
-    # (-pi, pi) by an ulp at most: only differences near ``tol`` or beyond 3 rad (across the
-    # wrap) need it for the same decision.
     unsure = (np.abs(ad - tol) <= 1e-9) | (ad >= 3.0)
     if unsure.any():
         ok[unsure] = np.abs(_wrap(d[unsure])) <= tol
-    return ia[ok], ib[ok]
+    return np.asarray(ok, dtype=bool)
 
 
 def _top_cells(grid: FloatArray, k: int) -> IntArray:
@@ -1352,7 +1359,7 @@ def _matched_ends(fa: MapFeatures, fb: MapFeatures, T: Pose, cfg: RegistrationCo
     idx_c = np.where(ok, idx, 0)
     ok &= fa.end_starts[idx_c] == fb.end_starts[:, None]
     ang = _wrap(fb.end_angles + T.theta)
-    ok &= np.abs(_wrap(fa.end_angles[idx_c] - ang[:, None])) <= 2.0 * cfg.feature_angle_tol
+    ok &= _within(fa.end_angles[idx_c] - ang[:, None], 2.0 * cfg.feature_angle_tol)
     return int(ok.any(axis=1).sum())
 
 
