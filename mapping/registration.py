@@ -1140,7 +1140,7 @@ def _match(
 ) -> tuple[IntArray, IntArray]:
     """B samples (every ``stride``-th) moved by ``T`` matched to A samples: ``(ib, ia)``."""
     sel = np.arange(0, len(fb.points), stride)
-    q = T.apply(fb.points[sel])
+    q = T.apply(fb.points[::stride])  # a view, not a gather
     cells = fa.sample_cells
     if cells is None or gate > cells.radius or len(q) < MIN_MASK_QUERY:
         rows = np.arange(len(q))
@@ -1229,7 +1229,8 @@ def _score(
     c = _conflict(fa, fb, T, cfg, stride) if conflict else math.nan
     if len(ib):
         r = _residuals(fa, fb, T, ib, ia)
-        rmse = float(np.sqrt(np.average(r**2, weights=fb.weights[ib])))
+        wb = fb.weights[ib]
+        rmse = float(np.sqrt(np.multiply(r**2, wb).sum() / wb.sum()))  # np.average's operations
         n = fa.normals[ia]
         w = fb.weights[ib] * stride
         M = (n * w[:, None]).T @ n
