@@ -44,8 +44,8 @@ Pipeline
    (``peaks_per_rotation`` per rotation). Both maps are centred on their wall centroid first, so
    that a small rotation error spreads the votes as little as possible. With more than
    ``coarse_vote_pairs`` proposals (large maps), a vote on cells ``coarse_vote_factor`` times
-   larger first picks the ``coarse_vote_cells`` strongest regions; only their proposals vote on
-   the fine grid.
+   larger first picks the ``coarse_vote_cells`` strongest regions (and every region tied with the
+   last of them); only their proposals vote on the fine grid.
 
 4. **Verification.** The ``verify_candidates`` strongest candidates are scored: B's wall samples
    are moved by the candidate and matched to A's (within ``coarse_match_dist``, same direction
@@ -119,9 +119,9 @@ Determinism: no randomness at all (exhaustive voting, not RANSAC); ties are brok
 Cost (CPU time of one process on a shared 2-core machine, ``time.process_time``): about 25-30 ms
 (median) for the bench's map pairs; for two maps of about 300 corners (the whole museum twice,
 281 corners and 2.5 km of wall each, or two halves of its coverage route, 200-270 corners) about
-60-80 ms at a load of 4-8 on the two cores, against 115-145 ms for the code before
-``docs/experiments.md``'s "Registration speed, part 2" -- still over the 50 ms target. The time
-goes to :func:`prepare` (the wall each free-probe ray meets, the clearance test; about 6 ms per
+50 ms at a load of 2 on the two cores, against 65-70 ms for the code before
+``docs/experiments.md``'s "Registration speed, part 3" and 115-145 ms before part 2. The time
+goes to :func:`prepare` (the wall each free-probe ray meets, the clearance test; about 5 ms per
 large map), the translation votes (every same-direction wall-end pair of a rectilinear map votes,
 about 41,000 pairs per rotation for the museum; the coarse vote bounds the fine grid: 4 votes for
 the pair and 4 for each self-similarity check), the scoring of the candidates (matched wall
@@ -205,7 +205,8 @@ class RegistrationConfig:
     coarse_vote_pairs, coarse_vote_factor, coarse_vote_cells : int
         A rotation with more wall-end pairs than ``coarse_vote_pairs`` votes first on cells
         ``coarse_vote_factor`` times larger; only the proposals in the ``coarse_vote_cells``
-        strongest coarse cells and their neighbours vote on the fine grid (cost).
+        strongest coarse cells (with every cell tied with the last of them) and their neighbours
+        vote on the fine grid (cost).
     peaks_per_rotation : int
         Candidate translations kept per rotation hypothesis.
     peak_separation : float
