@@ -62,11 +62,11 @@ For the front laser (``FLASER``; ``RLASER`` reads the same names with ``rear`` f
 * field of view in **degrees**: ``laser_front_laser_fov``, ``robot_front_laser_fov``: bearings
   ``-fov/2 .. +fov/2`` in ``num_readings`` even steps (both edges included); a full 360 degrees
   does not repeat its first beam (step ``fov / num_readings``).
-* else the angular resolution in degrees, ``laser_front_laser_resolution`` or
-  ``laser_frontlaser_resolution``; else the standard resolution (1, 0.5 or 0.25 degrees) within
-  2 % of ``180 / (num_readings - 1)``, so that 181 beams are 1 degree apart and 180 too (a
-  1-degree scanner that logs 180 readings; spread over 180 degrees its turns come out 0.3 % too
-  large, which the matcher then carries around every loop); else 180 degrees over the beams.
+* else the angular resolution in degrees, ``laser_front_laser_resolution``; else the standard
+  resolution (1, 0.5 or 0.25 degrees) within 2 % of ``180 / (num_readings - 1)``, so that 181
+  beams are 1 degree apart and 180 too (a 1-degree scanner that logs 180 readings; spread over
+  180 degrees its turns come out 0.3 % too large, which the matcher then carries around every
+  loop); else 180 degrees over the beams.
   The first beam is at -90 degrees, as CARMEN's own reader has it (``start_angle = -pi/2``):
   180 beams span -90 .. +89 degrees (:func:`carmen_bearings`).
 * maximum range, metres: ``robot_front_laser_max`` (CARMEN's robot module),
@@ -116,7 +116,7 @@ LASERS = (
 #: Message types read (everything else is skipped).
 MESSAGES = (*LASERS, "ODOM", "TRUEPOS", "PARAM")
 FOV_PARAMS = ("laser_front_laser_fov", "robot_front_laser_fov")
-RESOLUTION_PARAMS = ("laser_front_laser_resolution", "laser_frontlaser_resolution")
+RESOLUTION_PARAMS = ("laser_front_laser_resolution",)
 MAX_RANGE_PARAMS = (
     "robot_front_laser_max",
     "laser_front_laser_maxrange",
