@@ -1232,14 +1232,17 @@ class WireframeFilter:
         # the odometry's, and averaging it in would drag the corners along with its error.
         refine = cfg.refine.enabled and (icp_res is None or (icp_res.accepted and icp_res.constrained == 3))
         placed = ctx.scan.transformed(ctx.place)  # the scan in the map frame, for every merge below
+        # The scan as merged into a parent's offspring depends on the parent alone: one object
+        # per parent, so that its mutated copies' merges do not build it (and digest it for
+        # the merge cache, _CachedMerge) again.
+        scans: dict[int, Wireframe] = {}
         for k, q in enumerate(res.particles):
             parent = self._particles[int(res.indexes[k])]
             key = (id(q), id(parent))
             if key not in merged:
-                ev = evals[id(parent)]
-                scan_world = placed.replace(likelihood=ev.scan_edge_likelihood)
-                if not ev.merge_mask.all():
-                    scan_world = scan_world.subgraph_edges(ev.merge_mask)
+                scan_world = scans.get(id(parent))
+                if scan_world is None:
+                    scan_world = scans[id(parent)] = self._scan_for(placed, evals[id(parent)])
                 if refine and q.n_vertices:
                     if id(q) not in refined:
                         rq, moved = refine_corners(
@@ -1255,6 +1258,13 @@ class WireframeFilter:
         self._best = best
         self._particles = new
         self._weights = np.full(len(new), 1.0 / len(new))
+
+    @staticmethod
+    def _scan_for(placed: Wireframe, ev: _Eval) -> Wireframe:
+        """The placed scan as merged into a particle evaluated as ``ev``: with its per-edge
+        likelihoods, less the edges it rejected in free space."""
+        scan_world = placed.replace(likelihood=ev.scan_edge_likelihood)
+        return scan_world if ev.merge_mask.all() else scan_world.subgraph_edges(ev.merge_mask)
 
     def _match_points(
         self, res: ICPResult, points: FloatArray, ref: Wireframe, prior: FloatArray, *, reanchor: bool

@@ -381,7 +381,12 @@ def scan_likelihood(
         grazing = _sin_incidence(seg) < math.sin(cfg.min_incidence)
         state[unm] = np.where(occluded | short | edge_of_range | grazing, OCCLUDED, CONTRADICTED)
     b_s = np.where(s_edge, 1.0 - cfg.p_fn, cfg.p_fp)
-    b_p = np.select([state == OBSERVED, state == CONTRADICTED], [1.0 - cfg.p_fn, cfg.p_fn], 1.0)
+    # Each predicted edge's factor by its state, gathered from a table indexed by the state
+    # (OCCLUDED is -1, the table's last entry): the floats np.select would pick, at a fifth of
+    # its cost (its per-call cost dominates at a dozen edges).
+    by_state = np.empty(3)
+    by_state[OBSERVED], by_state[CONTRADICTED], by_state[OCCLUDED] = 1.0 - cfg.p_fn, cfg.p_fn, 1.0
+    b_p = by_state[state]
     edge_log = float(np.log(b_s).sum() + np.log(cfg.p_fn) * np.count_nonzero(state == CONTRADICTED))
 
     if ms:

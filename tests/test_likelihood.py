@@ -65,6 +65,21 @@ def test_missing_obstacle_and_bogus_wall_score_lower():
     assert np.count_nonzero(~missing.scan_edge_matched) >= 2
 
 
+def test_predicted_edge_factors_are_np_selects_bit_for_bit():
+    # scan_likelihood gathers each predicted edge's factor from a table by its state; the former
+    # code picked it with np.select. Same floats, every state present (the scan sees past the
+    # far wall at x = 4, and a new wall at x = 2 hides the one at x = 3 behind it).
+    particle = Wireframe.from_polylines([[(3, -0.5), (3, 0.5)], [(4, 1.5), (4, 3)], [(6, -1), (6, 1)]])
+    scan = Wireframe.from_polylines([[(2, -1), (2, 1)], [(7, 1.4), (7, 3.2)], [(6.02, -1), (6.01, 1)]])
+    for cfg in (CFG, LikelihoodConfig(sigma=0.07, p_fp=0.2, p_fn=0.15)):
+        lk = scan_likelihood(scan, particle, cfg)
+        state = lk.predicted_edge_state
+        assert {OBSERVED, CONTRADICTED, OCCLUDED} <= set(state.tolist())
+        g = np.exp(-(0.5 / cfg.sigma**2) * lk.predicted_vertex_dist**2)
+        b = np.select([state == OBSERVED, state == CONTRADICTED], [1.0 - cfg.p_fn, cfg.p_fn], 1.0)
+        former = np.clip(g[particle.edges[:, 0]] * g[particle.edges[:, 1]] * b, 0.0, 1.0)
+        assert lk.predicted_edge_likelihood.tobytes() == former.tobytes()
+
 def test_edge_behind_a_new_obstacle_is_occluded_not_contradicted():
     # The particle knows a wall at x = 4 only; the scan sees a new wall at x = 2 in front of it.
     particle = Wireframe.build([(4, -1), (4, 1)], [(0, 1)])
