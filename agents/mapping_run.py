@@ -42,7 +42,6 @@ __all__ = [
     "ScanInput",
     "SimOptions",
     "calibrated_points",
-    "yaw_report",
     "carmen_inputs",
     "default_merge_threshold",
     "filter_config_for",
@@ -53,6 +52,7 @@ __all__ = [
     "simulate",
     "split_profile",
     "world_defaults",
+    "yaw_report",
 ]
 
 #: The simulated sensors: the corner sensor (paper Sec. IV-A), the clean lidar (ray casting,

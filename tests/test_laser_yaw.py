@@ -33,7 +33,8 @@ def _scans(yaw_deg: float, seed: int = 5) -> list[LaserScan]:
             s = 1.0 + 0.02 * rng.standard_normal()
             odom = odom.compose(Pose(inc.x * s, inc.y * s, inc.theta))
         ranges = raycast(room_segments(), Pose(p.x, p.y, p.theta + yaw), CFG, rng)
-        out.append(LaserScan(float(k), ranges, CFG.angles(), CFG.max_range, odom, Pose.identity(), "FLASER", k))
+        out.append(LaserScan(float(k), ranges, CFG.angles(), CFG.max_range, odom, Pose.identity(),
+                             "FLASER", k))
     return out
 
 
@@ -57,7 +58,8 @@ def test_a_straight_laser_is_left_alone() -> None:
     few = laser_yaw(mr.carmen_points(scans[:10], fc), mr.wheel_increments(scans[:10]), fc)
     assert not few.applied and few.correction == 0.0
     # Standing still gives no direction at all.
-    still = [LaserScan(s.t, s.ranges, s.angles, s.max_range, scans[0].odom, s.mount, s.kind, s.index) for s in scans]
+    still = [LaserScan(s.t, s.ranges, s.angles, s.max_range, scans[0].odom, s.mount, s.kind, s.index)
+             for s in scans]
     none = laser_yaw(mr.carmen_points(still, fc), mr.wheel_increments(still), fc)
     assert none.pairs == 0 and not none.applied
 
