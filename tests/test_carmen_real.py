@@ -94,6 +94,28 @@ def test_bench_lidar_json_on_the_excerpt(tmp_path: Path, capsys: pytest.CaptureF
             and (tmp_path / "freiburg-101-head-baseline.png").is_file())
 
 
+def test_bench_lidar_truth_poses_maps_on_the_truth(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """`--truth-poses`: the filter once more, fed the truth's increments: its trajectory is the
+    truth's (to float rounding), its map is scored like the filter's, and it has a table row,
+    a median and a PNG of its own; the filter's own row is the same as without the flag."""
+    args = ["bench", "lidar", str(EXCERPT), "--steps", "20", "--particles", "2", "--json", "--quiet",
+            "--out", str(tmp_path)]
+    assert main(args) == 0
+    plain = json.loads(capsys.readouterr().out.strip().splitlines()[-1])["logs"]["freiburg-101-head"]
+    assert main([*args, "--truth-poses"]) == 0
+    lines = capsys.readouterr().out.strip().splitlines()
+    summary = json.loads(lines[-1])
+    row = summary["logs"]["freiburg-101-head"]
+    at_truth = row.pop("truth_poses")
+    assert at_truth["scans"] == 20 and at_truth["ate_max_m"] < 1e-6 < row["ate_max_m"]
+    assert 0.0 < at_truth["map_precision"] <= 1.0 and 0.0 < at_truth["map_coverage"] <= 1.0
+    assert "truth_poses" in summary["median"]
+    assert any(line.startswith("freiburg-101-head  truth-poses") for line in lines)
+    assert (tmp_path / "freiburg-101-head-truth-poses.png").is_file()
+    timing = ("time_s", "ms_per_scan")
+    assert {k: v for k, v in row.items() if k not in timing} == {k: v for k, v in plain.items() if k not in timing}
+
+
 def test_bench_register_pairs_from_the_excerpt(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """`wiremap bench register --data DIR`: CARMEN pairs from the excerpt (read by the project's
     reader, at its truth) register, none falsely, and the JSON has the issue's keys; a missing

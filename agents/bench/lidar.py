@@ -33,11 +33,13 @@ The settings applied are in the JSON as ``"settings"``.
 Output: an aligned table on stdout, a PNG per log in ``--out`` (the map over the endpoints, with
 the true and estimated paths, a legend and a scale bar), and with ``--json`` one last line::
 
-    {"logs": {NAME: {"scans", "ate_rmse_m", ..., ["baseline": {...}]}}, "median": {...},
-     "profile": "lidar-slam", "settings": {KEY: VALUE, ...}}
+    {"logs": {NAME: {"scans", "ate_rmse_m", ..., ["baseline": {...}], ["truth_poses": {...}]}},
+     "median": {...}, "profile": "lidar-slam", "settings": {KEY: VALUE, ...}}
 
-where ``median`` holds the medians over logs of every numeric key (and of the baseline's under
-``"baseline"``).
+where ``median`` holds the medians over logs of every numeric key (and of the extra runs' under
+their keys). ``--truth-poses`` maps each log once more with the truth's increments in place of
+the SLAM's (:func:`truth_fed`): its precision and coverage are the mapper's own (extraction,
+filter), so the gap to the filter's row is what the pose costs the map.
 """
 
 from __future__ import annotations
@@ -72,6 +74,9 @@ WIRE_RESOLUTION = 0.05  # the robot agent's map resolution (agents.fleet.robot.D
 TOL = 0.2  # metres, precision and coverage
 SPACING = 0.05  # metres between wall samples
 RPE_DISTANCE = 1.0
+#: The runs beside the filter's, by their key in a log's result and their name in the table:
+#: ``--baseline`` (one particle) and ``--truth-poses`` (the filter at the truth's poses).
+EXTRA_RUNS = {"baseline": "baseline", "truth_poses": "truth-poses"}
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -86,6 +91,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--merge-threshold", type=float, default=0.2, metavar="M",
                         help="merge threshold, metres (default 0.2)")
     parser.add_argument("--baseline", action="store_true", help="also run the one-particle mapper")
+    parser.add_argument("--truth-poses", action="store_true",
+                        help="also map at the truth's poses (the same filter fed the truth's increments): "
+                             "how much of the map's imprecision is the pose's")
     parser.add_argument("--json", action="store_true", help="print the JSON summary as the last line")
     parser.add_argument("--out", default="out/bench-lidar", metavar="DIR", help="where the PNGs go")
     parser.add_argument("--jobs", type=int, default=1, metavar="N",
@@ -230,6 +238,7 @@ def pose_array(ps: list[Any]) -> np.ndarray:
 def run_log(
     path: str, *, seed: int, particles: int, steps: int | None, max_range: float, thr: float,
     baseline: bool, out: str, progress: bool = False, settings: dict[str, Any] | None = None,
+    truth_poses: bool = False,
 ) -> dict[str, Any]:
     """One log: read it, map it (and the baseline on the same scans), score, write its PNG.
     Returns the log's result object (see the module notes). Runs in a worker process too."""
@@ -263,12 +272,12 @@ def run_log(
     endpoints = scan_endpoints(true_xyt, [s.ranges for s in scans], [s.angles for s in scans], max_range=cap)
     fov = mr.scan_fov(scans[0].angles)
 
-    def one(method: str, p: int) -> tuple[dict[str, Any], Any, np.ndarray]:
+    def one(method: str, p: int, feed: list[Any] = inputs) -> tuple[dict[str, Any], Any, np.ndarray]:
         cfg = with_overrides(mr.filter_config_for(p, thr, cap, fov=fov), filter_overrides)
         filt = WireframeFilter(cfg, mr.seeds_for(seed)["filter"], initial_pose=truth[0])
         busy = 0.0
         est = []
-        for st in mr.run_filter(inputs, filt, len(inputs)):
+        for st in mr.run_filter(feed, filt, len(feed)):
             busy += st.step_s
             est.append(st.pose)
             show.update(f"{name} {method}: scan {st.index + 1}/{len(inputs)}, "
@@ -311,7 +320,25 @@ def run_log(
         result["baseline"] = brow
         write_atomic(Path(out) / f"{name}-baseline.png",
                      lidar_png(bbest, endpoints, true_xyt[:, :2], best_xyt[:, :2], title=f"{name}: baseline"))
+    if truth_poses:
+        trow, tbest, _ = one("truth-poses", particles, truth_fed(inputs, truth))
+        result["truth_poses"] = trow
+        title = f"{name} at the truth's poses: precision {trow['map_precision']:.2f}, seed {seed}"
+        write_atomic(Path(out) / f"{name}-truth-poses.png",
+                     lidar_png(tbest, endpoints, true_xyt[:, :2], true_xyt[:, :2], title=title))
     return _rounded(result)
+
+
+def truth_fed(inputs: list[Any], truth: list[Any]) -> list[Any]:
+    """``inputs`` (:class:`agents.mapping_run.ScanInput`) with each scan's motion taken from the
+    truth (``truth[k - 1].between(truth[k])``, the identity for the first) instead of the SLAM or
+    the wheels: the mapper's own share of a map's errors, without the pose's."""
+    import dataclasses
+
+    from mapping.se2 import Pose
+
+    return [dataclasses.replace(inp, odometry=Pose.identity() if k == 0 else truth[k - 1].between(truth[k]))
+            for k, inp in enumerate(inputs)]
 
 
 def _rounded(d: dict[str, Any]) -> dict[str, Any]:
@@ -339,10 +366,9 @@ def median(rows: list[dict[str, Any]]) -> dict[str, Any]:
     return out
 
 
-def format_table(
-    logs: dict[str, dict[str, Any]], med: dict[str, Any], base_med: dict[str, Any] | None
-) -> str:
-    """One line per log and method (filter, baseline, odometry), then the medians."""
+def format_table(logs: dict[str, dict[str, Any]], med: dict[str, Any]) -> str:
+    """One line per log and method (filter, baseline, truth-poses, odometry), then the medians
+    (``med`` holds the extra runs' medians under their keys, as the JSON does)."""
     head = ["log", "method", "scans", "ate_m", "ate_max_m", "rpe_1m_m", "precision", "coverage",
             "map_B", "particle_B", "time_s", "ms/scan"]
     lines = [head]
@@ -363,12 +389,14 @@ def format_table(
 
     for name, r in logs.items():
         add(name, "filter", r)
-        if "baseline" in r:
-            add(name, "baseline", r["baseline"])
+        for key, method in EXTRA_RUNS.items():
+            if key in r:
+                add(name, method, r[key])
         odometry(name, r)
     add("median", "filter", med)
-    if base_med is not None:
-        add("median", "baseline", base_med)
+    for key, method in EXTRA_RUNS.items():
+        if key in med:
+            add("median", method, med[key])
     odometry("median", med)
     return aligned_rows(lines, left=2)
 
@@ -386,6 +414,7 @@ def run(args: argparse.Namespace) -> int:
     job = functools.partial(
         run_log, seed=args.seed, particles=args.particles, steps=args.steps, max_range=args.max_range,
         thr=args.merge_threshold, baseline=bool(args.baseline), out=str(args.out), settings=settings,
+        truth_poses=bool(args.truth_poses),
     )
     results: dict[str, dict[str, Any]] = {}
     say = _Progress(not args.quiet, live=False)
@@ -404,12 +433,12 @@ def run(args: argparse.Namespace) -> int:
                          f"{time.perf_counter() - t0:.0f} s]")
     rows = list(results.values())
     med = median(rows)
-    base_rows = [r["baseline"] for r in rows if "baseline" in r]
-    base_med = median(base_rows) if base_rows else None
-    print(format_table(results, med, base_med))
+    for key in EXTRA_RUNS:
+        extra = [r[key] for r in rows if key in r]
+        if extra:
+            med[key] = median(extra)
+    print(format_table(results, med))
     print(f"PNGs in {args.out}/")
-    if base_med is not None:
-        med["baseline"] = base_med
     if args.json:
         print(json.dumps({"logs": results, "median": med, "profile": args.profile, "settings": settings}))
     return 0
