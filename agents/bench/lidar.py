@@ -240,7 +240,8 @@ def run_log(
     baseline: bool, out: str, progress: bool = False, settings: dict[str, Any] | None = None,
     truth_poses: bool = False,
 ) -> dict[str, Any]:
-    """One log: read it, map it (and the baseline on the same scans), score, write its PNG.
+    """One log: read it, map it (and the baseline, and the map at the truth's poses, on the same
+    scans), score, write its PNGs. Every run's ``time_s`` counts the log's extraction and SLAM.
     Returns the log's result object (see the module notes). Runs in a worker process too."""
     from agents import mapping_run as mr
     from agents.bench.lidar_png import lidar_png
