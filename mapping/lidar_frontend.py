@@ -46,8 +46,9 @@ from mapping.wireframe import Wireframe
 
 FloatArray = NDArray[np.float64]
 
-__all__ = ["FrontendConfig", "LidarFrontend", "YawEstimate", "laser_yaw", "odometry_overrides", "run_slam",
-           "scan_increment", "scan_points", "scan_polyline", "slam_increments"]
+__all__ = ["FrontendConfig", "LidarFrontend", "OdometryNoise", "YawEstimate", "calibrated_slam", "laser_yaw",
+           "odometry_noise", "odometry_overrides", "run_slam", "scan_increment", "scan_points",
+           "scan_polyline", "slam_increments"]
 
 
 @dataclass(frozen=True)
@@ -234,24 +235,9 @@ def laser_yaw(points: list[FloatArray], odometry: list[Pose], config: FrontendCo
     odometry's translation to the matched one; their 10 % trimmed mean. ``points``: each scan's
     points (robot frame);
     ``odometry``: the wheel increment into each scan (``odometry[0]`` unused)."""
-    from mapping.lidar_slam import Submap, match_scan, scan_normals
-
-    slam = config.slam
-    moved = [k for k in range(1, min(len(points), len(odometry)))
-             if math.hypot(odometry[k].x, odometry[k].y) >= config.yaw_min_step]
-    if len(moved) > config.yaw_max_pairs:
-        moved = [moved[i] for i in np.linspace(0, len(moved) - 1, config.yaw_max_pairs).round().astype(int)]
-    angles = []
-    for k in moved:
-        prev, here = points[k - 1], points[k]
-        if len(prev) < 3 or len(here) < 3:
-            continue
-        sub = Submap.build([(prev, scan_normals(prev, slam.normal_gap))], slam.voxel)
-        o = odometry[k]
-        m = match_scan(here, sub, np.array(o.as_tuple()), slam)
-        if m.inliers < config.yaw_min_inliers:
-            continue
-        angles.append(math.atan2(o.x * m.pose[1] - o.y * m.pose[0], o.x * m.pose[0] + o.y * m.pose[1]))
+    angles = [math.atan2(o.x * m[1] - o.y * m[0], o.x * m[0] + o.y * m[1])
+              for o, m in _pair_matches(points, odometry, config.slam, config.yaw_min_step,
+                                        config.yaw_max_pairs, config.yaw_min_inliers)]
     if len(angles) < 2:
         return YawEstimate(0.0, math.inf, len(angles), False)
     # A 10 % trimmed mean and its standard error from the winsorized variance (Tukey-McLaughlin):
@@ -267,12 +253,88 @@ def laser_yaw(points: list[FloatArray], odometry: list[Pose], config: FrontendCo
     return YawEstimate(yaw, se, len(a), applied)
 
 
+def _pair_matches(
+    points: list[FloatArray], odometry: list[Pose], slam: SlamConfig, min_step: float, max_pairs: int,
+    min_inliers: float,
+) -> list[tuple[Pose, FloatArray]]:
+    """``(odometry increment, matched increment)`` of up to ``max_pairs`` consecutive scans
+    ``k - 1, k`` (evenly spread) whose odometry moved at least ``min_step`` metres: scan ``k``'s
+    points matched against scan ``k - 1``'s alone (:func:`mapping.lidar_slam.match_scan` with
+    ``slam``'s settings, from the odometry's increment, no prior), kept when at least
+    ``min_inliers`` of them lie on the other scan's lines."""
+    from mapping.lidar_slam import Submap, match_scan, scan_normals
+
+    moved = [k for k in range(1, min(len(points), len(odometry)))
+             if math.hypot(odometry[k].x, odometry[k].y) >= min_step]
+    if len(moved) > max_pairs:
+        moved = [moved[i] for i in np.linspace(0, len(moved) - 1, max_pairs).round().astype(int)]
+    out = []
+    for k in moved:
+        prev, here = points[k - 1], points[k]
+        if len(prev) < 3 or len(here) < 3:
+            continue
+        sub = Submap.build([(prev, scan_normals(prev, slam.normal_gap))], slam.voxel)
+        o = odometry[k]
+        m = match_scan(here, sub, np.array(o.as_tuple()), slam)
+        if m.inliers >= min_inliers:
+            out.append((o, m.pose))
+    return out
+
+
+@dataclass(frozen=True)
+class OdometryNoise:
+    """What :func:`odometry_noise` found: ``rot_per_m``, the wheel odometry's heading error per
+    metre driven (radians; a robust standard deviation), and the matched ``pairs`` it rests on."""
+
+    rot_per_m: float
+    pairs: int
+
+
+#: The scan pairs :func:`odometry_noise` uses: moved at least 0.3 m, at most 400 of them, at
+#: least half the points on the other scan's lines (the laser yaw's defaults).
+_NOISE_PAIRS = (0.3, 400, 0.5)
+
+
+def odometry_noise(points: list[FloatArray], odometry: list[Pose], config: SlamConfig) -> OdometryNoise:
+    """The wheel odometry's heading noise per metre, from the log itself: for consecutive scans
+    matched against each other alone (:func:`_pair_matches`), the odometry's turn minus the
+    scans' turn, divided by the distance; their spread about zero as 1.4826 times the median
+    absolute value (a pair matched to the wrong wall is an outlier, not noise; about zero, so
+    that a heading bias -- unequal wheels -- counts as much as noise). The scans' own turn
+    is good to about 0.1-0.2 degrees; the wheels' errs by 0.4-2 degrees per metre on the
+    shared logs, so the estimate is the wheels'. ``points``: each scan's points (robot frame);
+    ``odometry``: the wheel increment into each scan (``odometry[0]`` unused)."""
+    pairs = _pair_matches(points, odometry, config, *_NOISE_PAIRS)
+    if len(pairs) < 2:
+        return OdometryNoise(math.nan, len(pairs))
+    per_m = np.array([math.remainder(o.theta - float(m[2]), math.tau) / math.hypot(o.x, o.y)
+                      for o, m in pairs])
+    return OdometryNoise(1.4826 * float(np.median(np.abs(per_m))), len(pairs))
+
+
+def calibrated_slam(config: SlamConfig, noise: OdometryNoise) -> SlamConfig:
+    """``config`` with the local match's heading prior per metre (``odo_rot_per_m``) widened to
+    ``odo_calibration_scale`` times the measured noise when that is wider, up to
+    ``odo_calibration_max``; unchanged with fewer than ``odo_calibration_min_pairs`` pairs. The
+    configured value stays the floor: a log whose wheels are better than it keeps it."""
+    import dataclasses
+
+    if not noise.pairs >= config.odo_calibration_min_pairs or not math.isfinite(noise.rot_per_m):
+        return config
+    wide = min(config.odo_calibration_scale * noise.rot_per_m, config.odo_calibration_max)
+    return dataclasses.replace(config, odo_rot_per_m=max(config.odo_rot_per_m, wide))
+
+
 def run_slam(points: list[FloatArray], odometry: list[Pose], config: SlamConfig,
              start: FloatArray | None = None) -> LidarSlam:
     """Lidar SLAM over a whole log (:class:`mapping.lidar_slam.LidarSlam`): every scan added
     in order (its points, robot frame; the wheel odometry's increment since the previous scan,
     ``odometry[0]`` ignored), then ``config.refine_passes`` passes of
-    :meth:`~mapping.lidar_slam.LidarSlam.refine`. ``start``: the first pose (the origin)."""
+    :meth:`~mapping.lidar_slam.LidarSlam.refine`. ``start``: the first pose (the origin).
+    With ``config.odo_calibration`` the heading prior is first fitted to the log's own wheels
+    (:func:`odometry_noise`, :func:`calibrated_slam`); the SLAM's ``config`` is the one used."""
+    if config.odo_calibration:
+        config = calibrated_slam(config, odometry_noise(points, odometry, config))
     slam = LidarSlam(config, start=np.zeros(3) if start is None else np.asarray(start, dtype=np.float64))
     for k, (pts, odo) in enumerate(zip(points, odometry)):
         slam.add(pts, np.zeros(3) if k == 0 else np.array(odo.as_tuple()))

@@ -77,7 +77,19 @@ class SlamConfig:
         Least std of an edge (0.01 m, 0.003 rad).
     odo_trans_per_m, odo_rot_per_m, odo_rot_per_rad, odo_floor_xy, odo_floor_theta : float
         The wheel odometry's noise, the local match's prior (0.05 /m; 0.035 rad/m, the 2 degrees
-        per metre of the shared logs' odometry; 0.05 rad/rad; 0.01 m; 0.005 rad).
+        per metre of the shared logs' odometry; 0.02 rad/rad, about 3x the turns' measured error on
+        the shared logs, as ``odo_calibration_scale`` is for the metres; 0.01 m; 0.005 rad).
+    odo_calibration : bool
+        Fit ``odo_rot_per_m`` to the log's own wheels before the run
+        (:func:`mapping.lidar_frontend.calibrated_slam`): widened to ``odo_calibration_scale``
+        times their measured heading noise per metre, at most ``odo_calibration_max``, never
+        below the configured value; needs ``odo_calibration_min_pairs`` matched scan pairs
+        (False; on in the ``lidar-slam`` profile).
+    odo_calibration_scale, odo_calibration_max : float
+        3 (the shared logs' wheels: 0.4-1.0 degrees per metre keep the 2 degrees per metre above,
+        orebro's 1.8 widens it to 5.4), 0.15 rad/m.
+    odo_calibration_min_pairs : int
+        50.
     normal_gap : float
         Neighbours farther than this (metres) give a point no normal (0.6: real scanners' beams
         are 1 degree apart, 0.35 m at 20 m on a wall square to the beam; at 0.3 the far walls,
@@ -136,9 +148,13 @@ class SlamConfig:
     floor_sigma_theta: float = 0.003
     odo_trans_per_m: float = 0.05
     odo_rot_per_m: float = 0.035
-    odo_rot_per_rad: float = 0.05
+    odo_rot_per_rad: float = 0.02
     odo_floor_xy: float = 0.01
     odo_floor_theta: float = 0.005
+    odo_calibration: bool = False
+    odo_calibration_scale: float = 3.0
+    odo_calibration_max: float = 0.15
+    odo_calibration_min_pairs: int = 50
     normal_gap: float = 0.6
     loop_every: int = 2
     loop_query_scans: int = 5
@@ -170,6 +186,10 @@ class SlamConfig:
             raise ValueError("voxel, kernel, sigma and information_scale must be > 0")
         if self.refine_passes < 0 or self.refine_visit_gap < 1:
             raise ValueError("refine_passes must be >= 0 and refine_visit_gap >= 1")
+        if (min(self.odo_calibration_scale, self.odo_calibration_max) <= 0
+                or self.odo_calibration_min_pairs < 2):
+            raise ValueError("odo_calibration_scale and odo_calibration_max must be > 0, "
+                             "odo_calibration_min_pairs >= 2")
         if not (0 < self.loop_min_inliers <= 1):
             raise ValueError("loop_min_inliers must be in (0, 1]")
 

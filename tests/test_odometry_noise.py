@@ -1,0 +1,81 @@
+"""The wheel odometry's heading noise measured from the scans themselves
+(mapping.lidar_frontend.odometry_noise) and the SLAM's heading prior fitted to it
+(calibrated_slam, SlamConfig.odo_calibration)."""
+
+from __future__ import annotations
+
+import dataclasses
+import itertools
+import math
+
+import numpy as np
+import pytest
+
+from mapping.lidar_frontend import OdometryNoise, calibrated_slam, odometry_noise, run_slam
+from mapping.lidar_slam import SlamConfig
+from mapping.se2 import Pose
+from tests.test_lidar_slam import _hall_drive
+
+
+def _wheels(route: list[Pose], noise_deg_per_m: float, bias_deg_per_m: float = 0.0,
+            seed: int = 9) -> list[Pose]:
+    """Increments along ``route`` whose heading errs by ``bias`` plus Gaussian ``noise`` degrees
+    per metre driven (the shared logs' kind of odometry)."""
+    rng = np.random.default_rng(seed)
+    out = [Pose.identity()]
+    for a, b in itertools.pairwise(route):
+        inc = a.between(b)
+        d = math.hypot(inc.x, inc.y)
+        err = math.radians(bias_deg_per_m + noise_deg_per_m * rng.standard_normal()) * d
+        out.append(Pose(inc.x, inc.y, inc.theta + err))
+    return out
+
+
+@pytest.mark.parametrize("noise", [1.0, 3.0])
+def test_the_wheels_noise_is_measured_from_the_scans(noise: float) -> None:
+    route, _, scans = _hall_drive()
+    est = odometry_noise(scans, _wheels(route, noise), SlamConfig())
+    assert est.pairs >= 50
+    assert 0.6 * noise < math.degrees(est.rot_per_m) < 1.5 * noise, math.degrees(est.rot_per_m)
+
+
+def test_a_biased_wheel_counts_as_noise() -> None:
+    """A heading bias (unequal wheels) is measured about zero, not about the bias: the prior
+    must cover it as much as it covers noise. (A constant reads as 1.48 times itself, the
+    normal's factor from median absolute value to sigma: wider, the safe side.)"""
+    route, _, scans = _hall_drive()
+    est = odometry_noise(scans, _wheels(route, 0.1, bias_deg_per_m=2.5), SlamConfig())
+    assert 2.5 < math.degrees(est.rot_per_m) < 4.2, math.degrees(est.rot_per_m)
+
+
+def test_calibration_widens_never_narrows_and_is_capped() -> None:
+    cfg = SlamConfig(odo_rot_per_m=0.035, odo_calibration_scale=3.0, odo_calibration_max=0.15)
+    assert calibrated_slam(cfg, OdometryNoise(0.02, 200)).odo_rot_per_m == pytest.approx(0.06)
+    assert calibrated_slam(cfg, OdometryNoise(0.005, 200)) == cfg  # better wheels: the floor
+    assert calibrated_slam(cfg, OdometryNoise(1.0, 200)).odo_rot_per_m == 0.15  # the cap
+    assert calibrated_slam(cfg, OdometryNoise(0.02, 49)) == cfg  # too few pairs
+    assert calibrated_slam(cfg, OdometryNoise(math.nan, 0)) == cfg
+    only = calibrated_slam(cfg, OdometryNoise(0.02, 200))
+    assert dataclasses.replace(only, odo_rot_per_m=cfg.odo_rot_per_m) == cfg  # nothing else moves
+
+
+@pytest.mark.parametrize("bad", [{"odo_calibration_scale": 0.0}, {"odo_calibration_max": -1.0},
+                                 {"odo_calibration_min_pairs": 1}])
+def test_bad_calibration_settings_are_refused(bad: dict[str, float]) -> None:
+    with pytest.raises(ValueError):
+        SlamConfig(**bad)  # type: ignore[arg-type]
+
+
+def test_run_slam_fits_its_prior_to_noisy_wheels_and_stays_deterministic() -> None:
+    route, _, scans = _hall_drive()
+    wheels = _wheels(route, 4.0)
+    start = np.array(route[0].as_tuple())
+    plain = run_slam(scans, wheels, SlamConfig(refine_passes=0), start=start)
+    fitted = run_slam(scans, wheels, SlamConfig(refine_passes=0, odo_calibration=True), start=start)
+    assert plain.config.odo_rot_per_m == SlamConfig().odo_rot_per_m
+    assert fitted.config.odo_rot_per_m > 2.0 * plain.config.odo_rot_per_m
+    again = run_slam(scans, wheels, SlamConfig(refine_passes=0, odo_calibration=True), start=start)
+    assert np.array_equal(again.poses, fitted.poses)
+    truth = np.array([p.as_tuple() for p in route])
+    err = np.hypot(*(fitted.poses[:, :2] - truth[:, :2]).T)
+    assert float(np.sqrt(np.mean(err**2))) < 0.3
