@@ -294,6 +294,8 @@ def test_bench_slam_on_the_real_excerpt(capsys: pytest.CaptureFixture[str]) -> N
     assert max(by) < 0.5 * r["odometry_ate_rmse_m"], r
     assert max(by) - min(by) < 0.05, by
     assert last["settings"]["slam.enabled"] is True
+    # The excerpt's prior as the calibration left it: never below the configured one.
+    assert r["odo_rot_per_m"] >= SlamConfig().odo_rot_per_m
     assert main(["bench", "slam", log, "--starts", "0"]) == 2
     assert "--starts must be >= 1" in capsys.readouterr().err
 

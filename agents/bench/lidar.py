@@ -326,7 +326,7 @@ def run_log(
         result["truth_poses"] = trow
         title = f"{name} at the truth's poses: precision {trow['map_precision']:.2f}, seed {seed}"
         write_atomic(Path(out) / f"{name}-truth-poses.png",
-                     lidar_png(tbest, endpoints, true_xyt[:, :2], true_xyt[:, :2], title=title))
+                     lidar_png(tbest, endpoints, true_xyt[:, :2], title=title))
     return _rounded(result)
 
 

@@ -130,7 +130,7 @@ def lidar_png(
         (WALL_COLOR, "map walls (blue certain, orange unlikely)"),
         (ENDPOINT_COLOR, "real scan endpoints at the true poses"),
         (TRUE_PATH_COLOR, "true path"),
-        (ESTIMATE_COLOR, "estimated path"),
+        *([(ESTIMATE_COLOR, "estimated path")] if est is not None and len(est) >= 2 else []),
     ]
     lines = ([title] if title else []) + [t for _, t in items]
     line_h = 7 * _SCALE

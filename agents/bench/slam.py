@@ -11,8 +11,9 @@ the start used and the true first pose, and reports per log the **median** over 
 Scores per log: ``ate_rmse_m`` (median over starts; each start's in ``ate_rmse_m_by_start``),
 ``ate_max_m``, ``rpe_1m_m`` (:mod:`mapping.lidar_metrics`), ``loops`` (loops closed online,
 median), ``ms_per_scan`` (CPU of the SLAM, online pass and :meth:`~mapping.lidar_slam.LidarSlam.refine`),
-``odometry_ate_rmse_m``. Settings: the ``lidar-slam`` profile's front end with any
-``--set slam.KEY=VALUE`` / ``frontend.KEY=VALUE`` on top.
+``odometry_ate_rmse_m``, ``odo_rot_per_m`` (the SLAM's heading prior per metre as it ran: with
+``slam.odo_calibration``, fitted to the log's own wheels). Settings: the ``lidar-slam``
+profile's front end with any ``--set slam.KEY=VALUE`` / ``frontend.KEY=VALUE`` on top.
 
 Output: an aligned table, and with ``--json`` one last line::
 
@@ -87,7 +88,7 @@ def run_one(path: str, start: tuple[float, float, float] | None, settings: dict[
     return {"ate_rmse_m": rmse, "ate_max_m": mx, "rpe_1m_m": rpe(est, tr), "loops": len(slam.loops),
             "ms_per_scan": 1000.0 * cpu / max(1, len(scans)), "scans": len(scans),
             "odometry_ate_rmse_m": ate(pose_array([s.odom for s in scans]), tr)[0],
-            **mr.yaw_report(yaw)}
+            "odo_rot_per_m": slam.config.odo_rot_per_m, **mr.yaw_report(yaw)}
 
 
 def summarise(runs: list[dict[str, Any]]) -> dict[str, Any]:
@@ -97,6 +98,9 @@ def summarise(runs: list[dict[str, Any]]) -> dict[str, Any]:
                                      "odometry_ate_rmse_m")}
     out["scans"] = runs[0]["scans"]
     out["laser_yaw_deg"] = round(float(runs[0]["laser_yaw_deg"]), 6)  # the same from every start
+    # The heading prior the SLAM ran with (rad/m; with slam.odo_calibration, fitted to the log's
+    # wheels: the same from every start).
+    out["odo_rot_per_m"] = round(float(runs[0]["odo_rot_per_m"]), 6)
     out["ate_rmse_m_by_start"] = [round(float(r["ate_rmse_m"]), 6) for r in runs]
     return out
 
