@@ -33,7 +33,7 @@ from __future__ import annotations
 
 import itertools
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -301,7 +301,7 @@ def odometry_noise(points: list[FloatArray], odometry: list[Pose], config: SlamC
     scans' turn, divided by the distance; their spread about zero as 1.4826 times the median
     absolute value (a pair matched to the wrong wall is an outlier, not noise; about zero, so
     that a heading bias -- unequal wheels -- counts as much as noise). The scans' own turn
-    is good to about 0.1-0.2 degrees; the wheels' errs by 0.4-2 degrees per metre on the
+    is good to about 0.1-0.2 degrees; the wheels err by 0.4-2 degrees per metre on the
     shared logs, so the estimate is the wheels'. ``points``: each scan's points (robot frame);
     ``odometry``: the wheel increment into each scan (``odometry[0]`` unused)."""
     pairs = _pair_matches(points, odometry, config, *_NOISE_PAIRS)
@@ -317,12 +317,10 @@ def calibrated_slam(config: SlamConfig, noise: OdometryNoise) -> SlamConfig:
     ``odo_calibration_scale`` times the measured noise when that is wider, up to
     ``odo_calibration_max``; unchanged with fewer than ``odo_calibration_min_pairs`` pairs. The
     configured value stays the floor: a log whose wheels are better than it keeps it."""
-    import dataclasses
-
-    if not noise.pairs >= config.odo_calibration_min_pairs or not math.isfinite(noise.rot_per_m):
+    if noise.pairs < config.odo_calibration_min_pairs or not math.isfinite(noise.rot_per_m):
         return config
     wide = min(config.odo_calibration_scale * noise.rot_per_m, config.odo_calibration_max)
-    return dataclasses.replace(config, odo_rot_per_m=max(config.odo_rot_per_m, wide))
+    return replace(config, odo_rot_per_m=max(config.odo_rot_per_m, wide))
 
 
 def run_slam(points: list[FloatArray], odometry: list[Pose], config: SlamConfig,
