@@ -46,6 +46,7 @@ __all__ = [
     "default_merge_threshold",
     "filter_config_for",
     "lidar_profile",
+    "odometry_report",
     "robot_steps",
     "run_filter",
     "scan_fov",
@@ -463,6 +464,28 @@ def calibrated_points(
         turn = np.array([[c, -s], [s, c]])  # row vectors times this: turned by -yaw
         pts = [p @ turn for p in pts]
     return pts, estimate
+
+
+def odometry_report(scans: Sequence[Any], frontend: Any, yaw: float) -> dict[str, Any]:
+    """What the lidar SLAM's odometry calibration makes of a log (``slam.odo_calibration``,
+    :func:`mapping.lidar_frontend.odometry_noise`), from the same points the SLAM gets (turned
+    by ``yaw``), as report keys: ``odometry_heading_noise_deg_per_m`` (the wheels' measured
+    heading error per metre), ``odometry_noise_pairs``, ``slam_odo_rot_per_m_deg`` (the
+    heading prior per metre the SLAM runs with, degrees) and ``slam_odo_prior_widened``
+    (whether the calibration changed it). Empty without the SLAM or the
+    calibration. Costs the pairs' matches again (0.2-0.5 s on the shared logs)."""
+    from mapping.lidar_frontend import calibrated_slam, odometry_noise
+
+    slam = frontend.slam
+    if not (slam.enabled and slam.odo_calibration):
+        return {}
+    pts, _ = calibrated_points(scans, frontend, yaw)
+    noise = odometry_noise(pts, wheel_increments(scans), slam)
+    prior = calibrated_slam(slam, noise).odo_rot_per_m
+    return {"odometry_heading_noise_deg_per_m": math.degrees(noise.rot_per_m),
+            "odometry_noise_pairs": noise.pairs,
+            "slam_odo_rot_per_m_deg": math.degrees(prior),
+            "slam_odo_prior_widened": prior != slam.odo_rot_per_m}
 
 
 def yaw_report(estimate: Any) -> dict[str, Any]:

@@ -88,6 +88,9 @@ def test_bench_lidar_json_on_the_excerpt(tmp_path: Path, capsys: pytest.CaptureF
     assert (row["scans"] == 15 and row["best_map_bytes"] > 0
             and row["particle_bytes"] > row["baseline"]["particle_bytes"] / 2)
     assert row["baseline"]["scans"] == 15 and "baseline" in summary["median"]
+    # The SLAM's odometry calibration, reported: 15 scans give too few pairs to widen the prior.
+    assert row["slam_odo_prior_widened"] is False and row["odometry_noise_pairs"] < 50
+    assert row["slam_odo_rot_per_m_deg"] == pytest.approx(math.degrees(0.035), abs=1e-6)
     assert summary["median"]["ate_rmse_m"] == row["ate_rmse_m"]  # one log: the median is it
     assert any(line.startswith("freiburg-101-head  odometry") for line in lines)
     assert ((tmp_path / "freiburg-101-head.png").is_file()

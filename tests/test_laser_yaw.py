@@ -19,10 +19,11 @@ from tests.test_lidar_slam import _hall_drive, room_segments
 CFG = LidarConfig(beams=181, fov=math.pi, max_range=20.0, sigma=0.01)
 
 
-def _scans(yaw_deg: float, seed: int = 5) -> list[LaserScan]:
+def _scans(yaw_deg: float, seed: int = 5, heading_noise_deg_per_m: float = 0.0) -> list[LaserScan]:
     """The hall drive's scans from a laser turned ``yaw_deg`` on the robot: each beam measured
     at ``bearing + yaw`` but logged at ``bearing``; the odometry is the true pose (so its
-    direction of travel is the robot's) with 2 % noise on each step's length."""
+    direction of travel is the robot's) with 2 % noise on each step's length (and, when
+    given, Gaussian heading noise per metre driven)."""
     route, _, _ = _hall_drive()
     rng = np.random.default_rng(seed)
     yaw = math.radians(yaw_deg)
@@ -31,7 +32,11 @@ def _scans(yaw_deg: float, seed: int = 5) -> list[LaserScan]:
         if k:
             inc = route[k - 1].between(p)
             s = 1.0 + 0.02 * rng.standard_normal()
-            odom = odom.compose(Pose(inc.x * s, inc.y * s, inc.theta))
+            turn = 0.0
+            if heading_noise_deg_per_m:  # drawn only then: the other tests' scans stay as they were
+                per_m = math.radians(heading_noise_deg_per_m)
+                turn = per_m * math.hypot(inc.x, inc.y) * rng.standard_normal()
+            odom = odom.compose(Pose(inc.x * s, inc.y * s, inc.theta + turn))
         ranges = raycast(room_segments(), Pose(p.x, p.y, p.theta + yaw), CFG, rng)
         out.append(LaserScan(float(k), ranges, CFG.angles(), CFG.max_range, odom, Pose.identity(),
                              "FLASER", k))

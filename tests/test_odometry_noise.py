@@ -11,9 +11,11 @@ import math
 import numpy as np
 import pytest
 
-from mapping.lidar_frontend import OdometryNoise, calibrated_slam, odometry_noise, run_slam
+from agents import mapping_run as mr
+from mapping.lidar_frontend import FrontendConfig, OdometryNoise, calibrated_slam, odometry_noise, run_slam
 from mapping.lidar_slam import SlamConfig
 from mapping.se2 import Pose
+from tests.test_laser_yaw import _scans
 from tests.test_lidar_slam import _hall_drive
 
 
@@ -79,3 +81,18 @@ def test_run_slam_fits_its_prior_to_noisy_wheels_and_stays_deterministic() -> No
     truth = np.array([p.as_tuple() for p in route])
     err = np.hypot(*(fitted.poses[:, :2] - truth[:, :2]).T)
     assert float(np.sqrt(np.mean(err**2))) < 0.3
+
+
+def test_the_report_says_what_the_slam_will_run_with() -> None:
+    """``agents.mapping_run.odometry_report`` (``wiremap map``'s and ``bench lidar``'s keys): the
+    wheels' measured noise and the prior the SLAM gets, widened for noisy wheels, as configured
+    for good ones; nothing without the calibration."""
+    slam = SlamConfig(enabled=True, odo_calibration=True, odo_calibration_min_pairs=20)
+    noisy = mr.odometry_report(_scans(0.0, heading_noise_deg_per_m=2.0), FrontendConfig(slam=slam), 0.0)
+    assert noisy["odometry_noise_pairs"] >= 40 and noisy["slam_odo_prior_widened"] is True
+    assert 1.2 < noisy["odometry_heading_noise_deg_per_m"] < 3.0, noisy
+    assert noisy["slam_odo_rot_per_m_deg"] == pytest.approx(3.0 * noisy["odometry_heading_noise_deg_per_m"])
+    good = mr.odometry_report(_scans(0.0), FrontendConfig(slam=slam), 0.0)
+    assert good["slam_odo_prior_widened"] is False
+    assert good["slam_odo_rot_per_m_deg"] == pytest.approx(math.degrees(slam.odo_rot_per_m))
+    assert mr.odometry_report(_scans(0.0), FrontendConfig(slam=SlamConfig(enabled=True)), 0.0) == {}

@@ -69,7 +69,7 @@ RUN_KEYS = (
 )
 ODOMETRY_KEYS = ("odometry_ate_rmse_m", "odometry_ate_max_m", "odometry_rpe_1m_m")
 INT_KEYS = ("scans", "best_map_bytes", "particle_bytes", "vertices", "edges", "skipped_lines",
-            "particles", "seed")
+            "particles", "seed", "odometry_noise_pairs")
 WIRE_RESOLUTION = 0.05  # the robot agent's map resolution (agents.fleet.robot.DEFAULT_RESOLUTION)
 TOL = 0.2  # metres, precision and coverage
 SPACING = 0.05  # metres between wall samples
@@ -312,6 +312,7 @@ def run_log(
         "seed": seed,
         "max_range_m": cap,
         **mr.yaw_report(yaw),
+        **mr.odometry_report(scans, frontend_cfg, yaw.correction if yaw is not None else 0.0),
     })
     title = f"{name}: ate {result['ate_rmse_m']:.2f} m, precision {result['map_precision']:.2f}, seed {seed}"
     write_atomic(Path(out) / f"{name}.png",
@@ -347,6 +348,8 @@ def _rounded(d: dict[str, Any]) -> dict[str, Any]:
     for k, v in d.items():
         if isinstance(v, dict):
             out[k] = _rounded(v)
+        elif isinstance(v, bool):
+            out[k] = v
         elif k in INT_KEYS or isinstance(v, int):
             out[k] = int(v)
         else:
@@ -356,8 +359,9 @@ def _rounded(d: dict[str, Any]) -> dict[str, Any]:
 
 
 def median(rows: list[dict[str, Any]]) -> dict[str, Any]:
-    """Median over logs of every numeric key (None when no log has a finite value)."""
-    keys = [k for k in rows[0] if not isinstance(rows[0][k], dict)] if rows else []
+    """Median over logs of every numeric key (None when no log has a finite value; flags and
+    nested runs left out)."""
+    keys = [k for k in rows[0] if not isinstance(rows[0][k], (dict, bool))] if rows else []
     out: dict[str, Any] = {}
     for k in keys:
         vals = np.array([r[k] for r in rows if r.get(k) is not None], dtype=np.float64)

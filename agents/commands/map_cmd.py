@@ -351,7 +351,9 @@ def _real_source(
     start = true_scans[0] if true_scans is not None else scans[0].odom
     filt = WireframeFilter(cfg, mr.seeds_for(args.seed)["filter"], initial_pose=start)
     total = len(scans) if args.steps is None else min(len(scans), args.steps)
-    extra = {**extra, "lidar_profile": args.lidar_profile, **mr.yaw_report(yaw)}
+    head = scans if args.steps is None else scans[: args.steps]
+    extra = {**extra, "lidar_profile": args.lidar_profile, **mr.yaw_report(yaw),
+             **mr.odometry_report(head, frontend_cfg, yaw.correction if yaw is not None else 0.0)}
     return _Source(filt, inputs, total, source, resolved, name, scans=scans, true_scans=true_scans,
                    max_range=cfg.max_range, extra=extra)
 
@@ -487,6 +489,12 @@ def _print_summary(report: dict[str, Any], out: Path) -> None:
     if report.get("laser_yaw_deg"):
         lines.append(f"  laser yaw   {report['laser_yaw_deg']:+.2f} degrees taken off every bearing "
                      f"(+-{report['laser_yaw_se_deg']:.2f}, against the odometry's direction of travel)")
+    if report.get("slam_odo_rot_per_m_deg") is not None:
+        noise = report["odometry_heading_noise_deg_per_m"]
+        lines.append(f"  odometry    heading error {noise:.2f} degrees per metre (from "
+                     f"{report['odometry_noise_pairs']} scan pairs); the SLAM's prior "
+                     f"{report['slam_odo_rot_per_m_deg']:.2f} degrees per metre"
+                     + (" (widened)" if report.get("slam_odo_prior_widened") else " (as configured)"))
     if report.get("input") == "rosbag":
         line = (f"  bag         {report['scans']} scans from {report['scan_topic']}, "
                 f"odometry {report['odometry']}")
