@@ -470,10 +470,10 @@ def odometry_report(scans: Sequence[Any], frontend: Any, yaw: float) -> dict[str
     """What the lidar SLAM's odometry calibration makes of a log (``slam.odo_calibration``,
     :func:`mapping.lidar_frontend.odometry_noise`), from the same points the SLAM gets (turned
     by ``yaw``), as report keys: ``odometry_heading_noise_deg_per_m`` (the wheels' measured
-    heading error per metre), ``odometry_noise_pairs``, ``slam_odo_rot_per_m_deg`` (the
-    heading prior per metre the SLAM runs with, degrees) and ``slam_odo_prior_widened``
-    (whether the calibration changed it). Empty without the SLAM or the
-    calibration. Costs the pairs' matches again (0.2-0.5 s on the shared logs)."""
+    heading error per metre; None with fewer than two pairs), ``odometry_noise_pairs``,
+    ``slam_odo_rot_per_m_deg`` (the heading prior per metre the SLAM runs with, degrees) and
+    ``slam_odo_prior_widened`` (whether the calibration changed it). Empty without the SLAM or
+    the calibration. Costs the pairs' matches again (0.2-0.5 s on the shared logs)."""
     from mapping.lidar_frontend import calibrated_slam, odometry_noise
 
     slam = frontend.slam
@@ -482,7 +482,8 @@ def odometry_report(scans: Sequence[Any], frontend: Any, yaw: float) -> dict[str
     pts, _ = calibrated_points(scans, frontend, yaw)
     noise = odometry_noise(pts, wheel_increments(scans), slam)
     prior = calibrated_slam(slam, noise).odo_rot_per_m
-    return {"odometry_heading_noise_deg_per_m": math.degrees(noise.rot_per_m),
+    measured = math.degrees(noise.rot_per_m) if math.isfinite(noise.rot_per_m) else None
+    return {"odometry_heading_noise_deg_per_m": measured,
             "odometry_noise_pairs": noise.pairs,
             "slam_odo_rot_per_m_deg": math.degrees(prior),
             "slam_odo_prior_widened": prior != slam.odo_rot_per_m}
@@ -491,12 +492,13 @@ def odometry_report(scans: Sequence[Any], frontend: Any, yaw: float) -> dict[str
 def yaw_report(estimate: Any) -> dict[str, Any]:
     """A laser-yaw estimate (:class:`mapping.lidar_frontend.YawEstimate`, or None when the
     profile does not calibrate) as report keys: ``laser_yaw_deg`` (the turn taken off every
-    bearing, 0 when none), ``laser_yaw_estimate_deg`` and ``laser_yaw_se_deg``."""
+    bearing, 0 when none), ``laser_yaw_estimate_deg`` and ``laser_yaw_se_deg`` (None when too
+    few pairs gave it one: ``report.json`` stays strict JSON)."""
     if estimate is None:
         return {"laser_yaw_deg": 0.0}
     return {"laser_yaw_deg": math.degrees(estimate.correction),
             "laser_yaw_estimate_deg": math.degrees(estimate.yaw),
-            "laser_yaw_se_deg": math.degrees(estimate.se)}
+            "laser_yaw_se_deg": math.degrees(estimate.se) if math.isfinite(estimate.se) else None}
 
 
 def wheel_increments(scans: Sequence[Any]) -> list[Pose]:

@@ -8,6 +8,7 @@ import gzip
 import json
 import math
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -166,6 +167,23 @@ def test_bench_lidar_slam_profile(tmp_path: Path, capsys: pytest.CaptureFixture[
     assert summary["logs"]["freiburg-101-head"]["ate_rmse_m"] < summary["logs"]["freiburg-101-head"][
         "odometry_ate_rmse_m"]
     assert main(["bench", "lidar", str(EXCERPT), "--steps", "2", "--quiet", "--set", "slam.nope=1"]) == 2
+
+
+def test_a_two_scan_log_reports_strict_json(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Too short for the laser yaw's or the odometry's pairs: the estimates are null, not NaN or
+    Infinity, in ``report.json`` and in the bench's JSON line (strict JSON for jq and browsers)."""
+    def strict(text: str) -> Any:
+        return json.loads(text, parse_constant=lambda c: pytest.fail(f"non-finite {c} in the JSON"))
+
+    assert main(["map", "--carmen", str(EXCERPT), "--steps", "2", "--quiet", "--out", str(tmp_path)]) == 0
+    report = strict((tmp_path / "report.json").read_text())
+    assert report["laser_yaw_se_deg"] is None and report["odometry_heading_noise_deg_per_m"] is None
+    capsys.readouterr()
+    args = ["bench", "lidar", str(EXCERPT), "--steps", "2", "--particles", "1", "--json", "--quiet",
+            "--out", str(tmp_path / "bench")]
+    assert main(args) == 0
+    row = strict(capsys.readouterr().out.strip().splitlines()[-1])["logs"]["freiburg-101-head"]
+    assert row["laser_yaw_se_deg"] is None and row["odometry_heading_noise_deg_per_m"] is None
 
 
 def test_bench_lidar_needs_logs(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

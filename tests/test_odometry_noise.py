@@ -96,3 +96,7 @@ def test_the_report_says_what_the_slam_will_run_with() -> None:
     assert good["slam_odo_prior_widened"] is False
     assert good["slam_odo_rot_per_m_deg"] == pytest.approx(math.degrees(slam.odo_rot_per_m))
     assert mr.odometry_report(_scans(0.0), FrontendConfig(slam=SlamConfig(enabled=True)), 0.0) == {}
+    # Too short to measure: None (report.json stays JSON), the prior as configured.
+    short = mr.odometry_report(_scans(0.0)[:2], FrontendConfig(slam=slam), 0.0)
+    assert short["odometry_heading_noise_deg_per_m"] is None and short["odometry_noise_pairs"] < 2
+    assert short["slam_odo_prior_widened"] is False

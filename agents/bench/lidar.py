@@ -348,7 +348,7 @@ def _rounded(d: dict[str, Any]) -> dict[str, Any]:
     for k, v in d.items():
         if isinstance(v, dict):
             out[k] = _rounded(v)
-        elif isinstance(v, bool):
+        elif isinstance(v, bool) or v is None:
             out[k] = v
         elif k in INT_KEYS or isinstance(v, int):
             out[k] = int(v)

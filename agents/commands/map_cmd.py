@@ -491,7 +491,8 @@ def _print_summary(report: dict[str, Any], out: Path) -> None:
                      f"(+-{report['laser_yaw_se_deg']:.2f}, against the odometry's direction of travel)")
     if report.get("slam_odo_rot_per_m_deg") is not None:
         noise = report["odometry_heading_noise_deg_per_m"]
-        lines.append(f"  odometry    heading error {noise:.2f} degrees per metre (from "
+        measured = "not measured" if noise is None else f"{noise:.2f} degrees per metre"
+        lines.append(f"  odometry    heading error {measured} (from "
                      f"{report['odometry_noise_pairs']} scan pairs); the SLAM's prior "
                      f"{report['slam_odo_rot_per_m_deg']:.2f} degrees per metre"
                      + (" (widened)" if report.get("slam_odo_prior_widened") else " (as configured)"))
