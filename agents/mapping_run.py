@@ -38,9 +38,11 @@ from mapping.wireframe import Wireframe
 
 __all__ = [
     "SENSORS",
+    "LogCalibration",
     "RunStep",
     "ScanInput",
     "SimOptions",
+    "calibrate_log",
     "calibrated_points",
     "carmen_inputs",
     "default_merge_threshold",
@@ -445,42 +447,69 @@ def carmen_points(scans: Sequence[Any], frontend: Any) -> list[NDArray[np.float6
                         np.asarray(ls.angles, dtype=np.float64), frontend) for ls in scans]
 
 
-def calibrated_points(
-    scans: Sequence[Any], frontend: Any, yaw: float | None = None
-) -> tuple[list[NDArray[np.float64]], Any]:
-    """:func:`carmen_points` with the bearings turned by the laser's yaw: ``yaw`` radians when
-    given, else the front end's estimate (:func:`mapping.lidar_frontend.laser_yaw`, when
-    ``frontend.yaw_calibration`` is on). Returns the points and the estimate (None when none
-    was made)."""
-    from mapping.lidar_frontend import laser_yaw
+@dataclass(frozen=True)
+class LogCalibration:
+    """What :func:`calibrate_log` made of a log's scans: the ``points`` to match (turned by
+    ``turn``, the laser's yaw taken off every bearing, radians), the yaw ``estimate``
+    (:class:`mapping.lidar_frontend.YawEstimate`; None when none was made) and the wheels'
+    heading ``noise`` (:class:`mapping.lidar_frontend.OdometryNoise`; None unless the SLAM
+    runs with ``odo_calibration``)."""
 
-    pts = carmen_points(scans, frontend)
+    points: list[NDArray[np.float64]]
+    turn: float
+    estimate: Any
+    noise: Any
+
+
+def calibrate_log(scans: Sequence[Any], frontend: Any, yaw: float | None = None) -> LogCalibration:
+    """A real log's calibrations, each made once: the laser's yaw (``yaw`` radians when given,
+    else the front end's estimate, :func:`mapping.lidar_frontend.laser_yaw`, when
+    ``frontend.yaw_calibration`` is on) and, for a SLAM with ``odo_calibration``, the wheels'
+    heading noise (:func:`mapping.lidar_frontend.odometry_noise`) on the points the SLAM gets.
+    Both rest on the same scan pairs (:func:`mapping.lidar_frontend.calibration_pairs`); they
+    are matched again for the noise only when the yaw turned the points."""
+    from mapping.lidar_frontend import calibration_pairs, laser_yaw, odometry_noise
+
+    raw = carmen_points(scans, frontend)
+    odometry = wheel_increments(scans)
+    pairs = None
     estimate = None
     if yaw is None:
-        estimate = laser_yaw(pts, wheel_increments(scans), frontend) if frontend.yaw_calibration else None
+        if frontend.yaw_calibration:
+            pairs = calibration_pairs(raw, odometry, frontend)
+            estimate = laser_yaw(raw, odometry, frontend, pairs)
         yaw = estimate.correction if estimate is not None else 0.0
+    pts = raw
     if yaw:
         c, s = math.cos(yaw), math.sin(yaw)
         turn = np.array([[c, -s], [s, c]])  # row vectors times this: turned by -yaw
-        pts = [p @ turn for p in pts]
-    return pts, estimate
+        pts = [p @ turn for p in raw]
+    noise = None
+    if frontend.slam.enabled and frontend.slam.odo_calibration:
+        noise = odometry_noise(pts, odometry, frontend, None if yaw else pairs)
+    return LogCalibration(pts, float(yaw), estimate, noise)
 
 
-def odometry_report(scans: Sequence[Any], frontend: Any, yaw: float) -> dict[str, Any]:
-    """What the lidar SLAM's odometry calibration makes of a log (``slam.odo_calibration``,
-    :func:`mapping.lidar_frontend.odometry_noise`), from the same points the SLAM gets (turned
-    by ``yaw``), as report keys: ``odometry_heading_noise_deg_per_m`` (the wheels' measured
-    heading error per metre; None with fewer than two pairs), ``odometry_noise_pairs``,
-    ``slam_odo_rot_per_m_deg`` (the heading prior per metre the SLAM runs with, degrees) and
-    ``slam_odo_prior_widened`` (whether the calibration changed it). Empty without the SLAM or
-    the calibration. Costs the pairs' matches again (0.2-0.5 s on the shared logs)."""
-    from mapping.lidar_frontend import calibrated_slam, odometry_noise
+def calibrated_points(
+    scans: Sequence[Any], frontend: Any, yaw: float | None = None
+) -> tuple[list[NDArray[np.float64]], Any]:
+    """:func:`carmen_points` with the bearings turned by the laser's yaw (:func:`calibrate_log`):
+    the points and the yaw estimate (None when none was made)."""
+    cal = calibrate_log(scans, frontend, yaw)
+    return cal.points, cal.estimate
 
-    slam = frontend.slam
-    if not (slam.enabled and slam.odo_calibration):
+
+def odometry_report(noise: Any, slam: Any) -> dict[str, Any]:
+    """The SLAM's odometry calibration (``noise``, a :class:`LogCalibration`'s, and the SLAM's
+    settings ``slam`` before it) as report keys: ``odometry_heading_noise_deg_per_m`` (the
+    wheels' measured heading error per metre; None with fewer than two pairs),
+    ``odometry_noise_pairs``, ``slam_odo_rot_per_m_deg`` (the heading prior per metre the SLAM
+    runs with, degrees: :func:`mapping.lidar_frontend.calibrated_slam`, as the SLAM applies it)
+    and ``slam_odo_prior_widened`` (whether the calibration changed it). Empty without one."""
+    from mapping.lidar_frontend import calibrated_slam
+
+    if noise is None:
         return {}
-    pts, _ = calibrated_points(scans, frontend, yaw)
-    noise = odometry_noise(pts, wheel_increments(scans), slam)
     prior = calibrated_slam(slam, noise).odo_rot_per_m
     measured = math.degrees(noise.rot_per_m) if math.isfinite(noise.rot_per_m) else None
     return {"odometry_heading_noise_deg_per_m": measured,
@@ -516,6 +545,7 @@ def carmen_inputs(
     extract: Any = None,
     frontend: Any = None,
     yaw: float | None = None,
+    calibration: LogCalibration | None = None,
 ) -> Iterator[ScanInput]:
     """Scans of a CARMEN log: each laser line's ranges through split-and-merge
     (:func:`mapping.extract.extract_corners`) and the raw points
@@ -538,7 +568,10 @@ def carmen_inputs(
         Which returns become ``points`` (its defaults without).
     yaw : float, optional
         Turn every scan's bearings by ``-yaw`` radians (the laser's yaw); without, the front
-        end's estimate when its ``yaw_calibration`` is on (:func:`calibrated_points`).
+        end's estimate when its ``yaw_calibration`` is on (:func:`calibrate_log`).
+    calibration : LogCalibration, optional
+        The (``steps``-long) log's calibrations already made (:func:`calibrate_log` with this
+        ``frontend``); ``yaw`` is then not used.
     """
     from mapping.extract import ExtractConfig, extract_corners
     from mapping.lidar_frontend import FrontendConfig, scan_increment
@@ -554,15 +587,17 @@ def carmen_inputs(
         scans = log
     if steps is not None:
         scans = scans[:steps]
-    pts, estimate = calibrated_points(scans, fcfg, yaw)
-    turn = yaw if yaw is not None else (estimate.correction if estimate is not None else 0.0)
+    cal = calibration if calibration is not None else calibrate_log(scans, fcfg, yaw)
+    if len(cal.points) != len(scans):
+        raise ValueError(f"calibration of {len(cal.points)} scans for {len(scans)} scans")
+    pts, turn = cal.points, cal.turn
     smoothed: list[Pose] | None = None
     if fcfg.slam.enabled:
         # Lidar SLAM over the whole log first (mapping.lidar_slam); the filter then maps on its
         # smoothed increments.
         from mapping.lidar_frontend import slam_increments
 
-        smoothed = slam_increments(pts, wheel_increments(scans), fcfg.slam)[0]
+        smoothed = slam_increments(pts, wheel_increments(scans), fcfg.slam, cal.noise)[0]
     prev: Pose | None = None
     prev_points: NDArray[np.float64] | None = None
     for k, ls in enumerate(scans):

@@ -46,9 +46,9 @@ from mapping.wireframe import Wireframe
 
 FloatArray = NDArray[np.float64]
 
-__all__ = ["FrontendConfig", "LidarFrontend", "OdometryNoise", "YawEstimate", "calibrated_slam", "laser_yaw",
-           "odometry_noise", "odometry_overrides", "run_slam", "scan_increment", "scan_points",
-           "scan_polyline", "slam_increments"]
+__all__ = ["FrontendConfig", "LidarFrontend", "OdometryNoise", "YawEstimate", "calibrated_slam",
+           "calibration_pairs", "laser_yaw", "odometry_noise", "odometry_overrides", "run_slam",
+           "scan_increment", "scan_points", "scan_polyline", "slam_increments"]
 
 
 @dataclass(frozen=True)
@@ -85,6 +85,9 @@ class FrontendConfig:
         bearings by it when it is pinned down (default False; on in the real-lidar profiles).
     yaw_min_step : float
         Scan pairs whose odometry moved less than this (metres) give no direction (0.3).
+        ``yaw_min_step``, ``yaw_max_pairs`` and ``yaw_min_inliers`` choose the scan pairs of
+        both calibrations, the laser's yaw and the wheels' heading noise
+        (:func:`calibration_pairs`).
     yaw_max_pairs : int
         At most this many pairs, evenly spread over the log (400: a standard error of ~0.1
         degree on the shared logs, ~0.3 ms per pair).
@@ -225,7 +228,10 @@ class YawEstimate:
         return self.yaw if self.applied else 0.0
 
 
-def laser_yaw(points: list[FloatArray], odometry: list[Pose], config: FrontendConfig) -> YawEstimate:
+def laser_yaw(
+    points: list[FloatArray], odometry: list[Pose], config: FrontendConfig,
+    pairs: list[tuple[Pose, FloatArray]] | None = None,
+) -> YawEstimate:
     """The laser's yaw against the wheel odometry's direction of travel (module notes).
 
     For up to ``yaw_max_pairs`` consecutive scans ``k - 1, k`` (evenly spread) whose odometry
@@ -234,10 +240,11 @@ def laser_yaw(points: list[FloatArray], odometry: list[Pose], config: FrontendCo
     odometry's increment, no prior), kept with ``yaw_min_inliers``; the angle from the
     odometry's translation to the matched one; their 10 % trimmed mean. ``points``: each scan's
     points (robot frame);
-    ``odometry``: the wheel increment into each scan (``odometry[0]`` unused)."""
-    angles = [math.atan2(o.x * m[1] - o.y * m[0], o.x * m[0] + o.y * m[1])
-              for o, m in _pair_matches(points, odometry, config.slam, config.yaw_min_step,
-                                        config.yaw_max_pairs, config.yaw_min_inliers)]
+    ``odometry``: the wheel increment into each scan (``odometry[0]`` unused); ``pairs``: their
+    :func:`calibration_pairs` when already made."""
+    if pairs is None:
+        pairs = calibration_pairs(points, odometry, config)
+    angles = [math.atan2(o.x * m[1] - o.y * m[0], o.x * m[0] + o.y * m[1]) for o, m in pairs]
     if len(angles) < 2:
         return YawEstimate(0.0, math.inf, len(angles), False)
     # A 10 % trimmed mean and its standard error from the winsorized variance (Tukey-McLaughlin):
@@ -253,21 +260,22 @@ def laser_yaw(points: list[FloatArray], odometry: list[Pose], config: FrontendCo
     return YawEstimate(yaw, se, len(a), applied)
 
 
-def _pair_matches(
-    points: list[FloatArray], odometry: list[Pose], slam: SlamConfig, min_step: float, max_pairs: int,
-    min_inliers: float,
+def calibration_pairs(
+    points: list[FloatArray], odometry: list[Pose], config: FrontendConfig
 ) -> list[tuple[Pose, FloatArray]]:
-    """``(odometry increment, matched increment)`` of up to ``max_pairs`` consecutive scans
-    ``k - 1, k`` (evenly spread) whose odometry moved at least ``min_step`` metres: scan ``k``'s
-    points matched against scan ``k - 1``'s alone (:func:`mapping.lidar_slam.match_scan` with
-    ``slam``'s settings, from the odometry's increment, no prior), kept when at least
-    ``min_inliers`` of them lie on the other scan's lines."""
+    """The scan pairs both calibrations rest on (:func:`laser_yaw`, :func:`odometry_noise`):
+    ``(odometry increment, matched increment)`` of up to ``yaw_max_pairs`` consecutive scans
+    ``k - 1, k`` (evenly spread) whose odometry moved at least ``yaw_min_step`` metres: scan
+    ``k``'s points matched against scan ``k - 1``'s alone (:func:`mapping.lidar_slam.match_scan`
+    with ``config.slam``'s settings, from the odometry's increment, no prior), kept when at
+    least ``yaw_min_inliers`` of them lie on the other scan's lines."""
     from mapping.lidar_slam import Submap, match_scan, scan_normals
 
+    slam = config.slam
     moved = [k for k in range(1, min(len(points), len(odometry)))
-             if math.hypot(odometry[k].x, odometry[k].y) >= min_step]
-    if len(moved) > max_pairs:
-        moved = [moved[i] for i in np.linspace(0, len(moved) - 1, max_pairs).round().astype(int)]
+             if math.hypot(odometry[k].x, odometry[k].y) >= config.yaw_min_step]
+    if len(moved) > config.yaw_max_pairs:
+        moved = [moved[i] for i in np.linspace(0, len(moved) - 1, config.yaw_max_pairs).round().astype(int)]
     out = []
     for k in moved:
         prev, here = points[k - 1], points[k]
@@ -276,7 +284,7 @@ def _pair_matches(
         sub = Submap.build([(prev, scan_normals(prev, slam.normal_gap))], slam.voxel)
         o = odometry[k]
         m = match_scan(here, sub, np.array(o.as_tuple()), slam)
-        if m.inliers >= min_inliers:
+        if m.inliers >= config.yaw_min_inliers:
             out.append((o, m.pose))
     return out
 
@@ -290,21 +298,21 @@ class OdometryNoise:
     pairs: int
 
 
-#: The scan pairs :func:`odometry_noise` uses: moved at least 0.3 m, at most 400 of them, at
-#: least half the points on the other scan's lines (the laser yaw's defaults).
-_NOISE_PAIRS = (0.3, 400, 0.5)
-
-
-def odometry_noise(points: list[FloatArray], odometry: list[Pose], config: SlamConfig) -> OdometryNoise:
+def odometry_noise(
+    points: list[FloatArray], odometry: list[Pose], config: FrontendConfig,
+    pairs: list[tuple[Pose, FloatArray]] | None = None,
+) -> OdometryNoise:
     """The wheel odometry's heading noise per metre, from the log itself: for consecutive scans
-    matched against each other alone (:func:`_pair_matches`), the odometry's turn minus the
+    matched against each other alone (:func:`calibration_pairs`), the odometry's turn minus the
     scans' turn, divided by the distance; their spread about zero as 1.4826 times the median
     absolute value (a pair matched to the wrong wall is an outlier, not noise; about zero, so
     that a heading bias -- unequal wheels -- counts as much as noise). The scans' own turn
     is good to about 0.1-0.2 degrees; the wheels err by 0.4-2 degrees per metre on the
     shared logs, so the estimate is the wheels'. ``points``: each scan's points (robot frame);
-    ``odometry``: the wheel increment into each scan (``odometry[0]`` unused)."""
-    pairs = _pair_matches(points, odometry, config, *_NOISE_PAIRS)
+    ``odometry``: the wheel increment into each scan (``odometry[0]`` unused); ``pairs``: their
+    :func:`calibration_pairs` when already made."""
+    if pairs is None:
+        pairs = calibration_pairs(points, odometry, config)
     if len(pairs) < 2:
         return OdometryNoise(math.nan, len(pairs))
     per_m = np.array([math.remainder(o.theta - float(m[2]), math.tau) / math.hypot(o.x, o.y)
@@ -324,15 +332,18 @@ def calibrated_slam(config: SlamConfig, noise: OdometryNoise) -> SlamConfig:
 
 
 def run_slam(points: list[FloatArray], odometry: list[Pose], config: SlamConfig,
-             start: FloatArray | None = None) -> LidarSlam:
+             start: FloatArray | None = None, noise: OdometryNoise | None = None) -> LidarSlam:
     """Lidar SLAM over a whole log (:class:`mapping.lidar_slam.LidarSlam`): every scan added
     in order (its points, robot frame; the wheel odometry's increment since the previous scan,
     ``odometry[0]`` ignored), then ``config.refine_passes`` passes of
     :meth:`~mapping.lidar_slam.LidarSlam.refine`. ``start``: the first pose (the origin).
     With ``config.odo_calibration`` the heading prior is first fitted to the log's own wheels
-    (:func:`odometry_noise`, :func:`calibrated_slam`); the SLAM's ``config`` is the one used."""
+    (:func:`calibrated_slam`) by ``noise``, or when not given by :func:`odometry_noise` over the
+    front end's default pairs; the SLAM's ``config`` is the one used."""
     if config.odo_calibration:
-        config = calibrated_slam(config, odometry_noise(points, odometry, config))
+        if noise is None:
+            noise = odometry_noise(points, odometry, FrontendConfig(slam=config))
+        config = calibrated_slam(config, noise)
     slam = LidarSlam(config, start=np.zeros(3) if start is None else np.asarray(start, dtype=np.float64))
     for k, (pts, odo) in enumerate(zip(points, odometry)):
         slam.add(pts, np.zeros(3) if k == 0 else np.array(odo.as_tuple()))
@@ -342,7 +353,7 @@ def run_slam(points: list[FloatArray], odometry: list[Pose], config: SlamConfig,
 
 
 def slam_increments(
-    points: list[FloatArray], odometry: list[Pose], config: SlamConfig
+    points: list[FloatArray], odometry: list[Pose], config: SlamConfig, noise: OdometryNoise | None = None
 ) -> tuple[list[Pose], LidarSlam]:
     """The motion between consecutive scans after lidar SLAM over the whole log
     (:func:`run_slam`), from each scan's points and the wheel odometry's increments. Returns the
@@ -352,7 +363,7 @@ def slam_increments(
     This is the offline (whole log in hand) use, like Cartographer's offline mode: a loop
     closed at the end straightens the increments of the whole loop before the filter maps it.
     """
-    slam = run_slam(points, odometry, config)
+    slam = run_slam(points, odometry, config, noise=noise)
     poses = [Pose(*map(float, p)) for p in slam.poses]
     return [Pose.identity(), *(a.between(b) for a, b in itertools.pairwise(poses))], slam
 

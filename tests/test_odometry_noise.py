@@ -7,6 +7,7 @@ from __future__ import annotations
 import dataclasses
 import itertools
 import math
+from typing import Any
 
 import numpy as np
 import pytest
@@ -36,7 +37,7 @@ def _wheels(route: list[Pose], noise_deg_per_m: float, bias_deg_per_m: float = 0
 @pytest.mark.parametrize("noise", [1.0, 3.0])
 def test_the_wheels_noise_is_measured_from_the_scans(noise: float) -> None:
     route, _, scans = _hall_drive()
-    est = odometry_noise(scans, _wheels(route, noise), SlamConfig())
+    est = odometry_noise(scans, _wheels(route, noise), FrontendConfig())
     assert est.pairs >= 50
     assert 0.6 * noise < math.degrees(est.rot_per_m) < 1.5 * noise, math.degrees(est.rot_per_m)
 
@@ -46,7 +47,7 @@ def test_a_biased_wheel_counts_as_noise() -> None:
     must cover it as much as it covers noise. (A constant reads as 1.48 times itself, the
     normal's factor from median absolute value to sigma: wider, the safe side.)"""
     route, _, scans = _hall_drive()
-    est = odometry_noise(scans, _wheels(route, 0.1, bias_deg_per_m=2.5), SlamConfig())
+    est = odometry_noise(scans, _wheels(route, 0.1, bias_deg_per_m=2.5), FrontendConfig())
     assert 2.5 < math.degrees(est.rot_per_m) < 4.2, math.degrees(est.rot_per_m)
 
 
@@ -84,19 +85,23 @@ def test_run_slam_fits_its_prior_to_noisy_wheels_and_stays_deterministic() -> No
 
 
 def test_the_report_says_what_the_slam_will_run_with() -> None:
-    """``agents.mapping_run.odometry_report`` (``wiremap map``'s and ``bench lidar``'s keys): the
+    """``agents.mapping_run.odometry_report`` of ``calibrate_log``'s noise (``wiremap map``'s and
+    ``bench lidar``'s keys): the
     wheels' measured noise and the prior the SLAM gets, widened for noisy wheels, as configured
     for good ones; nothing without the calibration."""
+    def report(scans: list[Any], slam: SlamConfig) -> dict[str, Any]:
+        return mr.odometry_report(mr.calibrate_log(scans, FrontendConfig(slam=slam)).noise, slam)
+
     slam = SlamConfig(enabled=True, odo_calibration=True, odo_calibration_min_pairs=20)
-    noisy = mr.odometry_report(_scans(0.0, heading_noise_deg_per_m=2.0), FrontendConfig(slam=slam), 0.0)
+    noisy = report(_scans(0.0, heading_noise_deg_per_m=2.0), slam)
     assert noisy["odometry_noise_pairs"] >= 40 and noisy["slam_odo_prior_widened"] is True
     assert 1.2 < noisy["odometry_heading_noise_deg_per_m"] < 3.0, noisy
     assert noisy["slam_odo_rot_per_m_deg"] == pytest.approx(3.0 * noisy["odometry_heading_noise_deg_per_m"])
-    good = mr.odometry_report(_scans(0.0), FrontendConfig(slam=slam), 0.0)
+    good = report(_scans(0.0), slam)
     assert good["slam_odo_prior_widened"] is False
     assert good["slam_odo_rot_per_m_deg"] == pytest.approx(math.degrees(slam.odo_rot_per_m))
-    assert mr.odometry_report(_scans(0.0), FrontendConfig(slam=SlamConfig(enabled=True)), 0.0) == {}
+    assert report(_scans(0.0), SlamConfig(enabled=True)) == {}
     # Too short to measure: None (report.json stays JSON), the prior as configured.
-    short = mr.odometry_report(_scans(0.0)[:2], FrontendConfig(slam=slam), 0.0)
+    short = report(_scans(0.0)[:2], slam)
     assert short["odometry_heading_noise_deg_per_m"] is None and short["odometry_noise_pairs"] < 2
     assert short["slam_odo_prior_widened"] is False

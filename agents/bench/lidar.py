@@ -264,9 +264,9 @@ def run_log(
     cap = min(float(scans[0].max_range), max_range)
     t0 = time.perf_counter()
     filter_overrides, extract_cfg, frontend_cfg = mr.split_profile(dict(settings or {}))
-    yaw = mr.calibrated_points(scans, frontend_cfg)[1]
+    cal = mr.calibrate_log(scans, frontend_cfg)
     inputs = list(mr.carmen_inputs(scans, max_range=cap, truth=truth, extract=extract_cfg,
-                                   frontend=frontend_cfg, yaw=yaw.correction if yaw is not None else 0.0))
+                                   frontend=frontend_cfg, calibration=cal))
     extract_s = time.perf_counter() - t0
     true_xyt = pose_array(truth)
     odom_xyt = pose_array([s.odom for s in scans])
@@ -311,8 +311,8 @@ def run_log(
         "particles": particles,
         "seed": seed,
         "max_range_m": cap,
-        **mr.yaw_report(yaw),
-        **mr.odometry_report(scans, frontend_cfg, yaw.correction if yaw is not None else 0.0),
+        **mr.yaw_report(cal.estimate),
+        **mr.odometry_report(cal.noise, frontend_cfg.slam),
     })
     title = f"{name}: ate {result['ate_rmse_m']:.2f} m, precision {result['map_precision']:.2f}, seed {seed}"
     write_atomic(Path(out) / f"{name}.png",

@@ -76,10 +76,11 @@ def run_one(path: str, start: tuple[float, float, float] | None, settings: dict[
     if truth is None:
         raise UserError(f"{path}: no truth (NAME.truth.tsv or TRUEPOS lines)")
     scans = log.scans
-    pts, yaw = mr.calibrated_points(scans, fcfg)
+    cal = mr.calibrate_log(scans, fcfg)
     st = truth[0] if start is None else Pose(*start)
     t0 = time.process_time()
-    slam = run_slam(pts, mr.wheel_increments(scans), fcfg.slam, start=np.array(st.as_tuple()))
+    slam = run_slam(cal.points, mr.wheel_increments(scans), fcfg.slam, start=np.array(st.as_tuple()),
+                    noise=cal.noise)
     cpu = time.process_time() - t0
     to_truth = truth[0].compose(st.inverse())
     est = np.array([to_truth.compose(Pose(*map(float, p))).as_tuple() for p in slam.poses])
@@ -88,7 +89,7 @@ def run_one(path: str, start: tuple[float, float, float] | None, settings: dict[
     return {"ate_rmse_m": rmse, "ate_max_m": mx, "rpe_1m_m": rpe(est, tr), "loops": len(slam.loops),
             "ms_per_scan": 1000.0 * cpu / max(1, len(scans)), "scans": len(scans),
             "odometry_ate_rmse_m": ate(pose_array([s.odom for s in scans]), tr)[0],
-            "odo_rot_per_m": slam.config.odo_rot_per_m, **mr.yaw_report(yaw)}
+            "odo_rot_per_m": slam.config.odo_rot_per_m, **mr.yaw_report(cal.estimate)}
 
 
 def summarise(runs: list[dict[str, Any]]) -> dict[str, Any]:

@@ -344,16 +344,14 @@ def _real_source(
     resolved = _filter_config(args, cargs, 0.2, min(log_range, 20.0), mr.scan_fov(scans[0].angles),
                               log_range, base=filter_overrides)
     cfg = resolved.config
-    yaw = mr.calibrated_points(scans if args.steps is None else scans[: args.steps], frontend_cfg)[1]
+    cal = mr.calibrate_log(scans if args.steps is None else scans[: args.steps], frontend_cfg)
     inputs = mr.carmen_inputs(scans, max_range=cfg.max_range, steps=args.steps, truth=true_scans,
-                              extract=extract_cfg, frontend=frontend_cfg,
-                              yaw=yaw.correction if yaw is not None else 0.0)
+                              extract=extract_cfg, frontend=frontend_cfg, calibration=cal)
     start = true_scans[0] if true_scans is not None else scans[0].odom
     filt = WireframeFilter(cfg, mr.seeds_for(args.seed)["filter"], initial_pose=start)
     total = len(scans) if args.steps is None else min(len(scans), args.steps)
-    head = scans if args.steps is None else scans[: args.steps]
-    extra = {**extra, "lidar_profile": args.lidar_profile, **mr.yaw_report(yaw),
-             **mr.odometry_report(head, frontend_cfg, yaw.correction if yaw is not None else 0.0)}
+    extra = {**extra, "lidar_profile": args.lidar_profile, **mr.yaw_report(cal.estimate),
+             **mr.odometry_report(cal.noise, frontend_cfg.slam)}
     return _Source(filt, inputs, total, source, resolved, name, scans=scans, true_scans=true_scans,
                    max_range=cfg.max_range, extra=extra)
 
