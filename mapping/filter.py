@@ -246,6 +246,11 @@ class GatingConfig:
         Lower no likelihood and carve nothing from a scan whose match with the map in view was
         rejected: its pose is the odometry's, and a wall that looks seen through may only be
         misplaced relative to it.
+    update_distance, update_angle : float
+        A scan touches the map only once the robot has driven ``update_distance`` metres or
+        turned ``update_angle`` radians (sums of the odometry's increments) since the last scan
+        that did -- GMapping's ``linearUpdate`` / ``angularUpdate``; the first scan always does.
+        The steps in between only predict the pose. 0 and 0 (the defaults): every scan.
 
     Raises
     ------
@@ -259,11 +264,13 @@ class GatingConfig:
     drift_xy: float = 0.02
     drift_theta: float = 0.0008
     anchored_evidence: bool = True
+    update_distance: float = 0.0
+    update_angle: float = 0.0
 
     def __post_init__(self) -> None:
         for name in ("max_sigma_theta", "max_sigma_xy"):
             check_number(name, getattr(self, name), 0.0, open_low=True)
-        for name in ("drift_xy", "drift_theta"):
+        for name in ("drift_xy", "drift_theta", "update_distance", "update_angle"):
             check_number(name, getattr(self, name), 0.0)
 
 
@@ -571,6 +578,9 @@ class WireframeFilter:
         odo = config.odometry
         self._cov = np.diag([odo.pose_floor_xy**2, odo.pose_floor_xy**2, odo.pose_floor_theta**2])
         self._drift = np.zeros((3, 3))
+        # Distance and turn since the last step that updated the map (_update_due): infinite
+        # until one has.
+        self._since_update = (math.inf, 0.0)
         self._pending_spans = np.zeros((0, 2, 2))
         self._view_fn: ViewFn = view_fn or _default_view
         self._cached_merge: _CachedMerge | None = None
@@ -808,6 +818,10 @@ class WireframeFilter:
         self._through.clear()  # answers for this step's scan and pose only
         self._spans.clear()  # (the same)
         ctx = self._predict(odometry, clean_scan(scan, cfg.cleanup, cfg.max_scan_vertices), fault)
+        if not self._update_due(odometry):
+            self._pose = ctx.pose
+            info = self._info(ctx, np.zeros(len(self._particles)), 0, mapped=False)
+            return self._loop_closure(odometry, info, ctx.matched_scan, ctx.points)
         if cfg.point_match.enabled and points is not None:
             ctx.points = np.asarray(points, dtype=np.float64).reshape(-1, 2)
         self._match_scan(ctx)
@@ -819,9 +833,25 @@ class WireframeFilter:
             resampled, best = self._resample(evals, weights, best_parent)
             self._merge_scan(ctx, evals, resampled, best)
             info = self._info(ctx, loglik, int(resampled.mutated.sum()), mapped=True)
+            self._since_update = (0.0, 0.0)
         else:
             info = self._info(ctx, np.zeros(len(self._particles)), 0, mapped=False)
         return self._loop_closure(odometry, info, ctx.matched_scan, ctx.points)
+
+    def _update_due(self, odometry: Pose) -> bool:
+        """Whether this step's scan may update the map by the distance and turn since the last
+        step that did (:attr:`GatingConfig.update_distance`, :attr:`GatingConfig.update_angle`;
+        a threshold at 0 never triggers, both at 0 let every scan through). The first step, and
+        every step until one has mapped, is due."""
+        g = self.config.gating
+        if g.update_distance <= 0 and g.update_angle <= 0:
+            return True
+        dist, turn = self._since_update
+        dist += math.hypot(odometry.x, odometry.y)
+        turn += abs(odometry.theta)
+        self._since_update = (dist, turn)
+        return (dist == math.inf or (g.update_distance > 0 and dist >= g.update_distance)
+                or (g.update_angle > 0 and turn >= g.update_angle))
 
     def _info(self, ctx: _StepContext, loglik: FloatArray, mutated: int, mapped: bool) -> StepInfo:
         """The step's :class:`StepInfo`, after its last phase."""

@@ -11,6 +11,7 @@ from agents.mapping_run import SimOptions, filter_config_for, seeds_for, simulat
 from agents.sim.world import load_world
 from mapping import Label, Pose, Wireframe
 from mapping.compass import CompassConfig
+from mapping.config import with_overrides
 from mapping.evidence import (
     MAX_LIKELIHOOD,
     EvidenceConfig,
@@ -284,6 +285,38 @@ def test_scan_that_cannot_be_placed_does_not_touch_the_map():
     assert not info.mapped
     assert all(a is b for a, b in zip(before, f.particles))
     assert math.degrees(math.sqrt(f.pose_covariance[2, 2])) > 1.0
+
+
+
+def test_update_distance_and_angle_gate_the_map_like_gmappings_linear_and_angular_update():
+    world = load_world(WORLDS / "tiny.geojson")
+    inputs = list(simulate(world, SimOptions(steps=20), 0))
+    base = filter_config_for(5, 0.2, 8.0)
+    gated = with_overrides(base, {"gating.update_distance": 0.6, "gating.update_angle": 0.5})
+    every = WireframeFilter(base, np.random.default_rng(0), inputs[0].true_pose)
+    f = WireframeFilter(gated, np.random.default_rng(0), inputs[0].true_pose)
+    dist = turn = math.inf
+    mapped = 0
+    for k, inp in enumerate(inputs):
+        assert every.step(inp.odometry, inp.scan).mapped
+        before = f.particles
+        info = f.step(inp.odometry, inp.scan)
+        dist += math.hypot(inp.odometry.x, inp.odometry.y)
+        turn += abs(inp.odometry.theta)
+        due = k == 0 or dist >= 0.6 or turn >= 0.5
+        assert info.mapped == due, k
+        if due:
+            dist = turn = 0.0
+            mapped += 1
+        else:
+            # Only the pose moves: the odometry's prediction, the particles untouched.
+            assert all(a is b for a, b in zip(before, f.particles))
+            assert info.pose.distance(info.predicted_pose) == 0.0
+    assert 2 <= mapped < len(inputs)
+    p, r = wall_precision_recall(world.truth, f.best, 0.4)
+    assert p >= 0.9 and r >= 0.5
+    with pytest.raises(ValueError, match="update_distance"):
+        with_overrides(base, {"gating.update_distance": -1.0})
 
 
 # ------------------------------------------------------------------ carving and snapping
