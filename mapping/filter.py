@@ -54,7 +54,10 @@ Choices where the paper is silent or that differ from it
   view and, after matching, the heading is uncertain by more than
   :attr:`GatingConfig.max_sigma_theta` (a sharp turn the scan could not fix), or the match
   failed while the position is uncertain by more than :attr:`GatingConfig.max_sigma_xy`
-  (lost track), the step only predicts (``StepInfo.mapped`` is False).
+  (lost track), the step only predicts (``StepInfo.mapped`` is False). Nor, with
+  :attr:`GatingConfig.update_distance` / :attr:`GatingConfig.update_angle` set, does a scan
+  taken before the robot has driven or turned that much since the last one that did
+  (GMapping's ``linearUpdate`` / ``angularUpdate``): no match, no likelihood, no merge.
 * **Frontiers continue established walls** (:func:`mapping.snapping.snap_frontiers`): before
   the merge, a scan frontier that extends a longer map wall is moved onto that wall's line; a
   wall growing at its frontier would otherwise follow the pose's error and the pose would
