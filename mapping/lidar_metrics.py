@@ -256,12 +256,21 @@ def score_run(
 ) -> dict[str, float]:
     """The figures of one run against its truth, as ``wiremap map`` and ``wiremap bench lidar``
     report them: ``ate_rmse_m``, ``ate_max_m``, ``rpe_1m_m`` (relative error over
-    ``rpe_distance``), ``map_precision`` and ``map_coverage`` (at ``tol`` against ``endpoints``)."""
+    ``rpe_distance``), ``map_precision`` and ``map_coverage`` (at ``tol`` against ``endpoints``),
+    and ``map_precision_aligned`` with ``alignment_m`` and ``alignment_deg``: the precision after
+    the one rigid motion that lays the map best onto the endpoints (:func:`align_to_points`) and
+    that motion's size. A map turned about its start by a few tenths of a degree loses precision
+    at its far end that the aligned figure keeps: the two apart tell a map's shape from its
+    placement."""
     rmse, mx = ate(estimate, truth)
+    fix = align_to_points(wf, endpoints)
     return {
         "ate_rmse_m": rmse,
         "ate_max_m": mx,
         "rpe_1m_m": rpe(estimate, truth, rpe_distance),
         "map_precision": map_precision(wf, endpoints, tol, spacing),
         "map_coverage": map_coverage(wf, endpoints, tol),
+        "map_precision_aligned": map_precision(wf.transformed(fix), endpoints, tol, spacing),
+        "alignment_m": math.hypot(fix.x, fix.y),
+        "alignment_deg": math.degrees(fix.theta),
     }

@@ -91,6 +91,21 @@ def test_score_run_is_the_pieces_together() -> None:
     assert s["rpe_1m_m"] == rpe(est, truth, 1.0)
     assert s["map_precision"] == map_precision(wf, ends) and s["map_coverage"] == map_coverage(wf, ends)
     assert 0.75 < s["map_precision"] < 0.85 and s["map_coverage"] == 1.0
+    # The wall already lies on the endpoints: aligning it changes next to nothing (the
+    # point-to-point pairs may slide it a few centimetres along itself).
+    assert s["map_precision_aligned"] == pytest.approx(s["map_precision"], abs=0.02)
+    assert s["alignment_m"] < 0.1 and abs(s["alignment_deg"]) < 0.5
+
+
+def test_score_run_tells_a_turned_map_from_a_bent_one() -> None:
+    from mapping.lidar_metrics import score_run
+
+    ends = room_points()
+    truth = np.zeros((3, 3))
+    turned = room_map().transformed(Pose(0.0, 0.0, math.radians(3.0)))
+    s = score_run(truth, truth, turned, ends, tol=0.1)
+    assert s["map_precision"] < 0.7 and s["map_precision_aligned"] > 0.99
+    assert s["alignment_deg"] == pytest.approx(-3.0, abs=0.5)  # stalls a little short, as above
 
 
 def room_points(step: float = 0.02) -> np.ndarray:

@@ -14,7 +14,9 @@ Scores (:mod:`mapping.lidar_metrics`), per log and method:
 * ``map_precision`` -- share of points every 5 cm along the map's walls within 0.2 m of a real
   scan endpoint placed at the true pose; ``map_coverage`` -- share of those endpoints within
   0.2 m of a map wall. Endpoints are the returns within the mapper's range cap
-  (``max_range_m``), the part of the scan the mapper is given;
+  (``max_range_m``), the part of the scan the mapper is given; ``map_precision_aligned`` --
+  the precision after one rigid alignment of the map to the endpoints, with the alignment's
+  size (``alignment_m``, ``alignment_deg``): a map turned about its start apart from a bent one;
 * ``best_map_bytes`` -- the best particle's map as one wire message (:func:`wire_codec.encode`,
   a ``ROBOT_MAP`` at the robot agent's 0.05 m resolution); ``particle_bytes`` --
   :func:`mapping.filter.particle_bytes` of the whole particle set (paper Sec. IV-G);
@@ -65,7 +67,7 @@ HELP = "the mapper on real CARMEN lidar logs against their truth (ATE, map preci
 #: Keys of each run's scores (filter or baseline), in table order.
 RUN_KEYS = (
     "scans", "ate_rmse_m", "ate_max_m", "rpe_1m_m", "map_precision", "map_coverage",
-    "best_map_bytes", "particle_bytes", "vertices", "edges", "time_s", "ms_per_scan",
+    "map_precision_aligned", "alignment_m", "alignment_deg", "best_map_bytes", "particle_bytes", "vertices", "edges", "time_s", "ms_per_scan",
 )
 ODOMETRY_KEYS = ("odometry_ate_rmse_m", "odometry_ate_max_m", "odometry_rpe_1m_m")
 INT_KEYS = ("scans", "best_map_bytes", "particle_bytes", "vertices", "edges", "skipped_lines",
@@ -375,7 +377,7 @@ def format_table(logs: dict[str, dict[str, Any]], med: dict[str, Any]) -> str:
     """One line per log and method (filter, baseline, truth-poses, odometry), then the medians
     (``med`` holds the extra runs' medians under their keys, as the JSON does)."""
     head = ["log", "method", "scans", "ate_m", "ate_max_m", "rpe_1m_m", "precision", "coverage",
-            "map_B", "particle_B", "time_s", "ms/scan"]
+            "aligned", "map_B", "particle_B", "time_s", "ms/scan"]
     lines = [head]
 
     def add(name: str, method: str, r: dict[str, Any]) -> None:
@@ -383,7 +385,7 @@ def format_table(logs: dict[str, dict[str, Any]], med: dict[str, Any]) -> str:
             name, method, fmt_cell(r.get("scans"), "{}"), fmt_cell(r.get("ate_rmse_m"), "{:.3f}"),
             fmt_cell(r.get("ate_max_m"), "{:.3f}"), fmt_cell(r.get("rpe_1m_m"), "{:.3f}"),
             fmt_cell(r.get("map_precision"), "{:.3f}"), fmt_cell(r.get("map_coverage"), "{:.3f}"),
-            fmt_cell(r.get("best_map_bytes"), "{}"), fmt_cell(r.get("particle_bytes"), "{}"),
+            fmt_cell(r.get("map_precision_aligned"), "{:.3f}"), fmt_cell(r.get("best_map_bytes"), "{}"), fmt_cell(r.get("particle_bytes"), "{}"),
             fmt_cell(r.get("time_s"), "{:.1f}"), fmt_cell(r.get("ms_per_scan"), "{:.0f}"),
         ])
 

@@ -13,7 +13,8 @@ reported on stderr with their line number and skipped (``--strict``: the first o
 When the log has a ``TRUEPOS`` track or a ``NAME.truth.tsv`` beside it, the filter starts at the
 true first pose and the run is scored against it (:mod:`mapping.lidar_metrics`: ATE without
 alignment, relative error over 1 m, map precision and coverage at 0.2 m against the real scan
-endpoints placed at the true poses) and ``map.png`` shows the map over those endpoints.
+endpoints placed at the true poses, and the precision after one rigid alignment of the map to
+them) and ``map.png`` shows the map over those endpoints.
 
 A ROS bag (``--rosbag``: a ROS 1 ``.bag``, a ROS 2 bag folder or its ``.db3``/``.mcap`` file) is
 read by :func:`agents.files.rosbag.read_rosbag`: ``sensor_msgs/LaserScan`` from ``--scan-topic``
@@ -512,6 +513,9 @@ def _print_summary(report: dict[str, Any], out: Path) -> None:
                 f"(odometry {report['odometry_ate_rmse_m']:.3f} m)")
         if report.get("map_precision") is not None:
             line += f", map precision {report['map_precision']:.3f}, coverage {report['map_coverage']:.3f}"
+            if report.get("map_precision_aligned") is not None:
+                line += (f" (precision {report['map_precision_aligned']:.3f} after one rigid alignment of "
+                         f"{report['alignment_m']:.2f} m, {report['alignment_deg']:+.2f} degrees)")
         lines.append(line)
     if report.get("pose_error_mean_m") is not None:
         lines.append(f"  pose error  mean {report['pose_error_mean_m']:.3f} m, "
