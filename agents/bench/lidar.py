@@ -67,7 +67,8 @@ HELP = "the mapper on real CARMEN lidar logs against their truth (ATE, map preci
 #: Keys of each run's scores (filter or baseline), in table order.
 RUN_KEYS = (
     "scans", "ate_rmse_m", "ate_max_m", "rpe_1m_m", "map_precision", "map_coverage",
-    "map_precision_aligned", "alignment_m", "alignment_deg", "best_map_bytes", "particle_bytes", "vertices", "edges", "time_s", "ms_per_scan",
+    "map_precision_aligned", "alignment_m", "alignment_deg", "best_map_bytes", "particle_bytes",
+    "vertices", "edges", "time_s", "ms_per_scan",
 )
 ODOMETRY_KEYS = ("odometry_ate_rmse_m", "odometry_ate_max_m", "odometry_rpe_1m_m")
 INT_KEYS = ("scans", "best_map_bytes", "particle_bytes", "vertices", "edges", "skipped_lines",
@@ -385,7 +386,8 @@ def format_table(logs: dict[str, dict[str, Any]], med: dict[str, Any]) -> str:
             name, method, fmt_cell(r.get("scans"), "{}"), fmt_cell(r.get("ate_rmse_m"), "{:.3f}"),
             fmt_cell(r.get("ate_max_m"), "{:.3f}"), fmt_cell(r.get("rpe_1m_m"), "{:.3f}"),
             fmt_cell(r.get("map_precision"), "{:.3f}"), fmt_cell(r.get("map_coverage"), "{:.3f}"),
-            fmt_cell(r.get("map_precision_aligned"), "{:.3f}"), fmt_cell(r.get("best_map_bytes"), "{}"), fmt_cell(r.get("particle_bytes"), "{}"),
+            fmt_cell(r.get("map_precision_aligned"), "{:.3f}"), fmt_cell(r.get("best_map_bytes"), "{}"),
+            fmt_cell(r.get("particle_bytes"), "{}"),
             fmt_cell(r.get("time_s"), "{:.1f}"), fmt_cell(r.get("ms_per_scan"), "{:.0f}"),
         ])
 
