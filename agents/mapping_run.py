@@ -20,7 +20,6 @@ do not depend on the filter's settings.
 
 from __future__ import annotations
 
-import itertools
 import math
 import time
 from collections.abc import Iterable, Iterator, Mapping, Sequence
@@ -33,7 +32,7 @@ from numpy.typing import NDArray
 from mapping.config import with_overrides
 from mapping.filter import FilterConfig, StepInfo, WireframeFilter
 from mapping.lidar_frontend import odometry_overrides
-from mapping.se2 import Pose
+from mapping.se2 import Pose, increments
 from mapping.wireframe import Wireframe
 
 __all__ = [
@@ -43,7 +42,6 @@ __all__ = [
     "ScanInput",
     "SimOptions",
     "calibrate_log",
-    "calibrated_points",
     "carmen_inputs",
     "default_merge_threshold",
     "filter_config_for",
@@ -496,15 +494,6 @@ def calibrate_log(scans: Sequence[Any], frontend: Any, yaw: float | None = None)
     return LogCalibration(pts, float(yaw), estimate, noise)
 
 
-def calibrated_points(
-    scans: Sequence[Any], frontend: Any, yaw: float | None = None
-) -> tuple[list[NDArray[np.float64]], Any]:
-    """:func:`carmen_points` with the bearings turned by the laser's yaw (:func:`calibrate_log`):
-    the points and the yaw estimate (None when none was made)."""
-    cal = calibrate_log(scans, frontend, yaw)
-    return cal.points, cal.estimate
-
-
 def odometry_report(noise: Any, slam: Any) -> dict[str, Any]:
     """The SLAM's odometry calibration (``noise``, a :class:`LogCalibration`'s, and the SLAM's
     settings ``slam`` before it) as report keys: ``odometry_heading_noise_deg_per_m`` (the
@@ -539,7 +528,7 @@ def yaw_report(estimate: Any) -> dict[str, Any]:
 def wheel_increments(scans: Sequence[Any]) -> list[Pose]:
     """The wheel odometry's motion into each CARMEN scan from the previous one (the identity for
     the first)."""
-    return [Pose.identity(), *(a.odom.between(b.odom) for a, b in itertools.pairwise(scans))]
+    return increments([s.odom for s in scans])
 
 
 def carmen_inputs(
@@ -597,14 +586,14 @@ def carmen_inputs(
     if len(cal.points) != len(scans):
         raise ValueError(f"calibration of {len(cal.points)} scans for {len(scans)} scans")
     pts, turn = cal.points, cal.turn
+    wheels = wheel_increments(scans)
     smoothed: list[Pose] | None = None
     if fcfg.slam.enabled:
         # Lidar SLAM over the whole log first (mapping.lidar_slam); the filter then maps on its
         # smoothed increments.
         from mapping.lidar_frontend import slam_increments
 
-        smoothed = slam_increments(pts, wheel_increments(scans), fcfg.slam, cal.noise)[0]
-    prev: Pose | None = None
+        smoothed = slam_increments(pts, wheels, fcfg.slam, cal.noise)[0]
     prev_points: NDArray[np.float64] | None = None
     for k, ls in enumerate(scans):
         rmax = float(ls.max_range) if max_range is None else min(float(ls.max_range), max_range)
@@ -613,13 +602,13 @@ def carmen_inputs(
         ranges = np.where(raw >= rmax, np.inf, raw)
         scan = extract_corners(ranges, angles, rmax, ecfg)
         points = pts[k]
-        odo = Pose.identity() if prev is None else prev.between(ls.odom)
+        odo = wheels[k]
         if smoothed is not None:
             odo = smoothed[k]
         elif fcfg.scan_odometry and prev_points is not None:
             # The wheel increment refined by the previous scan (mapping.lidar_frontend.scan_increment).
             odo = scan_increment(prev_points, points, odo, fcfg)[0]
-        prev, prev_points = ls.odom, points
+        prev_points = points
         yield ScanInput(float(ls.t), odo, scan, None if truth is None else truth[k], points)
 
 

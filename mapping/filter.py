@@ -821,16 +821,15 @@ class WireframeFilter:
         self._through.clear()  # answers for this step's scan and pose only
         self._spans.clear()  # (the same)
         ctx = self._predict(odometry, clean_scan(scan, cfg.cleanup, cfg.max_scan_vertices), fault)
-        if not self._update_due(odometry):
-            self._pose = ctx.pose
-            info = self._info(ctx, np.zeros(len(self._particles)), 0, mapped=False)
-            return self._loop_closure(odometry, info, ctx.matched_scan, ctx.points)
-        if cfg.point_match.enabled and points is not None:
-            ctx.points = np.asarray(points, dtype=np.float64).reshape(-1, 2)
-        self._match_scan(ctx)
-        self._fuse_compass(ctx)
+        # A scan taken before the robot has moved enough only predicts (_update_due): no match.
+        due = self._update_due(odometry)
+        if due:
+            if cfg.point_match.enabled and points is not None:
+                ctx.points = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+            self._match_scan(ctx)
+            self._fuse_compass(ctx)
         self._pose = ctx.pose
-        if self._may_map(ctx):
+        if due and self._may_map(ctx):
             evals = self._evaluate(ctx)
             weights, best_parent, loglik = self._reweight(evals)
             resampled, best = self._resample(evals, weights, best_parent)

@@ -31,7 +31,6 @@ Choices
 
 from __future__ import annotations
 
-import itertools
 import math
 from dataclasses import dataclass, field, replace
 
@@ -41,7 +40,7 @@ from numpy.typing import NDArray
 from mapping.extract import ExtractConfig, extract_corners
 from mapping.lidar_slam import LidarSlam, SlamConfig
 from mapping.scan_match import PointMatchConfig, match_points
-from mapping.se2 import Pose
+from mapping.se2 import Pose, increments
 from mapping.wireframe import Wireframe
 
 FloatArray = NDArray[np.float64]
@@ -364,8 +363,7 @@ def slam_increments(
     closed at the end straightens the increments of the whole loop before the filter maps it.
     """
     slam = run_slam(points, odometry, config, noise=noise)
-    poses = [Pose(*map(float, p)) for p in slam.poses]
-    return [Pose.identity(), *(a.between(b) for a, b in itertools.pairwise(poses))], slam
+    return increments([Pose(*map(float, p)) for p in slam.poses]), slam
 
 
 class LidarFrontend:

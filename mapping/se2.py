@@ -7,7 +7,9 @@ taken in the robot frame into map coordinates with :meth:`Pose.apply`.
 
 from __future__ import annotations
 
+import itertools
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -116,3 +118,9 @@ class Pose:
             and abs(self.y - other.y) <= tol
             and abs(wrap_angle(self.theta - other.theta)) <= angle_tol
         )
+
+
+def increments(poses: Sequence[Pose]) -> list[Pose]:
+    """The motion into each pose from the one before it, in that one's frame
+    (``poses[k - 1].between(poses[k])``; the identity for the first): odometry from a track."""
+    return [Pose.identity(), *(a.between(b) for a, b in itertools.pairwise(poses))] if poses else []

@@ -1,5 +1,5 @@
 """The laser's yaw against the wheel odometry (mapping.lidar_frontend.laser_yaw) and where the
-pipeline turns the bearings by it (agents.mapping_run.calibrated_points, carmen_inputs)."""
+pipeline turns the bearings by it (agents.mapping_run.calibrate_log, carmen_inputs)."""
 
 from __future__ import annotations
 
@@ -70,12 +70,13 @@ def test_a_straight_laser_is_left_alone() -> None:
 
 
 def test_the_points_and_the_corners_are_turned_the_same_way() -> None:
-    """``calibrated_points`` and ``carmen_inputs`` turn the bearings by ``-yaw``: the points are
+    """``calibrate_log`` and ``carmen_inputs`` turn the bearings by ``-yaw``: the points are
     those of the bearings minus yaw, and so are the corners the extractor sees."""
     scans = _scans(0.0)[:5]
     fc, ec = FrontendConfig(), ExtractConfig()
     yaw = math.radians(2.0)
-    pts, est = mr.calibrated_points(scans, fc, yaw)
+    cal = mr.calibrate_log(scans, fc, yaw)
+    pts, est = cal.points, cal.estimate
     assert est is None
     for s, p in zip(scans, pts):
         assert np.allclose(p, scan_points(s.ranges, s.angles - yaw, fc), atol=1e-12)
@@ -84,5 +85,6 @@ def test_the_points_and_the_corners_are_turned_the_same_way() -> None:
         want = extract_corners(np.where(s.ranges >= 20.0, np.inf, s.ranges), s.angles - yaw, 20.0, ec)
         assert inp.scan.almost_equal(want, tol=0.0) and inp.scan.n_vertices > 0
     # Without a yaw and with the calibration off, nothing is turned.
-    plain, est = mr.calibrated_points(scans, fc)
+    cal = mr.calibrate_log(scans, fc)
+    plain, est = cal.points, cal.estimate
     assert est is None and all(np.array_equal(a, b) for a, b in zip(plain, mr.carmen_points(scans, fc)))

@@ -64,12 +64,6 @@ from agents.mapping_run import LIDAR_PROFILES
 
 HELP = "the mapper on real CARMEN lidar logs against their truth (ATE, map precision, bytes)"
 
-#: Keys of each run's scores (filter or baseline), in table order.
-RUN_KEYS = (
-    "scans", "ate_rmse_m", "ate_max_m", "rpe_1m_m", "map_precision", "map_coverage",
-    "map_precision_aligned", "alignment_m", "alignment_deg", "best_map_bytes", "particle_bytes",
-    "vertices", "edges", "time_s", "ms_per_scan",
-)
 ODOMETRY_KEYS = ("odometry_ate_rmse_m", "odometry_ate_max_m", "odometry_rpe_1m_m")
 INT_KEYS = ("scans", "best_map_bytes", "particle_bytes", "vertices", "edges", "skipped_lines",
             "particles", "seed", "odometry_noise_pairs")
@@ -340,10 +334,9 @@ def truth_fed(inputs: list[Any], truth: list[Any]) -> list[Any]:
     the wheels: the mapper's own share of a map's errors, without the pose's."""
     import dataclasses
 
-    from mapping.se2 import Pose
+    from mapping.se2 import increments
 
-    return [dataclasses.replace(inp, odometry=Pose.identity() if k == 0 else truth[k - 1].between(truth[k]))
-            for k, inp in enumerate(inputs)]
+    return [dataclasses.replace(inp, odometry=odo) for inp, odo in zip(inputs, increments(truth))]
 
 
 def _rounded(d: dict[str, Any]) -> dict[str, Any]:
