@@ -416,6 +416,15 @@ def test_run_unknown_starts_on_paper_small(tmp_path: Path):
     if "registration " in log:
         assert "/registrations" in entities or "registrations" in entities
     assert (out / "fused.png").is_file() and (out / "fused.geojson").is_file()
+    # The summary's robot table has what the robots' statuses said (it printed n/a), and a fleet
+    # stopped by --duration has no cell error, as a run from known starts does not.
+    for rid in ("r1", "r2"):
+        r = report["per_robot"][rid]
+        assert r["steps"] >= 1 and r["sim_time_s"] > 0.0, r
+    table = [ln.split() for ln in fleet.log("run").splitlines() if ln.strip().startswith(("r1 ", "r2 "))]
+    assert table and all(row[1] != "n/a" for row in table), table
+    if not all(report["per_robot"][r]["finished"] for r in ("r1", "r2")):
+        assert report["fused"]["cell_error"] is None and "cell_error_note" in report["fused"]
 
 
 def test_run_carmen_log_as_two_robots(tmp_path: Path):

@@ -889,7 +889,7 @@ def _stop_fleet(
 def _print_summary(report: dict[str, Any], ids: list[str], out: Path) -> None:
     """The closing lines (under 80 columns): the fused map, its quality and latency, a table of
     the robots, the files. The same figures are in ``report.json``; a figure a kind of run does
-    not report (a fleet of unknown starts, a CARMEN fleet) shows as ``-``."""
+    not report (a fleet of unknown starts, a CARMEN fleet) shows as ``n/a``."""
     f = report.get("fused") or {}
     lat = report.get("latency_ms") or {}
     per_robot = report.get("per_robot") or {}

@@ -254,7 +254,11 @@ def write_outputs_unknown(
     res = float(merge_threshold_of(msg))
     align = align_to_truth(world.truth, placed, 0.1) if placed.n_edges else Pose.identity()
     aligned = placed.transformed(align)
-    fused = _metrics(world.truth, aligned, res)
+    # As in a run from known starts: a fleet cut short (by --duration or Ctrl-C) before every
+    # robot drove its whole route has no cell error worth the name (unexplored area counts).
+    statuses = extra.get("robot_status", {})
+    covered = all(bool(statuses.get(r, {}).get("finished", False)) for r in ids)
+    fused = _metrics(world.truth, aligned, res, partial=not covered)
     fused.update({"vertices": wf.n_vertices, "edges": wf.n_edges, "bytes": len(raw), "version": msg.seq,
                   "robots": robots, "alignment": [round(v, 6) for v in align.as_tuple()],
                   "placed_unaligned": _metrics(world.truth, placed, res)})
@@ -264,7 +268,7 @@ def write_outputs_unknown(
     write_atomic(out / "fused.png", map_png(aligned, world.truth))
     per_robot: dict[str, Any] = {}
     for rid, rwf in _robot_maps(out, ids).items():
-        m = _metrics(world.truth, rwf.transformed(starts[rid]), res) if rid in starts else {}
+        m = _metrics(world.truth, rwf.transformed(starts[rid]), res, partial=True) if rid in starts else {}
         m.update({"vertices": rwf.n_vertices, "edges": rwf.n_edges})
         per_robot[rid] = m
     report = {
@@ -276,6 +280,7 @@ def write_outputs_unknown(
         "resolution": res,
     }
     report.update(_common(out, ids, duration_s, extra, raw, msg, state))
+    _robot_progress(report, ids)
     write_json(out / "report.json", report)
     return _summary_shape(report, ids)
 
@@ -339,6 +344,7 @@ def write_outputs_carmen(
         "per_robot": per_robot,
     }
     report.update(_common(out, ids, duration_s, extra, raw, msg, state))
+    _robot_progress(report, ids)
     write_json(out / "report.json", report)
     return _summary_shape(report, ids)
 
@@ -364,6 +370,18 @@ def _carmen_figure(
     title = f"{log}: fused {fused}{alone}, precision {precision:.2f}"
     return map_figure(placed, None, title=title, trajectories=paths, points=ends,
                       points_label="real scan endpoints (truth poses)")
+
+
+def _robot_progress(report: dict[str, Any], ids: list[str]) -> None:
+    """Each robot's steps, simulated time and whether it drove its whole route, from its last
+    status, into ``per_robot`` (the keys a run from known starts reports)."""
+    for rid in ids:
+        st = report.get("robot_status", {}).get(rid, {})
+        if "step" in st:
+            r = report["per_robot"].setdefault(rid, {})
+            r.setdefault("steps", int(st["step"]))
+            r.setdefault("sim_time_s", float(st.get("t", 0.0)))
+            r.setdefault("finished", bool(st.get("finished", False)))
 
 
 def _summary_shape(report: dict[str, Any], ids: list[str]) -> dict[str, Any]:
