@@ -15,6 +15,7 @@ import importlib
 import sys
 from collections.abc import Sequence
 
+from agents.commands.bench import BENCHES  # names and help only (the benchmarks import lazily)
 from agents.errors import INTERRUPTED, UserError
 
 # command name -> (module, one-line help). The help text is repeated here so that
@@ -31,8 +32,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "fleet": ("agents.commands.fleet", "administer a running fleet: forget a robot"),
     "replay": ("agents.commands.replay", "open the Rerun viewer on a recording"),
     "export": ("agents.commands.export", "export a map as GeoJSON, SVG, PNG or a ROS map"),
-    "bench": ("agents.commands.bench",
-              "benchmarks: accuracy, speed, codec, fleet, soak, sensor, register, lidar"),
+    "bench": ("agents.commands.bench", "benchmarks: " + ", ".join(BENCHES)),
     "config": ("agents.commands.config_cmd", "show the particle filter's effective configuration"),
 }
 

@@ -15,6 +15,7 @@ import sys
 import pytest
 
 from agents.cli import main
+from agents.commands.replay import RRD_MAGIC
 from agents.fleet.bus import free_port
 from tests.fleet_util import REPO
 
@@ -37,6 +38,8 @@ def files(tmp_path_factory: pytest.TempPathFactory) -> dict[str, str]:
     a_file.write_text("x")
     garbage_bag = d / "garbage.bag"
     garbage_bag.write_bytes(b"#ROSBAG V2.0\n\x00\x01 cut short")
+    rrd = d / "head-only.rrd"  # passes the magic-bytes check, so the next check is reached
+    rrd.write_bytes(RRD_MAGIC + b"\x00" * 16)
     return {
         "dir": str(d),
         "missing": str(d / "missing.file"),
@@ -47,6 +50,8 @@ def files(tmp_path_factory: pytest.TempPathFactory) -> dict[str, str]:
         "open_creds": str(open_creds),
         "a_file": str(a_file),
         "garbage_bag": str(garbage_bag),
+        "rrd": str(rrd),
+        "log": str(REPO / "tests" / "data" / "freiburg-101-head.log.gz"),
     }
 
 
@@ -132,6 +137,30 @@ CASES: dict[str, list[str]] = {
     "bench-unknown": ["bench", "no-such-bench"],
     "bench-accuracy-bad-world": ["bench", "accuracy", "--world", "no-such-world", "--seeds", "1"],
     "bench-register-negative-large": ["bench", "register", "--quick", "--large", "-1"],
+    # found by a first-hour review: each used to run, crash with a traceback or be ignored
+    "run-empty-out": ["run", "--world", "paper-small", "--robots", "1", "--out", ""],
+    "map-empty-out": ["map", "--world", "paper-small", "--out", ""],
+    "map-out-in-proc": ["map", "--world", "paper-small", "--out", "/proc/wiremap-test"],
+    "world-png-in-proc": ["world", "show", "paper-small", "--png", "/proc/wiremap-test/w.png"],
+    "world-tiny-png": ["world", "show", "paper-small", "--png", "{dir}/w.png", "--max-px", "0"],
+    "bench-out-under-a-file": ["bench", "accuracy", "--world", "paper-small", "--seeds", "1", "--steps", "2",
+                               "--out", "{a_file}/sub"],
+    "bench-accuracy-zero-steps": ["bench", "accuracy", "--world", "paper-small", "--seeds", "1",
+                                  "--steps", "0"],
+    "bench-hostile-negative-messages": ["bench", "hostile", "--no-fleet", "--messages", "-1"],
+    "robot-zero-duration": [*ROBOT, "--start", "2,2,0", "--duration", "0"],
+    "robot-negative-viz-rate": [*ROBOT, "--start", "2,2,0", "--viz-rate", "-1"],
+    "robot-unknown-world-no-pose": ["robot", "--id", "r1", "--world", "no-such-world"],
+    "map-negative-seed": ["map", "--world", "paper-small", "--seed", "-1", "--out", "{dir}/m"],
+    "map-carmen-duration": ["map", "--carmen", "{log}", "--duration", "1", "--out", "{dir}/m"],
+    "map-world-strict": ["map", "--world", "paper-small", "--strict", "--out", "{dir}/m"],
+    "map-world-lidar-profile": ["map", "--world", "paper-small", "--lidar-profile", "lidar",
+                                "--out", "{dir}/m"],
+    "run-zero-fusers": ["run", "--world", "paper-small", "--robots", "2", "--fusers", "0",
+                        "--out", "{dir}/r"],
+    "run-more-fusers-than-robots": ["run", "--world", "paper-small", "--robots", "2", "--fusers", "5",
+                                    "--out", "{dir}/r"],
+    "replay-bad-bind": ["replay", "{rrd}", "--web", "--bind", "999.1.1.1"],
 }  # fmt: skip
 
 

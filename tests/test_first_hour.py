@@ -354,7 +354,9 @@ def test_figure_has_title_legend_truth_and_shading() -> None:
     ("argv", "present", "absent"),
     [
         (["bench", "--help"], ["sensor"], []),
-        (["--help"], ["soak, sensor"], []),
+        # every benchmark is named (hostile, slam and fingerprint were missing)
+        (["--help"], ["soak, hostile, sensor", "slam, fingerprint"], []),
+        (["config", "show", "--help"], ["FilterConfig"], ["``", ":class:"]),
         (["world", "show", "--help"], ["examples:"], ["``"]),
         (["replay", "--help"], ["core", "recording.rrd"], ["--record"]),
         (["run", "--help"], ["wall-clock", "2.5x", "upper bound"], []),

@@ -34,8 +34,11 @@ def test_map_paper_small_short_route(tmp_path, capsys):
     assert report["world"] == "paper-small" and report["steps"] == 25 and report["particles"] == 10
     assert report["particle_bytes"] >= report["best_bytes"] == wf.paper_storage_bytes()
     assert set(report["metrics"]) == {"cell_error", "wall_precision", "wall_recall", "mean_dist_m",
-                                      "p95_dist_m"}
+                                      "p95_dist_m", "cell_error_note"}
     assert report["metrics"]["wall_precision"] > 0.9
+    # --steps stopped the route early: a partial map has no cell error (the unexplored area would
+    # count as error), as after Ctrl-C
+    assert report["metrics"]["cell_error"] is None and "cut short" in report["metrics"]["cell_error_note"]
     assert report["pose_error_max_m"] < 0.15
     captured = capsys.readouterr()
     assert "wrote" in captured.out

@@ -65,6 +65,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from agents.argtypes import positive_int
 from agents.bench.common import aligned_rows, fmt_cell
 from agents.errors import UserError
 from agents.params import ConfigArgs, add_config_arguments, resolve
@@ -96,7 +97,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="particles (default 10; 6 for worlds over 100 m, as the paper)")
     parser.add_argument("--merge-threshold", type=float, default=None, metavar="M",
                         help="merge threshold and metric resolution (default 0.2, 0.4 for worlds over 100 m)")
-    parser.add_argument("--steps", type=int, default=None, metavar="N", help="stop each run after N scans")
+    parser.add_argument("--steps", type=positive_int, default=None, metavar="N",
+                        help="stop each run after N scans")
     parser.add_argument("--wall-tol", type=float, default=None, metavar="M",
                         help="wall precision/recall tolerance, metres (default twice the merge threshold)")
     parser.add_argument("--baseline", action="store_true", help="also run the single-hypothesis baseline")

@@ -90,6 +90,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from agents.argtypes import non_negative_int
 from agents.bench.common import (
     DEFAULT_CACHE,
     DEFAULT_OVERLAP,
@@ -132,7 +133,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="maps (scans) per second per robot (default 10)")
     parser.add_argument("--world", default="paper-small", metavar="NAME|FILE",
                         help="world (default paper-small)")
-    parser.add_argument("--seed", type=int, default=0, help="seed of the routes and filters (default 0)")
+    parser.add_argument("--seed", type=non_negative_int, default=0,
+                        help="seed of the routes and filters (default 0)")
     parser.add_argument(
         "--filter-upto", type=int, default=2, metavar="N",
         help="sizes up to N run real filter robots (default 2)"

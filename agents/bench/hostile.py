@@ -50,6 +50,8 @@ from typing import Any
 import msgpack
 import numpy as np
 
+from agents.argtypes import non_negative_int
+
 HELP = "one stolen robot: crashes over hostile messages, honest latency quiet vs attacked, fusion RSS"
 ATTACKER = "r99"
 MAP_5000_TARGET_MS = 50.0
@@ -66,11 +68,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="attacker messages per second (default 40)")  # fmt: skip
     parser.add_argument("--attack-after", type=float, default=0.0, metavar="S",
                         help="the attacker waits S seconds after the fleet's first maps (default 0: at once)")  # fmt: skip  # noqa: E501
-    parser.add_argument("--messages", type=int, default=10_000, metavar="K",
+    parser.add_argument("--messages", type=non_negative_int, default=10_000, metavar="K",
                         help="in-process hostile messages (default 10000)")
     parser.add_argument("--world", default="paper-small", metavar="NAME|FILE",
                         help="world (default paper-small)")
-    parser.add_argument("--seed", type=int, default=0, help="seed (default 0)")
+    parser.add_argument("--seed", type=non_negative_int, default=0, help="seed (default 0)")
     parser.add_argument("--no-fleet", action="store_true", help="only the in-process part (no processes)")
     parser.add_argument("--cache", default=None, metavar="DIR",
                         help="recordings cache (default out/bench-cache)")

@@ -58,6 +58,7 @@ from typing import Any
 
 import numpy as np
 
+from agents.argtypes import non_negative_int
 from agents.bench.common import aligned_rows, fmt_cell
 from agents.errors import UserError
 from agents.mapping_run import LIDAR_PROFILES
@@ -79,7 +80,8 @@ EXTRA_RUNS = {"baseline": "baseline", "truth_poses": "truth-poses"}
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("logs", nargs="*", metavar="LOG", help="CARMEN logs (.log or .log.gz)")
     parser.add_argument("--data", metavar="DIR", help="take every *.log and *.log.gz in DIR")
-    parser.add_argument("--seed", type=int, default=1, help="random seed of the filter (default 1)")
+    parser.add_argument("--seed", type=non_negative_int, default=1,
+                        help="random seed of the filter (default 1)")
     parser.add_argument("--particles", type=int, default=10, help="particles (default 10)")
     parser.add_argument("--steps", type=int, default=None, metavar="N",
                         help="only the first N scans of each log")

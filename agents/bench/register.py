@@ -75,6 +75,7 @@ from typing import Any
 
 import numpy as np
 
+from agents.argtypes import non_negative_int
 from agents.errors import UserError
 from agents.fleet.carmen_fleet import WRONG_DEG, WRONG_M
 
@@ -106,7 +107,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="same-world pairs (default 1000)")
     parser.add_argument("--cross", type=int, default=None, metavar="N",
                         help="cross-world pairs (default a quarter of --pairs)")
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--seed", type=non_negative_int, default=0)
     parser.add_argument("--noise", type=float, default=0.03, metavar="M",
                         help="vertex noise, metres (default 0.03)")
     parser.add_argument("--worlds", default=None, metavar="A,B,...",

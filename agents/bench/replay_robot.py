@@ -65,6 +65,7 @@ from typing import Any
 
 import numpy as np
 
+from agents.argtypes import non_negative_int
 from agents.bench.common import Recording, load_recording
 from agents.errors import UserError
 from agents.fleet.bus import (
@@ -100,7 +101,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--corrupt", type=float, default=0.0, metavar="P",
                         help="damage each map with probability P")
-    parser.add_argument("--seed", type=int, default=0, help="seed of the corruption (default 0)")
+    parser.add_argument("--seed", type=non_negative_int, default=0, help="seed of the corruption (default 0)")
     parser.add_argument("--no-loop", action="store_true",
                         help="play the recording once, then heartbeats only")
     parser.add_argument("--log", metavar="FILE",

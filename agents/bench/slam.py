@@ -30,6 +30,7 @@ from typing import Any
 
 import numpy as np
 
+from agents.argtypes import non_negative_int
 from agents.bench.common import aligned_rows, fmt_cell
 from agents.bench.lidar import find_logs, log_name, settings_for
 from agents.errors import UserError
@@ -42,7 +43,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--data", metavar="DIR", help="take every *.log and *.log.gz in DIR")
     parser.add_argument("--starts", type=int, default=4, metavar="K",
                         help="start frames per log (default 4: origin, true start, 2 drawn)")
-    parser.add_argument("--seed", type=int, default=1, help="seed of the drawn start frames (default 1)")
+    parser.add_argument("--seed", type=non_negative_int, default=1,
+                        help="seed of the drawn start frames (default 1)")
     parser.add_argument("--jobs", type=int, default=1, metavar="N", help="runs at once (default 1)")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", dest="sets",
                         help="override one setting (e.g. slam.refine_passes=0); repeatable")

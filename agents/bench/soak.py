@@ -46,6 +46,7 @@ from typing import Any
 
 import numpy as np
 
+from agents.argtypes import non_negative_int
 from agents.bench.common import (
     DEFAULT_CACHE,
     DEFAULT_OVERLAP,
@@ -84,7 +85,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="SIGKILL + restart a robot every S s")
     parser.add_argument("--world", default="paper-small", metavar="NAME|FILE",
                         help="world (default paper-small)")
-    parser.add_argument("--seed", type=int, default=0, help="seed (default 0)")
+    parser.add_argument("--seed", type=non_negative_int, default=0, help="seed (default 0)")
     parser.add_argument("--particles", type=int, default=DEFAULT_PARTICLES,
                         help="particles of the recorded filters")
     parser.add_argument("--warmup", type=float, default=2.0, metavar="S",

@@ -57,6 +57,7 @@ from typing import Any
 
 import numpy as np
 
+from agents.argtypes import non_negative_int
 from agents.errors import UserError
 
 HELP = "scan updates per second, step time, peak RSS"
@@ -72,7 +73,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="paper-small: scans run before the timed ones (default 0)")
     parser.add_argument("--museum-warmup", type=int, default=2000, metavar="W",
                         help="museum: scans run before the timed ones, to grow the map first (default 2000)")
-    parser.add_argument("--seed", type=int, default=0, help="first seed (default 0)")
+    parser.add_argument("--seed", type=non_negative_int, default=0, help="first seed (default 0)")
     parser.add_argument("--seeds", type=int, default=1, metavar="K",
                         help="seeds per world; figures are medians over them (default 1)")
     parser.add_argument("--json", action="store_true", help="print the JSON summary as the last line")

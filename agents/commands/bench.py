@@ -1,5 +1,5 @@
-"""``wiremap bench {accuracy,speed,codec,fleet,soak,sensor,register,lidar,slam,fingerprint}``: dispatches to
-:mod:`agents.bench`."""
+"""``wiremap bench BENCH`` (one of :data:`BENCHES`): dispatches to :mod:`agents.bench`, after the
+output directory every benchmark's ``--out`` names is checked (a one-line error before any work)."""
 
 from __future__ import annotations
 
@@ -43,4 +43,8 @@ def run(args: argparse.Namespace) -> int:
         from agents.errors import UserError
 
         raise UserError("choose a benchmark: " + ", ".join(BENCHES))
+    if getattr(args, "out", None) is not None:
+        from agents.files.io import check_output_dir
+
+        check_output_dir("--out", args.out)
     return int(module.run(args) or 0)

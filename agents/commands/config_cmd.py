@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 from collections.abc import Mapping
 from typing import TYPE_CHECKING, Any
 
@@ -25,10 +26,16 @@ if TYPE_CHECKING:
 HELP = "show the particle filter's effective configuration (TOML, readable by --params)"
 
 
+def _plain(doc: str) -> str:
+    """A docstring paragraph as terminal text: reST roles and literals without their markup
+    (``:class:`a.b.C``` -> ``a.b.C``, double backquotes dropped)."""
+    return re.sub(r":\w+:`([^`]*)`", r"\1", doc).replace("``", "")
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     sub = parser.add_subparsers(dest="action", metavar="ACTION", parser_class=type(parser), required=True)
     show = sub.add_parser("show", help="print the effective configuration",
-                          description=__doc__.split("\n\n")[1])
+                          description=_plain(__doc__.split("\n\n")[1]))
     show.add_argument("--world", metavar="NAME|FILE",
                       help="apply this world's defaults (threshold, particles)")
     show.add_argument("--particles", type=int, default=None, help="number of particles")

@@ -43,6 +43,7 @@ writes the files for the steps done (``"interrupted": true`` in the report) and 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import math
 import sys
 import time
@@ -52,6 +53,7 @@ from typing import Any
 
 import numpy as np
 
+from agents.argtypes import non_negative_int
 from agents.errors import INTERRUPTED, UserError
 from agents.files.rosbag import DEFAULT_BASE_FRAME, DEFAULT_ODOM_FRAME
 from agents.mapping_run import LIDAR_PROFILES
@@ -75,7 +77,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "realistic lidar (lidar-real: range noise, dropouts, glass, clutter, "
                              "people; its scene drawn from --seed) (default corners)")
     parser.add_argument("--particles", type=int, default=None, help="number of particles (default 10)")
-    parser.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    parser.add_argument("--seed", type=non_negative_int, default=0, help="random seed (default 0)")
     parser.add_argument("--merge-threshold", type=float, default=None, metavar="M",
                         help="merge threshold in metres (default 0.2, or 0.4 for worlds over 100 m)")
     parser.add_argument("--max-range", type=float, default=None, metavar="M",
@@ -101,7 +103,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     bag.add_argument("--truth-topic", metavar="TOPIC",
                      help="a topic with the robot's true pose (nav_msgs/Odometry or "
                           "geometry_msgs/PoseStamped) to start from and score against (default: none)")
-    parser.add_argument("--lidar-profile", choices=tuple(LIDAR_PROFILES), default="lidar-slam",
+    parser.add_argument("--lidar-profile", choices=tuple(LIDAR_PROFILES), default=None,
                         help="real scans (--carmen, --rosbag): lidar-slam, lidar SLAM under the filter "
                              "(default), or lidar, the filter's corner ICP alone "
                              "(agents.mapping_run.LIDAR_PROFILES)")
@@ -159,6 +161,18 @@ def _check(args: argparse.Namespace) -> None:
         raise UserError(f"--carmen {args.carmen}: no such file")
     if args.rosbag is not None and not Path(args.rosbag).exists():
         raise UserError(f"--rosbag {args.rosbag}: no such file or directory")
+    real = args.carmen is not None or args.rosbag is not None
+    if real and args.sensor != "corners":
+        raise UserError("--sensor is for a simulated world; a log or bag maps its own lidar")
+    if real and args.duration is not None:
+        raise UserError("--duration is for a simulated world; a log or bag maps to its end "
+                        "(--steps N stops after N scans)")
+    if not real and args.strict:
+        raise UserError("--strict is for a CARMEN log or a ROS bag (--carmen, --rosbag)")
+    if not real and args.lidar_profile is not None:
+        raise UserError("--lidar-profile is for real scans (--carmen, --rosbag)")
+    if args.lidar_profile is None:
+        args.lidar_profile = "lidar-slam"
     if args.rosbag is None:
         for name in BAG_FLAGS:
             if getattr(args, name) is not None:
@@ -242,6 +256,7 @@ class _Source:
     true_scans: Any = None
     max_range: float = 0.0
     extra: dict[str, Any] | None = None  # what report.json adds for this input
+    route_steps: int | None = None  # a simulated route in scans (--steps, --duration may cut it)
 
 
 def _world_source(args: argparse.Namespace, cargs: ConfigArgs) -> _Source:
@@ -256,13 +271,14 @@ def _world_source(args: argparse.Namespace, cargs: ConfigArgs) -> _Source:
                             duration=args.duration)
     try:
         total: int | None = mr.count_sim_steps(world, options, args.seed)
+        whole = mr.count_sim_steps(world, dataclasses.replace(options, steps=None, duration=None), args.seed)
         filt, inputs = mr.sim_filter(world, options, args.seed, cfg.particles,
                                      cfg.merge_threshold, config=cfg)
     except ValueError as exc:
         raise UserError(f"{args.world}: {exc}") from None
     source = {"input": "world", "world": world.name, "sensor": args.sensor}
     return _Source(filt, inputs, total, source, resolved, world.name, truth=world.truth,
-                   free=world.free_space)
+                   free=world.free_space, route_steps=whole)
 
 
 def _log_source(args: argparse.Namespace, cargs: ConfigArgs) -> _Source:
@@ -441,7 +457,9 @@ def run(args: argparse.Namespace) -> int:
         "interrupted": done.interrupted,
     }
     if src.truth is not None:
-        report.update(_score_world(src.truth, best, thr, done))
+        # a map that stopped before the route's end (Ctrl-C, --steps, --duration) is partial
+        cut_short = done.interrupted or (src.route_steps is not None and k < src.route_steps)
+        report.update(_score_world(src.truth, best, thr, done, cut_short))
     png = None
     report.update(src.extra or {})
     if src.scans is not None and src.true_scans is not None and k:
@@ -455,13 +473,14 @@ def run(args: argparse.Namespace) -> int:
     return INTERRUPTED if done.interrupted else 0
 
 
-def _score_world(truth: Any, best: Any, thr: float, done: _Drive) -> dict[str, Any]:
-    """The map against a simulated world's truth, and the pose errors along the way."""
+def _score_world(truth: Any, best: Any, thr: float, done: _Drive, cut_short: bool) -> dict[str, Any]:
+    """The map against a simulated world's truth, and the pose errors along the way; a map
+    ``cut_short`` before its route's end has no cell error (unexplored area would count)."""
     from mapping.metrics import evaluate
 
     metrics = evaluate(truth, best, thr) if best.n_edges else None
     scored = None if metrics is None else {k2: _num(v) for k2, v in metrics.items()}
-    if done.interrupted and scored is not None:  # an unfinished map is partial
+    if cut_short and scored is not None:  # an unfinished map is partial
         from agents.commands.run import PARTIAL_CELL_ERROR
 
         scored["cell_error"] = None

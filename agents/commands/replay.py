@@ -127,6 +127,20 @@ def viewer_command(
     return [rerun, str(path)]
 
 
+def _web_port(bind: str, port: int) -> int:
+    """``port``, or with 0 a free one chosen here (so that the URL printed is the one served),
+    after checking that ``bind`` is an address of this machine: one line, not the viewer's
+    three-line error after the URL."""
+    import socket
+
+    try:
+        with socket.socket(socket.AF_INET6 if ":" in bind else socket.AF_INET, socket.SOCK_STREAM) as s:
+            s.bind((bind, port))
+            return int(s.getsockname()[1])
+    except OSError as exc:
+        raise UserError(f"--bind {bind} --port {port}: cannot serve there: {exc.strerror or exc}") from None
+
+
 def run(args: argparse.Namespace) -> int:
     path = check_recording(args.file)
     if not args.web and not has_display():
@@ -138,10 +152,11 @@ def run(args: argparse.Namespace) -> int:
     rerun = find_rerun()
     if rerun is None:
         raise UserError("the `rerun` viewer is not installed (pip install rerun-sdk)")
-    cmd = viewer_command(rerun, path, args.web, args.bind, args.port)
+    port = _web_port(args.bind, args.port) if args.web else args.port
+    cmd = viewer_command(rerun, path, args.web, args.bind, port)
     if args.web:
         print(
-            f"wiremap replay: serving {path} on http://{args.bind}:{args.port} (Rerun's server uses about "
+            f"wiremap replay: serving {path} on http://{args.bind}:{port} (Rerun's server uses about "
             "a core even while idle; Ctrl-C stops it)",
             flush=True,
         )

@@ -14,6 +14,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from agents.argtypes import non_negative_float, non_negative_int, positive_float
 from agents.errors import UserError
 from agents.fleet.bus import (
     StopFlag,
@@ -62,13 +63,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="waypoints, or a JSON file of [[x, y], ...] (default: a coverage route from --start)",
     )
     parser.add_argument("--rate", type=float, default=5.0, metavar="HZ", help="scans per second (default 5)")
-    parser.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    parser.add_argument("--seed", type=non_negative_int, default=0, help="random seed (default 0)")
     parser.add_argument(
         "--sensor", choices=SENSORS, default="corners",
         help="simulated sensor: corner sensor (default), clean lidar, or realistic lidar (lidar-real)",
     )
     parser.add_argument(
-        "--scene-seed", type=int, default=None, metavar="S",
+        "--scene-seed", type=non_negative_int, default=None, metavar="S",
         help="with --sensor lidar-real: seed of the scene (glass, clutter, people; default --seed); "
         "robots of one fleet share it",
     )
@@ -86,10 +87,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--heartbeat", type=float, default=2.0, metavar="S",
         help="re-send the map at least every S s (default 2)"
     )
-    parser.add_argument("--viz-rate", type=float, default=2.0, metavar="HZ",
+    parser.add_argument("--viz-rate", type=non_negative_float, default=2.0, metavar="HZ",
                         help="scan+particles for the recorder, Hz (0: off)")
     parser.add_argument(
-        "--duration", type=float, metavar="S",
+        "--duration", type=positive_float, metavar="S",
         help="stop mapping after S simulated seconds (simulated time runs 2.5x the wall clock at --rate 5: "
         "each scan is 0.5 s of driving)",
     )
@@ -115,6 +116,9 @@ def options_from_args(args: argparse.Namespace) -> RobotOptions:
         return _carmen_options(args, rid)
     if not args.world:
         raise UserError("give --world NAME|FILE (or --carmen LOG)")
+    from agents.sim.world import load_world
+
+    load_world(args.world)  # an unknown world or a bad file is its own one-line error, first
     route = None
     if args.route:
         try:

@@ -62,6 +62,7 @@ from typing import Any
 
 import numpy as np
 
+from agents.argtypes import non_negative_int
 from agents.errors import INTERRUPTED, UserError
 from agents.files.io import write_atomic, write_json
 from agents.fleet.bus import (
@@ -115,7 +116,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "has replayed its stretch; simulated time runs 2.5x faster at --rate 5, each scan being "
         "0.5 s of driving)",
     )
-    parser.add_argument("--seed", type=int, default=0, help="random seed (routes; robot k gets seed + k)")
+    parser.add_argument("--seed", type=non_negative_int, default=0,
+                        help="random seed (routes; robot k gets seed + k)")
     parser.add_argument(
         "--sensor", choices=SENSORS, default="corners",
         help="the robots' simulated sensor: the corner sensor (default), the clean lidar or the "
@@ -559,6 +561,8 @@ def _check_arguments(args: argparse.Namespace) -> int:
         raise UserError(f"--particles must be >= 1, got {args.particles}")
     if not 1 <= n <= MAX_ROBOTS:
         raise UserError(f"--robots must be between 1 and {MAX_ROBOTS}, got {n}")
+    if not 1 <= args.fusers <= n:
+        raise UserError(f"--fusers must be between 1 and the number of robots ({n}), got {args.fusers}")
     for name, v in (("--duration", args.duration), ("--rate", args.rate)):
         if not (math.isfinite(v) and v > 0):
             raise UserError(f"{name} must be a positive number, got {v}")
@@ -920,9 +924,10 @@ def _print_summary(report: dict[str, Any], ids: list[str], out: Path) -> None:
 
 def _num(v: object, spec: str) -> str:
     """A figure for the summary (an integer spec takes the value as an integer), or "n/a" when
-    there is none."""
-    if isinstance(v, bool) or not isinstance(v, (int, float)):
-        return "n/a"
+    there is none (or it is NaN), right-aligned in the spec's width like the figure."""
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or (isinstance(v, float) and math.isnan(v)):
+        width = len(spec) - len(spec.lstrip("0123456789"))
+        return "n/a".rjust(int(spec[:width]) if width else 0)
     return format(int(v), spec) if spec.endswith("d") else format(float(v), spec)
 
 

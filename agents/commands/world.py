@@ -23,6 +23,7 @@ import time
 from collections.abc import Sequence
 from typing import TYPE_CHECKING
 
+from agents.argtypes import image_size, non_negative_int
 from agents.errors import UserError
 
 if TYPE_CHECKING:
@@ -63,10 +64,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     show.add_argument("--geojson", metavar="PATH", help="write the world as a world file")
     show.add_argument("--plan", action="store_true", help="plan and draw a coverage route")
     show.add_argument("--robots", type=int, default=1, metavar="N", help="split the route among N robots")
-    show.add_argument("--seed", type=int, default=0, help="random seed for the route planner (default 0)")
+    show.add_argument("--seed", type=non_negative_int, default=0,
+                      help="random seed for the route planner (default 0)")
     show.add_argument("--clearance", type=float, default=0.4, help="route clearance from walls, m")
     show.add_argument("--spacing", type=float, default=None, help="route coverage spacing, m")
-    show.add_argument("--max-px", type=int, default=1600, help="larger side of the PNG in pixels")
+    show.add_argument("--max-px", type=image_size, default=1600,
+                      help="larger side of the PNG in pixels (>= 64)")
 
 
 def run(args: argparse.Namespace) -> int:

@@ -47,10 +47,15 @@ def write_atomic(path: str | os.PathLike[str], data: bytes | str, mode: int | No
 
 
 def check_output_dir(flag: str, path: str | os.PathLike[str]) -> Path:
-    """Check, before any work and without creating anything, that directory ``path`` exists or
+    """Check, before any work and leaving nothing behind, that directory ``path`` exists or
     can be made: the nearest existing ancestor is a writable directory (not a file). Else a
     one-line ``UserError`` naming ``flag``, e.g. ``--out afile/sub: afile is a file, not a
-    directory``."""
+    directory``. An empty path is refused (it would be the current directory, which a run
+    clears of its previous outputs). Writability is tried, not inferred from the mode bits
+    (which a superuser passes even in ``/proc``): a directory is made in the nearest existing
+    ancestor and removed at once."""
+    if not str(path).strip():
+        raise UserError(f"{flag}: empty path (give a directory, e.g. {flag} out/run1)")
     p = Path(path)
     probe = p
     while not probe.exists():
@@ -61,13 +66,18 @@ def check_output_dir(flag: str, path: str | os.PathLike[str]) -> Path:
         what = ("is a file, not a directory" if probe == p
                 else f"cannot create it: {probe} is a file, not a directory")
         raise UserError(f"{flag} {p}: {what}")
-    if probe.exists() and not os.access(probe, os.W_OK | os.X_OK):
-        raise UserError(f"{flag} {p}: {probe} is not writable")
+    if probe.exists():
+        if not os.access(probe, os.W_OK | os.X_OK):
+            raise UserError(f"{flag} {p}: {probe} is not writable")
+        try:
+            os.rmdir(tempfile.mkdtemp(dir=probe, prefix=".wiremap-probe-"))
+        except OSError as exc:
+            raise UserError(f"{flag} {p}: cannot write in {probe}: {exc.strerror or exc}") from None
     return p
 
 
 def check_output_file(flag: str, path: str | os.PathLike[str]) -> Path:
-    """Check, before any work and without creating anything, that file ``path`` can be written:
+    """Check, before any work and leaving nothing behind, that file ``path`` can be written:
     it is not a directory and its directory exists or can be made (:func:`check_output_dir`)."""
     p = Path(path)
     if p.is_dir():

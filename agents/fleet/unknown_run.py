@@ -230,7 +230,7 @@ def write_outputs_unknown(
     """``report.json`` (and ``fused.*``) of an unknown-starts run (module docstring); ``published``
     and ``tracks`` (what :func:`agents.commands.run.write_outputs` also takes) are not used: the
     fused map is read from the store, and the robots' tracks are in their own frames."""
-    from agents.commands.run import _metrics
+    from agents.commands.run import PARTIAL_CELL_ERROR, _metrics
     from agents.files.render import map_png
     from agents.fleet.fusion import merge_threshold_of
     from agents.fleet.robot import start_pose_of
@@ -259,6 +259,9 @@ def write_outputs_unknown(
     statuses = extra.get("robot_status", {})
     covered = all(bool(statuses.get(r, {}).get("finished", False)) for r in ids)
     fused = _metrics(world.truth, aligned, res, partial=not covered)
+    if not covered:
+        fused["cell_error_note"] = PARTIAL_CELL_ERROR.replace(
+            "one robot's partial map", "a fleet map cut short before every robot finished its route")
     fused.update({"vertices": wf.n_vertices, "edges": wf.n_edges, "bytes": len(raw), "version": msg.seq,
                   "robots": robots, "alignment": [round(v, 6) for v in align.as_tuple()],
                   "placed_unaligned": _metrics(world.truth, placed, res)})
@@ -393,6 +396,7 @@ def _summary_shape(report: dict[str, Any], ids: list[str]) -> dict[str, Any]:
     for rid in ids:
         r = report["per_robot"].setdefault(rid, {})
         r.setdefault("wall_recall", float("nan"))
+        r.setdefault("wall_precision", r.get("endpoint_precision", float("nan")))
         st = report.get("robot_status", {}).get(rid, {})
         r.setdefault("maps_sent", int(st.get("maps_sent", 0)))
         r.setdefault("bytes_sent", int(st.get("bytes_sent", 0)))
