@@ -101,7 +101,11 @@ def prepare_carmen(
 
 
 # ---------------------------------------------------------------------- reports
-def _fused(out: Path) -> tuple[bytes, Any]:
+def _fused(out: Path, published: bytes | None = None) -> tuple[bytes, Any]:
+    """The fused map: the fusion service's last published message (``published``, as seen on
+    the bus) when it is the stored version, else the stored one -- as a run from known starts
+    does, so that ``fused.wfm``, the report's ``bytes`` and the live progress line agree (the
+    store's copy of the same version can differ in its meta)."""
     from agents.fleet.fusion import decode_message
 
     store = out / "store"
@@ -109,7 +113,15 @@ def _fused(out: Path) -> tuple[bytes, Any]:
     if not fused_path.is_file():
         raise UserError(f"the fusion service left no fused map in {store} (see {out / 'logs' / 'fuse.log'})")
     raw = fused_path.read_bytes()
-    return raw, decode_message(raw)
+    msg = decode_message(raw)
+    if published is not None:
+        try:
+            pub = decode_message(published)
+        except ValueError:
+            pub = None
+        if pub is not None and pub.seq == msg.seq:
+            return published, pub
+    return raw, msg
 
 
 def _store_state(out: Path) -> dict[str, Any]:
@@ -227,16 +239,17 @@ def write_outputs_unknown(
     out: Path, world: Any, ids: list[str], duration_s: float, extra: dict[str, Any],
     published: bytes | None = None, tracks: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
-    """``report.json`` (and ``fused.*``) of an unknown-starts run (module docstring); ``published``
-    and ``tracks`` (what :func:`agents.commands.run.write_outputs` also takes) are not used: the
-    fused map is read from the store, and the robots' tracks are in their own frames."""
+    """``report.json`` (and ``fused.*``) of an unknown-starts run (module docstring): the fused
+    map is ``published`` when it is the stored version (:func:`_fused`); ``tracks`` (what
+    :func:`agents.commands.run.write_outputs` also takes) are not used: the robots' tracks are
+    in their own frames."""
     from agents.commands.run import PARTIAL_CELL_ERROR, _metrics
     from agents.files.render import map_png
     from agents.fleet.fusion import merge_threshold_of
     from agents.fleet.robot import start_pose_of
     from mapping.metrics import align_to_truth
 
-    raw, msg = _fused(out)
+    raw, msg = _fused(out, published)
     wf = msg.wireframe
     robots = list(msg.robots)
     state = _store_state(out)
@@ -297,7 +310,7 @@ def write_outputs_carmen(
     from agents.fleet.carmen_fleet import endpoint_precision, endpoints
     from mapping.lidar_metrics import align_to_points
 
-    raw, msg = _fused(out)
+    raw, msg = _fused(out, published)
     wf = msg.wireframe
     robots = list(msg.robots)
     state = _store_state(out)
