@@ -325,7 +325,8 @@ def test_export_rosmap_from_geojson(tmp_path: Path, capsys: pytest.CaptureFixtur
         )
         == 0
     )
-    assert "floor.pgm" in capsys.readouterr().out
+    cap = capsys.readouterr()
+    assert "floor.pgm" in cap.out and "no free cell" not in cap.err
     data = (tmp_path / "out" / "floor.pgm").read_bytes()
     w, h, maxval, off = parse_pgm_header(data)
     assert (w, h, maxval) == (65, 45, 255)
@@ -350,6 +351,18 @@ def test_export_rosmap_from_geojson(tmp_path: Path, capsys: pytest.CaptureFixtur
     assert pixel(img, meta, -0.2, 1.0) == 205
     # Top-down: the image's first room row is the top wall at y = 4, its last the bottom wall.
     assert pixel(img, meta, 1.0, 4.0) == 0 and img[2, 12] == 0 and img[h - 3, 12] == 0
+
+
+def test_export_rosmap_of_an_open_map_says_it_has_no_free_cell(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A map that closes no room rasterises to walls and unknown only; the command says so
+    (a planner cannot use it), and still writes it."""
+    src = tmp_path / "open.geojson"
+    src.write_text(json.dumps(Wireframe.build([(0, 0), (3, 0), (3, 2)], [(0, 1), (1, 2)]).to_geojson()))
+    assert run_cli(str(src), "--format", "rosmap", "--out", str(tmp_path / "open")) == 0
+    assert "no free cell" in capsys.readouterr().err
+    assert (tmp_path / "open.pgm").is_file() and (tmp_path / "open.yaml").is_file()
 
 
 def test_export_wfm_to_each_format(tmp_path: Path) -> None:

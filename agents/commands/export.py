@@ -21,6 +21,7 @@ Without ``--format`` the format follows ``--out``'s suffix (``.geojson``/``.json
 from __future__ import annotations
 
 import argparse
+import sys
 
 from agents import argtypes
 from agents.errors import UserError
@@ -84,4 +85,12 @@ def run(args: argparse.Namespace) -> int:
         f"wrote {', '.join(str(p) for p in written)} ({fmt}; {wf.n_vertices} vertices, {wf.n_edges} edges)",
         flush=True,
     )
+    if fmt == "rosmap":
+        from agents.files.export import FREE, read_pgm
+
+        pgm = next(p for p in written if str(p).endswith(".pgm"))
+        if not (read_pgm(pgm.read_bytes()) == FREE).any():
+            print("wiremap export: note: no free cell: free space is the inside of a closed room (the "
+                  "map closes none), so a planner has nowhere to go on this map",
+                  file=sys.stderr, flush=True)
     return 0
