@@ -365,6 +365,44 @@ def test_export_rosmap_of_an_open_map_says_it_has_no_free_cell(
     assert (tmp_path / "open.pgm").is_file() and (tmp_path / "open.yaml").is_file()
 
 
+def test_a_track_makes_what_the_robot_saw_free(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """An open room (a doorway in its south wall, so no face closes) has no free cell from its
+    walls alone; with the robot's track, the room it drove through is free, the space behind
+    its walls stays unknown, and what was beyond the sensor's range too."""
+    # 6 x 4 room, door from x=2.5 to 3.5 in the south wall, walls drawn with free space on the left
+    wf = Wireframe.build([(3.5, 0), (6, 0), (6, 4), (0, 4), (0, 0), (2.5, 0)],
+                         [(0, 1), (1, 2), (2, 3), (3, 4), (4, 5)])
+    assert not np.any(E.occupancy_grid(wf, resolution=0.1).data == E.FREE)
+    track = np.array([[1.0, 2.0], [3.0, 2.0], [5.0, 2.0]])
+    g = E.occupancy_grid(wf, resolution=0.1, margin=8, tracks=[track], sensor_range=8.0)
+    assert g.value_at(1.0, 1.0) == E.FREE and g.value_at(5.5, 3.5) == E.FREE
+    assert g.value_at(3.0, 0.0) == E.FREE  # the doorway
+    assert g.value_at(6.0, 2.0) == E.OCCUPIED  # walls are drawn over what was seen
+    assert g.value_at(-0.3, 2.0) == E.UNKNOWN and g.value_at(6.3, 2.0) == E.UNKNOWN  # behind the walls
+    assert g.value_at(1.0, -0.3) == E.UNKNOWN  # behind the south wall, beside the door's cone
+    short = E.occupancy_grid(wf, resolution=0.1, tracks=[track[:1]], sensor_range=1.0)
+    assert short.value_at(1.5, 2.0) == E.FREE and short.value_at(2.5, 2.0) == E.UNKNOWN  # beyond range
+    # the command: --trajectory reads wiremap map's trajectory.tsv (t x y theta)
+    src = tmp_path / "open.geojson"
+    src.write_text(json.dumps(wf.to_geojson()))
+    tsv = tmp_path / "trajectory.tsv"
+    tsv.write_text("".join(f"{k * 0.5:.6f}\t{x:.6f}\t{y:.6f}\t0.0\n" for k, (x, y) in enumerate(track)))
+    assert run_cli(str(src), "--format", "rosmap", "--out", str(tmp_path / "room"),
+                   "--trajectory", str(tsv)) == 0
+    assert "no free cell" not in capsys.readouterr().err
+    assert (E.read_pgm((tmp_path / "room.pgm").read_bytes()) == E.FREE).sum() > 1000
+    # misuse: one line, exit 2
+    bad = tmp_path / "bad.tsv"
+    bad.write_text("1 2 x\n")
+    for argv in ([str(src), "--format", "rosmap", "--out", str(tmp_path / "r2"), "--trajectory", str(bad)],
+                 [str(src), "--format", "svg", "--out", str(tmp_path / "r.svg"), "--trajectory", str(tsv)],
+                 [str(src), "--format", "rosmap", "--out", str(tmp_path / "r3"), "--trajectory",
+                  str(tmp_path / "missing.tsv")]):
+        assert run_cli(*argv) == 2
+        err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+        assert len(err) == 1 and "--trajectory" in err[0], err
+
+
 def test_export_wfm_to_each_format(tmp_path: Path) -> None:
     wf = room_with_pillar().replace(labels=np.array([0, 0, 1, 2, 0, 0, 0, 0], dtype=np.uint8))
     src = tmp_path / "fused.wfm"

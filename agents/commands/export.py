@@ -52,6 +52,22 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help=f"rosmap cell size in metres (default {DEFAULT_RESOLUTION})",
     )
     parser.add_argument(
+        "--trajectory",
+        action="append",
+        default=[],
+        metavar="FILE",
+        help="rosmap: a robot's track (wiremap map's trajectory.tsv: t x y theta; or x y [theta]); "
+        "what its sensor could see past no wall is free too (repeat for several robots)",
+    )
+    parser.add_argument(
+        "--sensor-range",
+        type=argtypes.positive_float,
+        default=8.0,
+        metavar="M",
+        help="with --trajectory: how far the sensor saw, metres (default 8, the simulator's; "
+        "a real scanner's range, e.g. 20)",
+    )
+    parser.add_argument(
         "--min-likelihood",
         type=argtypes.probability,
         default=0.0,
@@ -72,9 +88,17 @@ def run(args: argparse.Namespace) -> int:
     for path in rosmap_paths(args.out) if fmt == "rosmap" else (args.out,):
         check_output_file("--out", path)
     loaded = load_map(args.map)
+    if args.trajectory and fmt != "rosmap":
+        raise UserError("--trajectory is for --format rosmap (the free space of the occupancy grid)")
+    tracks = []
+    if args.trajectory:
+        from agents.files.export import read_track
+
+        tracks = [read_track(t) for t in args.trajectory]
     try:
         written = export_map(
-            loaded, fmt, args.out, resolution=args.resolution, min_likelihood=args.min_likelihood
+            loaded, fmt, args.out, resolution=args.resolution, min_likelihood=args.min_likelihood,
+            tracks=tracks, sensor_range=args.sensor_range,
         )
     except ValueError as exc:
         raise UserError(str(exc)) from None
@@ -91,6 +115,6 @@ def run(args: argparse.Namespace) -> int:
         pgm = next(p for p in written if str(p).endswith(".pgm"))
         if not (read_pgm(pgm.read_bytes()) == FREE).any():
             print("wiremap export: note: no free cell: free space is the inside of a closed room (the "
-                  "map closes none), so a planner has nowhere to go on this map",
-                  file=sys.stderr, flush=True)
+                  "map closes none) or, with --trajectory, what the robot saw, so a planner has "
+                  "nowhere to go on this map", file=sys.stderr, flush=True)
     return 0

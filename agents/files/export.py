@@ -10,6 +10,9 @@ YAML file naming it. Each cell of the raster is one of three values:
   "supercover" line, so a wall is at least one cell thick and 4-connected: no diagonal gap a
   planner could slip through), plus every cell whose centre lies inside a closed face the walls
   see from their *solid* side (the inside of a pillar, the material between two rooms);
+* with a robot's track (``wiremap export --trajectory``), also **free**: what the walls let a
+  sensor at the track's positions see within its range (:func:`seen_free`), since a map of a
+  real building rarely closes its rooms (a doorway, a wall never seen);
 * **unknown (205)**: everything else: outside every closed face (unexplored space, the outside
   of the building, the open side of an incomplete room) and inside faces whose walls give no
   directed evidence (e.g. a box closed only by thin, two-sided walls).
@@ -32,13 +35,14 @@ from __future__ import annotations
 import math
 import os
 import re
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import shapely
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 from agents.errors import UserError
 from agents.files.io import load_wireframe_geojson, write_atomic, write_json
@@ -380,12 +384,78 @@ def wall_cells(
     return out
 
 
+def seen_free(
+    wf: Wireframe,
+    positions: ArrayLike,
+    max_range: float,
+    origin: tuple[float, float],
+    resolution: float,
+    width: int,
+    height: int,
+    rays: int = 720,
+    spacing: float = 0.25,
+) -> NDArray[np.bool_]:
+    """Cells (a raster as :func:`fill_polygons` returns, row 0 at the bottom) that the map's
+    walls let a sensor see from ``positions`` ``(n, 2)``: from positions at least ``spacing``
+    metres apart along the track (the first always), ``rays`` rays all round, each stopped by
+    the first wall it meets or at ``max_range``; a cell is seen when its centre is nearer than
+    both rays around its bearing (the shorter of the two: a cell behind a wall's end between
+    two rays stays unseen).
+
+    A map alone cannot say where free space is unless a room closes (an open map's rooms miss a
+    wall or a doorway); the robot's own track can: what it could see past no wall it saw
+    free. All round, not the scanner's field of view (the track has no scanner heading), so
+    it slightly overstates what a forward-looking laser saw on its first pass."""
+    out = np.zeros((height, width), dtype=bool)
+    pos = np.asarray(positions, dtype=np.float64).reshape(-1, 2)
+    pos = pos[np.isfinite(pos).all(axis=1)]
+    if len(pos) == 0 or not max_range > 0.0:
+        return out
+    keep = [0]
+    for i in range(1, len(pos)):
+        if np.hypot(*(pos[i] - pos[keep[-1]])) >= spacing:
+            keep.append(i)
+    pos = pos[keep]
+    step = 2.0 * math.pi / rays
+    ang = np.arange(rays) * step
+    d = np.stack([np.cos(ang), np.sin(ang)], axis=1)  # (R, 2)
+    segs = wf.segments()
+    a, e = segs[:, 0], segs[:, 1] - segs[:, 0]  # (S, 2)
+    denom = d[:, None, 0] * e[None, :, 1] - d[:, None, 1] * e[None, :, 0]  # (R, S)
+    ok = np.abs(denom) > 1e-12
+    inv = np.where(ok, 1.0 / np.where(ok, denom, 1.0), 0.0)
+    xs = origin[0] + (np.arange(width) + 0.5) * resolution
+    ys = origin[1] + (np.arange(height) + 0.5) * resolution
+    reach = math.ceil(max_range / resolution) + 1
+    for p in pos:
+        w = a - p  # (S, 2)
+        t = (w[None, :, 0] * e[None, :, 1] - w[None, :, 1] * e[None, :, 0]) * inv
+        u = (w[None, :, 0] * d[:, None, 1] - w[None, :, 1] * d[:, None, 0]) * inv
+        hit = ok & (t > 1e-9) & (u >= -1e-9) & (u <= 1.0 + 1e-9)
+        r = np.minimum(np.where(hit, t, np.inf).min(axis=1, initial=np.inf), max_range)
+        sector = np.minimum(r, np.roll(r, -1))  # between ray k and ray k + 1
+        ci = math.floor((p[0] - origin[0]) / resolution)
+        cj = math.floor((p[1] - origin[1]) / resolution)
+        i0, i1 = max(0, ci - reach), min(width, ci + reach + 1)
+        j0, j1 = max(0, cj - reach), min(height, cj + reach + 1)
+        if i0 >= i1 or j0 >= j1:
+            continue
+        dx = xs[i0:i1][None, :] - p[0]
+        dy = ys[j0:j1][:, None] - p[1]
+        dist = np.hypot(dx, dy)
+        k = (np.floor(np.arctan2(dy, dx) / step).astype(np.int64)) % rays
+        out[j0:j1, i0:i1] |= dist < sector[k]
+    return out
+
+
 def occupancy_grid(
     wf: Wireframe,
     resolution: float = DEFAULT_RESOLUTION,
     margin: int = DEFAULT_MARGIN,
     min_likelihood: float = 0.0,
     bounds: tuple[float, float, float, float] | None = None,
+    tracks: Sequence[ArrayLike] = (),
+    sensor_range: float = 8.0,
 ) -> OccupancyGrid:
     """Rasterise a wireframe into ``map_server`` values (rules in the module docstring).
 
@@ -401,6 +471,10 @@ def occupancy_grid(
         Edges with a lower likelihood are dropped first (default 0: every edge counts).
     bounds : (xmin, ymin, xmax, ymax), optional
         Area to cover instead of the wireframe's bounding box.
+    tracks : sequence of (n, 2) arrays
+        Robots' positions: what their sensor could see within ``sensor_range`` metres
+        (:func:`seen_free`) is free too, under the rules above (a closed face's verdict and
+        the walls are drawn over it).
 
     Returns
     -------
@@ -422,6 +496,8 @@ def occupancy_grid(
         bounds = wf.bounds()
     origin, width, height = grid_geometry(bounds, resolution, margin)
     grid = np.full((height, width), UNKNOWN, dtype=np.uint8)
+    for track in tracks:
+        grid[seen_free(wf, track, sensor_range, origin, resolution, width, height)] = FREE
     faces, votes = classify_faces(wf)
     free = [f for f, v in zip(faces, votes.tolist()) if v > 0.0]
     solid = [f for f, v in zip(faces, votes.tolist()) if v < 0.0]
@@ -517,13 +593,15 @@ def write_rosmap(
     resolution: float = DEFAULT_RESOLUTION,
     margin: int = DEFAULT_MARGIN,
     min_likelihood: float = 0.0,
+    tracks: Sequence[ArrayLike] = (),
+    sensor_range: float = 8.0,
 ) -> tuple[Path, Path, OccupancyGrid]:
     """Write ``map_server`` PGM + YAML for ``wf`` (paths from :func:`rosmap_paths`), each
     atomically, the PGM first. Returns ``(pgm_path, yaml_path, grid)``.
 
     Raises ``ValueError`` as :func:`occupancy_grid` does."""
     pgm_path, yaml_path = rosmap_paths(out)
-    grid = occupancy_grid(wf, resolution, margin, min_likelihood)
+    grid = occupancy_grid(wf, resolution, margin, min_likelihood, tracks=tracks, sensor_range=sensor_range)
     write_atomic(pgm_path, pgm_bytes(grid, comment=f"wiremap occupancy map, {resolution:g} m/cell"))
     write_atomic(yaml_path, map_yaml(grid, pgm_path.name))
     return pgm_path, yaml_path, grid
@@ -578,6 +656,8 @@ def export_map(
     out: str | os.PathLike[str],
     resolution: float = DEFAULT_RESOLUTION,
     min_likelihood: float = 0.0,
+    tracks: Sequence[ArrayLike] = (),
+    sensor_range: float = 8.0,
 ) -> list[Path]:
     """Write ``loaded`` in format ``fmt`` to ``out``; returns the files written.
 
@@ -603,6 +683,34 @@ def export_map(
         write_atomic(out, png_bytes(wf, title=_title(loaded.properties)))
         return [Path(out)]
     if fmt == "rosmap":
-        pgm, yaml, _ = write_rosmap(wf, out, resolution, min_likelihood=min_likelihood)
+        pgm, yaml, _ = write_rosmap(wf, out, resolution, min_likelihood=min_likelihood, tracks=tracks,
+                                    sensor_range=sensor_range)
         return [pgm, yaml]
     raise ValueError(f"unknown format {fmt!r}: use one of {', '.join(FORMATS)}")
+
+
+def read_track(path: str | os.PathLike[str]) -> FloatArray:
+    """Positions ``(n, 2)`` from a track file: whitespace-separated rows of ``t x y theta``
+    (``wiremap map``'s ``trajectory.tsv``), ``x y theta`` or ``x y``; ``#`` comments. A bad
+    file is a one-line :class:`UserError`."""
+    p = Path(path)
+    try:
+        text = p.read_text()
+    except OSError as exc:
+        raise UserError(f"--trajectory {p}: {exc.strerror or exc}") from None
+    except UnicodeDecodeError:
+        raise UserError(f"--trajectory {p}: not a text file") from None
+    rows = [ln.split() for ln in text.splitlines() if ln.strip() and not ln.lstrip().startswith("#")]
+    if not rows:
+        raise UserError(f"--trajectory {p}: no positions")
+    width = len(rows[0])
+    if width not in (2, 3, 4) or any(len(r) != width for r in rows):
+        raise UserError(f"--trajectory {p}: expected rows of 't x y theta', 'x y theta' or 'x y'")
+    try:
+        a = np.array(rows, dtype=np.float64)
+    except ValueError:
+        raise UserError(f"--trajectory {p}: not numbers") from None
+    xy = a[:, 1:3] if width == 4 else a[:, 0:2]
+    if not np.isfinite(xy).all():
+        raise UserError(f"--trajectory {p}: a position is not finite")
+    return np.ascontiguousarray(xy)
