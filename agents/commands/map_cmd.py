@@ -506,13 +506,12 @@ def _print_summary(report: dict[str, Any], out: Path) -> None:
         lines.append(f"  log         skipped {report['skipped_lines']} unreadable lines")
     if report.get("laser_yaw_deg"):
         lines.append(f"  laser yaw   {report['laser_yaw_deg']:+.2f} degrees taken off every bearing "
-                     f"(+-{report['laser_yaw_se_deg']:.2f}, against the odometry's direction of travel)")
+                     f"(+-{report['laser_yaw_se_deg']:.2f})")
     if report.get("slam_odo_rot_per_m_deg") is not None:
         noise = report["odometry_heading_noise_deg_per_m"]
-        measured = "not measured" if noise is None else f"{noise:.2f} degrees per metre"
-        lines.append(f"  odometry    heading error {measured} (from "
-                     f"{report['odometry_noise_pairs']} scan pairs); the SLAM's prior "
-                     f"{report['slam_odo_rot_per_m_deg']:.2f} degrees per metre"
+        measured = "not measured" if noise is None else f"{noise:.2f} deg/m"
+        lines.append(f"  odometry    heading error {measured} ({report['odometry_noise_pairs']} scan pairs)")
+        lines.append(f"              SLAM prior {report['slam_odo_rot_per_m_deg']:.2f} deg/m"
                      + (" (widened)" if report.get("slam_odo_prior_widened") else " (as configured)"))
     if report.get("input") == "rosbag":
         line = (f"  bag         {report['scans']} scans from {report['scan_topic']}, "
@@ -528,14 +527,14 @@ def _print_summary(report: dict[str, Any], out: Path) -> None:
             f"recall {m['wall_recall']:.3f}"
         )
     if report.get("ate_rmse_m") is not None:
-        line = (f"  vs truth    ATE {report['ate_rmse_m']:.3f} m "
-                f"(odometry {report['odometry_ate_rmse_m']:.3f} m)")
+        lines.append(f"  vs truth    ATE {report['ate_rmse_m']:.3f} m "
+                     f"(odometry {report['odometry_ate_rmse_m']:.3f} m)")
         if report.get("map_precision") is not None:
-            line += f", map precision {report['map_precision']:.3f}, coverage {report['map_coverage']:.3f}"
+            lines.append(f"              map precision {report['map_precision']:.3f}, "
+                         f"coverage {report['map_coverage']:.3f}")
             if report.get("map_precision_aligned") is not None:
-                line += (f" (precision {report['map_precision_aligned']:.3f} after one rigid alignment of "
-                         f"{report['alignment_m']:.2f} m, {report['alignment_deg']:+.2f} degrees)")
-        lines.append(line)
+                lines.append(f"              precision {report['map_precision_aligned']:.3f} after one rigid "
+                             f"move of {report['alignment_m']:.2f} m, {report['alignment_deg']:+.2f} deg")
     if report.get("pose_error_mean_m") is not None:
         lines.append(f"  pose error  mean {report['pose_error_mean_m']:.3f} m, "
                      f"max {report['pose_error_max_m']:.3f} m")
