@@ -253,6 +253,11 @@ def test_run_three_robots_on_paper_small(tmp_path: Path):
     assert "Traceback" not in log, log
     for name in ("fused.geojson", "fused.wfm", "fused.png", "recording.rrd", "report.json"):
         assert (out / name).is_file() and (out / name).stat().st_size > 0, name
+    # each robot's track (fleet frame), which `export --trajectory` reads for the ROS map's free space
+    from agents.files.export import read_track
+
+    assert sorted(p.name for p in (out / "tracks").glob("*.tsv")) == ["r1.tsv", "r2.tsv", "r3.tsv"]
+    assert all(len(read_track(p)) > 10 for p in (out / "tracks").glob("*.tsv"))
     rep = json.loads((out / "report.json").read_text())
     assert rep["world"] == "paper-small" and rep["robots"] == 3 and 0 < rep["duration_s"] < 60
     fused, per = rep["fused"], rep["per_robot"]

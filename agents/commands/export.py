@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from pathlib import Path
 
 from agents import argtypes
 from agents.errors import UserError
@@ -56,8 +57,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         action="append",
         default=[],
         metavar="FILE",
-        help="rosmap: a robot's track (wiremap map's trajectory.tsv: t x y theta; or x y [theta]); "
-        "what its sensor could see past no wall is free too (repeat for several robots)",
+        help="rosmap: a robot's track (wiremap map's trajectory.tsv: t x y theta; or x y [theta]), or "
+        "a folder of them (wiremap run's tracks/); what the sensor could see past no wall is free "
+        "too (repeatable)",
     )
     parser.add_argument(
         "--sensor-range",
@@ -94,7 +96,12 @@ def run(args: argparse.Namespace) -> int:
     if args.trajectory:
         from agents.files.export import read_track
 
-        tracks = [read_track(t) for t in args.trajectory]
+        files = []
+        for t in map(Path, args.trajectory):  # a folder: every *.tsv in it (wiremap run's tracks/)
+            files.extend(sorted(t.glob("*.tsv")) if t.is_dir() else [t])
+        if not files:
+            raise UserError(f"--trajectory {' '.join(args.trajectory)}: no .tsv track in it")
+        tracks = [read_track(t) for t in files]
     try:
         written = export_map(
             loaded, fmt, args.out, resolution=args.resolution, min_likelihood=args.min_likelihood,

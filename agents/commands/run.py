@@ -353,6 +353,9 @@ def write_outputs(
     robots = list(msg.robots)
     write_atomic(out / "fused.wfm", raw)
     write_json(out / "fused.geojson", wireframe_geojson(wf, message_properties(msg, world.name)))
+    for rid, xy in (tracks or {}).items():  # each robot's estimated track, fleet frame: `export --trajectory`
+        rows = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+        write_atomic(out / "tracks" / f"{rid}.tsv", "".join(f"{x:.4f}\t{y:.4f}\n" for x, y in rows.tolist()))
     title = f"{world.name}: fused map v{msg.seq} from {', '.join(robots) or 'no robot'}"
     write_atomic(
         out / "fused.png",
@@ -601,7 +604,7 @@ def _prepare_output(out: Path, world: Any, ids: list[str], args: argparse.Namesp
 
 #: What ``wiremap run`` writes into its output directory; a new run removes all of it first.
 RUN_FILES = ("fused.wfm", "fused.geojson", "fused.png", "report.json", "recording.rrd", "params.toml")
-RUN_DIRS = ("store", "logs", "status", "routes", "secure")
+RUN_DIRS = ("store", "logs", "status", "routes", "secure", "tracks")
 
 
 def merge_recordings(out: Path) -> None:
