@@ -368,6 +368,14 @@ def count_sim_steps(
     world: Any, options: SimOptions, seed: int, route: NDArray[np.float64] | None = None
 ) -> int:
     """How many scans :func:`simulate` yields (without simulating the sensor)."""
+    return sim_step_counts(world, options, seed, route)[0]
+
+
+def sim_step_counts(
+    world: Any, options: SimOptions, seed: int, route: NDArray[np.float64] | None = None
+) -> tuple[int, int]:
+    """``(scans simulate yields, scans of the whole route)``: the first is cut by
+    ``options.steps`` and ``options.duration``, the second is not (one route plan for both)."""
     from agents.sim.motion import drive
     from agents.sim.route import plan_route
 
@@ -375,12 +383,12 @@ def count_sim_steps(
     if route is None:
         route = plan_route(world, rngs["route"], sensor_range=options.max_range)
     steps = drive(route, speed=options.speed, dt=options.dt, rng=rngs["drive"])
-    n = len(steps)
+    n = whole = len(steps)
     if options.steps is not None:
         n = min(n, options.steps)
     if options.duration is not None:
         n = sum(1 for s in steps[:n] if s.t <= options.duration + 1e-9)
-    return n
+    return n, whole
 
 
 def _scanner(world: Any, options: SimOptions, route: NDArray[np.float64], scene_seed: int) -> Any:

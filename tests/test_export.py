@@ -374,9 +374,12 @@ def test_a_track_makes_what_the_robot_saw_free(tmp_path: Path, capsys: pytest.Ca
                          [(0, 1), (1, 2), (2, 3), (3, 4), (4, 5)])
     assert not np.any(E.occupancy_grid(wf, resolution=0.1).data == E.FREE)
     track = np.array([[1.0, 2.0], [3.0, 2.0], [5.0, 2.0]])
-    g = E.occupancy_grid(wf, resolution=0.1, margin=8, tracks=[track], sensor_range=8.0)
+    g = E.occupancy_grid(wf, resolution=0.1, margin=15, tracks=[track], sensor_range=8.0)
     assert g.value_at(1.0, 1.0) == E.FREE and g.value_at(5.5, 3.5) == E.FREE
-    assert g.value_at(3.0, 0.0) == E.FREE  # the doorway
+    # through the doorway no wall of the map is in range: free only within --open-range (2 m)
+    assert g.value_at(3.0, 0.5) == E.FREE and g.value_at(3.0, -1.0) == E.UNKNOWN
+    wide = E.occupancy_grid(wf, resolution=0.1, margin=15, tracks=[track], sensor_range=8.0, open_range=4.0)
+    assert wide.value_at(3.0, -1.0) == E.FREE
     assert g.value_at(6.0, 2.0) == E.OCCUPIED  # walls are drawn over what was seen
     assert g.value_at(-0.3, 2.0) == E.UNKNOWN and g.value_at(6.3, 2.0) == E.UNKNOWN  # behind the walls
     assert g.value_at(1.0, -0.3) == E.UNKNOWN  # behind the south wall, beside the door's cone
@@ -401,6 +404,15 @@ def test_a_track_makes_what_the_robot_saw_free(tmp_path: Path, capsys: pytest.Ca
         assert run_cli(*argv) == 2
         err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
         assert len(err) == 1 and "--trajectory" in err[0], err
+    assert run_cli(str(src), "--format", "rosmap", "--out", str(tmp_path / "r4"), "--sensor-range", "5") == 2
+    # a header line is skipped; an empty folder is an error
+    tsv.write_text("t\tx\ty\ttheta\n" + tsv.read_text())
+    assert len(E.read_track(tsv)) == 3
+    (tmp_path / "empty").mkdir()
+    capsys.readouterr()
+    assert run_cli(str(src), "--format", "rosmap", "--out", str(tmp_path / "r5"),
+                   "--trajectory", str(tmp_path / "empty")) == 2
+    assert "no .tsv" in capsys.readouterr().err
 
 
 def test_export_wfm_to_each_format(tmp_path: Path) -> None:

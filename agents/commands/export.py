@@ -56,18 +56,26 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--trajectory",
         action="append",
         default=[],
-        metavar="FILE",
-        help="rosmap: a robot's track (wiremap map's trajectory.tsv: t x y theta; or x y [theta]), or "
-        "a folder of them (wiremap run's tracks/); what the sensor could see past no wall is free "
-        "too (repeatable)",
+        metavar="FILE|DIR",
+        help="rosmap: a robot's track (wiremap map's trajectory.tsv: t x y theta; or x y theta; or "
+        "x y), or a folder of them (wiremap run's tracks/, runs from known starts); what the "
+        "sensor could see up to a wall of the map is free too (repeatable)",
     )
     parser.add_argument(
         "--sensor-range",
         type=argtypes.positive_float,
-        default=8.0,
+        default=None,
         metavar="M",
-        help="with --trajectory: how far the sensor saw, metres (default 8, the simulator's; "
-        "a real scanner's range, e.g. 20)",
+        help="with --trajectory: how far the sensor saw walls, metres (default 8, the simulator's)",
+    )
+    parser.add_argument(
+        "--open-range",
+        type=argtypes.non_negative_float,
+        default=None,
+        metavar="M",
+        help="with --trajectory: free space around the track where no wall of the map is in "
+        "range (default 2: a real map lacks walls the scanner saw, and nothing beyond them is "
+        "known to be free)",
     )
     parser.add_argument(
         "--min-likelihood",
@@ -92,20 +100,24 @@ def run(args: argparse.Namespace) -> int:
     loaded = load_map(args.map)
     if args.trajectory and fmt != "rosmap":
         raise UserError("--trajectory is for --format rosmap (the free space of the occupancy grid)")
+    if not args.trajectory and (args.sensor_range is not None or args.open_range is not None):
+        raise UserError("--sensor-range and --open-range go with --trajectory")
     tracks = []
     if args.trajectory:
         from agents.files.export import read_track
 
         files = []
         for t in map(Path, args.trajectory):  # a folder: every *.tsv in it (wiremap run's tracks/)
-            files.extend(sorted(t.glob("*.tsv")) if t.is_dir() else [t])
-        if not files:
-            raise UserError(f"--trajectory {' '.join(args.trajectory)}: no .tsv track in it")
+            found = sorted(t.glob("*.tsv")) if t.is_dir() else [t]
+            if not found:
+                raise UserError(f"--trajectory {t}: no .tsv track in this folder")
+            files.extend(found)
         tracks = [read_track(t) for t in files]
     try:
         written = export_map(
             loaded, fmt, args.out, resolution=args.resolution, min_likelihood=args.min_likelihood,
-            tracks=tracks, sensor_range=args.sensor_range,
+            tracks=tracks, sensor_range=8.0 if args.sensor_range is None else args.sensor_range,
+            open_range=2.0 if args.open_range is None else args.open_range,
         )
     except ValueError as exc:
         raise UserError(str(exc)) from None

@@ -43,7 +43,6 @@ writes the files for the steps done (``"interrupted": true`` in the report) and 
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import math
 import sys
 import time
@@ -270,8 +269,7 @@ def _world_source(args: argparse.Namespace, cargs: ConfigArgs) -> _Source:
     options = mr.SimOptions(sensor=args.sensor, max_range=cfg.max_range, steps=args.steps,
                             duration=args.duration)
     try:
-        total: int | None = mr.count_sim_steps(world, options, args.seed)
-        whole = mr.count_sim_steps(world, dataclasses.replace(options, steps=None, duration=None), args.seed)
+        total, whole = mr.sim_step_counts(world, options, args.seed)
         filt, inputs = mr.sim_filter(world, options, args.seed, cfg.particles,
                                      cfg.merge_threshold, config=cfg)
     except ValueError as exc:
@@ -481,10 +479,10 @@ def _score_world(truth: Any, best: Any, thr: float, done: _Drive, cut_short: boo
     metrics = evaluate(truth, best, thr) if best.n_edges else None
     scored = None if metrics is None else {k2: _num(v) for k2, v in metrics.items()}
     if cut_short and scored is not None:  # an unfinished map is partial
-        from agents.commands.run import PARTIAL_CELL_ERROR
+        from agents.commands.run import MAP_CUT_SHORT, partial_note
 
         scored["cell_error"] = None
-        scored["cell_error_note"] = PARTIAL_CELL_ERROR.replace("one robot's partial map", "a map cut short")
+        scored["cell_error_note"] = partial_note(MAP_CUT_SHORT)
     err = done.pose_err
     return {
         "metrics": scored,

@@ -135,6 +135,9 @@ def _web_port(bind: str, port: int) -> int:
 
     try:
         with socket.socket(socket.AF_INET6 if ":" in bind else socket.AF_INET, socket.SOCK_STREAM) as s:
+            # as the viewer's server binds: a port with connections in TIME_WAIT (a viewer just
+            # stopped) is free to serve
+            s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
             s.bind((bind, port))
             return int(s.getsockname()[1])
     except OSError as exc:

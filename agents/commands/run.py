@@ -291,17 +291,24 @@ class Progress:
 
 
 # ---------------------------------------------------------------------- outputs
-#: Why a robot's own map has no cell error in ``report.json``.
-PARTIAL_CELL_ERROR = (
-    "not applicable to one robot's partial map: the cell error counts unexplored area as "
-    "obstacle (it would be the free share of the world it did not see); see wall_precision "
-    "and mean_dist_m for what it saw, wall_recall for how much"
-)
+#: Subjects of :func:`partial_note`.
+ROBOT_MAP = "one robot's partial map"
+FLEET_CUT_SHORT = "a fleet map cut short before every robot finished its route"
+MAP_CUT_SHORT = "a map cut short"
 
 
-def _metrics(truth: Any, wf: Any, resolution: float, partial: bool = False) -> dict[str, Any]:
-    """Metrics of ``wf`` against the truth (``mapping.metrics.evaluate``). A ``partial`` map (one
-    robot's) gets ``cell_error: null`` and ``cell_error_note`` saying why."""
+def partial_note(subject: str = ROBOT_MAP) -> str:
+    """Why ``subject`` (a partial map) has no cell error in ``report.json``."""
+    return (f"not applicable to {subject}: the cell error counts unexplored area as obstacle (it "
+            "would be the free share of the world it did not see); see wall_precision and "
+            "mean_dist_m for what it saw, wall_recall for how much")
+
+
+def _metrics(truth: Any, wf: Any, resolution: float, partial: bool = False,
+             subject: str = ROBOT_MAP) -> dict[str, Any]:
+    """Metrics of ``wf`` against the truth (``mapping.metrics.evaluate``). A ``partial`` map gets
+    ``cell_error: null`` and ``cell_error_note`` saying why (:func:`partial_note` of
+    ``subject``)."""
     from mapping.metrics import evaluate
 
     if wf.n_edges == 0:
@@ -314,8 +321,31 @@ def _metrics(truth: Any, wf: Any, resolution: float, partial: bool = False) -> d
              for k, v in evaluate(truth, wf, resolution).items()}
     if partial:
         m["cell_error"] = None
-        m["cell_error_note"] = PARTIAL_CELL_ERROR
+        m["cell_error_note"] = partial_note(subject)
     return m
+
+
+def fused_from_store(out: Path, published: bytes | None = None) -> tuple[bytes, Any]:
+    """The run's fused map ``(bytes, message)``: the fusion service's last published message
+    (``published``, the payload seen on the bus) when it is the stored version, else the one in
+    ``out/store`` (the store's copy of the same version can differ in its meta), so that
+    ``fused.wfm``, the report's ``bytes`` and the live progress line agree."""
+    from agents.fleet.fusion import decode_message
+
+    store = out / "store"
+    fused_path = store / "fused.wfm"
+    if not fused_path.is_file():
+        raise UserError(f"the fusion service left no fused map in {store} (see {out / 'logs' / 'fuse.log'})")
+    raw = fused_path.read_bytes()
+    msg = decode_message(raw)
+    if published is not None:
+        try:
+            pub = decode_message(published)
+        except ValueError:
+            pub = None
+        if pub is not None and pub.seq == msg.seq:
+            return published, pub
+    return raw, msg
 
 
 def write_outputs(
@@ -337,18 +367,7 @@ def write_outputs(
     from agents.fleet.fusion import decode_message, merge_threshold_of
 
     store = out / "store"
-    fused_path = store / "fused.wfm"
-    if not fused_path.is_file():
-        raise UserError(f"the fusion service left no fused map in {store} (see {out / 'logs' / 'fuse.log'})")
-    raw = fused_path.read_bytes()
-    msg = decode_message(raw)
-    if published is not None:
-        try:
-            pub = decode_message(published)
-        except ValueError:
-            pub = None
-        if pub is not None and pub.seq == msg.seq:
-            raw, msg = published, pub
+    raw, msg = fused_from_store(out, published)
     wf = msg.wireframe
     robots = list(msg.robots)
     write_atomic(out / "fused.wfm", raw)
@@ -398,11 +417,7 @@ def write_outputs(
         per_robot[rid] = entry
     # a fleet cut short by --duration or Ctrl-C left its map open: its cell error is no score either
     covered = all(entry.get("finished") for entry in per_robot.values())
-    fused = _metrics(world.truth, wf, res, partial=not covered)
-    if not covered:
-        fused["cell_error_note"] = PARTIAL_CELL_ERROR.replace(
-            "one robot's partial map", "a fleet map cut short before every robot finished its route"
-        )
+    fused = _metrics(world.truth, wf, res, partial=not covered, subject=FLEET_CUT_SHORT)
     fused.update({"vertices": wf.n_vertices, "edges": wf.n_edges, "bytes": len(raw), "version": msg.seq})
     fused["robots"] = robots
     report = {

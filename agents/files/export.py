@@ -394,18 +394,22 @@ def seen_free(
     height: int,
     rays: int = 720,
     spacing: float = 0.25,
+    open_range: float = 2.0,
 ) -> NDArray[np.bool_]:
     """Cells (a raster as :func:`fill_polygons` returns, row 0 at the bottom) that the map's
     walls let a sensor see from ``positions`` ``(n, 2)``: from positions at least ``spacing``
     metres apart along the track (the first always), ``rays`` rays all round, each stopped by
-    the first wall it meets or at ``max_range``; a cell is seen when its centre is nearer than
-    both rays around its bearing (the shorter of the two: a cell behind a wall's end between
-    two rays stays unseen).
+    the first wall it meets within ``max_range``; a ray that meets no wall of the map goes
+    ``open_range`` only. A cell is seen when its centre is nearer than both rays around its
+    bearing (the shorter of the two: a cell behind a wall's end between two rays stays
+    unseen).
 
     A map alone cannot say where free space is unless a room closes (an open map's rooms miss a
     wall or a doorway); the robot's own track can: what it could see past no wall it saw
-    free. All round, not the scanner's field of view (the track has no scanner heading), so
-    it slightly overstates what a forward-looking laser saw on its first pass."""
+    free. But a real map lacks walls the scanner did see (too short, too far, glass), and a ray
+    through such a gap would call the obstacle behind it free: so free space is only claimed up
+    to a wall the map has, or within ``open_range`` of the track where the map has none. All
+    round, not the scanner's field of view (the track has no scanner heading)."""
     out = np.zeros((height, width), dtype=bool)
     pos = np.asarray(positions, dtype=np.float64).reshape(-1, 2)
     pos = pos[np.isfinite(pos).all(axis=1)]
@@ -427,12 +431,19 @@ def seen_free(
     xs = origin[0] + (np.arange(width) + 0.5) * resolution
     ys = origin[1] + (np.arange(height) + 0.5) * resolution
     reach = math.ceil(max_range / resolution) + 1
+    # walls that can stop a ray from a position: within max_range of it (a wall's distance to
+    # a point is at least the point's distance to the wall's bounding box)
+    lo, hi = np.minimum(segs[:, 0], segs[:, 1]), np.maximum(segs[:, 0], segs[:, 1])
     for p in pos:
-        w = a - p  # (S, 2)
-        t = (w[None, :, 0] * e[None, :, 1] - w[None, :, 1] * e[None, :, 0]) * inv
-        u = (w[None, :, 0] * d[:, None, 1] - w[None, :, 1] * d[:, None, 0]) * inv
-        hit = ok & (t > 1e-9) & (u >= -1e-9) & (u <= 1.0 + 1e-9)
-        r = np.minimum(np.where(hit, t, np.inf).min(axis=1, initial=np.inf), max_range)
+        gap = np.maximum(np.maximum(lo - p, p - hi), 0.0)
+        near = np.flatnonzero(np.hypot(gap[:, 0], gap[:, 1]) <= max_range)
+        w = a[near] - p  # (S', 2)
+        en, inv_n, ok_n = e[near], inv[:, near], ok[:, near]
+        t = (w[None, :, 0] * en[None, :, 1] - w[None, :, 1] * en[None, :, 0]) * inv_n
+        u = (w[None, :, 0] * d[:, None, 1] - w[None, :, 1] * d[:, None, 0]) * inv_n
+        hit = ok_n & (t > 1e-9) & (u >= -1e-9) & (u <= 1.0 + 1e-9)
+        first = np.where(hit, t, np.inf).min(axis=1, initial=np.inf)
+        r = np.where(first <= max_range, first, min(open_range, max_range))
         sector = np.minimum(r, np.roll(r, -1))  # between ray k and ray k + 1
         ci = math.floor((p[0] - origin[0]) / resolution)
         cj = math.floor((p[1] - origin[1]) / resolution)
@@ -456,6 +467,7 @@ def occupancy_grid(
     bounds: tuple[float, float, float, float] | None = None,
     tracks: Sequence[ArrayLike] = (),
     sensor_range: float = 8.0,
+    open_range: float = 2.0,
 ) -> OccupancyGrid:
     """Rasterise a wireframe into ``map_server`` values (rules in the module docstring).
 
@@ -472,9 +484,9 @@ def occupancy_grid(
     bounds : (xmin, ymin, xmax, ymax), optional
         Area to cover instead of the wireframe's bounding box.
     tracks : sequence of (n, 2) arrays
-        Robots' positions: what their sensor could see within ``sensor_range`` metres
-        (:func:`seen_free`) is free too, under the rules above (a closed face's verdict and
-        the walls are drawn over it).
+        Robots' positions: what their sensor could see within ``sensor_range`` metres, up to
+        a wall of the map or ``open_range`` where none is in reach (:func:`seen_free`), is free
+        too, under the rules above (a closed face's verdict and the walls are drawn over it).
 
     Returns
     -------
@@ -497,7 +509,8 @@ def occupancy_grid(
     origin, width, height = grid_geometry(bounds, resolution, margin)
     grid = np.full((height, width), UNKNOWN, dtype=np.uint8)
     for track in tracks:
-        grid[seen_free(wf, track, sensor_range, origin, resolution, width, height)] = FREE
+        seen = seen_free(wf, track, sensor_range, origin, resolution, width, height, open_range=open_range)
+        grid[seen] = FREE
     faces, votes = classify_faces(wf)
     free = [f for f, v in zip(faces, votes.tolist()) if v > 0.0]
     solid = [f for f, v in zip(faces, votes.tolist()) if v < 0.0]
@@ -595,13 +608,15 @@ def write_rosmap(
     min_likelihood: float = 0.0,
     tracks: Sequence[ArrayLike] = (),
     sensor_range: float = 8.0,
+    open_range: float = 2.0,
 ) -> tuple[Path, Path, OccupancyGrid]:
     """Write ``map_server`` PGM + YAML for ``wf`` (paths from :func:`rosmap_paths`), each
     atomically, the PGM first. Returns ``(pgm_path, yaml_path, grid)``.
 
     Raises ``ValueError`` as :func:`occupancy_grid` does."""
     pgm_path, yaml_path = rosmap_paths(out)
-    grid = occupancy_grid(wf, resolution, margin, min_likelihood, tracks=tracks, sensor_range=sensor_range)
+    grid = occupancy_grid(wf, resolution, margin, min_likelihood, tracks=tracks, sensor_range=sensor_range,
+                          open_range=open_range)
     write_atomic(pgm_path, pgm_bytes(grid, comment=f"wiremap occupancy map, {resolution:g} m/cell"))
     write_atomic(yaml_path, map_yaml(grid, pgm_path.name))
     return pgm_path, yaml_path, grid
@@ -658,6 +673,7 @@ def export_map(
     min_likelihood: float = 0.0,
     tracks: Sequence[ArrayLike] = (),
     sensor_range: float = 8.0,
+    open_range: float = 2.0,
 ) -> list[Path]:
     """Write ``loaded`` in format ``fmt`` to ``out``; returns the files written.
 
@@ -684,15 +700,16 @@ def export_map(
         return [Path(out)]
     if fmt == "rosmap":
         pgm, yaml, _ = write_rosmap(wf, out, resolution, min_likelihood=min_likelihood, tracks=tracks,
-                                    sensor_range=sensor_range)
+                                    sensor_range=sensor_range, open_range=open_range)
         return [pgm, yaml]
     raise ValueError(f"unknown format {fmt!r}: use one of {', '.join(FORMATS)}")
 
 
 def read_track(path: str | os.PathLike[str]) -> FloatArray:
     """Positions ``(n, 2)`` from a track file: whitespace-separated rows of ``t x y theta``
-    (``wiremap map``'s ``trajectory.tsv``), ``x y theta`` or ``x y``; ``#`` comments. A bad
-    file is a one-line :class:`UserError`."""
+    (``wiremap map``'s ``trajectory.tsv``), ``x y theta`` (three columns are always read so)
+    or ``x y`` (``wiremap run``'s ``tracks/``); ``#`` comments and a header line are skipped.
+    A bad file is a one-line :class:`UserError`."""
     p = Path(path)
     try:
         text = p.read_text()
@@ -701,6 +718,8 @@ def read_track(path: str | os.PathLike[str]) -> FloatArray:
     except UnicodeDecodeError:
         raise UserError(f"--trajectory {p}: not a text file") from None
     rows = [ln.split() for ln in text.splitlines() if ln.strip() and not ln.lstrip().startswith("#")]
+    if rows and not _numeric(rows[0][0]):  # a header line (``t x y theta``)
+        rows = rows[1:]
     if not rows:
         raise UserError(f"--trajectory {p}: no positions")
     width = len(rows[0])
@@ -714,3 +733,11 @@ def read_track(path: str | os.PathLike[str]) -> FloatArray:
     if not np.isfinite(xy).all():
         raise UserError(f"--trajectory {p}: a position is not finite")
     return np.ascontiguousarray(xy)
+
+
+def _numeric(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True

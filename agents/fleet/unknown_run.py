@@ -101,29 +101,6 @@ def prepare_carmen(
 
 
 # ---------------------------------------------------------------------- reports
-def _fused(out: Path, published: bytes | None = None) -> tuple[bytes, Any]:
-    """The fused map: the fusion service's last published message (``published``, as seen on
-    the bus) when it is the stored version, else the stored one -- as a run from known starts
-    does, so that ``fused.wfm``, the report's ``bytes`` and the live progress line agree (the
-    store's copy of the same version can differ in its meta)."""
-    from agents.fleet.fusion import decode_message
-
-    store = out / "store"
-    fused_path = store / "fused.wfm"
-    if not fused_path.is_file():
-        raise UserError(f"the fusion service left no fused map in {store} (see {out / 'logs' / 'fuse.log'})")
-    raw = fused_path.read_bytes()
-    msg = decode_message(raw)
-    if published is not None:
-        try:
-            pub = decode_message(published)
-        except ValueError:
-            pub = None
-        if pub is not None and pub.seq == msg.seq:
-            return published, pub
-    return raw, msg
-
-
 def _store_state(out: Path) -> dict[str, Any]:
     """The fusion store's ``state.json`` ({} when missing or unreadable)."""
     try:
@@ -240,16 +217,17 @@ def write_outputs_unknown(
     published: bytes | None = None, tracks: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
     """``report.json`` (and ``fused.*``) of an unknown-starts run (module docstring): the fused
-    map is ``published`` when it is the stored version (:func:`_fused`); ``tracks`` (what
+    map is ``published`` when it is the stored version
+    (:func:`agents.commands.run.fused_from_store`); ``tracks`` (what
     :func:`agents.commands.run.write_outputs` also takes) are not used: the robots' tracks are
     in their own frames."""
-    from agents.commands.run import PARTIAL_CELL_ERROR, _metrics
+    from agents.commands.run import FLEET_CUT_SHORT, _metrics, fused_from_store
     from agents.files.render import map_png
     from agents.fleet.fusion import merge_threshold_of
     from agents.fleet.robot import start_pose_of
     from mapping.metrics import align_to_truth
 
-    raw, msg = _fused(out, published)
+    raw, msg = fused_from_store(out, published)
     wf = msg.wireframe
     robots = list(msg.robots)
     state = _store_state(out)
@@ -271,13 +249,11 @@ def write_outputs_unknown(
     # robot drove its whole route has no cell error worth the name (unexplored area counts).
     statuses = extra.get("robot_status", {})
     covered = all(bool(statuses.get(r, {}).get("finished", False)) for r in ids)
-    fused = _metrics(world.truth, aligned, res, partial=not covered)
-    if not covered:
-        fused["cell_error_note"] = PARTIAL_CELL_ERROR.replace(
-            "one robot's partial map", "a fleet map cut short before every robot finished its route")
+    fused = _metrics(world.truth, aligned, res, partial=not covered, subject=FLEET_CUT_SHORT)
     fused.update({"vertices": wf.n_vertices, "edges": wf.n_edges, "bytes": len(raw), "version": msg.seq,
                   "robots": robots, "alignment": [round(v, 6) for v in align.as_tuple()],
-                  "placed_unaligned": _metrics(world.truth, placed, res)})
+                  "placed_unaligned": _metrics(world.truth, placed, res, partial=not covered,
+                                                  subject=FLEET_CUT_SHORT)})
     write_json(out / "fused.geojson",
                aligned.to_geojson({"kind": "fused_map", "world": world.name, "robots": robots,
                                                            "frame": "truth (aligned)"}))
@@ -307,10 +283,11 @@ def write_outputs_carmen(
 ) -> dict[str, Any]:
     """``report.json`` (and ``fused.*``) of a CARMEN fleet run (module docstring); ``published``
     and ``tracks`` as :func:`write_outputs_unknown`."""
+    from agents.commands.run import fused_from_store
     from agents.fleet.carmen_fleet import endpoint_precision, endpoints
     from mapping.lidar_metrics import align_to_points
 
-    raw, msg = _fused(out, published)
+    raw, msg = fused_from_store(out, published)
     wf = msg.wireframe
     robots = list(msg.robots)
     state = _store_state(out)
