@@ -161,6 +161,9 @@ CASES: dict[str, list[str]] = {
     "run-more-fusers-than-robots": ["run", "--world", "paper-small", "--robots", "2", "--fusers", "5",
                                     "--out", "{dir}/r"],
     "replay-bad-bind": ["replay", "{rrd}", "--web", "--bind", "999.1.1.1"],
+    "run-world-lidar-profile": ["run", "--world", "paper-small", "--robots", "1", "--lidar-profile", "lidar",
+                                "--out", "{dir}/r"],
+    "bench-lidar-zero-steps": ["bench", "lidar", "--data", "{dir}", "--steps", "0"],
 }  # fmt: skip
 
 

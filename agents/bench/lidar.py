@@ -58,7 +58,7 @@ from typing import Any
 
 import numpy as np
 
-from agents.argtypes import non_negative_int
+from agents.argtypes import non_negative_int, positive_int
 from agents.bench.common import aligned_rows, fmt_cell
 from agents.errors import UserError
 from agents.mapping_run import LIDAR_PROFILES
@@ -83,7 +83,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=non_negative_int, default=1,
                         help="random seed of the filter (default 1)")
     parser.add_argument("--particles", type=int, default=10, help="particles (default 10)")
-    parser.add_argument("--steps", type=int, default=None, metavar="N",
+    parser.add_argument("--steps", type=positive_int, default=None, metavar="N",
                         help="only the first N scans of each log")
     parser.add_argument("--max-range", type=float, default=20.0, metavar="M",
                         help="range cap given to the mapper, metres (default 20, as wiremap map)")

@@ -105,7 +105,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="split a real CARMEN log into --robots robots (overlapping stretches, each in its own frame)",
     )
     parser.add_argument(
-        "--lidar-profile", choices=tuple(LIDAR_PROFILES), default="lidar-slam",
+        "--lidar-profile", choices=tuple(LIDAR_PROFILES), default=None,
         help="with --carmen: the robots' real-lidar profile, lidar-slam (lidar SLAM over each robot's "
         "stretch under its filter; default) or lidar (the filter's corner ICP alone)",
     )
@@ -565,6 +565,10 @@ def _check_arguments(args: argparse.Namespace) -> int:
         raise UserError("give --world NAME|FILE or --carmen LOG (one of them)")
     if args.carmen and not Path(args.carmen).is_file():
         raise UserError(f"--carmen {args.carmen}: no such file")
+    if not args.carmen and args.lidar_profile is not None:
+        raise UserError("--lidar-profile is for --carmen (a simulated world's robots use --sensor)")
+    if args.lidar_profile is None:
+        args.lidar_profile = "lidar-slam"
     if args.carmen and args.sensor != "corners":
         raise UserError("--sensor is for a simulated world; --carmen replays the log's own lidar")
     if args.anchor is not None and args.anchor not in [f"r{k + 1}" for k in range(max(0, n))]:
@@ -920,8 +924,8 @@ def _print_summary(report: dict[str, Any], ids: list[str], out: Path) -> None:
         else "--duration reached")
     lines = [
         f"wiremap run: {report.get('duration_s', 0.0):.1f} s of mapping ({why})",
-        f"  fused map   v{f.get('version', '-')}: {f.get('vertices', '-')} corners, "
-        f"{f.get('edges', '-')} walls, {f.get('bytes', '-')} bytes",
+        f"  fused map   v{f.get('version', 'n/a')}: {f.get('vertices', 'n/a')} corners, "
+        f"{f.get('edges', 'n/a')} walls, {f.get('bytes', 'n/a')} bytes",
         f"  vs truth    wall recall {_num(f.get('wall_recall'), '.3f')}, "
         f"precision {_num(f.get('wall_precision'), '.3f')}, "
         f"cell error {_num(f.get('cell_error'), '.2%')}",
