@@ -195,7 +195,9 @@ def test_bench_lidar_needs_logs(tmp_path: Path, capsys: pytest.CaptureFixture[st
     assert main(["bench", "lidar", str(tmp_path / "x.log"), "--quiet"]) == 2  # no truth beside it
     err = capsys.readouterr().err
     assert "no truth" in err and "Traceback" not in err
-    assert main(["bench", "lidar", str(EXCERPT), "--steps", "0"]) == 2
+    with pytest.raises(SystemExit) as exc:  # argparse's one-line error
+        main(["bench", "lidar", str(EXCERPT), "--steps", "0"])
+    assert exc.value.code == 2 and "--steps" in capsys.readouterr().err
 
 
 # ---------------------------------------------------------------- format variants

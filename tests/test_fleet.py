@@ -374,7 +374,7 @@ def test_robot_options_split_quantisation_from_the_filter_threshold():
 
     parser = argparse.ArgumentParser()
     add_arguments(parser)
-    opts = options_from_args(parser.parse_args(["--id", "r1", "--world", "tiny", "--start", "1,1,0"]))
+    opts = options_from_args(parser.parse_args(["--id", "r1", "--world", "paper-small", "--start", "1,1,0"]))
     assert (opts.resolution, opts.threshold) == (0.05, 0.2)
     wf = Wireframe.build([(0.0, 0.0), (1.03, 0.0)], [(0, 1)], [Label.NOMINAL] * 2)
     msg = decode_message(encode_message(map_message(opts, wf, Pose.identity(), 1, 0, {})))
