@@ -71,6 +71,24 @@ def test_map_scores_the_real_excerpt_against_its_truth(
     assert report["odometry_ate_rmse_m"] > 0.0
     assert (out / "map.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert "ATE" in capsys.readouterr().out
+    # the ROS map: walls occupied, and free what the scans' beams crossed (the walls alone close
+    # no room here); the first pose is free, a cell on a wall is occupied, and the space beyond
+    # the beams stays unknown
+    from agents.files.export import FREE, OCCUPIED, UNKNOWN, read_pgm
+
+    grid = read_pgm((out / "map.pgm").read_bytes())
+    meta = (out / "map.yaml").read_text()
+    assert "image: map.pgm" in meta and "mode: trinary" in meta
+    counts = {v: int((grid == v).sum()) for v in (FREE, OCCUPIED, UNKNOWN)}
+    assert counts[FREE] > 10_000 and counts[OCCUPIED] > 200 and counts[UNKNOWN] > 0
+    assert counts[FREE] + counts[OCCUPIED] + counts[UNKNOWN] == grid.size
+    res, ox, oy = 0.05, *(float(v) for v in meta.split("origin: [")[1].split("]")[0].split(",")[:2])
+    x0, y0, th0 = (float(v) for v in (out / "trajectory.tsv").read_text().split()[1:4])
+
+    def at(x: float, y: float) -> int:
+        return int(grid[grid.shape[0] - 1 - int((y - oy) / res), int((x - ox) / res)])
+
+    assert at(x0 + 0.5 * math.cos(th0), y0 + 0.5 * math.sin(th0)) == FREE  # in front of the laser
 
 
 def test_bench_lidar_json_on_the_excerpt(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

@@ -415,6 +415,28 @@ def test_a_track_makes_what_the_robot_saw_free(tmp_path: Path, capsys: pytest.Ca
     assert "no .tsv" in capsys.readouterr().err
 
 
+def test_scan_beams_carve_free_space() -> None:
+    """One scan from the origin looking along +x, 90 degrees wide, its beams 3 m long but one
+    with no return: free in front nearer than the returns, unknown behind the laser, beyond the
+    returns and beyond the open range of the beam that saw nothing."""
+    ang = np.radians(np.arange(-45.0, 45.1, 1.0))
+    ranges = np.full(len(ang), 3.0)
+    ranges[43:48] = np.inf  # straight ahead (-2 to +2 degrees): no return
+    origin, res, w, h = (-5.0, -5.0), 0.1, 100, 100
+    free = E.scan_free([(0.0, 0.0, 0.0)], [(ranges, ang)], 20.0, origin, res, w, h, open_range=1.0)
+
+    def at(x: float, y: float) -> bool:
+        return bool(free[int((y - origin[1]) / res), int((x - origin[0]) / res)])
+
+    assert at(2.0, 1.0) and at(2.5, -1.5)  # inside the fan, nearer than 3 m
+    assert not at(-1.0, 0.0) and not at(0.5, 2.0)  # behind the laser, outside the fan
+    assert not at(3.5, 1.0)  # beyond the returns
+    assert at(0.8, 0.0) and not at(1.5, 0.0)  # the beam without a return: only its open range
+    # turned by 90 degrees, the fan looks along +y
+    turned = E.scan_free([(0.0, 0.0, math.pi / 2)], [(ranges, ang)], 20.0, origin, res, w, h)
+    assert bool(turned[int((2.0 + 5.0) / res), int((0.5 + 5.0) / res)]) and not turned[50, 75]
+
+
 def test_export_wfm_to_each_format(tmp_path: Path) -> None:
     wf = room_with_pillar().replace(labels=np.array([0, 0, 1, 2, 0, 0, 0, 0], dtype=np.uint8))
     src = tmp_path / "fused.wfm"

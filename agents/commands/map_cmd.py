@@ -467,8 +467,28 @@ def run(args: argparse.Namespace) -> int:
     title = f"{src.name}: one robot, {k} steps, {cfg.particles} particles"
     write_outputs(out, best, done.trajectory, report, truth=src.truth, properties=props, png=png,
                   title=title, free=src.free)
+    if src.scans is not None and k and best.n_vertices:
+        _write_rosmap(out, best, src.scans[:k], done.trajectory, src.max_range)
     _print_summary(report, out)
     return INTERRUPTED if done.interrupted else 0
+
+
+def _write_rosmap(out: Path, best: Any, scans: list[Any], trajectory: list[tuple[float, float, float, float]],
+                  max_range: float) -> None:
+    """``map.pgm`` + ``map.yaml`` for ROS map_server / Nav2 from a real log or bag: the map's
+    walls occupied, and free what the scans' own beams crossed at the poses the map was made at
+    (:func:`agents.files.export.scan_free`; the walls alone close no room of a real map)."""
+    from agents.files.export import DEFAULT_RESOLUTION, write_rosmap
+
+    poses = [(x, y, th) for _, x, y, th in trajectory]
+    beams = [(s.ranges, s.angles) for s in scans]
+    pts = np.concatenate([np.array([(x, y) for x, y, _ in poses], dtype=np.float64), best.points])
+    lo, hi = pts.min(axis=0), pts.max(axis=0)  # the walls and the path
+    try:
+        write_rosmap(best, out / "map", DEFAULT_RESOLUTION, scans=(poses, beams, max_range),
+                     bounds=(float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1])))
+    except ValueError as exc:  # a raster over the size limit: the other outputs stand
+        print(f"wiremap map: no map.pgm: {exc}", file=sys.stderr, flush=True)
 
 
 def _score_world(truth: Any, best: Any, thr: float, done: _Drive, cut_short: bool) -> dict[str, Any]:
@@ -537,6 +557,8 @@ def _print_summary(report: dict[str, Any], out: Path) -> None:
         lines.append(f"  pose error  mean {report['pose_error_mean_m']:.3f} m, "
                      f"max {report['pose_error_max_m']:.3f} m")
     lines.append(f"  wrote       in {out}: map.geojson map.png trajectory.tsv report.json")
+    if report.get("input") in ("carmen", "rosbag") and (out / "map.pgm").is_file():
+        lines.append("              map.pgm map.yaml (a ROS map for Nav2)")
     print("\n".join(lines), flush=True)
 
 

@@ -459,6 +459,59 @@ def seen_free(
     return out
 
 
+def scan_free(
+    poses: ArrayLike,
+    scans: Sequence[tuple[ArrayLike, ArrayLike]],
+    max_range: float,
+    origin: tuple[float, float],
+    resolution: float,
+    width: int,
+    height: int,
+    open_range: float = 2.0,
+) -> NDArray[np.bool_]:
+    """Cells (row 0 at the bottom) that real scans saw free: scan ``k`` = ``(ranges, bearings)``
+    (radians, evenly spaced, the sensor's frame) taken at ``poses[k]`` = ``(x, y, theta)`` of
+    the sensor. A cell is free when its centre lies between two neighbouring beams, nearer than
+    both of their returns (a return at or beyond ``max_range``, zero or not finite is no
+    return: such a beam counts as ``open_range`` long, as :func:`seen_free` does). The classic
+    occupancy grid's free space, from the beams themselves rather than from the map."""
+    out = np.zeros((height, width), dtype=bool)
+    xs = origin[0] + (np.arange(width) + 0.5) * resolution
+    ys = origin[1] + (np.arange(height) + 0.5) * resolution
+    ps = np.asarray(poses, dtype=np.float64).reshape(-1, 3)
+    for (x, y, th), (rr, aa) in zip(ps.tolist(), scans):
+        r = np.asarray(rr, dtype=np.float64).reshape(-1)
+        a = np.asarray(aa, dtype=np.float64).reshape(-1)
+        if len(r) < 2 or len(a) != len(r) or not all(map(math.isfinite, (x, y, th))):
+            continue
+        if a[-1] < a[0]:
+            r, a = r[::-1], a[::-1]
+        step = (a[-1] - a[0]) / (len(a) - 1)
+        if not step > 0.0:
+            continue
+        with np.errstate(invalid="ignore"):
+            seen = np.isfinite(r) & (r > 0.0) & (r < max_range)
+        r = np.where(seen, r, min(open_range, max_range))
+        sector = np.minimum(r[:-1], r[1:])  # between beam k and beam k + 1
+        reach = float(sector.max(initial=0.0))
+        if reach <= 0.0:
+            continue
+        i0 = max(0, math.floor((x - reach - origin[0]) / resolution))
+        i1 = min(width, math.floor((x + reach - origin[0]) / resolution) + 1)
+        j0 = max(0, math.floor((y - reach - origin[1]) / resolution))
+        j1 = min(height, math.floor((y + reach - origin[1]) / resolution) + 1)
+        if i0 >= i1 or j0 >= j1:
+            continue
+        dx = xs[i0:i1][None, :] - x
+        dy = ys[j0:j1][:, None] - y
+        rel = np.remainder(np.arctan2(dy, dx) - th - a[0], 2.0 * math.pi)
+        k = np.floor(rel / step).astype(np.int64)
+        inside = k < len(sector)
+        lim = np.where(inside, sector[np.minimum(k, len(sector) - 1)], 0.0)
+        out[j0:j1, i0:i1] |= np.hypot(dx, dy) < lim
+    return out
+
+
 def occupancy_grid(
     wf: Wireframe,
     resolution: float = DEFAULT_RESOLUTION,
@@ -468,6 +521,7 @@ def occupancy_grid(
     tracks: Sequence[ArrayLike] = (),
     sensor_range: float = 8.0,
     open_range: float = 2.0,
+    scans: tuple[ArrayLike, Sequence[tuple[ArrayLike, ArrayLike]], float] | None = None,
 ) -> OccupancyGrid:
     """Rasterise a wireframe into ``map_server`` values (rules in the module docstring).
 
@@ -487,6 +541,9 @@ def occupancy_grid(
         Robots' positions: what their sensor could see within ``sensor_range`` metres, up to
         a wall of the map or ``open_range`` where none is in reach (:func:`seen_free`), is free
         too, under the rules above (a closed face's verdict and the walls are drawn over it).
+    scans : (poses, scans, max_range), optional
+        Real scans and the poses they were mapped at: what their beams crossed is free too
+        (:func:`scan_free`), under the same rules.
 
     Returns
     -------
@@ -508,6 +565,9 @@ def occupancy_grid(
         bounds = wf.bounds()
     origin, width, height = grid_geometry(bounds, resolution, margin)
     grid = np.full((height, width), UNKNOWN, dtype=np.uint8)
+    if scans is not None:
+        grid[scan_free(scans[0], scans[1], scans[2], origin, resolution, width, height,
+                       open_range=open_range)] = FREE
     for track in tracks:
         seen = seen_free(wf, track, sensor_range, origin, resolution, width, height, open_range=open_range)
         grid[seen] = FREE
@@ -609,14 +669,16 @@ def write_rosmap(
     tracks: Sequence[ArrayLike] = (),
     sensor_range: float = 8.0,
     open_range: float = 2.0,
+    scans: tuple[ArrayLike, Sequence[tuple[ArrayLike, ArrayLike]], float] | None = None,
+    bounds: tuple[float, float, float, float] | None = None,
 ) -> tuple[Path, Path, OccupancyGrid]:
     """Write ``map_server`` PGM + YAML for ``wf`` (paths from :func:`rosmap_paths`), each
     atomically, the PGM first. Returns ``(pgm_path, yaml_path, grid)``.
 
     Raises ``ValueError`` as :func:`occupancy_grid` does."""
     pgm_path, yaml_path = rosmap_paths(out)
-    grid = occupancy_grid(wf, resolution, margin, min_likelihood, tracks=tracks, sensor_range=sensor_range,
-                          open_range=open_range)
+    grid = occupancy_grid(wf, resolution, margin, min_likelihood, bounds=bounds, tracks=tracks,
+                          sensor_range=sensor_range, open_range=open_range, scans=scans)
     write_atomic(pgm_path, pgm_bytes(grid, comment=f"wiremap occupancy map, {resolution:g} m/cell"))
     write_atomic(yaml_path, map_yaml(grid, pgm_path.name))
     return pgm_path, yaml_path, grid
