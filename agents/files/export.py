@@ -493,13 +493,16 @@ def scan_free(
             seen = np.isfinite(r) & (r > 0.0) & (r < max_range)
         r = np.where(seen, r, min(open_range, max_range))
         sector = np.minimum(r[:-1], r[1:])  # between beam k and beam k + 1
-        reach = float(sector.max(initial=0.0))
-        if reach <= 0.0:
+        if not sector.max(initial=0.0) > 0.0:
             continue
-        i0 = max(0, math.floor((x - reach - origin[0]) / resolution))
-        i1 = min(width, math.floor((x + reach - origin[0]) / resolution) + 1)
-        j0 = max(0, math.floor((y - reach - origin[1]) / resolution))
-        j1 = min(height, math.floor((y + reach - origin[1]) / resolution) + 1)
+        # the cells the fan can reach: the box of the laser and its beams' ends
+        ex = np.append(x + r * np.cos(th + a), x)
+        ey = np.append(y + r * np.sin(th + a), y)
+        # (plus a cell: a sector's arc bulges past the chord by r * step**2 / 8)
+        i0 = max(0, math.floor((ex.min() - origin[0]) / resolution) - 1)
+        i1 = min(width, math.floor((ex.max() - origin[0]) / resolution) + 2)
+        j0 = max(0, math.floor((ey.min() - origin[1]) / resolution) - 1)
+        j1 = min(height, math.floor((ey.max() - origin[1]) / resolution) + 2)
         if i0 >= i1 or j0 >= j1:
             continue
         dx = xs[i0:i1][None, :] - x
