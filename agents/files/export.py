@@ -12,7 +12,8 @@ YAML file naming it. Each cell of the raster is one of three values:
   see from their *solid* side (the inside of a pillar, the material between two rooms);
 * with a robot's track (``wiremap export --trajectory``), also **free**: what the walls let a
   sensor at the track's positions see within its range (:func:`seen_free`), since a map of a
-  real building rarely closes its rooms (a doorway, a wall never seen);
+  real building rarely closes its rooms (a doorway, a wall never seen); with real scans
+  (``wiremap map --carmen/--rosbag``), what their beams crossed (:func:`scan_free`);
 * **unknown (205)**: everything else: outside every closed face (unexplored space, the outside
   of the building, the open side of an incomplete room) and inside faces whose walls give no
   directed evidence (e.g. a box closed only by thin, two-sided walls).
