@@ -5,80 +5,45 @@ from __future__ import annotations
 
 import argparse
 import math
+from collections.abc import Callable
+from typing import TypeVar
+
+T = TypeVar("T", int, float)
 
 
-def positive_float(text: str) -> float:
-    """A finite number > 0."""
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
-    if not (math.isfinite(v) and v > 0.0):
-        raise argparse.ArgumentTypeError(f"must be a positive number, got {text!r}")
-    return v
+def _checked(
+    name: str, read: Callable[[str], T], unread: str, ok: Callable[[T], bool], need: str
+) -> Callable[[str], T]:
+    """A ``type=`` callable: ``read(text)``, else ``"{unread}: 'text'"``; then ``ok(value)``,
+    else ``"{need}, got 'text'"`` (both argparse's one-line error)."""
+
+    def parse(text: str) -> T:
+        try:
+            v = read(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{unread}: {text!r}") from None
+        if not ok(v):
+            raise argparse.ArgumentTypeError(f"{need}, got {text!r}")
+        return v
+
+    parse.__name__ = parse.__qualname__ = name
+    return parse
 
 
-def positive_int(text: str) -> int:
-    """A whole number > 0."""
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
-    if v <= 0:
-        raise argparse.ArgumentTypeError(f"must be positive, got {text!r}")
-    return v
-
-
-def probability(text: str) -> float:
-    """A number within [0, 1]."""
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
-    if not 0.0 <= v <= 1.0:
-        raise argparse.ArgumentTypeError(f"must be within [0, 1], got {text!r}")
-    return v
-
-
-def port(text: str) -> int:
-    """A TCP port, 0..65535."""
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a port number: {text!r}") from None
-    if not 0 <= v <= 65535:
-        raise argparse.ArgumentTypeError(f"port must be within 0..65535, got {text!r}")
-    return v
-
-
-def non_negative_float(text: str) -> float:
-    """A finite number >= 0."""
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
-    if not (math.isfinite(v) and v >= 0.0):
-        raise argparse.ArgumentTypeError(f"must be a number >= 0, got {text!r}")
-    return v
-
-
-def non_negative_int(text: str) -> int:
-    """A whole number >= 0."""
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
-    if v < 0:
-        raise argparse.ArgumentTypeError(f"must be >= 0, got {text!r}")
-    return v
-
-
-def image_size(text: str) -> int:
-    """A picture's larger side in pixels: a whole number, at least 64."""
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
-    if v < 64:
-        raise argparse.ArgumentTypeError(f"must be at least 64 pixels, got {text!r}")
-    return v
+#: A finite number > 0.
+positive_float = _checked("positive_float", float, "not a number", lambda v: math.isfinite(v) and v > 0.0,
+                          "must be a positive number")
+#: A whole number > 0.
+positive_int = _checked("positive_int", int, "not an integer", lambda v: v > 0, "must be positive")
+#: A number within [0, 1].
+probability = _checked("probability", float, "not a number", lambda v: 0.0 <= v <= 1.0,
+                       "must be within [0, 1]")
+#: A TCP port, 0..65535.
+port = _checked("port", int, "not a port number", lambda v: 0 <= v <= 65535, "port must be within 0..65535")
+#: A finite number >= 0.
+non_negative_float = _checked("non_negative_float", float, "not a number",
+                              lambda v: math.isfinite(v) and v >= 0.0, "must be a number >= 0")
+#: A whole number >= 0.
+non_negative_int = _checked("non_negative_int", int, "not an integer", lambda v: v >= 0, "must be >= 0")
+#: A picture's larger side in pixels: a whole number, at least 64.
+image_size = _checked("image_size", int, "not an integer", lambda v: v >= 64, "must be at least 64 pixels")

@@ -364,13 +364,6 @@ def simulate(
         yield ScanInput(s.t, s.odometry, scan, s.true_pose, points)
 
 
-def count_sim_steps(
-    world: Any, options: SimOptions, seed: int, route: NDArray[np.float64] | None = None
-) -> int:
-    """How many scans :func:`simulate` yields (without simulating the sensor)."""
-    return sim_step_counts(world, options, seed, route)[0]
-
-
 def sim_step_counts(
     world: Any, options: SimOptions, seed: int, route: NDArray[np.float64] | None = None
 ) -> tuple[int, int]:

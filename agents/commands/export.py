@@ -31,7 +31,7 @@ HELP = "export a map as GeoJSON, SVG, PNG or a ROS map"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from agents.files.export import DEFAULT_RESOLUTION, FORMATS
+    from agents.files.export import DEFAULT_OPEN_RANGE, DEFAULT_RESOLUTION, DEFAULT_SENSOR_RANGE, FORMATS
 
     parser.add_argument("map", metavar="MAP", help="a .wfm (wire message) or .geojson map file")
     parser.add_argument(
@@ -66,16 +66,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         type=argtypes.positive_float,
         default=None,
         metavar="M",
-        help="with --trajectory: how far the sensor saw walls, metres (default 8, the simulator's)",
+        help="with --trajectory: how far the sensor saw walls, metres "
+        f"(default {DEFAULT_SENSOR_RANGE:g}, the simulator's)",
     )
     parser.add_argument(
         "--open-range",
         type=argtypes.non_negative_float,
         default=None,
         metavar="M",
-        help="with --trajectory: free space around the track where no wall of the map is in "
-        "range (default 2: a real map lacks walls the scanner saw, and nothing beyond them is "
-        "known to be free)",
+        help="with --trajectory: free space around the track where no wall of the map is in range "
+        f"(default {DEFAULT_OPEN_RANGE:g}: a real map lacks walls the scanner saw, and nothing "
+        "beyond them is known to be free)",
     )
     parser.add_argument(
         "--min-likelihood",
@@ -87,12 +88,20 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from agents.files.export import FORMATS, export_map, format_from_suffix, load_map
+    from agents.files.export import (
+        DEFAULT_OPEN_RANGE,
+        DEFAULT_SENSOR_RANGE,
+        FORMATS,
+        export_map,
+        format_from_suffix,
+        load_map,
+        read_track,
+        rosmap_paths,
+    )
 
     fmt = args.format or format_from_suffix(args.out)
     if fmt is None:
         raise UserError(f"cannot tell the format from {args.out!r}: give --format ({'|'.join(FORMATS)})")
-    from agents.files.export import rosmap_paths
     from agents.files.io import check_output_file
 
     for path in rosmap_paths(args.out) if fmt == "rosmap" else (args.out,):
@@ -104,8 +113,6 @@ def run(args: argparse.Namespace) -> int:
         raise UserError("--sensor-range and --open-range go with --trajectory")
     tracks = []
     if args.trajectory:
-        from agents.files.export import read_track
-
         files = []
         for t in map(Path, args.trajectory):  # a folder: every *.tsv in it (wiremap run's tracks/)
             found = sorted(t.glob("*.tsv")) if t.is_dir() else [t]
@@ -116,8 +123,9 @@ def run(args: argparse.Namespace) -> int:
     try:
         written = export_map(
             loaded, fmt, args.out, resolution=args.resolution, min_likelihood=args.min_likelihood,
-            tracks=tracks, sensor_range=8.0 if args.sensor_range is None else args.sensor_range,
-            open_range=2.0 if args.open_range is None else args.open_range,
+            tracks=tracks,
+            sensor_range=DEFAULT_SENSOR_RANGE if args.sensor_range is None else args.sensor_range,
+            open_range=DEFAULT_OPEN_RANGE if args.open_range is None else args.open_range,
         )
     except ValueError as exc:
         raise UserError(str(exc)) from None

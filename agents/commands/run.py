@@ -325,6 +325,20 @@ def _metrics(truth: Any, wf: Any, resolution: float, partial: bool = False,
     return m
 
 
+def status_figures(st: dict[str, Any]) -> dict[str, Any]:
+    """A robot's figures in ``report.json``'s ``per_robot``, from its last status (0 where it
+    said nothing)."""
+    return {
+        "bytes_sent": int(st.get("bytes_sent", 0)),
+        "maps_sent": int(st.get("maps_sent", 0)),
+        "steps": int(st.get("step", 0)),
+        "sim_time_s": float(st.get("t", 0.0)),
+        "finished": bool(st.get("finished", False)),  # drove its whole route
+        "pose_bytes_sent": int(st.get("pose_bytes", 0)),
+        "viz_bytes_sent": int(st.get("viz_bytes", 0)),
+    }
+
+
 def fused_from_store(out: Path, published: bytes | None = None) -> tuple[bytes, Any]:
     """The run's fused map ``(bytes, message)``: the fusion service's last published message
     (``published``, the payload seen on the bus) when it is the stored version, else the one in
@@ -404,14 +418,7 @@ def write_outputs(
             entry.update(_metrics(world.truth, wf.subgraph_edges(np.zeros(wf.n_edges, bool)), res,
                                   partial=True))
             entry.update({"vertices": 0, "edges": 0, "bytes": 0})
-        st = statuses.get(rid, {})
-        entry["bytes_sent"] = int(st.get("bytes_sent", 0))
-        entry["maps_sent"] = int(st.get("maps_sent", 0))
-        entry["steps"] = int(st.get("step", 0))
-        entry["sim_time_s"] = float(st.get("t", 0.0))
-        entry["finished"] = bool(st.get("finished", False))  # drove its whole route
-        entry["pose_bytes_sent"] = int(st.get("pose_bytes", 0))
-        entry["viz_bytes_sent"] = int(st.get("viz_bytes", 0))
+        entry.update(status_figures(statuses.get(rid, {})))
         if rid in extra.get("cpu_s", {}):
             entry["cpu_s"] = extra["cpu_s"][rid]
         per_robot[rid] = entry

@@ -104,7 +104,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from agents.errors import UserError
-from agents.files.io import write_atomic
+from agents.files.io import is_number, write_atomic
 from mapping.se2 import Pose
 
 FloatArray = NDArray[np.float64]
@@ -327,7 +327,7 @@ class _Line:
         try:
             return np.asarray(self.tokens[k : k + n], dtype=np.float64)
         except ValueError:
-            bad = next(i for i, tok in enumerate(self.tokens[k : k + n]) if not _is_float(tok))
+            bad = next(i for i, tok in enumerate(self.tokens[k : k + n]) if not is_number(tok))
             raise self.fail(f"reading {bad + 1} is not a number: {self.tokens[k + bad]!r}") from None
 
     def pose(self, k: int) -> Pose:
@@ -339,13 +339,6 @@ class _Line:
         rest = len(self.tokens) - first
         return self.num(first + (2 if rest == 3 else 0))
 
-
-def _is_float(tok: str) -> bool:
-    try:
-        float(tok)
-    except ValueError:
-        return False
-    return True
 
 
 def _open_text(path: Path) -> io.TextIOBase:
@@ -362,7 +355,7 @@ def _param_value(tokens: list[str]) -> str:
     """The value of ``PARAM name value [hostname timestamp]``: a trailing pair whose last field
     is a number is the host and timestamp (``PARAM robot_front_laser_max 80.99 nohost 0``)."""
     vals = tokens[2:]
-    if len(vals) >= 3 and _is_float(vals[-1]):
+    if len(vals) >= 3 and is_number(vals[-1]):
         vals = vals[:-2]
     return " ".join(vals)
 

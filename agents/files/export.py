@@ -46,7 +46,7 @@ import shapely
 from numpy.typing import ArrayLike, NDArray
 
 from agents.errors import UserError
-from agents.files.io import load_wireframe_geojson, write_atomic, write_json
+from agents.files.io import is_number, load_wireframe_geojson, write_atomic, write_json
 from mapping.wireframe import Wireframe
 
 FREE = 254
@@ -56,6 +56,11 @@ UNKNOWN = 205
 #: ``map_server`` thresholds written to the YAML (the values its documentation uses).
 OCCUPIED_THRESH = 0.65
 FREE_THRESH = 0.196
+#: How far a robot's track saw walls (``wiremap export --sensor-range``): the simulator's range.
+DEFAULT_SENSOR_RANGE = 8.0
+#: Free space from a beam that met no wall (``--open-range``): a real map lacks walls the
+#: scanner saw, and nothing beyond them is known to be free.
+DEFAULT_OPEN_RANGE = 2.0
 
 DEFAULT_RESOLUTION = 0.05
 DEFAULT_MARGIN = 2
@@ -395,7 +400,7 @@ def seen_free(
     height: int,
     rays: int = 720,
     spacing: float = 0.25,
-    open_range: float = 2.0,
+    open_range: float = DEFAULT_OPEN_RANGE,
 ) -> NDArray[np.bool_]:
     """Cells (a raster as :func:`fill_polygons` returns, row 0 at the bottom) that the map's
     walls let a sensor see from ``positions`` ``(n, 2)``: from positions at least ``spacing``
@@ -411,53 +416,28 @@ def seen_free(
     through such a gap would call the obstacle behind it free: so free space is only claimed up
     to a wall the map has, or within ``open_range`` of the track where the map has none. All
     round, not the scanner's field of view (the track has no scanner heading)."""
-    out = np.zeros((height, width), dtype=bool)
+    from agents.sim.lidar import LidarConfig, cast_ranges
+    from mapping.se2 import Pose
+
     pos = np.asarray(positions, dtype=np.float64).reshape(-1, 2)
     pos = pos[np.isfinite(pos).all(axis=1)]
     if len(pos) == 0 or not max_range > 0.0:
-        return out
+        return np.zeros((height, width), dtype=bool)
     keep = [0]
     for i in range(1, len(pos)):
         if np.hypot(*(pos[i] - pos[keep[-1]])) >= spacing:
             keep.append(i)
-    pos = pos[keep]
-    step = 2.0 * math.pi / rays
-    ang = np.arange(rays) * step
-    d = np.stack([np.cos(ang), np.sin(ang)], axis=1)  # (R, 2)
+    # The simulator's ray caster, all round; the fan is closed by repeating the first ray a
+    # turn later, and filled as a real scan's beams are (no hit = no return).
+    lidar = LidarConfig(beams=rays, fov=2.0 * math.pi, max_range=max_range, sigma=0.0)
+    bearings = np.append(lidar.angles(), lidar.angles()[0] + 2.0 * math.pi)
     segs = wf.segments()
-    a, e = segs[:, 0], segs[:, 1] - segs[:, 0]  # (S, 2)
-    denom = d[:, None, 0] * e[None, :, 1] - d[:, None, 1] * e[None, :, 0]  # (R, S)
-    ok = np.abs(denom) > 1e-12
-    inv = np.where(ok, 1.0 / np.where(ok, denom, 1.0), 0.0)
-    xs = origin[0] + (np.arange(width) + 0.5) * resolution
-    ys = origin[1] + (np.arange(height) + 0.5) * resolution
-    reach = math.ceil(max_range / resolution) + 1
-    # walls that can stop a ray from a position: within max_range of it (a wall's distance to
-    # a point is at least the point's distance to the wall's bounding box)
-    lo, hi = np.minimum(segs[:, 0], segs[:, 1]), np.maximum(segs[:, 0], segs[:, 1])
-    for p in pos:
-        gap = np.maximum(np.maximum(lo - p, p - hi), 0.0)
-        near = np.flatnonzero(np.hypot(gap[:, 0], gap[:, 1]) <= max_range)
-        w = a[near] - p  # (S', 2)
-        en, inv_n, ok_n = e[near], inv[:, near], ok[:, near]
-        t = (w[None, :, 0] * en[None, :, 1] - w[None, :, 1] * en[None, :, 0]) * inv_n
-        u = (w[None, :, 0] * d[:, None, 1] - w[None, :, 1] * d[:, None, 0]) * inv_n
-        hit = ok_n & (t > 1e-9) & (u >= -1e-9) & (u <= 1.0 + 1e-9)
-        first = np.where(hit, t, np.inf).min(axis=1, initial=np.inf)
-        r = np.where(first <= max_range, first, min(open_range, max_range))
-        sector = np.minimum(r, np.roll(r, -1))  # between ray k and ray k + 1
-        ci = math.floor((p[0] - origin[0]) / resolution)
-        cj = math.floor((p[1] - origin[1]) / resolution)
-        i0, i1 = max(0, ci - reach), min(width, ci + reach + 1)
-        j0, j1 = max(0, cj - reach), min(height, cj + reach + 1)
-        if i0 >= i1 or j0 >= j1:
-            continue
-        dx = xs[i0:i1][None, :] - p[0]
-        dy = ys[j0:j1][:, None] - p[1]
-        dist = np.hypot(dx, dy)
-        k = (np.floor(np.arctan2(dy, dx) / step).astype(np.int64)) % rays
-        out[j0:j1, i0:i1] |= dist < sector[k]
-    return out
+    fans = []
+    for x, y in pos[keep].tolist():
+        r = cast_ranges(segs, Pose(x, y, 0.0), lidar)
+        fans.append((np.append(r, r[0]), bearings))
+    return scan_free([(x, y, 0.0) for x, y in pos[keep].tolist()], fans, max_range, origin, resolution,
+                     width, height, open_range=open_range)
 
 
 def scan_free(
@@ -468,7 +448,7 @@ def scan_free(
     resolution: float,
     width: int,
     height: int,
-    open_range: float = 2.0,
+    open_range: float = DEFAULT_OPEN_RANGE,
 ) -> NDArray[np.bool_]:
     """Cells (row 0 at the bottom) that real scans saw free: scan ``k`` = ``(ranges, bearings)``
     (radians, evenly spaced, the sensor's frame) taken at ``poses[k]`` = ``(x, y, theta)`` of
@@ -523,8 +503,8 @@ def occupancy_grid(
     min_likelihood: float = 0.0,
     bounds: tuple[float, float, float, float] | None = None,
     tracks: Sequence[ArrayLike] = (),
-    sensor_range: float = 8.0,
-    open_range: float = 2.0,
+    sensor_range: float = DEFAULT_SENSOR_RANGE,
+    open_range: float = DEFAULT_OPEN_RANGE,
     scans: tuple[ArrayLike, Sequence[tuple[ArrayLike, ArrayLike]], float] | None = None,
 ) -> OccupancyGrid:
     """Rasterise a wireframe into ``map_server`` values (rules in the module docstring).
@@ -671,8 +651,8 @@ def write_rosmap(
     margin: int = DEFAULT_MARGIN,
     min_likelihood: float = 0.0,
     tracks: Sequence[ArrayLike] = (),
-    sensor_range: float = 8.0,
-    open_range: float = 2.0,
+    sensor_range: float = DEFAULT_SENSOR_RANGE,
+    open_range: float = DEFAULT_OPEN_RANGE,
     scans: tuple[ArrayLike, Sequence[tuple[ArrayLike, ArrayLike]], float] | None = None,
     bounds: tuple[float, float, float, float] | None = None,
 ) -> tuple[Path, Path, OccupancyGrid]:
@@ -738,8 +718,8 @@ def export_map(
     resolution: float = DEFAULT_RESOLUTION,
     min_likelihood: float = 0.0,
     tracks: Sequence[ArrayLike] = (),
-    sensor_range: float = 8.0,
-    open_range: float = 2.0,
+    sensor_range: float = DEFAULT_SENSOR_RANGE,
+    open_range: float = DEFAULT_OPEN_RANGE,
 ) -> list[Path]:
     """Write ``loaded`` in format ``fmt`` to ``out``; returns the files written.
 
@@ -784,7 +764,7 @@ def read_track(path: str | os.PathLike[str]) -> FloatArray:
     except UnicodeDecodeError:
         raise UserError(f"--trajectory {p}: not a text file") from None
     rows = [ln.split() for ln in text.splitlines() if ln.strip() and not ln.lstrip().startswith("#")]
-    if rows and not _numeric(rows[0][0]):  # a header line (``t x y theta``)
+    if rows and not is_number(rows[0][0]):  # a header line (``t x y theta``)
         rows = rows[1:]
     if not rows:
         raise UserError(f"--trajectory {p}: no positions")
@@ -799,11 +779,3 @@ def read_track(path: str | os.PathLike[str]) -> FloatArray:
     if not np.isfinite(xy).all():
         raise UserError(f"--trajectory {p}: a position is not finite")
     return np.ascontiguousarray(xy)
-
-
-def _numeric(text: str) -> bool:
-    try:
-        float(text)
-    except ValueError:
-        return False
-    return True

@@ -21,6 +21,15 @@ def _umask() -> int:
 _FILE_MODE = 0o666 & ~_umask()
 
 
+def is_number(text: str) -> bool:
+    """Whether ``float(text)`` reads it (``nan`` and ``inf`` included)."""
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
+
+
 def write_atomic(path: str | os.PathLike[str], data: bytes | str, mode: int | None = None) -> None:
     """Write ``data`` to ``path`` atomically: a temporary file in the same directory, fsync,
     then ``os.replace``. A reader sees the old file or the new one, never half of either.

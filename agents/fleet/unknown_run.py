@@ -366,15 +366,14 @@ def _carmen_figure(
 
 
 def _robot_progress(report: dict[str, Any], ids: list[str]) -> None:
-    """Each robot's steps, simulated time and whether it drove its whole route, from its last
-    status, into ``per_robot`` (the keys a run from known starts reports)."""
+    """Each robot's figures from its last status into ``per_robot``, as a run from known starts
+    reports them (:func:`agents.commands.run.status_figures`)."""
+    from agents.commands.run import status_figures
+
     for rid in ids:
-        st = report.get("robot_status", {}).get(rid, {})
-        if "step" in st:
-            r = report["per_robot"].setdefault(rid, {})
-            r.setdefault("steps", int(st["step"]))
-            r.setdefault("sim_time_s", float(st.get("t", 0.0)))
-            r.setdefault("finished", bool(st.get("finished", False)))
+        r = report["per_robot"].setdefault(rid, {})
+        for k, v in status_figures(report.get("robot_status", {}).get(rid, {})).items():
+            r.setdefault(k, v)
 
 
 def _summary_shape(report: dict[str, Any], ids: list[str]) -> dict[str, Any]:
@@ -387,7 +386,4 @@ def _summary_shape(report: dict[str, Any], ids: list[str]) -> dict[str, Any]:
         r = report["per_robot"].setdefault(rid, {})
         r.setdefault("wall_recall", float("nan"))
         r.setdefault("wall_precision", r.get("endpoint_precision", float("nan")))
-        st = report.get("robot_status", {}).get(rid, {})
-        r.setdefault("maps_sent", int(st.get("maps_sent", 0)))
-        r.setdefault("bytes_sent", int(st.get("bytes_sent", 0)))
     return report
