@@ -1,0 +1,149 @@
+"""The compiled point-to-line match (mapping.point_to_line) against a NumPy reference: the grid's
+nearest neighbour against scipy's k-d tree, and the whole Gauss-Newton match against the NumPy
+implementation it replaced (kept here as the reference), on simulated and random scenes."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+
+from mapping import point_to_line as ptl
+from mapping.lidar_slam import SlamConfig, Submap, match_scan, scan_normals
+from mapping.se2 import Pose, wrap_angle
+from tests.test_lidar_slam import points_at, room_segments, submap_of
+
+
+def reference_match(points: np.ndarray, submap: Submap, guess: np.ndarray, config: SlamConfig,
+                    prior_information: np.ndarray | None = None,
+                    inlier_distance: float = 0.1) -> tuple[np.ndarray, np.ndarray, float, int]:
+    """The match as it was written in NumPy with a k-d tree (``match_scan`` before it was
+    compiled): the reference the compiled kernel is held to."""
+    tree = cKDTree(submap.points if len(submap.points) else np.zeros((1, 2)) + 1e9)
+    pose = np.asarray(guess, dtype=np.float64).copy()
+    prior = np.zeros((3, 3)) if prior_information is None else prior_information
+    w_sigma = 1.0 / config.sigma**2
+    hess = np.zeros((3, 3))
+    matched = 0
+    half = max(1, config.iterations // 2)
+    for it in range(config.iterations):
+        gate = config.gate_start * (config.gate_end / config.gate_start) ** min(1.0, it / half)
+        c, s = math.cos(pose[2]), math.sin(pose[2])
+        world = points @ np.array([[c, s], [-s, c]]) + pose[:2]
+        dist, idx = tree.query(world, distance_upper_bound=gate)
+        ok = np.isfinite(dist)
+        matched = int(np.count_nonzero(ok))
+        d = pose - guess
+        d[2] = wrap_angle(d[2])
+        if matched < 3:
+            hess = np.zeros((3, 3))
+            g = prior @ d
+            h = prior + 1e-9 * np.eye(3)
+        else:
+            nr = submap.normals[idx[ok]]
+            w_ = world[ok]
+            r = np.einsum("ij,ij->i", nr, w_ - submap.points[idx[ok]])
+            rel = w_ - pose[:2]
+            jac = np.column_stack([nr, -nr[:, 0] * rel[:, 1] + nr[:, 1] * rel[:, 0]])
+            wts = min(1.0, config.effective_points / matched) * w_sigma / (1.0 + (r / config.kernel) ** 2)
+            hess = (jac * wts[:, None]).T @ jac
+            g = (jac * wts[:, None]).T @ r + prior @ d
+            h = hess + prior + 1e-9 * np.eye(3)
+        step = -np.linalg.solve(h, g)
+        pose = pose + step
+        pose[2] = wrap_angle(pose[2])
+        if it >= half and abs(step[0]) + abs(step[1]) < 1e-4 and abs(step[2]) < 1e-5:
+            break
+    c, s = math.cos(pose[2]), math.sin(pose[2])
+    world = points @ np.array([[c, s], [-s, c]]) + pose[:2]
+    dist, idx = tree.query(world, distance_upper_bound=max(config.gate_end, inlier_distance))
+    ok = np.isfinite(dist)
+    r = np.abs(np.einsum("ij,ij->i", submap.normals[idx[ok]], world[ok] - submap.points[idx[ok]]))
+    return pose, hess, float(np.count_nonzero(r <= inlier_distance)) / max(1, len(points)), matched
+
+
+def assert_same_match(points: np.ndarray, sub: Submap, guess: np.ndarray, config: SlamConfig,
+                      prior: np.ndarray | None = None) -> None:
+    got = match_scan(points, sub, guess, config, prior_information=prior)
+    pose, hess, inliers, matched = reference_match(points, sub, guess, config, prior)
+    assert np.abs(got.pose - pose).max() < 1e-9
+    assert np.abs(got.hessian - hess).max() <= 1e-9 * max(1.0, np.abs(hess).max())
+    assert got.inliers == inliers and got.matched == matched
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_nearest_is_the_k_d_trees_nearest_within_the_gate(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    # Clusters and a sparse spread, as a voxel-thinned submap has, and queries near and far.
+    pts = np.vstack([rng.normal(rng.uniform(-5, 5, 2), 0.3, (200, 2)), rng.uniform(-8, 8, (100, 2))])
+    queries = np.vstack([rng.uniform(-9, 9, (400, 2)), rng.uniform(-200, 200, (20, 2)),
+                         pts[:50] + rng.normal(0, 0.01, (50, 2))])
+    tree = cKDTree(pts)
+    for cell in (0.05, 0.15, 0.7):
+        grid = ptl.PointGrid.build(pts, cell)
+        for gate in (0.01, 0.15, 0.5, 2.0):
+            dist, idx = tree.query(queries, distance_upper_bound=gate)
+            want = np.where(np.isfinite(dist), idx, -1)
+            assert np.array_equal(ptl.nearest(grid, queries, gate), want), (cell, gate)
+
+
+def test_nearest_on_an_empty_grid_a_point_and_a_non_finite_query() -> None:
+    empty = ptl.PointGrid.build(np.zeros((0, 2)))
+    assert ptl.nearest(empty, np.array([[0.0, 0.0]]), 1.0).tolist() == [-1]
+    one = ptl.PointGrid.build(np.array([[1.0, 2.0]]))
+    q = np.array([[1.0, 2.0], [1.3, 2.0], [np.nan, 2.0], [np.inf, 0.0]])
+    assert ptl.nearest(one, q, 0.5).tolist() == [0, 0, -1, -1]
+    assert ptl.nearest(one, q, 0.3).tolist() == [0, -1, -1, -1]  # strictly within the gate
+
+
+def test_a_wide_point_set_gets_coarser_cells_and_the_same_neighbours() -> None:
+    rng = np.random.default_rng(5)
+    pts = np.vstack([rng.uniform(0, 1, (50, 2)), rng.uniform(0, 1, (50, 2)) + 5000.0])
+    grid = ptl.PointGrid.build(pts)
+    assert grid.nx * grid.ny <= ptl.MAX_CELLS and grid.cell > ptl.CELL
+    q = np.vstack([pts + rng.normal(0, 0.2, pts.shape), rng.uniform(0, 5001, (100, 2))])
+    dist, idx = cKDTree(pts).query(q, distance_upper_bound=0.5)
+    assert np.array_equal(ptl.nearest(grid, q, 0.5), np.where(np.isfinite(dist), idx, -1))
+
+
+def test_the_match_is_the_numpy_reference_on_the_room() -> None:
+    cfg = SlamConfig()
+    sub = submap_of([Pose(1.5, 1.0, 0.4), Pose(2.5, 1.2, 0.5), Pose(3.0, 8.0, -1.0)])
+    rng = np.random.default_rng(3)
+    prior = np.diag([1 / 0.1**2, 1 / 0.1**2, 1 / 0.05**2])
+    for k in range(12):
+        truth = Pose(rng.uniform(1, 4), rng.uniform(1, 10), rng.uniform(-math.pi, math.pi))
+        pts = points_at(truth, rng, sigma=0.01)
+        guess = np.array([truth.x, truth.y, truth.theta]) + rng.normal(0, [0.2, 0.2, 0.05])
+        assert_same_match(pts, sub, guess, cfg, prior if k % 2 else None)
+
+
+def test_the_match_is_the_numpy_reference_on_random_clouds_and_edge_cases() -> None:
+    rng = np.random.default_rng(11)
+    cfg = SlamConfig()
+    for _ in range(10):
+        walls = room_segments()
+        t = rng.uniform(0, 1, (300, 1))
+        seg = walls[rng.integers(0, len(walls), 300)]
+        pts = seg[:, 0] + t * (seg[:, 1] - seg[:, 0]) + rng.normal(0, 0.02, (300, 2))
+        normals = scan_normals(pts[np.argsort(np.arctan2(pts[:, 1] - 6, pts[:, 0] - 6))], 0.6)
+        sub = Submap.build([(pts, rng.normal(0, 1, (300, 2)) / math.sqrt(2)), (pts, normals)], 0.05)
+        scan = sub.points[rng.integers(0, len(sub.points), 150)] + rng.normal(0, 0.03, (150, 2))
+        assert_same_match(scan, sub, rng.normal(0, [0.1, 0.1, 0.02]), cfg)
+    # Too few points to match (the prior alone), and an empty submap.
+    sub = submap_of([Pose(1.5, 1.0, 0.4)])
+    assert_same_match(np.array([[50.0, 50.0]]), sub, np.array([1.0, 1.0, 0.1]), cfg, np.eye(3))
+    empty = Submap.build([], 0.05)
+    assert_same_match(points_at(Pose(2, 2, 0)), empty, np.array([2.0, 2.0, 0.0]), cfg, np.eye(3))
+
+
+def test_the_three_by_three_solve_is_numpys() -> None:
+    rng = np.random.default_rng(2)
+    for _ in range(200):
+        a = rng.normal(0, 1, (3, 3)) + 3 * np.eye(3) * rng.uniform(0, 1)
+        if abs(np.linalg.det(a)) < 1e-3:
+            continue
+        b = rng.normal(0, 1, 3)
+        assert np.allclose(ptl._solve3(a, b), np.linalg.solve(a, b), rtol=1e-9, atol=1e-12)
