@@ -1,11 +1,12 @@
-"""Point-to-line scan matching, compiled: the inner loop of :func:`mapping.lidar_slam.match_scan`.
+"""The lidar SLAM's inner loops, compiled (numba): the point-to-line match of
+:func:`mapping.lidar_slam.match_scan` and the correlative search's scores.
 
 A real log's SLAM matches a scan's points against a submap ten or more times a scan (the online
 match, the loop searches' refinements, the offline refine passes), and each match is a dozen
 Gauss-Newton iterations of a nearest-neighbour query and a 3 x 3 normal equation. In NumPy
 each iteration is ~20 array operations on ~200 points plus a k-d tree query, and the Python
 overhead is most of it; here the whole match is one compiled call (numba), about five times
-faster, with the same numbers up to rounding (``tests/test_point_to_line.py`` holds it to the
+faster, with the same numbers up to rounding (``tests/test_slam_kernels.py`` holds it to the
 NumPy reference on real and random matches).
 
 * :class:`PointGrid`: the submap's points bucketed in a uniform grid of ``cell`` metres (a
@@ -16,6 +17,9 @@ NumPy reference on real and random matches).
 * :func:`gauss_newton`: Censi's point-to-line cost under Cauchy weights with the gate annealed
   geometrically, a prior on the pose, the step by a 3 x 3 solve -- the algorithm and its
   choices are :func:`mapping.lidar_slam.match_scan`'s, documented there.
+* :func:`field_scores`: the correlative loop search's score of a point set under many
+  translations, the mean likelihood-field value of the shifted points (Olson 2009); one pass
+  over the points per translation instead of a gather of translations x points.
 
 Choices
 -------
@@ -40,7 +44,7 @@ from numpy.typing import NDArray
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
-__all__ = ["CELL", "MAX_CELLS", "PointGrid", "compile_kernels", "gauss_newton", "nearest"]
+__all__ = ["CELL", "MAX_CELLS", "PointGrid", "compile_kernels", "field_scores", "gauss_newton", "nearest"]
 
 #: Grid cell of a :class:`PointGrid`, metres.
 CELL = 0.15
@@ -114,6 +118,18 @@ def gauss_newton(
     return pose, hess, float(inliers), int(matched)
 
 
+def field_scores(field: FloatArray, origin: FloatArray, res: float, points: FloatArray,
+                 offsets: IntArray) -> FloatArray:
+    """Mean ``field`` value (rows = y, cols = x; cell ``(0, 0)`` at ``origin``, ``res`` metres)
+    of world ``points`` shifted by each of ``offsets`` (cells, ``(k, 2)`` as ``(dx, dy)``),
+    over all the points. A point that some offset would take off the grid is dropped for all
+    of them (the caller's grid is wider than any window, so it lies off the submap anyway)."""
+    return np.asarray(_field_scores(
+        np.ascontiguousarray(field, dtype=np.float64), float(origin[0]), float(origin[1]), float(res),
+        np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 2),
+        np.ascontiguousarray(offsets, dtype=np.int64).reshape(-1, 2)))
+
+
 def compile_kernels() -> None:
     """Compile (or load from the cache) every kernel, on inputs of the types real calls use."""
     pts = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]])
@@ -121,6 +137,7 @@ def compile_kernels() -> None:
     normals = np.array([[0.0, 1.0], [1.0, 0.0], [0.0, 1.0], [1.0, 0.0]])
     nearest(grid, pts, 0.5)
     gauss_newton(pts, grid, normals, np.zeros(3), np.eye(3), 2, 0.5, 0.15, 0.03, 0.05, 2.0, 0.1)
+    field_scores(np.zeros((4, 4)), np.zeros(2), 0.1, pts * 0.1, np.zeros((1, 2), np.int64))
 
 
 # ------------------------------------------------------------------------------------- kernels
@@ -276,6 +293,36 @@ def _gauss_newton(points, xs, ys, nxs, nys, ox, oy, cell, gnx, gny, start, order
         if k >= 0 and abs(nxs[k] * (x - xs[k]) + nys[k] * (y - ys[k])) <= inlier_distance:
             inl += 1
     return pose, hess, inl / max(1, n), matched
+
+
+@njit(cache=True)
+def _field_scores(field, ox, oy, res, points, offsets):  # type: ignore[no-untyped-def]
+    h, w = field.shape
+    n = points.shape[0]
+    k = offsets.shape[0]
+    out = np.zeros(k)
+    if k == 0:
+        return out
+    lo_x = offsets[:, 0].min()
+    hi_x = offsets[:, 0].max()
+    lo_y = offsets[:, 1].min()
+    hi_y = offsets[:, 1].max()
+    base = np.empty(n, np.int64)
+    m = 0
+    for q in range(n):
+        i = math.floor((points[q, 0] - ox) / res)
+        j = math.floor((points[q, 1] - oy) / res)
+        if i + lo_x >= 0 and i + hi_x < w and j + lo_y >= 0 and j + hi_y < h:
+            base[m] = j * w + i
+            m += 1
+    flat = field.ravel()
+    for o in range(k):
+        shift = offsets[o, 1] * w + offsets[o, 0]
+        acc = 0.0
+        for q in range(m):
+            acc += flat[base[q] + shift]
+        out[o] = acc / max(1, n)
+    return out
 
 
 @njit(cache=True)

@@ -1,4 +1,4 @@
-"""The compiled point-to-line match (mapping.point_to_line) against a NumPy reference: the grid's
+"""The compiled point-to-line match (mapping.slam_kernels) against a NumPy reference: the grid's
 nearest neighbour against scipy's k-d tree, and the whole Gauss-Newton match against the NumPy
 implementation it replaced (kept here as the reference), on simulated and random scenes."""
 
@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from mapping import point_to_line as ptl
+from mapping import slam_kernels as ptl
 from mapping.lidar_slam import SlamConfig, Submap, match_scan, scan_normals
 from mapping.se2 import Pose, wrap_angle
 from tests.test_lidar_slam import points_at, room_segments, submap_of
@@ -147,3 +147,51 @@ def test_the_three_by_three_solve_is_numpys() -> None:
             continue
         b = rng.normal(0, 1, 3)
         assert np.allclose(ptl._solve3(a, b), np.linalg.solve(a, b), rtol=1e-9, atol=1e-12)
+
+
+def reference_scores(grid: np.ndarray, origin: np.ndarray, res: float, pts: np.ndarray,
+                     offsets: np.ndarray) -> np.ndarray:
+    """The correlative scores as they were written in NumPy (``_Field.score`` before it was
+    compiled): one gather of offsets x points."""
+    ij = np.floor((pts - origin) / res).astype(np.int64)
+    h, w = grid.shape
+    lo, hi = offsets.min(axis=0), offsets.max(axis=0)
+    keep = ((ij[:, 0] + lo[0] >= 0) & (ij[:, 0] + hi[0] < w)
+            & (ij[:, 1] + lo[1] >= 0) & (ij[:, 1] + hi[1] < h))
+    base = ij[keep, 1] * w + ij[keep, 0]
+    flat = base[None, :] + (offsets[:, 1] * w + offsets[:, 0])[:, None]
+    return np.asarray(grid.ravel().take(flat).sum(axis=1) / max(1, len(pts)))
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_field_scores_are_the_numpy_gathers(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    grid = rng.uniform(0, 1, (rng.integers(20, 80), rng.integers(20, 80)))
+    origin = rng.uniform(-5, 5, 2)
+    h, w = grid.shape
+    # Points inside, near the border (dropped for every offset when one takes them off) and outside.
+    pts = origin + rng.uniform(-0.5, 1.1, (300, 2)) * np.array([w, h]) * 0.1
+    ax = np.arange(-4, 5) * rng.integers(1, 4)
+    offsets = np.stack(np.meshgrid(ax, ax, indexing="xy"), axis=-1).reshape(-1, 2)
+    got = ptl.field_scores(grid, origin, 0.1, pts, offsets)
+    assert np.allclose(got, reference_scores(grid, origin, 0.1, pts, offsets), rtol=1e-12, atol=1e-15)
+
+
+def test_the_loop_search_finds_the_same_pose_with_the_compiled_scores() -> None:
+    """The loop search end to end with the NumPy scores and the compiled ones: the same match."""
+    from mapping import lidar_slam
+
+    truth = Pose(2.0, 8.0, -1.2)
+    sub = submap_of([Pose(1.0, 9.0, -1.0), Pose(2.5, 7.0, -1.4), Pose(1.5, 4.0, 1.0)])
+    guess = np.array([truth.x + 1.2, truth.y - 0.9, truth.theta + math.radians(12.0)])
+    args = (points_at(truth), sub, guess, 2.0, math.radians(20.0), SlamConfig())
+    got = lidar_slam.search_loop(*args)
+    original = lidar_slam._Field.score
+    try:
+        lidar_slam._Field.score = lambda self, grid, pts, offs: reference_scores(  # type: ignore[method-assign]
+            grid, self.origin, self.res, pts, offs)
+        want = lidar_slam.search_loop(*args)
+    finally:
+        lidar_slam._Field.score = original  # type: ignore[method-assign]
+    assert got is not None and want is not None
+    assert np.abs(got.pose - want.pose).max() < 1e-9 and got.inliers == want.inliers
