@@ -28,14 +28,17 @@ Choices
   0.28 / 0.35 ms a match, docs/experiments.md). A submap spread so wide that the grid would pass
   ``MAX_CELLS`` gets coarser cells (same results, slower queries).
 * The kernels are compiled on first use and cached on disk beside this file (numba's
-  ``cache=True``); ``make`` compiles them once after the install (:func:`compile_kernels`) so
-  that processes started together do not each compile.
+  ``cache=True``, or the user's cache directory when this file's is read-only, or nowhere when
+  neither is writable: then each process compiles them); ``make`` compiles them once after the
+  install (:func:`compile_kernels`) so that processes started together do not each compile.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numba import njit
@@ -143,7 +146,18 @@ def compile_kernels() -> None:
 # ------------------------------------------------------------------------------------- kernels
 
 
-@njit(cache=True)
+def _compiled(fn: Callable[..., Any]) -> Callable[..., Any]:
+    """``numba.njit`` with numba's on-disk cache, or without it where numba finds no writable
+    place for one (beside this file, or the user's cache directory: a read-only install under
+    a read-only home, as in some robot containers), where numba would refuse to import the
+    module: then each process compiles the kernels again on first use (~6 s)."""
+    try:
+        return njit(cache=True)(fn)
+    except RuntimeError:
+        return njit(fn)
+
+
+@_compiled
 def _bucket(xs, ys, ox, oy, cell, nx, ny):  # type: ignore[no-untyped-def]
     n = xs.shape[0]
     key = np.empty(n, np.int64)
@@ -163,7 +177,7 @@ def _bucket(xs, ys, ox, oy, cell, nx, ny):  # type: ignore[no-untyped-def]
     return start, order
 
 
-@njit(cache=True)
+@_compiled
 def _nearest(qx, qy, xs, ys, ox, oy, cell, nx, ny, start, order, gate):  # type: ignore[no-untyped-def]
     if not (math.isfinite(qx) and math.isfinite(qy)):
         return -1
@@ -204,7 +218,7 @@ def _nearest(qx, qy, xs, ys, ox, oy, cell, nx, ny, start, order, gate):  # type:
     return found
 
 
-@njit(cache=True)
+@_compiled
 def _nearest_all(q, xs, ys, ox, oy, cell, nx, ny, start, order, gate):  # type: ignore[no-untyped-def]
     out = np.empty(q.shape[0], np.int64)
     for k in range(q.shape[0]):
@@ -212,12 +226,12 @@ def _nearest_all(q, xs, ys, ox, oy, cell, nx, ny, start, order, gate):  # type: 
     return out
 
 
-@njit(cache=True)
+@_compiled
 def _wrap(a):  # type: ignore[no-untyped-def]
     return (a + math.pi) % (2.0 * math.pi) - math.pi
 
 
-@njit(cache=True)
+@_compiled
 def _gauss_newton(points, xs, ys, nxs, nys, ox, oy, cell, gnx, gny, start, order, guess, prior,  # type: ignore[no-untyped-def]
                   n_it, gate_start, gate_end, sigma, kernel, effective_points, inlier_distance):
     pose = guess.copy()
@@ -295,7 +309,7 @@ def _gauss_newton(points, xs, ys, nxs, nys, ox, oy, cell, gnx, gny, start, order
     return pose, hess, inl / max(1, n), matched
 
 
-@njit(cache=True)
+@_compiled
 def _field_scores(field, ox, oy, res, points, offsets):  # type: ignore[no-untyped-def]
     h, w = field.shape
     n = points.shape[0]
@@ -325,7 +339,7 @@ def _field_scores(field, ox, oy, res, points, offsets):  # type: ignore[no-untyp
     return out
 
 
-@njit(cache=True)
+@_compiled
 def _solve3(a, b):  # type: ignore[no-untyped-def]
     """``a^-1 b`` of a 3 x 3 system by Gaussian elimination with partial pivoting (LAPACK's
     ``gesv`` for this size, without the call)."""

@@ -5,6 +5,11 @@ implementation it replaced (kept here as the reference), on simulated and random
 from __future__ import annotations
 
 import math
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -195,3 +200,22 @@ def test_the_loop_search_finds_the_same_pose_with_the_compiled_scores() -> None:
         lidar_slam._Field.score = original  # type: ignore[method-assign]
     assert got is not None and want is not None
     assert np.abs(got.pose - want.pose).max() < 1e-9 and got.inliers == want.inliers
+
+
+@pytest.mark.fleet  # (a subprocess)
+def test_the_kernels_import_and_run_where_no_cache_can_be_written(tmp_path: Path) -> None:
+    """A read-only install under a read-only home (a robot container): numba finds no place for
+    its cache and would refuse the module at import; the kernels compile without it."""
+    pkg = tmp_path / "pkg"
+    pkg.mkdir()
+    shutil.copy(Path(ptl.__file__), pkg / "kernels_copy.py")
+    (pkg / "__pycache__").write_text("a file where numba's cache folder would go")
+    env = {k: v for k, v in os.environ.items() if not k.startswith(("NUMBA_", "XDG_"))}
+    env.update(HOME="/dev/null", XDG_CACHE_HOME="/dev/null/cache", PYTHONPATH=str(pkg))
+    code = ("import numpy as np, kernels_copy as k; "
+            "g = k.PointGrid.build(np.array([[0.0, 0.0], [1.0, 0.0]])); "
+            "print(k.nearest(g, np.array([[0.9, 0.1]]), 0.5).tolist())")
+    out = subprocess.run([sys.executable, "-W", "error", "-c", code], env=env, capture_output=True, text=True,
+                         timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "[1]"
