@@ -629,7 +629,8 @@ def _chi2(x: FloatArray, edges: list[Edge]) -> FloatArray:
 # ------------------------------------------------------------------------------------- the SLAM
 
 
-#: Submaps :meth:`LidarSlam.refine` keeps for reuse (at most about 15 MB on the logs).
+#: Submaps :meth:`LidarSlam.refine` keeps for reuse (their points and grids: about 30-55 MB at
+#: most on the logs).
 _REFINE_SUBMAPS = 256
 
 

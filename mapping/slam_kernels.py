@@ -10,8 +10,9 @@ faster, with the same numbers up to rounding (``tests/test_slam_kernels.py`` hol
 NumPy reference on real and random matches).
 
 * :class:`PointGrid`: the submap's points bucketed in a uniform grid of ``cell`` metres (a
-  counting sort: cell offsets and the points' order). :func:`nearest` is the *exact* nearest
-  point strictly within a gate, as a k-d tree query with ``distance_upper_bound`` gives it:
+  counting sort: cell offsets and the points' order). :func:`nearest` is the exact nearest
+  point strictly within a gate (up to rounding: a tie within 1e-12 of the squared distance may
+  pick the other point), as a k-d tree query with ``distance_upper_bound`` gives it:
   rings of cells around the query's cell, stopping when the next ring's nearest possible
   point is no nearer than the best so far.
 * :func:`gauss_newton`: Censi's point-to-line cost under Cauchy weights with the gate annealed
@@ -26,7 +27,9 @@ Choices
 * The grid's ``cell`` is 0.15 m, about the match's final gate: a late iteration looks at the
   query's cell and its ring (0.10 / 0.15 / 0.25 m measured on captured fhw matches: 0.30 /
   0.28 / 0.35 ms a match, docs/experiments.md). A submap spread so wide that the grid would pass
-  ``MAX_CELLS`` gets coarser cells (same results, slower queries).
+  ``MAX_CELLS`` gets cells twice as wide until it fits (same results, slower queries). A grid's
+  memory grows with the submap's area (~110 KB for a typical fhw submap against 24 KB of
+  points), its build time too (0.2 ms for 20 m across, 7 ms for 160 m).
 * The kernels are compiled on first use and cached on disk beside this file (numba's
   ``cache=True``, or the user's cache directory when this file's is read-only, or nowhere when
   neither is writable: then each process compiles them); ``make`` compiles them once after the
@@ -72,14 +75,18 @@ class PointGrid:
 
     @classmethod
     def build(cls, points: FloatArray, cell: float = CELL) -> PointGrid:
-        """The grid of ``points`` ``(n, 2)`` (finite)."""
+        """The grid of ``points`` ``(n, 2)``; ValueError when one is not finite."""
         p = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 2)
         xs, ys = np.ascontiguousarray(p[:, 0]), np.ascontiguousarray(p[:, 1])
         if len(p) == 0:
             return cls(xs, ys, 0.0, 0.0, float(cell), 1, 1, np.zeros(2, np.int64), np.zeros(0, np.int64))
+        if not np.isfinite(p).all():
+            raise ValueError("PointGrid.build: points must be finite")
         lo = p.min(axis=0)
         span = p.max(axis=0) - lo
-        cell = max(float(cell), math.sqrt(float((span[0] + cell) * (span[1] + cell)) / MAX_CELLS))
+        cell = float(cell)
+        while (span[0] // cell + 1) * (span[1] // cell + 1) > MAX_CELLS:
+            cell *= 2.0
         nx = int(span[0] // cell) + 1
         ny = int(span[1] // cell) + 1
         start, order = _bucket(xs, ys, float(lo[0]), float(lo[1]), cell, nx, ny)
@@ -87,7 +94,10 @@ class PointGrid:
 
 
 def nearest(grid: PointGrid, queries: FloatArray, gate: float) -> IntArray:
-    """Index of each query's nearest grid point at a distance strictly under ``gate``, or -1."""
+    """Index of each query's nearest grid point at a distance strictly under ``gate`` (finite,
+    ValueError otherwise), or -1."""
+    if not math.isfinite(gate):
+        raise ValueError(f"nearest: the gate must be finite, got {gate}")
     q = np.ascontiguousarray(queries, dtype=np.float64).reshape(-1, 2)
     return np.asarray(_nearest_all(q, grid.xs, grid.ys, grid.origin_x, grid.origin_y, grid.cell,
                                    grid.nx, grid.ny, grid.start, grid.order, float(gate)))
@@ -109,7 +119,10 @@ def gauss_newton(
 ) -> tuple[FloatArray, FloatArray, float, int]:
     """Point-to-line Gauss-Newton of robot-frame ``points`` against the grid's points with unit
     ``normals`` from ``guess`` (see :func:`mapping.lidar_slam.match_scan`). Returns the pose,
-    the data term's Hessian, the inlier share and the points matched in the last iteration."""
+    the data term's Hessian, the inlier share and the points matched in the last iteration.
+    Raises ValueError for a non-finite point, guess or prior."""
+    if not (np.isfinite(points).all() and np.isfinite(guess).all() and np.isfinite(prior).all()):
+        raise ValueError("gauss_newton: points, guess and prior must be finite")
     pose, hess, inliers, matched = _gauss_newton(
         np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 2), grid.xs, grid.ys,
         np.ascontiguousarray(normals[:, 0], dtype=np.float64),
@@ -197,7 +210,9 @@ def _nearest(qx, qy, xs, ys, ox, oy, cell, nx, ny, start, order, gate):  # type:
     for r in range(int(gate / cell) + 2):
         if r > 0:
             lb = edge + (r - 1) * cell
-            if lb * lb >= best:
+            # (a relative slack of 1e-12: the bound is computed in cell units, and a point on a
+            # cell border may be that much nearer than it says)
+            if lb * lb * (1.0 - 1e-12) >= best:
                 break
         for j in range(max(0, cj - r), min(ny - 1, cj + r) + 1):
             whole_row = j == cj - r or j == cj + r
@@ -324,6 +339,8 @@ def _field_scores(field, ox, oy, res, points, offsets):  # type: ignore[no-untyp
     base = np.empty(n, np.int64)
     m = 0
     for q in range(n):
+        if not (math.isfinite(points[q, 0]) and math.isfinite(points[q, 1])):
+            continue
         i = math.floor((points[q, 0] - ox) / res)
         j = math.floor((points[q, 1] - oy) / res)
         if i + lo_x >= 0 and i + hi_x < w and j + lo_y >= 0 and j + hi_y < h:

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from mapping import slam_kernels as ptl
+from mapping import slam_kernels as sk
 from mapping.lidar_slam import SlamConfig, Submap, match_scan, scan_normals
 from mapping.se2 import Pose, wrap_angle
 from tests.test_lidar_slam import points_at, room_segments, submap_of
@@ -87,30 +87,57 @@ def test_nearest_is_the_k_d_trees_nearest_within_the_gate(seed: int) -> None:
                          pts[:50] + rng.normal(0, 0.01, (50, 2))])
     tree = cKDTree(pts)
     for cell in (0.05, 0.15, 0.7):
-        grid = ptl.PointGrid.build(pts, cell)
+        grid = sk.PointGrid.build(pts, cell)
         for gate in (0.01, 0.15, 0.5, 2.0):
             dist, idx = tree.query(queries, distance_upper_bound=gate)
             want = np.where(np.isfinite(dist), idx, -1)
-            assert np.array_equal(ptl.nearest(grid, queries, gate), want), (cell, gate)
+            assert np.array_equal(sk.nearest(grid, queries, gate), want), (cell, gate)
 
 
 def test_nearest_on_an_empty_grid_a_point_and_a_non_finite_query() -> None:
-    empty = ptl.PointGrid.build(np.zeros((0, 2)))
-    assert ptl.nearest(empty, np.array([[0.0, 0.0]]), 1.0).tolist() == [-1]
-    one = ptl.PointGrid.build(np.array([[1.0, 2.0]]))
-    q = np.array([[1.0, 2.0], [1.3, 2.0], [np.nan, 2.0], [np.inf, 0.0]])
-    assert ptl.nearest(one, q, 0.5).tolist() == [0, 0, -1, -1]
-    assert ptl.nearest(one, q, 0.3).tolist() == [0, -1, -1, -1]  # strictly within the gate
+    empty = sk.PointGrid.build(np.zeros((0, 2)))
+    assert sk.nearest(empty, np.array([[0.0, 0.0]]), 1.0).tolist() == [-1]
+    one = sk.PointGrid.build(np.array([[1.0, 2.0]]))
+    q = np.array([[1.0, 2.0], [1.5, 2.0], [np.nan, 2.0], [np.inf, 0.0]])  # 0.5 exactly
+    assert sk.nearest(one, q, 0.6).tolist() == [0, 0, -1, -1]
+    assert sk.nearest(one, q, 0.5).tolist() == [0, -1, -1, -1]  # strictly within the gate
+    assert sk.nearest(one, np.array([[900.0, -700.0]]), 2000.0).tolist() == [0]
+    with pytest.raises(ValueError, match="finite"):
+        sk.nearest(one, q, math.inf)
+    with pytest.raises(ValueError, match="finite"):
+        sk.PointGrid.build(np.array([[0.0, np.nan]]))
+
+
+def test_nearest_on_a_lattice_of_points_on_cell_borders() -> None:
+    """Points exactly on cell borders, queries half way between them, the gate just over
+    that: the ring bound must not skip a border point by a rounding."""
+    for cell in (0.15, 0.25):
+        s = cell / 3.0
+        ax = np.arange(-12, 13) * s
+        pts = np.stack(np.meshgrid(ax, ax), axis=-1).reshape(-1, 2)
+        q = pts[:200] + np.array([s / 2.0, 0.0])
+        grid = sk.PointGrid.build(pts, cell)
+        for gate in (s / 2.0 + 1e-12, 0.6 * s, 1.5 * s):
+            dist, _ = cKDTree(pts).query(q, distance_upper_bound=gate)
+            got = sk.nearest(grid, q, gate)
+            assert np.array_equal(got >= 0, np.isfinite(dist)), (cell, gate)
+            d = np.hypot(*(pts[np.maximum(got, 0)] - q).T)
+            assert np.allclose(d[got >= 0], dist[np.isfinite(dist)], rtol=0, atol=1e-12)
 
 
 def test_a_wide_point_set_gets_coarser_cells_and_the_same_neighbours() -> None:
     rng = np.random.default_rng(5)
     pts = np.vstack([rng.uniform(0, 1, (50, 2)), rng.uniform(0, 1, (50, 2)) + 5000.0])
-    grid = ptl.PointGrid.build(pts)
-    assert grid.nx * grid.ny <= ptl.MAX_CELLS and grid.cell > ptl.CELL
+    grid = sk.PointGrid.build(pts)
+    assert grid.nx * grid.ny <= sk.MAX_CELLS and grid.cell > sk.CELL
+    # Long and thin too: the cap holds whatever the shape.
+    line = np.stack([np.linspace(0, 1e6, 50), np.zeros(50)], axis=1)
+    thin = sk.PointGrid.build(line)
+    assert thin.nx * thin.ny <= sk.MAX_CELLS
+    assert sk.nearest(thin, line[[7]] + 0.1, 0.5).tolist() == [7]
     q = np.vstack([pts + rng.normal(0, 0.2, pts.shape), rng.uniform(0, 5001, (100, 2))])
     dist, idx = cKDTree(pts).query(q, distance_upper_bound=0.5)
-    assert np.array_equal(ptl.nearest(grid, q, 0.5), np.where(np.isfinite(dist), idx, -1))
+    assert np.array_equal(sk.nearest(grid, q, 0.5), np.where(np.isfinite(dist), idx, -1))
 
 
 def test_the_match_is_the_numpy_reference_on_the_room() -> None:
@@ -144,6 +171,39 @@ def test_the_match_is_the_numpy_reference_on_random_clouds_and_edge_cases() -> N
     assert_same_match(points_at(Pose(2, 2, 0)), empty, np.array([2.0, 2.0, 0.0]), cfg, np.eye(3))
 
 
+def test_the_match_is_the_numpy_reference_when_points_run_out_and_across_pi() -> None:
+    """Sparse submaps: the matches fall under three as the gate shrinks, after the pose has
+    moved (the prior's branch with a real gradient: it takes the pose back to the guess),
+    headings on both sides of +-pi, and an inlier distance wider than the last gate."""
+    rng = np.random.default_rng(0)
+    branch = 0
+    for k in range(400):
+        n = int(rng.integers(3, 8))
+        sp = rng.uniform(-1, 1, (n, 2))
+        nr = rng.normal(0, 1, (n, 2))
+        nr /= np.linalg.norm(nr, axis=1)[:, None]
+        sub = Submap.build([(sp, nr)], 0.05)
+        scan = sp[rng.permutation(n)[: rng.integers(3, n + 1)]] + rng.normal(0, 0.18, (1, 2))
+        guess = rng.normal(0, [0.1, 0.1, 0.3])
+        guess[2] = wrap_angle(guess[2] + rng.choice([0.0, math.pi]))
+        prior = np.diag(rng.uniform(0.5, 50, 3))
+        inlier = 0.3 if k % 2 else 0.1
+        got = match_scan(scan, sub, guess, SlamConfig(), prior_information=prior, inlier_distance=inlier)
+        pose, hess, inliers, matched = reference_match(scan, sub, guess, SlamConfig(), prior, inlier)
+        assert np.abs(got.pose - pose).max() < 1e-9 and np.abs(got.hessian - hess).max() < 1e-6
+        assert (got.inliers, got.matched) == (inliers, matched)
+        branch += 0 < got.matched < 3  # points left, too few: the prior's branch (back to the guess)
+    assert branch >= 20  # the case this test is for did occur
+
+
+def test_the_match_refuses_non_finite_input() -> None:
+    sub = submap_of([Pose(1.5, 1.0, 0.4)])
+    with pytest.raises(ValueError, match="finite"):
+        match_scan(np.array([[1.0, np.nan], [2.0, 1.0]]), sub, np.zeros(3), SlamConfig())
+    with pytest.raises(ValueError, match="finite"):
+        match_scan(points_at(Pose(2, 2, 0)), sub, np.array([np.inf, 0.0, 0.0]), SlamConfig())
+
+
 def test_the_three_by_three_solve_is_numpys() -> None:
     rng = np.random.default_rng(2)
     for _ in range(200):
@@ -151,7 +211,7 @@ def test_the_three_by_three_solve_is_numpys() -> None:
         if abs(np.linalg.det(a)) < 1e-3:
             continue
         b = rng.normal(0, 1, 3)
-        assert np.allclose(ptl._solve3(a, b), np.linalg.solve(a, b), rtol=1e-9, atol=1e-12)
+        assert np.allclose(sk._solve3(a, b), np.linalg.solve(a, b), rtol=1e-9, atol=1e-12)
 
 
 def reference_scores(grid: np.ndarray, origin: np.ndarray, res: float, pts: np.ndarray,
@@ -178,7 +238,7 @@ def test_field_scores_are_the_numpy_gathers(seed: int) -> None:
     pts = origin + rng.uniform(-0.5, 1.1, (300, 2)) * np.array([w, h]) * 0.1
     ax = np.arange(-4, 5) * rng.integers(1, 4)
     offsets = np.stack(np.meshgrid(ax, ax, indexing="xy"), axis=-1).reshape(-1, 2)
-    got = ptl.field_scores(grid, origin, 0.1, pts, offsets)
+    got = sk.field_scores(grid, origin, 0.1, pts, offsets)
     assert np.allclose(got, reference_scores(grid, origin, 0.1, pts, offsets), rtol=1e-12, atol=1e-15)
 
 
@@ -208,7 +268,7 @@ def test_the_kernels_import_and_run_where_no_cache_can_be_written(tmp_path: Path
     its cache and would refuse the module at import; the kernels compile without it."""
     pkg = tmp_path / "pkg"
     pkg.mkdir()
-    shutil.copy(Path(ptl.__file__), pkg / "kernels_copy.py")
+    shutil.copy(Path(sk.__file__), pkg / "kernels_copy.py")
     (pkg / "__pycache__").write_text("a file where numba's cache folder would go")
     env = {k: v for k, v in os.environ.items() if not k.startswith(("NUMBA_", "XDG_"))}
     env.update(HOME="/dev/null", XDG_CACHE_HOME="/dev/null/cache", PYTHONPATH=str(pkg))
