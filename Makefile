@@ -10,7 +10,7 @@ $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PY) -m venv $(VENV)
 	$(BIN)/python -m pip install -q --upgrade pip
 	$(BIN)/python -m pip install -q -e '.[dev]'
-	$(BIN)/python -c 'from mapping.slam_kernels import compile_kernels; compile_kernels()'
+	$(BIN)/python -c 'from mapping.kernels import compile_kernels; compile_kernels()'
 	touch $(STAMP)
 
 venv: $(STAMP)

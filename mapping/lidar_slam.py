@@ -43,8 +43,8 @@ import scipy.sparse.linalg as spla
 from numpy.typing import NDArray
 from scipy.ndimage import distance_transform_edt, maximum_filter
 
+from mapping.kernels import PointGrid, field_scores, gauss_newton
 from mapping.se2 import wrap_angle
-from mapping.slam_kernels import PointGrid, field_scores, gauss_newton
 
 FloatArray = NDArray[np.float64]
 
@@ -257,7 +257,7 @@ def scan_normals(points: FloatArray, gap: float = 0.3) -> FloatArray:
 @dataclass
 class Submap:
     """Points (world frame) with unit normals, thinned to a voxel grid, and bucketed for
-    nearest-neighbour queries (:class:`mapping.slam_kernels.PointGrid`)."""
+    nearest-neighbour queries (:class:`mapping.kernels.PointGrid`)."""
 
     points: FloatArray
     normals: FloatArray
@@ -339,7 +339,7 @@ def match_scan(
     under Cauchy weights of width ``kernel``; the data term counts as ``effective_points``
     independent points at most (neighbouring returns' errors are correlated, and the truth
     itself is only good to a few cm). Stops after half the iterations once a step moves less
-    than 0.1 mm and 0.01 mrad. Compiled: :func:`mapping.slam_kernels.gauss_newton`."""
+    than 0.1 mm and 0.01 mrad. Compiled: :func:`mapping.kernels.gauss_newton`."""
     prior = np.zeros((3, 3)) if prior_information is None else prior_information
     pose, hess, inliers, matched = gauss_newton(
         points, submap.grid, submap.normals, guess, prior, config.iterations, config.gate_start,
@@ -376,7 +376,7 @@ class _Field:
 
     def score(self, grid: FloatArray, pts: FloatArray, offsets: NDArray[np.int64]) -> FloatArray:
         """Mean field value of ``pts`` (world) shifted by each of ``offsets`` (cells, (k, 2)
-        as (dx, dy)); points off the grid score 0 (:func:`mapping.slam_kernels.field_scores`)."""
+        as (dx, dy)); points off the grid score 0 (:func:`mapping.kernels.field_scores`)."""
         return field_scores(grid, self.origin, self.res, pts, offsets)
 
 

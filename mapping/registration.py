@@ -141,6 +141,7 @@ from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
 from mapping.icp import ICPConfig, icp
+from mapping.kernels import PointGrid, directed_matches
 from mapping.se2 import Pose
 from mapping.wireframe import Label, Wireframe
 
@@ -570,6 +571,11 @@ class MapFeatures:
     def tree(self) -> cKDTree:
         """k-d tree over ``points``."""
         return cKDTree(self.points if len(self.points) else np.zeros((0, 2)))
+
+    @cached_property
+    def grid(self) -> PointGrid:
+        """``points`` bucketed for the compiled sample match (:func:`_match`)."""
+        return PointGrid.build(self.points)
 
     @cached_property
     def probe_tree(self) -> cKDTree | None:
@@ -1150,27 +1156,10 @@ def _match(
     none = np.zeros(0, np.int64)
     if len(rows) == 0:
         return none, none
-    # The nearest sample first: most points match it (same direction); only the others ask for
-    # the three nearest and take the first of the same direction.
-    d1, i1 = fa.tree.query(q[rows], k=1, distance_upper_bound=gate)
-    hit = np.isfinite(d1)
-    if not hit.any():
-        return none, none
-    rows, i1 = rows[hit], i1[hit]
-    R = _rot(T.theta)
-    db = fb.directions[sel[rows]] @ R.T
-    cos_min = math.cos(cfg.match_angle)
-    ok1 = np.einsum("ij,ij->i", fa.directions[i1], db) >= cos_min
-    match = np.where(ok1, i1, -1)
-    rest = np.flatnonzero(~ok1)
-    if len(rest):
-        dist, idx = fa.tree.query(q[rows[rest]], k=3, distance_upper_bound=gate)
-        ok = np.isfinite(dist)
-        idx_c = np.where(ok, idx, 0)
-        ok &= np.einsum("ijk,ik->ij", fa.directions[idx_c], db[rest]) >= cos_min
-        first = np.argmax(ok, axis=1)
-        k = np.arange(len(rest))
-        match[rest] = np.where(ok[k, first], idx_c[k, first], -1)
+    # Among the three nearest A samples within the gate, the nearest of the same direction
+    # (compiled: mapping.kernels.directed_matches).
+    db = fb.directions[sel[rows]] @ _rot(T.theta).T
+    match = directed_matches(fa.grid, fa.directions, q[rows], db, gate, math.cos(cfg.match_angle))
     has = match >= 0
     return sel[rows[has]], match[has]
 

@@ -480,9 +480,9 @@ def test_facing_probes_match_a_ray_cast_against_every_wall() -> None:
 
 
 def test_match_takes_the_nearest_sample_of_the_same_direction() -> None:
-    """``_match`` (nearest sample first, the three nearest only when its direction differs)
-    gives, for every B sample, the first of its three nearest A samples within the gate whose
-    direction is within ``match_angle``."""
+    """``_match`` gives, for every B sample, the first of its three nearest A samples within the
+    gate (by distance, then index: two-sided walls have samples at the same places) whose
+    direction is within ``match_angle``: checked by brute force."""
     from mapping.registration import _match
 
     rng = np.random.default_rng(23)
@@ -496,7 +496,11 @@ def test_match_takes_the_nearest_sample_of_the_same_direction() -> None:
         for gate, stride in ((cfg.coarse_match_dist, 2), (cfg.match_dist, 1)):
             ib, ia = _match(fa, fb, T, gate, cfg, stride)
             sel = np.arange(0, len(fb.points), stride)
-            dist, idx = fa.tree.query(T.apply(fb.points[sel]), k=3, distance_upper_bound=gate)
+            q = T.apply(fb.points[sel])
+            d2 = ((q[:, None, :] - fa.points[None, :, :]) ** 2).sum(axis=2)
+            d2 = np.where(d2 < gate * gate, d2, np.inf)
+            idx = np.lexsort((np.broadcast_to(np.arange(len(fa.points)), d2.shape), d2), axis=1)[:, :3]
+            dist = np.take_along_axis(d2, idx, axis=1)
             db = fb.directions[sel] @ np.array([[math.cos(T.theta), -math.sin(T.theta)],
                                                 [math.sin(T.theta), math.cos(T.theta)]]).T
             want_b, want_a = [], []

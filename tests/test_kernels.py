@@ -1,4 +1,4 @@
-"""The compiled point-to-line match (mapping.slam_kernels) against a NumPy reference: the grid's
+"""The compiled point-to-line match (mapping.kernels) against a NumPy reference: the grid's
 nearest neighbour against scipy's k-d tree, and the whole Gauss-Newton match against the NumPy
 implementation it replaced (kept here as the reference), on simulated and random scenes."""
 
@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from mapping import slam_kernels as sk
+from mapping import kernels as sk
 from mapping.lidar_slam import SlamConfig, Submap, match_scan, scan_normals
 from mapping.se2 import Pose, wrap_angle
 from tests.test_lidar_slam import points_at, room_segments, submap_of
@@ -279,3 +279,26 @@ def test_the_kernels_import_and_run_where_no_cache_can_be_written(tmp_path: Path
                          timeout=120)
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip() == "[1]"
+
+
+def test_ties_go_to_the_lower_index_whatever_the_cells() -> None:
+    """Samples of a two-sided wall lie at the same places: among equal distances the lower
+    index, in any grid (a k-d tree's choice depends on its shape)."""
+    rng = np.random.default_rng(9)
+    pts = rng.uniform(-3, 3, (60, 2))
+    pts = np.vstack([pts, pts[::-1]])  # every point twice, the copies in reverse order
+    q = rng.uniform(-3, 3, (300, 2))
+    d2 = ((q[:, None, :] - pts[None, :, :]) ** 2).sum(axis=2)
+    want = np.lexsort((np.broadcast_to(np.arange(len(pts)), d2.shape), d2), axis=1)[:, :3]
+    for cell in (0.05, 0.15, 1.0):
+        grid = sk.PointGrid.build(pts, cell)
+        assert sk.nearest(grid, q, 10.0).tolist() == want[:, 0].tolist()
+        up = np.array([[1.0, 0.0]] * len(pts))
+        # With every direction accepted, the match is the nearest, lowest index first.
+        got = sk.directed_matches(grid, up, q, np.tile([1.0, 0.0], (len(q), 1)), 10.0, -2.0)
+        assert got.tolist() == want[:, 0].tolist()
+        # With only the second copies' direction accepted: the first of the three nearest that is one.
+        dirs = np.vstack([np.tile([0.0, 1.0], (60, 1)), np.tile([1.0, 0.0], (60, 1))])
+        got = sk.directed_matches(grid, dirs, q, np.tile([1.0, 0.0], (len(q), 1)), 10.0, 0.5)
+        expect = [next((int(i) for i in row if i >= 60), -1) for row in want]
+        assert got.tolist() == expect

@@ -1,23 +1,28 @@
-"""The lidar SLAM's inner loops, compiled (numba): the point-to-line match of
-:func:`mapping.lidar_slam.match_scan` and the correlative search's scores.
+"""Compiled inner loops (numba): the lidar SLAM's point-to-line match of
+:func:`mapping.lidar_slam.match_scan` and its correlative search's scores, and the
+registration's sample matching (:func:`mapping.registration._match`).
 
 A real log's SLAM matches a scan's points against a submap ten or more times a scan (the online
 match, the loop searches' refinements, the offline refine passes), and each match is a dozen
 Gauss-Newton iterations of a nearest-neighbour query and a 3 x 3 normal equation. In NumPy
 each iteration is ~20 array operations on ~200 points plus a k-d tree query, and the Python
 overhead is most of it; here the whole match is one compiled call (numba), about five times
-faster, with the same numbers up to rounding (``tests/test_slam_kernels.py`` holds it to the
+faster, with the same numbers up to rounding (``tests/test_kernels.py`` holds it to the
 NumPy reference on real and random matches).
 
 * :class:`PointGrid`: the submap's points bucketed in a uniform grid of ``cell`` metres (a
   counting sort: cell offsets and the points' order). :func:`nearest` is the exact nearest
-  point strictly within a gate (up to rounding: a tie within 1e-12 of the squared distance may
-  pick the other point), as a k-d tree query with ``distance_upper_bound`` gives it:
+  point strictly within a gate, as a k-d tree query with ``distance_upper_bound`` gives it, and
+  at equal distances the lower index (a k-d tree's choice among ties depends on its shape;
+  the registration's samples of two-sided walls tie all the time):
   rings of cells around the query's cell, stopping when the next ring's nearest possible
   point is no nearer than the best so far.
 * :func:`gauss_newton`: Censi's point-to-line cost under Cauchy weights with the gate annealed
   geometrically, a prior on the pose, the step by a 3 x 3 solve -- the algorithm and its
   choices are :func:`mapping.lidar_slam.match_scan`'s, documented there.
+* :func:`directed_matches`: each query's nearest grid point of a similar direction among its
+  three nearest within a gate (the registration's wall-sample match): one pass instead of a
+  k-d tree query of one neighbour, then of three for the points whose nearest disagrees.
 * :func:`field_scores`: the correlative loop search's score of a point set under many
   translations, the mean likelihood-field value of the shifted points (Olson 2009); one pass
   over the points per translation instead of a gather of translations x points.
@@ -50,12 +55,15 @@ from numpy.typing import NDArray
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
-__all__ = ["CELL", "MAX_CELLS", "PointGrid", "compile_kernels", "field_scores", "gauss_newton", "nearest"]
+__all__ = ["CELL", "CELLS_PER_POINT", "MAX_CELLS", "PointGrid", "compile_kernels", "directed_matches",
+           "field_scores", "gauss_newton", "nearest"]
 
 #: Grid cell of a :class:`PointGrid`, metres.
 CELL = 0.15
 #: Most cells a grid may have; a wider point set gets coarser cells.
 MAX_CELLS = 4_000_000
+#: Most cells per point: a sparse point set gets coarser cells.
+CELLS_PER_POINT = 16
 
 
 @dataclass(frozen=True)
@@ -84,7 +92,9 @@ class PointGrid:
             raise ValueError("PointGrid.build: points must be finite")
         lo = p.min(axis=0)
         span = p.max(axis=0) - lo
-        cell = float(cell)
+        # A sparse set gets wider cells: at most CELLS_PER_POINT cells a point (a building-wide
+        # map's 2,000 samples over 200 m x 200 m would be 1.8 million cells of 0.15 m).
+        cell = max(float(cell), math.sqrt(float(span[0] * span[1]) / (CELLS_PER_POINT * len(p))))
         while (span[0] // cell + 1) * (span[1] // cell + 1) > MAX_CELLS:
             cell *= 2.0
         nx = int(span[0] // cell) + 1
@@ -134,6 +144,21 @@ def gauss_newton(
     return pose, hess, float(inliers), int(matched)
 
 
+def directed_matches(grid: PointGrid, directions: FloatArray, queries: FloatArray,
+                     query_directions: FloatArray, gate: float, cos_min: float) -> IntArray:
+    """For each query, among its three nearest grid points strictly within ``gate`` (nearest
+    first), the first whose unit ``directions`` row has a dot product of at least ``cos_min``
+    with the query's direction; -1 when none has."""
+    if not math.isfinite(gate):
+        raise ValueError(f"directed_matches: the gate must be finite, got {gate}")
+    q = np.ascontiguousarray(queries, dtype=np.float64).reshape(-1, 2)
+    qd = np.ascontiguousarray(query_directions, dtype=np.float64).reshape(-1, 2)
+    d = np.ascontiguousarray(directions, dtype=np.float64).reshape(-1, 2)
+    return np.asarray(_directed_matches(q, qd, grid.xs, grid.ys, d, grid.origin_x, grid.origin_y,
+                                        grid.cell, grid.nx, grid.ny, grid.start, grid.order, float(gate),
+                                        float(cos_min)))
+
+
 def field_scores(field: FloatArray, origin: FloatArray, res: float, points: FloatArray,
                  offsets: IntArray) -> FloatArray:
     """Mean ``field`` value (rows = y, cols = x; cell ``(0, 0)`` at ``origin``, ``res`` metres)
@@ -152,6 +177,7 @@ def compile_kernels() -> None:
     grid = PointGrid.build(pts)
     normals = np.array([[0.0, 1.0], [1.0, 0.0], [0.0, 1.0], [1.0, 0.0]])
     nearest(grid, pts, 0.5)
+    directed_matches(grid, normals, pts, normals, 0.5, 0.9)
     gauss_newton(pts, grid, normals, np.zeros(3), np.eye(3), 2, 0.5, 0.15, 0.03, 0.05, 2.0, 0.1)
     field_scores(np.zeros((4, 4)), np.zeros(2), 0.1, pts * 0.1, np.zeros((1, 2), np.int64))
 
@@ -191,28 +217,33 @@ def _bucket(xs, ys, ox, oy, cell, nx, ny):  # type: ignore[no-untyped-def]
 
 
 @_compiled
-def _nearest(qx, qy, xs, ys, ox, oy, cell, nx, ny, start, order, gate):  # type: ignore[no-untyped-def]
+def _nearest_k(qx, qy, xs, ys, ox, oy, cell, nx, ny, start, order, gate, idx, dist):  # type: ignore[no-untyped-def]
+    """The ``len(idx)`` nearest points strictly within ``gate`` of ``(qx, qy)``, nearest first
+    and at equal distances the lower index first, into ``idx`` and ``dist`` (squared
+    distances); returns how many were found."""
     if not (math.isfinite(qx) and math.isfinite(qy)):
-        return -1
+        return 0
     fx = (qx - ox) / cell
     fy = (qy - oy) / cell
     reach = gate / cell + 2.0
     # A query farther than the gate from the grid's box has no neighbour.
     if fx < -reach or fy < -reach or fx > nx + reach or fy > ny + reach:
-        return -1
+        return 0
     ci = math.floor(fx)
     cj = math.floor(fy)
     # The nearest any point of ring r (r >= 1) can be: the way out of the query's own cell,
     # then r - 1 whole cells.
     edge = min(fx - ci, ci + 1 - fx, fy - cj, cj + 1 - fy) * cell
-    best = gate * gate
-    found = -1
+    kk = idx.shape[0]
+    found = 0
+    gate2 = gate * gate
+    bound = gate2
     for r in range(int(gate / cell) + 2):
         if r > 0:
             lb = edge + (r - 1) * cell
             # (a relative slack of 1e-12: the bound is computed in cell units, and a point on a
             # cell border may be that much nearer than it says)
-            if lb * lb * (1.0 - 1e-12) >= best:
+            if lb * lb * (1.0 - 1e-12) >= bound:
                 break
         for j in range(max(0, cj - r), min(ny - 1, cj + r) + 1):
             whole_row = j == cj - r or j == cj + r
@@ -226,18 +257,52 @@ def _nearest(qx, qy, xs, ys, ox, oy, cell, nx, ny, start, order, gate):  # type:
                         dx = xs[o] - qx
                         dy = ys[o] - qy
                         d2 = dx * dx + dy * dy
-                        if d2 < best:
-                            best = d2
-                            found = o
+                        # Ordered by (distance, index): among points at the same distance the
+                        # lower index first, whatever the grid's cells.
+                        if found < kk:
+                            if not d2 < gate2:
+                                continue
+                            p = found
+                            found += 1
+                        elif d2 < dist[kk - 1] or (d2 == dist[kk - 1] and o < idx[kk - 1]):
+                            p = kk - 1
+                        else:
+                            continue
+                        while p > 0 and (d2 < dist[p - 1] or (d2 == dist[p - 1] and o < idx[p - 1])):
+                            dist[p] = dist[p - 1]
+                            idx[p] = idx[p - 1]
+                            p -= 1
+                        dist[p] = d2
+                        idx[p] = o
+                        if found == kk:
+                            bound = dist[kk - 1]
                 i += step
     return found
 
 
 @_compiled
 def _nearest_all(q, xs, ys, ox, oy, cell, nx, ny, start, order, gate):  # type: ignore[no-untyped-def]
-    out = np.empty(q.shape[0], np.int64)
+    out = np.full(q.shape[0], -1, np.int64)
+    one = np.empty(1, np.int64)
+    one_d = np.empty(1)
     for k in range(q.shape[0]):
-        out[k] = _nearest(q[k, 0], q[k, 1], xs, ys, ox, oy, cell, nx, ny, start, order, gate)
+        if _nearest_k(q[k, 0], q[k, 1], xs, ys, ox, oy, cell, nx, ny, start, order, gate, one, one_d):
+            out[k] = one[0]
+    return out
+
+
+@_compiled
+def _directed_matches(q, qd, xs, ys, d, ox, oy, cell, nx, ny, start, order, gate, cos_min):  # type: ignore[no-untyped-def]
+    out = np.full(q.shape[0], -1, np.int64)
+    three = np.empty(3, np.int64)
+    three_d = np.empty(3)
+    for k in range(q.shape[0]):
+        n = _nearest_k(q[k, 0], q[k, 1], xs, ys, ox, oy, cell, nx, ny, start, order, gate, three, three_d)
+        for m in range(n):
+            o = three[m]
+            if d[o, 0] * qd[k, 0] + d[o, 1] * qd[k, 1] >= cos_min:
+                out[k] = o
+                break
     return out
 
 
@@ -256,6 +321,8 @@ def _gauss_newton(points, xs, ys, nxs, nys, ox, oy, cell, gnx, gny, start, order
     half = max(1, n_it // 2)
     n = points.shape[0]
     idx = np.empty(n, np.int64)
+    one = np.empty(1, np.int64)  # _nearest_k's answer
+    one_d = np.empty(1)
     wx = np.empty(n)
     wy = np.empty(n)
     h = np.empty((3, 3))
@@ -272,10 +339,11 @@ def _gauss_newton(points, xs, ys, nxs, nys, ox, oy, cell, gnx, gny, start, order
             y = s * points[q, 0] + c * points[q, 1] + pose[1]
             wx[q] = x
             wy[q] = y
-            k = _nearest(x, y, xs, ys, ox, oy, cell, gnx, gny, start, order, gate)
-            idx[q] = k
-            if k >= 0:
+            if _nearest_k(x, y, xs, ys, ox, oy, cell, gnx, gny, start, order, gate, one, one_d):
+                idx[q] = one[0]
                 matched += 1
+            else:
+                idx[q] = -1
         d0 = pose[0] - guess[0]
         d1 = pose[1] - guess[1]
         d2 = _wrap(pose[2] - guess[2])
@@ -318,9 +386,10 @@ def _gauss_newton(points, xs, ys, nxs, nys, ox, oy, cell, gnx, gny, start, order
     for q in range(n):
         x = c * points[q, 0] - s * points[q, 1] + pose[0]
         y = s * points[q, 0] + c * points[q, 1] + pose[1]
-        k = _nearest(x, y, xs, ys, ox, oy, cell, gnx, gny, start, order, gate)
-        if k >= 0 and abs(nxs[k] * (x - xs[k]) + nys[k] * (y - ys[k])) <= inlier_distance:
-            inl += 1
+        if _nearest_k(x, y, xs, ys, ox, oy, cell, gnx, gny, start, order, gate, one, one_d):
+            k = one[0]
+            if abs(nxs[k] * (x - xs[k]) + nys[k] * (y - ys[k])) <= inlier_distance:
+                inl += 1
     return pose, hess, inl / max(1, n), matched
 
 
