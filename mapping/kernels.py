@@ -23,9 +23,6 @@ NumPy reference on real and random matches).
 * :func:`directed_matches`: each query's nearest grid point of a similar direction among its
   three nearest within a gate (the registration's wall-sample match): one pass instead of a
   k-d tree query of one neighbour, then of three for the points whose nearest disagrees.
-* :func:`coarse_peaks`: which of the registration's translation proposals fall in the
-  strongest cells of a coarse vote or beside them (:func:`mapping.registration._coarse_select`),
-  the cells' sums added in the proposals' order as ``numpy.bincount`` adds them.
 * :func:`field_scores`: the correlative loop search's score of a point set under many
   translations, the mean likelihood-field value of the shifted points (Olson 2009); one pass
   over the points per translation instead of a gather of translations x points.
@@ -57,10 +54,9 @@ from numpy.typing import NDArray
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
-BoolArray = NDArray[np.bool_]
 
-__all__ = ["CELL", "CELLS_PER_POINT", "MAX_CELLS", "PointGrid", "coarse_peaks", "compile_kernels",
-           "directed_matches", "field_scores", "gauss_newton", "nearest"]
+__all__ = ["CELL", "CELLS_PER_POINT", "MAX_CELLS", "PointGrid", "compile_kernels", "directed_matches",
+           "field_scores", "gauss_newton", "nearest"]
 
 #: Grid cell of a :class:`PointGrid`, metres.
 CELL = 0.15
@@ -163,15 +159,6 @@ def directed_matches(grid: PointGrid, directions: FloatArray, queries: FloatArra
                                         float(cos_min)))
 
 
-def coarse_peaks(tx: FloatArray, ty: FloatArray, weights: FloatArray, size: float, k: int) -> BoolArray:
-    """Which proposals ``(tx, ty)`` lie in one of the ``k`` cells (of ``size`` metres) of most
-    summed ``weights`` -- every cell tied with the ``k``-th kept too, only cells of positive sum
-    -- or in one of their eight neighbours."""
-    return np.asarray(_coarse_peaks(np.ascontiguousarray(tx, dtype=np.float64),
-                                    np.ascontiguousarray(ty, dtype=np.float64),
-                                    np.ascontiguousarray(weights, dtype=np.float64), float(size), int(k)))
-
-
 def field_scores(field: FloatArray, origin: FloatArray, res: float, points: FloatArray,
                  offsets: IntArray) -> FloatArray:
     """Mean ``field`` value (rows = y, cols = x; cell ``(0, 0)`` at ``origin``, ``res`` metres)
@@ -193,7 +180,6 @@ def compile_kernels() -> None:
     directed_matches(grid, normals, pts, normals, 0.5, 0.9)
     gauss_newton(pts, grid, normals, np.zeros(3), np.eye(3), 2, 0.5, 0.15, 0.03, 0.05, 2.0, 0.1)
     field_scores(np.zeros((4, 4)), np.zeros(2), 0.1, pts * 0.1, np.zeros((1, 2), np.int64))
-    coarse_peaks(pts[:, 0], pts[:, 1], np.ones(len(pts)), 0.5, 2)
 
 
 # ------------------------------------------------------------------------------------- kernels
@@ -317,43 +303,6 @@ def _directed_matches(q, qd, xs, ys, d, ox, oy, cell, nx, ny, start, order, gate
             if d[o, 0] * qd[k, 0] + d[o, 1] * qd[k, 1] >= cos_min:
                 out[k] = o
                 break
-    return out
-
-
-@_compiled
-def _coarse_peaks(tx, ty, wv, size, k):  # type: ignore[no-untyped-def]
-    n = tx.shape[0]
-    cx = np.empty(n, np.int64)
-    cy = np.empty(n, np.int64)
-    for i in range(n):
-        cx[i] = math.floor(tx[i] / size)
-        cy[i] = math.floor(ty[i] / size)
-    # One empty row and column around the cells with proposals: a strong cell's neighbours are
-    # cells of the grid.
-    cx -= cx.min() - 1
-    cy -= cy.min() - 1
-    ny = cy.max() + 2
-    m = (cx.max() + 2) * ny
-    key = cx * ny + cy
-    grid = np.zeros(m)
-    for i in range(n):
-        grid[key[i]] += wv[i]
-    k = min(k, m - 1)
-    nz = np.flatnonzero(grid > 0.0)
-    keep = np.zeros(m, np.bool_)
-    if len(nz) <= k:
-        strong = nz
-    else:
-        vals = grid[nz]
-        kth = -np.partition(-vals, k - 1)[k - 1]
-        strong = nz[vals >= kth]
-    for c in strong:
-        for dx in (-ny, 0, ny):
-            for dy in (-1, 0, 1):
-                keep[c + dx + dy] = True
-    out = np.empty(n, np.bool_)
-    for i in range(n):
-        out[i] = keep[key[i]]
     return out
 
 
