@@ -10,13 +10,13 @@ overhead is most of it; here the whole match is one compiled call (numba), about
 faster, with the same numbers up to rounding (``tests/test_kernels.py`` holds it to the
 NumPy reference on real and random matches).
 
-* :class:`PointGrid`: the submap's points bucketed in a uniform grid of ``cell`` metres (a
-  counting sort: cell offsets and the points' order). :func:`nearest` is the exact nearest
-  point strictly within a gate, as a k-d tree query with ``distance_upper_bound`` gives it, and
-  at equal distances the lower index (a k-d tree's choice among ties depends on its shape;
-  the registration's samples of two-sided walls tie all the time):
-  rings of cells around the query's cell, stopping when the next ring's nearest possible
-  point is no nearer than the best so far.
+* :class:`PointGrid`: a point set (a submap, a map's wall samples) bucketed in a uniform grid
+  of ``cell`` metres (a counting sort: cell offsets and the points' order). :func:`nearest` is
+  the exact nearest point strictly within a gate, as a k-d tree query with
+  ``distance_upper_bound`` gives it, and at equal distances the lower index (a k-d tree's
+  choice among ties depends on its shape; the registration's samples of two-sided walls tie
+  all the time): rings of cells around the query's cell, stopping when the next ring's nearest
+  possible point is no nearer than the worst kept so far.
 * :func:`gauss_newton`: Censi's point-to-line cost under Cauchy weights with the gate annealed
   geometrically, a prior on the pose, the step by a 3 x 3 solve -- the algorithm and its
   choices are :func:`mapping.lidar_slam.match_scan`'s, documented there.
@@ -29,12 +29,14 @@ NumPy reference on real and random matches).
 
 Choices
 -------
-* The grid's ``cell`` is 0.15 m, about the match's final gate: a late iteration looks at the
-  query's cell and its ring (0.10 / 0.15 / 0.25 m measured on captured fhw matches: 0.30 /
-  0.28 / 0.35 ms a match, docs/experiments.md). A submap spread so wide that the grid would pass
-  ``MAX_CELLS`` gets cells twice as wide until it fits (same results, slower queries). A grid's
-  memory grows with the submap's area (~110 KB for a typical fhw submap against 24 KB of
-  points), its build time too (0.2 ms for 20 m across, 7 ms for 160 m).
+* The grid's ``cell`` is at least 0.15 m, about the SLAM match's final gate: a late iteration
+  looks at the query's cell and its ring (0.10 / 0.15 / 0.25 m measured on captured fhw
+  matches: 0.30 / 0.28 / 0.35 ms a match, docs/experiments.md), and at most ``CELLS_PER_POINT``
+  cells a point: a sparse set over a wide area gets wider cells (a whole building's 2,000
+  registration samples over 220 m x 220 m took 22 ms to bucket in 0.15 m cells, 2.2 million of
+  them; a SLAM submap of 640 points over 20 m gets 0.2 m). ``MAX_CELLS`` caps the rest: cells
+  double until the grid fits. Same neighbours whatever the cells (ties included); memory and
+  build time grow with the number of points.
 * The kernels are compiled on first use and cached on disk beside this file (numba's
   ``cache=True``, or the user's cache directory when this file's is read-only, or nowhere when
   neither is writable: then each process compiles them); ``make`` compiles them once after the
