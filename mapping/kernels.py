@@ -323,8 +323,6 @@ def _gauss_newton(points, xs, ys, nxs, nys, ox, oy, cell, gnx, gny, start, order
     half = max(1, n_it // 2)
     n = points.shape[0]
     idx = np.empty(n, np.int64)
-    one = np.empty(1, np.int64)  # _nearest_k's answer
-    one_d = np.empty(1)
     wx = np.empty(n)
     wy = np.empty(n)
     h = np.empty((3, 3))
@@ -333,19 +331,8 @@ def _gauss_newton(points, xs, ys, nxs, nys, ox, oy, cell, gnx, gny, start, order
     for it in range(n_it):
         f = min(1.0, it / half)
         gate = gate_start * (gate_end / gate_start) ** f
-        c = math.cos(pose[2])
-        s = math.sin(pose[2])
-        matched = 0
-        for q in range(n):
-            x = c * points[q, 0] - s * points[q, 1] + pose[0]
-            y = s * points[q, 0] + c * points[q, 1] + pose[1]
-            wx[q] = x
-            wy[q] = y
-            if _nearest_k(x, y, xs, ys, ox, oy, cell, gnx, gny, start, order, gate, one, one_d):
-                idx[q] = one[0]
-                matched += 1
-            else:
-                idx[q] = -1
+        matched = _place_and_pair(points, pose, xs, ys, ox, oy, cell, gnx, gny, start, order, gate,
+                                  wx, wy, idx)
         d0 = pose[0] - guess[0]
         d1 = pose[1] - guess[1]
         d2 = _wrap(pose[2] - guess[2])
@@ -381,18 +368,36 @@ def _gauss_newton(points, xs, ys, nxs, nys, ox, oy, cell, gnx, gny, start, order
         pose[2] = _wrap(pose[2] - step[2])
         if it >= half and abs(step[0]) + abs(step[1]) < 1e-4 and abs(step[2]) < 1e-5:
             break
-    gate = max(gate_end, inlier_distance)
-    c = math.cos(pose[2])
-    s = math.sin(pose[2])
+    _place_and_pair(points, pose, xs, ys, ox, oy, cell, gnx, gny, start, order,
+                    max(gate_end, inlier_distance), wx, wy, idx)
     inl = 0
     for q in range(n):
+        k = idx[q]
+        if k >= 0 and abs(nxs[k] * (wx[q] - xs[k]) + nys[k] * (wy[q] - ys[k])) <= inlier_distance:
+            inl += 1
+    return pose, hess, inl / max(1, n), matched
+
+
+@_compiled
+def _place_and_pair(points, pose, xs, ys, ox, oy, cell, nx, ny, start, order, gate, wx, wy, idx):  # type: ignore[no-untyped-def]
+    """Robot-frame ``points`` placed at ``pose`` into ``wx``, ``wy``, each one's nearest grid
+    point strictly within ``gate`` into ``idx`` (-1: none); returns how many have one."""
+    c = math.cos(pose[2])
+    s = math.sin(pose[2])
+    one = np.empty(1, np.int64)
+    one_d = np.empty(1)
+    matched = 0
+    for q in range(points.shape[0]):
         x = c * points[q, 0] - s * points[q, 1] + pose[0]
         y = s * points[q, 0] + c * points[q, 1] + pose[1]
-        if _nearest_k(x, y, xs, ys, ox, oy, cell, gnx, gny, start, order, gate, one, one_d):
-            k = one[0]
-            if abs(nxs[k] * (x - xs[k]) + nys[k] * (y - ys[k])) <= inlier_distance:
-                inl += 1
-    return pose, hess, inl / max(1, n), matched
+        wx[q] = x
+        wy[q] = y
+        if _nearest_k(x, y, xs, ys, ox, oy, cell, nx, ny, start, order, gate, one, one_d):
+            idx[q] = one[0]
+            matched += 1
+        else:
+            idx[q] = -1
+    return matched
 
 
 @_compiled
