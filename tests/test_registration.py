@@ -491,7 +491,7 @@ def test_match_takes_the_nearest_sample_of_the_same_direction() -> None:
     b = _noisy(_truth("office"), rng).transformed(move)
     cfg = RegistrationConfig()
     fa, fb = prepare(a, cfg), prepare(b, cfg)
-    for k in range(12):
+    for k in range(6):
         T = Pose(*(np.array(move.inverse().as_tuple()) + rng.normal(0, [0.1, 0.1, 0.005]) * (k > 0)))
         for gate, stride in ((cfg.coarse_match_dist, 2), (cfg.match_dist, 1)):
             ib, ia = _match(fa, fb, T, gate, cfg, stride)
