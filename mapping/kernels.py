@@ -23,6 +23,10 @@ NumPy reference on real and random matches).
 * :func:`directed_matches`: each query's nearest grid point of a similar direction among its
   three nearest within a gate (the registration's wall-sample match): one pass instead of a
   k-d tree query of one neighbour, then of three for the points whose nearest disagrees.
+* :func:`first_crossings`: where each ray (a wall sample's normal) first crosses a map's walls,
+  and whether that wall faces back (the registration's free probes across open space,
+  :func:`mapping.registration._facing_probes`), the rays in chunks against the walls near each
+  chunk, by the same float operations as the NumPy formulation.
 * :func:`field_scores`: the correlative loop search's score of a point set under many
   translations, the mean likelihood-field value of the shifted points (Olson 2009); one pass
   over the points per translation instead of a gather of translations x points.
@@ -58,7 +62,7 @@ FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
 __all__ = ["CELL", "CELLS_PER_POINT", "MAX_CELLS", "PointGrid", "compile_kernels", "directed_matches",
-           "field_scores", "gauss_newton", "nearest"]
+           "field_scores", "first_crossings", "gauss_newton", "nearest"]
 
 #: Grid cell of a :class:`PointGrid`, metres.
 CELL = 0.15
@@ -161,6 +165,22 @@ def directed_matches(grid: PointGrid, directions: FloatArray, queries: FloatArra
                                         float(cos_min)))
 
 
+def first_crossings(origins: FloatArray, normals: FloatArray, segments: FloatArray,
+                    segment_normals: FloatArray, reach: float,
+                    chunk: int = 128) -> tuple[FloatArray, NDArray[np.bool_]]:
+    """For each ray ``origins + t normals`` (``1e-6 < t <= reach``): the first ``t`` at which
+    it crosses one of ``segments`` ``(m, 2, 2)`` (inf: none), and whether that segment's unit
+    normal points against the ray. Rays are taken ``chunk`` at a time against the segments whose
+    bounding box meets the chunk's (put nearby rays together for speed; the result does not
+    depend on it); among equal ``t`` the lower segment index."""
+    o = np.ascontiguousarray(origins, dtype=np.float64).reshape(-1, 2)
+    n = np.ascontiguousarray(normals, dtype=np.float64).reshape(-1, 2)
+    seg = np.ascontiguousarray(segments, dtype=np.float64).reshape(-1, 2, 2)
+    sn = np.ascontiguousarray(segment_normals, dtype=np.float64).reshape(-1, 2)
+    first, facing = _first_crossings(o, n, seg, sn, float(reach), int(chunk))
+    return np.asarray(first), np.asarray(facing)
+
+
 def field_scores(field: FloatArray, origin: FloatArray, res: float, points: FloatArray,
                  offsets: IntArray) -> FloatArray:
     """Mean ``field`` value (rows = y, cols = x; cell ``(0, 0)`` at ``origin``, ``res`` metres)
@@ -182,6 +202,7 @@ def compile_kernels() -> None:
     directed_matches(grid, normals, pts, normals, 0.5, 0.9)
     gauss_newton(pts, grid, normals, np.zeros(3), np.eye(3), 2, 0.5, 0.15, 0.03, 0.05, 2.0, 0.1)
     field_scores(np.zeros((4, 4)), np.zeros(2), 0.1, pts * 0.1, np.zeros((1, 2), np.int64))
+    first_crossings(pts, normals, np.stack([pts, pts[::-1]], axis=1), normals, 2.0)
 
 
 # ------------------------------------------------------------------------------------- kernels
@@ -306,6 +327,57 @@ def _directed_matches(q, qd, xs, ys, d, ox, oy, cell, nx, ny, start, order, gate
                 out[k] = o
                 break
     return out
+
+
+@_compiled
+def _first_crossings(o, n, seg, sn, reach, chunk):  # type: ignore[no-untyped-def]
+    n_rays = o.shape[0]
+    m = seg.shape[0]
+    first = np.full(n_rays, np.inf)
+    facing = np.zeros(n_rays, np.bool_)
+    near = np.empty(m, np.int64)
+    for k in range(0, n_rays, chunk):
+        end = min(k + chunk, n_rays)
+        # The chunk's rays' bounding box, origin to tip.
+        lox = loy = np.inf
+        hix = hiy = -np.inf
+        for r in range(k, end):
+            tx = o[r, 0] + reach * n[r, 0]
+            ty = o[r, 1] + reach * n[r, 1]
+            lox = min(lox, o[r, 0], tx)
+            loy = min(loy, o[r, 1], ty)
+            hix = max(hix, o[r, 0], tx)
+            hiy = max(hiy, o[r, 1], ty)
+        n_near = 0
+        for j in range(m):
+            if (max(seg[j, 0, 0], seg[j, 1, 0]) >= lox and max(seg[j, 0, 1], seg[j, 1, 1]) >= loy
+                    and min(seg[j, 0, 0], seg[j, 1, 0]) <= hix and min(seg[j, 0, 1], seg[j, 1, 1]) <= hiy):
+                near[n_near] = j
+                n_near += 1
+        if n_near == 0:
+            continue
+        for r in range(k, end):
+            n0 = n[r, 0]
+            n1 = n[r, 1]
+            best = np.inf
+            pick = near[0]
+            for q in range(n_near):
+                j = near[q]
+                e0 = seg[j, 1, 0] - seg[j, 0, 0]
+                e1 = seg[j, 1, 1] - seg[j, 0, 1]
+                den = n0 * e1 - n1 * e0  # cross(n, e)
+                if not abs(den) > 1e-9:
+                    continue
+                wx = seg[j, 0, 0] - o[r, 0]
+                wy = seg[j, 0, 1] - o[r, 1]
+                t = (wx * e1 - wy * e0) / den  # cross(w, e) / cross(n, e)
+                s = (wx * n1 - wy * n0) / den  # cross(w, n) / cross(n, e)
+                if t > 1e-6 and t <= reach and s >= 0.0 and s <= 1.0 and t < best:
+                    best = t
+                    pick = j
+            first[r] = best
+            facing[r] = sn[pick, 0] * n0 + sn[pick, 1] * n1 < 0.0
+    return first, facing
 
 
 @_compiled

@@ -141,7 +141,7 @@ from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
 from mapping.icp import ICPConfig, icp
-from mapping.kernels import PointGrid, directed_matches
+from mapping.kernels import PointGrid, directed_matches, first_crossings
 from mapping.se2 import Pose
 from mapping.wireframe import Label, Wireframe
 
@@ -883,44 +883,13 @@ def _facing_probes(
     none = (np.zeros((0, 2)), np.zeros(0, np.int64))
     if len(origins) == 0 or len(seg) == 0 or len(deep) == 0:
         return none
-    # Segment bounding boxes, one contiguous array per axis and side.
-    slx, sly = (np.ascontiguousarray(v) for v in seg.min(axis=1).T)
-    shx, shy = (np.ascontiguousarray(v) for v in seg.max(axis=1).T)
-    chunk = 128
     # Chunks of rays near each other (origins in ``free_reach`` cells, in cell order), each
     # against the segments that meet the bounding box of its rays (origin to ``free_reach``
     # along the normal): a superset of those any of its rays can cross, so the result does not
-    # depend on the chunks. The rays are put in that order once (each chunk a slice), with
-    # their own bounding boxes per axis.
-    tips = origins + cfg.free_reach * normals
+    # depend on the chunks (compiled: mapping.kernels.first_crossings).
     cell = np.floor(origins / cfg.free_reach).astype(np.int64)
     order = np.lexsort((cell[:, 1], cell[:, 0]))
-    ro, rn = origins[order], normals[order]
-    rlo = np.minimum(ro, tips[order]).T.copy()
-    rhi = np.maximum(ro, tips[order]).T.copy()
-    first_r = np.full(len(origins), np.inf)
-    facing_r = np.zeros(len(origins), dtype=bool)
-    for k in range(0, len(origins), chunk):
-        part = slice(k, k + chunk)
-        o, n = ro[part], rn[part]
-        near = np.flatnonzero((shx >= rlo[0, part].min()) & (shy >= rlo[1, part].min())
-                              & (slx <= rhi[0, part].max()) & (sly <= rhi[1, part].max()))
-        if len(near) == 0:
-            continue
-        p0 = seg[near, 0]
-        e = seg[near, 1] - p0
-        den = n[:, 0:1] * e[None, :, 1] - n[:, 1:2] * e[None, :, 0]  # cross(n, e)
-        wx = p0[None, :, 0] - o[:, 0:1]
-        wy = p0[None, :, 1] - o[:, 1:2]
-        ok = np.abs(den) > 1e-9
-        dd = np.where(ok, den, 1.0)
-        t = (wx * e[None, :, 1] - wy * e[None, :, 0]) / dd  # cross(w, e) / cross(n, e)
-        s = (wx * n[:, 1:2] - wy * n[:, 0:1]) / dd  # cross(w, n) / cross(n, e)
-        hit = ok & (t > 1e-6) & (t <= cfg.free_reach) & (s >= 0.0) & (s <= 1.0)
-        t = np.where(hit, t, np.inf)
-        j = np.argmin(t, axis=1)
-        first_r[part] = t[np.arange(len(o)), j]
-        facing_r[part] = np.einsum("ij,ij->i", seg_normals[near[j]], n) < 0.0
+    first_r, facing_r = first_crossings(origins[order], normals[order], seg, seg_normals, cfg.free_reach)
     first = np.empty(len(origins))
     facing = np.empty(len(origins), dtype=bool)
     first[order], facing[order] = first_r, facing_r

@@ -302,3 +302,44 @@ def test_ties_go_to_the_lower_index_whatever_the_cells() -> None:
         got = sk.directed_matches(grid, dirs, q, np.tile([1.0, 0.0], (len(q), 1)), 10.0, 0.5)
         expect = [next((int(i) for i in row if i >= 60), -1) for row in want]
         assert got.tolist() == expect
+
+
+def reference_crossings(o: np.ndarray, n: np.ndarray, seg: np.ndarray, sn: np.ndarray,
+                        reach: float) -> tuple[np.ndarray, np.ndarray]:
+    """The free probes' ray cast as it was written in NumPy (``registration._facing_probes``
+    before it was compiled), all rays against all segments at once."""
+    p0 = seg[:, 0]
+    e = seg[:, 1] - p0
+    den = n[:, 0:1] * e[None, :, 1] - n[:, 1:2] * e[None, :, 0]
+    wx = p0[None, :, 0] - o[:, 0:1]
+    wy = p0[None, :, 1] - o[:, 1:2]
+    ok = np.abs(den) > 1e-9
+    dd = np.where(ok, den, 1.0)
+    t = (wx * e[None, :, 1] - wy * e[None, :, 0]) / dd
+    s = (wx * n[:, 1:2] - wy * n[:, 0:1]) / dd
+    t = np.where(ok & (t > 1e-6) & (t <= reach) & (s >= 0.0) & (s <= 1.0), t, np.inf)
+    j = np.argmin(t, axis=1)
+    first = t[np.arange(len(o)), j]
+    return first, np.einsum("ij,ij->i", sn[j], n) < 0.0
+
+
+@pytest.mark.parametrize("chunk", [1, 7, 128])
+def test_first_crossings_are_the_numpy_ray_cast(chunk: int) -> None:
+    """Wall samples' normals against a map's walls (a room with a pillar and random walls, rays
+    from on the walls, parallel to some, through shared corners): the same crossings bit for
+    bit, whatever the chunks."""
+    rng = np.random.default_rng(chunk)
+    seg = np.vstack([room_segments(), rng.uniform(0, 12, (40, 2, 2))])
+    d = seg[:, 1] - seg[:, 0]
+    sn = np.stack([-d[:, 1], d[:, 0]], axis=1) / np.hypot(d[:, 0], d[:, 1])[:, None]
+    t = rng.uniform(0, 1, (500, 1))
+    pick = rng.integers(0, len(seg), 500)
+    o = seg[pick, 0] + t * d[pick]
+    o[:20] = seg[pick[:20], 0]  # from corners
+    n = np.vstack([sn[pick[:400]] * rng.choice([-1.0, 1.0], (400, 1)), d[pick[400:]] / np.hypot(
+        d[pick[400:], 0], d[pick[400:], 1])[:, None]])  # the last 100 along their own wall
+    first, facing = sk.first_crossings(o, n, seg, sn, 6.0, chunk)
+    want_first, want_facing = reference_crossings(o, n, seg, sn, 6.0)
+    assert np.array_equal(first, want_first)
+    hit = np.isfinite(want_first)
+    assert np.array_equal(facing[hit], want_facing[hit]) and 100 < hit.sum() < 500
