@@ -120,7 +120,9 @@ Cost (CPU time of one process on a shared 2-core machine, ``time.process_time``)
 (median) for the bench's map pairs; for two maps of about 300 corners (the whole museum twice,
 281 corners and 2.5 km of wall each, or two halves of its coverage route, 200-270 corners) about
 50 ms at a load of 2 on the two cores, against 65-70 ms for the code before
-``docs/experiments.md``'s "Registration speed, part 3" and 115-145 ms before part 2. The time
+``docs/experiments.md``'s "Registration speed, part 3" and 115-145 ms before part 2. The sample match
+and the free probes' ray cast are compiled (:mod:`mapping.kernels`): 43 ms in ``wiremap bench
+register``'s 300-corner pairs against 52 ms before (session 18). The time
 goes to :func:`prepare` (the wall each free-probe ray meets, the clearance test; about 5 ms per
 large map), the translation votes (every same-direction wall-end pair of a rectilinear map votes,
 about 41,000 pairs per rotation for the museum; the coarse vote bounds the fine grid: 4 votes for
