@@ -108,15 +108,19 @@ class PointGrid:
         start, order = _bucket(xs, ys, float(lo[0]), float(lo[1]), cell, nx, ny)
         return cls(xs, ys, float(lo[0]), float(lo[1]), cell, nx, ny, start, order)
 
+    @property
+    def arrays(self) -> tuple[FloatArray, FloatArray, float, float, float, int, int, IntArray, IntArray]:
+        """The grid as the kernels take it: ``xs, ys, origin_x, origin_y, cell, nx, ny, start,
+        order`` (:func:`_nearest_k`'s arguments after the query)."""
+        return (self.xs, self.ys, self.origin_x, self.origin_y, self.cell, self.nx, self.ny, self.start,
+                self.order)
+
 
 def nearest(grid: PointGrid, queries: FloatArray, gate: float) -> IntArray:
     """Index of each query's nearest grid point at a distance strictly under ``gate`` (finite,
     ValueError otherwise), or -1."""
-    if not math.isfinite(gate):
-        raise ValueError(f"nearest: the gate must be finite, got {gate}")
     q = np.ascontiguousarray(queries, dtype=np.float64).reshape(-1, 2)
-    return np.asarray(_nearest_all(q, grid.xs, grid.ys, grid.origin_x, grid.origin_y, grid.cell,
-                                   grid.nx, grid.ny, grid.start, grid.order, float(gate)))
+    return np.asarray(_nearest_all(q, *grid.arrays, _finite_gate(gate)))
 
 
 def gauss_newton(
@@ -140,10 +144,9 @@ def gauss_newton(
     if not (np.isfinite(points).all() and np.isfinite(guess).all() and np.isfinite(prior).all()):
         raise ValueError("gauss_newton: points, guess and prior must be finite")
     pose, hess, inliers, matched = _gauss_newton(
-        np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 2), grid.xs, grid.ys,
+        np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 2), *grid.arrays,
         np.ascontiguousarray(normals[:, 0], dtype=np.float64),
         np.ascontiguousarray(normals[:, 1], dtype=np.float64),
-        grid.origin_x, grid.origin_y, grid.cell, grid.nx, grid.ny, grid.start, grid.order,
         np.ascontiguousarray(guess, dtype=np.float64), np.ascontiguousarray(prior, dtype=np.float64),
         int(iterations), float(gate_start), float(gate_end), float(sigma), float(kernel),
         float(effective_points), float(inlier_distance))
@@ -151,18 +154,20 @@ def gauss_newton(
 
 
 def directed_matches(grid: PointGrid, directions: FloatArray, queries: FloatArray,
-                     query_directions: FloatArray, gate: float, cos_min: float) -> IntArray:
-    """For each query, among its three nearest grid points strictly within ``gate`` (nearest
+                     query_directions: FloatArray, gate: float, cos_min: float, k: int = 3) -> IntArray:
+    """For each query, among its ``k`` nearest grid points strictly within ``gate`` (nearest
     first), the first whose unit ``directions`` row has a dot product of at least ``cos_min``
     with the query's direction; -1 when none has."""
-    if not math.isfinite(gate):
-        raise ValueError(f"directed_matches: the gate must be finite, got {gate}")
     q = np.ascontiguousarray(queries, dtype=np.float64).reshape(-1, 2)
     qd = np.ascontiguousarray(query_directions, dtype=np.float64).reshape(-1, 2)
     d = np.ascontiguousarray(directions, dtype=np.float64).reshape(-1, 2)
-    return np.asarray(_directed_matches(q, qd, grid.xs, grid.ys, d, grid.origin_x, grid.origin_y,
-                                        grid.cell, grid.nx, grid.ny, grid.start, grid.order, float(gate),
-                                        float(cos_min)))
+    return np.asarray(_directed_matches(q, qd, d, *grid.arrays, _finite_gate(gate), float(cos_min), int(k)))
+
+
+def _finite_gate(gate: float) -> float:
+    if not math.isfinite(gate):
+        raise ValueError(f"the gate must be finite, got {gate}")
+    return float(gate)
 
 
 def first_crossings(origins: FloatArray, normals: FloatArray, segments: FloatArray,
@@ -315,14 +320,14 @@ def _nearest_all(q, xs, ys, ox, oy, cell, nx, ny, start, order, gate):  # type: 
 
 
 @_compiled
-def _directed_matches(q, qd, xs, ys, d, ox, oy, cell, nx, ny, start, order, gate, cos_min):  # type: ignore[no-untyped-def]
+def _directed_matches(q, qd, d, xs, ys, ox, oy, cell, nx, ny, start, order, gate, cos_min, kk):  # type: ignore[no-untyped-def]
     out = np.full(q.shape[0], -1, np.int64)
-    three = np.empty(3, np.int64)
-    three_d = np.empty(3)
+    near = np.empty(kk, np.int64)
+    near_d = np.empty(kk)
     for k in range(q.shape[0]):
-        n = _nearest_k(q[k, 0], q[k, 1], xs, ys, ox, oy, cell, nx, ny, start, order, gate, three, three_d)
+        n = _nearest_k(q[k, 0], q[k, 1], xs, ys, ox, oy, cell, nx, ny, start, order, gate, near, near_d)
         for m in range(n):
-            o = three[m]
+            o = near[m]
             if d[o, 0] * qd[k, 0] + d[o, 1] * qd[k, 1] >= cos_min:
                 out[k] = o
                 break
@@ -386,7 +391,7 @@ def _wrap(a):  # type: ignore[no-untyped-def]
 
 
 @_compiled
-def _gauss_newton(points, xs, ys, nxs, nys, ox, oy, cell, gnx, gny, start, order, guess, prior,  # type: ignore[no-untyped-def]
+def _gauss_newton(points, xs, ys, ox, oy, cell, gnx, gny, start, order, nxs, nys, guess, prior,  # type: ignore[no-untyped-def]
                   n_it, gate_start, gate_end, sigma, kernel, effective_points, inlier_distance):
     pose = guess.copy()
     w_sigma = 1.0 / sigma**2

@@ -629,8 +629,8 @@ def _chi2(x: FloatArray, edges: list[Edge]) -> FloatArray:
 # ------------------------------------------------------------------------------------- the SLAM
 
 
-#: Submaps :meth:`LidarSlam.refine` keeps for reuse (their points and grids: about 30-55 MB at
-#: most on the logs).
+#: Submaps :meth:`LidarSlam.refine` keeps for reuse (points, normals and grid: 121 KB a submap
+#: on fhw on average, 249 KB at the 95th percentile: about 30 MB for all, 64 MB at worst).
 _REFINE_SUBMAPS = 256
 
 

@@ -544,7 +544,7 @@ class MapFeatures:
         Each wall end's edge and vertex in ``wireframe``.
 
     Derived data is built on first use and kept (once per map, not per hypothesis):
-    :attr:`tree`, :attr:`probe_tree`, :attr:`end_tree`, :attr:`corner_tree`, :attr:`end_centred`,
+    :attr:`grid`, :attr:`probe_tree`, :attr:`end_tree`, :attr:`corner_tree`, :attr:`end_centred`,
     :attr:`end_cells`, :attr:`corner_cells`, :attr:`probe_cells`, :attr:`sample_cells`.
     """
 
@@ -570,13 +570,9 @@ class MapFeatures:
     end_vertex: IntArray = field(default_factory=lambda: np.zeros(0, np.int64))
 
     @cached_property
-    def tree(self) -> cKDTree:
-        """k-d tree over ``points``."""
-        return cKDTree(self.points if len(self.points) else np.zeros((0, 2)))
-
-    @cached_property
     def grid(self) -> PointGrid:
-        """``points`` bucketed for the compiled sample match (:func:`_match`)."""
+        """``points`` bucketed for the compiled sample queries (:func:`_match`, the displaced
+        walls of :func:`_conflict_one`)."""
         return PointGrid.build(self.points)
 
     @cached_property
@@ -1156,13 +1152,11 @@ def _conflict_one(fp: MapFeatures, fw: MapFeatures, T: Pose, cfg: RegistrationCo
         return 0.0
     sel, q = sel[hit], q[hit]
     w = fw.conflict_weights[sel].copy()
-    # A displaced copy of one of fp's walls (same direction, near): drift, not a foreign wall.
-    dist, idx = fp.tree.query(q, k=4, distance_upper_bound=cfg.displaced_dist)
-    ok = np.isfinite(dist)
-    idx_c = np.where(ok, idx, 0)
+    # A displaced copy of one of fp's walls (same direction, one of the four nearest samples):
+    # drift, not a foreign wall.
     dirs = fw.directions[sel] @ _rot(T.theta).T
-    cosang = np.einsum("ijk,ik->ij", fp.directions[idx_c], dirs)
-    displaced = np.any(ok & (cosang >= math.cos(2.0 * cfg.match_angle)), axis=1)
+    displaced = directed_matches(fp.grid, fp.directions, q, dirs, cfg.displaced_dist,
+                                 math.cos(2.0 * cfg.match_angle), k=4) >= 0
     w[displaced] *= cfg.displaced_weight
     return float(w.sum()) * stride
 

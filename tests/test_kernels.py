@@ -289,7 +289,8 @@ def test_ties_go_to_the_lower_index_whatever_the_cells() -> None:
     pts = np.vstack([pts, pts[::-1]])  # every point twice, the copies in reverse order
     q = rng.uniform(-3, 3, (300, 2))
     d2 = ((q[:, None, :] - pts[None, :, :]) ** 2).sum(axis=2)
-    want = np.lexsort((np.broadcast_to(np.arange(len(pts)), d2.shape), d2), axis=1)[:, :3]
+    want4 = np.lexsort((np.broadcast_to(np.arange(len(pts)), d2.shape), d2), axis=1)[:, :4]
+    want = want4[:, :3]
     for cell in (0.05, 0.15, 1.0):
         grid = sk.PointGrid.build(pts, cell)
         assert sk.nearest(grid, q, 10.0).tolist() == want[:, 0].tolist()
@@ -299,9 +300,10 @@ def test_ties_go_to_the_lower_index_whatever_the_cells() -> None:
         assert got.tolist() == want[:, 0].tolist()
         # With only the second copies' direction accepted: the first of the three nearest that is one.
         dirs = np.vstack([np.tile([0.0, 1.0], (60, 1)), np.tile([1.0, 0.0], (60, 1))])
-        got = sk.directed_matches(grid, dirs, q, np.tile([1.0, 0.0], (len(q), 1)), 10.0, 0.5)
-        expect = [next((int(i) for i in row if i >= 60), -1) for row in want]
-        assert got.tolist() == expect
+        for k in (1, 3, 4):  # the k nearest: the registration's match takes 3, its displaced test 4
+            got = sk.directed_matches(grid, dirs, q, np.tile([1.0, 0.0], (len(q), 1)), 10.0, 0.5, k=k)
+            expect = [next((int(i) for i in row[:k] if i >= 60), -1) for row in want4]
+            assert got.tolist() == expect
 
 
 def reference_crossings(o: np.ndarray, n: np.ndarray, seg: np.ndarray, sn: np.ndarray,

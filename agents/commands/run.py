@@ -339,6 +339,15 @@ def status_figures(st: dict[str, Any]) -> dict[str, Any]:
     }
 
 
+def store_state(out: Path) -> dict[str, Any]:
+    """The fusion store's ``state.json`` ({} when missing or unreadable)."""
+    try:
+        state = json.loads((out / "store" / "state.json").read_text())
+    except (OSError, ValueError):
+        return {}
+    return state if isinstance(state, dict) else {}
+
+
 def fused_from_store(out: Path, published: bytes | None = None) -> tuple[bytes, Any]:
     """The run's fused map ``(bytes, message)``: the fusion service's last published message
     (``published``, the payload seen on the bus) when it is the stored version, else the one in
@@ -396,11 +405,7 @@ def write_outputs(
     )
 
     res = merge_threshold_of(msg)  # the scoring grid: the merge threshold, as the paper scores maps
-    state: dict[str, Any] = {}
-    try:
-        state = json.loads((store / "state.json").read_text())
-    except (OSError, ValueError):
-        pass
+    state = store_state(out)
     lat = (state.get("stats") or {}).get("latency_ms") or {}
     per_robot: dict[str, Any] = {}
     statuses = extra.get("robot_status", {})

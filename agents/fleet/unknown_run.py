@@ -101,15 +101,6 @@ def prepare_carmen(
 
 
 # ---------------------------------------------------------------------- reports
-def _store_state(out: Path) -> dict[str, Any]:
-    """The fusion store's ``state.json`` ({} when missing or unreadable)."""
-    try:
-        state = json.loads((out / "store" / "state.json").read_text())
-    except (OSError, ValueError):
-        return {}
-    return state if isinstance(state, dict) else {}
-
-
 def _frames(msg: Any, robots: list[str], state: dict[str, Any]) -> dict[str, Any]:
     """The registration graph's summary from the fused map's meta, with every attempt from the
     store's ``state`` when it has them (the meta carries the last few)."""
@@ -221,7 +212,7 @@ def write_outputs_unknown(
     (:func:`agents.commands.run.fused_from_store`); ``tracks`` (what
     :func:`agents.commands.run.write_outputs` also takes) are not used: the robots' tracks are
     in their own frames."""
-    from agents.commands.run import FLEET_CUT_SHORT, _metrics, fused_from_store
+    from agents.commands.run import FLEET_CUT_SHORT, _metrics, fused_from_store, store_state
     from agents.files.render import map_png
     from agents.fleet.fusion import merge_threshold_of
     from agents.fleet.robot import start_pose_of
@@ -230,7 +221,7 @@ def write_outputs_unknown(
     raw, msg = fused_from_store(out, published)
     wf = msg.wireframe
     robots = list(msg.robots)
-    state = _store_state(out)
+    state = store_state(out)
     fr = _frames(msg, robots, state)
     starts: dict[str, Pose] = {}
     for rid in ids:
@@ -283,14 +274,14 @@ def write_outputs_carmen(
 ) -> dict[str, Any]:
     """``report.json`` (and ``fused.*``) of a CARMEN fleet run (module docstring); ``published``
     and ``tracks`` as :func:`write_outputs_unknown`."""
-    from agents.commands.run import fused_from_store
+    from agents.commands.run import fused_from_store, store_state
     from agents.fleet.carmen_fleet import endpoint_precision, endpoints
     from mapping.lidar_metrics import align_to_points
 
     raw, msg = fused_from_store(out, published)
     wf = msg.wireframe
     robots = list(msg.robots)
-    state = _store_state(out)
+    state = store_state(out)
     fr = _frames(msg, robots, state)
     stretches: dict[str, tuple[int, int]] = {}
     for rid in ids:
