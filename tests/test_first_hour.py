@@ -8,6 +8,7 @@ Numbers in the comments are the items of the first-hour review (see the commit m
 from __future__ import annotations
 
 import io
+import os
 import json
 import re
 import signal
@@ -190,6 +191,25 @@ def test_map_ctrl_c_writes_what_there_is(tmp_path: Path) -> None:
     rep = json.loads((out / "report.json").read_text())
     assert rep["interrupted"] is True and rep["metrics"]["cell_error"] is None
     assert "interrupted" in stdout
+
+
+def test_ctrl_c_is_a_flag_during_the_drive_and_a_second_one_raises() -> None:
+    from agents.commands.map_cmd import _CtrlC
+
+    # Python's own handler, as in a terminal (a suite run in the background inherits SIGINT ignored)
+    outer = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        with _CtrlC() as ctrl_c:
+            assert signal.getsignal(signal.SIGINT) is not signal.default_int_handler
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(0.05)  # the handler runs at the next bytecode: a flag, no exception
+            assert ctrl_c.hit
+            with pytest.raises(KeyboardInterrupt):
+                os.kill(os.getpid(), signal.SIGINT)
+                time.sleep(1.0)
+        assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # restored
+    finally:
+        signal.signal(signal.SIGINT, outer)
 
 
 # ---------------------------------------------------------------------------- 6. robot start pose

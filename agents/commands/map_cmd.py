@@ -384,6 +384,40 @@ class _Drive:
     wall: float
 
 
+class _CtrlC:
+    """SIGINT as a flag while the scans are fed: the loop checks it after every step.
+
+    A KeyboardInterrupt raised wherever the signal lands can be lost: raised inside a
+    ``__del__`` or a C library's callback, Python prints "Exception ignored" and goes on, and
+    the map ran to its end (a flake seen under load). Setting a flag cannot be lost. A second
+    Ctrl-C raises KeyboardInterrupt at once, for a step that does not return."""
+
+    def __init__(self) -> None:
+        self.hit = False
+        self._old: Any = None
+
+    def __enter__(self) -> _CtrlC:
+        import signal
+        import threading
+
+        if threading.current_thread() is threading.main_thread():
+            old = signal.getsignal(signal.SIGINT)
+            if old is signal.default_int_handler:  # not when SIGINT is ignored or already ours
+                self._old = signal.signal(signal.SIGINT, self._handle)
+        return self
+
+    def _handle(self, signum: int, frame: Any) -> None:
+        if self.hit:
+            raise KeyboardInterrupt
+        self.hit = True
+
+    def __exit__(self, *exc: object) -> None:
+        import signal
+
+        if self._old is not None:
+            signal.signal(signal.SIGINT, self._old)
+
+
 def _drive(src: _Source, quiet: bool) -> _Drive:
     """Feed every scan to the filter, with a progress line; Ctrl-C stops it (what is mapped
     stays), a malformed log line is a :class:`UserError`."""
@@ -393,21 +427,25 @@ def _drive(src: _Source, quiet: bool) -> _Drive:
     progress = Progress(not quiet)
     run = _Drive([], [], 0.0, 0, False, 0.0)
     t_start = time.perf_counter()
-    try:
-        for st in mr.run_filter(src.inputs, filt, src.total):
-            run.steps = st.index + 1
-            run.busy += st.step_s
-            p = st.pose
-            run.trajectory.append((st.t, p.x, p.y, p.theta))
-            if st.true_pose is not None:
-                run.pose_err.append(p.distance(st.true_pose))
-            best = filt.best
-            progress.update(run.steps, src.total, best.n_vertices, best.n_edges, _rate(run))
-    except ValueError as exc:  # a malformed log line surfaces here
-        progress.close()
-        raise UserError(str(exc)) from None
-    except KeyboardInterrupt:  # Ctrl-C: write the map as it stands (exit INTERRUPTED)
-        run.interrupted = True
+    with _CtrlC() as ctrl_c:
+        try:
+            for st in mr.run_filter(src.inputs, filt, src.total):
+                run.steps = st.index + 1
+                run.busy += st.step_s
+                p = st.pose
+                run.trajectory.append((st.t, p.x, p.y, p.theta))
+                if st.true_pose is not None:
+                    run.pose_err.append(p.distance(st.true_pose))
+                best = filt.best
+                progress.update(run.steps, src.total, best.n_vertices, best.n_edges, _rate(run))
+                if ctrl_c.hit:
+                    break
+        except ValueError as exc:  # a malformed log line surfaces here
+            progress.close()
+            raise UserError(str(exc)) from None
+        except KeyboardInterrupt:  # a second Ctrl-C: write the map as it stands all the same
+            ctrl_c.hit = True
+        run.interrupted = ctrl_c.hit
     best = filt.best
     progress.update(run.steps, src.total, best.n_vertices, best.n_edges, _rate(run), force=True)
     progress.close()
