@@ -62,7 +62,7 @@ FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
 __all__ = ["CELL", "CELLS_PER_POINT", "MAX_CELLS", "PointGrid", "compile_kernels", "directed_matches",
-           "field_scores", "first_crossings", "gauss_newton", "nearest"]
+           "field_scores", "first_crossings", "gauss_newton", "nearest", "visibility_sweep"]
 
 #: Grid cell of a :class:`PointGrid`, metres.
 CELL = 0.15
@@ -198,6 +198,21 @@ def field_scores(field: FloatArray, origin: FloatArray, res: float, points: Floa
         np.ascontiguousarray(offsets, dtype=np.int64).reshape(-1, 2)))
 
 
+def visibility_sweep(ed: Any, labels: NDArray[np.uint8], fov: float, full: bool, min_piece: float,
+                     angle_tol: float, back_bias: float, join_tol: float) -> tuple[Any, ...]:
+    """:mod:`mapping.visibility`'s steps 2 and 3 over its nearby edges ``ed`` (a
+    ``visibility._Edges``): the reported vertices (x, y, label, source), the scan's edges
+    (start and end vertex, nearby edge, parameters along it) and the nearby edges with a part
+    in view. See that module for the sweep, the pieces and the labels."""
+    c = np.ascontiguousarray
+    f8, i8 = np.float64, np.int64
+    return _sweep(c(ed.p0.real, f8), c(ed.p0.imag, f8), c(ed.d.real, f8), c(ed.d.imag, f8),
+                  c(ed.pa.real, f8), c(ed.pa.imag, f8), c(ed.pb.real, f8), c(ed.pb.imag, f8),
+                  c(ed.ta, f8), c(ed.tb, f8), c(ed.sa, i8), c(ed.sb, i8), c(ed.phia, f8), c(ed.phib, f8),
+                  c(ed.back, np.bool_), c(ed.good, np.bool_), c(labels, np.uint8), float(fov), bool(full),
+                  float(min_piece), float(angle_tol), float(back_bias), float(join_tol))
+
+
 def compile_kernels() -> None:
     """Compile (or load from the cache) every kernel, on inputs of the types real calls use."""
     pts = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]])
@@ -208,6 +223,11 @@ def compile_kernels() -> None:
     gauss_newton(pts, grid, normals, np.zeros(3), np.eye(3), 2, 0.5, 0.15, 0.03, 0.05, 2.0, 0.1)
     field_scores(np.zeros((4, 4)), np.zeros(2), 0.1, pts * 0.1, np.zeros((1, 2), np.int64))
     first_crossings(pts, normals, np.stack([pts, pts[::-1]], axis=1), normals, 2.0)
+    from mapping.se2 import Pose
+    from mapping.visibility import visible_view
+    from mapping.wireframe import Wireframe
+
+    visible_view(Wireframe.from_polylines([pts], closed=True), Pose(0.5, 0.5, 0.0), 8.0)
 
 
 # ------------------------------------------------------------------------------------- kernels
@@ -536,3 +556,351 @@ def _solve3(a, b):  # type: ignore[no-untyped-def]
             acc -= m[r, k] * x[k]
         x[r] = acc / m[r, r]
     return x
+
+
+# --------------------------------------------------------------------- the visibility sweep
+# mapping.visibility's steps 2 and 3 (sub-edges, events, sweep, pieces, labels), the same float
+# operations in the same order as the Python formulation they replaced (tests/visibility_reference.py):
+# complex products written out as CPython computes them, ``a * (x + iy)`` for a real ``a`` as
+# ``(a x - 0 y, a y + 0 x)``, Python's min / max argument order, a stable sort of the events.
+
+_RANGE = -1
+_WINDOW = -2
+_CUT = -3
+_NOMINAL, _OCCLUSION, _FRONTIER = 0, 1, 2
+
+
+@_compiled
+def _py_max(a, b):  # type: ignore[no-untyped-def]
+    """Python's ``max(a, b)``: ``a`` unless ``b > a`` (NaN kept where Python keeps it)."""
+    return b if b > a else a
+
+
+@_compiled
+def _py_min(a, b):  # type: ignore[no-untyped-def]
+    """Python's ``min(a, b)``: ``a`` unless ``b < a``."""
+    return b if b < a else a
+
+
+@_compiled
+def _ray_point(p0r, p0i, dr, di, ur, ui, t_if_parallel, t_lo_a, t_lo_b):  # type: ignore[no-untyped-def]
+    """Where the ray ``u`` crosses the line ``p0 + t d``, ``t`` clamped to
+    ``[min(a, b), max(a, b)]``: (x, y, t)."""
+    den = dr * ui - di * ur  # cross(d, u)
+    if den != 0.0:
+        t = (ur * p0i - ui * p0r) / den  # cross(u, p0) / den
+    else:
+        t = t_if_parallel
+    t = _py_min(_py_max(t, _py_min(t_lo_a, t_lo_b)), _py_max(t_lo_a, t_lo_b))
+    return p0r + (t * dr - 0.0 * di), p0i + (t * di + 0.0 * dr), t
+
+
+@_compiled
+def _sweep(p0r, p0i, dr, di, par, pai, pbr, pbi, e_ta, e_tb, e_sa, e_sb, e_phia, e_phib, e_back,  # type: ignore[no-untyped-def]
+           good, labels, fov, full, min_piece, angle_tol, back_bias, join_tol):
+    n = p0r.shape[0]
+    two_pi = 2.0 * math.pi
+    phi0 = -0.5 * fov
+    ulo_r, ulo_i = math.cos(phi0), math.sin(phi0)
+    uhi_r, uhi_i = math.cos(phi0 + fov), math.sin(phi0 + fov)
+    # ---- sub-edges: each edge's part inside the window [0, fov] of sweep angle
+    cap = 2 * n
+    s_e = np.empty(cap, np.int64)
+    s_phia = np.empty(cap)
+    s_phib = np.empty(cap)
+    s_par = np.empty(cap)
+    s_pai = np.empty(cap)
+    s_pbr = np.empty(cap)
+    s_pbi = np.empty(cap)
+    s_ta = np.empty(cap)
+    s_tb = np.empty(cap)
+    s_sa = np.empty(cap, np.int64)
+    s_sb = np.empty(cap, np.int64)
+    ns = 0
+    for i in range(n):
+        if not good[i]:
+            continue
+        a = e_phia[i]
+        b = e_phib[i]
+        if a >= two_pi:  # np.mod can round up to 2 pi
+            a = 0.0
+        if b >= two_pi:
+            b = 0.0
+        wrap = b < a
+        for part in range(2):
+            if part == 0:
+                if not a < fov:
+                    continue
+                s_phia[ns] = a
+                s_par[ns] = par[i]
+                s_pai[ns] = pai[i]
+                s_ta[ns] = e_ta[i]
+                s_sa[ns] = e_sa[i]
+                cut = wrap or b > fov
+            else:
+                if not (wrap and b > 0.0):
+                    continue
+                qx, qy, t = _ray_point(p0r[i], p0i[i], dr[i], di[i], ulo_r, ulo_i, e_ta[i], e_ta[i], e_tb[i])
+                s_phia[ns] = 0.0
+                s_par[ns] = qx
+                s_pai[ns] = qy
+                s_ta[ns] = t
+                s_sa[ns] = _WINDOW
+                cut = b > fov
+            s_e[ns] = i
+            if cut:
+                qx, qy, t = _ray_point(p0r[i], p0i[i], dr[i], di[i], uhi_r, uhi_i, e_ta[i], e_ta[i], e_tb[i])
+                s_phib[ns] = fov
+                s_pbr[ns] = qx
+                s_pbi[ns] = qy
+                s_tb[ns] = t
+                s_sb[ns] = _WINDOW
+            else:
+                s_phib[ns] = b
+                s_pbr[ns] = pbr[i]
+                s_pbi[ns] = pbi[i]
+                s_tb[ns] = e_tb[i]
+                s_sb[ns] = e_sb[i]
+            ns += 1
+    empty_i = np.zeros(0, np.int64)
+    empty_f = np.zeros(0)
+    if ns == 0:
+        return empty_f, empty_f, empty_i, empty_i, empty_i, empty_i, empty_i, empty_f, empty_f, empty_i
+    # ---- events: the end bearings sorted (stable), those within angle_tol grouped
+    nv = 2 * ns + 2
+    vals = np.empty(nv)
+    vals[:ns] = s_phia[:ns]
+    vals[ns:2 * ns] = s_phib[:ns]
+    vals[2 * ns] = 0.0
+    vals[2 * ns + 1] = fov
+    order = np.argsort(vals, kind="mergesort")
+    gid = np.empty(nv, np.int64)
+    ev = np.empty(nv)
+    n_ev = 0
+    last = -np.inf
+    for j in order:
+        v = vals[j]
+        if v - last > angle_tol:
+            ev[n_ev] = v
+            n_ev += 1
+            last = v
+        gid[j] = n_ev - 1
+    ka = gid[:ns]
+    kb = gid[ns:2 * ns]
+    live = np.empty(ns, np.int64)
+    n_live = 0
+    for s in range(ns):
+        if ka[s] < kb[s]:
+            live[n_live] = s
+            n_live += 1
+    live = live[:n_live]
+    # ---- the sweep: the nearest sub-edge of each elementary interval (-1: none)
+    s_dx = s_pbr[:ns] - s_par[:ns]
+    s_dy = s_pbi[:ns] - s_pai[:ns]
+    s_cab = s_par[:ns] * s_pbi[:ns] - s_pai[:ns] * s_pbr[:ns]
+    by_start = live[np.argsort(ka[live], kind="mergesort")]
+    by_end = live[np.argsort(kb[live], kind="mergesort")]
+    n_int = n_ev - 1
+    nearest = np.full(max(n_int, 0), -1, np.int64)
+    active = np.empty(max(n_live, 1), np.int64)
+    n_act = 0
+    si = 0
+    ei = 0
+    for k in range(n_int):
+        while ei < n_live and kb[by_end[ei]] == k:
+            x = by_end[ei]
+            for r in range(n_act):
+                if active[r] == x:
+                    for q in range(r, n_act - 1):
+                        active[q] = active[q + 1]
+                    n_act -= 1
+                    break
+            ei += 1
+        if si < n_live and ka[by_start[si]] == k:
+            mid = phi0 + 0.5 * (ev[k] + ev[k + 1])
+            ux = math.cos(mid)
+            uy = math.sin(mid)
+            while si < n_live and ka[by_start[si]] == k:
+                x = by_start[si]
+                den = ux * s_dy[x] - uy * s_dx[x]
+                kx = np.inf if den <= 0.0 else s_cab[x] / den + (back_bias if e_back[s_e[x]] else 0.0)
+                lo = 0
+                hi = n_act
+                while lo < hi:  # bisect_right
+                    md = (lo + hi) // 2
+                    y = active[md]
+                    den = ux * s_dy[y] - uy * s_dx[y]
+                    ky = np.inf if den <= 0.0 else s_cab[y] / den + (back_bias if e_back[s_e[y]] else 0.0)
+                    if kx < ky:
+                        hi = md
+                    else:
+                        lo = md + 1
+                for q in range(n_act, lo, -1):
+                    active[q] = active[q - 1]
+                active[lo] = x
+                n_act += 1
+                si += 1
+        if n_act > 0:
+            nearest[k] = active[0]
+    # ---- pieces: runs of intervals with the same nearest sub-edge
+    pc_s0 = np.empty(max(n_int, 1), np.int64)
+    pc_k0 = np.empty(max(n_int, 1), np.int64)
+    pc_k1 = np.empty(max(n_int, 1), np.int64)
+    pc_s1 = np.empty(max(n_int, 1), np.int64)
+    n_p = 0
+    for k in range(n_int):
+        s = nearest[k]
+        if n_p > 0 and pc_s0[n_p - 1] == s:
+            pc_k1[n_p - 1] = k + 1
+        else:
+            pc_s0[n_p] = s
+            pc_k0[n_p] = k
+            pc_k1[n_p] = k + 1
+            pc_s1[n_p] = s
+            n_p += 1
+    if full and n_p > 1:
+        fs = pc_s0[0]
+        ls = pc_s0[n_p - 1]
+        if (fs >= 0 and ls >= 0 and s_e[fs] == s_e[ls] and s_sa[fs] == _WINDOW and pc_k0[0] == ka[fs]
+                and s_sb[ls] == _WINDOW and pc_k1[n_p - 1] == kb[ls]):
+            k0 = pc_k0[n_p - 1]
+            k1 = pc_k1[0]
+            pc_s0[0] = ls
+            pc_k0[0] = k0
+            pc_k1[0] = k1
+            pc_s1[0] = fs
+            n_p -= 1
+    # ---- labels at every boundary between pieces
+    out_x = np.empty(2 * n_p + 2)
+    out_y = np.empty(2 * n_p + 2)
+    out_lab = np.empty(2 * n_p + 2, np.int64)
+    out_src = np.empty(2 * n_p + 2, np.int64)
+    n_out = 0
+    start_vid = np.full(n_p, -1, np.int64)
+    end_vid = np.full(n_p, -1, np.int64)
+    start_t = np.zeros(n_p)
+    end_t = np.zeros(n_p)
+    is_front = np.zeros(n_p, np.bool_)
+    for i in range(n_p):
+        is_front[i] = pc_s0[i] >= 0 and not e_back[s_e[pc_s0[i]]]
+    n_b = n_p if full else n_p + 1
+    for bi in range(n_b):
+        if full:
+            li = bi
+            ri = (bi + 1) % n_p
+        else:
+            li = bi - 1
+            ri = bi if bi < n_p else -1
+        has_x = li >= 0 and pc_s1[li] >= 0
+        has_y = ri >= 0 and pc_s0[ri] >= 0
+        xx = xy_ = xt = 0.0
+        xs_ = 0
+        yx = yy = yt = 0.0
+        ys_ = 0
+        if has_x:  # the left piece's end
+            s = pc_s1[li]
+            k = pc_k1[li]
+            if k == kb[s]:
+                xx, xy_, xt, xs_ = s_pbr[s], s_pbi[s], s_tb[s], s_sb[s]
+            else:
+                bearing = phi0 + ev[k]
+                i = s_e[s]
+                xx, xy_, xt = _ray_point(p0r[i], p0i[i], dr[i], di[i], math.cos(bearing), math.sin(bearing),
+                                         s_ta[s], s_ta[s], s_tb[s])
+                xs_ = _CUT
+        if has_y:  # the right piece's start
+            s = pc_s0[ri]
+            k = pc_k0[ri]
+            if k == ka[s]:
+                yx, yy, yt, ys_ = s_par[s], s_pai[s], s_ta[s], s_sa[s]
+            else:
+                bearing = phi0 + ev[k]
+                i = s_e[s]
+                yx, yy, yt = _ray_point(p0r[i], p0i[i], dr[i], di[i], math.cos(bearing), math.sin(bearing),
+                                        s_ta[s], s_ta[s], s_tb[s])
+                ys_ = _CUT
+        if has_x and has_y:
+            dist_x = math.hypot(xx, xy_)
+            dist_y = math.hypot(yx, yy)
+            if math.hypot(xx - yx, xy_ - yy) <= join_tol * _py_max(1.0, dist_x):  # two walls meet: one corner
+                if xs_ >= 0:
+                    qx, qy, src = xx, xy_, xs_
+                else:
+                    qx, qy, src = yx, yy, ys_
+                if src >= 0:
+                    lab = _FRONTIER if labels[src] == _FRONTIER else _NOMINAL
+                else:
+                    lab = _FRONTIER
+                vid = -1
+                if is_front[li] or is_front[ri]:
+                    out_x[n_out] = qx
+                    out_y[n_out] = qy
+                    out_lab[n_out] = lab
+                    out_src[n_out] = src if src > -1 else -1
+                    vid = n_out
+                    n_out += 1
+                end_vid[li] = vid
+                start_vid[ri] = vid
+                end_t[li] = xt
+                start_t[ri] = yt
+                continue
+            x_near = dist_x < dist_y
+            if x_near:
+                lab_x = (_FRONTIER if labels[xs_] == _FRONTIER else _OCCLUSION) if xs_ >= 0 else _FRONTIER
+                lab_y = _FRONTIER
+            else:
+                lab_x = _FRONTIER
+                lab_y = (_FRONTIER if labels[ys_] == _FRONTIER else _OCCLUSION) if ys_ >= 0 else _FRONTIER
+        else:
+            window = li < 0 or ri < 0
+            if window or not has_x:
+                lab_x = _FRONTIER
+            else:
+                lab_x = (_FRONTIER if labels[xs_] == _FRONTIER else _OCCLUSION) if xs_ >= 0 else _FRONTIER
+            if window or not has_y:
+                lab_y = _FRONTIER
+            else:
+                lab_y = (_FRONTIER if labels[ys_] == _FRONTIER else _OCCLUSION) if ys_ >= 0 else _FRONTIER
+        if has_x:
+            end_t[li] = xt
+            if is_front[li]:
+                out_x[n_out] = xx
+                out_y[n_out] = xy_
+                out_lab[n_out] = lab_x
+                out_src[n_out] = xs_ if xs_ > -1 else -1
+                end_vid[li] = n_out
+                n_out += 1
+        if has_y:
+            start_t[ri] = yt
+            if is_front[ri]:
+                out_x[n_out] = yx
+                out_y[n_out] = yy
+                out_lab[n_out] = lab_y
+                out_src[n_out] = ys_ if ys_ > -1 else -1
+                start_vid[ri] = n_out
+                n_out += 1
+    # ---- the scan's edges: front-facing pieces with two distinct ends min_piece apart
+    ea = np.empty(n_p, np.int64)
+    eb = np.empty(n_p, np.int64)
+    e_src = np.empty(n_p, np.int64)
+    et0 = np.empty(n_p)
+    et1 = np.empty(n_p)
+    n_e = 0
+    for i in range(n_p):
+        a_v = start_vid[i]
+        b_v = end_vid[i]
+        if not is_front[i] or a_v < 0 or b_v < 0 or a_v == b_v:
+            continue
+        if math.hypot(out_x[b_v] - out_x[a_v], out_y[b_v] - out_y[a_v]) < min_piece:
+            continue
+        ea[n_e] = a_v
+        eb[n_e] = b_v
+        e_src[n_e] = s_e[pc_s0[i]]
+        et0[n_e] = start_t[i]
+        et1[n_e] = end_t[i]
+        n_e += 1
+    live_e = np.empty(n_live, np.int64)
+    for r in range(n_live):
+        live_e[r] = s_e[live[r]]
+    return (out_x[:n_out], out_y[:n_out], out_lab[:n_out], out_src[:n_out], ea[:n_e], eb[:n_e], e_src[:n_e],
+            et0[:n_e], et1[:n_e], live_e)
