@@ -1,6 +1,7 @@
 """Compiled inner loops (numba): the lidar SLAM's point-to-line match of
-:func:`mapping.lidar_slam.match_scan` and its correlative search's scores, and the
-registration's sample matching (:func:`mapping.registration._match`).
+:func:`mapping.lidar_slam.match_scan` and its correlative search's scores, the registration's
+sample matching (:func:`mapping.registration._match`) and the visibility sweep of
+:func:`mapping.visibility.visible_view`.
 
 A real log's SLAM matches a scan's points against a submap ten or more times a scan (the online
 match, the loop searches' refinements, the offline refine passes), and each match is a dozen
@@ -27,6 +28,10 @@ NumPy reference on real and random matches).
   and whether that wall faces back (the registration's free probes across open space,
   :func:`mapping.registration._facing_probes`), the rays in chunks against the walls near each
   chunk, by the same float operations as the NumPy formulation.
+* :func:`visibility_sweep`: the predicted scan's sweep (:mod:`mapping.visibility`, steps 2 and
+  3: sub-edges, sorted events, the nearest wall of each angular interval, pieces and labels),
+  the filter's view of every distinct particle at every step and the simulated corner sensor's
+  scene; the same views bit for bit as the Python sweep (``tests/visibility_reference.py``).
 * :func:`field_scores`: the correlative loop search's score of a point set under many
   translations, the mean likelihood-field value of the shifted points (Olson 2009); one pass
   over the points per translation instead of a gather of translations x points.
