@@ -211,11 +211,12 @@ def visibility_sweep(ed: Any, labels: NDArray[np.uint8], fov: float, full: bool,
     in view. See that module for the sweep, the pieces and the labels."""
     c = np.ascontiguousarray
     f8, i8 = np.float64, np.int64
-    return _sweep(c(ed.p0.real, f8), c(ed.p0.imag, f8), c(ed.d.real, f8), c(ed.d.imag, f8),
+    out: tuple[Any, ...] = _sweep(c(ed.p0.real, f8), c(ed.p0.imag, f8), c(ed.d.real, f8), c(ed.d.imag, f8),
                   c(ed.pa.real, f8), c(ed.pa.imag, f8), c(ed.pb.real, f8), c(ed.pb.imag, f8),
                   c(ed.ta, f8), c(ed.tb, f8), c(ed.sa, i8), c(ed.sb, i8), c(ed.phia, f8), c(ed.phib, f8),
                   c(ed.back, np.bool_), c(ed.good, np.bool_), c(labels, np.uint8), float(fov), bool(full),
                   float(min_piece), float(angle_tol), float(back_bias), float(join_tol))
+    return out
 
 
 def compile_kernels() -> None:

@@ -221,15 +221,15 @@ class _Edges:
     """Per nearby input edge, in the robot frame, oriented counterclockwise around the robot;
     points as complex numbers."""
 
-    idx: IndexArray  # input edge index
+    idx: NDArray[np.intp]  # input edge index
     p0: NDArray[np.complex128]  # the input edge's start, and its direction p1 - p0 (for rays)
     d: NDArray[np.complex128]
     pa: NDArray[np.complex128]  # first end in bearing (the visible part's, after range clipping)
     pb: NDArray[np.complex128]
     ta: FloatArray  # its parameter t along the input edge
     tb: FloatArray
-    sa: IndexArray  # its source: input vertex index, or _RANGE
-    sb: IndexArray
+    sa: NDArray[np.int64]  # its source: input vertex index, or _RANGE
+    sb: NDArray[np.int64]
     phia: FloatArray  # its bearing minus the sweep start, in [0, 2 pi)
     phib: FloatArray
     back: BoolArray  # seen from behind

@@ -8,8 +8,8 @@ Numbers in the comments are the items of the first-hour review (see the commit m
 from __future__ import annotations
 
 import io
-import os
 import json
+import os
 import re
 import signal
 import subprocess
