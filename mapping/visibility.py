@@ -197,6 +197,8 @@ def visible_view(
         For a non-positive or NaN range, a field of view outside ``(0, 2 pi]`` or a negative
         ``min_piece``.
     """
+    # plain floats: a numpy float32 field of view would make the sweep's bearings float32
+    max_range, fov, min_piece = float(max_range), float(fov), float(min_piece)
     if not max_range > 0.0:
         raise ValueError(f"max_range must be > 0, got {max_range}")
     if not (0.0 < fov <= TWO_PI + 1e-12):

@@ -158,7 +158,10 @@ def test_unwritable_output_is_one_line_before_any_work(
 
 # ---------------------------------------------------------------------------- 5. Ctrl-C on map
 @pytest.mark.fleet
-def test_map_ctrl_c_writes_what_there_is(tmp_path: Path) -> None:
+@pytest.mark.parametrize("second", [None, 0.1], ids=["once", "twice"])
+def test_map_ctrl_c_writes_what_there_is(tmp_path: Path, second: float | None) -> None:
+    """Ctrl-C once, or twice 0.1 s apart (the second lands while the map is written): the map
+    as it stands, whole, and exit 130."""
     out = tmp_path / "m"
     env = {"PYTHONUNBUFFERED": "1", "PATH": "/usr/bin:/bin"}
     p = subprocess.Popen(
@@ -178,6 +181,9 @@ def test_map_ctrl_c_writes_what_there_is(tmp_path: Path) -> None:
                 break
         time.sleep(0.5)
         p.send_signal(signal.SIGINT)
+        if second is not None:
+            time.sleep(second)
+            p.send_signal(signal.SIGINT)
         stdout, stderr = p.communicate(timeout=60)
     finally:
         if p.poll() is None:
@@ -193,7 +199,7 @@ def test_map_ctrl_c_writes_what_there_is(tmp_path: Path) -> None:
     assert "interrupted" in stdout
 
 
-def test_ctrl_c_is_a_flag_during_the_drive_and_a_second_one_raises() -> None:
+def test_ctrl_c_is_a_flag_during_the_drive_and_a_second_one_raises_until_writing() -> None:
     from agents.commands.map_cmd import _CtrlC
 
     # Python's own handler, as in a terminal (a suite run in the background inherits SIGINT ignored)
@@ -207,6 +213,9 @@ def test_ctrl_c_is_a_flag_during_the_drive_and_a_second_one_raises() -> None:
             with pytest.raises(KeyboardInterrupt):
                 os.kill(os.getpid(), signal.SIGINT)
                 time.sleep(1.0)
+            ctrl_c.writing = True  # the outputs are being written: noted, never raised
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(0.05)
         assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # restored
     finally:
         signal.signal(signal.SIGINT, outer)

@@ -101,3 +101,29 @@ def test_robot_on_a_corner_and_on_a_wall_line() -> None:
         for fov in (2 * math.pi, math.pi / 2, math.pi):
             for w in (wf, extra):
                 assert_same(visible_view(w, pose, 8.0, fov), reference_view(w, pose, 8.0, fov))
+
+
+def test_bearings_within_angle_tol_are_one_event() -> None:
+    """Ends closer in bearing than ``ANGLE_TOL`` are one event of the sweep, grouped from the
+    first of a run (not chained): walls whose starts are k * 1e-12 rad apart, a star of walls
+    on shared bearings, at fields of view of a few ANGLE_TOL."""
+    from mapping.visibility import ANGLE_TOL
+
+    pts, edges = [], []
+    for k in range(6):  # six walls at 5 m whose start bearings are k * 1e-12 apart
+        a = -0.3 + k * 1e-12
+        b = a + 0.4 + k * 0.05
+        pts += [(5.0 * math.cos(a), 5.0 * math.sin(a)), (5.0 * math.cos(b), 5.0 * math.sin(b))]
+        edges.append((2 * k, 2 * k + 1))
+    fan = Wireframe.build(pts, edges)
+    rings = [[(r * math.cos(t), r * math.sin(t)) for t in (0.0, math.pi / 2, math.pi, 3 * math.pi / 2)]
+             for r in (1.0, 2.0, 3.0)]
+    star = Wireframe.from_polylines(rings, closed=True)
+    for wf in (fan, star):
+        for fov in (2 * math.pi, math.pi, 1e-12, 2e-12, 0.5 * ANGLE_TOL + 1e-13):
+            for theta in (0.0, -0.3, 1e-12, math.pi / 4):
+                pose = Pose(0.0, 0.0, theta)
+                assert_same(visible_view(wf, pose, 8.0, fov), reference_view(wf, pose, 8.0, fov))
+    f32 = np.float32(1.0)  # a numpy float32 field of view is taken as the float it is
+    assert_same(visible_view(star, Pose(0.0, 0.0, 0.1), 8.0, f32),  # type: ignore[arg-type]
+                reference_view(star, Pose(0.0, 0.0, 0.1), 8.0, float(f32)))

@@ -385,15 +385,19 @@ class _Drive:
 
 
 class _CtrlC:
-    """SIGINT as a flag while the scans are fed: the loop checks it after every step.
+    """SIGINT as a flag from the first scan until the outputs are written.
 
-    A KeyboardInterrupt raised wherever the signal lands can be lost: raised inside a
-    ``__del__`` or a C library's callback, Python prints "Exception ignored" and goes on, and
-    the map ran to its end (a flake seen under load). Setting a flag cannot be lost. A second
-    Ctrl-C raises KeyboardInterrupt at once, for a step that does not return."""
+    While the scans are fed the loop checks the flag after every step. A KeyboardInterrupt
+    raised wherever the signal lands can be lost: raised inside a ``__del__`` or a C library's
+    callback, Python prints "Exception ignored" and goes on, and the map ran to its end (a
+    flake seen under load). Setting a flag cannot be lost. A second Ctrl-C during a step raises
+    KeyboardInterrupt there (a step that does not return), which the loop takes as the first.
+    Once the scans stop (:attr:`writing`), Ctrl-C is only noted: the map, its report and its
+    pictures are written whole, in a second or two, and the command then exits."""
 
     def __init__(self) -> None:
         self.hit = False
+        self.writing = False
         self._old: Any = None
 
     def __enter__(self) -> _CtrlC:
@@ -402,12 +406,12 @@ class _CtrlC:
 
         if threading.current_thread() is threading.main_thread():
             old = signal.getsignal(signal.SIGINT)
-            if old is signal.default_int_handler:  # not when SIGINT is ignored or already ours
+            if old is signal.default_int_handler:  # not when SIGINT is ignored or already taken
                 self._old = signal.signal(signal.SIGINT, self._handle)
         return self
 
     def _handle(self, signum: int, frame: Any) -> None:
-        if self.hit:
+        if self.hit and not self.writing:
             raise KeyboardInterrupt
         self.hit = True
 
@@ -418,34 +422,36 @@ class _CtrlC:
             signal.signal(signal.SIGINT, self._old)
 
 
-def _drive(src: _Source, quiet: bool) -> _Drive:
-    """Feed every scan to the filter, with a progress line; Ctrl-C stops it (what is mapped
-    stays), a malformed log line is a :class:`UserError`."""
+def _drive(src: _Source, quiet: bool, ctrl_c: _CtrlC) -> _Drive:
+    """Feed every scan to the filter, with a progress line; Ctrl-C (``ctrl_c``'s flag) stops it
+    after the step it lands in (what is mapped stays), a malformed log line is a
+    :class:`UserError`."""
     from agents import mapping_run as mr
 
     filt = src.filt
     progress = Progress(not quiet)
     run = _Drive([], [], 0.0, 0, False, 0.0)
     t_start = time.perf_counter()
-    with _CtrlC() as ctrl_c:
-        try:
-            for st in mr.run_filter(src.inputs, filt, src.total):
-                run.steps = st.index + 1
-                run.busy += st.step_s
-                p = st.pose
-                run.trajectory.append((st.t, p.x, p.y, p.theta))
-                if st.true_pose is not None:
-                    run.pose_err.append(p.distance(st.true_pose))
-                best = filt.best
-                progress.update(run.steps, src.total, best.n_vertices, best.n_edges, _rate(run))
-                if ctrl_c.hit:
-                    break
-        except ValueError as exc:  # a malformed log line surfaces here
-            progress.close()
-            raise UserError(str(exc)) from None
-        except KeyboardInterrupt:  # a second Ctrl-C: write the map as it stands all the same
-            ctrl_c.hit = True
-        run.interrupted = ctrl_c.hit
+    try:
+        for st in mr.run_filter(src.inputs, filt, src.total):
+            run.steps = st.index + 1
+            run.busy += st.step_s
+            p = st.pose
+            run.trajectory.append((st.t, p.x, p.y, p.theta))
+            if st.true_pose is not None:
+                run.pose_err.append(p.distance(st.true_pose))
+            best = filt.best
+            progress.update(run.steps, src.total, best.n_vertices, best.n_edges, _rate(run))
+            if ctrl_c.hit:
+                break
+    except ValueError as exc:  # a malformed log line surfaces here
+        progress.close()
+        raise UserError(str(exc)) from None
+    except KeyboardInterrupt:  # a second Ctrl-C inside a step: stop there all the same
+        ctrl_c.hit = True
+    ctrl_c.writing = True
+    # Ctrl-C in the last step stopped nothing: the run is whole
+    run.interrupted = ctrl_c.hit and (src.total is None or run.steps < src.total)
     best = filt.best
     progress.update(run.steps, src.total, best.n_vertices, best.n_edges, _rate(run), force=True)
     progress.close()
@@ -471,7 +477,16 @@ def run(args: argparse.Namespace) -> int:
         src = _log_source(args, cargs)
     else:
         src = _bag_source(args, cargs)
-    done = _drive(src, args.quiet)
+    with _CtrlC() as ctrl_c:  # from the first scan until everything is written
+        done = _drive(src, args.quiet, ctrl_c)
+        _write_results(args, src, done, out)
+    return INTERRUPTED if done.interrupted else 0
+
+
+def _write_results(args: argparse.Namespace, src: _Source, done: _Drive, out: Path) -> None:
+    """Score the map (a simulated world's truth, a log's scans at their true poses), write
+    ``map.geojson``, its picture, the trajectory, ``report.json`` (and a ROS map for real
+    scans), print the summary."""
     filt, cfg, k = src.filt, src.resolved.config, done.steps
     thr = cfg.merge_threshold
     best = filt.best
@@ -508,7 +523,6 @@ def run(args: argparse.Namespace) -> int:
     if src.scans is not None and k and best.n_vertices:
         _write_rosmap(out, best, src.scans[:k], done.trajectory, src.max_range)
     _print_summary(report, out)
-    return INTERRUPTED if done.interrupted else 0
 
 
 def _write_rosmap(out: Path, best: Any, scans: list[Any], trajectory: list[tuple[float, float, float, float]],
