@@ -602,6 +602,17 @@ def _ray_point(p0r, p0i, dr, di, ur, ui, t_if_parallel, t_lo_a, t_lo_b):  # type
 
 
 @_compiled
+def _piece_point(k, k_own, own_x, own_y, own_t, own_src, phi0, ev, i, p0r, p0i, dr, di, ta, tb):  # type: ignore[no-untyped-def]
+    """(x, y, t, source) of a sub-edge's piece end at event ``k``: its own end point when that
+    is the sub-edge's own end event ``k_own``, else where the event's ray cuts its wall."""
+    if k == k_own:
+        return own_x, own_y, own_t, own_src
+    bearing = phi0 + ev[k]
+    x, y, t = _ray_point(p0r[i], p0i[i], dr[i], di[i], math.cos(bearing), math.sin(bearing), ta, ta, tb)
+    return x, y, t, _CUT
+
+
+@_compiled
 def _sweep(p0r, p0i, dr, di, par, pai, pbr, pbi, e_ta, e_tb, e_sa, e_sb, e_phia, e_phib, e_back,  # type: ignore[no-untyped-def]
            good, labels, fov, full, min_piece, angle_tol, back_bias, join_tol):
     n = p0r.shape[0]
@@ -805,26 +816,12 @@ def _sweep(p0r, p0i, dr, di, par, pai, pbr, pbi, e_ta, e_tb, e_sa, e_sb, e_phia,
         ys_ = 0
         if has_x:  # the left piece's end
             s = pc_s1[li]
-            k = pc_k1[li]
-            if k == kb[s]:
-                xx, xy_, xt, xs_ = s_pbr[s], s_pbi[s], s_tb[s], s_sb[s]
-            else:
-                bearing = phi0 + ev[k]
-                i = s_e[s]
-                xx, xy_, xt = _ray_point(p0r[i], p0i[i], dr[i], di[i], math.cos(bearing), math.sin(bearing),
-                                         s_ta[s], s_ta[s], s_tb[s])
-                xs_ = _CUT
+            xx, xy_, xt, xs_ = _piece_point(pc_k1[li], kb[s], s_pbr[s], s_pbi[s], s_tb[s], s_sb[s], phi0, ev,
+                                            s_e[s], p0r, p0i, dr, di, s_ta[s], s_tb[s])
         if has_y:  # the right piece's start
             s = pc_s0[ri]
-            k = pc_k0[ri]
-            if k == ka[s]:
-                yx, yy, yt, ys_ = s_par[s], s_pai[s], s_ta[s], s_sa[s]
-            else:
-                bearing = phi0 + ev[k]
-                i = s_e[s]
-                yx, yy, yt = _ray_point(p0r[i], p0i[i], dr[i], di[i], math.cos(bearing), math.sin(bearing),
-                                        s_ta[s], s_ta[s], s_tb[s])
-                ys_ = _CUT
+            yx, yy, yt, ys_ = _piece_point(pc_k0[ri], ka[s], s_par[s], s_pai[s], s_ta[s], s_sa[s], phi0, ev,
+                                           s_e[s], p0r, p0i, dr, di, s_ta[s], s_tb[s])
         if has_x and has_y:
             dist_x = math.hypot(xx, xy_)
             dist_y = math.hypot(yx, yy)

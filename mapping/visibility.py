@@ -317,30 +317,41 @@ def _sweep(wf: Wireframe, ed: _Edges, fov: float, full: bool, min_piece: float) 
         ed, wf.labels, fov, full, min_piece, ANGLE_TOL, BACK_BIAS, JOIN_TOL)
     in_view = np.zeros(m, bool)
     in_view[ed.idx[live]] = True
-    if len(ea) == 0:
+    edges, edge_t = np.stack([ea, eb], axis=1), np.stack([t0, t1], axis=1)
+    return _assemble(wf, xs, ys, lab, src, edges, ed.idx[e_near], edge_t, in_view)
+
+
+def _assemble(wf: Wireframe, xs: FloatArray, ys: FloatArray, lab: NDArray[np.integer],
+              src: NDArray[np.integer], edges: NDArray[np.integer], src_edges: NDArray[np.integer],
+              edge_t: FloatArray, in_view: BoolArray) -> View:
+    """The view from the sweep's reported vertices (``xs``, ``ys``, labels, sources), the
+    scan's edges ``(k, 2)`` into them, their input edges and parameters: only the vertices the
+    edges use are kept."""
+    m = wf.n_edges
+    if len(edges) == 0:
         return _empty_view(m, in_view)
-    ed_arr = np.stack([ea, eb], axis=1).astype(np.int32)
+    ed_arr = np.asarray(edges).astype(np.int32)
     used = np.zeros(len(xs), bool)
     used[ed_arr.ravel()] = True
     remap = np.cumsum(used, dtype=np.int32) - 1
-    src_edges = ed.idx[e_near].astype(np.int32)
+    e_src: IndexArray = np.asarray(src_edges).astype(np.int32)
     points = np.stack([xs[used], ys[used]], axis=1)
     labels = lab[used].astype(np.uint8)
-    sources = wf.sources[src_edges]
+    sources = wf.sources[e_src]
     if np.isfinite(points).all() and sources.dtype != object:
         # Valid by construction (no value checks): labels 0..2, two distinct used vertices per
         # edge, likelihoods and masks copied from the valid input; the same arrays the
         # checking constructor makes.
-        scan = Wireframe.checked(points, labels, remap[ed_arr], wf.likelihood[src_edges], sources)
+        scan = Wireframe.checked(points, labels, remap[ed_arr], wf.likelihood[e_src], sources)
     else:  # the checks decide (a non-finite point raises; wide masks take their canonical kind)
-        scan = Wireframe(points, labels, remap[ed_arr], wf.likelihood[src_edges], sources)
+        scan = Wireframe(points, labels, remap[ed_arr], wf.likelihood[e_src], sources)
     visible = np.zeros(m, bool)
-    visible[src_edges] = True
+    visible[e_src] = True
     return View(
         scan=scan,
-        edge_source=src_edges,
+        edge_source=e_src,
         vertex_source=src[used].astype(np.int32),
-        edge_t=np.stack([t0, t1], axis=1),
+        edge_t=np.asarray(edge_t, dtype=np.float64).reshape(-1, 2),
         visible=visible,
         in_view=in_view,
     )

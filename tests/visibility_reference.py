@@ -24,6 +24,7 @@ from mapping.visibility import (
     JOIN_TOL,
     TWO_PI,
     View,
+    _assemble,
     _clip_edges,
     _empty_view,
 )
@@ -360,7 +361,6 @@ def _view(
 ) -> View:
     """Step 3, assemble the scan: one edge per front-facing piece with two distinct vertices at
     least ``min_piece`` apart, its likelihood and sources those of its input edge."""
-    m = wf.n_edges
     out_xy = ends.xy
     edges: list[tuple[int, int]] = []
     e_src: list[int] = []
@@ -374,34 +374,10 @@ def _view(
         edges.append((a_v, b_v))
         e_src.append(ed.idx[sub.e[pieces[i][0]]])
         e_t.append((ends.start_t[i], ends.end_t[i]))
-    if not edges:
-        return _empty_view(m, in_view)
-    ed_arr = np.array(edges, dtype=np.int32)
-    used = np.zeros(len(out_xy), bool)
-    used[ed_arr.ravel()] = True
-    xy = np.array(out_xy, dtype=np.complex128)[used]
-    remap = np.cumsum(used, dtype=np.int32) - 1
-    src_edges = np.array(e_src, dtype=np.int32)
-    points = np.stack([xy.real, xy.imag], axis=1)
-    labels = np.array(ends.lab, dtype=np.uint8)[used]
-    sources = wf.sources[src_edges]
-    if np.isfinite(points).all() and sources.dtype != object:
-        # Valid by construction (no value checks): labels 0..2, two distinct used vertices per
-        # edge, likelihoods and masks copied from the valid input; the same arrays the
-        # checking constructor makes.
-        scan = Wireframe.checked(points, labels, remap[ed_arr], wf.likelihood[src_edges], sources)
-    else:  # the checks decide (a non-finite point raises; wide masks take their canonical kind)
-        scan = Wireframe(points, labels, remap[ed_arr], wf.likelihood[src_edges], sources)
-    visible = np.zeros(m, bool)
-    visible[src_edges] = True
-    return View(
-        scan=scan,
-        edge_source=src_edges,
-        vertex_source=np.array(ends.src, dtype=np.int32)[used],
-        edge_t=np.array(e_t, dtype=np.float64),
-        visible=visible,
-        in_view=in_view,
-    )
+    xy = np.array(out_xy, dtype=np.complex128).reshape(-1)
+    return _assemble(wf, xy.real.copy(), xy.imag.copy(), np.array(ends.lab, dtype=np.int64),
+                     np.array(ends.src, dtype=np.int64), np.array(edges, dtype=np.int64).reshape(-1, 2),
+                     np.array(e_src, dtype=np.int64), np.array(e_t, dtype=np.float64), in_view)
 
 
 def _distance_key(
