@@ -197,6 +197,17 @@ def visible_view(
         For a non-positive or NaN range, a field of view outside ``(0, 2 pi]`` or a negative
         ``min_piece``.
     """
+    edge_data, fov, full, min_piece = _nearby_edges(wf, pose, max_range, fov, min_piece)
+    if edge_data is None:
+        return _empty_view(wf.n_edges)
+    return _sweep(wf, edge_data, fov, full, min_piece)
+
+
+def _nearby_edges(
+    wf: Wireframe, pose: Pose, max_range: float, fov: float, min_piece: float
+) -> tuple[_Edges | None, float, bool, float]:
+    """:func:`visible_view`'s arguments checked and step 1: the nearby edges (None: nothing
+    near), the field of view, whether it is a full turn, ``min_piece``."""
     # plain floats: a numpy float32 field of view would make the sweep's bearings float32
     max_range, fov, min_piece = float(max_range), float(fov), float(min_piece)
     if not max_range > 0.0:
@@ -208,14 +219,10 @@ def visible_view(
     full = fov >= TWO_PI - 1e-12
     if full:
         fov = TWO_PI
-    m = wf.n_edges
-    if m == 0:
-        return _empty_view(m)
+    if wf.n_edges == 0:
+        return None, fov, full, min_piece
     with np.errstate(all="ignore"):  # NaN/inf from degenerate edges are masked out below
-        edge_data = _clip_edges(wf, pose, max_range, fov)
-    if edge_data is None:
-        return _empty_view(m)
-    return _sweep(wf, edge_data, fov, full, min_piece)
+        return _clip_edges(wf, pose, max_range, fov), fov, full, min_piece
 
 
 @dataclass(frozen=True)

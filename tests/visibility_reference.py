@@ -25,8 +25,8 @@ from mapping.visibility import (
     TWO_PI,
     View,
     _assemble,
-    _clip_edges,
     _empty_view,
+    _nearby_edges,
 )
 from mapping.wireframe import Wireframe
 
@@ -36,16 +36,9 @@ BoolArray = np.ndarray
 def reference_view(wf: Wireframe, pose: Pose, max_range: float, fov: float = TWO_PI, *,
                    min_piece: float = 1e-3) -> View:
     """:func:`mapping.visibility.visible_view` with the Python sweep."""
-    full = fov >= TWO_PI - 1e-12
-    if full:
-        fov = TWO_PI
-    m = wf.n_edges
-    if m == 0:
-        return _empty_view(m)
-    with np.errstate(all="ignore"):
-        arrays = _clip_edges(wf, pose, max_range, fov)
+    arrays, fov, full, min_piece = _nearby_edges(wf, pose, max_range, fov, min_piece)
     if arrays is None:
-        return _empty_view(m)
+        return _empty_view(wf.n_edges)
     ed = SimpleNamespace(**{k: getattr(arrays, k).tolist() for k in (
         "idx", "p0", "d", "pa", "pb", "ta", "tb", "sa", "sb", "phia", "phib", "back", "good")})
     return _sweep(wf, ed, fov, full, min_piece)
