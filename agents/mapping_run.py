@@ -272,9 +272,23 @@ LIDAR_SLAM_PROFILE: dict[str, Any] = {
     "refine.enabled": False,
 }
 
+#: With ``slam.online``, how often (scans) the wheels' heading noise is measured again while
+#: the first ``frontend.calibration_scans`` gave too few scan pairs for it.
+ONLINE_RECALIBRATE = 25
+
+#: ``lidar-slam`` as a robot mapping while it drives runs it: each scan mapped at the pose the
+#: SLAM gave it when it came (``slam.online``; no offline smoothing), the laser's yaw and the
+#: wheels' noise measured on the first 100 scans only (``frontend.calibration_scans``).
+LIDAR_SLAM_ONLINE_PROFILE: dict[str, Any] = {
+    **LIDAR_SLAM_PROFILE,
+    "slam.online": True,
+    "frontend.calibration_scans": 100,
+}
+
 #: The real-lidar profiles by name (``--profile`` of ``wiremap bench lidar``, ``--lidar-profile``
 #: of ``wiremap map``).
-LIDAR_PROFILES: dict[str, dict[str, Any]] = {"lidar": LIDAR_PROFILE, "lidar-slam": LIDAR_SLAM_PROFILE}
+LIDAR_PROFILES: dict[str, dict[str, Any]] = {"lidar": LIDAR_PROFILE, "lidar-slam": LIDAR_SLAM_PROFILE,
+                                              "lidar-slam-online": LIDAR_SLAM_ONLINE_PROFILE}
 
 
 def lidar_profile(name: str = "lidar") -> dict[str, Any]:
@@ -477,12 +491,13 @@ def calibrate_log(scans: Sequence[Any], frontend: Any, yaw: float | None = None)
 
     raw = carmen_points(scans, frontend)
     odometry = wheel_increments(scans)
+    n = frontend.calibration_scans or len(raw)  # what the calibrations may look at
     pairs = None
     estimate = None
     if yaw is None:
         if frontend.yaw_calibration:
-            pairs = calibration_pairs(raw, odometry, frontend)
-            estimate = laser_yaw(raw, odometry, frontend, pairs)
+            pairs = calibration_pairs(raw[:n], odometry[:n], frontend)
+            estimate = laser_yaw(raw[:n], odometry[:n], frontend, pairs)
         yaw = estimate.correction if estimate is not None else 0.0
     pts = raw
     if yaw:
@@ -491,7 +506,7 @@ def calibrate_log(scans: Sequence[Any], frontend: Any, yaw: float | None = None)
         pts = [p @ turn for p in raw]
     noise = None
     if frontend.slam.enabled and frontend.slam.odo_calibration:
-        noise = odometry_noise(pts, odometry, frontend, None if yaw else pairs)
+        noise = odometry_noise(pts[:n], odometry[:n], frontend, None if yaw else pairs)
     return LogCalibration(pts, float(yaw), estimate, noise)
 
 
@@ -589,12 +604,27 @@ def carmen_inputs(
     pts, turn = cal.points, cal.turn
     wheels = wheel_increments(scans)
     smoothed: list[Pose] | None = None
-    if fcfg.slam.enabled:
+    online = None
+    pending = False
+    if fcfg.slam.enabled and fcfg.slam.online:
+        # Lidar SLAM scan by scan (mapping.lidar_slam): each scan's increment from the pose the
+        # SLAM had for the scan before to the pose it gives this one, loop closures included.
+        from mapping.lidar_frontend import calibrated_slam
+        from mapping.lidar_slam import LidarSlam
+
+        slam_cfg = fcfg.slam if cal.noise is None else calibrated_slam(fcfg.slam, cal.noise)
+        online = LidarSlam(slam_cfg, start=np.zeros(3))
+        # A heading prior not yet calibrated (too few scan pairs in the first
+        # calibration_scans) is measured again every ONLINE_RECALIBRATE scans on all so far.
+        pending = (fcfg.slam.odo_calibration
+                   and (cal.noise is None or cal.noise.pairs < fcfg.slam.odo_calibration_min_pairs))
+    elif fcfg.slam.enabled:
         # Lidar SLAM over the whole log first (mapping.lidar_slam); the filter then maps on its
         # smoothed increments.
         from mapping.lidar_frontend import slam_increments
 
         smoothed = slam_increments(pts, wheels, fcfg.slam, cal.noise)[0]
+    last: Pose | None = None
     prev_points: NDArray[np.float64] | None = None
     for k, ls in enumerate(scans):
         rmax = float(ls.max_range) if max_range is None else min(float(ls.max_range), max_range)
@@ -604,7 +634,18 @@ def carmen_inputs(
         scan = extract_corners(ranges, angles, rmax, ecfg)
         points = pts[k]
         odo = wheels[k]
-        if smoothed is not None:
+        if online is not None:
+            if pending and k > fcfg.calibration_scans and k % ONLINE_RECALIBRATE == 0:
+                from mapping.lidar_frontend import calibrated_slam, odometry_noise
+
+                noise = odometry_noise(pts[:k], wheels[:k], fcfg)
+                if noise.pairs >= fcfg.slam.odo_calibration_min_pairs:
+                    online.config = calibrated_slam(fcfg.slam, noise)
+                    pending = False
+            now = Pose(*map(float, online.add(points, np.zeros(3) if k == 0 else np.array(odo.as_tuple()))))
+            odo = Pose.identity() if last is None else last.between(now)
+            last = now
+        elif smoothed is not None:
             odo = smoothed[k]
         elif fcfg.scan_odometry and prev_points is not None:
             # The wheel increment refined by the previous scan (mapping.lidar_frontend.scan_increment).

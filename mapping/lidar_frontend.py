@@ -97,6 +97,10 @@ class FrontendConfig:
     yaw_min_inliers : float
         A pair's match counts when at least this share of the scan's points lie within
         0.1 m of the other scan's lines (0.5).
+    calibration_scans : int
+        The laser's yaw and the wheels' heading noise are measured on the first this many scans
+        only (0, the default: on the whole log). A robot mapping as it drives has only what it
+        has seen: the online profile calibrates on its first 100 scans.
     """
 
     point_range: float = 20.0
@@ -117,12 +121,15 @@ class FrontendConfig:
     yaw_min_pairs: int = 50
     yaw_sigmas: float = 3.0
     yaw_min_inliers: float = 0.5
+    calibration_scans: int = 0
 
     def __post_init__(self) -> None:
         if not (self.point_range > self.min_range >= 0):
             raise ValueError("need point_range > min_range >= 0")
         if self.point_stride < 1:
             raise ValueError("point_stride must be >= 1")
+        if self.calibration_scans < 0:
+            raise ValueError("calibration_scans must be >= 0 (0: the whole log)")
         if not (self.yaw_min_step > 0 and self.yaw_max_pairs >= self.yaw_min_pairs >= 2
                 and self.yaw_sigmas >= 0 and 0 < self.yaw_min_inliers <= 1):
             raise ValueError("need yaw_min_step > 0, yaw_max_pairs >= yaw_min_pairs >= 2, "

@@ -134,6 +134,11 @@ class SlamConfig:
     enabled : bool
         Used by the front end (:attr:`mapping.lidar_frontend.FrontendConfig.slam`): run the SLAM
         under the filter (False).
+    online : bool
+        Used by the front end: the filter maps each scan at the pose the SLAM gave it when it
+        came (:meth:`LidarSlam.add`: the scan-to-map match, loops closed so far), as a robot
+        mapping while it drives must, instead of at the poses of the whole log smoothed
+        afterwards (False; ``refine_passes`` are then not run).
     """
 
     local_scans: int = 15
@@ -176,6 +181,7 @@ class SlamConfig:
     refine_passes: int = 3
     refine_visit_gap: int = 3
     enabled: bool = False
+    online: bool = False
 
     def __post_init__(self) -> None:
         if self.local_scans < 1 or self.iterations < 1 or self.loop_every < 1:

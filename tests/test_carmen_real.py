@@ -415,3 +415,68 @@ def test_180_beams_without_parameters_are_one_degree_apart(tmp_path: Path) -> No
     assert np.allclose(np.diff(scan.angles), math.radians(1.0))
     assert scan.angles[0] == pytest.approx(-math.radians(90.0))  # CARMEN's start angle, the last beam missing
     assert scan.angles[-1] == pytest.approx(math.radians(89.0))
+
+
+# ---------------------------------------------------------------- the SLAM online (a robot driving)
+def test_online_slam_feeds_each_scan_at_the_pose_the_slam_gave_it_then() -> None:
+    """``slam.online``: the filter's increments are those between the poses
+    :meth:`LidarSlam.add` returned scan by scan (the SLAM's ``online`` poses of a run without
+    refine passes), not the smoothed ones; nothing of a later scan is used for an earlier one."""
+    import dataclasses
+
+    from agents import mapping_run as mr
+    from mapping.lidar_frontend import run_slam
+    from mapping.se2 import Pose, increments
+
+    scans = read_carmen_log(EXCERPT).scans[:40]
+    _, extract, frontend = mr.split_profile(mr.lidar_profile("lidar-slam-online"))
+    frontend = dataclasses.replace(frontend, calibration_scans=0)  # the whole excerpt: no re-measuring
+    cal = mr.calibrate_log(scans, frontend)
+    got = [inp.odometry for inp in mr.carmen_inputs(scans, extract=extract, frontend=frontend,
+                                                    calibration=cal)]
+    slam_cfg = dataclasses.replace(frontend.slam, refine_passes=0)
+    slam = run_slam(cal.points, mr.wheel_increments(scans), slam_cfg, noise=cal.noise)
+    want = increments([Pose(*map(float, p)) for p in slam.online])
+    assert len(got) == len(want) == 40
+    for a, b in zip(got, want, strict=True):
+        assert a.distance(b) < 1e-9 and abs(a.theta - b.theta) < 1e-12
+    # causal: the first 20 scans alone (same calibration) give the first 20 increments exactly
+    head_cal = mr.LogCalibration(cal.points[:20], cal.turn, cal.estimate, cal.noise)
+    head = [inp.odometry for inp in mr.carmen_inputs(scans[:20], extract=extract, frontend=frontend,
+                                                     calibration=head_cal)]
+    assert [p.as_tuple() for p in head] == [p.as_tuple() for p in got[:20]]
+    # and not the smoothed poses: the offline run's increments differ somewhere
+    offline = [inp.odometry for inp in mr.carmen_inputs(
+        scans, extract=extract, frontend=dataclasses.replace(frontend, slam=dataclasses.replace(
+            frontend.slam, online=False)), calibration=cal)]
+    assert max(a.distance(b) for a, b in zip(got, offline, strict=True)) > 1e-6
+
+
+def test_calibration_scans_measure_on_the_first_scans_only() -> None:
+    import dataclasses
+
+    from agents import mapping_run as mr
+
+    scans = read_carmen_log(EXCERPT).scans
+    _, _, frontend = mr.split_profile(mr.lidar_profile("lidar-slam"))
+    n = 30
+    first = mr.calibrate_log(scans[:n], frontend)
+    windowed = mr.calibrate_log(scans, dataclasses.replace(frontend, calibration_scans=n))
+    assert windowed.turn == first.turn
+    assert windowed.noise is not None and first.noise is not None
+    assert windowed.noise.pairs == first.noise.pairs
+    assert windowed.noise.rot_per_m == first.noise.rot_per_m or (
+        math.isnan(windowed.noise.rot_per_m) and math.isnan(first.noise.rot_per_m))
+    assert len(windowed.points) == len(scans)  # every scan's points, turned by the window's yaw
+    with pytest.raises(ValueError, match="calibration_scans"):
+        dataclasses.replace(frontend, calibration_scans=-1)
+
+
+def test_bench_lidar_online_profile(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    args = ["bench", "lidar", str(EXCERPT), "--steps", "30", "--particles", "2", "--json", "--quiet",
+            "--out", str(tmp_path), "--profile", "lidar-slam-online"]
+    assert main(args) == 0
+    summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert summary["settings"]["slam.online"] is True
+    row = summary["logs"]["freiburg-101-head"]
+    assert row["ate_rmse_m"] < row["odometry_ate_rmse_m"] and row["map_precision"] > 0.5
