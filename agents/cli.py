@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import signal
 import sys
 from collections.abc import Sequence
 
@@ -62,6 +63,17 @@ def build_parser(command: str | None) -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    code = _main(argv)
+    if code == INTERRUPTED and argv is None:
+        # The command's own process, stopping for Ctrl-C with what it has written: a further
+        # Ctrl-C while the interpreter shuts down (its handlers reset to the default, and any
+        # thread -- a BLAS pool's -- may take the signal) would kill it by the signal instead
+        # of exiting 130. Ignored from here: the process is ending anyway.
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+    return code
+
+
+def _main(argv: Sequence[str] | None) -> int:
     args_list = list(sys.argv[1:] if argv is None else argv)
     ARGV[:] = args_list
     command = next((a for a in args_list if not a.startswith("-")), None)
