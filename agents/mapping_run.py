@@ -482,8 +482,9 @@ class LogCalibration:
 
 def calibrate_log(scans: Sequence[Any], frontend: Any, yaw: float | None = None) -> LogCalibration:
     """A real log's calibrations, each made once: the laser's yaw (``yaw`` radians when given,
-    else the front end's estimate, :func:`mapping.lidar_frontend.laser_yaw`, when
-    ``frontend.yaw_calibration`` is on) and, for a SLAM with ``odo_calibration``, the wheels'
+    else ``frontend.laser_yaw`` degrees when known, else the front end's estimate,
+    :func:`mapping.lidar_frontend.laser_yaw`, when ``frontend.yaw_calibration`` is on) and,
+    for a SLAM with ``odo_calibration``, the wheels'
     heading noise (:func:`mapping.lidar_frontend.odometry_noise`) on the points the SLAM gets.
     Both rest on the same scan pairs (:func:`mapping.lidar_frontend.calibration_pairs`); they
     are matched again for the noise only when the yaw turned the points."""
@@ -494,6 +495,8 @@ def calibrate_log(scans: Sequence[Any], frontend: Any, yaw: float | None = None)
     n = frontend.calibration_scans or len(raw)  # what the calibrations may look at
     pairs = None
     estimate = None
+    if yaw is None and not math.isnan(frontend.laser_yaw):  # known: not estimated
+        yaw = math.radians(frontend.laser_yaw)
     if yaw is None:
         if frontend.yaw_calibration:
             pairs = calibration_pairs(raw[:n], odometry[:n], frontend)
@@ -529,13 +532,14 @@ def odometry_report(noise: Any, slam: Any) -> dict[str, Any]:
             "slam_odo_prior_widened": prior != slam.odo_rot_per_m}
 
 
-def yaw_report(estimate: Any) -> dict[str, Any]:
+def yaw_report(estimate: Any, turn: float = 0.0) -> dict[str, Any]:
     """A laser-yaw estimate (:class:`mapping.lidar_frontend.YawEstimate`, or None when the
-    profile does not calibrate) as report keys: ``laser_yaw_deg`` (the turn taken off every
-    bearing, 0 when none), ``laser_yaw_estimate_deg`` and ``laser_yaw_se_deg`` (None when too
-    few pairs gave it one: ``report.json`` stays strict JSON)."""
+    profile does not calibrate or the yaw was given) as report keys: ``laser_yaw_deg`` (the
+    turn taken off every bearing, 0 when none; ``turn`` radians without an estimate),
+    ``laser_yaw_estimate_deg`` and ``laser_yaw_se_deg`` (None when too few pairs gave it one:
+    ``report.json`` stays strict JSON)."""
     if estimate is None:
-        return {"laser_yaw_deg": 0.0}
+        return {"laser_yaw_deg": math.degrees(turn)}
     return {"laser_yaw_deg": math.degrees(estimate.correction),
             "laser_yaw_estimate_deg": math.degrees(estimate.yaw),
             "laser_yaw_se_deg": math.degrees(estimate.se) if math.isfinite(estimate.se) else None}

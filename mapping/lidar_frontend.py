@@ -101,6 +101,10 @@ class FrontendConfig:
         The laser's yaw and the wheels' heading noise are measured on the first this many scans
         only (0, the default: on the whole log). A robot mapping as it drives has only what it
         has seen: the online profile calibrates on its first 100 scans.
+    laser_yaw : float
+        The laser's yaw in degrees when known (measured once for the robot, e.g. the
+        ``laser_yaw_estimate_deg`` of ``wiremap map --carmen`` on an earlier log): taken off
+        every bearing instead of estimated; NaN (the default) when not known.
     """
 
     point_range: float = 20.0
@@ -122,6 +126,7 @@ class FrontendConfig:
     yaw_sigmas: float = 3.0
     yaw_min_inliers: float = 0.5
     calibration_scans: int = 0
+    laser_yaw: float = math.nan
 
     def __post_init__(self) -> None:
         if not (self.point_range > self.min_range >= 0):
@@ -130,6 +135,8 @@ class FrontendConfig:
             raise ValueError("point_stride must be >= 1")
         if self.calibration_scans < 0:
             raise ValueError("calibration_scans must be >= 0 (0: the whole log)")
+        if math.isinf(self.laser_yaw) or abs(self.laser_yaw) > 180.0:
+            raise ValueError("laser_yaw must be degrees in [-180, 180], or NaN for not known")
         if not (self.yaw_min_step > 0 and self.yaw_max_pairs >= self.yaw_min_pairs >= 2
                 and self.yaw_sigmas >= 0 and 0 < self.yaw_min_inliers <= 1):
             raise ValueError("need yaw_min_step > 0, yaw_max_pairs >= yaw_min_pairs >= 2, "

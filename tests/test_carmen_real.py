@@ -480,3 +480,22 @@ def test_bench_lidar_online_profile(tmp_path: Path, capsys: pytest.CaptureFixtur
     assert summary["settings"]["slam.online"] is True
     row = summary["logs"]["freiburg-101-head"]
     assert row["ate_rmse_m"] < row["odometry_ate_rmse_m"] and row["map_precision"] > 0.5
+
+
+def test_a_known_laser_yaw_is_taken_not_estimated(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """``frontend.laser_yaw`` (degrees, measured once for the robot): every bearing turned by
+    it, no estimate made; NaN (the default) estimates as before; out of range is refused."""
+    from agents import mapping_run as mr
+
+    scans = read_carmen_log(EXCERPT).scans[:30]
+    _, _, known = mr.split_profile({**mr.lidar_profile("lidar-slam-online"), "frontend.laser_yaw": 0.29})
+    cal = mr.calibrate_log(scans, known)
+    assert cal.turn == math.radians(0.29) and cal.estimate is None
+    _, _, default = mr.split_profile(mr.lidar_profile("lidar-slam-online"))
+    assert math.isnan(default.laser_yaw) and mr.calibrate_log(scans, default).estimate is not None
+    args = ["bench", "lidar", str(EXCERPT), "--steps", "5", "--particles", "1", "--json", "--quiet",
+            "--out", str(tmp_path)]
+    assert main([*args, "--set", "frontend.laser_yaw=400"]) == 2
+    assert main([*args, "--set", "frontend.laser_yaw=0.29"]) == 0
+    row = json.loads(capsys.readouterr().out.strip().splitlines()[-1])["logs"]["freiburg-101-head"]
+    assert row["laser_yaw_deg"] == pytest.approx(0.29)
