@@ -620,7 +620,7 @@ def carmen_inputs(
         online = LidarSlam(slam_cfg, start=np.zeros(3))
         # A heading prior not yet calibrated (too few scan pairs in the first
         # calibration_scans) is measured again every ONLINE_RECALIBRATE scans on all so far.
-        pending = (fcfg.slam.odo_calibration
+        pending = (fcfg.slam.odo_calibration and fcfg.calibration_scans > 0
                    and (cal.noise is None or cal.noise.pairs < fcfg.slam.odo_calibration_min_pairs))
     elif fcfg.slam.enabled:
         # Lidar SLAM over the whole log first (mapping.lidar_slam); the filter then maps on its

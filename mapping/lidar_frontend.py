@@ -100,7 +100,8 @@ class FrontendConfig:
     calibration_scans : int
         The laser's yaw and the wheels' heading noise are measured on the first this many scans
         only (0, the default: on the whole log). A robot mapping as it drives has only what it
-        has seen: the online profile calibrates on its first 100 scans.
+        has seen: the online profile calibrates on its first 100 scans (a warm-up: those
+        scans are mapped once it has them).
     laser_yaw : float
         The laser's yaw in degrees when known (measured once for the robot, e.g. the
         ``laser_yaw_estimate_deg`` of ``wiremap map --carmen`` on an earlier log): taken off
