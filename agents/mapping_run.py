@@ -272,10 +272,6 @@ LIDAR_SLAM_PROFILE: dict[str, Any] = {
     "refine.enabled": False,
 }
 
-#: With ``slam.online``, how often (scans) the wheels' heading noise is measured again while
-#: the first ``frontend.calibration_scans`` gave too few scan pairs for it.
-ONLINE_RECALIBRATE = 25
-
 #: ``lidar-slam`` as a robot mapping while it drives runs it: each scan mapped at the pose the
 #: SLAM gave it when it came (``slam.online``; no offline smoothing), the laser's yaw and the
 #: wheels' noise measured on the first 100 scans only (``frontend.calibration_scans``).
@@ -532,17 +528,17 @@ def odometry_report(noise: Any, slam: Any) -> dict[str, Any]:
             "slam_odo_prior_widened": prior != slam.odo_rot_per_m}
 
 
-def yaw_report(estimate: Any, turn: float = 0.0) -> dict[str, Any]:
-    """A laser-yaw estimate (:class:`mapping.lidar_frontend.YawEstimate`, or None when the
-    profile does not calibrate or the yaw was given) as report keys: ``laser_yaw_deg`` (the
-    turn taken off every bearing, 0 when none; ``turn`` radians without an estimate),
-    ``laser_yaw_estimate_deg`` and ``laser_yaw_se_deg`` (None when too few pairs gave it one:
-    ``report.json`` stays strict JSON)."""
-    if estimate is None:
-        return {"laser_yaw_deg": math.degrees(turn)}
-    return {"laser_yaw_deg": math.degrees(estimate.correction),
-            "laser_yaw_estimate_deg": math.degrees(estimate.yaw),
-            "laser_yaw_se_deg": math.degrees(estimate.se) if math.isfinite(estimate.se) else None}
+def yaw_report(cal: LogCalibration) -> dict[str, Any]:
+    """A log's laser-yaw calibration as report keys: ``laser_yaw_deg`` (the turn taken off every
+    bearing: estimated, given or 0), and with an estimate ``laser_yaw_estimate_deg`` and
+    ``laser_yaw_se_deg`` (None when too few pairs gave it one: ``report.json`` stays strict
+    JSON)."""
+    out: dict[str, Any] = {"laser_yaw_deg": math.degrees(cal.turn)}
+    est = cal.estimate
+    if est is not None:
+        out["laser_yaw_estimate_deg"] = math.degrees(est.yaw)
+        out["laser_yaw_se_deg"] = math.degrees(est.se) if math.isfinite(est.se) else None
+    return out
 
 
 def wheel_increments(scans: Sequence[Any]) -> list[Pose]:
@@ -607,28 +603,19 @@ def carmen_inputs(
         raise ValueError(f"calibration of {len(cal.points)} scans for {len(scans)} scans")
     pts, turn = cal.points, cal.turn
     wheels = wheel_increments(scans)
-    smoothed: list[Pose] | None = None
-    online = None
-    pending = False
+    slam_odo: Iterator[Pose] | None = None  # the increments the filter gets from the lidar SLAM
     if fcfg.slam.enabled and fcfg.slam.online:
-        # Lidar SLAM scan by scan (mapping.lidar_slam): each scan's increment from the pose the
-        # SLAM had for the scan before to the pose it gives this one, loop closures included.
-        from mapping.lidar_frontend import calibrated_slam
-        from mapping.lidar_slam import LidarSlam
+        # Lidar SLAM scan by scan (mapping.lidar_slam): each increment as the SLAM gives it
+        # when the scan comes, drawn as the scans are.
+        from mapping.lidar_frontend import online_increments
 
-        slam_cfg = fcfg.slam if cal.noise is None else calibrated_slam(fcfg.slam, cal.noise)
-        online = LidarSlam(slam_cfg, start=np.zeros(3))
-        # A heading prior not yet calibrated (too few scan pairs in the first
-        # calibration_scans) is measured again every ONLINE_RECALIBRATE scans on all so far.
-        pending = (fcfg.slam.odo_calibration and fcfg.calibration_scans > 0
-                   and (cal.noise is None or cal.noise.pairs < fcfg.slam.odo_calibration_min_pairs))
+        slam_odo = online_increments(pts, wheels, fcfg, cal.noise)
     elif fcfg.slam.enabled:
         # Lidar SLAM over the whole log first (mapping.lidar_slam); the filter then maps on its
         # smoothed increments.
         from mapping.lidar_frontend import slam_increments
 
-        smoothed = slam_increments(pts, wheels, fcfg.slam, cal.noise)[0]
-    last: Pose | None = None
+        slam_odo = iter(slam_increments(pts, wheels, fcfg.slam, cal.noise)[0])
     prev_points: NDArray[np.float64] | None = None
     for k, ls in enumerate(scans):
         rmax = float(ls.max_range) if max_range is None else min(float(ls.max_range), max_range)
@@ -638,19 +625,8 @@ def carmen_inputs(
         scan = extract_corners(ranges, angles, rmax, ecfg)
         points = pts[k]
         odo = wheels[k]
-        if online is not None:
-            if pending and k > fcfg.calibration_scans and k % ONLINE_RECALIBRATE == 0:
-                from mapping.lidar_frontend import calibrated_slam, odometry_noise
-
-                noise = odometry_noise(pts[:k], wheels[:k], fcfg)
-                if noise.pairs >= fcfg.slam.odo_calibration_min_pairs:
-                    online.config = calibrated_slam(fcfg.slam, noise)
-                    pending = False
-            now = Pose(*map(float, online.add(points, np.zeros(3) if k == 0 else np.array(odo.as_tuple()))))
-            odo = Pose.identity() if last is None else last.between(now)
-            last = now
-        elif smoothed is not None:
-            odo = smoothed[k]
+        if slam_odo is not None:
+            odo = next(slam_odo)
         elif fcfg.scan_odometry and prev_points is not None:
             # The wheel increment refined by the previous scan (mapping.lidar_frontend.scan_increment).
             odo = scan_increment(prev_points, points, odo, fcfg)[0]

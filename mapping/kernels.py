@@ -602,6 +602,26 @@ def _ray_point(p0r, p0i, dr, di, ur, ui, t_if_parallel, t_lo_a, t_lo_b):  # type
 
 
 @_compiled
+def _pass_label(labels, src):  # type: ignore[no-untyped-def]
+    """Label of a piece end that sight passes: ``OCCLUSION`` at a corner of the map, unless the
+    map marks it a frontier; ``FRONTIER`` at a point made on a wall."""
+    if src >= 0 and labels[src] != _FRONTIER:
+        return _OCCLUSION
+    return _FRONTIER
+
+
+@_compiled
+def _put_vertex(out_x, out_y, out_lab, out_src, n, x, y, lab, src):  # type: ignore[no-untyped-def]
+    """Report vertex ``n`` (its source an input vertex, or -1 for a point made on a wall);
+    returns the count after it."""
+    out_x[n] = x
+    out_y[n] = y
+    out_lab[n] = lab
+    out_src[n] = src if src > -1 else -1
+    return n + 1
+
+
+@_compiled
 def _piece_point(k, k_own, own_x, own_y, own_t, own_src, phi0, ev, i, p0r, p0i, dr, di, ta, tb):  # type: ignore[no-untyped-def]
     """(x, y, t, source) of a sub-edge's piece end at event ``k``: its own end point when that
     is the sub-edge's own end event ``k_own``, else where the event's ray cuts its wall."""
@@ -836,52 +856,31 @@ def _sweep(p0r, p0i, dr, di, par, pai, pbr, pbi, e_ta, e_tb, e_sa, e_sb, e_phia,
                     lab = _FRONTIER
                 vid = -1
                 if is_front[li] or is_front[ri]:
-                    out_x[n_out] = qx
-                    out_y[n_out] = qy
-                    out_lab[n_out] = lab
-                    out_src[n_out] = src if src > -1 else -1
                     vid = n_out
-                    n_out += 1
+                    n_out = _put_vertex(out_x, out_y, out_lab, out_src, n_out, qx, qy, lab, src)
                 end_vid[li] = vid
                 start_vid[ri] = vid
                 end_t[li] = xt
                 start_t[ri] = yt
                 continue
+            # the nearer end is passed by sight, the farther one is a frontier
             x_near = dist_x < dist_y
-            if x_near:
-                lab_x = (_FRONTIER if labels[xs_] == _FRONTIER else _OCCLUSION) if xs_ >= 0 else _FRONTIER
-                lab_y = _FRONTIER
-            else:
-                lab_x = _FRONTIER
-                lab_y = (_FRONTIER if labels[ys_] == _FRONTIER else _OCCLUSION) if ys_ >= 0 else _FRONTIER
-        else:
+            lab_x = _pass_label(labels, xs_) if x_near else _FRONTIER
+            lab_y = _FRONTIER if x_near else _pass_label(labels, ys_)
+        else:  # one side is outside the window or empty: a vertex on the window is a frontier
             window = li < 0 or ri < 0
-            if window or not has_x:
-                lab_x = _FRONTIER
-            else:
-                lab_x = (_FRONTIER if labels[xs_] == _FRONTIER else _OCCLUSION) if xs_ >= 0 else _FRONTIER
-            if window or not has_y:
-                lab_y = _FRONTIER
-            else:
-                lab_y = (_FRONTIER if labels[ys_] == _FRONTIER else _OCCLUSION) if ys_ >= 0 else _FRONTIER
+            lab_x = _FRONTIER if (window or not has_x) else _pass_label(labels, xs_)
+            lab_y = _FRONTIER if (window or not has_y) else _pass_label(labels, ys_)
         if has_x:
             end_t[li] = xt
             if is_front[li]:
-                out_x[n_out] = xx
-                out_y[n_out] = xy_
-                out_lab[n_out] = lab_x
-                out_src[n_out] = xs_ if xs_ > -1 else -1
                 end_vid[li] = n_out
-                n_out += 1
+                n_out = _put_vertex(out_x, out_y, out_lab, out_src, n_out, xx, xy_, lab_x, xs_)
         if has_y:
             start_t[ri] = yt
             if is_front[ri]:
-                out_x[n_out] = yx
-                out_y[n_out] = yy
-                out_lab[n_out] = lab_y
-                out_src[n_out] = ys_ if ys_ > -1 else -1
                 start_vid[ri] = n_out
-                n_out += 1
+                n_out = _put_vertex(out_x, out_y, out_lab, out_src, n_out, yx, yy, lab_y, ys_)
     # ---- the scan's edges: front-facing pieces with two distinct ends min_piece apart
     ea = np.empty(n_p, np.int64)
     eb = np.empty(n_p, np.int64)

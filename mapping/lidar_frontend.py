@@ -32,6 +32,7 @@ Choices
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -45,9 +46,23 @@ from mapping.wireframe import Wireframe
 
 FloatArray = NDArray[np.float64]
 
-__all__ = ["FrontendConfig", "LidarFrontend", "OdometryNoise", "YawEstimate", "calibrated_slam",
-           "calibration_pairs", "laser_yaw", "odometry_noise", "odometry_overrides", "run_slam",
-           "scan_increment", "scan_points", "scan_polyline", "slam_increments"]
+__all__ = [
+    "FrontendConfig",
+    "LidarFrontend",
+    "OdometryNoise",
+    "YawEstimate",
+    "calibrated_slam",
+    "calibration_pairs",
+    "laser_yaw",
+    "odometry_noise",
+    "odometry_overrides",
+    "online_increments",
+    "run_slam",
+    "scan_increment",
+    "scan_points",
+    "scan_polyline",
+    "slam_increments",
+]
 
 
 @dataclass(frozen=True)
@@ -379,6 +394,38 @@ def slam_increments(
     """
     slam = run_slam(points, odometry, config, noise=noise)
     return increments([Pose(*map(float, p)) for p in slam.poses]), slam
+
+
+#: :func:`online_increments` measures the wheels' heading noise again every this many scans while
+#: the first ``calibration_scans`` gave too few scan pairs for it.
+ONLINE_RECALIBRATE = 25
+
+
+def online_increments(
+    points: list[FloatArray], odometry: list[Pose], config: FrontendConfig, noise: OdometryNoise | None = None
+) -> Iterator[Pose]:
+    """The motion between consecutive scans as the lidar SLAM gives it scan by scan: from the
+    pose :meth:`LidarSlam.add` gave the scan before to the pose it gives this one (the
+    scan-to-map match, loops closed so far; no refine passes), as a robot mapping while it
+    drives has it (``config.slam.online``). ``noise``: the wheels' heading noise measured so far
+    (``odo_calibration``); while it rests on too few scan pairs and ``config.calibration_scans``
+    limited it to the first scans, it is measured again on every scan so far each
+    :data:`ONLINE_RECALIBRATE` scans. Scan ``k``'s increment uses ``points[:k + 1]`` and
+    ``odometry[:k + 1]`` only."""
+    slam_cfg = config.slam if noise is None else calibrated_slam(config.slam, noise)
+    slam = LidarSlam(slam_cfg, start=np.zeros(3))
+    pending = (config.slam.odo_calibration and config.calibration_scans > 0
+               and (noise is None or noise.pairs < config.slam.odo_calibration_min_pairs))
+    last: Pose | None = None
+    for k, (pts, odo) in enumerate(zip(points, odometry, strict=True)):
+        if pending and k > config.calibration_scans and k % ONLINE_RECALIBRATE == 0:
+            now_noise = odometry_noise(points[:k], odometry[:k], config)
+            if now_noise.pairs >= config.slam.odo_calibration_min_pairs:
+                slam.config = calibrated_slam(config.slam, now_noise)
+                pending = False
+        now = Pose(*map(float, slam.add(pts, np.zeros(3) if k == 0 else np.array(odo.as_tuple()))))
+        yield Pose.identity() if last is None else last.between(now)
+        last = now
 
 
 class LidarFrontend:

@@ -122,7 +122,7 @@ Cost (CPU time of one process on a shared 2-core machine, ``time.process_time``)
 50 ms at a load of 2 on the two cores, against 65-70 ms for the code before
 ``docs/experiments.md``'s "Registration speed, part 3" and 115-145 ms before part 2. The sample match
 and the free probes' ray cast are compiled (:mod:`mapping.kernels`): 43 ms in ``wiremap bench
-register``'s 300-corner pairs against 52 ms before (session 18). The time
+register``'s 300-corner pairs. The time
 goes to :func:`prepare` (the wall each free-probe ray meets, the clearance test; about 5 ms per
 large map), the translation votes (every same-direction wall-end pair of a rectilinear map votes,
 about 41,000 pairs per rotation for the museum; the coarse vote bounds the fine grid: 4 votes for

@@ -60,8 +60,8 @@ Algorithm
 Steps 2 and 3 are one compiled call (:func:`mapping.kernels.visibility_sweep`), held bit for
 bit to the plain-Python sweep it replaced (kept in ``tests/visibility_reference.py``). Cost:
 about 0.14 ms for a 42-corner room seen whole, 0.12 ms in the 300-corner museum with an 8 m
-range (the Python sweep: 0.28 and 0.22 ms); culling makes it independent of the map's size
-except for one vectorised pass over all edges, which is now half of it.
+range; culling makes it independent of the map's size except for one vectorised pass over all
+edges, about half of it.
 
 Crossing edges (noisy particle maps) do not break it: the list may then be out of order, which
 makes the answer inexact near the crossings, but every step is bounded and nothing raises.

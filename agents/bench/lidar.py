@@ -310,7 +310,7 @@ def run_log(
         "particles": particles,
         "seed": seed,
         "max_range_m": cap,
-        **mr.yaw_report(cal.estimate, cal.turn),
+        **mr.yaw_report(cal),
         **mr.odometry_report(cal.noise, frontend_cfg.slam),
     })
     title = f"{name}: ate {result['ate_rmse_m']:.2f} m, precision {result['map_precision']:.2f}, seed {seed}"

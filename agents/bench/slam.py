@@ -91,7 +91,7 @@ def run_one(path: str, start: tuple[float, float, float] | None, settings: dict[
     return {"ate_rmse_m": rmse, "ate_max_m": mx, "rpe_1m_m": rpe(est, tr), "loops": len(slam.loops),
             "ms_per_scan": 1000.0 * cpu / max(1, len(scans)), "scans": len(scans),
             "odometry_ate_rmse_m": ate(pose_array([s.odom for s in scans]), tr)[0],
-            "odo_rot_per_m": slam.config.odo_rot_per_m, **mr.yaw_report(cal.estimate, cal.turn)}
+            "odo_rot_per_m": slam.config.odo_rot_per_m, **mr.yaw_report(cal)}
 
 
 def summarise(runs: list[dict[str, Any]]) -> dict[str, Any]:

@@ -365,7 +365,7 @@ def _real_source(
     start = true_scans[0] if true_scans is not None else scans[0].odom
     filt = WireframeFilter(cfg, mr.seeds_for(args.seed)["filter"], initial_pose=start)
     total = len(scans) if args.steps is None else min(len(scans), args.steps)
-    extra = {**extra, "lidar_profile": args.lidar_profile, **mr.yaw_report(cal.estimate, cal.turn),
+    extra = {**extra, "lidar_profile": args.lidar_profile, **mr.yaw_report(cal),
              **mr.odometry_report(cal.noise, frontend_cfg.slam)}
     return _Source(filt, inputs, total, source, resolved, name, scans=scans, true_scans=true_scans,
                    max_range=cfg.max_range, extra=extra)

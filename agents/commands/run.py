@@ -771,12 +771,12 @@ def _start_fleet(
         if args.serve_viewer is not None:
             fuse_argv += ["--serve-viewer", str(args.serve_viewer)]
     procs["fuse"] = _spawn("fuse", fuse_argv, logs)
-    if args.carmen:
-        # The robots' lidar SLAM runs compiled kernels: compiled here once (or loaded from
-        # numba's cache), so that robots started together do not each compile them (~5 s).
-        from mapping.kernels import compile_kernels
+    # Every robot's filter (the visibility sweep) and a log's lidar SLAM run compiled kernels:
+    # compiled here once (or loaded from numba's cache), so that robots started together do
+    # not each compile them (~5 s).
+    from mapping.kernels import compile_kernels
 
-        compile_kernels()
+    compile_kernels()
     for k, (rid, r) in enumerate(zip(ids, routes)):
         if args.carmen:
             procs[rid] = _spawn(rid,
