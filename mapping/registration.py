@@ -135,6 +135,7 @@ map; what it derives lazily (k-d trees, the cell masks) is kept with the feature
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from functools import cached_property
 
@@ -1319,6 +1320,26 @@ def _matched_ends(fa: MapFeatures, fb: MapFeatures, T: Pose, cfg: RegistrationCo
     return int(ok.any(axis=1).sum())
 
 
+def _part_hypotheses(
+    f: MapFeatures, region: MapFeatures, cfg: RegistrationConfig, besides: Pose | None
+) -> list[tuple[float, Pose]]:
+    """Placements of the part ``region`` in ``f``'s map by the rotation and vote steps, most
+    votes first (those distinct from ``besides`` when given). A large part votes with the starts
+    of its walls only: each corner of a wall chain once instead of twice (its two walls), half
+    the pairs; the hypotheses are verified on all ends."""
+    cands: list[tuple[float, Pose]] = []
+    sel = np.flatnonzero(region.end_starts) if len(region.end_points) > SELF_VOTE_ENDS else None
+    for theta in rotation_candidates(f, region, cfg).tolist():
+        R = _rot(theta)
+        for t, v in _vote(f, region, theta, cfg, sel):
+            tt = f.centre + t - R @ region.centre
+            T = Pose(float(tt[0]), float(tt[1]), theta)
+            if besides is None or _distinct(T, besides, region, cfg):
+                cands.append((v, T))
+    cands.sort(key=lambda c: -c[0])
+    return cands
+
+
 def _self_ratio(f: MapFeatures, samples: IntArray, cfg: RegistrationConfig) -> float:
     """Self-similarity of the part of ``f``'s map whose wall samples are ``samples``.
 
@@ -1332,53 +1353,120 @@ def _self_ratio(f: MapFeatures, samples: IntArray, cfg: RegistrationConfig) -> f
     four corners each merge 45 m apart: the larger of the two is kept.) Returns 0 when the part
     has no real corner.
     """
+    region = _sample_part(f, samples, cfg)
+    if len(region.end_points) == 0 or len(region.corner_points) == 0:
+        return 0.0
+    top = _part_hypotheses(f, region, cfg, Pose.identity())[: cfg.verify_candidates]
+    best = 0.0
+    # Below the lowest limit a value decides nothing: a hypothesis that cannot land more than
+    # that share of the part's ends or corners near the map's (a cell-mask count, an upper bound
+    # of the matched count) is not verified.
+    floor = _self_floor(cfg)
+    for (v, T), bound in zip(top, _share_bounds(f, region, top)):
+        if bound <= max(best, floor):
+            continue
+        n = _placed_share(f, region, T, cfg)
+        if n <= best:
+            continue
+        if _free_of_conflict(f, region, T, v, cfg):
+            best = n
+    return best
+
+
+def _self_floor(cfg: RegistrationConfig) -> float:
+    """The lowest of the self-similarity limits: a share at or below it refuses nothing."""
+    return min(cfg.max_self_ratio, cfg.contested_self_ratio, cfg.mutual_self_ratio)
+
+
+def _sample_part(f: MapFeatures, samples: IntArray, cfg: RegistrationConfig) -> MapFeatures:
+    """The part of ``f``'s map on the edges of the wall samples ``samples``."""
     mask = np.zeros(f.wireframe.n_edges, dtype=bool)
     mask[f.owner[samples]] = True
     wf = f.wireframe
     if mask.all() and f.config == cfg and np.bincount(wf.edges.reshape(-1), minlength=wf.n_vertices).all():
         # The part is the whole map (same arrays: every vertex is on an edge), whose features
         # are at hand.
-        region = f
-    else:
-        region = _part(f, mask)
-    if len(region.end_points) == 0 or len(region.corner_points) == 0:
-        return 0.0
-    cands: list[tuple[float, Pose]] = []
-    # A large part votes with the starts of its walls only: each corner of a wall chain once
-    # instead of twice (its two walls), half the pairs; the hypotheses are verified on all ends.
-    sel = np.flatnonzero(region.end_starts) if len(region.end_points) > SELF_VOTE_ENDS else None
-    for theta in rotation_candidates(f, region, cfg).tolist():
-        R = _rot(theta)
-        for t, v in _vote(f, region, theta, cfg, sel):
-            tt = f.centre + t - R @ region.centre
-            T = Pose(float(tt[0]), float(tt[1]), theta)
-            if _distinct(T, Pose.identity(), region, cfg):
-                cands.append((v, T))
-    cands.sort(key=lambda c: -c[0])
-    best = 0.0
-    # Below the lowest limit a value decides nothing: a hypothesis that cannot land more than
-    # that share of the part's ends or corners near the map's (a cell-mask count, an upper bound
-    # of the matched count) is not verified.
-    floor = min(cfg.max_self_ratio, cfg.contested_self_ratio, cfg.mutual_self_ratio)
-    top = cands[: cfg.verify_candidates]
-    bounds = [math.inf] * len(top)  # without cell masks every hypothesis is verified
+        return f
+    return _part(f, mask)
+
+
+def _share_bounds(f: MapFeatures, region: MapFeatures, top: list[tuple[float, Pose]]) -> list[float]:
+    """Upper bounds of :func:`_placed_share` for the placements ``top`` (cell-mask counts;
+    infinite without cell masks, so that every placement is verified)."""
     ends_cells, corner_cells = f.end_cells, f.corner_cells
-    if ends_cells is not None and corner_cells is not None and top:
-        poses = [T for _, T in top]
-        n_ends = _near_counts(ends_cells, poses, region.end_points)
-        n_corners = _near_counts(corner_cells, poses, region.corner_points)
-        bounds = np.maximum(n_ends / len(region.end_points), n_corners / len(region.corner_points)).tolist()
-    for (v, T), bound in zip(top, bounds):
-        if bound <= max(best, floor):
+    if ends_cells is None or corner_cells is None or not top:
+        return [math.inf] * len(top)
+    poses = [T for _, T in top]
+    n_ends = _near_counts(ends_cells, poses, region.end_points)
+    n_corners = _near_counts(corner_cells, poses, region.corner_points)
+    return list(np.maximum(n_ends / len(region.end_points), n_corners / len(region.corner_points)).tolist())
+
+
+def _placed_share(f: MapFeatures, region: MapFeatures, T: Pose, cfg: RegistrationConfig) -> float:
+    """The larger of the shares of the part's wall ends (typed) and real corners that ``T``
+    lands on ``f``'s."""
+    return max(_matched_ends(f, region, T, cfg, cfg.corner_match_dist) / len(region.end_points),
+               _matched_corners(f, region, T, cfg) / len(region.corner_points))
+
+
+def _free_of_conflict(
+    f: MapFeatures, region: MapFeatures, T: Pose, votes: float, cfg: RegistrationConfig
+) -> bool:
+    """Whether the part placed by ``T`` puts no more wall on ``f``'s seen-free space than the
+    conflict gate allows."""
+    h = _score(f, region, T, cfg.match_dist, cfg, votes)
+    return bool(h.conflict <= cfg.max_conflict + cfg.max_conflict_fraction * h.support)
+
+
+def _recurrence(f: MapFeatures, region: MapFeatures, cfg: RegistrationConfig) -> float:
+    """How well a part of *another* map recurs in ``f``'s map: the share (:func:`_placed_share`)
+    of its second-best placement distinct from its best, each free of conflict (0 when it is
+    placed well at most once). Shares at or below the self-similarity floor are not verified
+    and count 0."""
+    if len(region.end_points) == 0 or len(region.corner_points) == 0 or len(f.end_points) == 0:
+        return 0.0
+    top = _part_hypotheses(f, region, cfg, None)[: cfg.verify_candidates]
+    floor = _self_floor(cfg)
+    found: list[tuple[float, Pose]] = []
+    for (v, T), bound in zip(top, _share_bounds(f, region, top)):
+        if bound <= floor:
             continue
-        n = max(_matched_ends(f, region, T, cfg, cfg.corner_match_dist) / len(region.end_points),
-                _matched_corners(f, region, T, cfg) / len(region.corner_points))
-        if n <= best:
-            continue
-        h = _score(f, region, T, cfg.match_dist, cfg, v)
-        if h.conflict <= cfg.max_conflict + cfg.max_conflict_fraction * h.support:
-            best = n
-    return best
+        n = _placed_share(f, region, T, cfg)
+        if n > floor and _free_of_conflict(f, region, T, v, cfg):
+            found.append((n, T))
+    if len(found) < 2:
+        return 0.0
+    found.sort(key=lambda c: -c[0])
+    first = found[0][1]
+    return max((n for n, T in found[1:] if _distinct(T, first, region, cfg)), default=0.0)
+
+
+def recurrence_elsewhere(
+    fa: MapFeatures, fb: MapFeatures, reg: Registration, others: Sequence[MapFeatures],
+    config: RegistrationConfig | None = None,
+) -> tuple[float, int]:
+    """Whether the overlap of an accepted registration of ``fb`` onto ``fa`` recurs in a third
+    map: ``(share, index)`` of the largest :func:`_recurrence` of A's matched part over
+    ``others`` (index -1 when none recurs).
+
+    The self-similarity gate (step 6) asks whether either robot has itself seen the overlap's
+    structure twice. In a fleet, *any* robot in the building may have: the office world's
+    robots each saw one office early on and matched it to the other's office 15 m off, while a
+    third robot had already seen two offices alike. A fleet asks this of every other map it
+    holds before it joins two (:mod:`agents.fleet.fusion.frames`)."""
+    cfg = config or RegistrationConfig()
+    if reg.best is None or not others:
+        return 0.0, -1
+    _, ia = _final_matches(fa, fb, reg.best, cfg)
+    if len(ia) == 0:
+        return 0.0, -1
+    region = _sample_part(fa, ia, cfg)
+    best, at = 0.0, -1
+    for k, fc in enumerate(others):
+        r = _recurrence(fc, region, cfg)
+        if r > best:
+            best, at = r, k
+    return best, at
 
 
 def _near_counts(cells: CellMask, poses: list[Pose], pts: FloatArray) -> IntArray:

@@ -216,12 +216,110 @@ def test_report_scores_every_attempt_against_the_true_starts():
         {"a": "r1", "b": "r2", "accepted": False, "transform": list(right.as_tuple())},
         {"a": "r1", "b": "r3", "accepted": False, "transform": None},
         {"a": "fleet", "b": "r3", "accepted": True, "transform": [0.0, 0.0, 0.0]},
+        {"a": "r1", "b": "r2", "accepted": False, "pending": True, "transform": list(off.as_tuple())},
     ]
     out = _attempts_against_truth(recs, starts)
     regs = out["registrations"]
     assert regs[0]["truth_err_m"] < 1e-6 and regs[0]["truth_err_deg"] < 1e-6
     assert abs(regs[1]["truth_err_m"] - 3.0) < 1e-6
     assert "truth_err_m" not in regs[3] and "truth_err_m" not in regs[4]
-    assert out["registration_truth"] == {"accepted_right": 1, "accepted_wrong": 0, "refused_right": 1,
-                                         "refused_wrong": 1}
+    assert out["registration_truth"] == {"accepted_right": 1, "accepted_wrong": 0, "pending_right": 0,
+                                         "pending_wrong": 1, "refused_right": 1, "refused_wrong": 1}
     assert _attempts_against_truth(recs, {})["registration_truth"] == {}
+
+
+# ---------------------------------------------------------------- repeated buildings in a fleet
+@cache
+def _office_fleet(steps: int) -> dict[str, list[Wireframe]]:
+    """The maps (in each robot's own frame, as sent) of `wiremap run --world office --robots 4
+    --unknown-starts --seed 1`'s robots after each of their first ``steps`` scans, simulated
+    here: the same routes and seeds as the run's, without processes or a bus."""
+    from types import SimpleNamespace
+
+    from agents.fleet.unknown_run import random_routes
+    from agents.mapping_run import robot_steps
+    from agents.sim.world import load_world
+
+    routes = random_routes(load_world("office"), 4, np.random.default_rng(1))
+    out: dict[str, list[Wireframe]] = {}
+    for k, route in enumerate(routes):
+        opts = SimpleNamespace(world="office", start=None, route=route, seed=1 + k + 1, particles=5,
+                               threshold=0.2, resolution=0.05, extra={}, filter_overrides=None, duration=None)
+        maps = []
+        for i, s in enumerate(robot_steps(opts)):
+            if i >= steps:
+                break
+            maps.append(s.filter.best)
+        out[f"r{k + 1}"] = maps
+    return out
+
+
+def test_an_overlap_that_recurs_in_a_third_robots_map_is_not_joined() -> None:
+    """The office world's r3 and r4 each saw one office first; registration matched them one
+    office row apart (15 m off), with no sign of repetition in either map. r1 and r2 had
+    already seen offices alike: the fleet refuses the join on their evidence."""
+    from mapping.registration import prepare, recurrence_elsewhere, register_prepared
+
+    maps = {rid: seq[39] for rid, seq in _office_fleet(40).items()}
+    fa, fb = prepare(maps["r3"]), prepare(maps["r4"])
+    res = register_prepared(fa, fb)
+    assert res.accepted  # the pair alone: the false merge
+    share, k = recurrence_elsewhere(fa, fb, res, [prepare(maps["r1"]), prepare(maps["r2"])])
+    assert share > 0.55 and k in (0, 1)
+    assert recurrence_elsewhere(fa, fb, res, []) == (0.0, -1)
+    fr = FleetFrames(FramesConfig(confirm_after_s=0.0))
+    for rid in maps:
+        fr.track(rid)
+    rec = fr.attempt(("r3", "r4"), lambda ms, root: maps[ms[0]])
+    assert not rec.accepted and "recurs in r" in rec.reason, rec.reason
+    assert fr.components() == {r: (r,) for r in ("r1", "r2", "r3", "r4")}
+    off = FleetFrames(FramesConfig(confirm_after_s=0.0, recurrence=False))
+    for rid in maps:
+        off.track(rid)
+    assert off.attempt(("r3", "r4"), lambda ms, root: maps[ms[0]]).accepted
+
+
+def test_a_first_acceptance_waits_for_a_second_look() -> None:
+    """Early on (scan 29, 14.5 s) no map shows the office repeated yet and the false match passes
+    every test; it is only pending. The second look, 10 s of the robots' time later, sees r1's
+    offices and refuses."""
+    seqs = _office_fleet(60)
+    fr = FleetFrames(FramesConfig(confirm_after_s=10.0, min_length_m=1.0))
+    for rid in seqs:
+        fr.track(rid)
+    early = {rid: seq[28] for rid, seq in seqs.items()}
+    rec = fr.attempt(("r3", "r4"), lambda ms, root: early[ms[0]], t=14.5, now=100.0)
+    assert rec.pending and not rec.accepted and "pending" in rec.line()
+    assert fr.components()["r3"] == ("r3",)  # not joined
+
+    def length(members: tuple[str, ...], root: str | None) -> float:
+        return sum(float(early[m].edge_lengths().sum()) for m in members)
+
+    assert fr.next_pair(length, now=100.1, t=24.4) != ("r3", "r4")  # not before the wait (maps unchanged)
+    assert fr.next_pair(length, now=100.1) != ("r3", "r4")  # nor without the robots' clock
+    assert fr.next_pair(length, now=100.1, t=24.5) == ("r3", "r4")  # due first once it passed
+    late = {rid: seq[59] for rid, seq in seqs.items()}
+    rec = fr.attempt(("r3", "r4"), lambda ms, root: late[ms[0]], t=30.0, now=100.1)
+    assert not rec.accepted and not rec.pending and "repetitive" in rec.reason, rec.reason
+    assert fr.components()["r3"] == ("r3",)
+
+
+def test_a_pending_join_is_made_on_the_second_look() -> None:
+    a, b = _halves("paper-small")
+    sa, sb = Pose(3.0, 2.0, 0.7), Pose(-20.0, 11.0, -2.4)
+    maps = {"r1": a.transformed(sa.inverse()), "r2": b.transformed(sb.inverse())}
+    fr = FleetFrames(FramesConfig(confirm_after_s=2.0))
+    fr.track("r1")
+    fr.track("r2")
+    first = fr.attempt(("r1", "r2"), lambda ms, root: maps[ms[0]], t=0.0)
+    assert first.pending and fr.components() == {"r1": ("r1",), "r2": ("r2",)}
+    again = fr.attempt(("r1", "r2"), lambda ms, root: maps[ms[0]], t=1.0)  # too soon: still pending
+    assert again.pending and fr.components() == {"r1": ("r1",), "r2": ("r2",)}
+    done = fr.attempt(("r1", "r2"), lambda ms, root: maps[ms[0]], t=2.0)  # 2 s after the first
+    assert done.accepted and not done.pending and fr.components() == {"r1": ("r1", "r2")}
+    at_once = FleetFrames(FramesConfig())
+    at_once.track("r1")
+    at_once.track("r2")
+    assert at_once.attempt(("r1", "r2"), lambda ms, root: maps[ms[0]]).accepted  # no robots' clock: at once
+    true = sa.inverse().compose(sb)
+    assert math.hypot(fr.pose["r2"].x - true.x, fr.pose["r2"].y - true.y) < 0.1

@@ -163,12 +163,14 @@ def _attempts_against_truth(records: list[dict[str, Any]], starts: dict[str, Pos
     """The attempts (``registrations``), each with its transform's error against the true
     relative start of its two components' roots (``truth_err_m``, ``truth_err_deg``) when both
     are known, and their tally (``registration_truth``): accepted right or wrong (a false merge),
-    refused with a right transform (a merge lost to caution) or a wrong one (a false merge
-    avoided). A component rooted in the fleet frame has no single true start and is left out."""
+    pending (a first acceptance waiting for its second look: :mod:`agents.fleet.fusion.frames`)
+    right or wrong, refused with a right transform (a merge lost to caution) or a wrong one (a
+    false merge avoided). A component rooted in the fleet frame has no single true start and is left out."""
     from agents.fleet.carmen_fleet import WRONG_DEG, WRONG_M
 
     out: list[dict[str, Any]] = []
-    tally = {"accepted_right": 0, "accepted_wrong": 0, "refused_right": 0, "refused_wrong": 0}
+    tally = {"accepted_right": 0, "accepted_wrong": 0, "pending_right": 0, "pending_wrong": 0,
+             "refused_right": 0, "refused_wrong": 0}
     for rec in records:
         rec = dict(rec)
         a, b, tf = rec.get("a"), rec.get("b"), rec.get("transform")
@@ -176,7 +178,8 @@ def _attempts_against_truth(records: list[dict[str, Any]], starts: dict[str, Pos
             te, re = _truth_error(tf, starts[a], starts[b])
             rec["truth_err_m"], rec["truth_err_deg"] = te, re
             right = te <= WRONG_M and re <= WRONG_DEG
-            tally[f"{'accepted' if rec.get('accepted') else 'refused'}_{'right' if right else 'wrong'}"] += 1
+            what = "accepted" if rec.get("accepted") else "pending" if rec.get("pending") else "refused"
+            tally[f"{what}_{'right' if right else 'wrong'}"] += 1
         out.append(rec)
     return {"registrations": out, "registration_truth": tally if starts else {}}
 

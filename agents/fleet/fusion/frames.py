@@ -30,11 +30,18 @@ given the caller's clock -- when either side changed by ``retry_min_m`` and ``re
 passed since that attempt: a map that stops growing short of the growth rule (a robot done, a
 replayed stretch at its end) still gets its last word, at most every ``retry_after_s``. Pairs
 with the fleet first, then larger maps first. The caller runs at most one attempt at a time
-(the service: after a publish, when no map waits). An accepted registration joins the two
-components: the one holding the fleet (or anchor, or else the lower root id) keeps its root,
-the other's poses are composed with the registration's transform. Joins are never undone:
-registration is tuned to refuse rather than guess (no false merge in its benchmark), so the
-graph only grows.
+(the service: after a publish, when no map waits).
+
+Joins: a registration the pair's two maps accept is checked against the rest of the fleet
+first: when its overlap lands, at two distinct places, in any other component's map (a third
+robot has seen the structure repeated), the building repeats it and the pair is refused
+(:attr:`FramesConfig.recurrence`). Then it is only *pending*: the pair is tried again once the
+robots' clock has run ``confirm_after_s`` on, first of all pairs, and joined when that second
+look accepts the same transform with every map then held. A join makes the component holding
+the fleet (or anchor, or else the lower root id) keep its root, and composes the other's poses
+with the registration's transform. Joins are never undone: registration is tuned to refuse
+rather than guess (no false merge in its benchmark), and the fleet waits for the evidence of
+every robot before it joins, so the graph only grows.
 
 Everything here is pure (no zenoh, no clock of its own); :class:`FusionState` owns one
 :class:`FleetFrames`.
@@ -48,7 +55,14 @@ from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from typing import Any
 
-from mapping.registration import RegistrationConfig, prepare, register_prepared
+from mapping.registration import (
+    MapFeatures,
+    Registration,
+    RegistrationConfig,
+    prepare,
+    recurrence_elsewhere,
+    register_prepared,
+)
 from mapping.se2 import Pose
 from mapping.wireframe import Wireframe
 from wire_codec.message import MapMessage
@@ -76,6 +90,21 @@ class FramesConfig:
         word of a map that stopped growing").
     min_length_m : a component with less wall than this is not tried (registration needs
         8 m of matched wall anyway).
+    confirm_after_s : a first acceptance only makes the join *pending*; the pair is tried
+        again once the robots' clock (the maps' time ``t`` given to :meth:`FleetFrames.attempt`)
+        has run this long, and joined when that second look accepts it too, with the same
+        transform (within ``confirm_m`` at B's wall centre and ``confirm_deg``) and with every
+        map the fleet then holds (0, or no ``t``: join at the first acceptance). The robots'
+        clock, not the service's: the wait is for what the robots see meanwhile (a replayed
+        log runs many times faster than the wall clock). A late merge costs little and a wrong
+        one the fleet map: the office world's robots each saw one office first and matched it
+        to another robot's office 15 m off; seconds later a third robot had seen two offices
+        alike.
+    recurrence : before a join, the overlap is looked for in every other component's map
+        (:func:`mapping.registration.recurrence_elsewhere`); when it lands well in one of
+        them at two distinct places, the building repeats it and the pair is refused, as when
+        one of the two robots had itself seen it twice (the same limits: ``max_self_ratio``,
+        or ``contested_self_ratio`` past ``contested_runner_up_ratio``).
     registration : :class:`mapping.registration.RegistrationConfig`.
     history : registration records kept (:attr:`FleetFrames.records`).
     """
@@ -86,6 +115,10 @@ class FramesConfig:
     retry_after_s: float = 5.0
     retry_min_m: float = 1.0
     min_length_m: float = 10.0
+    confirm_after_s: float = 10.0
+    confirm_m: float = 1.0
+    confirm_deg: float = 5.0
+    recurrence: bool = True
     registration: RegistrationConfig = field(default_factory=RegistrationConfig)
     history: int = 200
 
@@ -106,6 +139,7 @@ class RegistrationRecord:
     reason: str
     transform: tuple[float, float, float] | None
     ms: float
+    pending: bool = False  # accepted once, waiting for its confirming second look
 
     def as_dict(self) -> dict[str, Any]:
         return {
@@ -121,11 +155,13 @@ class RegistrationRecord:
             "reason": self.reason,
             "transform": None if self.transform is None else [round(v, 6) for v in self.transform],
             "ms": round(self.ms, 1),
+            "pending": self.pending,
         }
 
     def line(self) -> str:
         """One line for logs and ``wiremap watch``."""
-        what = "accepted" if self.accepted else f"refused ({self.reason})"
+        what = ("accepted" if self.accepted else "pending (joined on a second look)" if self.pending
+                else f"refused ({self.reason})")
         return (
             f"registration {'+'.join(self.b_members)} -> {'+'.join(self.a_members)}: {what}, "
             f"confidence {self.confidence:.2f}, support {self.support:.1f} m ({self.support_fraction:.0%}), "
@@ -147,6 +183,8 @@ class FleetFrames:
         # (members a, members b) -> (length a, length b, clock) at the pair's last attempt
         self._tried: dict[tuple[tuple[str, ...], tuple[str, ...]], tuple[float, float, float | None]] = {}
         self.epoch = 0  # bumps on every change of membership or pose
+        # (members a, members b) -> (transform, clock) of a first acceptance awaiting its second look
+        self._pending: dict[tuple[tuple[str, ...], tuple[str, ...]], tuple[Pose, float]] = {}
         self._lengths: dict[tuple[str, ...], float] = {}  # of the last next_pair, by members
 
     # ------------------------------------------------------------------ membership
@@ -239,14 +277,16 @@ class FleetFrames:
 
     # ------------------------------------------------------------------ attempts
     def next_pair(
-        self, lengths: Callable[[tuple[str, ...], str | None], float], now: float | None = None
+        self, lengths: Callable[[tuple[str, ...], str | None], float], now: float | None = None,
+        t: float | None = None,
     ) -> tuple[str, str] | None:
         """The pair of components to try next ``(a, b)`` (``b`` registers onto ``a``; ``a`` may
         be :data:`FLEET`, the known robots' fused map), or None when none is due.
 
         ``lengths(members, root)`` is the wall length of a component's map (``root`` None for
         the known robots' fleet); ``now``: the caller's clock in seconds (None: only the growth
-        rule)."""
+        rule); ``t``: the robots' clock, on which a pending join's second look falls due (first of
+        all pairs)."""
         cfg = self.config
         comps = self.components()
         fc = self.fleet_component()
@@ -257,6 +297,9 @@ class FleetFrames:
         for n in names:
             length[n] = lengths(self._members(n, comps), None if n == FLEET else n)
         self._lengths = {self._members(n, comps): length[n] for n in names}
+        held = set(self._lengths)
+        for key in [k for k in self._pending if k[0] not in held or k[1] not in held]:
+            del self._pending[key]  # a side joined another component since
         best: tuple[tuple[int, float], tuple[str, str]] | None = None
         for i, x in enumerate(names):
             for y in names[i + 1:]:
@@ -265,12 +308,15 @@ class FleetFrames:
                 if min(la, lb) < cfg.min_length_m:
                     continue
                 key = (self._members(a, comps), self._members(b, comps))
+                pend = self._pending.get(key)
+                confirm = pend is not None and t is not None and t - pend[1] >= cfg.confirm_after_s
                 last = self._tried.get(key)
-                if last is not None and not (_grew(la, last[0], cfg) or _grew(lb, last[1], cfg)
-                                             or _settled(la, lb, now, last, cfg)):
+                due = last is None or _grew(la, last[0], cfg) or _grew(lb, last[1], cfg) \
+                    or _settled(la, lb, now, last, cfg)
+                if not (confirm or due):
                     continue
                 fleet_pair = a in (fc, FLEET) or b in (fc, FLEET)
-                rank = (0 if fleet_pair else 1, -(la + lb))
+                rank = (-1 if confirm else 0 if fleet_pair else 1, -(la + lb))
                 if best is None or rank < best[0]:
                     best = (rank, (a, b))
         return None if best is None else best[1]
@@ -293,36 +339,80 @@ class FleetFrames:
         self,
         pair: tuple[str, str],
         maps: Callable[[tuple[str, ...], str | None], Wireframe],
-        t: float = 0.0,
+        t: float | None = None,
         now: float | None = None,
     ) -> RegistrationRecord:
         """Register component ``b`` onto ``a`` (``maps(members, root)`` gives each one's map in
         its root frame, or the fleet frame for :data:`FLEET`) and join them when accepted.
-        ``t``: the record's time; ``now``: the clock :meth:`next_pair` is given."""
+        ``t``: the robots' clock (the record's time, and the one a pending join waits on: see
+        :attr:`FramesConfig.confirm_after_s`); ``now``: the clock :meth:`next_pair` is given."""
         a, b = pair
         comps = self.components()
         ma, mb = self._members(a, comps), self._members(b, comps)
         wa = maps(ma, None if a == FLEET else a)
         wb = maps(mb, b)
-        rc = self.config.registration
+        cfg = self.config
+        rc = cfg.registration
         t0 = time.perf_counter()
-        res = register_prepared(prepare(wa, rc), prepare(wb, rc), rc)
+        fa, fb = prepare(wa, rc), prepare(wb, rc)
+        res = register_prepared(fa, fb, rc)
+        accepted, reason = bool(res.accepted and res.transform is not None), res.reason
+        if accepted and cfg.recurrence:
+            reason = self._recurs(fa, fb, res, (a, b), comps, maps)
+            accepted = not reason
+        key = (ma, mb)
+        pending = False
+        if not accepted:
+            self._pending.pop(key, None)
+        elif cfg.confirm_after_s > 0 and t is not None:
+            assert res.transform is not None
+            prev = self._pending.get(key)
+            same = prev is not None and _same_place(prev[0], res.transform, fb.centre, cfg)
+            if same and prev is not None and t - prev[1] >= cfg.confirm_after_s:
+                del self._pending[key]
+            else:
+                if not same:
+                    self._pending[key] = (res.transform, t)
+                accepted, pending = False, True
         ms = 1000.0 * (time.perf_counter() - t0)
         self.attempts += 1
         # the lengths next_pair measured (the same measure as the growth test's)
-        self._tried[(ma, mb)] = (self._lengths.get(ma, _length(wa)), self._lengths.get(mb, _length(wb)), now)
-        if res.accepted and res.transform is not None:
+        self._tried[key] = (self._lengths.get(ma, _length(wa)), self._lengths.get(mb, _length(wb)), now)
+        if accepted and res.transform is not None:
             self._join(a, b, res.transform)
         rec = RegistrationRecord(
-            t=float(t), a=a, b=b, a_members=ma, b_members=mb,
-            accepted=bool(res.accepted and res.transform is not None),
+            t=0.0 if t is None else float(t), a=a, b=b, a_members=ma, b_members=mb, accepted=accepted,
             confidence=float(res.confidence), support=float(res.support),
             support_fraction=float(res.support_fraction),
-            reason=res.reason, transform=None if res.transform is None else res.transform.as_tuple(), ms=ms,
+            reason=reason, transform=None if res.transform is None else res.transform.as_tuple(), ms=ms,
+            pending=pending,
         )
         self.records.append(rec)
         del self.records[: max(0, len(self.records) - self.config.history)]
         return rec
+
+    def _recurs(
+        self, fa: MapFeatures, fb: MapFeatures, res: Registration, pair: tuple[str, str],
+        comps: dict[str, tuple[str, ...]], maps: Callable[[tuple[str, ...], str | None], Wireframe],
+    ) -> str:
+        """Why the accepted ``res`` must not join after all: its overlap recurs in another
+        component's map ("" when it does not; see :attr:`FramesConfig.recurrence`)."""
+        rc = self.config.registration
+        names = [r for r in comps if r not in pair]
+        if self.has_known and FLEET not in pair and self.fleet_component() is None:
+            names.insert(0, FLEET)
+        others = [(n, maps(self._members(n, comps), None if n == FLEET else n)) for n in names]
+        others = [(n, wf) for n, wf in others if _length(wf) >= self.config.min_length_m]
+        if not others:
+            return ""
+        share, k = recurrence_elsewhere(fa, fb, res, [prepare(wf, rc) for _, wf in others], rc)
+        contested = res.runner_up_ratio > rc.contested_runner_up_ratio
+        limit = rc.contested_self_ratio if contested else rc.max_self_ratio
+        if k < 0 or share <= limit:
+            return ""
+        name = others[k][0]
+        who = "the fleet's" if name == FLEET else f"{'+'.join(comps[name])}'s"
+        return f"repetitive: the overlap recurs in {who} map ({share:.0%})"
 
     def _join(self, a: str, b: str, transform: Pose) -> None:
         """Component ``b``'s root frame goes into ``a``'s by ``transform``."""
@@ -337,6 +427,14 @@ class FleetFrames:
             if anchor is None or self.root.get(anchor) == a:
                 self.fleet_root = a
         self.epoch += 1
+
+
+def _same_place(p: Pose, q: Pose, centre: Any, cfg: FramesConfig) -> bool:
+    """Whether transforms ``p`` and ``q`` put B's wall centre within ``confirm_m`` of each
+    other and turn it alike within ``confirm_deg``."""
+    a, b = p.apply(centre)[0], q.apply(centre)[0]
+    turn = math.degrees(abs(math.remainder(p.theta - q.theta, math.tau)))
+    return bool(math.hypot(a[0] - b[0], a[1] - b[1]) <= cfg.confirm_m and turn <= cfg.confirm_deg)
 
 
 def _length(wf: Wireframe) -> float:

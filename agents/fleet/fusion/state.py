@@ -759,14 +759,15 @@ class FusionState:
             del self._island_cache[gone]
         return out
 
-    def register_step(self, t: float = 0.0, now: float | None = None) -> RegistrationRecord | None:
+    def register_step(self, t: float | None = None, now: float | None = None) -> RegistrationRecord | None:
         """One registration attempt of the registration graph (:mod:`.frames`), the pair it
-        finds due (``now``: the service's clock for the retry of maps that stopped growing); on
+        finds due (``t``: the robots' clock, for the second look at a pending join; ``now``: the
+        service's clock for the retry of maps that stopped growing); on
         acceptance the moved robots get their fleet poses (the next :meth:`fuse` includes them).
         None when no pair is due (and always for known-start fleets)."""
         if not self.frames.active:
             return None
-        pair = self.frames.next_pair(self._component_length, now)
+        pair = self.frames.next_pair(self._component_length, now, t)
         if pair is None:
             return None
         rec = self.frames.attempt(pair, self._component_map, t, now)
