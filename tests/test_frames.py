@@ -260,7 +260,7 @@ def test_an_overlap_that_recurs_in_a_third_robots_map_is_not_joined() -> None:
     already seen offices alike: the fleet refuses the join on their evidence."""
     from mapping.registration import prepare, recurrence_elsewhere, register_prepared
 
-    maps = {rid: seq[39] for rid, seq in _office_fleet(40).items()}
+    maps = {rid: seq[39] for rid, seq in _office_fleet(60).items()}
     fa, fb = prepare(maps["r3"]), prepare(maps["r4"])
     res = register_prepared(fa, fb)
     assert res.accepted  # the pair alone: the false merge
@@ -323,3 +323,26 @@ def test_a_pending_join_is_made_on_the_second_look() -> None:
     assert at_once.attempt(("r1", "r2"), lambda ms, root: maps[ms[0]]).accepted  # no robots' clock: at once
     true = sa.inverse().compose(sb)
     assert math.hypot(fr.pose["r2"].x - true.x, fr.pose["r2"].y - true.y) < 0.1
+
+
+def test_a_pending_join_waits_on_the_service_clock_where_the_robots_clock_stands_still() -> None:
+    """A log whose stamps do not move (belgioioso's, orebro's), or robots that are done: the wait
+    runs on the service's clock, and only ``retry_after_s`` of it while no map changes."""
+    a, b = _halves("paper-small")
+    maps = {"r1": a, "r2": b.transformed(Pose(5.0, -3.0, 1.0))}
+    lengths = {"r1": 100.0, "r2": 80.0}
+
+    def length(members: tuple[str, ...], root: str | None) -> float:
+        return sum(lengths[m] for m in members)
+
+    fr = FleetFrames(FramesConfig(confirm_after_s=10.0, retry_after_s=5.0, min_length_m=1.0))
+    fr.track("r1")
+    fr.track("r2")
+    assert fr.next_pair(length, now=0.0, t=7.0) == ("r1", "r2")
+    assert fr.attempt(("r1", "r2"), lambda ms, root: maps[ms[0]], t=7.0, now=0.0).pending
+    assert fr.next_pair(length, now=4.9, t=7.0) is None
+    assert fr.next_pair(length, now=5.0, t=7.0) == ("r1", "r2")  # nothing changed: 5 s
+    lengths["r2"] = 80.5  # a map changed (short of every retry rule): the whole wait
+    assert fr.next_pair(length, now=9.9, t=7.0) is None
+    assert fr.next_pair(length, now=10.0, t=7.0) == ("r1", "r2")
+    assert fr.attempt(("r1", "r2"), lambda ms, root: maps[ms[0]], t=7.0, now=10.0).accepted

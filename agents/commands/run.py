@@ -85,8 +85,10 @@ to ``wire_codec.MAX_ROBOTS``, 4,096; larger fleets: ``wiremap bench fleet --synt
 robots and fusers on several machines)."""
 #: Seconds a fleet of robots without a shared frame runs on after every robot is done while
 #: some are islands: the fusion service tries a pair whose maps stopped growing again after
-#: FramesConfig.retry_after_s (5 s), and an attempt takes up to a fraction of a second.
-SETTLE_S = 8.0
+#: FramesConfig.retry_after_s (5 s), and an attempt takes up to a fraction of a second; a join
+#: accepted then waits for its second look, 5 s more once no map changes
+#: (FramesConfig.confirm_after_s), and a third robot's join as long again.
+SETTLE_S = 20.0
 
 HELP = "the main job: router, N robots and the fusion service"
 

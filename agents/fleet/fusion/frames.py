@@ -68,6 +68,9 @@ from mapping.wireframe import Wireframe
 from wire_codec.message import MapMessage
 
 ORIGIN_UNKNOWN = "origin_unknown"
+#: A first acceptance awaiting its second look: (transform, robots' clock, service clock or
+#: None, every component's wall length then).
+_Pending = tuple[Pose, float, float | None, tuple[tuple[tuple[str, ...], float], ...]]
 FLEET = "fleet"  # the fleet component's name in records when it is the known-start robots
 
 
@@ -96,8 +99,10 @@ class FramesConfig:
         transform (within ``confirm_m`` at B's wall centre and ``confirm_deg``) and with every
         map the fleet then holds (0, or no ``t``: join at the first acceptance). The robots'
         clock, not the service's: the wait is for what the robots see meanwhile (a replayed
-        log runs many times faster than the wall clock). A late merge costs little and a wrong
-        one the fleet map: the office world's robots each saw one office first and matched it
+        log runs many times faster than the wall clock); the service's (``now``) only where the
+        robots' clock stands still (belgioioso's stamps: 1.01893e9 on every line; robots
+        done), and there only ``retry_after_s`` once no map changes. A late merge costs little
+        and a wrong one the fleet map: the office world's robots each saw one office first and matched it
         to another robot's office 15 m off; seconds later a third robot had seen two offices
         alike.
     recurrence : before a join, the overlap is looked for in every other component's map
@@ -184,7 +189,9 @@ class FleetFrames:
         self._tried: dict[tuple[tuple[str, ...], tuple[str, ...]], tuple[float, float, float | None]] = {}
         self.epoch = 0  # bumps on every change of membership or pose
         # (members a, members b) -> (transform, clock) of a first acceptance awaiting its second look
-        self._pending: dict[tuple[tuple[str, ...], tuple[str, ...]], tuple[Pose, float]] = {}
+        # (members a, members b) -> (transform, robots' clock, service clock or None, every
+        # component's wall length) of a first acceptance awaiting its second look
+        self._pending: dict[tuple[tuple[str, ...], tuple[str, ...]], _Pending] = {}
         self._lengths: dict[tuple[str, ...], float] = {}  # of the last next_pair, by members
 
     # ------------------------------------------------------------------ membership
@@ -309,7 +316,7 @@ class FleetFrames:
                     continue
                 key = (self._members(a, comps), self._members(b, comps))
                 pend = self._pending.get(key)
-                confirm = pend is not None and t is not None and t - pend[1] >= cfg.confirm_after_s
+                confirm = pend is not None and t is not None and self._waited(pend, t, now)
                 last = self._tried.get(key)
                 due = last is None or _grew(la, last[0], cfg) or _grew(lb, last[1], cfg) \
                     or _settled(la, lb, now, last, cfg)
@@ -368,11 +375,11 @@ class FleetFrames:
             assert res.transform is not None
             prev = self._pending.get(key)
             same = prev is not None and _same_place(prev[0], res.transform, fb.centre, cfg)
-            if same and prev is not None and t - prev[1] >= cfg.confirm_after_s:
+            if same and prev is not None and self._waited(prev, t, now):
                 del self._pending[key]
             else:
                 if not same:
-                    self._pending[key] = (res.transform, t)
+                    self._pending[key] = (res.transform, t, now, _signature(self._lengths))
                 accepted, pending = False, True
         ms = 1000.0 * (time.perf_counter() - t0)
         self.attempts += 1
@@ -390,6 +397,18 @@ class FleetFrames:
         self.records.append(rec)
         del self.records[: max(0, len(self.records) - self.config.history)]
         return rec
+
+    def _waited(self, pend: _Pending, t: float, now: float | None) -> bool:
+        """Whether a pending join's wait is over: ``confirm_after_s`` on the robots' clock; where
+        that has not moved since the first look (a log whose stamps stand still, robots done),
+        on the service's clock (``now``), or after ``retry_after_s`` of it when no component's
+        map changed since: no evidence is on its way."""
+        cfg = self.config
+        if t != pend[1] or now is None or pend[2] is None:
+            return t - pend[1] >= cfg.confirm_after_s
+        still = pend[3] == _signature(self._lengths)
+        wait = min(cfg.confirm_after_s, cfg.retry_after_s) if still else cfg.confirm_after_s
+        return now - pend[2] >= wait
 
     def _recurs(
         self, fa: MapFeatures, fb: MapFeatures, res: Registration, pair: tuple[str, str],
@@ -427,6 +446,11 @@ class FleetFrames:
             if anchor is None or self.root.get(anchor) == a:
                 self.fleet_root = a
         self.epoch += 1
+
+
+def _signature(lengths: dict[tuple[str, ...], float]) -> tuple[tuple[tuple[str, ...], float], ...]:
+    """Every component's wall length, in a comparable form (what changes when a map does)."""
+    return tuple(sorted(lengths.items()))
 
 
 def _same_place(p: Pose, q: Pose, centre: Any, cfg: FramesConfig) -> bool:
