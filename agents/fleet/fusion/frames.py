@@ -36,12 +36,12 @@ Joins: a registration the pair's two maps accept is checked against the rest of 
 first: when its overlap lands, at two distinct places, in any other component's map (a third
 robot has seen the structure repeated), the building repeats it and the pair is refused
 (:attr:`FramesConfig.recurrence`). Then it is only *pending*: the pair is tried again once the
-robots' clock has run ``confirm_after_s`` on, first of all pairs, and joined when that second
-look accepts the same transform with every map then held. A join makes the component holding
-the fleet (or anchor, or else the lower root id) keep its root, and composes the other's poses
-with the registration's transform. Joins are never undone: registration is tuned to refuse
-rather than guess (no false merge in its benchmark), and the fleet waits for the evidence of
-every robot before it joins, so the graph only grows.
+robots' clock has run ``confirm_after_s`` on, first of all pairs, and joined unless the
+overlap now recurs in a map the fleet holds (the pair's own as they grew included). A join
+makes the component holding the fleet (or anchor, or else the lower root id) keep its root,
+and composes the other's poses with the registration's transform. Joins are never undone:
+registration is tuned to refuse rather than guess (no false merge in its benchmark), and the
+fleet waits for the evidence of every robot before it joins, so the graph only grows.
 
 Everything here is pure (no zenoh, no clock of its own); :class:`FusionState` owns one
 :class:`FleetFrames`.
@@ -68,9 +68,7 @@ from mapping.wireframe import Wireframe
 from wire_codec.message import MapMessage
 
 ORIGIN_UNKNOWN = "origin_unknown"
-#: A first acceptance awaiting its second look: (transform, robots' clock, service clock or
-#: None, every component's wall length then).
-_Pending = tuple[Pose, float, float | None, tuple[tuple[tuple[str, ...], float], ...]]
+
 FLEET = "fleet"  # the fleet component's name in records when it is the known-start robots
 
 
@@ -93,18 +91,21 @@ class FramesConfig:
         word of a map that stopped growing").
     min_length_m : a component with less wall than this is not tried (registration needs
         8 m of matched wall anyway).
-    confirm_after_s : a first acceptance only makes the join *pending*; the pair is tried
-        again once the robots' clock (the maps' time ``t`` given to :meth:`FleetFrames.attempt`)
-        has run this long, and joined when that second look accepts it too, with the same
-        transform (within ``confirm_m`` at B's wall centre and ``confirm_deg``) and with every
-        map the fleet then holds (0, or no ``t``: join at the first acceptance). The robots'
-        clock, not the service's: the wait is for what the robots see meanwhile (a replayed
-        log runs many times faster than the wall clock); the service's (``now``) only where the
-        robots' clock stands still (belgioioso's stamps: 1.01893e9 on every line; robots
-        done), and there only ``retry_after_s`` once no map changes. A late merge costs little
-        and a wrong one the fleet map: the office world's robots each saw one office first and matched it
-        to another robot's office 15 m off; seconds later a third robot had seen two offices
-        alike.
+    confirm_after_s : a first acceptance only makes the join *pending*; once the robots' clock
+        (the maps' time ``t`` given to :meth:`FleetFrames.attempt`) has run this long, the pair
+        is looked at again, first of all pairs: the overlap matched at the first look is looked
+        for in every map the fleet then holds, the pair's own as they grew included, and the
+        pair is joined at the first look's transform unless it recurs (0, or no ``t``: join at
+        the first acceptance). The second look does not register the grown maps again: a
+        drifting map's growth adds walls on seen-free space to a right transform (orebro's
+        stretches), while the risk the wait is for is repetition. The robots' clock, not the
+        service's: the wait is for what the robots see meanwhile (a replayed log runs many
+        times faster than the wall clock); the service's (``now``) only where the robots'
+        clock stands still (belgioioso's stamps: 1.01893e9 on every line; robots done), and
+        there only ``retry_after_s`` once no map changes. A late merge costs little and a
+        wrong one the fleet map: the office world's robots each saw one office first and
+        matched it to another robot's office 15 m off; seconds later a third robot had seen
+        two offices alike.
     recurrence : before a join, the overlap is looked for in every other component's map
         (:func:`mapping.registration.recurrence_elsewhere`); when it lands well in one of
         them at two distinct places, the building repeats it and the pair is refused, as when
@@ -121,11 +122,23 @@ class FramesConfig:
     retry_min_m: float = 1.0
     min_length_m: float = 10.0
     confirm_after_s: float = 10.0
-    confirm_m: float = 1.0
-    confirm_deg: float = 5.0
     recurrence: bool = True
     registration: RegistrationConfig = field(default_factory=RegistrationConfig)
     history: int = 200
+
+
+@dataclass(frozen=True)
+class Pending:
+    """A first acceptance awaiting its second look: the registration and the two maps' features
+    it was made on, the robots' clock and the service's (None without one) then, and every
+    component's wall length then (:func:`_signature`)."""
+
+    res: Registration
+    fa: MapFeatures
+    fb: MapFeatures
+    t: float
+    now: float | None
+    lengths: tuple[tuple[tuple[str, ...], float], ...]
 
 
 @dataclass(frozen=True)
@@ -189,9 +202,8 @@ class FleetFrames:
         self._tried: dict[tuple[tuple[str, ...], tuple[str, ...]], tuple[float, float, float | None]] = {}
         self.epoch = 0  # bumps on every change of membership or pose
         # (members a, members b) -> (transform, clock) of a first acceptance awaiting its second look
-        # (members a, members b) -> (transform, robots' clock, service clock or None, every
-        # component's wall length) of a first acceptance awaiting its second look
-        self._pending: dict[tuple[tuple[str, ...], tuple[str, ...]], _Pending] = {}
+        # (members a, members b) -> a first acceptance awaiting its second look
+        self._pending: dict[tuple[tuple[str, ...], tuple[str, ...]], Pending] = {}
         self._lengths: dict[tuple[str, ...], float] = {}  # of the last next_pair, by members
 
     # ------------------------------------------------------------------ membership
@@ -360,26 +372,30 @@ class FleetFrames:
         wb = maps(mb, b)
         cfg = self.config
         rc = cfg.registration
-        t0 = time.perf_counter()
-        fa, fb = prepare(wa, rc), prepare(wb, rc)
-        res = register_prepared(fa, fb, rc)
-        accepted, reason = bool(res.accepted and res.transform is not None), res.reason
-        if accepted and cfg.recurrence:
-            reason = self._recurs(fa, fb, res, (a, b), comps, maps)
-            accepted = not reason
         key = (ma, mb)
+        t0 = time.perf_counter()
+        prev = self._pending.get(key)
         pending = False
-        if not accepted:
-            self._pending.pop(key, None)
-        elif cfg.confirm_after_s > 0 and t is not None:
-            assert res.transform is not None
-            prev = self._pending.get(key)
-            same = prev is not None and _same_place(prev[0], res.transform, fb.centre, cfg)
-            if same and prev is not None and self._waited(prev, t, now):
-                del self._pending[key]
-            else:
-                if not same:
-                    self._pending[key] = (res.transform, t, now, _signature(self._lengths))
+        if prev is not None and t is not None and self._waited(prev, t, now):
+            # The second look: the overlap matched at the first, against every map held now
+            # (the pair's own as they grew too).
+            del self._pending[key]
+            res = prev.res
+            fa, fb = prepare(wa, rc), prepare(wb, rc)
+            reason = self._recurs(prev.fa, prev.fb, res, (a, b), comps, maps, own=(fa, fb))
+            accepted = not reason
+        else:
+            fa, fb = prepare(wa, rc), prepare(wb, rc)
+            res = register_prepared(fa, fb, rc)
+            accepted, reason = bool(res.accepted and res.transform is not None), res.reason
+            if accepted and cfg.recurrence:
+                reason = self._recurs(fa, fb, res, (a, b), comps, maps)
+                accepted = not reason
+            if not accepted:
+                self._pending.pop(key, None)
+            elif cfg.confirm_after_s > 0 and t is not None:
+                if prev is None:
+                    self._pending[key] = Pending(res, fa, fb, t, now, _signature(self._lengths))
                 accepted, pending = False, True
         ms = 1000.0 * (time.perf_counter() - t0)
         self.attempts += 1
@@ -398,38 +414,43 @@ class FleetFrames:
         del self.records[: max(0, len(self.records) - self.config.history)]
         return rec
 
-    def _waited(self, pend: _Pending, t: float, now: float | None) -> bool:
+    def _waited(self, pend: Pending, t: float, now: float | None) -> bool:
         """Whether a pending join's wait is over: ``confirm_after_s`` on the robots' clock; where
         that has not moved since the first look (a log whose stamps stand still, robots done),
         on the service's clock (``now``), or after ``retry_after_s`` of it when no component's
         map changed since: no evidence is on its way."""
         cfg = self.config
-        if t != pend[1] or now is None or pend[2] is None:
-            return t - pend[1] >= cfg.confirm_after_s
-        still = pend[3] == _signature(self._lengths)
+        if t != pend.t or now is None or pend.now is None:
+            return t - pend.t >= cfg.confirm_after_s
+        still = pend.lengths == _signature(self._lengths)
         wait = min(cfg.confirm_after_s, cfg.retry_after_s) if still else cfg.confirm_after_s
-        return now - pend[2] >= wait
+        return now - pend.now >= wait
 
     def _recurs(
         self, fa: MapFeatures, fb: MapFeatures, res: Registration, pair: tuple[str, str],
         comps: dict[str, tuple[str, ...]], maps: Callable[[tuple[str, ...], str | None], Wireframe],
+        own: tuple[MapFeatures, MapFeatures] | None = None,
     ) -> str:
-        """Why the accepted ``res`` must not join after all: its overlap recurs in another
-        component's map ("" when it does not; see :attr:`FramesConfig.recurrence`)."""
+        """Why the accepted ``res`` (of ``fb`` onto ``fa``) must not join after all: its overlap
+        recurs in another component's map, or in ``own`` (the pair's maps as they are now, at a
+        second look) at a place besides the match ("" when it does not; see
+        :attr:`FramesConfig.recurrence`)."""
         rc = self.config.registration
         names = [r for r in comps if r not in pair]
         if self.has_known and FLEET not in pair and self.fleet_component() is None:
             names.insert(0, FLEET)
         others = [(n, maps(self._members(n, comps), None if n == FLEET else n)) for n in names]
-        others = [(n, wf) for n, wf in others if _length(wf) >= self.config.min_length_m]
-        if not others:
+        feats = [(n, prepare(wf, rc)) for n, wf in others if _length(wf) >= self.config.min_length_m]
+        if own is not None:
+            feats += list(zip(pair, own))
+        if not feats:
             return ""
-        share, k = recurrence_elsewhere(fa, fb, res, [prepare(wf, rc) for _, wf in others], rc)
+        share, k = recurrence_elsewhere(fa, fb, res, [f for _, f in feats], rc)
         contested = res.runner_up_ratio > rc.contested_runner_up_ratio
         limit = rc.contested_self_ratio if contested else rc.max_self_ratio
         if k < 0 or share <= limit:
             return ""
-        name = others[k][0]
+        name = feats[k][0]
         who = "the fleet's" if name == FLEET else f"{'+'.join(comps[name])}'s"
         return f"repetitive: the overlap recurs in {who} map ({share:.0%})"
 
@@ -451,14 +472,6 @@ class FleetFrames:
 def _signature(lengths: dict[tuple[str, ...], float]) -> tuple[tuple[tuple[str, ...], float], ...]:
     """Every component's wall length, in a comparable form (what changes when a map does)."""
     return tuple(sorted(lengths.items()))
-
-
-def _same_place(p: Pose, q: Pose, centre: Any, cfg: FramesConfig) -> bool:
-    """Whether transforms ``p`` and ``q`` put B's wall centre within ``confirm_m`` of each
-    other and turn it alike within ``confirm_deg``."""
-    a, b = p.apply(centre)[0], q.apply(centre)[0]
-    turn = math.degrees(abs(math.remainder(p.theta - q.theta, math.tau)))
-    return bool(math.hypot(a[0] - b[0], a[1] - b[1]) <= cfg.confirm_m and turn <= cfg.confirm_deg)
 
 
 def _length(wf: Wireframe) -> float:
