@@ -68,7 +68,6 @@ from mapping.wireframe import Wireframe
 from wire_codec.message import MapMessage
 
 ORIGIN_UNKNOWN = "origin_unknown"
-
 FLEET = "fleet"  # the fleet component's name in records when it is the known-start robots
 
 
@@ -201,7 +200,6 @@ class FleetFrames:
         # (members a, members b) -> (length a, length b, clock) at the pair's last attempt
         self._tried: dict[tuple[tuple[str, ...], tuple[str, ...]], tuple[float, float, float | None]] = {}
         self.epoch = 0  # bumps on every change of membership or pose
-        # (members a, members b) -> (transform, clock) of a first acceptance awaiting its second look
         # (members a, members b) -> a first acceptance awaiting its second look
         self._pending: dict[tuple[tuple[str, ...], tuple[str, ...]], Pending] = {}
         self._lengths: dict[tuple[str, ...], float] = {}  # of the last next_pair, by members
@@ -328,11 +326,14 @@ class FleetFrames:
                     continue
                 key = (self._members(a, comps), self._members(b, comps))
                 pend = self._pending.get(key)
-                confirm = pend is not None and t is not None and self._waited(pend, t, now)
                 last = self._tried.get(key)
-                due = last is None or _grew(la, last[0], cfg) or _grew(lb, last[1], cfg) \
-                    or _settled(la, lb, now, last, cfg)
-                if not (confirm or due):
+                if pend is not None:  # waits for its second look, and nothing else
+                    confirm = due = t is not None and self._waited(pend, t, now)
+                else:
+                    confirm = False
+                    due = last is None or _grew(la, last[0], cfg) or _grew(lb, last[1], cfg) \
+                        or _settled(la, lb, now, last, cfg)
+                if not due:
                     continue
                 fleet_pair = a in (fc, FLEET) or b in (fc, FLEET)
                 rank = (-1 if confirm else 0 if fleet_pair else 1, -(la + lb))
@@ -374,15 +375,15 @@ class FleetFrames:
         rc = cfg.registration
         key = (ma, mb)
         t0 = time.perf_counter()
-        prev = self._pending.get(key)
+        prev = self._pending.pop(key, None)
         pending = False
         if prev is not None and t is not None and self._waited(prev, t, now):
             # The second look: the overlap matched at the first, against every map held now
             # (the pair's own as they grew too).
-            del self._pending[key]
             res = prev.res
             fa, fb = prepare(wa, rc), prepare(wb, rc)
-            reason = self._recurs(prev.fa, prev.fb, res, (a, b), comps, maps, own=(fa, fb))
+            reason = self._recurs(prev.fa, prev.fb, res, (a, b), comps, maps, own=(fa, fb)) \
+                if cfg.recurrence else ""
             accepted = not reason
         else:
             fa, fb = prepare(wa, rc), prepare(wb, rc)
@@ -391,11 +392,11 @@ class FleetFrames:
             if accepted and cfg.recurrence:
                 reason = self._recurs(fa, fb, res, (a, b), comps, maps)
                 accepted = not reason
-            if not accepted:
-                self._pending.pop(key, None)
-            elif cfg.confirm_after_s > 0 and t is not None:
-                if prev is None:
-                    self._pending[key] = Pending(res, fa, fb, t, now, _signature(self._lengths))
+            if prev is not None:  # tried before its second look was due: it waits on
+                self._pending[key] = prev
+                accepted, pending = False, True
+            elif accepted and cfg.confirm_after_s > 0 and t is not None:
+                self._pending[key] = Pending(res, fa, fb, t, now, _signature(self._lengths))
                 accepted, pending = False, True
         ms = 1000.0 * (time.perf_counter() - t0)
         self.attempts += 1
