@@ -18,10 +18,14 @@ venv: $(STAMP)
 demo: $(STAMP)
 	$(BIN)/wiremap run --world paper-small --robots 3 --duration 60 --stop-when-done --seed 1 --out out/demo
 
+# The pure tests on both cores (pytest-xdist), then the tests that start processes and Zenoh
+# sessions (marker `fleet`) one at a time: their timings are real time, and two fleets at once
+# on two cores would measure each other.
 test: $(STAMP)
 	$(BIN)/ruff check mapping wire_codec agents tests
 	$(BIN)/mypy
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -n 2 -m "not fleet"
+	$(BIN)/python -m pytest -q -m fleet
 
 # The edit-test loop (under a minute): lint and the pure tests, without the tests that start
 # processes or Zenoh sessions (marker `fleet`) or run long (`slow`). `make test` runs them all.
