@@ -106,6 +106,8 @@ Pipeline
      ``SELF_VOTE_ENDS`` wall ends votes with its walls' starts only, and a hypothesis that a
      cell-mask count shows cannot exceed the lowest of the three limits is not verified (so
      ``extra["self_a"]`` and ``["self_b"]`` are exact above that limit and may read 0 below).
+     A fleet asks the same of every other robot's map before it joins two:
+     :func:`recurrence_elsewhere`, the overlap placed in a third map at two distinct places.
 
 Confidence
 ----------
