@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Iterable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -557,6 +557,7 @@ def carmen_inputs(
     frontend: Any = None,
     yaw: float | None = None,
     calibration: LogCalibration | None = None,
+    on_noise: Callable[[Any], None] | None = None,
 ) -> Iterator[ScanInput]:
     """Scans of a CARMEN log: each laser line's ranges through split-and-merge
     (:func:`mapping.extract.extract_corners`) and the raw points
@@ -583,6 +584,10 @@ def carmen_inputs(
     calibration : LogCalibration, optional
         The (``steps``-long) log's calibrations already made (:func:`calibrate_log` with this
         ``frontend``); ``yaw`` is then not used.
+    on_noise : callable, optional
+        With the online SLAM (``frontend.slam.online``): given the wheels' heading noise when it
+        is measured again during the run (:func:`mapping.lidar_frontend.online_increments`),
+        for a report of the prior the SLAM ended with.
     """
     from mapping.extract import ExtractConfig, extract_corners
     from mapping.lidar_frontend import FrontendConfig, scan_increment
@@ -609,7 +614,7 @@ def carmen_inputs(
         # when the scan comes, drawn as the scans are.
         from mapping.lidar_frontend import online_increments
 
-        slam_odo = online_increments(pts, wheels, fcfg, cal.noise)
+        slam_odo = online_increments(pts, wheels, fcfg, cal.noise, on_noise)
     elif fcfg.slam.enabled:
         # Lidar SLAM over the whole log first (mapping.lidar_slam); the filter then maps on its
         # smoothed increments.

@@ -32,7 +32,7 @@ Choices
 from __future__ import annotations
 
 import math
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -402,7 +402,8 @@ ONLINE_RECALIBRATE = 25
 
 
 def online_increments(
-    points: list[FloatArray], odometry: list[Pose], config: FrontendConfig, noise: OdometryNoise | None = None
+    points: list[FloatArray], odometry: list[Pose], config: FrontendConfig,
+    noise: OdometryNoise | None = None, on_noise: Callable[[OdometryNoise], None] | None = None,
 ) -> Iterator[Pose]:
     """The motion between consecutive scans as the lidar SLAM gives it scan by scan: from the
     pose :meth:`LidarSlam.add` gave the scan before to the pose it gives this one (the
@@ -410,8 +411,8 @@ def online_increments(
     drives has it (``config.slam.online``). ``noise``: the wheels' heading noise measured so far
     (``odo_calibration``); while it rests on too few scan pairs and ``config.calibration_scans``
     limited it to the first scans, it is measured again on every scan so far each
-    :data:`ONLINE_RECALIBRATE` scans. Scan ``k``'s increment uses ``points[:k + 1]`` and
-    ``odometry[:k + 1]`` only."""
+    :data:`ONLINE_RECALIBRATE` scans, and ``on_noise`` is given the measure the SLAM then runs
+    with. Scan ``k``'s increment uses ``points[:k + 1]`` and ``odometry[:k + 1]`` only."""
     slam_cfg = config.slam if noise is None else calibrated_slam(config.slam, noise)
     slam = LidarSlam(slam_cfg, start=np.zeros(3))
     pending = (config.slam.odo_calibration and config.calibration_scans > 0
@@ -423,6 +424,8 @@ def online_increments(
             if now_noise.pairs >= config.slam.odo_calibration_min_pairs:
                 slam.config = calibrated_slam(config.slam, now_noise)
                 pending = False
+                if on_noise is not None:
+                    on_noise(now_noise)
         now = Pose(*map(float, slam.add(pts, np.zeros(3) if k == 0 else np.array(odo.as_tuple()))))
         yield Pose.identity() if last is None else last.between(now)
         last = now

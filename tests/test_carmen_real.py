@@ -499,3 +499,28 @@ def test_a_known_laser_yaw_is_taken_not_estimated(tmp_path: Path, capsys: pytest
     assert main([*args, "--set", "frontend.laser_yaw=0.29"]) == 0
     row = json.loads(capsys.readouterr().out.strip().splitlines()[-1])["logs"]["freiburg-101-head"]
     assert row["laser_yaw_deg"] == pytest.approx(0.29)
+
+
+def test_the_online_slam_reports_the_wheels_noise_it_measured_last() -> None:
+    """While the first ``calibration_scans`` gave too few scan pairs, the online SLAM measures
+    the wheels again on every scan so far (each ``ONLINE_RECALIBRATE`` scans); ``on_noise``
+    hears the measure it then runs with, which is what a report must give."""
+    import dataclasses
+
+    from agents import mapping_run as mr
+    from mapping.lidar_frontend import ONLINE_RECALIBRATE, odometry_noise
+
+    scans = read_carmen_log(EXCERPT).scans
+    _, extract, frontend = mr.split_profile(mr.lidar_profile("lidar-slam-online"))
+    slam = dataclasses.replace(frontend.slam, odo_calibration_min_pairs=15)
+    frontend = dataclasses.replace(frontend, calibration_scans=10, slam=slam)
+    cal = mr.calibrate_log(scans, frontend)
+    assert cal.noise is not None and cal.noise.pairs < 15  # the first 10 scans: too few pairs
+    heard: list[object] = []
+    n = len(list(mr.carmen_inputs(scans, extract=extract, frontend=frontend, calibration=cal,
+                                  on_noise=heard.append)))
+    assert n == len(scans) and len(heard) == 1  # measured again once, then enough pairs
+    want = odometry_noise(cal.points[:ONLINE_RECALIBRATE], mr.wheel_increments(scans)[:ONLINE_RECALIBRATE],
+                          frontend)
+    assert heard[0] == want and want.pairs >= 15
+    assert mr.odometry_report(heard[0], frontend.slam) != mr.odometry_report(cal.noise, frontend.slam)

@@ -264,8 +264,9 @@ def run_log(
     t0 = time.perf_counter()
     filter_overrides, extract_cfg, frontend_cfg = mr.split_profile(dict(settings or {}))
     cal = mr.calibrate_log(scans, frontend_cfg)
+    noise = [cal.noise]  # the online SLAM's last measure of the wheels (online_increments)
     inputs = list(mr.carmen_inputs(scans, max_range=cap, truth=truth, extract=extract_cfg,
-                                   frontend=frontend_cfg, calibration=cal))
+                                   frontend=frontend_cfg, calibration=cal, on_noise=noise.append))
     extract_s = time.perf_counter() - t0
     true_xyt = pose_array(truth)
     odom_xyt = pose_array([s.odom for s in scans])
@@ -311,7 +312,7 @@ def run_log(
         "seed": seed,
         "max_range_m": cap,
         **mr.yaw_report(cal),
-        **mr.odometry_report(cal.noise, frontend_cfg.slam),
+        **mr.odometry_report(noise[-1], frontend_cfg.slam),
     })
     title = f"{name}: ate {result['ate_rmse_m']:.2f} m, precision {result['map_precision']:.2f}, seed {seed}"
     write_atomic(Path(out) / f"{name}.png",

@@ -360,13 +360,17 @@ def _real_source(
                               log_range, base=filter_overrides)
     cfg = resolved.config
     cal = mr.calibrate_log(scans if args.steps is None else scans[: args.steps], frontend_cfg)
+    extra = {**extra, "lidar_profile": args.lidar_profile, **mr.yaw_report(cal),
+             **mr.odometry_report(cal.noise, frontend_cfg.slam)}
+
+    def measured(noise: Any) -> None:  # the online SLAM measured the wheels again: report that
+        extra.update(mr.odometry_report(noise, frontend_cfg.slam))
+
     inputs = mr.carmen_inputs(scans, max_range=cfg.max_range, steps=args.steps, truth=true_scans,
-                              extract=extract_cfg, frontend=frontend_cfg, calibration=cal)
+                              extract=extract_cfg, frontend=frontend_cfg, calibration=cal, on_noise=measured)
     start = true_scans[0] if true_scans is not None else scans[0].odom
     filt = WireframeFilter(cfg, mr.seeds_for(args.seed)["filter"], initial_pose=start)
     total = len(scans) if args.steps is None else min(len(scans), args.steps)
-    extra = {**extra, "lidar_profile": args.lidar_profile, **mr.yaw_report(cal),
-             **mr.odometry_report(cal.noise, frontend_cfg.slam)}
     return _Source(filt, inputs, total, source, resolved, name, scans=scans, true_scans=true_scans,
                    max_range=cfg.max_range, extra=extra)
 
