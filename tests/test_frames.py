@@ -346,3 +346,25 @@ def test_a_pending_join_waits_on_the_service_clock_where_the_robots_clock_stands
     assert fr.next_pair(length, now=9.9, t=7.0) is None
     assert fr.next_pair(length, now=10.0, t=7.0) == ("r1", "r2")
     assert fr.attempt(("r1", "r2"), lambda ms, root: maps[ms[0]], t=7.0, now=10.0).accepted
+
+
+def test_the_fusion_core_joins_a_pending_pair_once_the_robots_clock_ran_on() -> None:
+    """Through :class:`FusionState` as the service drives it (the robots' clock from the maps'
+    ``meta["t"]``): the first acceptance leaves r2 an island, the second look 10 s of the
+    robots' time later fuses it."""
+    a, b = _halves("paper-small")
+    sa, sb = Pose(3.0, 2.0, 0.7), Pose(-20.0, 11.0, -2.4)
+    st = FusionState()
+    st.add(_msg("r1", a, sa, seq=1))
+    st.add(_msg("r2", b, sb, seq=1))
+    first = st.register_step(t=st.sim_time(), now=0.0)
+    assert first is not None and first.pending and not first.accepted
+    st.fuse(full=True)
+    assert st.fused_robots == ("r1",) and set(st.islands()) == {"r2"}
+    assert st.register_step(t=st.sim_time(), now=0.5) is None  # waiting: nothing due
+    st.add(_msg("r1", a, sa, seq=12))  # 11 s of the robots' time later (same walls)
+    st.add(_msg("r2", b, sb, seq=12))
+    second = st.register_step(t=st.sim_time(), now=1.0)
+    assert second is not None and second.accepted and not second.pending, second
+    st.fuse(full=True)
+    assert st.fused_robots == ("r1", "r2") and st.islands() == {}
