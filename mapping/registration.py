@@ -1401,7 +1401,9 @@ def _share_bounds(f: MapFeatures, region: MapFeatures, top: list[tuple[float, Po
     poses = [T for _, T in top]
     n_ends = _near_counts(ends_cells, poses, region.end_points)
     n_corners = _near_counts(corner_cells, poses, region.corner_points)
-    return list(np.maximum(n_ends / len(region.end_points), n_corners / len(region.corner_points)).tolist())
+    shares: list[float] = np.maximum(n_ends / len(region.end_points),
+                                     n_corners / len(region.corner_points)).tolist()
+    return shares
 
 
 def _placed_share(f: MapFeatures, region: MapFeatures, T: Pose, cfg: RegistrationConfig) -> float:
@@ -1452,10 +1454,9 @@ def recurrence_elsewhere(
     ``others`` (index -1 when none recurs).
 
     The self-similarity gate (step 6) asks whether either robot has itself seen the overlap's
-    structure twice. In a fleet, *any* robot in the building may have: the office world's
-    robots each saw one office early on and matched it to the other's office 15 m off, while a
-    third robot had already seen two offices alike. A fleet asks this of every other map it
-    holds before it joins two (:mod:`agents.fleet.fusion.frames`)."""
+    structure twice; in a fleet, *any* robot in the building may have, and a fleet asks this
+    of every other map it holds before it joins two (:mod:`agents.fleet.fusion.frames`; the
+    case that called for it: ``docs/experiments.md``, "Session 20")."""
     cfg = config or RegistrationConfig()
     if reg.best is None or not others:
         return 0.0, -1

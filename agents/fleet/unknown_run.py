@@ -165,7 +165,8 @@ def _attempts_against_truth(records: list[dict[str, Any]], starts: dict[str, Pos
     are known, and their tally (``registration_truth``): accepted right or wrong (a false merge),
     pending (a first acceptance waiting for its second look: :mod:`agents.fleet.fusion.frames`)
     right or wrong, refused with a right transform (a merge lost to caution) or a wrong one (a
-    false merge avoided). A component rooted in the fleet frame has no single true start and is left out."""
+    false merge avoided). A component rooted in the fleet frame has no single true start and is
+    left out."""
     from agents.fleet.carmen_fleet import WRONG_DEG, WRONG_M
 
     out: list[dict[str, Any]] = []

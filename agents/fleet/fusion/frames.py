@@ -95,16 +95,13 @@ class FramesConfig:
         is looked at again, first of all pairs: the overlap matched at the first look is looked
         for in every map the fleet then holds, the pair's own as they grew included, and the
         pair is joined at the first look's transform unless it recurs (0, or no ``t``: join at
-        the first acceptance). The second look does not register the grown maps again: a
-        drifting map's growth adds walls on seen-free space to a right transform (orebro's
-        stretches), while the risk the wait is for is repetition. The robots' clock, not the
-        service's: the wait is for what the robots see meanwhile (a replayed log runs many
-        times faster than the wall clock); the service's (``now``) only where the robots'
-        clock stands still (belgioioso's stamps: 1.01893e9 on every line; robots done), and
-        there only ``retry_after_s`` once no map changes. A late merge costs little and a
-        wrong one the fleet map: the office world's robots each saw one office first and
-        matched it to another robot's office 15 m off; seconds later a third robot had seen
-        two offices alike.
+        the first acceptance). The second look does not register the grown maps again (a
+        drifting map's growth puts a right transform's walls on seen-free space; the wait is
+        for repetition). The wait runs on the robots' clock, which is what they saw meanwhile
+        (a replayed log runs many times faster than the wall clock), and on the service's
+        (``now``) only where the robots' clock stands still (a log's coarse stamps, robots
+        done): there ``retry_after_s`` once no map changes. A late merge costs little, a wrong
+        one the fleet map (``docs/experiments.md``, "Session 20").
     recurrence : before a join, the overlap is looked for in every other component's map
         (:func:`mapping.registration.recurrence_elsewhere`); when it lands well in one of
         them at two distinct places, the building repeats it and the pair is refused, as when
@@ -130,14 +127,14 @@ class FramesConfig:
 class Pending:
     """A first acceptance awaiting its second look: the registration and the two maps' features
     it was made on, the robots' clock and the service's (None without one) then, and every
-    component's wall length then (:func:`_signature`)."""
+    component's wall length then (members -> metres, as :meth:`FleetFrames.next_pair` measured)."""
 
     res: Registration
     fa: MapFeatures
     fb: MapFeatures
     t: float
     now: float | None
-    lengths: tuple[tuple[tuple[str, ...], float], ...]
+    lengths: dict[tuple[str, ...], float]
 
 
 @dataclass(frozen=True)
@@ -375,15 +372,18 @@ class FleetFrames:
         rc = cfg.registration
         key = (ma, mb)
         t0 = time.perf_counter()
-        prev = self._pending.pop(key, None)
+        prev = self._pending.get(key)
         pending = False
-        if prev is not None and t is not None and self._waited(prev, t, now):
+        if prev is not None and (t is None or not self._waited(prev, t, now)):
+            # Tried before its second look is due (next_pair never offers it): it waits on.
+            res, accepted, reason, pending = prev.res, False, prev.res.reason, True
+        elif prev is not None:
             # The second look: the overlap matched at the first, against every map held now
             # (the pair's own as they grew too).
+            del self._pending[key]
             res = prev.res
-            fa, fb = prepare(wa, rc), prepare(wb, rc)
-            reason = self._recurs(prev.fa, prev.fb, res, (a, b), comps, maps, own=(fa, fb)) \
-                if cfg.recurrence else ""
+            own = (prepare(wa, rc), prepare(wb, rc))
+            reason = self._recurs(prev.fa, prev.fb, res, (a, b), comps, maps, own) if cfg.recurrence else ""
             accepted = not reason
         else:
             fa, fb = prepare(wa, rc), prepare(wb, rc)
@@ -392,11 +392,8 @@ class FleetFrames:
             if accepted and cfg.recurrence:
                 reason = self._recurs(fa, fb, res, (a, b), comps, maps)
                 accepted = not reason
-            if prev is not None:  # tried before its second look was due: it waits on
-                self._pending[key] = prev
-                accepted, pending = False, True
-            elif accepted and cfg.confirm_after_s > 0 and t is not None:
-                self._pending[key] = Pending(res, fa, fb, t, now, _signature(self._lengths))
+            if accepted and cfg.confirm_after_s > 0 and t is not None:
+                self._pending[key] = Pending(res, fa, fb, t, now, dict(self._lengths))
                 accepted, pending = False, True
         ms = 1000.0 * (time.perf_counter() - t0)
         self.attempts += 1
@@ -423,7 +420,7 @@ class FleetFrames:
         cfg = self.config
         if t != pend.t or now is None or pend.now is None:
             return t - pend.t >= cfg.confirm_after_s
-        still = pend.lengths == _signature(self._lengths)
+        still = pend.lengths == self._lengths
         wait = min(cfg.confirm_after_s, cfg.retry_after_s) if still else cfg.confirm_after_s
         return now - pend.now >= wait
 
@@ -468,11 +465,6 @@ class FleetFrames:
             if anchor is None or self.root.get(anchor) == a:
                 self.fleet_root = a
         self.epoch += 1
-
-
-def _signature(lengths: dict[tuple[str, ...], float]) -> tuple[tuple[tuple[str, ...], float], ...]:
-    """Every component's wall length, in a comparable form (what changes when a map does)."""
-    return tuple(sorted(lengths.items()))
 
 
 def _length(wf: Wireframe) -> float:

@@ -762,8 +762,8 @@ class FusionState:
     def register_step(self, t: float | None = None, now: float | None = None) -> RegistrationRecord | None:
         """One registration attempt of the registration graph (:mod:`.frames`), the pair it
         finds due (``t``: the robots' clock, for the second look at a pending join; ``now``: the
-        service's clock for the retry of maps that stopped growing); on
-        acceptance the moved robots get their fleet poses (the next :meth:`fuse` includes them).
+        service's clock for the retry of maps that stopped growing); on acceptance the moved
+        robots get their fleet poses (the next :meth:`fuse` includes them).
         None when no pair is due (and always for known-start fleets)."""
         if not self.frames.active:
             return None
