@@ -232,15 +232,20 @@ def test_report_scores_every_attempt_against_the_true_starts():
 @cache
 def _office_fleet(steps: int) -> dict[str, list[Wireframe]]:
     """The maps (in each robot's own frame, as sent) of `wiremap run --world office --robots 4
-    --unknown-starts --seed 1`'s robots after each of their first ``steps`` scans, simulated
-    here: the same routes and seeds as the run's, without processes or a bus."""
+    --unknown-starts --seed 1`'s robots after each of their first ``steps`` scans, as that run
+    was before the fleet shared its coverage out (each robot drove its own coverage route from
+    its random start; that is where the false merge below was found), simulated here: the same
+    routes and seeds as the run's, without processes or a bus."""
     from types import SimpleNamespace
 
-    from agents.fleet.unknown_run import random_routes
+    from agents.fleet.unknown_run import random_starts
     from agents.mapping_run import robot_steps
+    from agents.sim.route import plan_route
     from agents.sim.world import load_world
 
-    routes = random_routes(load_world("office"), 4, np.random.default_rng(1))
+    world, rng = load_world("office"), np.random.default_rng(1)
+    routes = [plan_route(world, rng, start=s, clearance=0.4, use_world_route=False)
+              for s in random_starts(world, 4, rng)]
     out: dict[str, list[Wireframe]] = {}
     for k, route in enumerate(routes):
         opts = SimpleNamespace(world="office", start=None, route=route, seed=1 + k + 1, particles=5,
@@ -281,8 +286,9 @@ def test_an_overlap_that_recurs_in_a_third_robots_map_is_not_joined() -> None:
 
 def test_a_first_acceptance_waits_for_a_second_look() -> None:
     """Early on (scan 29, 14.5 s) no map shows the office repeated yet and the false match passes
-    every test; it is only pending. The second look, 10 s of the robots' time later, sees r1's
-    offices and refuses."""
+    every test; it is only pending. r3's map never grows past the office it matched, so the
+    second look waits the longest wait (60 s of the robots' time), sees r1's offices and
+    refuses."""
     seqs = _office_fleet(60)
     fr = FleetFrames(FramesConfig(confirm_after_s=10.0, min_length_m=1.0))
     for rid in seqs:
@@ -297,32 +303,35 @@ def test_a_first_acceptance_waits_for_a_second_look() -> None:
 
     assert fr.next_pair(length, now=100.1, t=24.4) != ("r3", "r4")  # not before the wait (maps unchanged)
     assert fr.next_pair(length, now=100.1) != ("r3", "r4")  # nor without the robots' clock
-    assert fr.next_pair(length, now=100.1, t=24.5) == ("r3", "r4")  # due first once it passed
+    assert fr.next_pair(length, now=100.1, t=24.5) != ("r3", "r4")  # nor before the maps outgrow the match
+    assert fr.next_pair(length, now=100.1, t=74.5) == ("r3", "r4")  # due first after the longest wait
     late = {rid: seq[59] for rid, seq in seqs.items()}
-    rec = fr.attempt(("r3", "r4"), lambda ms, root: late[ms[0]], t=30.0, now=100.1)
+    rec = fr.attempt(("r3", "r4"), lambda ms, root: late[ms[0]], t=74.5, now=100.1)
     assert not rec.accepted and not rec.pending and "repetitive" in rec.reason, rec.reason
     assert fr.components()["r3"] == ("r3",)
 
 
-def test_a_pending_join_is_made_on_the_second_look() -> None:
+def test_a_second_look_waits_until_both_maps_outgrow_the_match() -> None:
+    """Two robots that have each seen one office match it whole: the second look waits until
+    each map holds twice the wall matched (where a copy would show), or the longest wait."""
     a, b = _halves("paper-small")
-    sa, sb = Pose(3.0, 2.0, 0.7), Pose(-20.0, 11.0, -2.4)
-    maps = {"r1": a.transformed(sa.inverse()), "r2": b.transformed(sb.inverse())}
-    fr = FleetFrames(FramesConfig(confirm_after_s=2.0))
+    maps = {"r1": a, "r2": b.transformed(Pose(5.0, -3.0, 1.0))}
+    fr = FleetFrames(FramesConfig(confirm_after_s=10.0, confirm_max_s=60.0, min_length_m=1.0))
     fr.track("r1")
     fr.track("r2")
     first = fr.attempt(("r1", "r2"), lambda ms, root: maps[ms[0]], t=0.0)
-    assert first.pending and fr.components() == {"r1": ("r1",), "r2": ("r2",)}
-    again = fr.attempt(("r1", "r2"), lambda ms, root: maps[ms[0]], t=1.0)  # too soon: still pending
-    assert again.pending and fr.components() == {"r1": ("r1",), "r2": ("r2",)}
-    done = fr.attempt(("r1", "r2"), lambda ms, root: maps[ms[0]], t=2.0)  # 2 s after the first
-    assert done.accepted and not done.pending and fr.components() == {"r1": ("r1", "r2")}
-    at_once = FleetFrames(FramesConfig())
-    at_once.track("r1")
-    at_once.track("r2")
-    assert at_once.attempt(("r1", "r2"), lambda ms, root: maps[ms[0]]).accepted  # no robots' clock: at once
-    true = sa.inverse().compose(sb)
-    assert math.hypot(fr.pose["r2"].x - true.x, fr.pose["r2"].y - true.y) < 0.1
+    assert first.pending
+    lengths = {"r1": 1.9 * first.support, "r2": 3.0 * first.support}
+
+    def length(members: tuple[str, ...], root: str | None) -> float:
+        return sum(lengths[m] for m in members)
+
+    assert fr.next_pair(length, t=30.0) is None  # r1's map short of twice the match
+    assert fr.next_pair(length, t=60.0) == ("r1", "r2")  # the longest wait
+    lengths["r1"] = 2.0 * first.support
+    assert fr.next_pair(length, t=9.9) is None  # grown, but before the wait
+    assert fr.next_pair(length, t=10.0) == ("r1", "r2")
+    assert fr.attempt(("r1", "r2"), lambda ms, root: maps[ms[0]], t=10.0).accepted
 
 
 def test_a_pending_join_waits_on_the_service_clock_where_the_robots_clock_stands_still() -> None:
@@ -350,8 +359,8 @@ def test_a_pending_join_waits_on_the_service_clock_where_the_robots_clock_stands
 
 def test_the_fusion_core_joins_a_pending_pair_once_the_robots_clock_ran_on() -> None:
     """Through :class:`FusionState` as the service drives it (the robots' clock from the maps'
-    ``meta["t"]``): the first acceptance leaves r2 an island, the second look 10 s of the
-    robots' time later fuses it."""
+    ``meta["t"]``): the first acceptance leaves r2 an island; maps that do not grow wait the
+    longest wait, and the second look 60 s of the robots' time later fuses it."""
     a, b = _halves("paper-small")
     sa, sb = Pose(3.0, 2.0, 0.7), Pose(-20.0, 11.0, -2.4)
     st = FusionState()
@@ -364,6 +373,9 @@ def test_the_fusion_core_joins_a_pending_pair_once_the_robots_clock_ran_on() -> 
     assert st.register_step(t=st.sim_time(), now=0.5) is None  # waiting: nothing due
     st.add(_msg("r1", a, sa, seq=12))  # 11 s of the robots' time later (same walls)
     st.add(_msg("r2", b, sb, seq=12))
+    assert st.register_step(t=st.sim_time(), now=1.0) is None  # the maps did not grow
+    st.add(_msg("r1", a, sa, seq=62))  # 61 s later
+    st.add(_msg("r2", b, sb, seq=62))
     second = st.register_step(t=st.sim_time(), now=1.0)
     assert second is not None and second.accepted and not second.pending, second
     st.fuse(full=True)

@@ -12,6 +12,7 @@ from hypothesis import strategies as st
 from agents.sim.motion import OdometryNoise, Step, dead_reckon, drive, noisy_increment
 from agents.sim.route import (
     navigable_region,
+    plan_fleet_routes,
     plan_route,
     plan_routes,
     route_clearance,
@@ -85,6 +86,11 @@ def wall_points(world, step=0.5):
 def seen_fraction(world, route, reach):
     """Independent check: the share of wall points that some point of the route sees (a
     straight segment crossing no wall) from at most ``reach`` metres."""
+    return float(seen_mask(world, route, reach).mean())
+
+
+def seen_mask(world, route, reach):
+    """Which of :func:`wall_points` some point of the route sees (:func:`seen_fraction`)."""
     from scipy.spatial import cKDTree
 
     pts = wall_points(world)
@@ -97,7 +103,7 @@ def seen_fraction(world, route, reach):
     clear = ~shapely.intersects(walls, shapely.linestrings(np.stack([pts[ti], rp[ri]], axis=1)))
     seen = np.zeros(len(pts), dtype=bool)
     seen[ti[clear]] = True
-    return float(seen.mean())
+    return seen
 
 
 # ---------------------------------------------------------------------- routes
@@ -210,6 +216,35 @@ def test_plan_routes_share_the_coverage():
     assert np.allclose(parts[0][-1], parts[1][0]) and np.allclose(parts[1][-1], parts[2][0])
     with pytest.raises(ValueError):
         plan_routes(w, 0, np.random.default_rng(0))
+
+
+def head(route, length):
+    """The first ``length`` metres of a polyline."""
+    cum = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(route, axis=0).T))])
+    return route[: int(np.searchsorted(cum, length)) + 1]
+
+
+def test_fleet_routes_share_the_coverage_from_their_own_starts():
+    """Robots switched on at random points: each route leaves from its own start, together they
+    see every wall within about a fleet's share of one robot's tour each, and each goes on over
+    the others' parts (so that their maps come to share walls)."""
+    w = load_world("office")
+    starts = [(20.5, 18.6), (6.1, 18.7), (12.6, 8.5), (32.8, 8.2)]
+    routes = plan_fleet_routes(w, starts, np.random.default_rng(3))
+    again = plan_fleet_routes(w, starts, np.random.default_rng(3))
+    assert all(np.array_equal(a, b) for a, b in zip(routes, again))
+    one = route_length(plan_route(w, np.random.default_rng(3), start=starts[0]))
+    share = 0.3 * one  # a quarter of one robot's tour, and the way to the robot's part
+    for s, r in zip(starts, routes):
+        assert np.hypot(*(r[0] - s)) < 1.0
+        assert exact_clearance(w, r) >= 0.4 - 1e-9
+        assert route_length(r) > 2 * share  # the own phase goes on past the shared one
+        assert seen_fraction(w, r, 6.0) >= 0.95  # ... over most of the world
+        assert seen_fraction(w, head(r, share), 6.0) < 0.6  # its share alone is a part of it
+    together = np.any([seen_mask(w, head(r, share), 6.0) for r in routes], axis=0)
+    assert together.mean() >= 0.99
+    with pytest.raises(ValueError, match="not in the free space"):
+        plan_fleet_routes(w, [(-5.0, -5.0)], np.random.default_rng(0))
 
 
 @settings(max_examples=40, deadline=None)

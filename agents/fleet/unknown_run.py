@@ -1,7 +1,8 @@
 """``wiremap run --unknown-starts`` and ``wiremap run --carmen LOG``: fleets without a shared frame.
 
 * **Unknown starts** (:func:`random_routes`): each robot starts at a random free point of the
-  world (seeded by ``--seed``), drives its own coverage route from there and publishes its map
+  world (seeded by ``--seed``), drives its share of a fleet coverage route from there (then on
+  over the others' shares) and publishes its map
   in its own frame with its origin marked unknown. The fused map is in the frame of the fleet's
   root robot (the first registered, or ``--anchor``). ``report.json`` (:func:`write_outputs_unknown`)
   scores it against the truth after one rigid alignment: the root robot's true start pose,
@@ -34,12 +35,12 @@ from mapping.se2 import Pose
 from mapping.wireframe import Wireframe
 
 
-def random_routes(world: Any, n: int, rng: np.random.Generator, clearance: float = 0.4) -> list[Any]:
-    """``n`` coverage routes, each planned from a random free start point (uniform over the
-    navigable region, at least 2 m apart when possible)."""
+def random_starts(world: Any, n: int, rng: np.random.Generator, clearance: float = 0.4) -> list[tuple[float, float]]:
+    """``n`` random free start points (uniform over the navigable region, at least 2 m apart
+    when possible)."""
     import shapely
 
-    from agents.sim.route import navigable_region, plan_route
+    from agents.sim.route import navigable_region
 
     region = navigable_region(world, clearance)
     xmin, ymin, xmax, ymax = region.bounds
@@ -53,7 +54,17 @@ def random_routes(world: Any, n: int, rng: np.random.Generator, clearance: float
         if tries < 10_000 and any(math.hypot(x - a, y - b) < 2.0 for a, b in starts):
             continue
         starts.append((x, y))
-    return [plan_route(world, rng, start=s, clearance=clearance, use_world_route=False) for s in starts]
+    return starts
+
+
+def random_routes(world: Any, n: int, rng: np.random.Generator, clearance: float = 0.4) -> list[Any]:
+    """``n`` coverage routes from random free start points (:func:`random_starts`) that share
+    the world's coverage out (:func:`agents.sim.route.plan_fleet_routes`): each robot first
+    sweeps the part of the world nearest to it that no other robot reaches sooner, then goes on
+    over the others' parts."""
+    from agents.sim.route import plan_fleet_routes
+
+    return plan_fleet_routes(world, random_starts(world, n, rng, clearance), rng, clearance=clearance)
 
 
 # ---------------------------------------------------------------------- CARMEN

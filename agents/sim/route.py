@@ -63,7 +63,7 @@ from scipy.sparse.csgraph import dijkstra
 
 from agents.sim.world import World
 
-__all__ = ["navigable_region", "plan_route", "plan_routes", "route_clearance", "route_length", "split_route"]
+__all__ = ["navigable_region", "plan_fleet_routes", "plan_route", "plan_routes", "route_clearance", "route_length", "split_route"]
 
 FloatArray = NDArray[np.float64]
 
@@ -314,56 +314,117 @@ def _wall_waypoints(
     return np.array(sorted({int(cand[c]) for c in chosen}), dtype=np.int64)
 
 
-def _tour(grid: _Grid, start: int, way: NDArray[np.int64], spacing: float) -> list[NDArray[np.int64]]:
-    """Node-index legs of a greedy nearest-neighbour tour over the waypoints (module step 4).
+class _Walker:
+    """One robot's greedy nearest-neighbour walk over shared waypoints (module step 4).
 
     From the current node, the next waypoint is the unvisited one with the smallest grid-path
     distance minus ``spacing / 4`` times the cosine of the turn it asks for (a little momentum,
     so that rows are swept in order instead of zigzagging); waypoints within ``0.3 spacing`` of
-    a path already driven count as visited. Waypoints not reachable from the start are dropped.
+    a path driven count as visited (in ``todo``, which walkers may share). ``clock`` is the
+    grid-path cost driven so far.
     """
-    from scipy.spatial import cKDTree
 
-    tree = cKDTree(grid.xy[way])
-    todo = np.ones(len(way), dtype=bool)
-    is_way = -np.ones(grid.xy.shape[0], dtype=np.int64)
-    is_way[way] = np.arange(len(way))
-    legs: list[NDArray[np.int64]] = []
-    cur = start
-    heading = np.zeros(2)
+    def __init__(self, grid: _Grid, start: int, spacing: float) -> None:
+        self.grid = grid
+        self.cur = start
+        self.spacing = spacing
+        self.heading = np.zeros(2)
+        self.clock = 0.0
+        self.legs: list[NDArray[np.int64]] = []
+        self.driven: list[NDArray[np.int64]] = [np.array([start], dtype=np.int64)]
 
-    def visit(nodes: NDArray[np.int64]) -> None:
-        for hits in tree.query_ball_point(grid.xy[nodes], r=0.3 * spacing):
-            todo[hits] = False
-
-    visit(np.array([start]))
-    while todo.any():
-        limit = 2.5 * spacing
+    def step(self, way: NDArray[np.int64], todo: NDArray[np.bool_], visit: Any) -> bool:
+        """Drive to the next waypoint of ``way`` still in ``todo``; False when none is reachable."""
+        grid, sp = self.grid, self.spacing
+        limit = 2.5 * sp
         while True:
-            dist, pred = dijkstra(grid.graph, indices=cur, limit=limit, return_predecessors=True)
+            dist, pred = dijkstra(grid.graph, indices=self.cur, limit=limit, return_predecessors=True)
             cand = way[todo & np.isfinite(dist[way])]
             if len(cand) or np.isinf(limit):
                 break
             limit = limit * 4.0 if limit < 1e6 else math.inf
         if not len(cand):
-            break
+            return False
         dcand = dist[cand]
-        near = cand[dcand <= dcand.min() + 0.5 * spacing]
-        vec = grid.xy[near] - grid.xy[cur]
+        near = cand[dcand <= dcand.min() + 0.5 * sp]
+        vec = grid.xy[near] - grid.xy[self.cur]
         norm = np.maximum(np.hypot(*vec.T), 1e-12)
-        score = dist[near] - 0.25 * spacing * (vec @ heading) / norm
+        score = dist[near] - 0.25 * sp * (vec @ self.heading) / norm
         target = int(near[np.argmin(score)])
         path = [target]
-        while path[-1] != cur:
+        while path[-1] != self.cur:
             path.append(int(pred[path[-1]]))
         leg = np.array(path[::-1], dtype=np.int64)
-        visit(leg)
-        todo[is_way[target]] = False
+        visit(leg, target)
         step = grid.xy[target] - grid.xy[leg[max(0, len(leg) - 4)]]
-        heading = step / max(float(np.hypot(*step)), 1e-12)
-        legs.append(leg)
-        cur = target
-    return legs
+        self.heading = step / max(float(np.hypot(*step)), 1e-12)
+        self.clock += float(dist[target])
+        self.legs.append(leg)
+        self.driven.append(leg)
+        self.cur = target
+        return True
+
+
+def _visitor(grid: _Grid, way: NDArray[np.int64], todo: NDArray[np.bool_], spacing: float) -> Any:
+    """A function ``visit(nodes, target)`` that marks in ``todo`` the waypoints within ``0.3
+    spacing`` of ``nodes`` and the ``target`` itself."""
+    from scipy.spatial import cKDTree
+
+    tree = cKDTree(grid.xy[way])
+    is_way = -np.ones(grid.xy.shape[0], dtype=np.int64)
+    is_way[way] = np.arange(len(way))
+
+    def visit(nodes: NDArray[np.int64], target: int | None = None) -> None:
+        for hits in tree.query_ball_point(grid.xy[nodes], r=0.3 * spacing):
+            todo[hits] = False
+        if target is not None:
+            todo[is_way[target]] = False
+
+    return visit
+
+
+def _tour(grid: _Grid, start: int, way: NDArray[np.int64], spacing: float) -> list[NDArray[np.int64]]:
+    """Node-index legs of one robot's greedy tour over the waypoints (:class:`_Walker`).
+    Waypoints not reachable from the start are dropped."""
+    todo = np.ones(len(way), dtype=bool)
+    visit = _visitor(grid, way, todo, spacing)
+    walker = _Walker(grid, start, spacing)
+    visit(np.array([start]))
+    while todo.any() and walker.step(way, todo, visit):
+        pass
+    return walker.legs
+
+
+def _fleet_tours(
+    grid: _Grid, starts: list[int], way: NDArray[np.int64], spacing: float
+) -> list[list[NDArray[np.int64]]]:
+    """Node-index legs of one tour per start that share the waypoints out, then go on.
+
+    **Shared phase:** the robot that has driven least so far (grid-path cost, ties by index)
+    takes the next waypoint of its greedy walk among those no robot has visited, until every
+    reachable waypoint is visited, so the robots cover the world in about a fleet's share of
+    the time each, and each sweeps the part nearest to where it is. **Own phase:** each robot
+    then walks on over the waypoints it has not passed itself (the others' parts), so that
+    routes do not end early and the robots' maps come to share walls.
+    """
+    todo = np.ones(len(way), dtype=bool)
+    visit = _visitor(grid, way, todo, spacing)
+    walkers = [_Walker(grid, s, spacing) for s in starts]
+    for s in starts:
+        visit(np.array([s]))
+    active = list(range(len(walkers)))
+    while todo.any() and active:
+        i = min(active, key=lambda k: (walkers[k].clock, k))
+        if not walkers[i].step(way, todo, visit):
+            active.remove(i)
+    for w in walkers:
+        own = np.ones(len(way), dtype=bool)
+        mark = _visitor(grid, way, own, spacing)
+        for nodes in w.driven:
+            mark(nodes)
+        while own.any() and w.step(way, own, mark):
+            pass
+    return [w.legs for w in walkers]
 
 
 def _straight_runs(p: FloatArray) -> FloatArray:
@@ -414,16 +475,15 @@ def _pull(
     return np.array(out)
 
 
-def _plan(
+def _setup(
     world: World,
     rng: np.random.Generator,
-    start: tuple[float, float] | None,
     clearance: float,
     spacing: float | None,
     resolution: float | None,
     sensor_range: float,
-) -> list[FloatArray]:
-    """Simplified legs ``[(k_i, 2)]`` of the coverage route (consecutive legs share ends)."""
+) -> tuple[_Grid, float, float]:
+    """The grid, the coverage radius and the grid's cell size, with the parameters checked."""
     if not (clearance > 0 and math.isfinite(clearance)):
         raise ValueError(f"clearance must be positive, got {clearance}")
     if not (sensor_range > 0 and math.isfinite(sensor_range)):
@@ -437,17 +497,23 @@ def _plan(
     grid = _grid(world, clearance, h, rng)
     if grid.xy.shape[0] == 0:
         raise ValueError(f"world {world.name!r} has no room for a robot with clearance {clearance} m")
-    if start is None:
-        s = int(rng.integers(grid.xy.shape[0]))
-    else:
-        sx, sy = float(start[0]), float(start[1])
-        if not bool(world.is_free(np.array([sx, sy]))):
-            raise ValueError(f"start ({sx:g}, {sy:g}) is not in the free space of {world.name!r}")
-        s = _start_node(world, grid, sx, sy)
-    way = _wall_waypoints(world, grid, sp, max(sp, sensor_range), h)
-    node_legs = _tour(_penalise_blind(grid, world, sensor_range), s, way, sp)
+    return grid, sp, h
+
+
+def _start_of(world: World, grid: _Grid, start: tuple[float, float]) -> int:
+    sx, sy = float(start[0]), float(start[1])
+    if not bool(world.is_free(np.array([sx, sy]))):
+        raise ValueError(f"start ({sx:g}, {sy:g}) is not in the free space of {world.name!r}")
+    return _start_node(world, grid, sx, sy)
+
+
+def _smooth(
+    world: World, grid: _Grid, start: int, node_legs: list[NDArray[np.int64]], clearance: float,
+    sp: float, sensor_range: float,
+) -> list[FloatArray]:
+    """Module steps 5 and 6: the legs string-pulled and their corners rounded."""
     if not node_legs:
-        return [grid.xy[[s]]]
+        return [grid.xy[[start]]]
     nav = navigable_region(world, clearance)
     # smoothing must not cut through the blind areas that the grid path went around
     check = shapely.intersection(nav, world.walls().buffer(_BLIND_FRACTION * sensor_range, quad_segs=4))
@@ -457,6 +523,23 @@ def _plan(
     path = np.concatenate(pts)
     path = _pull(path, check, anchors=np.concatenate(anchor), tol=_ANCHOR_TOL * sp)
     return [_round_corners(path, nav, _ROUND_RADIUS)]
+
+
+def _plan(
+    world: World,
+    rng: np.random.Generator,
+    start: tuple[float, float] | None,
+    clearance: float,
+    spacing: float | None,
+    resolution: float | None,
+    sensor_range: float,
+) -> list[FloatArray]:
+    """Simplified legs ``[(k_i, 2)]`` of the coverage route (consecutive legs share ends)."""
+    grid, sp, h = _setup(world, rng, clearance, spacing, resolution, sensor_range)
+    s = int(rng.integers(grid.xy.shape[0])) if start is None else _start_of(world, grid, start)
+    way = _wall_waypoints(world, grid, sp, max(sp, sensor_range), h)
+    node_legs = _tour(_penalise_blind(grid, world, sensor_range), s, way, sp)
+    return _smooth(world, grid, s, node_legs, clearance, sp, sensor_range)
 
 
 def _round_corners(p: FloatArray, region: Any, radius: float) -> FloatArray:
@@ -572,6 +655,29 @@ def plan_route(
     if use_world_route and world.route is not None:
         return np.asarray(world.route.coords, dtype=np.float64)[:, :2].copy()
     return _join(_plan(world, rng, start, clearance, spacing, resolution, sensor_range))
+
+
+def plan_fleet_routes(
+    world: World,
+    starts: list[tuple[float, float]],
+    rng: np.random.Generator,
+    *,
+    clearance: float = 0.4,
+    spacing: float | None = None,
+    resolution: float | None = None,
+    sensor_range: float = 8.0,
+) -> list[FloatArray]:
+    """One coverage route per start point that share the world's coverage out (:func:`_fleet_tours`):
+    the robots first sweep, each from its own start, the waypoints no other robot has reached
+    yet (the one that has driven least takes the next), then each goes on over the parts the
+    others swept. The grid and waypoints are those of :func:`plan_route`; the routes are
+    smoothed the same way. This is how an operator with the floor plan would dispatch robots
+    switched on wherever they stand; the robots themselves learn nothing of it."""
+    grid, sp, h = _setup(world, rng, clearance, spacing, resolution, sensor_range)
+    nodes = [_start_of(world, grid, s) for s in starts]
+    way = _wall_waypoints(world, grid, sp, max(sp, sensor_range), h)
+    tours = _fleet_tours(_penalise_blind(grid, world, sensor_range), nodes, way, sp)
+    return [_join(_smooth(world, grid, s, legs, clearance, sp, sensor_range)) for s, legs in zip(nodes, tours)]
 
 
 def split_route(route: FloatArray, n: int, overlap: float = 0.0) -> list[FloatArray]:

@@ -102,6 +102,11 @@ class FramesConfig:
         (``now``) only where the robots' clock stands still (a log's coarse stamps, robots
         done): there ``retry_after_s`` once no map changes. A late merge costs little, a wrong
         one the fleet map (``docs/experiments.md``, "Session 20").
+    confirm_growth, confirm_max_s : the second look also waits (on the robots' clock) until
+        each of the two maps holds ``confirm_growth`` times the wall the first look matched, or
+        ``confirm_max_s`` at most: a match that covers most of a map (two robots that have each
+        seen one office) can only be told from a copy once the maps reach past it, where a
+        repeat shows (``docs/experiments.md``, "Session 21").
     recurrence : before a join, the overlap is looked for in every other component's map
         (:func:`mapping.registration.recurrence_elsewhere`); when it lands well in one of
         them at two distinct places, the building repeats it and the pair is refused, as when
@@ -118,6 +123,8 @@ class FramesConfig:
     retry_min_m: float = 1.0
     min_length_m: float = 10.0
     confirm_after_s: float = 10.0
+    confirm_growth: float = 2.0
+    confirm_max_s: float = 60.0
     recurrence: bool = True
     registration: RegistrationConfig = field(default_factory=RegistrationConfig)
     history: int = 200
@@ -325,7 +332,7 @@ class FleetFrames:
                 pend = self._pending.get(key)
                 last = self._tried.get(key)
                 if pend is not None:  # waits for its second look, and nothing else
-                    confirm = due = t is not None and self._waited(pend, t, now)
+                    confirm = due = t is not None and self._waited(pend, key, t, now)
                 else:
                     confirm = False
                     due = last is None or _grew(la, last[0], cfg) or _grew(lb, last[1], cfg) \
@@ -374,7 +381,7 @@ class FleetFrames:
         t0 = time.perf_counter()
         prev = self._pending.get(key)
         pending = False
-        if prev is not None and (t is None or not self._waited(prev, t, now)):
+        if prev is not None and (t is None or not self._waited(prev, key, t, now)):
             # Tried before its second look is due (next_pair never offers it): it waits on.
             res, accepted, reason, pending = prev.res, False, prev.res.reason, True
         elif prev is not None:
@@ -412,14 +419,21 @@ class FleetFrames:
         del self.records[: max(0, len(self.records) - self.config.history)]
         return rec
 
-    def _waited(self, pend: Pending, t: float, now: float | None) -> bool:
-        """Whether a pending join's wait is over: ``confirm_after_s`` on the robots' clock; where
-        that has not moved since the first look (a log whose stamps stand still, robots done),
-        on the service's clock (``now``), or after ``retry_after_s`` of it when no component's
-        map changed since: no evidence is on its way."""
+    def _waited(self, pend: Pending, key: tuple[tuple[str, ...], tuple[str, ...]], t: float,
+                now: float | None) -> bool:
+        """Whether a pending join's wait is over: ``confirm_after_s`` on the robots' clock and
+        both maps grown to ``confirm_growth`` times the first look's matched wall (or
+        ``confirm_max_s`` on that clock); where that clock has not moved since the first look
+        (a log whose stamps stand still, robots done), on the service's clock (``now``), or
+        after ``retry_after_s`` of it when no component's map changed since: no evidence is on
+        its way."""
         cfg = self.config
         if t != pend.t or now is None or pend.now is None:
-            return t - pend.t >= cfg.confirm_after_s
+            waited = t - pend.t
+            if waited < cfg.confirm_after_s:
+                return False
+            grown = min(self._lengths.get(key[0], 0.0), self._lengths.get(key[1], 0.0))
+            return waited >= cfg.confirm_max_s or grown >= cfg.confirm_growth * pend.res.support
         still = pend.lengths == self._lengths
         wait = min(cfg.confirm_after_s, cfg.retry_after_s) if still else cfg.confirm_after_s
         return now - pend.now >= wait
