@@ -35,7 +35,9 @@ from mapping.se2 import Pose
 from mapping.wireframe import Wireframe
 
 
-def random_starts(world: Any, n: int, rng: np.random.Generator, clearance: float = 0.4) -> list[tuple[float, float]]:
+def random_starts(
+    world: Any, n: int, rng: np.random.Generator, clearance: float = 0.4
+) -> list[tuple[float, float]]:
     """``n`` random free start points (uniform over the navigable region, at least 2 m apart
     when possible)."""
     import shapely

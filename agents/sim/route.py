@@ -63,7 +63,10 @@ from scipy.sparse.csgraph import dijkstra
 
 from agents.sim.world import World
 
-__all__ = ["navigable_region", "plan_fleet_routes", "plan_route", "plan_routes", "route_clearance", "route_length", "split_route"]
+__all__ = [
+    "navigable_region", "plan_fleet_routes", "plan_route", "plan_routes", "route_clearance", "route_length",
+    "split_route",
+]
 
 FloatArray = NDArray[np.float64]
 
@@ -677,7 +680,8 @@ def plan_fleet_routes(
     nodes = [_start_of(world, grid, s) for s in starts]
     way = _wall_waypoints(world, grid, sp, max(sp, sensor_range), h)
     tours = _fleet_tours(_penalise_blind(grid, world, sensor_range), nodes, way, sp)
-    return [_join(_smooth(world, grid, s, legs, clearance, sp, sensor_range)) for s, legs in zip(nodes, tours)]
+    return [_join(_smooth(world, grid, s, legs, clearance, sp, sensor_range))
+            for s, legs in zip(nodes, tours)]
 
 
 def split_route(route: FloatArray, n: int, overlap: float = 0.0) -> list[FloatArray]:
