@@ -365,6 +365,28 @@ def test_world_show_png_and_geojson(tmp_path, capsys):
     assert json.loads(capsys.readouterr().out)["corners"] == load_world("office").truth.n_vertices
 
 
+def test_world_show_draws_the_unknown_start_fleet_routes(tmp_path, capsys):
+    """`--plan --unknown-starts`: the routes `wiremap run --unknown-starts` drives with that seed,
+    one per robot from its own random start (not the known-start split of one tour)."""
+    import numpy as np
+
+    from agents.fleet.unknown_run import random_routes
+    from agents.sim.route import plan_routes, route_length
+
+    png = tmp_path / "u.png"
+    assert cli_main(["world", "show", "paper-small", "--plan", "--robots", "2", "--unknown-starts",
+                     "--seed", "3", "--png", str(png)]) == 0
+    err = capsys.readouterr().err
+    w = load_world("paper-small")
+    mine = random_routes(w, 2, np.random.default_rng(3))
+    split = plan_routes(w, 2, np.random.default_rng(3), use_world_route=False)
+    assert f"planned 2 route(s), {sum(route_length(r) for r in mine):.0f} m" in err, err
+    assert sum(route_length(r) for r in mine) > 1.5 * sum(route_length(r) for r in split)
+    assert png.read_bytes().startswith(b"\x89PNG")
+    assert cli_main(["world", "show", "paper-small", "--unknown-starts"]) == 2
+    assert "add --plan" in capsys.readouterr().err
+
+
 def test_world_show_bad_world_exits_2(capsys, tmp_path):
     assert cli_main(["world", "show", "nowhere"]) == 2
     assert "unknown world 'nowhere'" in capsys.readouterr().err

@@ -5,11 +5,13 @@ Examples::
     wiremap world show paper-small --png paper-small.png
     wiremap world show museum --png museum.png --plan --seed 3
     wiremap world show office --geojson office.geojson     # a file load_world reads back
+    wiremap world show office --png office.png --plan --robots 4 --unknown-starts --seed 1
     wiremap world show my-floor.geojson --svg floor.svg
 
 Without an output flag it prints the world's summary. ``--plan`` draws a coverage route planned
-from the world (``--robots N`` splits it into N robot routes, each in its own colour); a route
-given in the world file is drawn in any case. With ``--geojson`` and ``--plan`` (one robot),
+from the world (``--robots N`` splits it into N robot routes, each in its own colour;
+``--unknown-starts`` draws the routes of ``wiremap run --unknown-starts`` with the same seed); a
+route given in the world file is drawn in any case. With ``--geojson`` and ``--plan`` (one robot),
 the planned route is written into the world file as its ``route``.
 """
 
@@ -43,11 +45,13 @@ examples:
   wiremap world show paper-small --png paper-small.png
   wiremap world show museum --png museum.png --plan --seed 3
   wiremap world show office --geojson office.geojson     # a world file to edit
+  wiremap world show office --png office.png --plan --robots 4 --unknown-starts --seed 1
   wiremap world show my-floor.geojson --svg floor.svg
 
 Without an output flag it prints the world's summary. --plan draws a coverage route planned
-from the world (--robots N splits it into N robot routes, each in its own colour); a route
-given in the world file is drawn in any case."""
+from the world (--robots N splits it into N robot routes, each in its own colour;
+--unknown-starts draws the routes `wiremap run --unknown-starts` drives with the same --seed); a
+route given in the world file is drawn in any case."""
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -64,6 +68,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     show.add_argument("--geojson", metavar="PATH", help="write the world as a world file")
     show.add_argument("--plan", action="store_true", help="plan and draw a coverage route")
     show.add_argument("--robots", type=int, default=1, metavar="N", help="split the route among N robots")
+    show.add_argument("--unknown-starts", action="store_true",
+                      help="with --plan: the routes `wiremap run --unknown-starts` drives (N robots at "
+                           "random starts sharing the coverage out; same --seed, same routes)")
     show.add_argument("--seed", type=non_negative_int, default=0,
                       help="random seed for the route planner (default 0)")
     show.add_argument("--clearance", type=float, default=0.4, help="route clearance from walls, m")
@@ -87,6 +94,8 @@ def run(args: argparse.Namespace) -> int:
             check_output_file(flag, path)
     if args.robots < 1:
         raise UserError("--robots must be at least 1")
+    if args.unknown_starts and not args.plan:
+        raise UserError("--unknown-starts draws planned routes: add --plan")
     world = load_world(args.world)
     routes = []
     if args.plan:
@@ -94,14 +103,20 @@ def run(args: argparse.Namespace) -> int:
 
         t0 = time.perf_counter()
         try:
-            routes = plan_routes(
-                world,
-                args.robots,
-                np.random.default_rng(args.seed),
-                clearance=args.clearance,
-                spacing=args.spacing,
-                use_world_route=False,
-            )
+            if args.unknown_starts:
+                from agents.fleet.unknown_run import random_routes
+
+                routes = random_routes(world, args.robots, np.random.default_rng(args.seed),
+                                       clearance=args.clearance, spacing=args.spacing)
+            else:
+                routes = plan_routes(
+                    world,
+                    args.robots,
+                    np.random.default_rng(args.seed),
+                    clearance=args.clearance,
+                    spacing=args.spacing,
+                    use_world_route=False,
+                )
         except ValueError as exc:
             raise UserError(str(exc)) from None
         took = time.perf_counter() - t0

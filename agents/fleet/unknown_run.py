@@ -59,14 +59,17 @@ def random_starts(
     return starts
 
 
-def random_routes(world: Any, n: int, rng: np.random.Generator, clearance: float = 0.4) -> list[Any]:
+def random_routes(
+    world: Any, n: int, rng: np.random.Generator, clearance: float = 0.4, spacing: float | None = None
+) -> list[Any]:
     """``n`` coverage routes from random free start points (:func:`random_starts`) that share
     the world's coverage out (:func:`agents.sim.route.plan_fleet_routes`): each robot first
     sweeps the part of the world nearest to it that no other robot reaches sooner, then goes on
     over the others' parts."""
     from agents.sim.route import plan_fleet_routes
 
-    return plan_fleet_routes(world, random_starts(world, n, rng, clearance), rng, clearance=clearance)
+    return plan_fleet_routes(world, random_starts(world, n, rng, clearance), rng, clearance=clearance,
+                             spacing=spacing)
 
 
 # ---------------------------------------------------------------------- CARMEN
