@@ -36,7 +36,8 @@ Joins: a registration the pair's two maps accept is checked against the rest of 
 first: when its overlap lands, at two distinct places, in any other component's map (a third
 robot has seen the structure repeated), the building repeats it and the pair is refused
 (:attr:`FramesConfig.recurrence`). Then it is only *pending*: the pair is tried again once the
-robots' clock has run ``confirm_after_s`` on, first of all pairs, and joined unless the
+robots' clock has run ``confirm_after_s`` on and both maps hold ``confirm_growth`` times the
+wall matched (or ``confirm_max_s`` ran on), first of all pairs, and joined unless the
 overlap now recurs in a map the fleet holds (the pair's own as they grew included). A join
 makes the component holding the fleet (or anchor, or else the lower root id) keep its root,
 and composes the other's poses with the registration's transform. Joins are never undone:
