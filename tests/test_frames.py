@@ -357,6 +357,29 @@ def test_a_pending_join_waits_on_the_service_clock_where_the_robots_clock_stands
     assert fr.attempt(("r1", "r2"), lambda ms, root: maps[ms[0]], t=7.0, now=10.0).accepted
 
 
+def test_a_pending_join_made_just_before_the_robots_stop_gets_its_second_look() -> None:
+    """The robots' clock ran on after the first look and then stopped (the robots are done):
+    their maps will not grow and no wait on that clock can end, so the second look comes
+    ``retry_after_s`` of the service's clock after it stopped."""
+    a, b = _halves("paper-small")
+    maps = {"r1": a, "r2": b.transformed(Pose(5.0, -3.0, 1.0))}
+    lengths = {"r1": 100.0, "r2": 80.0}
+
+    def length(members: tuple[str, ...], root: str | None) -> float:
+        return sum(lengths[m] for m in members)
+
+    fr = FleetFrames(FramesConfig(confirm_after_s=10.0, retry_after_s=5.0, min_length_m=1.0))
+    fr.track("r1")
+    fr.track("r2")
+    assert fr.next_pair(length, now=0.0, t=220.0) == ("r1", "r2")
+    assert fr.attempt(("r1", "r2"), lambda ms, root: maps[ms[0]], t=220.0, now=0.0).pending
+    assert fr.next_pair(length, now=1.0, t=221.0) is None
+    assert fr.next_pair(length, now=3.0, t=225.0) is None  # the robots' last step
+    assert fr.next_pair(length, now=7.9, t=225.0) is None
+    assert fr.next_pair(length, now=8.0, t=225.0) == ("r1", "r2")  # 5 s after the clock stopped
+    assert fr.attempt(("r1", "r2"), lambda ms, root: maps[ms[0]], t=225.0, now=8.0).accepted
+
+
 def test_the_fusion_core_joins_a_pending_pair_once_the_robots_clock_ran_on() -> None:
     """Through :class:`FusionState` as the service drives it (the robots' clock from the maps'
     ``meta["t"]``): the first acceptance leaves r2 an island; maps that do not grow wait the

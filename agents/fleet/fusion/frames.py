@@ -208,6 +208,8 @@ class FleetFrames:
         # (members a, members b) -> a first acceptance awaiting its second look
         self._pending: dict[tuple[tuple[str, ...], tuple[str, ...]], Pending] = {}
         self._lengths: dict[tuple[str, ...], float] = {}  # of the last next_pair, by members
+        # the robots' clock as next_pair last saw it, and the service's time it first read so
+        self._clock: tuple[float, float] | None = None
 
     # ------------------------------------------------------------------ membership
     @property
@@ -310,6 +312,8 @@ class FleetFrames:
         rule); ``t``: the robots' clock, on which a pending join's second look falls due (first of
         all pairs)."""
         cfg = self.config
+        if t is not None and now is not None and (self._clock is None or self._clock[0] != t):
+            self._clock = (t, now)
         comps = self.components()
         fc = self.fleet_component()
         names: list[str] = list(comps)
@@ -424,20 +428,23 @@ class FleetFrames:
                 now: float | None) -> bool:
         """Whether a pending join's wait is over: ``confirm_after_s`` on the robots' clock and
         both maps grown to ``confirm_growth`` times the first look's matched wall (or
-        ``confirm_max_s`` on that clock); where that clock has not moved since the first look
-        (a log whose stamps stand still, robots done), on the service's clock (``now``), or
-        after ``retry_after_s`` of it when no component's map changed since: no evidence is on
-        its way."""
+        ``confirm_max_s`` on that clock). Where that clock has not moved since the first look
+        (a log whose stamps stand still), on the service's clock (``now``): ``confirm_after_s``,
+        or ``retry_after_s`` when no component's map changed since. Where it moved and then
+        stopped (the robots are done), ``retry_after_s`` of the service's clock after it
+        stopped: no evidence is on its way."""
         cfg = self.config
-        if t != pend.t or now is None or pend.now is None:
-            waited = t - pend.t
-            if waited < cfg.confirm_after_s:
-                return False
+        if t == pend.t and now is not None and pend.now is not None:
+            still = pend.lengths == self._lengths
+            wait = min(cfg.confirm_after_s, cfg.retry_after_s) if still else cfg.confirm_after_s
+            return now - pend.now >= wait
+        waited = t - pend.t
+        if waited >= cfg.confirm_after_s:
             grown = min(self._lengths.get(key[0], 0.0), self._lengths.get(key[1], 0.0))
-            return waited >= cfg.confirm_max_s or grown >= cfg.confirm_growth * pend.res.support
-        still = pend.lengths == self._lengths
-        wait = min(cfg.confirm_after_s, cfg.retry_after_s) if still else cfg.confirm_after_s
-        return now - pend.now >= wait
+            if waited >= cfg.confirm_max_s or grown >= cfg.confirm_growth * pend.res.support:
+                return True
+        clock = self._clock
+        return now is not None and clock is not None and clock[0] == t and now - clock[1] >= cfg.retry_after_s
 
     def _recurs(
         self, fa: MapFeatures, fb: MapFeatures, res: Registration, pair: tuple[str, str],
