@@ -159,6 +159,7 @@ __all__ = [
     "MapFeatures",
     "Registration",
     "RegistrationConfig",
+    "conflict_of",
     "prepare",
     "register",
     "register_prepared",
@@ -1443,6 +1444,19 @@ def _recurrence(f: MapFeatures, region: MapFeatures, cfg: RegistrationConfig) ->
     found.sort(key=lambda c: -c[0])
     first = found[0][1]
     return max((n for n, T in found[1:] if _distinct(T, first, region, cfg)), default=0.0)
+
+
+def conflict_of(
+    fa: MapFeatures, fb: MapFeatures, transform: Pose, config: RegistrationConfig | None = None
+) -> tuple[float, float, float]:
+    """How a given ``transform`` (``fb`` onto ``fa``) fares on these maps: ``(support,
+    conflict, limit)``, the matched wall, the wall on the other's seen-free space (step 4) and
+    the largest conflict acceptance allows for that support (``max_conflict +
+    max_conflict_fraction * support``). A fleet checks a pending join's transform with it on
+    the maps as they grew."""
+    cfg = config or RegistrationConfig()
+    h = _score(fa, fb, transform, cfg.match_dist, cfg, 0.0)
+    return h.support, h.conflict, cfg.max_conflict + cfg.max_conflict_fraction * h.support
 
 
 def recurrence_elsewhere(

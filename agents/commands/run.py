@@ -83,11 +83,11 @@ MAX_ROBOTS = 64
 """``run`` starts one process per robot on this machine: at most 64 (the fused map itself takes up
 to ``wire_codec.MAX_ROBOTS``, 4,096; larger fleets: ``wiremap bench fleet --synthetic``, or
 robots and fusers on several machines)."""
-#: Seconds a fleet of robots without a shared frame runs on after every robot is done while
-#: some are islands: the fusion service tries a pair whose maps stopped growing again after
-#: FramesConfig.retry_after_s (5 s), and an attempt takes up to a fraction of a second; a join
-#: accepted then waits for its second look, 5 s more once no map changes
-#: (FramesConfig.confirm_after_s), and a third robot's join as long again.
+#: Seconds a fleet of robots without a shared frame runs on after every robot is done (or, with
+#: --duration, after the robots are stopped) while some are islands: the fusion service tries
+#: a pair whose maps stopped growing again after FramesConfig.retry_after_s (5 s), and an
+#: attempt takes up to a fraction of a second; a join accepted then waits for its second look,
+#: 5 s more once the robots' clock stopped, and a third robot's join as long again.
 SETTLE_S = 20.0
 
 HELP = "the main job: router, N robots and the fusion service"
@@ -497,7 +497,7 @@ def run(args: argparse.Namespace) -> int:
     cpu: dict[str, float] = {}
     codes: dict[str, int | None] = {}
     t_start = time.monotonic()
-    mapping_s = 0.0
+    mapping_s = settle_s = 0.0
     interrupted = False
     import zenoh
 
@@ -516,6 +516,8 @@ def run(args: argparse.Namespace) -> int:
             mapping_s = _watch_fleet(args, keys, procs, progress, sub_pose, sub_fused, stop, t_start,
                                      out / "logs")
             interrupted = stop.is_set()
+            if not interrupted and (args.carmen or args.unknown_starts) and mapping_s >= args.duration:
+                settle_s = _settle(procs, ids, progress, sub_fused, stop, cpu, codes)
         finally:
             _stop_fleet(procs, ids, cpu, codes)
             _last_version(progress, sub_fused)
@@ -553,7 +555,8 @@ def run(args: argparse.Namespace) -> int:
             "config_overrides": resolved.recorded,
             "interrupted": interrupted,
             "secure": bool(args.secure),
-            "startup_s": round(max(0.0, time.monotonic() - t_start - mapping_s), 2),
+            "startup_s": round(max(0.0, time.monotonic() - t_start - mapping_s - settle_s), 2),
+            "settle_s": settle_s,
         },
         published=progress.fused_raw,
         tracks={rid: np.asarray(xy) for rid, xy in progress.tracks.items()},
@@ -836,8 +839,6 @@ def _watch_fleet(
     of mapping have passed (the clock starts when every robot is up, or at the start-up
     timeout), every robot is done (``--stop-when-done``) or ``stop`` is set. Raises
     ``UserError`` when a fleet process stops early. Returns the seconds of mapping."""
-    from agents.fleet import validate
-
     n = len(progress.ids)
     t_map: float | None = None
     done_at: float | None = None
@@ -853,13 +854,7 @@ def _watch_fleet(
                     progress.add_pose(who, decode_pose(s.payload.to_bytes()))
             except ValueError:
                 pass
-        while (s := sub_fused.handler.try_recv()) is not None:
-            try:
-                raw = s.payload.to_bytes()
-                m = validate.fused_map(raw)
-                progress.set_fused(raw, m.seq, m.wireframe.n_vertices, m.wireframe.n_edges, list(m.robots))
-            except ValueError:
-                pass
+        _drain_fused(progress, sub_fused)
         if t_map is None and (
             len(progress.status) == n or now - t_start > args.startup_timeout
         ):
@@ -885,6 +880,47 @@ def _watch_fleet(
     mapping_s = 0.0 if t_map is None else time.monotonic() - t_map
     progress.draw(mapping_s, args.duration, force=True)
     return mapping_s
+
+
+def _drain_fused(progress: Progress, sub_fused: Any) -> None:
+    """Every fused map received since the last call into ``progress`` (invalid ones skipped)."""
+    from agents.fleet import validate
+
+    while (s := sub_fused.handler.try_recv()) is not None:
+        try:
+            raw = s.payload.to_bytes()
+            m = validate.fused_map(raw)
+            progress.set_fused(raw, m.seq, m.wireframe.n_vertices, m.wireframe.n_edges, list(m.robots))
+        except ValueError:
+            pass
+
+
+def _settle(
+    procs: dict[str, subprocess.Popen[bytes]], ids: list[str], progress: Progress, sub_fused: Any,
+    stop: Any, cpu: dict[str, float], codes: dict[str, int | None],
+) -> float:
+    """``--duration`` reached with islands left (robots without a shared frame): the robots
+    stop, and the fusion service gets up to :data:`SETTLE_S` for what waited on them (a
+    pending join's second look, the last word of maps that stopped growing) before the fleet
+    stops. A join made then is in the fused map the run reports. Returns the seconds it took."""
+    if set(ids) <= progress.fused_robots:
+        return 0.0
+    t0 = time.monotonic()
+    for rid in ids:
+        c = cpu_seconds(procs[rid].pid) if rid in procs else None
+        if c is not None:
+            cpu[rid] = round(c, 2)
+    codes.update(stop_processes(procs, [r for r in ids if r in procs], 15.0))
+    left = len(set(ids) - progress.fused_robots)
+    print(f"wiremap run: robots stopped, {left} not in the fleet frame; the fusion service settles "
+          f"(up to {SETTLE_S:.0f} s)", flush=True)
+    deadline = time.monotonic() + SETTLE_S
+    while not stop.is_set() and time.monotonic() < deadline:
+        _drain_fused(progress, sub_fused)
+        if set(ids) <= progress.fused_robots:
+            break
+        stop.wait(0.2)
+    return round(time.monotonic() - t0, 2)
 
 
 def _last_version(progress: Progress, sub_fused: Any) -> None:

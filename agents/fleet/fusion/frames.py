@@ -60,6 +60,7 @@ from mapping.registration import (
     MapFeatures,
     Registration,
     RegistrationConfig,
+    conflict_of,
     prepare,
     recurrence_elsewhere,
     register_prepared,
@@ -108,6 +109,10 @@ class FramesConfig:
         ``confirm_max_s`` at most: a match that covers most of a map (two robots that have each
         seen one office) can only be told from a copy once the maps reach past it, where a
         repeat shows (``docs/experiments.md``, "Session 21").
+    confirm_conflict : at the second look, the first look's transform is also scored on the
+        pair's maps as they grew: more wall on seen-free space than acceptance allows
+        (:func:`mapping.registration.conflict_of`) refuses it. One office row apart, the grown
+        maps carried 4.5 m of conflict against a limit of 4.2 m; right pairs 0 m.
     recurrence : before a join, the overlap is looked for in every other component's map
         (:func:`mapping.registration.recurrence_elsewhere`); when it lands well in one of
         them at two distinct places, the building repeats it and the pair is refused, as when
@@ -126,6 +131,7 @@ class FramesConfig:
     confirm_after_s: float = 10.0
     confirm_growth: float = 2.0
     confirm_max_s: float = 60.0
+    confirm_conflict: bool = True
     recurrence: bool = True
     registration: RegistrationConfig = field(default_factory=RegistrationConfig)
     history: int = 200
@@ -396,6 +402,10 @@ class FleetFrames:
             res = prev.res
             own = (prepare(wa, rc), prepare(wb, rc))
             reason = self._recurs(prev.fa, prev.fb, res, (a, b), comps, maps, own) if cfg.recurrence else ""
+            if not reason and cfg.confirm_conflict and res.transform is not None:
+                _, conflict, limit = conflict_of(own[0], own[1], res.transform, rc)
+                if conflict > limit:
+                    reason = f"the grown maps put walls on seen-free space ({conflict:.1f} m)"
             accepted = not reason
         else:
             fa, fb = prepare(wa, rc), prepare(wb, rc)
