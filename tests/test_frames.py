@@ -357,6 +357,31 @@ def test_a_pending_join_waits_on_the_service_clock_where_the_robots_clock_stands
     assert fr.attempt(("r1", "r2"), lambda ms, root: maps[ms[0]], t=7.0, now=10.0).accepted
 
 
+def test_a_second_look_refuses_a_transform_the_grown_maps_contradict() -> None:
+    """The first look's transform scored on the maps as they grew: where the grown map's walls
+    fall on the other's seen-free space past what acceptance allows, the join is refused (one
+    office row apart, the office fleet's grown maps carried 4.5 m of such wall)."""
+    from mapping.registration import conflict_of, prepare
+
+    a, b = _halves("paper-small")
+    maps = {"r1": a, "r2": b.transformed(Pose(5.0, -3.0, 1.0))}
+    grown = {"r1": a, "r2": maps["r2"].transformed(Pose(0.8, 0.3, 0.0))}  # now contradicts
+    for check in (True, False):
+        fr = FleetFrames(FramesConfig(confirm_after_s=2.0, confirm_growth=0.0, confirm_conflict=check))
+        fr.track("r1")
+        fr.track("r2")
+        first = fr.attempt(("r1", "r2"), lambda ms, root: maps[ms[0]], t=0.0)
+        assert first.pending and first.transform is not None
+        second = fr.attempt(("r1", "r2"), lambda ms, root: grown[ms[0]], t=2.0)
+        assert second.accepted is not check, second
+        if check:
+            assert "seen-free space" in second.reason and not second.pending
+            T = Pose(*first.transform)
+            _, c, limit = conflict_of(prepare(grown["r1"]), prepare(grown["r2"]), T)
+            assert c > limit
+            assert conflict_of(prepare(maps["r1"]), prepare(maps["r2"]), T)[1] <= limit
+
+
 def test_a_pending_join_made_just_before_the_robots_stop_gets_its_second_look() -> None:
     """The robots' clock ran on after the first look and then stopped (the robots are done):
     their maps will not grow and no wait on that clock can end, so the second look comes
