@@ -358,20 +358,25 @@ def test_a_pending_join_waits_on_the_service_clock_where_the_robots_clock_stands
 
 
 def test_a_second_look_refuses_a_transform_the_grown_maps_contradict() -> None:
-    """The first look's transform scored on the maps as they grew: where the grown map's walls
-    fall on the other's seen-free space past what acceptance allows, the join is refused (one
-    office row apart, the office fleet's grown maps carried 4.5 m of such wall)."""
+    """A first look that matched (nearly) the whole smaller map: its transform is scored on the
+    maps as they grew, and where the grown map's walls fall on the other's seen-free space past
+    what acceptance allows, the join is refused (one office row apart, the office fleet's grown
+    maps carried 4.5 m of such wall). A first look that matched a part of the map is not
+    checked so (drift puts right transforms' walls on seen-free space as real maps grow)."""
     from mapping.registration import conflict_of, prepare
 
     a, b = _halves("paper-small")
     maps = {"r1": a, "r2": b.transformed(Pose(5.0, -3.0, 1.0))}
     grown = {"r1": a, "r2": maps["r2"].transformed(Pose(0.8, 0.3, 0.0))}  # now contradicts
-    for check in (True, False):
-        fr = FleetFrames(FramesConfig(confirm_after_s=2.0, confirm_growth=0.0, confirm_conflict=check))
+    # every first look checked; none; the default (this match is 0.67 of the smaller map)
+    for fraction, check in ((0.0, True), (1.01, False), (FramesConfig().confirm_conflict_fraction, False)):
+        cfg = FramesConfig(confirm_after_s=2.0, confirm_growth=0.0, confirm_conflict_fraction=fraction)
+        fr = FleetFrames(cfg)
         fr.track("r1")
         fr.track("r2")
         first = fr.attempt(("r1", "r2"), lambda ms, root: maps[ms[0]], t=0.0)
         assert first.pending and first.transform is not None
+        assert (first.support_fraction >= fraction) is check
         second = fr.attempt(("r1", "r2"), lambda ms, root: grown[ms[0]], t=2.0)
         assert second.accepted is not check, second
         if check:

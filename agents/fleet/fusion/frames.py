@@ -109,10 +109,14 @@ class FramesConfig:
         ``confirm_max_s`` at most: a match that covers most of a map (two robots that have each
         seen one office) can only be told from a copy once the maps reach past it, where a
         repeat shows (``docs/experiments.md``, "Session 21").
-    confirm_conflict : at the second look, the first look's transform is also scored on the
-        pair's maps as they grew: more wall on seen-free space than acceptance allows
-        (:func:`mapping.registration.conflict_of`) refuses it. One office row apart, the grown
-        maps carried 4.5 m of conflict against a limit of 4.2 m; right pairs 0 m.
+    confirm_conflict_fraction : when the first look matched at least this share of the smaller
+        map (nothing in it outside the match could show a copy), the second look also scores
+        the first look's transform on the pair's maps as they grew: more wall on seen-free space
+        than acceptance allows (:func:`mapping.registration.conflict_of`) refuses it. One office
+        row apart (a whole-map match), the grown maps carried 4.5 m of such wall against a
+        limit of 4.2 m, right pairs 0 m; on the real logs the first looks match 10-70 % of the
+        smaller map, and a drifting map's growth puts right transforms' walls on seen-free
+        space (orebro: all three right joins refused when every second look checked it).
     recurrence : before a join, the overlap is looked for in every other component's map
         (:func:`mapping.registration.recurrence_elsewhere`); when it lands well in one of
         them at two distinct places, the building repeats it and the pair is refused, as when
@@ -131,7 +135,7 @@ class FramesConfig:
     confirm_after_s: float = 10.0
     confirm_growth: float = 2.0
     confirm_max_s: float = 60.0
-    confirm_conflict: bool = True
+    confirm_conflict_fraction: float = 0.8
     recurrence: bool = True
     registration: RegistrationConfig = field(default_factory=RegistrationConfig)
     history: int = 200
@@ -402,7 +406,8 @@ class FleetFrames:
             res = prev.res
             own = (prepare(wa, rc), prepare(wb, rc))
             reason = self._recurs(prev.fa, prev.fb, res, (a, b), comps, maps, own) if cfg.recurrence else ""
-            if not reason and cfg.confirm_conflict and res.transform is not None:
+            whole = res.support_fraction >= cfg.confirm_conflict_fraction
+            if not reason and whole and res.transform is not None:
                 _, conflict, limit = conflict_of(own[0], own[1], res.transform, rc)
                 if conflict > limit:
                     reason = f"the grown maps put walls on seen-free space ({conflict:.1f} m)"
