@@ -387,6 +387,34 @@ def test_a_second_look_refuses_a_transform_the_grown_maps_contradict() -> None:
             assert conflict_of(prepare(maps["r1"]), prepare(maps["r2"]), T)[1] <= limit
 
 
+def test_a_pending_join_goes_on_when_a_side_grows_by_another_join() -> None:
+    """r1-r2 is pending when r3 joins r1: r1 is still its component's root (same frame), so
+    the first look's transform holds for (r1, r3) and r2, and the second look joins r2 (before,
+    the pending join was dropped and r2 had to pass a new first look: orebro lost a robot so)."""
+    a, b = _halves("paper-small")
+    maps = {"r1": a, "r2": b.transformed(Pose(5.0, -3.0, 1.0)),
+            "r3": _noisy(a, 3).transformed(Pose(-2.0, 4.0, 0.5))}
+    lengths = {"r1": 100.0, "r2": 80.0, "r3": 100.0}
+
+    def length(members: tuple[str, ...], root: str | None) -> float:
+        return sum(lengths[m] for m in members)
+
+    def fused(members: tuple[str, ...], root: str | None) -> Wireframe:
+        return maps[root or members[0]]  # a component's map in its root's frame: the root's own
+
+    fr = FleetFrames(FramesConfig(confirm_after_s=2.0, confirm_growth=0.0, min_length_m=1.0))
+    for rid in maps:
+        fr.track(rid)
+    assert fr.attempt(("r1", "r2"), fused, t=0.0, now=0.0).pending
+    assert fr.attempt(("r1", "r3"), fused).accepted  # no robots' clock: joined at once
+    assert fr.components() == {"r1": ("r1", "r3"), "r2": ("r2",)}
+    assert fr.next_pair(length, now=1.0, t=1.0) is None  # still waiting, under its new key
+    assert fr.next_pair(length, now=2.0, t=2.0) == ("r1", "r2")
+    rec = fr.attempt(("r1", "r2"), fused, t=2.0, now=2.0)
+    assert rec.accepted and not rec.pending and rec.a_members == ("r1", "r3"), rec
+    assert fr.components() == {"r1": ("r1", "r2", "r3")}
+
+
 def test_a_pending_join_made_just_before_the_robots_stop_gets_its_second_look() -> None:
     """The robots' clock ran on after the first look and then stopped (the robots are done):
     their maps will not grow and no wait on that clock can end, so the second look comes

@@ -153,6 +153,7 @@ class Pending:
     t: float
     now: float | None
     lengths: dict[tuple[str, ...], float]
+    pair: tuple[str, str] = ("", "")  # the two components' roots (frames) it registered
 
 
 @dataclass(frozen=True)
@@ -335,7 +336,13 @@ class FleetFrames:
         self._lengths = {self._members(n, comps): length[n] for n in names}
         held = set(self._lengths)
         for key in [k for k in self._pending if k[0] not in held or k[1] not in held]:
-            del self._pending[key]  # a side joined another component since
+            # A side grew by a join since. When both sides are still their own roots, the
+            # transform between their frames holds: the pending join goes on with the grown
+            # components; otherwise (a side was joined into another frame) it is dropped.
+            moved = self._pending.pop(key)
+            a, b = moved.pair
+            if a in comps and b in comps and a != b:
+                self._pending.setdefault((comps[a], comps[b]), moved)
         best: tuple[tuple[int, float], tuple[str, str]] | None = None
         for i, x in enumerate(names):
             for y in names[i + 1:]:
@@ -420,7 +427,7 @@ class FleetFrames:
                 reason = self._recurs(fa, fb, res, (a, b), comps, maps)
                 accepted = not reason
             if accepted and cfg.confirm_after_s > 0 and t is not None:
-                self._pending[key] = Pending(res, fa, fb, t, now, dict(self._lengths))
+                self._pending[key] = Pending(res, fa, fb, t, now, dict(self._lengths), (a, b))
                 accepted, pending = False, True
         ms = 1000.0 * (time.perf_counter() - t0)
         self.attempts += 1
