@@ -4,6 +4,7 @@ fusion core, without any network."""
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from functools import cache
 
 import numpy as np
@@ -334,9 +335,9 @@ def test_a_second_look_waits_until_both_maps_outgrow_the_match() -> None:
     assert fr.attempt(("r1", "r2"), lambda ms, root: maps[ms[0]], t=10.0).accepted
 
 
-def test_a_pending_join_waits_on_the_service_clock_where_the_robots_clock_stands_still() -> None:
-    """A log whose stamps do not move (belgioioso's, orebro's), or robots that are done: the wait
-    runs on the service's clock, and only ``retry_after_s`` of it while no map changes."""
+def _two_robots() -> tuple[FleetFrames, dict[str, Wireframe], dict[str, float], Callable[..., float]]:
+    """Two robots of paper-small's halves in unrelated frames, a wait of 10 s (5 s when still),
+    and the wall lengths ``next_pair`` reads (edit ``lengths`` to grow a map)."""
     a, b = _halves("paper-small")
     maps = {"r1": a, "r2": b.transformed(Pose(5.0, -3.0, 1.0))}
     lengths = {"r1": 100.0, "r2": 80.0}
@@ -347,6 +348,13 @@ def test_a_pending_join_waits_on_the_service_clock_where_the_robots_clock_stands
     fr = FleetFrames(FramesConfig(confirm_after_s=10.0, retry_after_s=5.0, min_length_m=1.0))
     fr.track("r1")
     fr.track("r2")
+    return fr, maps, lengths, length
+
+
+def test_a_pending_join_waits_on_the_service_clock_where_the_robots_clock_stands_still() -> None:
+    """A log whose stamps do not move (belgioioso's, orebro's), or robots that are done: the wait
+    runs on the service's clock, and only ``retry_after_s`` of it while no map changes."""
+    fr, maps, lengths, length = _two_robots()
     assert fr.next_pair(length, now=0.0, t=7.0) == ("r1", "r2")
     assert fr.attempt(("r1", "r2"), lambda ms, root: maps[ms[0]], t=7.0, now=0.0).pending
     assert fr.next_pair(length, now=4.9, t=7.0) is None
@@ -419,16 +427,7 @@ def test_a_pending_join_made_just_before_the_robots_stop_gets_its_second_look() 
     """The robots' clock ran on after the first look and then stopped (the robots are done):
     their maps will not grow and no wait on that clock can end, so the second look comes
     ``retry_after_s`` of the service's clock after it stopped."""
-    a, b = _halves("paper-small")
-    maps = {"r1": a, "r2": b.transformed(Pose(5.0, -3.0, 1.0))}
-    lengths = {"r1": 100.0, "r2": 80.0}
-
-    def length(members: tuple[str, ...], root: str | None) -> float:
-        return sum(lengths[m] for m in members)
-
-    fr = FleetFrames(FramesConfig(confirm_after_s=10.0, retry_after_s=5.0, min_length_m=1.0))
-    fr.track("r1")
-    fr.track("r2")
+    fr, maps, _lengths, length = _two_robots()
     assert fr.next_pair(length, now=0.0, t=220.0) == ("r1", "r2")
     assert fr.attempt(("r1", "r2"), lambda ms, root: maps[ms[0]], t=220.0, now=0.0).pending
     assert fr.next_pair(length, now=1.0, t=221.0) is None
