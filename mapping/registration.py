@@ -392,6 +392,10 @@ class RegistrationConfig:
     contested_max_conflict: float = 0.5
     conflict_runner_up_ratio: float = 0.4
 
+    def conflict_limit(self, support: float) -> float:
+        """The largest conflict acceptance allows with ``support`` metres of matched wall."""
+        return self.max_conflict + self.max_conflict_fraction * support
+
     def __post_init__(self) -> None:
         for name in ("sample_spacing", "free_clearance", "free_reach_step", "direction_smooth",
                      "feature_angle_tol",
@@ -1365,13 +1369,13 @@ def _self_ratio(f: MapFeatures, samples: IntArray, cfg: RegistrationConfig) -> f
     # that share of the part's ends or corners near the map's (a cell-mask count, an upper bound
     # of the matched count) is not verified.
     floor = _self_floor(cfg)
-    for (v, T), bound in zip(top, _share_bounds(f, region, top)):
+    for (_, T), bound in zip(top, _share_bounds(f, region, top)):
         if bound <= max(best, floor):
             continue
         n = _placed_share(f, region, T, cfg)
         if n <= best:
             continue
-        if _free_of_conflict(f, region, T, v, cfg):
+        if _free_of_conflict(f, region, T, cfg):
             best = n
     return best
 
@@ -1414,13 +1418,11 @@ def _placed_share(f: MapFeatures, region: MapFeatures, T: Pose, cfg: Registratio
                _matched_corners(f, region, T, cfg) / len(region.corner_points))
 
 
-def _free_of_conflict(
-    f: MapFeatures, region: MapFeatures, T: Pose, votes: float, cfg: RegistrationConfig
-) -> bool:
+def _free_of_conflict(f: MapFeatures, region: MapFeatures, T: Pose, cfg: RegistrationConfig) -> bool:
     """Whether the part placed by ``T`` puts no more wall on ``f``'s seen-free space than the
     conflict gate allows."""
-    h = _score(f, region, T, cfg.match_dist, cfg, votes)
-    return bool(h.conflict <= cfg.max_conflict + cfg.max_conflict_fraction * h.support)
+    conflict, limit = conflict_of(f, region, T, cfg)
+    return conflict <= limit
 
 
 def _recurrence(f: MapFeatures, region: MapFeatures, cfg: RegistrationConfig) -> float:
@@ -1433,11 +1435,11 @@ def _recurrence(f: MapFeatures, region: MapFeatures, cfg: RegistrationConfig) ->
     top = _part_hypotheses(f, region, cfg, None)[: cfg.verify_candidates]
     floor = _self_floor(cfg)
     found: list[tuple[float, Pose]] = []
-    for (v, T), bound in zip(top, _share_bounds(f, region, top)):
+    for (_, T), bound in zip(top, _share_bounds(f, region, top)):
         if bound <= floor:
             continue
         n = _placed_share(f, region, T, cfg)
-        if n > floor and _free_of_conflict(f, region, T, v, cfg):
+        if n > floor and _free_of_conflict(f, region, T, cfg):
             found.append((n, T))
     if len(found) < 2:
         return 0.0
@@ -1448,15 +1450,14 @@ def _recurrence(f: MapFeatures, region: MapFeatures, cfg: RegistrationConfig) ->
 
 def conflict_of(
     fa: MapFeatures, fb: MapFeatures, transform: Pose, config: RegistrationConfig | None = None
-) -> tuple[float, float, float]:
-    """How a given ``transform`` (``fb`` onto ``fa``) fares on these maps: ``(support,
-    conflict, limit)``, the matched wall, the wall on the other's seen-free space (step 4) and
-    the largest conflict acceptance allows for that support (``max_conflict +
-    max_conflict_fraction * support``). A fleet checks a pending join's transform with it on
-    the maps as they grew."""
+) -> tuple[float, float]:
+    """How a given ``transform`` (``fb`` onto ``fa``) fares on these maps' free space:
+    ``(conflict, limit)``, the wall on the other's seen-free space (step 4) and the largest
+    conflict acceptance allows for the wall it matches (:meth:`RegistrationConfig.conflict_limit`).
+    A fleet checks a pending join's transform with it on the maps as they grew."""
     cfg = config or RegistrationConfig()
     h = _score(fa, fb, transform, cfg.match_dist, cfg, 0.0)
-    return h.support, h.conflict, cfg.max_conflict + cfg.max_conflict_fraction * h.support
+    return h.conflict, cfg.conflict_limit(h.support)
 
 
 def recurrence_elsewhere(
@@ -1652,7 +1653,7 @@ def register_prepared(
         reason = f"too little matched wall ({best.support:.1f} m < {cfg.min_support} m)"
     elif frac < cfg.min_support_fraction:
         reason = f"too little of the smaller map matched ({frac:.0%})"
-    elif best.conflict > cfg.max_conflict + cfg.max_conflict_fraction * best.support:
+    elif best.conflict > cfg.conflict_limit(best.support):
         reason = f"walls on seen-free space ({best.conflict:.1f} m)"
     elif ratio > cfg.max_runner_up_ratio:
         reason = f"ambiguous: a distinct hypothesis scores {ratio:.0%} of the best"

@@ -83,8 +83,8 @@ MAX_ROBOTS = 64
 """``run`` starts one process per robot on this machine: at most 64 (the fused map itself takes up
 to ``wire_codec.MAX_ROBOTS``, 4,096; larger fleets: ``wiremap bench fleet --synthetic``, or
 robots and fusers on several machines)."""
-#: Seconds a fleet of robots without a shared frame runs on after every robot is done (or, with
-#: --duration, after the robots are stopped) while some are islands: the fusion service tries
+#: Seconds the fusion service of a fleet of robots without a shared frame runs on after the
+#: robots are stopped (every one done, or --duration) while some are islands: it tries
 #: a pair whose maps stopped growing again after FramesConfig.retry_after_s (5 s), and an
 #: attempt takes up to a fraction of a second; a join accepted then waits for its second look,
 #: 5 s more once the robots' clock stopped, and a third robot's join as long again.
@@ -516,7 +516,7 @@ def run(args: argparse.Namespace) -> int:
             mapping_s = _watch_fleet(args, keys, procs, progress, sub_pose, sub_fused, stop, t_start,
                                      out / "logs")
             interrupted = stop.is_set()
-            if not interrupted and (args.carmen or args.unknown_starts) and mapping_s >= args.duration:
+            if not interrupted and (args.carmen or args.unknown_starts):
                 settle_s = _settle(procs, ids, progress, sub_fused, stop, cpu, codes)
         finally:
             _stop_fleet(procs, ids, cpu, codes)
@@ -842,9 +842,6 @@ def _watch_fleet(
     n = len(progress.ids)
     t_map: float | None = None
     done_at: float | None = None
-    # Robots without a shared frame: islands left when the robots are done get the fusion's
-    # retry of maps that stopped growing (FramesConfig.retry_after_s) before the fleet stops.
-    settle_s = SETTLE_S if (args.carmen or args.unknown_starts) else 0.0
     while not stop.is_set():
         now = time.monotonic()
         while (s := sub_pose.handler.try_recv()) is not None:
@@ -867,8 +864,7 @@ def _watch_fleet(
             st.get("finished") for st in progress.status.values()
         ):
             done_at = now if done_at is None else done_at
-            islands = not set(progress.ids) <= progress.fused_robots
-            if now - done_at >= (settle_s if islands else 1.0):  # the last maps reach the fusion service
+            if now - done_at >= 1.0:  # the last maps reach the fusion service (islands: _settle)
                 break
         dead = [k for k, p in procs.items() if p.poll() is not None]
         if dead:
@@ -899,18 +895,15 @@ def _settle(
     procs: dict[str, subprocess.Popen[bytes]], ids: list[str], progress: Progress, sub_fused: Any,
     stop: Any, cpu: dict[str, float], codes: dict[str, int | None],
 ) -> float:
-    """``--duration`` reached with islands left (robots without a shared frame): the robots
-    stop, and the fusion service gets up to :data:`SETTLE_S` for what waited on them (a
-    pending join's second look, the last word of maps that stopped growing) before the fleet
-    stops. A join made then is in the fused map the run reports. Returns the seconds it took."""
+    """Mapping over (``--duration`` reached, or every robot done) with islands left (robots
+    without a shared frame): the robots stop, and the fusion service gets up to
+    :data:`SETTLE_S` for what waited on them (a pending join's second look, the last word of
+    maps that stopped growing) before the fleet stops. A join made then is in the fused map the
+    run reports. Returns the seconds it took (not counted as mapping)."""
     if set(ids) <= progress.fused_robots:
         return 0.0
     t0 = time.monotonic()
-    for rid in ids:
-        c = cpu_seconds(procs[rid].pid) if rid in procs else None
-        if c is not None:
-            cpu[rid] = round(c, 2)
-    codes.update(stop_processes(procs, [r for r in ids if r in procs], 15.0))
+    _stop_robots(procs, ids, cpu, codes)
     left = len(set(ids) - progress.fused_robots)
     print(f"wiremap run: robots stopped, {left} not in the fleet frame; the fusion service settles "
           f"(up to {SETTLE_S:.0f} s)", flush=True)
@@ -945,21 +938,36 @@ def _last_version(progress: Progress, sub_fused: Any) -> None:
             progress.fused_raw, seen = raw, v
 
 
+def _record_cpu(procs: dict[str, subprocess.Popen[bytes]], names: list[str], cpu: dict[str, float]) -> None:
+    for name in names:
+        c = cpu_seconds(procs[name].pid)
+        if c is not None:
+            cpu[name] = round(c, 2)
+
+
+def _stop_robots(
+    procs: dict[str, subprocess.Popen[bytes]], ids: list[str], cpu: dict[str, float],
+    codes: dict[str, int | None],
+) -> None:
+    """Record the CPU time of the robots not stopped yet into ``cpu``, then stop them (exit
+    codes into ``codes``)."""
+    up = [r for r in ids if r in procs and r not in codes]
+    _record_cpu(procs, up, cpu)
+    if up:
+        codes.update(stop_processes(procs, up, 15.0))
+
+
 def _stop_fleet(
     procs: dict[str, subprocess.Popen[bytes]],
     ids: list[str],
     cpu: dict[str, float],
     codes: dict[str, int | None],
 ) -> None:
-    """Record each process's CPU time into ``cpu``, then stop the robots and after them the
-    fusion service (which saves its store and closes the recording); exit codes into ``codes``."""
-    for name, p in procs.items():
-        c = cpu_seconds(p.pid)
-        if c is not None:
-            cpu[name] = round(c, 2)
-    robots_up = [r for r in ids if r in procs]
-    if robots_up:
-        codes.update(stop_processes(procs, robots_up, 15.0))
+    """Record each process's CPU time into ``cpu``, then stop the robots (those :func:`_settle`
+    has not stopped) and after them the fusion service (which saves its store and closes the
+    recording); exit codes into ``codes``."""
+    _record_cpu(procs, [k for k in procs if k not in ids], cpu)
+    _stop_robots(procs, ids, cpu, codes)
     regional = [k for k in procs if k.startswith("fuser-")]
     if regional:  # the fusion tree: the regional fusers' final partials reach the root first
         codes.update(stop_processes(procs, regional, 60.0))

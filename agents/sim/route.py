@@ -52,6 +52,7 @@ from __future__ import annotations
 
 import itertools
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -329,14 +330,14 @@ class _Walker:
 
     def __init__(self, grid: _Grid, start: int, spacing: float) -> None:
         self.grid = grid
+        self.start = start
         self.cur = start
         self.spacing = spacing
         self.heading = np.zeros(2)
         self.clock = 0.0
         self.legs: list[NDArray[np.int64]] = []
-        self.driven: list[NDArray[np.int64]] = [np.array([start], dtype=np.int64)]
 
-    def step(self, way: NDArray[np.int64], todo: NDArray[np.bool_], visit: Any) -> bool:
+    def step(self, way: NDArray[np.int64], todo: NDArray[np.bool_], visit: Callable[..., None]) -> bool:
         """Drive to the next waypoint of ``way`` still in ``todo``; False when none is reachable."""
         grid, sp = self.grid, self.spacing
         limit = 2.5 * sp
@@ -363,12 +364,13 @@ class _Walker:
         self.heading = step / max(float(np.hypot(*step)), 1e-12)
         self.clock += float(dist[target])
         self.legs.append(leg)
-        self.driven.append(leg)
         self.cur = target
         return True
 
 
-def _visitor(grid: _Grid, way: NDArray[np.int64], todo: NDArray[np.bool_], spacing: float) -> Any:
+def _visitor(
+    grid: _Grid, way: NDArray[np.int64], todo: NDArray[np.bool_], spacing: float
+) -> Callable[..., None]:
     """A function ``visit(nodes, target)`` that marks in ``todo`` the waypoints within ``0.3
     spacing`` of ``nodes`` and the ``target`` itself."""
     from scipy.spatial import cKDTree
@@ -423,7 +425,7 @@ def _fleet_tours(
     for w in walkers:
         own = np.ones(len(way), dtype=bool)
         mark = _visitor(grid, way, own, spacing)
-        for nodes in w.driven:
+        for nodes in [np.array([w.start]), *w.legs]:  # what it drove itself
             mark(nodes)
         while own.any() and w.step(way, own, mark):
             pass
@@ -510,17 +512,23 @@ def _start_of(world: World, grid: _Grid, start: tuple[float, float]) -> int:
     return _start_node(world, grid, sx, sy)
 
 
-def _smooth(
-    world: World, grid: _Grid, start: int, node_legs: list[NDArray[np.int64]], clearance: float,
-    sp: float, sensor_range: float,
-) -> list[FloatArray]:
-    """Module steps 5 and 6: the legs string-pulled and their corners rounded."""
-    if not node_legs:
-        return [grid.xy[[start]]]
+def _smoothing_regions(world: World, clearance: float, sensor_range: float) -> tuple[Any, Any]:
+    """Where smoothing may go: the navigable region, and the part of it within sight of a wall
+    (smoothing must not cut through the blind areas that the grid path went around)."""
     nav = navigable_region(world, clearance)
-    # smoothing must not cut through the blind areas that the grid path went around
     check = shapely.intersection(nav, world.walls().buffer(_BLIND_FRACTION * sensor_range, quad_segs=4))
     shapely.prepare(check)
+    return nav, check
+
+
+def _smooth(
+    grid: _Grid, start: int, node_legs: list[NDArray[np.int64]], regions: tuple[Any, Any], sp: float
+) -> list[FloatArray]:
+    """Module steps 5 and 6: the legs string-pulled and their corners rounded inside
+    ``regions`` (:func:`_smoothing_regions`)."""
+    if not node_legs:
+        return [grid.xy[[start]]]
+    nav, check = regions
     pts = [grid.xy[node_legs[0][:1]]] + [_straight_runs(grid.xy[leg])[1:] for leg in node_legs]
     anchor = [np.ones(1, dtype=bool)] + [np.arange(len(q)) == len(q) - 1 for q in pts[1:]]
     path = np.concatenate(pts)
@@ -542,7 +550,7 @@ def _plan(
     s = int(rng.integers(grid.xy.shape[0])) if start is None else _start_of(world, grid, start)
     way = _wall_waypoints(world, grid, sp, max(sp, sensor_range), h)
     node_legs = _tour(_penalise_blind(grid, world, sensor_range), s, way, sp)
-    return _smooth(world, grid, s, node_legs, clearance, sp, sensor_range)
+    return _smooth(grid, s, node_legs, _smoothing_regions(world, clearance, sensor_range), sp)
 
 
 def _round_corners(p: FloatArray, region: Any, radius: float) -> FloatArray:
@@ -680,8 +688,8 @@ def plan_fleet_routes(
     nodes = [_start_of(world, grid, s) for s in starts]
     way = _wall_waypoints(world, grid, sp, max(sp, sensor_range), h)
     tours = _fleet_tours(_penalise_blind(grid, world, sensor_range), nodes, way, sp)
-    return [_join(_smooth(world, grid, s, legs, clearance, sp, sensor_range))
-            for s, legs in zip(nodes, tours)]
+    regions = _smoothing_regions(world, clearance, sensor_range)  # once for every robot
+    return [_join(_smooth(grid, s, legs, regions, sp)) for s, legs in zip(nodes, tours)]
 
 
 def split_route(route: FloatArray, n: int, overlap: float = 0.0) -> list[FloatArray]:

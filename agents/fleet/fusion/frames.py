@@ -144,8 +144,9 @@ class FramesConfig:
 @dataclass(frozen=True)
 class Pending:
     """A first acceptance awaiting its second look: the registration and the two maps' features
-    it was made on, the robots' clock and the service's (None without one) then, and every
-    component's wall length then (members -> metres, as :meth:`FleetFrames.next_pair` measured)."""
+    it was made on, the robots' clock and the service's (None without one) then, every
+    component's wall length then (members -> metres, as :meth:`FleetFrames.next_pair` measured),
+    and the roots of the two components it registered."""
 
     res: Registration
     fa: MapFeatures
@@ -153,7 +154,7 @@ class Pending:
     t: float
     now: float | None
     lengths: dict[tuple[str, ...], float]
-    pair: tuple[str, str] = ("", "")  # the two components' roots (frames) it registered
+    pair: tuple[str, str]  # the two components' roots (frames) it registered
 
 
 @dataclass(frozen=True)
@@ -415,7 +416,7 @@ class FleetFrames:
             reason = self._recurs(prev.fa, prev.fb, res, (a, b), comps, maps, own) if cfg.recurrence else ""
             whole = res.support_fraction >= cfg.confirm_conflict_fraction
             if not reason and whole and res.transform is not None:
-                _, conflict, limit = conflict_of(own[0], own[1], res.transform, rc)
+                conflict, limit = conflict_of(own[0], own[1], res.transform, rc)
                 if conflict > limit:
                     reason = f"the grown maps put walls on seen-free space ({conflict:.1f} m)"
             accepted = not reason
