@@ -19,13 +19,15 @@ demo: $(STAMP)
 	$(BIN)/wiremap run --world paper-small --robots 3 --duration 60 --stop-when-done --seed 1 --out out/demo
 
 # The pure tests on both cores (pytest-xdist), then the tests that start processes and Zenoh
-# sessions (marker `fleet`) one at a time: their timings are real time, and two fleets at once
-# on two cores would measure each other.
+# sessions (marker `fleet`), two at a time: a fleet test asserts what arrives, not how fast (its
+# timings are printed and recorded, and mean little on a shared machine), so two fleets at once
+# only test it under load, as a real fleet's machine is. Serial, the fleet half took 5.5 min of
+# an 8-min suite; two at a time 3.1-3.4 min (three runs, every test passing).
 test: $(STAMP)
 	$(BIN)/ruff check mapping wire_codec agents tests
 	$(BIN)/mypy
 	$(BIN)/python -m pytest -q -n 2 -m "not fleet"
-	$(BIN)/python -m pytest -q -m fleet
+	$(BIN)/python -m pytest -q -n 2 -m fleet
 
 # The edit-test loop (under a minute): lint and the pure tests, without the tests that start
 # processes or Zenoh sessions (marker `fleet`) or run long (`slow`). `make test` runs them all.
