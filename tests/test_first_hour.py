@@ -87,6 +87,24 @@ def test_run_progress_not_a_terminal_prints_plain_lines() -> None:
     assert "\x1b" not in out.getvalue() and out.getvalue().count("\n") == 3
 
 
+def test_run_progress_of_a_log_counts_from_its_first_stamp() -> None:
+    """A CARMEN fleet (open-ended, the log's stamps in Unix time, as belgioioso's are): the clock
+    line shows the seconds run, not "of 1e+09 s", and a robot's time counts from the log's first
+    scan; the report's ``sim_time_s`` the same way."""
+    from agents.commands.run import OPEN_ENDED, Progress, status_figures
+
+    out = io.StringIO()
+    p = Progress(["r1", "r2"], enabled=True, stream=out, t0=1_018_929_000.0)
+    p.status["r1"] = {**_status(12), "t": 1_018_929_650.5}
+    p.draw(16.6, OPEN_ENDED, force=True)
+    head, _, r1, r2 = out.getvalue().splitlines()
+    assert head.startswith("[ 16.6 s] ") and "e+" not in head
+    assert " 650.5 s " in r1 and "1018929" not in r1
+    assert r2.split() == ["r2", "waiting"]
+    assert status_figures({"t": 1_018_929_650.5}, 1_018_929_000.0)["sim_time_s"] == 650.5
+    assert status_figures({}, 1_018_929_000.0)["sim_time_s"] == 0.0
+
+
 def test_map_progress_fits_and_ends_its_line(monkeypatch: pytest.MonkeyPatch) -> None:
     from agents.commands import map_cmd
     from agents.commands import run as run_cmd

@@ -209,6 +209,10 @@ def fit(line: str, width: int) -> str:
     return line if len(line) <= room else line[: room - 1] + "~"
 
 
+#: ``--duration`` of a run that ends when its robots do (``--carmen``'s default).
+OPEN_ENDED = 1e9
+
+
 class Progress:
     """The live block: a clock line with the fused map, a column header and one line per robot.
 
@@ -220,8 +224,9 @@ class Progress:
 
     HEADER = "robot  steps  sim time  corners  walls  maps        sent"
 
-    def __init__(self, ids: list[str], enabled: bool, stream: Any = None) -> None:
+    def __init__(self, ids: list[str], enabled: bool, stream: Any = None, t0: float = 0.0) -> None:
         self.ids = ids
+        self.t0 = t0  # the robots' clock at its start (a replayed log's first stamp)
         self.enabled = enabled
         self.stream = stream or sys.stdout
         self.tty = enabled and bool(getattr(self.stream, "isatty", lambda: False)())
@@ -256,13 +261,15 @@ class Progress:
             return f"{rid:>5}  waiting"
         state = "done" if s.get("finished") else ""
         return (
-            f"{rid:>5}  {s.get('step', 0):5d}  {s.get('t', 0.0):6.1f} s  {s.get('vertices', 0):7d}  "
+            f"{rid:>5}  {s.get('step', 0):5d}  {s.get('t', self.t0) - self.t0:6.1f} s  "
+            f"{s.get('vertices', 0):7d}  "
             f"{s.get('edges', 0):5d}  {s.get('maps_sent', 0):4d}  "
             f"{s.get('bytes_sent', 0) / 1024:6.1f} KiB  {state}"
         ).rstrip()
 
     def lines(self, elapsed: float, total: float, rows: int | None = None) -> list[str]:
-        head = f"[{elapsed:5.1f} of {total:g} s] {self.fused or 'fused map: none yet'}"
+        clock = f"{elapsed:5.1f} of {total:g} s" if total < OPEN_ENDED else f"{elapsed:5.1f} s"
+        head = f"[{clock}] {self.fused or 'fused map: none yet'}"
         body = [self.line(r) for r in self.ids]
         if rows is not None and len(body) + 2 > rows - 1:
             keep = max(1, rows - 4)
@@ -327,14 +334,14 @@ def _metrics(truth: Any, wf: Any, resolution: float, partial: bool = False,
     return m
 
 
-def status_figures(st: dict[str, Any]) -> dict[str, Any]:
+def status_figures(st: dict[str, Any], t0: float = 0.0) -> dict[str, Any]:
     """A robot's figures in ``report.json``'s ``per_robot``, from its last status (0 where it
-    said nothing)."""
+    said nothing); its clock counted from ``t0`` (a replayed log's first stamp)."""
     return {
         "bytes_sent": int(st.get("bytes_sent", 0)),
         "maps_sent": int(st.get("maps_sent", 0)),
         "steps": int(st.get("step", 0)),
-        "sim_time_s": float(st.get("t", 0.0)),
+        "sim_time_s": float(st["t"]) - t0 if "t" in st else 0.0,
         "finished": bool(st.get("finished", False)),  # drove its whole route
         "pose_bytes_sent": int(st.get("pose_bytes", 0)),
         "viz_bytes_sent": int(st.get("viz_bytes", 0)),
@@ -492,7 +499,7 @@ def run(args: argparse.Namespace) -> int:
     cfg, listen, creds = _router_config(args, out, keys.fleet, ids)
     child_ep = listen[0].replace("0.0.0.0", "127.0.0.1").replace("[::]", "[::1]")
     bus = ["--connect", child_ep, "--fleet", keys.fleet, "--parent-pid", str(os.getpid())]
-    progress = Progress(ids, not args.no_progress)
+    progress = Progress(ids, not args.no_progress, t0=world.scans[0].t if args.carmen else 0.0)
     procs: dict[str, subprocess.Popen[bytes]] = {}
     cpu: dict[str, float] = {}
     codes: dict[str, int | None] = {}
@@ -595,7 +602,7 @@ def _check_arguments(args: argparse.Namespace) -> int:
     if args.carmen:
         args.stop_when_done = True
     if args.duration is None:
-        args.duration = 1e9 if args.carmen else 60.0
+        args.duration = OPEN_ENDED if args.carmen else 60.0
     if args.particles is not None and args.particles < 1:
         raise UserError(f"--particles must be >= 1, got {args.particles}")
     if not 1 <= n <= MAX_ROBOTS:

@@ -348,7 +348,7 @@ def write_outputs_carmen(
         "per_robot": per_robot,
     }
     report.update(_common(out, ids, duration_s, extra, raw, msg, state))
-    _robot_progress(report, ids)
+    _robot_progress(report, ids, t0=world.scans[0].t)
     write_json(out / "report.json", report)
     return _summary_shape(report, ids)
 
@@ -376,14 +376,15 @@ def _carmen_figure(
                       points_label="real scan endpoints (truth poses)")
 
 
-def _robot_progress(report: dict[str, Any], ids: list[str]) -> None:
+def _robot_progress(report: dict[str, Any], ids: list[str], t0: float = 0.0) -> None:
     """Each robot's figures from its last status into ``per_robot``, as a run from known starts
-    reports them (:func:`agents.commands.run.status_figures`)."""
+    reports them (:func:`agents.commands.run.status_figures`); ``sim_time_s`` counted from
+    ``t0`` (a log's first stamp: some logs stamp their scans in Unix time)."""
     from agents.commands.run import status_figures
 
     for rid in ids:
         r = report["per_robot"].setdefault(rid, {})
-        for k, v in status_figures(report.get("robot_status", {}).get(rid, {})).items():
+        for k, v in status_figures(report.get("robot_status", {}).get(rid, {}), t0).items():
             r.setdefault(k, v)
 
 
