@@ -414,7 +414,9 @@ def test_a_turned_copy_of_a_symmetric_room_is_told_apart_by_its_pillar() -> None
     assert res.transform is not None
     te, re = _error(res.transform, move.inverse(), b.points.mean(axis=0))
     assert te <= 0.1 and re <= math.radians(1.0)
-    old = register(a, b, RegistrationConfig(free_reach=0.0))
+    # (the turned copy, a rival crossing seen-free space, no longer counts either: with it the
+    # contested limit of self-similarity applied)
+    old = register(a, b, RegistrationConfig(free_reach=0.0, clean_rival_conflict=1e9))
     assert not old.accepted and "repetitive" in old.reason
 
 
@@ -584,3 +586,50 @@ def test_strided_refinement_of_a_large_map_is_as_precise() -> None:
     assert te <= 0.01 and re <= math.radians(0.02)
     te, re = _error(fast, move.inverse(), fb.centre)
     assert te <= 0.05 and re <= math.radians(0.1)
+
+
+def _store_map(name: str) -> Wireframe:
+    from pathlib import Path
+
+    from wire_codec.codec import decode
+
+    return decode((Path(__file__).parent / "data" / name).read_bytes()).wireframe
+
+
+def test_symmetric_copies_that_cross_seen_free_space_are_no_rivals() -> None:
+    """Two robots of unknown start in the office (tests/data/README.md): the truth matches 85 %
+    of r4's map with no wall on seen-free space; the half turn, symmetric but for a few walls,
+    matches 92 % as much with 7.3 m there, the half turn one office along 82 % with 2.2 m. Those
+    rivals no longer count (without the rule the pair is refused as ambiguous); it is still
+    refused, because r1's own map repeats the overlap under the half turn, and r4 may have seen
+    a copy that r1 has not."""
+    a, b = _store_map("office-s2-r1.wfm"), _store_map("office-s2-r4.wfm")
+    true = Pose(-3.1875, -4.5100, -2.86734)
+    res = register(a, b)
+    assert res.transform is not None
+    te, re = _error(res.transform, true, b.points.mean(axis=0))
+    assert te <= 0.1 and re <= math.radians(0.5) and res.conflict <= 0.5
+    assert res.runner_up_ratio <= RegistrationConfig().max_runner_up_ratio
+    assert not res.accepted and res.reason.startswith("repetitive: the overlap recurs within one map")
+    old = register(a, b, RegistrationConfig(clean_rival_conflict=1e9, drift_support_ratio=1.0))
+    assert not old.accepted and old.reason.startswith("ambiguous")
+    assert old.runner_up is not None and old.runner_up.conflict >= 2.0
+
+
+def test_a_rival_through_seen_free_space_counts_its_extra_wall_only_far_beyond() -> None:
+    """A rival that matches a little more wall than the best but puts more on seen-free space
+    than acceptance allows it counts by its score; one far beyond the best's wall
+    (``drift_support_ratio``) counts by its wall, as drift would have it."""
+    from mapping.registration import Hypothesis, _runner_up, _score
+
+    rng = np.random.default_rng(15)
+    f = prepare(_noisy(_truth("paper-small"), rng))
+    cfg = RegistrationConfig()
+    true = _score(f, f, Pose.identity(), cfg.match_dist, cfg, 0.0)
+    s = 0.5 * true.support
+    best = Hypothesis(Pose(30.0, 0.0, 0.0), 0.0, s, 1.0, s - 3.0, 0.01, 5.0, True)
+    for more, counted in ((1.1, False), (1.5, True)):
+        conflict = 0.3 * more * s  # beyond the limit of its support
+        rival = Hypothesis(true.transform, 0.0, more * s, conflict, more * s - 3 * conflict, 0.02, 5.0, True)
+        _, ratio, _ = _runner_up(f, f, best, [rival], cfg)
+        assert (ratio > cfg.max_runner_up_ratio) is counted, (more, ratio)
