@@ -3,6 +3,7 @@ fusion core, without any network."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Callable
 from functools import cache
@@ -446,17 +447,41 @@ def test_the_fusion_core_joins_a_pending_pair_once_the_robots_clock_ran_on() -> 
     st = FusionState()
     st.add(_msg("r1", a, sa, seq=1))
     st.add(_msg("r2", b, sb, seq=1))
-    first = st.register_step(t=st.sim_time(), now=0.0)
+    first = st.register_step(t=st.registration_clock(), now=0.0)
     assert first is not None and first.pending and not first.accepted
     st.fuse(full=True)
     assert st.fused_robots == ("r1",) and set(st.islands()) == {"r2"}
-    assert st.register_step(t=st.sim_time(), now=0.5) is None  # waiting: nothing due
+    assert st.register_step(t=st.registration_clock(), now=0.5) is None  # waiting: nothing due
     st.add(_msg("r1", a, sa, seq=12))  # 11 s of the robots' time later (same walls)
     st.add(_msg("r2", b, sb, seq=12))
-    assert st.register_step(t=st.sim_time(), now=1.0) is None  # the maps did not grow
+    assert st.register_step(t=st.registration_clock(), now=1.0) is None  # the maps did not grow
     st.add(_msg("r1", a, sa, seq=62))  # 61 s later
     st.add(_msg("r2", b, sb, seq=62))
-    second = st.register_step(t=st.sim_time(), now=1.0)
+    second = st.register_step(t=st.registration_clock(), now=1.0)
     assert second is not None and second.accepted and not second.pending, second
     st.fuse(full=True)
     assert st.fused_robots == ("r1", "r2") and st.islands() == {}
+
+
+def test_one_robot_far_in_the_future_does_not_end_a_pending_wait() -> None:
+    """The wait runs on the robots' clock; a stolen robot whose maps say ``t`` = 1e9 (allowed by
+    validation) must not make every second look due at once. The clock is the lower median of
+    the robots' times: with r3 far ahead the pair still waits, and joins once the honest
+    robots' time has run on."""
+    a, b = _halves("paper-small")
+    sa, sb = Pose(3.0, 2.0, 0.7), Pose(-20.0, 11.0, -2.4)
+    st = FusionState()
+    st.add(_msg("r1", a, sa, seq=1))
+    st.add(_msg("r2", b, sb, seq=1))
+    first = st.register_step(t=st.registration_clock(), now=0.0)
+    assert first is not None and first.pending
+    small = Wireframe.from_polylines([[(0.0, 0.0), (2.0, 0.0)]])  # too little wall to be tried
+    far = _msg("r3", small, Pose(40.0, 40.0, 1.0))
+    st.add(dataclasses.replace(far, meta={**far.meta, "t": 1e9}))
+    assert st.sim_time() == 1e9 and st.registration_clock() == 1.0
+    assert st.register_step(t=st.registration_clock(), now=0.5) is None  # still waiting
+    st.add(_msg("r1", a, sa, seq=62))
+    st.add(_msg("r2", b, sb, seq=62))
+    assert st.registration_clock() == 62.0
+    second = st.register_step(t=st.registration_clock(), now=1.0)
+    assert second is not None and second.accepted and second.b_members == ("r2",), second

@@ -80,7 +80,7 @@ class IslandShell:
             return False
         self.last = now
         t0 = time.perf_counter()
-        rec = st.register_step(t=st.sim_time(), now=now)
+        rec = st.register_step(t=st.registration_clock(), now=now)
         self.seconds += time.perf_counter() - t0
         if rec is None:
             return False

@@ -1068,14 +1068,24 @@ class FusionState:
             meta=m,
         )
 
-    def sim_time(self) -> float:
-        """The latest simulated time any robot map carries (``meta["t"]``), 0 if none."""
-        ts = [
+    def _robot_times(self) -> list[float]:
+        return [
             float(e.message.meta.get("t", 0.0))
             for e in self.robots.values()
             if isinstance(e.message.meta, dict)
         ]
-        return max(ts, default=0.0)
+
+    def sim_time(self) -> float:
+        """The latest simulated time any robot map carries (``meta["t"]``), 0 if none."""
+        return max(self._robot_times(), default=0.0)
+
+    def registration_clock(self) -> float:
+        """The robots' clock a pending join waits on (:mod:`.frames`): the lower median of the
+        times their maps carry, 0 if none. Not the latest: one robot (a stolen one's far-future
+        ``t``, which validation allows up to ``MAX_SIM_T``) must not end every wait at once,
+        and with it the second look that keeps a copy from merging."""
+        ts = sorted(self._robot_times())
+        return ts[(len(ts) - 1) // 2] if ts else 0.0
 
     # ------------------------------------------------------------------ store
     def store_job(
