@@ -395,3 +395,16 @@ def test_world_show_bad_world_exits_2(capsys, tmp_path):
     assert cli_main(["world", "show", str(bad), "--png", str(tmp_path / "x.png")]) == 2
     err = capsys.readouterr().err
     assert "feature 0" in err and "Self-intersection" in err and len(err.strip().splitlines()) == 1
+
+
+def test_world_svg_draws_every_planned_route_in_its_colour(tmp_path) -> None:
+    """`--plan --robots 3 --svg`: one polyline per robot's route, in three colours (the PNG's)."""
+    import re
+
+    out = tmp_path / "w.svg"
+    assert cli_main(["world", "show", "paper-small", "--plan", "--robots", "3", "--seed", "1",
+                     "--svg", str(out)]) == 0
+    lines = re.findall(r'<polyline class="trajectory" points="([^"]*)" fill="none" stroke="([^"]*)"',
+                       out.read_text())
+    assert len(lines) == 3 and len({c for _, c in lines}) == 3
+    assert all(len(pts.split()) >= 2 for pts, _ in lines)

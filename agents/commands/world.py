@@ -155,8 +155,8 @@ def world_png(world: World, routes: Sequence[np.ndarray] = (), *, max_px: int = 
 
 
 def world_svg(world: World, routes: Sequence[np.ndarray] = ()) -> str:
-    """The world's truth wireframe as SVG, with the first route as the trajectory."""
+    """The world's truth wireframe as SVG, with every route in its colour (as on the PNG)."""
     from agents.files.render import wireframe_svg
 
-    traj = routes[0] if len(routes) else None
-    return wireframe_svg(world.truth, trajectory=traj, arrows=True, title=world.name)
+    lines = [(r, _ROUTE_COLORS[k % len(_ROUTE_COLORS)]) for k, r in enumerate(routes)]
+    return wireframe_svg(world.truth, trajectories=lines, arrows=True, title=world.name)

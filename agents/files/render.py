@@ -508,8 +508,10 @@ def wireframe_svg(
     margin_px: float = 20.0,
     arrows: bool = True,
     title: str | None = None,
+    trajectories: Sequence[tuple[ArrayLike, Color]] = (),
 ) -> str:
-    """An SVG picture of a wireframe (optionally over a grey truth, with a green trajectory).
+    """An SVG picture of a wireframe (optionally over a grey truth, with a green trajectory and
+    more trajectories, each ``(points, colour)``: a fleet's routes).
 
     World y points up: SVG y is ``ymax - y``, scaled. Each map edge is a ``<line>`` of class
     ``edge`` with ``data-from``/``data-to``/``data-likelihood``; each vertex a ``circle``,
@@ -517,7 +519,9 @@ def wireframe_svg(
     ``arrows`` every map edge ends in an arrowhead marker showing its direction.
     """
     traj = None if trajectory is None else np.asarray(trajectory, dtype=np.float64).reshape(-1, 2)
-    xmin, ymin, xmax, ymax = _auto_bounds(wf, truth, traj)
+    more = [(np.asarray(t, dtype=np.float64).reshape(-1, 2), c) for t, c in trajectories]
+    every = [t for t in [traj, *(t for t, _ in more)] if t is not None]
+    xmin, ymin, xmax, ymax = _auto_bounds(wf, truth, np.concatenate(every) if every else None)
     span = max(xmax - xmin, ymax - ymin, 1e-9)
     s = float(px_per_m) if px_per_m is not None else (max_px - 2 * margin_px) / span
     m = float(margin_px)
@@ -548,10 +552,11 @@ def wireframe_svg(
             (x1, y1), (x2, y2) = tx(a), tx(b)
             out.append(f'<line x1="{x1:.3f}" y1="{y1:.3f}" x2="{x2:.3f}" y2="{y2:.3f}"/>')
         out.append("</g>")
-    if traj is not None and len(traj) >= 2:
-        pts = " ".join(f"{x:.3f},{y:.3f}" for x, y in (tx(p) for p in traj))
-        out.append(f'<polyline class="trajectory" points="{pts}" fill="none" '
-                   f'stroke="{_hex(TRAJECTORY_COLOR)}" stroke-width="1.5"/>')
+    for line, color in ([] if traj is None else [(traj, TRAJECTORY_COLOR)]) + more:
+        if len(line) >= 2:
+            pts = " ".join(f"{x:.3f},{y:.3f}" for x, y in (tx(p) for p in line))
+            out.append(f'<polyline class="trajectory" points="{pts}" fill="none" '
+                       f'stroke="{_hex(color)}" stroke-width="1.5"/>')
     marker = ' marker-end="url(#arrow)"' if arrows else ""
     out.append(f'<g class="map" stroke-width="{sw:.2f}" stroke-linecap="round">')
     cols = likelihood_colors(wf.likelihood)
