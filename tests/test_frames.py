@@ -11,7 +11,13 @@ from functools import cache
 import numpy as np
 
 from agents.fleet.fusion import FusionState
-from agents.fleet.fusion.frames import ORIGIN_UNKNOWN, FleetFrames, FramesConfig, origin_unknown
+from agents.fleet.fusion.frames import (
+    ORIGIN_UNKNOWN,
+    FleetFrames,
+    FramesConfig,
+    RegistrationRecord,
+    origin_unknown,
+)
 from mapping.se2 import Pose
 from mapping.wireframe import Wireframe
 from wire_codec.message import MapMessage, MessageKind
@@ -438,16 +444,22 @@ def test_a_pending_join_made_just_before_the_robots_stop_gets_its_second_look() 
     assert fr.attempt(("r1", "r2"), lambda ms, root: maps[ms[0]], t=225.0, now=8.0).accepted
 
 
-def test_the_fusion_core_joins_a_pending_pair_once_the_robots_clock_ran_on() -> None:
-    """Through :class:`FusionState` as the service drives it (the robots' clock from the maps'
-    ``meta["t"]``): the first acceptance leaves r2 an island; maps that do not grow wait the
-    longest wait, and the second look 60 s of the robots' time later fuses it."""
+def _pending_pair() -> tuple[FusionState, RegistrationRecord | None, tuple[Wireframe, Wireframe, Pose, Pose]]:
+    """A fusion core with r1 and r2 (paper-small's halves, unrelated frames, robots' time 1) and
+    its first registration step (a pending join), with the maps and starts to send again."""
     a, b = _halves("paper-small")
     sa, sb = Pose(3.0, 2.0, 0.7), Pose(-20.0, 11.0, -2.4)
     st = FusionState()
     st.add(_msg("r1", a, sa, seq=1))
     st.add(_msg("r2", b, sb, seq=1))
-    first = st.register_step(t=st.registration_clock(), now=0.0)
+    return st, st.register_step(t=st.registration_clock(), now=0.0), (a, b, sa, sb)
+
+
+def test_the_fusion_core_joins_a_pending_pair_once_the_robots_clock_ran_on() -> None:
+    """Through :class:`FusionState` as the service drives it (the robots' clock from the maps'
+    ``meta["t"]``): the first acceptance leaves r2 an island; maps that do not grow wait the
+    longest wait, and the second look 60 s of the robots' time later fuses it."""
+    st, first, (a, b, sa, sb) = _pending_pair()
     assert first is not None and first.pending and not first.accepted
     st.fuse(full=True)
     assert st.fused_robots == ("r1",) and set(st.islands()) == {"r2"}
@@ -468,12 +480,7 @@ def test_one_robot_far_in_the_future_does_not_end_a_pending_wait() -> None:
     validation) must not make every second look due at once. The clock is the lower median of
     the robots' times: with r3 far ahead the pair still waits, and joins once the honest
     robots' time has run on."""
-    a, b = _halves("paper-small")
-    sa, sb = Pose(3.0, 2.0, 0.7), Pose(-20.0, 11.0, -2.4)
-    st = FusionState()
-    st.add(_msg("r1", a, sa, seq=1))
-    st.add(_msg("r2", b, sb, seq=1))
-    first = st.register_step(t=st.registration_clock(), now=0.0)
+    st, first, (a, b, sa, sb) = _pending_pair()
     assert first is not None and first.pending
     small = Wireframe.from_polylines([[(0.0, 0.0), (2.0, 0.0)]])  # too little wall to be tried
     far = _msg("r3", small, Pose(40.0, 40.0, 1.0))
