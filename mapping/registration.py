@@ -1588,6 +1588,16 @@ def _runner_up(
         score = h.support if math.isnan(h.score) else h.score
         if runner is not None and min(max(0.0, score / best.score, sup if sup >= 1.0 else 0.0), 1.0) <= ratio:
             continue
+        # A rival whose walls the other robot saw through: its support beyond the best's counts
+        # only when it is far beyond (drift), and against a best free of conflict it is no rival.
+        near = sup < cfg.drift_support_ratio
+        s = 1 if h.refined else stride
+        b_on_a = math.nan  # B's walls on A's seen-free space: half of the conflict, a lower bound
+        if near and clean and runner is None and math.isnan(h.conflict):
+            # Nothing to prune against yet: the cheaper half first, which often decides alone.
+            b_on_a = _conflict_one(fa, fb, h.transform, cfg, s)
+            if b_on_a >= cfg.clean_rival_conflict:
+                continue
         # Corners of the refined rivals at ``rival_corner_dist``, of the others at twice that.
         gate = cfg.rival_corner_dist if first else 2.0 * cfg.rival_corner_dist
         c = 1.0 if few else _matched_ends(fa, fb, h.transform, cfg, gate) / n_best
@@ -1595,10 +1605,11 @@ def _runner_up(
             bound = min(max(0.0, h.support / best.score, sup if sup >= 1.0 else 0.0), c, 1.0)
             if runner is not None and bound <= ratio:
                 continue
-            h = _with_conflict(fa, fb, h, cfg, 1 if h.refined else stride)
-        # A rival whose walls the other robot saw through: its support beyond the best's counts
-        # only when it is far beyond (drift), and against a best free of conflict it is no rival.
-        near = sup < cfg.drift_support_ratio
+            if math.isnan(b_on_a):
+                h = _with_conflict(fa, fb, h, cfg, s)
+            else:  # the other half, summed as _conflict sums them
+                conflict = b_on_a + _conflict_one(fb, fa, h.transform.inverse(), cfg, s)
+                h = replace(h, conflict=conflict, score=h.support - cfg.conflict_weight * conflict)
         if near and clean and h.conflict >= cfg.clean_rival_conflict:
             continue
         through = near and h.conflict > cfg.conflict_limit(h.support)
