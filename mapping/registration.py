@@ -1189,11 +1189,17 @@ def _conflict_one(fp: MapFeatures, fw: MapFeatures, T: Pose, cfg: RegistrationCo
     return float(w.sum()) * stride
 
 
-def _conflict(fa: MapFeatures, fb: MapFeatures, T: Pose, cfg: RegistrationConfig, stride: int = 1) -> float:
+def _conflict(
+    fa: MapFeatures, fb: MapFeatures, T: Pose, cfg: RegistrationConfig, stride: int = 1,
+    b_on_a: float | None = None,
+) -> float:
     """Wall length of each map on the other's free probes, B moved by ``T`` (both directions:
     B's walls on A's seen-free space and A's on B's), weighted as in
-    :attr:`MapFeatures.conflict_weights` and discounted where displaced."""
-    return _conflict_one(fa, fb, T, cfg, stride) + _conflict_one(fb, fa, T.inverse(), cfg, stride)
+    :attr:`MapFeatures.conflict_weights` and discounted where displaced. ``b_on_a``: the first
+    direction, when already computed (a lower bound of the whole)."""
+    if b_on_a is None:
+        b_on_a = _conflict_one(fa, fb, T, cfg, stride)
+    return b_on_a + _conflict_one(fb, fa, T.inverse(), cfg, stride)
 
 
 def _residuals(fa: MapFeatures, fb: MapFeatures, T: Pose, ib: IntArray, ia: IntArray) -> FloatArray:
@@ -1232,12 +1238,14 @@ def _final_matches(
 
 
 def _with_conflict(
-    fa: MapFeatures, fb: MapFeatures, h: Hypothesis, cfg: RegistrationConfig, stride: int
+    fa: MapFeatures, fb: MapFeatures, h: Hypothesis, cfg: RegistrationConfig, stride: int,
+    b_on_a: float | None = None,
 ) -> Hypothesis:
-    """``h`` (scored without its conflict, every ``stride``-th sample) with conflict and score."""
+    """``h`` (scored without its conflict, every ``stride``-th sample) with conflict and score
+    (``b_on_a``: as :func:`_conflict` takes it)."""
     if not math.isnan(h.conflict):
         return h
-    c = _conflict(fa, fb, h.transform, cfg, stride)
+    c = _conflict(fa, fb, h.transform, cfg, stride, b_on_a)
     return replace(h, conflict=c, score=h.support - cfg.conflict_weight * c)
 
 
@@ -1591,9 +1599,10 @@ def _runner_up(
         # A rival whose walls the other robot saw through: its support beyond the best's counts
         # only when it is far beyond (drift), and against a best free of conflict it is no rival.
         near = sup < cfg.drift_support_ratio
+        spared = near and clean  # its conflict alone can rule it out
         s = 1 if h.refined else stride
-        b_on_a = math.nan  # B's walls on A's seen-free space: half of the conflict, a lower bound
-        if near and clean and runner is None and math.isnan(h.conflict):
+        b_on_a = None  # B's walls on A's seen-free space: half of the conflict, a lower bound
+        if spared and runner is None and math.isnan(h.conflict):
             # Nothing to prune against yet: the cheaper half first, which often decides alone.
             b_on_a = _conflict_one(fa, fb, h.transform, cfg, s)
             if b_on_a >= cfg.clean_rival_conflict:
@@ -1605,12 +1614,8 @@ def _runner_up(
             bound = min(max(0.0, h.support / best.score, sup if sup >= 1.0 else 0.0), c, 1.0)
             if runner is not None and bound <= ratio:
                 continue
-            if math.isnan(b_on_a):
-                h = _with_conflict(fa, fb, h, cfg, s)
-            else:  # the other half, summed as _conflict sums them
-                conflict = b_on_a + _conflict_one(fb, fa, h.transform.inverse(), cfg, s)
-                h = replace(h, conflict=conflict, score=h.support - cfg.conflict_weight * conflict)
-        if near and clean and h.conflict >= cfg.clean_rival_conflict:
+            h = _with_conflict(fa, fb, h, cfg, s, b_on_a)
+        if spared and h.conflict >= cfg.clean_rival_conflict:
             continue
         through = near and h.conflict > cfg.conflict_limit(h.support)
         r = min(max(0.0, h.score / best.score, sup if sup >= 1.0 and not through else 0.0), c, 1.0)

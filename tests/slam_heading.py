@@ -20,27 +20,20 @@ def _wrap_deg(a: np.ndarray) -> np.ndarray:
 
 
 def main() -> None:
-    from agents import mapping_run as mr
     from agents.bench.lidar import pose_array, settings_for
-    from agents.files.carmen import read_carmen_log, scan_truth
-    from mapping.lidar_frontend import run_slam
+    from agents.bench.slam import slam_over_log
     from mapping.lidar_metrics import ate
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("logs", nargs="+", metavar="LOG")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", dest="sets")
     args = ap.parse_args()
-    _, _, fcfg = mr.split_profile(settings_for("lidar-slam", list(args.sets)))
+    settings = settings_for("lidar-slam", list(args.sets))
     for path in args.logs:
-        log = read_carmen_log(path)
-        truth = scan_truth(log)
-        if truth is None:
-            raise SystemExit(f"{path}: no truth beside it")
-        cal = mr.calibrate_log(log.scans, fcfg)
-        slam = run_slam(cal.points, mr.wheel_increments(log.scans), fcfg.slam,
-                        start=np.array(truth[0].as_tuple()), noise=cal.noise)
-        est, tr = np.asarray(slam.poses), pose_array(truth)
-        odo = pose_array([s.odom for s in log.scans])
+        run = slam_over_log(path, settings)
+        slam = run.slam
+        est, tr = np.asarray(slam.poses), pose_array(run.truth)
+        odo = pose_array([s.odom for s in run.scans])
         heading = _wrap_deg(np.degrees(est[:, 2] - tr[:, 2]))
         turn_t, turn_e, turn_o = (_wrap_deg(np.degrees(np.diff(p[:, 2]))) for p in (tr, est, odo))
         err, odo_err = turn_e - turn_t, turn_o - turn_t

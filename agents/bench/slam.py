@@ -26,7 +26,7 @@ import argparse
 import json
 import math
 import time
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -62,14 +62,26 @@ def start_frames(k: int, seed: int) -> list[tuple[float, float, float] | None]:
     return out[:k]
 
 
-def run_one(path: str, start: tuple[float, float, float] | None, settings: dict[str, Any]) -> dict[str, Any]:
-    """The SLAM over one log from one start frame, scored in the truth's frame; the odometry's
-    error as ``wiremap bench lidar`` gives it (the log's own poses)."""
+class SlamRun(NamedTuple):
+    """One log's SLAM run (:func:`slam_over_log`): the log's scans, its truth, the calibration
+    the front end measured, the SLAM (its poses in the start frame's), the start frame used and
+    the SLAM's CPU seconds."""
+
+    scans: list[Any]
+    truth: list[Any]
+    cal: Any
+    slam: Any
+    start: Any
+    cpu_s: float
+
+
+def slam_over_log(path: str, settings: dict[str, Any],
+                  start: tuple[float, float, float] | None = None) -> SlamRun:
+    """The ``settings``' front end's SLAM over one CARMEN log (that has a truth) from ``start``
+    (None: the true first pose), calibrated as ``wiremap bench lidar`` calibrates it."""
     from agents import mapping_run as mr
-    from agents.bench.lidar import pose_array
     from agents.files.carmen import read_carmen_log, scan_truth
     from mapping.lidar_frontend import run_slam
-    from mapping.lidar_metrics import ate, rpe
     from mapping.se2 import Pose
 
     _, _, fcfg = mr.split_profile(settings)
@@ -83,7 +95,18 @@ def run_one(path: str, start: tuple[float, float, float] | None, settings: dict[
     t0 = time.process_time()
     slam = run_slam(cal.points, mr.wheel_increments(scans), fcfg.slam, start=np.array(st.as_tuple()),
                     noise=cal.noise)
-    cpu = time.process_time() - t0
+    return SlamRun(scans, truth, cal, slam, st, time.process_time() - t0)
+
+
+def run_one(path: str, start: tuple[float, float, float] | None, settings: dict[str, Any]) -> dict[str, Any]:
+    """The SLAM over one log from one start frame, scored in the truth's frame; the odometry's
+    error as ``wiremap bench lidar`` gives it (the log's own poses)."""
+    from agents import mapping_run as mr
+    from agents.bench.lidar import pose_array
+    from mapping.lidar_metrics import ate, rpe
+    from mapping.se2 import Pose
+
+    scans, truth, cal, slam, st, cpu = slam_over_log(path, settings, start)
     to_truth = truth[0].compose(st.inverse())
     est = np.array([to_truth.compose(Pose(*map(float, p))).as_tuple() for p in slam.poses])
     tr = pose_array(truth)

@@ -499,7 +499,7 @@ def run(args: argparse.Namespace) -> int:
     cfg, listen, creds = _router_config(args, out, keys.fleet, ids)
     child_ep = listen[0].replace("0.0.0.0", "127.0.0.1").replace("[::]", "[::1]")
     bus = ["--connect", child_ep, "--fleet", keys.fleet, "--parent-pid", str(os.getpid())]
-    progress = Progress(ids, not args.no_progress, t0=world.scans[0].t if args.carmen else 0.0)
+    progress = Progress(ids, not args.no_progress, t0=world.t0 if args.carmen else 0.0)
     procs: dict[str, subprocess.Popen[bytes]] = {}
     cpu: dict[str, float] = {}
     codes: dict[str, int | None] = {}

@@ -518,10 +518,9 @@ def wireframe_svg(
     ``polygon`` (triangle) or ``rect`` of class ``nominal``/``occlusion``/``frontier``. With
     ``arrows`` every map edge ends in an arrowhead marker showing its direction.
     """
-    traj = None if trajectory is None else np.asarray(trajectory, dtype=np.float64).reshape(-1, 2)
-    more = [(np.asarray(t, dtype=np.float64).reshape(-1, 2), c) for t, c in trajectories]
-    every = [t for t in [traj, *(t for t, _ in more)] if t is not None]
-    xmin, ymin, xmax, ymax = _auto_bounds(wf, truth, np.concatenate(every) if every else None)
+    given = [(trajectory, TRAJECTORY_COLOR)] if trajectory is not None else []
+    lines = [(np.asarray(t, dtype=np.float64).reshape(-1, 2), c) for t, c in [*given, *trajectories]]
+    xmin, ymin, xmax, ymax = _auto_bounds(wf, truth, *(t for t, _ in lines))
     span = max(xmax - xmin, ymax - ymin, 1e-9)
     s = float(px_per_m) if px_per_m is not None else (max_px - 2 * margin_px) / span
     m = float(margin_px)
@@ -552,7 +551,7 @@ def wireframe_svg(
             (x1, y1), (x2, y2) = tx(a), tx(b)
             out.append(f'<line x1="{x1:.3f}" y1="{y1:.3f}" x2="{x2:.3f}" y2="{y2:.3f}"/>')
         out.append("</g>")
-    for line, color in ([] if traj is None else [(traj, TRAJECTORY_COLOR)]) + more:
+    for line, color in lines:
         if len(line) >= 2:
             pts = " ".join(f"{x:.3f},{y:.3f}" for x, y in (tx(p) for p in line))
             out.append(f'<polyline class="trajectory" points="{pts}" fill="none" '

@@ -82,6 +82,11 @@ class CarmenWorld:
     scans: list[Any]
     truth: list[Pose] | None
 
+    @property
+    def t0(self) -> float:
+        """The log's first stamp: the robots' clock counts from it (some logs stamp in Unix time)."""
+        return float(self.scans[0].t)
+
 
 def carmen_world(args: argparse.Namespace) -> CarmenWorld:
     from agents.files.carmen import read_carmen_log, scan_truth
@@ -348,7 +353,7 @@ def write_outputs_carmen(
         "per_robot": per_robot,
     }
     report.update(_common(out, ids, duration_s, extra, raw, msg, state))
-    _robot_progress(report, ids, t0=world.scans[0].t)
+    _robot_progress(report, ids, t0=world.t0)
     write_json(out / "report.json", report)
     return _summary_shape(report, ids)
 
@@ -379,7 +384,7 @@ def _carmen_figure(
 def _robot_progress(report: dict[str, Any], ids: list[str], t0: float = 0.0) -> None:
     """Each robot's figures from its last status into ``per_robot``, as a run from known starts
     reports them (:func:`agents.commands.run.status_figures`); ``sim_time_s`` counted from
-    ``t0`` (a log's first stamp: some logs stamp their scans in Unix time)."""
+    ``t0`` (:attr:`CarmenWorld.t0`)."""
     from agents.commands.run import status_figures
 
     for rid in ids:
