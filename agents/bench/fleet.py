@@ -176,6 +176,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="with --fusers K >= 2: kill -9 the regional fuser g1 S seconds into the window; "
         "reports the longest gap in g1's partial publishes (the takeover's stall, fuser_stall_s)",
     )
+    parser.add_argument(
+        "--fuse-interval", type=float, default=0.0, metavar="S",
+        help="every fuser's --min-interval: fuse at most this often, batching the maps that arrive "
+        "meanwhile (default 0: fuse after every take)",
+    )
     parser.add_argument("--json", action="store_true", help="print the JSON summary as the last line")
 
 
@@ -334,14 +339,15 @@ def run_size(
         procs.start("router", ["-m", "agents", "router", "--listen", ep])
         with BusObserver(ep, FLEET, timeout=60.0) as obs:
             if fusers == 1:
-                fuse = ["-m", "agents", "fuse", *bus, "--store", str(store), "--threshold", repr(thr)]
+                fuse = ["-m", "agents", "fuse", *bus, "--store", str(store), "--threshold", repr(thr),
+                        "--min-interval", repr(args.fuse_interval)]
                 if args.record:
                     fuse += ["--rrd", str(d / "recording.rrd"), "--world", args.world]
                 procs.start("fuse", fuse)
                 procs.wait_log("fuse", "fusion service ready", 90.0)
                 fnames = ["fuse"]
             else:
-                fnames = start_tree(procs, fusers, ids, bus, d, thr)
+                fnames = start_tree(procs, fusers, ids, bus, d, thr, args.fuse_interval)
             links = LinkCounter(obs.session, f"wiremap/{FLEET}")
             for group in groups:
                 if mode == "replay":

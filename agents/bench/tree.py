@@ -88,17 +88,21 @@ def synthetic_recordings(world_spec: str, n: int, seed: int, cache: str | os.Pat
     return paths
 
 
-def start_tree(procs: Any, k: int, ids: list[str], bus: list[str], d: Path, thr: float) -> list[str]:
-    """Start ``k`` regional fusers over the fold's subtrees of ``ids`` and the root; returns the
-    fuser process names (``g0..``, ``root``) once all are ready."""
+def start_tree(
+    procs: Any, k: int, ids: list[str], bus: list[str], d: Path, thr: float, interval: float = 0.0
+) -> list[str]:
+    """Start ``k`` regional fusers over the fold's subtrees of ``ids`` (each fusing at most every
+    ``interval`` seconds) and the root; returns the fuser process names (``g0..``, ``root``)
+    once all are ready."""
     names = []
     for g, pattern in enumerate(fold_ranges(ids, k)):  # id ranges, as wiremap run --fusers gives
         name = f"g{g}"
         procs.start(name, ["-m", "agents", "fuse", *bus, "--group", name, "--robots", pattern,
-                           "--store", str(d / f"store-{name}"), "--threshold", repr(thr)])
+                           "--store", str(d / f"store-{name}"), "--threshold", repr(thr),
+                           "--min-interval", repr(interval)])
         names.append(name)
     procs.start("root", ["-m", "agents", "fuse", *bus, "--of-groups", ",".join(names),
-                         "--store", str(d / "store"), "--threshold", repr(thr)])
+                         "--store", str(d / "store"), "--threshold", repr(thr), "--min-interval", repr(interval)])
     for name in names:
         procs.wait_log(name, "ready", 90.0)
     procs.wait_log("root", "root fuser ready", 90.0)

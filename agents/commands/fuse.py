@@ -58,7 +58,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--min-interval", type=float, default=0.0, metavar="S",
-        help="fuse at most every S seconds (default 0)"
+        help="fuse at most every S seconds, batching what arrives meanwhile (default 0; the root too)"
     )
     parser.add_argument(
         "--save-interval",
@@ -131,6 +131,8 @@ def run_tree(args: argparse.Namespace, say: Any) -> int | None:
         for n in names or []:
             if not valid_name(n) or n == "root":
                 raise UserError(f"--of-groups: {n!r} is not a group name")
+        if not (math.isfinite(args.min_interval) and args.min_interval >= 0):
+            raise UserError(f"--min-interval must be a number >= 0, got {args.min_interval}")
         if args.store:
             from agents.files.io import check_output_dir
             from agents.fleet.fusion.root import read_root_store
@@ -161,7 +163,7 @@ def _root(session: Any, keys: Any, stop: Any, names: Any, args: argparse.Namespa
     recording = {"rrd": args.rrd, "serve_viewer": args.serve_viewer, "recording_id": args.recording_id,
                  "world": args.world}
     svc = serve_root(session, keys, names, stop, args.threshold, max(0.1, args.heartbeat), args.store, say,
-                     args.reset, recording)
+                     args.reset, recording, args.min_interval)
     st = svc.state
     say(f"stopped at v{st.version}: {st.fused.n_vertices} vertices, {st.fused.n_edges} edges from "
         f"{len(st.fused_robots)} robots in {len(st.partials)} groups (exact {st.exact})")

@@ -38,6 +38,7 @@ file moved aside, the version restarted from the wall clock in ms so that it nev
 from __future__ import annotations
 
 import json
+import math
 import os
 import threading
 import time
@@ -145,6 +146,7 @@ class RootService:
         log: Callable[[str], None] | None = None,
         reset: bool = False,
         recording: dict[str, Any] | None = None,
+        min_interval_s: float = 0.0,
     ) -> None:
         import zenoh
 
@@ -155,6 +157,10 @@ class RootService:
         self.groups = set(groups) if groups else None
         self.state = RootState(threshold)
         self.heartbeat_s = heartbeat_s
+        # fuse at most this often: partials arriving meanwhile wait (the newest of each group)
+        self.min_interval_s = max(0.0, float(min_interval_s))
+        self.last_fuse = -math.inf
+        self.due = False  # a partial taken and not fused yet
         self.store = Path(store) if store else None
         self.say = log or (lambda _s: None)
         self.lock = threading.Lock()
@@ -379,24 +385,29 @@ class RootService:
         if not self.active:  # a standby keeps the latest partial of each group, undecoded
             time.sleep(timeout)
             return
+        wait = timeout
+        if self.due:  # a fuse is due once min_interval_s has passed since the last: wait no longer
+            wait = min(wait, max(0.0, self.last_fuse + self.min_interval_s - time.monotonic()))
         with self.cond:
-            if not self.inbox:
-                self.cond.wait(timeout)
+            if not self.inbox and wait > 0:
+                self.cond.wait(wait)
             items, self.inbox = self.inbox, {}
-        changed = False
         for g, (data, arrived) in items.items():
             try:
                 msg = decode_message(data)
             except ValueError:
                 continue
             if self.state.offer(g, msg):
-                changed = True
+                self.due = True
                 self.transport_ms.extend([max(0.0, (arrived - msg.stamp_ns) / 1e6)])
-        if changed and self.state.fuse():
-            self._publish()
-        elif changed:
-            self.state.take_latencies(time.time_ns())  # nothing new to show: not a publish
         now = time.monotonic()
+        if self.due and now - self.last_fuse >= self.min_interval_s:
+            self.due = False
+            self.last_fuse = now
+            if self.state.fuse():
+                self._publish()
+            else:
+                self.state.take_latencies(time.time_ns())  # nothing new to show: not a publish
         if self.current is not None and now - self.last_put > self.heartbeat_s:
             data = encode_message(self.state.fused_message(self.stamp_ns, self._meta()))
             with self.lock:
@@ -524,10 +535,13 @@ def serve_root(
     log: Callable[[str], None] | None = None,
     reset: bool = False,
     recording: dict[str, Any] | None = None,
+    min_interval_s: float = 0.0,
 ) -> RootService:
     """Run the root fuser on an open session until ``stop`` is set (``recording``: ``rrd``,
-    ``serve_viewer``, ``recording_id``, ``world``, as ``wiremap fuse``'s flags)."""
-    svc = RootService(session, keys, groups, threshold, heartbeat_s, store, log, reset, recording)
+    ``serve_viewer``, ``recording_id``, ``world``, as ``wiremap fuse``'s flags; ``min_interval_s``:
+    fuse at most this often, as ``--min-interval``)."""
+    svc = RootService(session, keys, groups, threshold, heartbeat_s, store, log, reset, recording,
+                      min_interval_s)
     try:
         svc.start()
         freeze_heap()
