@@ -460,6 +460,38 @@ def _partial(group: str, ids: list[str], seq: int) -> object:
                                meta={"boot": 1, "group": group})
 
 
+@pytest.mark.fleet
+def test_a_root_with_a_min_interval_fuses_what_came_meanwhile_once(tmp_path):
+    """``wiremap fuse --of-groups ... --min-interval 2``: the first partial is fused at once;
+    three more that come within the interval (g0 twice, g1 once) wait and are fused together,
+    once, no sooner than the interval after the first fuse: no fused map carries g0's middle
+    partial."""
+    keys = FleetKeys("rooti")
+    with in_process_router() as ep, Fleet(tmp_path) as fleet, client(ep) as s:
+        fleet.start("root", ["fuse", "--of-groups", "g0,g1", "--connect", ep, "--fleet", "rooti",
+                             "--threshold", repr(THR), "--min-interval", "2"])
+        fleet.wait_log("root", "root fuser ready", 60.0)
+        watcher = FusedWatcher(s, keys)
+        try:
+            key = "wiremap/rooti/groups/{}/map"
+            s.put(key.format("g0"), encode_message(_partial("g0", ["a1", "a2"], 1)))
+            _, t1 = watcher.wait_for_timed(lambda m: m.meta["group_versions"].get("g0") == [1, 1], 30.0,
+                                           "g0's first partial")
+            since = watcher.count()
+            s.put(key.format("g0"), encode_message(_partial("g0", ["a1", "a2"], 2)))
+            s.put(key.format("g0"), encode_message(_partial("g0", ["a1", "a2", "a3"], 3)))
+            s.put(key.format("g1"), encode_message(_partial("g1", ["b1"], 1)))
+            both, t2 = watcher.wait_for_timed(lambda m: "g1" in m.meta["group_versions"], 30.0,
+                                              "both groups", since)
+            assert both.meta["group_versions"] == {"g0": [1, 3], "g1": [1, 1]}
+            assert both.robots == ("a1", "a2", "a3", "b1")
+            assert t2 - t1 >= 1.9, t2 - t1
+            seen = [m.meta["group_versions"].get("g0") for m in watcher.msgs]
+            assert [1, 2] not in seen, seen
+        finally:
+            watcher.close()
+
+
 def test_the_root_takes_partials_past_64_robots():
     """Partials of 40 and 60 robots (and then 100 and 5): the fused map has every robot, robot
     ``b59`` owns bit 99, ``b58`` bit 98 (masks past bit 63), and it travels as format version 2;
