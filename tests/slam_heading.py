@@ -60,9 +60,11 @@ def _whole(path: str, settings: dict[str, Any]) -> None:
               f"{np.sqrt(np.mean((e - leak * odo_err) ** 2)):.3f} (wheels' step RMS "
               f"{np.sqrt(np.mean(odo_err ** 2)):.2f})")
     every = max(1, len(est) // 10)
-    print("  heading error by scan: " + ", ".join(f"{i} {heading[i]:+.1f}" for i in range(0, len(est), every)))
+    marks = range(0, len(est), every)
+    print("  heading error by scan: " + ", ".join(f"{i} {heading[i]:+.1f}" for i in marks))
     for i in big:
-        print(f"  step {i + 1:4d}: off {err[i]:+.2f} deg (turn {turn_t[i]:+.1f}, wheels off {odo_err[i]:+.2f})")
+        print(f"  step {i + 1:4d}: off {err[i]:+.2f} deg (turn {turn_t[i]:+.1f}, "
+              f"wheels off {odo_err[i]:+.2f})")
 
 
 def _stretch(path: str, settings: dict[str, Any], i0: int, i1: int) -> None:

@@ -102,7 +102,8 @@ def start_tree(
                            "--min-interval", repr(interval)])
         names.append(name)
     procs.start("root", ["-m", "agents", "fuse", *bus, "--of-groups", ",".join(names),
-                         "--store", str(d / "store"), "--threshold", repr(thr), "--min-interval", repr(interval)])
+                         "--store", str(d / "store"), "--threshold", repr(thr),
+                         "--min-interval", repr(interval)])
     for name in names:
         procs.wait_log(name, "ready", 90.0)
     procs.wait_log("root", "root fuser ready", 90.0)
