@@ -457,6 +457,10 @@ def test_run_carmen_log_as_two_robots(tmp_path: Path):
     regs = set(report["registered"])
     isl = {m for ms in report["islands"].values() for m in ms}
     assert regs | isl == {"r1", "r2"} and not regs & isl
+    # every registered robot but the fleet's root is scored at its walls too
+    assert set(report["registration_errors_local"]) == regs - {report["fleet_root"]}
+    for err in report["registration_errors_local"].values():
+        assert err["trans_err_m"] <= 0.5, report["registration_errors_local"]
     img = decode_png((out / "fused.png").read_bytes())
     assert (img == np.asarray(POINTS_COLOR, dtype=np.uint8)).all(axis=2).sum() > 200
 

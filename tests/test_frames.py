@@ -236,6 +236,34 @@ def test_report_scores_every_attempt_against_the_true_starts():
     assert _attempts_against_truth(recs, {})["registration_truth"] == {}
 
 
+def test_a_drifting_robot_is_scored_at_its_walls_too():
+    """A robot whose own map turned 3 degrees about its start (drift), registered so that its
+    walls lie on the other robot's: at its start the registration is 3 degrees off the true
+    relative start (``registration_errors``: wrong by the 2-degree line), at its walls against
+    the local truth it is right (``registration_errors_local``); a registration one metre off
+    is off at its walls too."""
+    from agents.fleet.unknown_run import _local_errors, _pose_errors
+
+    walls = Wireframe.from_polylines([[(0, 0), (12, 0), (12, 3), (5, 3), (5, 9), (0, 9)], [(8, 6), (10, 6)]],
+                                     closed=False)
+    start_b = Pose(25.0, 14.0, 0.4)  # far from the walls: a small turn moves them far
+    drift = Pose(0.0, 0.0, math.radians(3.0))
+    maps = {"r1": walls, "r2": walls.transformed(drift.compose(start_b.inverse()))}
+    starts = {"r1": Pose.identity(), "r2": start_b}
+    right = start_b.compose(drift.inverse())  # lays r2's walls on r1's
+    for found, local_ok in ((right, True), (right.compose(Pose(1.0, 0.0, 0.0)), False)):
+        fr = {"fleet_root": "r1", "registered": ["r1", "r2"],
+              "poses": {"r1": [0.0, 0.0, 0.0], "r2": list(found.as_tuple())}}
+        at_start = _pose_errors(fr, starts)["r2"]
+        local = _local_errors(fr, starts, maps, 0.2)
+        assert set(local) == {"r2"}
+        if local_ok:
+            assert abs(at_start["rot_err_deg"] - 3.0) < 1e-3, at_start
+            assert local["r2"]["trans_err_m"] < 0.02 and local["r2"]["rot_err_deg"] < 0.1, local
+        else:
+            assert local["r2"]["trans_err_m"] > 0.9, local
+
+
 # ---------------------------------------------------------------- repeated buildings in a fleet
 @cache
 def _office_fleet(steps: int) -> dict[str, list[Wireframe]]:

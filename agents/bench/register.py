@@ -649,22 +649,13 @@ def truth_ambiguous(
 
 # ------------------------------------------------------------------------------ scoring
 def local_truth(sa: Sample, sb: Sample) -> Any:
-    """The true transform of two filter-built maps *at their overlap*.
+    """The true transform of two filter-built maps *at their overlap*
+    (:func:`agents.fleet.carmen_fleet.local_truth` from the start poses' truth): a filter-built
+    map drifts, and the transform between the two start poses misplaces the other map's far
+    walls by the drift of both filters, up to a metre over a CARMEN stretch."""
+    from agents.fleet.carmen_fleet import local_truth as at_shared_walls
 
-    A filter-built map drifts: the transform between the two start poses (the truth of a
-    cropped map) misplaces the other map's far walls by the drift of both filters, up to a metre
-    over a CARMEN stretch. The local truth starts there and is refined by the registration's
-    own point-to-line least squares with a gate annealed from 1.5 m to 0.15 m: the alignment of
-    the walls both maps hold that is nearest the start-pose truth. Returns the start-pose truth
-    when fewer than three samples match."""
-    from mapping import registration as rg
-
-    cfg = rg.RegistrationConfig(coarse_match_dist=1.5, refine_iterations=15)
-    start = _true_transform(sa, sb)
-    fa, fb = rg.prepare(sa.wf, cfg), rg.prepare(sb.wf, cfg)
-    if len(fa.points) < 3 or len(fb.points) < 3:
-        return start
-    return rg._refine(fa, fb, start, cfg)
+    return at_shared_walls(sa.wf, sb.wf, _true_transform(sa, sb))
 
 
 def attempt(sa: Sample, sb: Sample, same: bool, true: Any = None) -> dict[str, Any]:

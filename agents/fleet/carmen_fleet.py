@@ -108,6 +108,30 @@ def endpoint_precision(
 WRONG_M, WRONG_DEG = 0.5, 2.0
 
 
+def local_truth(a: Wireframe, b: Wireframe, start: Pose) -> Pose:
+    """The true transform of map ``b``'s frame in map ``a``'s *where they share walls*. Maps
+    made by robots drift, so the transform between their true start poses misplaces the walls
+    far from the starts (by both robots' drift, up to a metre over a log's stretch); the local
+    truth starts there and is refined on the two maps' walls (:func:`mapping.registration.refine`,
+    the gate annealed from 1.5 m down): the alignment of the walls both maps hold that is nearest
+    the start poses' truth."""
+    from mapping.registration import RegistrationConfig, refine
+
+    return refine(a, b, start, RegistrationConfig(coarse_match_dist=1.5, refine_iterations=15))
+
+
+def error_at_walls(found: Pose, true: Pose, b: Wireframe) -> tuple[float, float]:
+    """Translation (m) at the centre of map ``b``'s walls (``b``'s frame) and rotation (deg)
+    between two placements ``found`` and ``true`` of ``b``: how far a registration puts ``b``'s
+    walls from where ``true`` does, rather than its origin (far from the walls, a small turn
+    moves the origin a lot)."""
+    from mapping.registration import prepare
+
+    c = prepare(b).centre[None, :] if b.n_edges else np.zeros((1, 2))
+    d = found.apply(c)[0] - true.apply(c)[0]
+    return float(math.hypot(*d)), math.degrees(abs(math.remainder(found.theta - true.theta, 2 * math.pi)))
+
+
 def pose_error(found: Pose, true: Pose) -> tuple[float, float]:
     """Translation (m) and rotation (deg) error of a registered pose."""
     return (

@@ -15,7 +15,9 @@
   stretches, one robot each, in its own odometry frame. ``report.json``
   (:func:`write_outputs_carmen`) scores each robot's map and the fused map by endpoint precision
   (placed by the true first pose of the robot whose frame they are in, no fitting) and each
-  registered pose against the truth.
+  registered pose against the truth: at the robot's start (``registration_errors``) and at its
+  walls against the local truth where its map meets the others' (``registration_errors_local``;
+  a drifting robot's start can be far off while its walls lie right).
 """
 
 from __future__ import annotations
@@ -219,6 +221,37 @@ def _pose_errors(fr: dict[str, Any], starts: dict[str, Pose]) -> dict[str, Any]:
     return out
 
 
+def _local_errors(
+    fr: dict[str, Any], starts: dict[str, Pose], maps: dict[str, Wireframe], threshold: float
+) -> dict[str, Any]:
+    """Each registered robot's pose in the fleet frame against the *local truth* where its map
+    meets the others' (:func:`agents.fleet.carmen_fleet.local_truth`: the true relative start
+    refined on the robot's map and the other registered robots' maps merged as placed), at the
+    centre of its walls. A robot's own drift turns its map about its start, so a registration
+    that lays its walls right on the others' can be half a metre off at its start
+    (``registration_errors``); this says how far off its walls are."""
+    from agents.fleet.carmen_fleet import error_at_walls, local_truth
+    from mapping.merge import MergeConfig, merge
+
+    root, poses = fr.get("fleet_root"), fr.get("poses") or {}
+    if root not in starts:
+        return {}
+    reg = [r for r in fr.get("registered", []) if r in maps and r in poses and r in starts]
+    out: dict[str, Any] = {}
+    for rid in reg:
+        others: Wireframe | None = None
+        for o in reg:
+            if o != rid:
+                w = maps[o].transformed(Pose(*poses[o]))
+                others = w if others is None else merge(others, w, MergeConfig(threshold=threshold))
+        if rid == root or others is None:
+            continue
+        true = local_truth(others, maps[rid], starts[root].inverse().compose(starts[rid]))
+        te, re = error_at_walls(Pose(*poses[rid]), true, maps[rid])
+        out[rid] = {"trans_err_m": round(te, 4), "rot_err_deg": round(re, 3)}
+    return out
+
+
 def _truth_error(found: Any, start_a: Pose, start_b: Pose) -> tuple[float, float]:
     """``found`` (x, y, theta: b's frame in a's) against the true ``start_a^-1 start_b``: metres
     (4 decimals) and degrees (3)."""
@@ -301,6 +334,7 @@ def write_outputs_carmen(
     and ``tracks`` as :func:`write_outputs_unknown`."""
     from agents.commands.run import fused_from_store, store_state
     from agents.fleet.carmen_fleet import endpoint_precision, endpoints
+    from agents.fleet.fusion import merge_threshold_of
     from mapping.lidar_metrics import align_to_points
 
     raw, msg = fused_from_store(out, published)
@@ -349,6 +383,8 @@ def write_outputs_carmen(
         "log": world.name,
         "carmen": world.path,
         **_registration_report(fr, starts),
+        "registration_errors_local": _local_errors(fr, starts, _robot_maps(out, ids),
+                                                   merge_threshold_of(msg)),
         "fused": fused,
         "per_robot": per_robot,
     }
