@@ -116,6 +116,8 @@ CASES: dict[str, list[str]] = {
     "fuse-store-is-a-file": ["fuse", "--store", "{a_file}"],
     "fuse-bad-threshold": ["fuse", "--threshold", "-1"],
     "fuse-bad-rate-limit": ["fuse", "--rate-limit", "0"],
+    "fuse-root-bad-min-interval": ["fuse", "--of-groups", "g0,g1", "--min-interval", "-1"],
+    "bench-fleet-bad-fuse-interval": ["bench", "fleet", "--fuse-interval", "nan"],
     "fuse-viewer-without-rrd": ["fuse", "--serve-viewer", "9999"],
     "fuse-missing-credentials": ["fuse", "--credentials", "{missing}"],
     "fuse-missing-config": ["fuse", "--config", "{missing}"],

@@ -499,8 +499,9 @@ def run(args: argparse.Namespace) -> int:
     for name, v in (("--duration", args.duration), ("--rate", args.rate)):
         if not (math.isfinite(v) and v > 0):
             raise UserError(f"{name} must be a positive number, got {v}")
-    if not (math.isfinite(args.warmup) and args.warmup >= 0):
-        raise UserError(f"--warmup must be >= 0, got {args.warmup}")
+    for name, v in (("--warmup", args.warmup), ("--fuse-interval", args.fuse_interval)):
+        if not (math.isfinite(v) and v >= 0):
+            raise UserError(f"{name} must be >= 0, got {v}")
     if args.particles < 1:
         raise UserError(f"--particles must be >= 1, got {args.particles}")
     for name, v in (("--resolution", args.resolution), ("--threshold", args.threshold)):
