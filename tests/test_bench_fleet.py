@@ -210,7 +210,7 @@ def test_bench_fleet_short(tmp_path: Path) -> None:
     # replay robots share one process (one session each); filter robots have their own
     assert (out["sizes"]["2"]["replay_processes"], out["sizes"]["2"]["robot_processes"]) == (1, 1)
     assert (out["sizes"]["1"]["replay_processes"], out["sizes"]["1"]["robot_processes"]) == (0, 1)
-    assert (out["map_resolution_m"], out["merge_threshold_m"]) == (0.05, 0.2)
+    assert (out["map_resolution_m"], out["merge_threshold_m"], out["fuse_interval_s"]) == (0.05, 0.2, 0.0)
     assert list((tmp_path / "cache").glob("tiny-n2-*/r2.wrp"))  # the recordings were cached
     for n, r in out["sizes"].items():
         assert SIZE_KEYS <= set(r), n

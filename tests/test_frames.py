@@ -255,13 +255,36 @@ def test_a_drifting_robot_is_scored_at_its_walls_too():
         fr = {"fleet_root": "r1", "registered": ["r1", "r2"],
               "poses": {"r1": [0.0, 0.0, 0.0], "r2": list(found.as_tuple())}}
         at_start = _pose_errors(fr, starts)["r2"]
-        local = _local_errors(fr, starts, maps, 0.2)
+        local = _local_errors(fr, starts, maps)
         assert set(local) == {"r2"}
         if local_ok:
             assert abs(at_start["rot_err_deg"] - 3.0) < 1e-3, at_start
             assert local["r2"]["trans_err_m"] < 0.02 and local["r2"]["rot_err_deg"] < 0.1, local
         else:
             assert local["r2"]["trans_err_m"] > 0.9, local
+
+
+def test_the_local_truth_owes_nothing_to_the_registrations_it_scores():
+    """Three robots in a chain (r3's walls meet r2's, not r1's): r2 registered 1 m off, r3
+    right. r2 is 1 m off at its walls; r3 is scored against r2 placed at r2's own local truth,
+    not where the fleet put it, so r3 is right (with the others taken as registered, r3 would
+    read 1 m off too)."""
+    from agents.fleet.unknown_run import _local_errors
+
+    a = [[(0, 0), (12, 0), (12, 2)], [(0, 4), (6, 4), (6, 7)], [(9, 3), (11, 5)]]
+    b = [[(9, 3), (11, 5)], [(12, 2), (12, 0), (22, 0)], [(15, 4), (15, 8)], [(19, 2), (21, 3)],
+         [(20, 6), (20, 9)]]
+    c = [[(19, 2), (21, 3)], [(20, 6), (20, 9)], [(22, 0), (32, 0)], [(25, 4), (28, 4), (28, 7)]]
+    starts = {"r1": Pose.identity(), "r2": Pose(10.0, -3.0, 0.5), "r3": Pose(24.0, -2.0, -0.7)}
+    maps = {r: Wireframe.from_polylines(w, closed=False).transformed(starts[r].inverse())
+            for r, w in (("r1", a), ("r2", b), ("r3", c))}
+    found = {"r1": Pose.identity(), "r2": starts["r2"].compose(Pose(1.0, 0.0, 0.0)), "r3": starts["r3"]}
+    fr = {"fleet_root": "r1", "registered": ["r1", "r2", "r3"],
+          "poses": {r: list(p.as_tuple()) for r, p in found.items()}}
+    local = _local_errors(fr, starts, maps)
+    assert set(local) == {"r2", "r3"}
+    assert abs(local["r2"]["trans_err_m"] - 1.0) < 0.02, local
+    assert local["r3"]["trans_err_m"] < 0.02 and local["r3"]["rot_err_deg"] < 0.1, local
 
 
 # ---------------------------------------------------------------- repeated buildings in a fleet

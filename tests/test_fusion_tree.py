@@ -465,11 +465,16 @@ def test_a_root_with_a_min_interval_fuses_what_came_meanwhile_once(tmp_path):
     """``wiremap fuse --of-groups ... --min-interval 2``: the first partial is fused at once;
     three more that come within the interval (g0 twice, g1 once) wait and are fused together,
     once, no sooner than the interval after the first fuse: no fused map carries g0's middle
-    partial."""
+    partial, and the heartbeats sent meanwhile describe the map they carry (not the partials
+    still waiting). A partial still waiting when the root stops is fused into its store."""
+    from agents.fleet.fusion.root import read_root_store
+
     keys = FleetKeys("rooti")
+    store = tmp_path / "store"
     with in_process_router() as ep, Fleet(tmp_path) as fleet, client(ep) as s:
         fleet.start("root", ["fuse", "--of-groups", "g0,g1", "--connect", ep, "--fleet", "rooti",
-                             "--threshold", repr(THR), "--min-interval", "2"])
+                             "--threshold", repr(THR), "--min-interval", "2", "--heartbeat", "0.3",
+                             "--store", str(store)])
         fleet.wait_log("root", "root fuser ready", 60.0)
         watcher = FusedWatcher(s, keys)
         try:
@@ -485,11 +490,19 @@ def test_a_root_with_a_min_interval_fuses_what_came_meanwhile_once(tmp_path):
                                               "both groups", since)
             assert both.meta["group_versions"] == {"g0": [1, 3], "g1": [1, 1]}
             assert both.robots == ("a1", "a2", "a3", "b1")
-            assert t2 - t1 >= 1.9, t2 - t1
-            seen = [m.meta["group_versions"].get("g0") for m in watcher.msgs]
-            assert [1, 2] not in seen, seen
+            assert t2 - t1 >= 1.5, t2 - t1
+            seen = [(m.robots, m.meta["group_versions"]) for m in watcher.msgs]
+            assert all(gv.get("g0") != [1, 2] for _, gv in seen), seen
+            # every message (heartbeats included) lists the partials of the map it carries
+            assert all(gv == {"g0": [1, 1]} for r, gv in seen if r == ("a1", "a2")), seen
+            assert sum(r == ("a1", "a2") for r, _ in seen) >= 3, seen  # heartbeats in the wait
+            s.put(key.format("g1"), encode_message(_partial("g1", ["b1", "b2"], 2)))
+            time.sleep(0.3)  # taken, waiting for the interval
+            assert fleet.stop("root") == 0
         finally:
             watcher.close()
+    stored = decode_message(read_root_store(store, False))
+    assert stored.robots == ("a1", "a2", "a3", "b1", "b2"), stored.robots
 
 
 def test_the_root_takes_partials_past_64_robots():

@@ -570,6 +570,7 @@ def run(args: argparse.Namespace) -> int:
         "seed": args.seed,
         "map_resolution_m": args.resolution,
         "merge_threshold_m": args.merge_threshold,
+        "fuse_interval_s": args.fuse_interval,
         "sizes": results,
         "targets": {
             "latency_ms_p99_max": LATENCY_TARGET_MS,

@@ -120,6 +120,17 @@ def local_truth(a: Wireframe, b: Wireframe, start: Pose) -> Pose:
     return refine(a, b, start, RegistrationConfig(coarse_match_dist=1.5, refine_iterations=15))
 
 
+def shared_wall(a: Wireframe, b: Wireframe, transform: Pose, tol: float = 0.2) -> float:
+    """Metres of map ``b``'s walls (placed by ``transform`` in ``a``'s frame) within ``tol`` of a
+    wall of ``a``: how much the two maps share there (samples every 0.1 m)."""
+    from mapping.lidar_metrics import map_precision
+    from mapping.metrics import sample_walls
+
+    if a.n_edges == 0 or b.n_edges == 0:
+        return 0.0
+    return map_precision(b.transformed(transform), sample_walls(a, 0.05)[0], tol, 0.1) * b.total_length()
+
+
 def error_at_walls(found: Pose, true: Pose, b: Wireframe) -> tuple[float, float]:
     """Translation (m) at the centre of map ``b``'s walls (``b``'s frame) and rotation (deg)
     between two placements ``found`` and ``true`` of ``b``: how far a registration puts ``b``'s

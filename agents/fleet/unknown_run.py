@@ -221,32 +221,40 @@ def _pose_errors(fr: dict[str, Any], starts: dict[str, Pose]) -> dict[str, Any]:
     return out
 
 
-def _local_errors(
-    fr: dict[str, Any], starts: dict[str, Pose], maps: dict[str, Wireframe], threshold: float
-) -> dict[str, Any]:
+def _local_errors(fr: dict[str, Any], starts: dict[str, Pose], maps: dict[str, Wireframe]) -> dict[str, Any]:
     """Each registered robot's pose in the fleet frame against the *local truth* where its map
-    meets the others' (:func:`agents.fleet.carmen_fleet.local_truth`: the true relative start
-    refined on the robot's map and the other registered robots' maps merged as placed), at the
-    centre of its walls. A robot's own drift turns its map about its start, so a registration
-    that lays its walls right on the others' can be half a metre off at its start
-    (``registration_errors``); this says how far off its walls are."""
-    from agents.fleet.carmen_fleet import error_at_walls, local_truth
-    from mapping.merge import MergeConfig, merge
+    meets the others' (:func:`agents.fleet.carmen_fleet.local_truth`), at the centre of its
+    walls. A robot's own drift turns its map about its start, so a registration that lays its
+    walls right on the others' can be half a metre off at its start (``registration_errors``);
+    this says how far off its walls are.
+
+    The truth owes nothing to the registrations it scores: from the fleet's root (its frame),
+    the robot sharing the most wall with the robots placed so far is placed next, at the true
+    relative start refined on their walls (joined, not merged), until every registered robot
+    is; a robot sharing no wall with them keeps its true start."""
+    from agents.fleet.carmen_fleet import error_at_walls, local_truth, shared_wall
 
     root, poses = fr.get("fleet_root"), fr.get("poses") or {}
-    if root not in starts:
+    if root not in starts or root not in maps:
         return {}
-    reg = [r for r in fr.get("registered", []) if r in maps and r in poses and r in starts]
+    placed: dict[str, Pose] = {root: Pose.identity()}
+    todo = [r for r in fr.get("registered", []) if r != root and r in maps and r in poses and r in starts]
     out: dict[str, Any] = {}
-    for rid in reg:
-        others: Wireframe | None = None
-        for o in reg:
-            if o != rid:
-                w = maps[o].transformed(Pose(*poses[o]))
-                others = w if others is None else merge(others, w, MergeConfig(threshold=threshold))
-        if rid == root or others is None:
-            continue
-        true = local_truth(others, maps[rid], starts[root].inverse().compose(starts[rid]))
+    while todo:
+        parts = [maps[r].transformed(p) for r, p in placed.items()]
+        offsets = np.cumsum([0] + [w.n_vertices for w in parts])
+        union = Wireframe.build(np.concatenate([w.points for w in parts]),
+                                np.concatenate([w.edges + o for w, o in zip(parts, offsets)]))
+        best: tuple[float, str, Pose] | None = None
+        for rid in todo:
+            true = local_truth(union, maps[rid], starts[root].inverse().compose(starts[rid]))
+            shared = shared_wall(union, maps[rid], true)
+            if best is None or shared > best[0]:
+                best = (shared, rid, true)
+        assert best is not None
+        _, rid, true = best
+        todo.remove(rid)
+        placed[rid] = true
         te, re = error_at_walls(Pose(*poses[rid]), true, maps[rid])
         out[rid] = {"trans_err_m": round(te, 4), "rot_err_deg": round(re, 3)}
     return out
@@ -334,7 +342,6 @@ def write_outputs_carmen(
     and ``tracks`` as :func:`write_outputs_unknown`."""
     from agents.commands.run import fused_from_store, store_state
     from agents.fleet.carmen_fleet import endpoint_precision, endpoints
-    from agents.fleet.fusion import merge_threshold_of
     from mapping.lidar_metrics import align_to_points
 
     raw, msg = fused_from_store(out, published)
@@ -383,8 +390,7 @@ def write_outputs_carmen(
         "log": world.name,
         "carmen": world.path,
         **_registration_report(fr, starts),
-        "registration_errors_local": _local_errors(fr, starts, _robot_maps(out, ids),
-                                                   merge_threshold_of(msg)),
+        "registration_errors_local": _local_errors(fr, starts, _robot_maps(out, ids)),
         "fused": fused,
         "per_robot": per_robot,
     }

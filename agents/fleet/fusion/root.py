@@ -7,7 +7,9 @@ partial maps (``wiremap/<fleet>/groups/<NAME>/map``) into the fleet's fused map.
   (``fusers/<NAME>``: a group whose fuser is gone keeps its last partial in the map, listed in
   ``meta.fusers_down``, until a takeover or a restart publishes again);
 * publishes ``wiremap/<fleet>/fused/map`` (:class:`RootState`: the one-process fold when the
-  groups are the fold's subtrees, ``meta.exact``), on every change and every ``heartbeat_s``,
+  groups are the fold's subtrees, ``meta.exact``), on every change (at most every
+  ``min_interval_s``, the newest partial of each group waiting, decoded but not yet part of the
+  state, and fused on close) and every ``heartbeat_s``,
   answers queries for it and for its counters (``fused/stats``: versions, per-level latency,
   the groups' versions);
 * latency: ``latency_ms`` from each robot map's publish (the stamps a partial carries) to the
@@ -54,6 +56,7 @@ from agents.fleet.fusion.store import StoreWriter, append_latency_log
 from agents.fleet.fusion.tree import GroupKeys, RootState
 from agents.fleet.proc import freeze_heap, rss_kb
 from mapping.wireframe import Wireframe
+from wire_codec.message import MapMessage
 
 ROOT_NAME = "root"
 
@@ -157,10 +160,11 @@ class RootService:
         self.groups = set(groups) if groups else None
         self.state = RootState(threshold)
         self.heartbeat_s = heartbeat_s
-        # fuse at most this often: partials arriving meanwhile wait (the newest of each group)
+        # fuse at most this often: partials arriving meanwhile wait, decoded, the newest of each
+        # group (staged: not offered to the state, whose partials stay those of the map served)
         self.min_interval_s = max(0.0, float(min_interval_s))
         self.last_fuse = -math.inf
-        self.due = False  # a partial taken and not fused yet
+        self.staged: dict[str, tuple[MapMessage, int]] = {}
         self.store = Path(store) if store else None
         self.say = log or (lambda _s: None)
         self.lock = threading.Lock()
@@ -386,7 +390,7 @@ class RootService:
             time.sleep(timeout)
             return
         wait = timeout
-        if self.due:  # a fuse is due once min_interval_s has passed since the last: wait no longer
+        if self.staged:  # a fuse is due once min_interval_s has passed since the last: wait no longer
             wait = min(wait, max(0.0, self.last_fuse + self.min_interval_s - time.monotonic()))
         with self.cond:
             if not self.inbox and wait > 0:
@@ -394,20 +398,12 @@ class RootService:
             items, self.inbox = self.inbox, {}
         for g, (data, arrived) in items.items():
             try:
-                msg = decode_message(data)
+                self.staged[g] = (decode_message(data), arrived)
             except ValueError:
                 continue
-            if self.state.offer(g, msg):
-                self.due = True
-                self.transport_ms.extend([max(0.0, (arrived - msg.stamp_ns) / 1e6)])
         now = time.monotonic()
-        if self.due and now - self.last_fuse >= self.min_interval_s:
-            self.due = False
-            self.last_fuse = now
-            if self.state.fuse():
-                self._publish()
-            else:
-                self.state.take_latencies(time.time_ns())  # nothing new to show: not a publish
+        if self.staged and now - self.last_fuse >= self.min_interval_s:
+            self._fuse_staged(now)
         if self.current is not None and now - self.last_put > self.heartbeat_s:
             data = encode_message(self.state.fused_message(self.stamp_ns, self._meta()))
             with self.lock:
@@ -417,6 +413,22 @@ class RootService:
             doc = self.stats_doc()  # once for both (its latency percentiles are fresh)
             self._save(doc, wait=False)
             self._update_stats(doc)
+
+    def _fuse_staged(self, now: float) -> None:
+        """Offer the staged partials (the newest of each group) and fuse once if any is new."""
+        staged, self.staged = self.staged, {}
+        changed = False
+        for g, (msg, arrived) in staged.items():
+            if self.state.offer(g, msg):
+                changed = True
+                self.transport_ms.extend([max(0.0, (arrived - msg.stamp_ns) / 1e6)])
+        if not changed:
+            return
+        self.last_fuse = now
+        if self.state.fuse():
+            self._publish()
+        else:
+            self.state.take_latencies(time.time_ns())  # nothing new to show: not a publish
 
     def _put(self, data: bytes) -> None:
         self.session.put(self.keys.fused_map, data, congestion_control=self._zenoh.CongestionControl.BLOCK)
@@ -513,6 +525,11 @@ class RootService:
                 ent.undeclare()
             except Exception:
                 pass
+        if self.active and self.staged:  # partials waiting for their interval: fused, not lost
+            try:
+                self._fuse_staged(time.monotonic())
+            except Exception as exc:  # the session may be closing: the store still gets the map
+                self.say(f"could not publish the last fuse: {exc}")
         self._entities.clear()
         self._active_entities = []
         if self.active:
