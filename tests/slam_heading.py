@@ -34,7 +34,7 @@ def _wrap_deg(a: np.ndarray) -> np.ndarray:
 
 
 def _step_errors(est: np.ndarray, tr: np.ndarray) -> np.ndarray:
-    return _wrap_deg(np.degrees(np.diff(est[:, 2]))) - _wrap_deg(np.degrees(np.diff(tr[:, 2])))
+    return _wrap_deg(_wrap_deg(np.degrees(np.diff(est[:, 2]))) - _wrap_deg(np.degrees(np.diff(tr[:, 2]))))
 
 
 def _whole(path: str, settings: dict[str, Any]) -> None:
@@ -128,6 +128,9 @@ def _oracle(path: str, settings: dict[str, Any]) -> None:
             m = match_scan(pts[k], sub, guess, cfg, prior_information=p)
             if m.matched >= 10:
                 errs[name].append(math.degrees(math.remainder(m.pose[2] - tr[k][2], math.tau)))
+    if not errs["without"]:
+        print(f"{path}: no scan matched against the truth's submap")
+        return
     out = []
     for name, e in errs.items():
         a = np.array(e)
@@ -145,6 +148,8 @@ def main() -> None:
     ap.add_argument("--oracle", action="store_true")
     ap.add_argument("--scans", metavar="I0:I1")
     args = ap.parse_args()
+    if args.oracle and args.scans:
+        ap.error("--oracle matches every scan of the log: no --scans")
     settings = settings_for("lidar-slam", list(args.sets))
     for path in args.logs:
         if args.oracle:
