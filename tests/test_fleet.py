@@ -412,6 +412,9 @@ def test_run_unknown_starts_on_paper_small(tmp_path: Path):
     assert report["fleet_root"] in regs
     for rid, err in report["registration_errors"].items():
         assert err["trans_err_m"] <= 0.5 and err["rot_err_deg"] <= 2.0, (rid, err)
+    assert set(report["registration_errors_local"]) == regs - {report["fleet_root"]}
+    for rid, err in report["registration_errors_local"].items():
+        assert err["trans_err_m"] <= 0.5, (rid, err)
     assert report["registration_truth"]["accepted_wrong"] == 0
     assert sum(report["registration_truth"].values()) <= len(report["registrations"])
     # every attempt is listed (the fused map's meta carries only the last few)

@@ -10,7 +10,8 @@
   each registered pose against the true relative start), ``islands``, and every registration
   attempt with its transform's error against the truth, tallied in ``registration_truth``
   (accepted right or wrong, refused right or wrong: a refusal of a right transform is a merge
-  lost to caution).
+  lost to caution), and each registered robot's error at its walls (``registration_errors_local``,
+  as below).
 * **CARMEN fleets** (:mod:`agents.fleet.carmen_fleet`): the log split into overlapping
   stretches, one robot each, in its own odometry frame. ``report.json``
   (:func:`write_outputs_carmen`) scores each robot's map and the fused map by endpoint precision
@@ -169,14 +170,18 @@ def _common(
     }
 
 
-def _registration_report(fr: dict[str, Any], starts: dict[str, Pose]) -> dict[str, Any]:
+def _registration_report(
+    fr: dict[str, Any], starts: dict[str, Pose], maps: dict[str, Wireframe]
+) -> dict[str, Any]:
     """The report's registration keys (both kinds of run): the fleet frame's root, who joined
-    it, the islands, each registration's error against the true starts, and the attempts."""
+    it, the islands, each registration's error against the true starts and at the registered
+    robots' walls (``maps``: each robot's own map), and the attempts."""
     return {
         "fleet_root": fr.get("fleet_root"),
         "registered": list(fr.get("registered", [])),
         "islands": fr.get("islands", {}),
         "registration_errors": _pose_errors(fr, starts),
+        "registration_errors_local": _local_errors(fr, starts, maps),
         "registration_attempts": fr.get("attempts", 0),
         **_attempts_against_truth(fr.get("registrations", []), starts),
     }
@@ -316,14 +321,15 @@ def write_outputs_unknown(
                                                            "frame": "truth (aligned)"}))
     write_atomic(out / "fused.png", map_png(aligned, world.truth))
     per_robot: dict[str, Any] = {}
-    for rid, rwf in _robot_maps(out, ids).items():
+    maps = _robot_maps(out, ids)
+    for rid, rwf in maps.items():
         m = _metrics(world.truth, rwf.transformed(starts[rid]), res, partial=True) if rid in starts else {}
         m.update({"vertices": rwf.n_vertices, "edges": rwf.n_edges})
         per_robot[rid] = m
     report = {
         "world": world.name,
         "unknown_starts": True,
-        **_registration_report(fr, starts),
+        **_registration_report(fr, starts, maps),
         "fused": fused,
         "per_robot": per_robot,
         "resolution": res,
@@ -362,6 +368,7 @@ def write_outputs_carmen(
     fused: dict[str, Any] = {"vertices": wf.n_vertices, "edges": wf.n_edges, "bytes": len(raw),
                              "version": msg.seq, "robots": robots}
     per_robot: dict[str, Any] = {}
+    maps = _robot_maps(out, ids)
     if truth is not None:
         ends = endpoints(world.scans, truth)
         placed = wf.transformed(starts[root]) if root in starts else wf
@@ -377,7 +384,7 @@ def write_outputs_carmen(
         write_json(out / "fused.geojson",
                    placed.to_geojson({"kind": "fused_map", "log": world.name, "robots": robots,
                                                               "frame": "truth"}))
-        for rid, rwf in _robot_maps(out, ids).items():
+        for rid, rwf in maps.items():
             i0, i1 = stretches[rid]
             own = endpoints(world.scans[i0:i1], truth[i0:i1])
             per_robot[rid] = {
@@ -389,8 +396,7 @@ def write_outputs_carmen(
     report = {
         "log": world.name,
         "carmen": world.path,
-        **_registration_report(fr, starts),
-        "registration_errors_local": _local_errors(fr, starts, _robot_maps(out, ids)),
+        **_registration_report(fr, starts, maps),
         "fused": fused,
         "per_robot": per_robot,
     }
