@@ -1645,15 +1645,14 @@ def register(a: Wireframe, b: Wireframe, config: RegistrationConfig | None = Non
     return register_prepared(prepare(a, cfg), prepare(b, cfg), cfg)
 
 
-def refine(a: Wireframe, b: Wireframe, start: Pose, config: RegistrationConfig | None = None) -> Pose:
-    """The local refinement alone (step 5 of the module docstring): ``start`` (``b``'s frame in
-    ``a``'s) moved to the nearest alignment of ``b``'s walls on ``a``'s, by point-to-line least
-    squares with the gate annealed from ``coarse_match_dist`` to ``match_dist``. No search and
-    no decision: a transform known to be near (a true start pose, a previous registration) made
-    exact where the two maps share walls. Returns ``start`` when either map has under three
-    samples."""
+def refine(fa: MapFeatures, fb: MapFeatures, start: Pose, config: RegistrationConfig | None = None) -> Pose:
+    """The local refinement alone (step 5 of the module docstring) on features from
+    :func:`prepare`: ``start`` (``b``'s frame in ``a``'s) moved to the nearest alignment of
+    ``b``'s walls on ``a``'s, by point-to-line least squares with the gate annealed from
+    ``coarse_match_dist`` to ``match_dist``. No search and no decision: a transform known to be
+    near (a true start pose, a previous registration) made exact where the two maps share walls.
+    Returns ``start`` when either map has under three samples."""
     cfg = config or RegistrationConfig()
-    fa, fb = prepare(a, cfg), prepare(b, cfg)
     if len(fa.points) < 3 or len(fb.points) < 3:
         return start
     return _refine(fa, fb, start, cfg)

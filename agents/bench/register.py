@@ -77,7 +77,7 @@ import numpy as np
 
 from agents.argtypes import non_negative_int
 from agents.errors import UserError
-from agents.fleet.carmen_fleet import WRONG_DEG, WRONG_M
+from agents.fleet.carmen_fleet import WRONG_DEG, WRONG_M, error_at
 
 HELP = "global registration of map pairs in unrelated frames"
 
@@ -654,8 +654,9 @@ def local_truth(sa: Sample, sb: Sample) -> Any:
     map drifts, and the transform between the two start poses misplaces the other map's far
     walls by the drift of both filters, up to a metre over a CARMEN stretch."""
     from agents.fleet.carmen_fleet import local_truth as at_shared_walls
+    from mapping.registration import prepare
 
-    return at_shared_walls(sa.wf, sb.wf, _true_transform(sa, sb))
+    return at_shared_walls(prepare(sa.wf), prepare(sb.wf), _true_transform(sa, sb))
 
 
 def attempt(sa: Sample, sb: Sample, same: bool, true: Any = None) -> dict[str, Any]:
@@ -684,12 +685,8 @@ def _judged(
         from mapping.registration import prepare
 
         cb = prepare(sb.wf).centre if sb.wf.n_edges else c
-        pe = res.transform.apply(cb[None, :])[0] - true.apply(cb[None, :])[0]
-        row["trans_err"] = float(math.hypot(*pe))
-        row["rot_err"] = abs(math.remainder(res.transform.theta - true.theta, 2 * math.pi))
-        ps = res.transform.apply(cb[None, :])[0] - start_truth.apply(cb[None, :])[0]
-        row["trans_err_start"] = float(math.hypot(*ps))
-        row["rot_err_start"] = abs(math.remainder(res.transform.theta - start_truth.theta, 2 * math.pi))
+        row["trans_err"], row["rot_err"] = error_at(res.transform, true, cb)
+        row["trans_err_start"], row["rot_err_start"] = error_at(res.transform, start_truth, cb)
     if res.accepted:
         if not same:
             row["false_merge"] = True

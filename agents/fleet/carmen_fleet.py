@@ -108,39 +108,37 @@ def endpoint_precision(
 WRONG_M, WRONG_DEG = 0.5, 2.0
 
 
-def local_truth(a: Wireframe, b: Wireframe, start: Pose) -> Pose:
-    """The true transform of map ``b``'s frame in map ``a``'s *where they share walls*. Maps
-    made by robots drift, so the transform between their true start poses misplaces the walls
-    far from the starts (by both robots' drift, up to a metre over a log's stretch); the local
-    truth starts there and is refined on the two maps' walls (:func:`mapping.registration.refine`,
-    the gate annealed from 1.5 m down): the alignment of the walls both maps hold that is nearest
-    the start poses' truth."""
+def local_truth(fa: Any, fb: Any, start: Pose) -> Pose:
+    """The true transform of map ``b``'s frame in map ``a``'s *where they share walls* (``fa``,
+    ``fb``: their :func:`mapping.registration.prepare` features). Maps made by robots drift, so
+    the transform between their true start poses misplaces the walls far from the starts (by
+    both robots' drift, up to a metre over a log's stretch); the local truth starts there and is
+    refined on the two maps' walls (:func:`mapping.registration.refine`, the gate annealed from
+    1.5 m down): the alignment of the walls both maps hold that is nearest the start poses'
+    truth."""
     from mapping.registration import RegistrationConfig, refine
 
-    return refine(a, b, start, RegistrationConfig(coarse_match_dist=1.5, refine_iterations=15))
+    return refine(fa, fb, start, RegistrationConfig(coarse_match_dist=1.5, refine_iterations=15))
 
 
-def shared_wall(a: Wireframe, b: Wireframe, transform: Pose, tol: float = 0.2) -> float:
-    """Metres of map ``b``'s walls (placed by ``transform`` in ``a``'s frame) within ``tol`` of a
-    wall of ``a``: how much the two maps share there (samples every 0.1 m)."""
+def shared_wall(a_samples: FloatArray, b: Wireframe, transform: Pose, tol: float = 0.2) -> float:
+    """Metres of map ``b``'s walls (placed by ``transform``) within ``tol`` of one of map ``a``'s
+    wall samples ``a_samples`` (:func:`mapping.metrics.sample_walls`): how much the two maps
+    share there (``b`` sampled every 0.1 m)."""
     from mapping.lidar_metrics import map_precision
-    from mapping.metrics import sample_walls
 
-    if a.n_edges == 0 or b.n_edges == 0:
+    if len(a_samples) == 0 or b.n_edges == 0:
         return 0.0
-    return map_precision(b.transformed(transform), sample_walls(a, 0.05)[0], tol, 0.1) * b.total_length()
+    return map_precision(b.transformed(transform), a_samples, tol, 0.1) * b.total_length()
 
 
-def error_at_walls(found: Pose, true: Pose, b: Wireframe) -> tuple[float, float]:
-    """Translation (m) at the centre of map ``b``'s walls (``b``'s frame) and rotation (deg)
-    between two placements ``found`` and ``true`` of ``b``: how far a registration puts ``b``'s
-    walls from where ``true`` does, rather than its origin (far from the walls, a small turn
-    moves the origin a lot)."""
-    from mapping.registration import prepare
-
-    c = prepare(b).centre[None, :] if b.n_edges else np.zeros((1, 2))
-    d = found.apply(c)[0] - true.apply(c)[0]
-    return float(math.hypot(*d)), math.degrees(abs(math.remainder(found.theta - true.theta, 2 * math.pi)))
+def error_at(found: Pose, true: Pose, point: FloatArray) -> tuple[float, float]:
+    """Translation (m) at ``point`` (in the frame both poses place) and rotation (radians)
+    between two placements ``found`` and ``true`` of a map: taken at the centre of its walls,
+    how far a registration puts the walls from where ``true`` does, rather than its origin (far
+    from the walls, a small turn moves the origin a lot)."""
+    d = found.apply(point[None, :])[0] - true.apply(point[None, :])[0]
+    return float(math.hypot(*d)), abs(math.remainder(found.theta - true.theta, 2 * math.pi))
 
 
 def pose_error(found: Pose, true: Pose) -> tuple[float, float]:

@@ -237,31 +237,35 @@ def _local_errors(fr: dict[str, Any], starts: dict[str, Pose], maps: dict[str, W
     the robot sharing the most wall with the robots placed so far is placed next, at the true
     relative start refined on their walls (joined, not merged), until every registered robot
     is; a robot sharing no wall with them keeps its true start."""
-    from agents.fleet.carmen_fleet import error_at_walls, local_truth, shared_wall
+    from agents.fleet.carmen_fleet import error_at, local_truth, shared_wall
+    from mapping.metrics import sample_walls
+    from mapping.registration import prepare
 
     root, poses = fr.get("fleet_root"), fr.get("poses") or {}
     if root not in starts or root not in maps:
         return {}
     placed: dict[str, Pose] = {root: Pose.identity()}
     todo = [r for r in fr.get("registered", []) if r != root and r in maps and r in poses and r in starts]
+    feats = {r: prepare(maps[r]) for r in todo}
     out: dict[str, Any] = {}
     while todo:
         parts = [maps[r].transformed(p) for r, p in placed.items()]
         offsets = np.cumsum([0] + [w.n_vertices for w in parts])
         union = Wireframe.build(np.concatenate([w.points for w in parts]),
                                 np.concatenate([w.edges + o for w, o in zip(parts, offsets)]))
+        fu, samples = prepare(union), sample_walls(union, 0.05)[0]
         best: tuple[float, str, Pose] | None = None
         for rid in todo:
-            true = local_truth(union, maps[rid], starts[root].inverse().compose(starts[rid]))
-            shared = shared_wall(union, maps[rid], true)
+            true = local_truth(fu, feats[rid], starts[root].inverse().compose(starts[rid]))
+            shared = shared_wall(samples, maps[rid], true)
             if best is None or shared > best[0]:
                 best = (shared, rid, true)
         assert best is not None
         _, rid, true = best
         todo.remove(rid)
         placed[rid] = true
-        te, re = error_at_walls(Pose(*poses[rid]), true, maps[rid])
-        out[rid] = {"trans_err_m": round(te, 4), "rot_err_deg": round(re, 3)}
+        te, re = error_at(Pose(*poses[rid]), true, feats[rid].centre)
+        out[rid] = {"trans_err_m": round(te, 4), "rot_err_deg": round(math.degrees(re), 3)}
     return out
 
 

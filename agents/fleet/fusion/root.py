@@ -8,7 +8,7 @@ partial maps (``wiremap/<fleet>/groups/<NAME>/map``) into the fleet's fused map.
   ``meta.fusers_down``, until a takeover or a restart publishes again);
 * publishes ``wiremap/<fleet>/fused/map`` (:class:`RootState`: the one-process fold when the
   groups are the fold's subtrees, ``meta.exact``), on every change (at most every
-  ``min_interval_s``, the newest partial of each group waiting, decoded but not yet part of the
+  ``min_interval_s``, the newest partial of each group waiting in the inbox, not yet part of the
   state, and fused on close) and every ``heartbeat_s``,
   answers queries for it and for its counters (``fused/stats``: versions, per-level latency,
   the groups' versions);
@@ -56,7 +56,6 @@ from agents.fleet.fusion.store import StoreWriter, append_latency_log
 from agents.fleet.fusion.tree import GroupKeys, RootState
 from agents.fleet.proc import freeze_heap, rss_kb
 from mapping.wireframe import Wireframe
-from wire_codec.message import MapMessage
 
 ROOT_NAME = "root"
 
@@ -160,11 +159,10 @@ class RootService:
         self.groups = set(groups) if groups else None
         self.state = RootState(threshold)
         self.heartbeat_s = heartbeat_s
-        # fuse at most this often: partials arriving meanwhile wait, decoded, the newest of each
-        # group (staged: not offered to the state, whose partials stay those of the map served)
+        # fuse at most this often: partials arriving meanwhile wait in the inbox (the newest of
+        # each group, undecoded; the state's partials stay those of the map served)
         self.min_interval_s = max(0.0, float(min_interval_s))
         self.last_fuse = -math.inf
-        self.staged: dict[str, tuple[MapMessage, int]] = {}
         self.store = Path(store) if store else None
         self.say = log or (lambda _s: None)
         self.lock = threading.Lock()
@@ -389,21 +387,15 @@ class RootService:
         if not self.active:  # a standby keeps the latest partial of each group, undecoded
             time.sleep(timeout)
             return
-        wait = timeout
-        if self.staged:  # a fuse is due once min_interval_s has passed since the last: wait no longer
-            wait = min(wait, max(0.0, self.last_fuse + self.min_interval_s - time.monotonic()))
         with self.cond:
-            if not self.inbox and wait > 0:
-                self.cond.wait(wait)
-            items, self.inbox = self.inbox, {}
-        for g, (data, arrived) in items.items():
-            try:
-                self.staged[g] = (decode_message(data), arrived)
-            except ValueError:
-                continue
+            # with partials waiting, a fuse is due once min_interval_s has passed since the last
+            due = self.last_fuse + self.min_interval_s - time.monotonic() if self.inbox else timeout
+            if due > 0:
+                self.cond.wait(min(timeout, due))
+            items = self._take_due()
+        if items:
+            self._fuse(items)
         now = time.monotonic()
-        if self.staged and now - self.last_fuse >= self.min_interval_s:
-            self._fuse_staged(now)
         if self.current is not None and now - self.last_put > self.heartbeat_s:
             data = encode_message(self.state.fused_message(self.stamp_ns, self._meta()))
             with self.lock:
@@ -414,17 +406,28 @@ class RootService:
             self._save(doc, wait=False)
             self._update_stats(doc)
 
-    def _fuse_staged(self, now: float) -> None:
-        """Offer the staged partials (the newest of each group) and fuse once if any is new."""
-        staged, self.staged = self.staged, {}
+    def _take_due(self) -> dict[str, tuple[bytes, int]]:
+        """The inbox, emptied, once ``min_interval_s`` has passed since the last fuse (the lock
+        held); nothing before."""
+        if not self.inbox or time.monotonic() - self.last_fuse < self.min_interval_s:
+            return {}
+        items, self.inbox = self.inbox, {}
+        return items
+
+    def _fuse(self, items: dict[str, tuple[bytes, int]]) -> None:
+        """Offer the partials taken (the newest of each group) and fuse once if any is new."""
         changed = False
-        for g, (msg, arrived) in staged.items():
+        for g, (data, arrived) in items.items():
+            try:
+                msg = decode_message(data)
+            except ValueError:
+                continue
             if self.state.offer(g, msg):
                 changed = True
                 self.transport_ms.extend([max(0.0, (arrived - msg.stamp_ns) / 1e6)])
         if not changed:
             return
-        self.last_fuse = now
+        self.last_fuse = time.monotonic()
         if self.state.fuse():
             self._publish()
         else:
@@ -525,9 +528,11 @@ class RootService:
                 ent.undeclare()
             except Exception:
                 pass
-        if self.active and self.staged:  # partials waiting for their interval: fused, not lost
+        with self.cond:
+            items, self.inbox = self.inbox, {}
+        if self.active and items:  # partials waiting for their interval: fused, not lost
             try:
-                self._fuse_staged(time.monotonic())
+                self._fuse(items)
             except Exception as exc:  # the session may be closing: the store still gets the map
                 self.say(f"could not publish the last fuse: {exc}")
         self._entities.clear()
