@@ -277,10 +277,11 @@ def test_one_replay_process_publishes_for_each_robot_with_its_own_token(tmp_path
     from tests.fleet_util import client, in_process_router, wait_until
 
     ids = ["ra", "rb", "rc"]
+    recs: dict[str, Recording] = {}
     for k, rid in enumerate(ids):
         frames = tuple(Frame(0.5 * i, Pose.identity(), None, square(1.0 + 0.5 * i + k)) for i in range(4))
-        save_recording(tmp_path / f"{rid}.wrp",
-                       Recording(rid, "tiny", Pose(float(k), 0.0, 0.0), 0.05, frames, 4))
+        recs[rid] = Recording(rid, "tiny", Pose(float(k), 0.0, 0.0), 0.05, frames, 4)
+        save_recording(tmp_path / f"{rid}.wrp", recs[rid])
     keys = FleetKeys("t")
     maps: dict[str, list] = {r: [] for r in ids}
     alive: set[str] = set()
@@ -308,7 +309,7 @@ def test_one_replay_process_publishes_for_each_robot_with_its_own_token(tmp_path
         fh = open(tmp_path / "replay.log", "wb")
         proc = subprocess.Popen([sys.executable, *argv], stdout=fh, stderr=subprocess.STDOUT, cwd=str(REPO))
         try:
-            wait_until(lambda: all(len(maps[r]) >= 5 for r in ids), 30, "maps of every robot")
+            wait_until(lambda: all(len(maps[r]) >= 9 for r in ids), 30, "maps of every robot")
             with lock:
                 assert alive == set(ids)
                 for rid in ids:
@@ -317,6 +318,13 @@ def test_one_replay_process_publishes_for_each_robot_with_its_own_token(tmp_path
                     assert all(m.resolution == 0.05 for m in maps[rid])
                     seqs = [m.seq for m in maps[rid]]
                     assert seqs == sorted(seqs) and len(set(seqs)) == len(seqs)
+                    # past the recording's end (bodies from the robot's own cache): each map is
+                    # still the frame its meta names
+                    for m in maps[rid]:
+                        want = recs[rid].frames[m.meta["step"]].wireframe
+                        assert sorted(map(tuple, m.wireframe.points.round(3).tolist())) == \
+                            sorted(map(tuple, want.points.round(3).tolist()))
+                    assert max(m.meta["step"] for m in maps[rid]) == 3
             proc.send_signal(signal.SIGINT)
             assert proc.wait(timeout=15) == 0
             wait_until(lambda: not alive, 10, "the tokens to go")

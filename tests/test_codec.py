@@ -277,13 +277,39 @@ def test_encode_reuses_the_body_of_the_same_map_and_gives_the_same_bytes() -> No
                      pose=Pose.identity(), frame="",
                      origin=Pose.identity(), resolution=0.05, wireframe=wf, meta={"boot": 1})
     first = encode(msg)
-    assert any(entry[0] is wf for entry in codec._body_cache.values())
+    assert codec._shared_bodies.holds(wf)
     again = replace(msg, seq=2, stamp_ns=6)
     assert encode(again) == encode_with_plan(again)[0]
     assert encode(msg) == first
     # another resolution is another body
     coarse = replace(msg, resolution=0.2)
     assert encode(coarse) == encode_with_plan(coarse)[0] != first
-    for k in range(2 * codec._BODY_CACHE_SIZE):  # bounded
+    for k in range(2 * codec._shared_bodies.max_entries):  # bounded
         encode(replace(msg, wireframe=wf.transformed(Pose(0.1 * k, 0.0, 0.0))))
-    assert len(codec._body_cache) <= codec._BODY_CACHE_SIZE
+    assert len(codec._shared_bodies) == codec._shared_bodies.max_entries
+    assert not codec._shared_bodies.holds(wf)
+
+
+def test_a_callers_own_body_cache_keeps_its_maps_and_gives_the_same_bytes() -> None:
+    """A replayed recording's maps encoded through its own cache, as large as the recording:
+    every map's body stays held however many other maps the shared cache sees meanwhile, and
+    every message is byte for byte a fresh encoding."""
+    from wire_codec import BodyCache, MapMessage, MessageKind, encode
+    from wire_codec.codec import encode_with_plan
+
+    with pytest.raises(ValueError, match="at least one"):
+        BodyCache(0)
+    base = Wireframe.build([(0.0, 0.0), (4.0, 0.0), (4.0, 3.0)], [(0, 1), (1, 2)], [Label.NOMINAL] * 3)
+    frames = [base.transformed(Pose(0.3 * k, 0.1 * k, 0.01 * k)) for k in range(100)]
+    mine = BodyCache(len(frames))
+    for rnd in range(2):
+        for k, wf in enumerate(frames):
+            msg = MapMessage(kind=MessageKind.ROBOT_MAP, sender="r1", seq=1 + k + rnd * 100, stamp_ns=5,
+                             pose=Pose.identity(), frame="", origin=Pose.identity(), resolution=0.05,
+                             wireframe=wf, meta={"boot": 1})
+            assert encode(msg, cache=mine) == encode_with_plan(msg)[0] == encode(msg)
+    assert len(mine) == len(frames) and all(mine.holds(wf) for wf in frames)
+    small = BodyCache(2)
+    for wf in frames[:3]:
+        small.body(wf, 50, None)
+    assert len(small) == 2 and not small.holds(frames[0]) and small.holds(frames[2])

@@ -6,7 +6,7 @@ body. Every decoding failure is a :class:`CodecError`. No I/O, no zenoh, no reru
 """
 
 from wire_codec.body import MAX_ROBOTS, MAX_ROBOTS_V1
-from wire_codec.codec import VERSION, VERSIONS, decode, encode, peek, version_for
+from wire_codec.codec import VERSION, VERSIONS, BodyCache, decode, encode, peek, version_for
 from wire_codec.errors import (
     ChecksumError,
     CodecError,
@@ -25,6 +25,7 @@ __all__ = [
     "MAX_ROBOTS_V1",
     "VERSION",
     "VERSIONS",
+    "BodyCache",
     "ChecksumError",
     "CodecError",
     "EncodeError",

@@ -67,8 +67,10 @@ _KINDS = frozenset(k.value for k in MessageKind)
 
 
 # ---------------------------------------------------------------------------------------- encode
-def encode(message: MapMessage) -> bytes:
-    """Serialise a :class:`MapMessage` to bytes (FORMAT.md).
+def encode(message: MapMessage, *, cache: BodyCache | None = None) -> bytes:
+    """Serialise a :class:`MapMessage` to bytes (FORMAT.md). The body is taken from ``cache``
+    (default: a cache of the last 64 maps shared by every caller) when the same ``Wireframe``
+    object was encoded before: the bytes are the same either way.
 
     Raises
     ------
@@ -78,7 +80,7 @@ def encode(message: MapMessage) -> bytes:
         (``MAX_ROBOTS``) or a mask bit beyond them, a vertex too far from the origin for the
         resolution, unpackable ``meta``.
     """
-    return _encode(message, cached=True)[0]
+    return _encode(message, _shared_bodies if cache is None else cache)[0]
 
 
 def version_for(n_robots: int) -> int:
@@ -87,38 +89,60 @@ def version_for(n_robots: int) -> int:
     return 1 if n_robots <= MAX_ROBOTS_V1 else 2
 
 
-# The bodies of the last few maps encoded, by the Wireframe object (immutable: frozen, read-only
-# arrays) and what else the body depends on: the same map sent again with a new envelope (a
-# robot's heartbeat, its change probe, the fusion service's stored copy of what it published)
-# costs only the envelope. The entry holds the map, so its id cannot be reused meanwhile.
-_BODY_CACHE_SIZE = 64
-_body_cache: dict[tuple[int, int, int | None], tuple[Wireframe, bytes]] = {}
-_body_lock = threading.Lock()
+class BodyCache:
+    """Encoded bodies by ``Wireframe`` object (immutable: frozen, read-only arrays) and what else
+    the body depends on (resolution, robot count), so that the same map sent again with a new
+    envelope costs only the envelope. An entry holds its map, so the map's ``id`` cannot be
+    reused while the entry lives; the oldest entry goes first once ``max_entries`` are held.
+    Thread-safe.
+
+    :func:`encode` keeps one of 64 entries for every caller (a robot's heartbeat and change
+    probe, the fusion service's stored copy of what it published); a caller that sends a known
+    set of maps over and over (a replayed recording) gives :func:`encode` its own, as large as
+    the set."""
+
+    def __init__(self, max_entries: int = 64) -> None:
+        if max_entries < 1:
+            raise ValueError(f"a body cache holds at least one entry, got {max_entries}")
+        self.max_entries = int(max_entries)
+        self._entries: dict[tuple[int, int, int | None], tuple[Wireframe, bytes]] = {}
+        self._lock = threading.Lock()
+
+    def __len__(self) -> int:
+        return len(self._entries)
+
+    def holds(self, wf: Wireframe) -> bool:
+        """Whether a body of ``wf`` (at any resolution) is held."""
+        with self._lock:
+            return any(entry[0] is wf for entry in self._entries.values())
+
+    def body(self, wf: Wireframe, res_mm: int, n_robots: int | None) -> bytes:
+        """The body bytes of ``wf`` at ``res_mm`` for ``n_robots`` (encoded on a miss)."""
+        key = (id(wf), res_mm, n_robots)
+        with self._lock:
+            hit = self._entries.get(key)
+        if hit is not None and hit[0] is wf:
+            return hit[1]
+        data = encode_body(wf, res_mm / 1e3, n_robots).data
+        with self._lock:
+            while len(self._entries) >= self.max_entries:
+                self._entries.pop(next(iter(self._entries)))
+            self._entries[key] = (wf, data)
+        return data
 
 
-def _body_bytes(wf: Wireframe, res_mm: int, n_robots: int | None) -> bytes:
-    key = (id(wf), res_mm, n_robots)
-    with _body_lock:
-        hit = _body_cache.get(key)
-    if hit is not None and hit[0] is wf:
-        return hit[1]
-    data = encode_body(wf, res_mm / 1e3, n_robots).data
-    with _body_lock:
-        if len(_body_cache) >= _BODY_CACHE_SIZE:
-            _body_cache.pop(next(iter(_body_cache)))
-        _body_cache[key] = (wf, data)
-    return data
+_shared_bodies = BodyCache(64)
 
 
 def encode_with_plan(message: MapMessage) -> tuple[bytes, EncodedBody]:
     """:func:`encode`, also returning the encoded body (with the vertex and edge order the
     decoder will produce), for tests and benchmarks."""
-    out, body = _encode(message, cached=False)
+    out, body = _encode(message, None)
     assert body is not None
     return out, body
 
 
-def _encode(message: MapMessage, cached: bool) -> tuple[bytes, EncodedBody | None]:
+def _encode(message: MapMessage, cache: BodyCache | None) -> tuple[bytes, EncodedBody | None]:
     if not isinstance(message, MapMessage):
         raise EncodeError(f"expected a MapMessage, got {type(message).__name__}")
     try:
@@ -160,8 +184,8 @@ def _encode(message: MapMessage, cached: bool) -> tuple[bytes, EncodedBody | Non
     meta = dict(message.meta)
     _check_meta(meta, EncodeError)
     body: EncodedBody | None = None
-    if cached:
-        data = _body_bytes(wf, res_mm, n_robots)
+    if cache is not None:
+        data = cache.body(wf, res_mm, n_robots)
     else:
         body = encode_body(wf, res_mm / 1e3, n_robots)
         data = body.data
