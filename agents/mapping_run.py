@@ -589,7 +589,7 @@ def carmen_inputs(
         is measured again during the run (:func:`mapping.lidar_frontend.online_increments`),
         for a report of the prior the SLAM ended with.
     """
-    from mapping.extract import ExtractConfig, extract_corners
+    from mapping.extract import ExtractConfig
     from mapping.lidar_frontend import FrontendConfig, scan_increment
 
     ecfg = extract if extract is not None else ExtractConfig()
@@ -623,11 +623,6 @@ def carmen_inputs(
         slam_odo = iter(slam_increments(pts, wheels, fcfg.slam, cal.noise)[0])
     prev_points: NDArray[np.float64] | None = None
     for k, ls in enumerate(scans):
-        rmax = float(ls.max_range) if max_range is None else min(float(ls.max_range), max_range)
-        raw = np.asarray(ls.ranges, dtype=np.float64)
-        angles = np.asarray(ls.angles, dtype=np.float64) - turn
-        ranges = np.where(raw >= rmax, np.inf, raw)
-        scan = extract_corners(ranges, angles, rmax, ecfg)
         points = pts[k]
         odo = wheels[k]
         if slam_odo is not None:
@@ -636,7 +631,111 @@ def carmen_inputs(
             # The wheel increment refined by the previous scan (mapping.lidar_frontend.scan_increment).
             odo = scan_increment(prev_points, points, odo, fcfg)[0]
         prev_points = points
-        yield ScanInput(float(ls.t), odo, scan, None if truth is None else truth[k], points)
+        yield _scan_input(ls, max_range, turn, ecfg, odo, points, None if truth is None else truth[k])
+
+
+def _scan_input(
+    ls: Any, max_range: float | None, turn: float, extract: Any, odometry: Pose, points: NDArray[np.float64],
+    true_pose: Pose | None,
+) -> ScanInput:
+    """One real scan's filter input: its corners (split-and-merge of the ranges, bearings turned
+    by ``-turn``, returns at the scanner's or ``max_range``'s limit no return), the motion into
+    it and its points to match."""
+    from mapping.extract import extract_corners
+
+    rmax = float(ls.max_range) if max_range is None else min(float(ls.max_range), max_range)
+    raw = np.asarray(ls.ranges, dtype=np.float64)
+    angles = np.asarray(ls.angles, dtype=np.float64) - turn
+    ranges = np.where(raw >= rmax, np.inf, raw)
+    return ScanInput(float(ls.t), odometry, extract_corners(ranges, angles, rmax, extract), true_pose, points)
+
+
+class LiveInputs:
+    """Real scans that come one at a time (a robot's own lidar, live) as filter inputs, through a
+    profile whose SLAM runs scan by scan (``lidar-slam-online``): what :func:`carmen_inputs`
+    gives for the same scans, input for input.
+
+    :meth:`add` takes a scan (:class:`agents.files.carmen.LaserScan`: ranges, bearings, time,
+    the wheels' pose) and returns the inputs it made ready. The calibrations (the laser's yaw, the
+    wheels' heading noise: :func:`calibrate_log`) rest on the first ``frontend.calibration_scans``
+    scans, so those scans wait until the last of them has come (``calibrating`` is true
+    meanwhile) and then come out together; every later scan comes out at once. :meth:`finish`
+    calibrates on what came when the stream ends before that.
+
+    Raises ``ValueError`` for a front end that needs the whole log first: a SLAM that is not
+    ``online`` (``lidar-slam`` smooths over every scan before its first increment), or
+    ``calibration_scans`` 0 (calibrations on every scan)."""
+
+    def __init__(
+        self, *, max_range: float | None, extract: Any, frontend: Any, yaw: float | None = None,
+        on_noise: Callable[[Any], None] | None = None,
+    ) -> None:
+        from mapping.extract import ExtractConfig
+        from mapping.lidar_frontend import FrontendConfig
+
+        self.frontend = frontend if frontend is not None else FrontendConfig()
+        self.extract = extract if extract is not None else ExtractConfig()
+        if self.frontend.slam.enabled and not self.frontend.slam.online:
+            raise ValueError("a live robot needs a SLAM that runs scan by scan (slam.online, the "
+                             "lidar-slam-online profile): lidar-slam smooths over the whole log first")
+        if self.frontend.calibration_scans <= 0:
+            raise ValueError("a live robot calibrates on its first scans: frontend.calibration_scans "
+                             "must be > 0 (0 means the whole log)")
+        self.max_range = max_range
+        self.yaw = yaw
+        self.on_noise = on_noise
+        self.calibration: LogCalibration | None = None
+        self._held: list[Any] = []
+        self._turn_matrix: NDArray[np.float64] | None = None
+        self._slam: Any = None
+        self._prev_odom: Pose | None = None
+        self._prev_points: NDArray[np.float64] | None = None
+
+    @property
+    def calibrating(self) -> bool:
+        return self.calibration is None
+
+    def add(self, ls: Any) -> list[ScanInput]:
+        if self.calibration is None:
+            self._held.append(ls)
+            if len(self._held) < self.frontend.calibration_scans:
+                return []
+            return self._calibrate()
+        return [self._next(ls, self._points_of(ls))]
+
+    def finish(self) -> list[ScanInput]:
+        """The held scans' inputs when the stream ended while calibrating (else none)."""
+        return self._calibrate() if self.calibration is None and self._held else []
+
+    def _calibrate(self) -> list[ScanInput]:
+        from mapping.lidar_frontend import OnlineSlam
+
+        held, self._held = self._held, []
+        cal = calibrate_log(held, self.frontend, self.yaw)
+        self.calibration = cal
+        if cal.turn:
+            c, s = math.cos(cal.turn), math.sin(cal.turn)
+            self._turn_matrix = np.array([[c, -s], [s, c]])  # as calibrate_log turns the points
+        if self.frontend.slam.enabled:
+            self._slam = OnlineSlam(self.frontend, cal.noise, self.on_noise)
+        return [self._next(ls, pts) for ls, pts in zip(held, cal.points, strict=True)]
+
+    def _points_of(self, ls: Any) -> NDArray[np.float64]:
+        pts = carmen_points([ls], self.frontend)[0]
+        return pts if self._turn_matrix is None else pts @ self._turn_matrix
+
+    def _next(self, ls: Any, points: NDArray[np.float64]) -> ScanInput:
+        from mapping.lidar_frontend import scan_increment
+
+        assert self.calibration is not None
+        odo = Pose.identity() if self._prev_odom is None else self._prev_odom.between(ls.odom)
+        self._prev_odom = ls.odom
+        if self._slam is not None:
+            odo = self._slam.add(points, odo)
+        elif self.frontend.scan_odometry and self._prev_points is not None:
+            odo = scan_increment(self._prev_points, points, odo, self.frontend)[0]
+        self._prev_points = points
+        return _scan_input(ls, self.max_range, self.calibration.turn, self.extract, odo, points, None)
 
 
 def scan_fov(angles: Any) -> float:

@@ -401,34 +401,62 @@ def slam_increments(
 ONLINE_RECALIBRATE = 25
 
 
+class OnlineSlam:
+    """The lidar SLAM scan by scan, as a robot mapping while it drives runs it
+    (``config.slam.online``): :meth:`add` takes one scan's points and the wheels' motion into it
+    and gives the motion from the pose the SLAM gave the scan before to the pose it gives this
+    one (the scan-to-map match, loops closed so far; no refine passes). ``noise``: the wheels'
+    heading noise measured so far (``odo_calibration``); while it rests on too few scan pairs and
+    ``config.calibration_scans`` limited it to the first scans, it is measured again on every
+    scan so far each :data:`ONLINE_RECALIBRATE` scans, and ``on_noise`` is given the measure the
+    SLAM then runs with. The scans are kept only until then."""
+
+    def __init__(
+        self, config: FrontendConfig, noise: OdometryNoise | None = None,
+        on_noise: Callable[[OdometryNoise], None] | None = None,
+    ) -> None:
+        self.config = config
+        self.on_noise = on_noise
+        slam_cfg = config.slam if noise is None else calibrated_slam(config.slam, noise)
+        self.slam = LidarSlam(slam_cfg, start=np.zeros(3))
+        self.pending = (config.slam.odo_calibration and config.calibration_scans > 0
+                        and (noise is None or noise.pairs < config.slam.odo_calibration_min_pairs))
+        self._points: list[FloatArray] = []
+        self._odometry: list[Pose] = []
+        self._last: Pose | None = None
+        self.scans = 0
+
+    def add(self, points: FloatArray, odometry: Pose) -> Pose:
+        k = self.scans
+        cfg = self.config
+        if self.pending and k > cfg.calibration_scans and k % ONLINE_RECALIBRATE == 0:
+            now_noise = odometry_noise(self._points, self._odometry, cfg)
+            if now_noise.pairs >= cfg.slam.odo_calibration_min_pairs:
+                self.slam.config = calibrated_slam(cfg.slam, now_noise)
+                self.pending = False
+                self._points, self._odometry = [], []
+                if self.on_noise is not None:
+                    self.on_noise(now_noise)
+        if self.pending:
+            self._points.append(points)
+            self._odometry.append(odometry)
+        prior = np.zeros(3) if k == 0 else np.array(odometry.as_tuple())
+        now = Pose(*map(float, self.slam.add(points, prior)))
+        step = Pose.identity() if self._last is None else self._last.between(now)
+        self._last = now
+        self.scans += 1
+        return step
+
+
 def online_increments(
     points: list[FloatArray], odometry: list[Pose], config: FrontendConfig,
     noise: OdometryNoise | None = None, on_noise: Callable[[OdometryNoise], None] | None = None,
 ) -> Iterator[Pose]:
-    """The motion between consecutive scans as the lidar SLAM gives it scan by scan: from the
-    pose :meth:`LidarSlam.add` gave the scan before to the pose it gives this one (the
-    scan-to-map match, loops closed so far; no refine passes), as a robot mapping while it
-    drives has it (``config.slam.online``). ``noise``: the wheels' heading noise measured so far
-    (``odo_calibration``); while it rests on too few scan pairs and ``config.calibration_scans``
-    limited it to the first scans, it is measured again on every scan so far each
-    :data:`ONLINE_RECALIBRATE` scans, and ``on_noise`` is given the measure the SLAM then runs
-    with. Scan ``k``'s increment uses ``points[:k + 1]`` and ``odometry[:k + 1]`` only."""
-    slam_cfg = config.slam if noise is None else calibrated_slam(config.slam, noise)
-    slam = LidarSlam(slam_cfg, start=np.zeros(3))
-    pending = (config.slam.odo_calibration and config.calibration_scans > 0
-               and (noise is None or noise.pairs < config.slam.odo_calibration_min_pairs))
-    last: Pose | None = None
-    for k, (pts, odo) in enumerate(zip(points, odometry, strict=True)):
-        if pending and k > config.calibration_scans and k % ONLINE_RECALIBRATE == 0:
-            now_noise = odometry_noise(points[:k], odometry[:k], config)
-            if now_noise.pairs >= config.slam.odo_calibration_min_pairs:
-                slam.config = calibrated_slam(config.slam, now_noise)
-                pending = False
-                if on_noise is not None:
-                    on_noise(now_noise)
-        now = Pose(*map(float, slam.add(pts, np.zeros(3) if k == 0 else np.array(odo.as_tuple()))))
-        yield Pose.identity() if last is None else last.between(now)
-        last = now
+    """:class:`OnlineSlam` over a log's scans: scan ``k``'s increment uses ``points[:k + 1]`` and
+    ``odometry[:k + 1]`` only."""
+    slam = OnlineSlam(config, noise, on_noise)
+    for pts, odo in zip(points, odometry, strict=True):
+        yield slam.add(pts, odo)
 
 
 class LidarFrontend:
