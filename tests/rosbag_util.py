@@ -34,55 +34,23 @@ def stamp_of(t: float) -> tuple[int, int]:
     return int(sec), int(nsec)
 
 
-class BagWriter:
-    """A bag of format ``fmt`` (one of :data:`FORMATS`) at ``path``, written message by message;
-    a context manager (the bag is complete when it closes)."""
+class MessageMaker:
+    """Messages of a ROS distribution (ROS 1 Noetic, else ROS 2 Humble) built from plain values,
+    and their bytes (ROS 1 serialisation, else CDR: what a ROS 2 robot puts on Zenoh)."""
 
-    def __init__(self, path: Path, fmt: str) -> None:
-        from rosbags.rosbag1 import Writer as Writer1
-        from rosbags.rosbag2 import StoragePlugin
-        from rosbags.rosbag2 import Writer as Writer2
+    def __init__(self, ros1: bool = False) -> None:
         from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
-        self.ros1 = fmt == "ros1"
+        self.ros1 = ros1
         self.store = get_typestore(Stores.ROS1_NOETIC if self.ros1 else Stores.ROS2_HUMBLE)
         if self.ros1:  # the Noetic store lacks tf2_msgs; its definition as a ROS 1 bag carries it
             self.store.register(get_types_from_msg("geometry_msgs/TransformStamped[] transforms",
                                                    "tf2_msgs/msg/TFMessage"))
-        if self.ros1:
-            self.writer: Any = Writer1(path)
-        else:
-            plugin = StoragePlugin.MCAP if fmt == "mcap" else StoragePlugin.SQLITE3
-            self.writer = Writer2(path, version=9, storage_plugin=plugin)
-        self.connections: dict[str, Any] = {}
         self.seq = 0
 
-    def __enter__(self) -> BagWriter:
-        self.writer.open()
-        return self
-
-    def __exit__(
-        self, kind: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
-    ) -> None:
-        self.writer.close()
-
-    # ------------------------------------------------------------------ writing
     def serialize(self, msg: Any) -> bytes:
         fn = self.store.serialize_ros1 if self.ros1 else self.store.serialize_cdr
         return bytes(fn(msg, msg.__msgtype__))
-
-    def write(self, topic: str, t: float, msg: Any) -> None:
-        """``msg`` on ``topic``, recorded at ``t``."""
-        self.write_raw(topic, msg.__msgtype__, t, self.serialize(msg))
-
-    def write_raw(self, topic: str, msgtype: str, t: float, data: bytes) -> None:
-        """Bytes as they are (a damaged message) on ``topic`` of type ``msgtype``."""
-        conn = self.connections.get(topic)
-        if conn is None:
-            conn = self.writer.add_connection(topic, msgtype, typestore=self.store)
-            self.connections[topic] = conn
-        sec, nsec = stamp_of(t)
-        self.writer.write(conn, sec * 1_000_000_000 + nsec, data)
 
     # ------------------------------------------------------------------ messages
     def header(self, t: float, frame: str) -> Any:
@@ -154,6 +122,47 @@ class BagWriter:
             for parent, child, p in links
         ]  # fmt: skip
         return types["tf2_msgs/msg/TFMessage"](transforms=out)
+
+
+class BagWriter(MessageMaker):
+    """A bag of format ``fmt`` (one of :data:`FORMATS`) at ``path``, written message by message;
+    a context manager (the bag is complete when it closes)."""
+
+    def __init__(self, path: Path, fmt: str) -> None:
+        from rosbags.rosbag1 import Writer as Writer1
+        from rosbags.rosbag2 import StoragePlugin
+        from rosbags.rosbag2 import Writer as Writer2
+
+        super().__init__(fmt == "ros1")
+        if self.ros1:
+            self.writer: Any = Writer1(path)
+        else:
+            plugin = StoragePlugin.MCAP if fmt == "mcap" else StoragePlugin.SQLITE3
+            self.writer = Writer2(path, version=9, storage_plugin=plugin)
+        self.connections: dict[str, Any] = {}
+
+    def __enter__(self) -> BagWriter:
+        self.writer.open()
+        return self
+
+    def __exit__(
+        self, kind: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        self.writer.close()
+
+    # ------------------------------------------------------------------ writing
+    def write(self, topic: str, t: float, msg: Any) -> None:
+        """``msg`` on ``topic``, recorded at ``t``."""
+        self.write_raw(topic, msg.__msgtype__, t, self.serialize(msg))
+
+    def write_raw(self, topic: str, msgtype: str, t: float, data: bytes) -> None:
+        """Bytes as they are (a damaged message) on ``topic`` of type ``msgtype``."""
+        conn = self.connections.get(topic)
+        if conn is None:
+            conn = self.writer.add_connection(topic, msgtype, typestore=self.store)
+            self.connections[topic] = conn
+        sec, nsec = stamp_of(t)
+        self.writer.write(conn, sec * 1_000_000_000 + nsec, data)
 
 
 def write_scans_bag(

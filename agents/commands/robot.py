@@ -48,9 +48,29 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="replay this CARMEN log instead of simulating a world")
     parser.add_argument("--scans", metavar="I0:I1", help="with --carmen: replay the log's scans I0 to I1-1")
     parser.add_argument(
-        "--lidar-profile", choices=tuple(LIDAR_PROFILES), default="lidar-slam",
+        "--scan-key", metavar="KEY",
+        help="map the robot's own lidar, live: ROS 2 sensor_msgs/LaserScan (CDR) on this Zenoh key "
+        "expression (zenoh-bridge-ros2dds: the topic's name, e.g. scan; rmw_zenoh: */scan/**); "
+        "needs --odom-key",
+    )
+    parser.add_argument(
+        "--odom-key", metavar="KEY",
+        help="with --scan-key: nav_msgs/Odometry (CDR) on this Zenoh key expression (e.g. odom)",
+    )
+    parser.add_argument(
+        "--laser-mount", metavar="X,Y[,THETA]",
+        help="with --scan-key: the laser's pose on the robot's base (metres, radians; default 0,0,0)",
+    )
+    parser.add_argument(
+        "--calibration-scans", type=int, default=None, metavar="N",
+        help="with --scan-key: scans held at the start to calibrate the laser's yaw and the wheels' "
+        "noise before the first is mapped (default: the profile's, 100)",
+    )
+    parser.add_argument(
+        "--lidar-profile", choices=tuple(LIDAR_PROFILES), default=None,
         help="with --carmen: lidar-slam, lidar SLAM over the stretch under the filter (default), or "
-        "lidar, the filter's corner ICP alone (as wiremap map --lidar-profile)",
+        "lidar, the filter's corner ICP alone (as wiremap map --lidar-profile); with --scan-key: "
+        "lidar-slam-online (the default and the only one that maps scans as they come)",
     )
     parser.add_argument(
         "--start", metavar="X,Y[,THETA]",
@@ -109,6 +129,15 @@ def options_from_args(args: argparse.Namespace) -> RobotOptions:
     from agents.fleet.robot import RobotOptions, parse_route, start_pose_of
 
     rid = check_name(args.id)
+    if args.scan_key or args.odom_key:
+        if args.carmen or args.world:
+            raise UserError("--scan-key maps a live lidar: give it without --carmen or --world")
+        if args.sensor != "corners" or args.scene_seed is not None or args.route:
+            raise UserError("--sensor, --scene-seed and --route are for a simulated world; "
+                            "--scan-key maps the robot's own lidar")
+        return _live_options(args, rid)
+    if args.laser_mount or args.calibration_scans is not None:
+        raise UserError("--laser-mount and --calibration-scans are for a live lidar (--scan-key)")
     if args.carmen:
         if args.sensor != "corners" or args.scene_seed is not None:
             raise UserError("--sensor and --scene-seed are for a simulated world; "
@@ -216,8 +245,83 @@ def _carmen_options(args: argparse.Namespace, rid: str) -> RobotOptions:
         particles=resolved.config.particles, resolution=args.resolution,
         threshold=resolved.config.merge_threshold, heartbeat_s=args.heartbeat,
         viz_hz=max(0.0, args.viz_rate), duration=args.duration, unknown_start=True, carmen=args.carmen,
-        scans=scans, filter_overrides=resolved.overrides, lidar_profile=args.lidar_profile,
+        scans=scans, filter_overrides=resolved.overrides, lidar_profile=args.lidar_profile or "lidar-slam",
     )
+
+
+def _live_options(args: argparse.Namespace, rid: str) -> RobotOptions:
+    """A robot mapping its own lidar, live (:mod:`agents.fleet.live_lidar`): in the fleet frame
+    from ``--start`` when given, else in its own frame (unknown start, registered by fusion)."""
+    from agents.fleet.live_lidar import parse_mount
+    from agents.fleet.robot import RobotOptions
+
+    if not (args.scan_key and args.odom_key):
+        raise UserError("a live lidar needs both --scan-key and --odom-key")
+    for flag, key in (("--scan-key", args.scan_key), ("--odom-key", args.odom_key)):
+        _check_key_expr(flag, key)
+    profile = args.lidar_profile or "lidar-slam-online"
+    if profile != "lidar-slam-online":
+        raise UserError(f"--lidar-profile {profile} needs the whole log first; a live lidar maps with "
+                        "lidar-slam-online (its SLAM runs scan by scan)")
+    extra: dict[str, Any] = {}
+    if args.calibration_scans is not None:
+        if args.calibration_scans < 1:
+            raise UserError(f"--calibration-scans must be >= 1, got {args.calibration_scans}")
+        extra["calibration_scans"] = int(args.calibration_scans)
+    mount = Pose.identity()
+    if args.laser_mount:
+        try:
+            mount = parse_mount(args.laser_mount)
+        except ValueError as exc:
+            raise UserError(str(exc)) from None
+    start, unknown = Pose.identity(), True
+    if args.start:
+        text = args.start if args.start.count(",") == 2 else args.start + ",0"
+        try:
+            start = Pose.parse(text)
+        except ValueError as exc:
+            raise UserError(f"--start {args.start}: {exc}") from None
+        unknown = bool(args.unknown_start)
+    for name, v in (("--resolution", args.resolution), ("--threshold", args.threshold),
+                    ("--heartbeat", args.heartbeat)):
+        if v is not None and not (math.isfinite(v) and v > 0.0):
+            raise UserError(f"{name} must be a positive number, got {v}")
+    resolved = _filter_config(args)
+    return RobotOptions(
+        robot=rid, world="", start=start, rate=0.0, seed=args.seed,
+        particles=resolved.config.particles, resolution=args.resolution,
+        threshold=resolved.config.merge_threshold, heartbeat_s=args.heartbeat,
+        viz_hz=max(0.0, args.viz_rate), duration=args.duration, unknown_start=unknown,
+        filter_overrides=resolved.overrides, lidar_profile=profile,
+        live=(args.scan_key, args.odom_key), mount=mount, extra=extra,
+    )
+
+
+def _calibration_scans(opts: RobotOptions) -> int:
+    from agents.fleet.live_lidar import live_profile
+
+    return int(live_profile(opts)[2].calibration_scans)
+
+
+def _live_steps(session: Any, opts: RobotOptions, stop: Any, subs: list[Any]) -> tuple[Any, Any]:
+    """Subscribe to the live scans and odometry (``subs`` gets the subscribers); the robot's
+    steps over them (:func:`agents.fleet.live_lidar.live_steps`) and the source's counters."""
+    from agents.fleet.live_lidar import LiveLidar, live_steps
+
+    assert opts.live is not None
+    source = LiveLidar(mount=opts.mount)
+    subs.append(session.declare_subscriber(opts.live[0], lambda s: source.on_scan(s.payload)))
+    subs.append(session.declare_subscriber(opts.live[1], lambda s: source.on_odometry(s.payload)))
+    return live_steps(opts, source, stop), source.snapshot
+
+
+def _check_key_expr(flag: str, key: str) -> None:
+    import zenoh
+
+    try:
+        zenoh.KeyExpr(key)
+    except Exception as exc:  # zenoh's own error type for a malformed key expression
+        raise UserError(f"{flag} {key!r} is not a Zenoh key expression ({exc})") from None
 
 
 def run(args: argparse.Namespace) -> int:
@@ -235,16 +339,18 @@ def run(args: argparse.Namespace) -> int:
     def say(text: str) -> None:
         print(f"wiremap robot {rid}: {text}", flush=True)
 
-    # load the world and take the first scan before going on the bus, so that a bad world,
-    # start or route is a one-line error, not a traceback in the middle of the run
-    steps = default_steps(opts)
-    try:
-        first = next(steps)
-    except StopIteration:
-        first = None
-    except ValueError as exc:
-        raise UserError(f"cannot simulate {rid} in {args.world}: {exc}") from None
-    steps = itertools.chain([first], steps) if first is not None else iter(())
+    steps: Any = None
+    if opts.live is None:
+        # load the world and take the first scan before going on the bus, so that a bad world,
+        # start or route is a one-line error, not a traceback in the middle of the run
+        steps = default_steps(opts)
+        try:
+            first = next(steps)
+        except StopIteration:
+            first = None
+        except ValueError as exc:
+            raise UserError(f"cannot simulate {rid} in {args.world}: {exc}") from None
+        steps = itertools.chain([first], steps) if first is not None else iter(())
     with StopFlag() as stop:
         watch_parent(args.parent_pid, stop)
         if args.router_timeout is not None and not (
@@ -258,17 +364,37 @@ def run(args: argparse.Namespace) -> int:
         )
         if session is None:
             return 0
-        agent = RobotAgent(session, keys, opts, steps, say)
+        live_subs: list[Any] = []
         try:
-            agent.start()
-            sensor = (f" (lidar profile {opts.lidar_profile})" if opts.carmen
-                      else f" (sensor {opts.extra.get('sensor', 'corners')})")
-            say(f"on the bus as {keys.robot_map(rid)}{sensor}")
-            st = agent.run(stop)
+            counts = None
+            if opts.live is not None:
+                steps, counts = _live_steps(session, opts, stop, live_subs)
+            agent = RobotAgent(session, keys, opts, steps, say, live_counts=counts)
+            try:
+                agent.start()
+                if opts.live is not None:
+                    sensor = (f" (live lidar: scans on {opts.live[0]}, odometry on {opts.live[1]}; "
+                              f"{'unknown start' if opts.unknown_start else 'start given'}; the first "
+                              f"{_calibration_scans(opts)} scans calibrate, then each is mapped as it comes)")
+                elif opts.carmen:
+                    sensor = f" (lidar profile {opts.lidar_profile})"
+                else:
+                    sensor = f" (sensor {opts.extra.get('sensor', 'corners')})"
+                say(f"on the bus as {keys.robot_map(rid)}{sensor}")
+                st = agent.run(stop)
+            finally:
+                agent.close()
         finally:
-            agent.close()
+            for sub in live_subs:
+                try:
+                    sub.undeclare()
+                except Exception:  # the session is already closed
+                    pass
             session.close()
     say(f"stopped after {st.step} steps (t={st.t:.1f} s): {st.maps_sent} maps, {st.bytes_sent} bytes")
+    if st.live is not None:
+        say("live lidar: " + ", ".join(f"{k} {v}" for k, v in st.live.items() if k != "last_issue")
+            + (f"; last issue: {st.live['last_issue']}" if st.live.get("last_issue") else ""))
     if args.status_file:
         from agents.files.io import write_json
 

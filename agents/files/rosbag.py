@@ -617,6 +617,45 @@ def read_rosbag(
     return _assemble(log, where, fmt, topics, base_frame)
 
 
+# ---------------------------------------------------------------------------- one message at a time
+class MessageError(ValueError):
+    """A live message (:mod:`agents.fleet.live_lidar`) that cannot be used; the text says why."""
+
+
+def scan_beams(msg: Any, index: int) -> _RawScan:
+    """A deserialised ``LaserScan`` message's beams, as a bag's scan is read (module notes),
+    without a record time: a zero stamp is a :class:`MessageError`, as is every field the bag
+    reader would refuse."""
+    if int(msg.header.stamp.sec) == 0 and int(msg.header.stamp.nanosec) == 0:
+        raise MessageError("LaserScan has a zero stamp")
+    try:
+        return _raw_scan(msg, index, 0)
+    except _Bad as exc:
+        raise MessageError(f"LaserScan {exc}") from None
+
+
+def odometry_pose(msg: Any) -> tuple[float, Pose]:
+    """A deserialised ``nav_msgs/Odometry`` message's stamp (seconds) and planar pose (of its
+    child frame, the robot's base, in its header's frame); :class:`MessageError` for a zero
+    stamp or a pose that is not finite or not a rotation."""
+    if int(msg.header.stamp.sec) == 0 and int(msg.header.stamp.nanosec) == 0:
+        raise MessageError("Odometry has a zero stamp")
+    try:
+        return _stamp(msg.header, 0), _planar(msg.pose.pose.position, msg.pose.pose.orientation)
+    except (_Bad, ValueError) as exc:
+        raise MessageError(f"Odometry {exc}") from None
+
+
+def posed_scan(
+    raw: _RawScan, robot: Pose, mount: Pose, upside_down: bool = False, t: float | None = None
+) -> LaserScan:
+    """The scan of ``raw`` taken with the robot's base at ``robot`` (its odometry at the scan's
+    time) and the laser mounted at ``mount`` on it; ``t`` replaces the scan's time."""
+    ranges, angles = _beams(raw, upside_down)
+    return LaserScan(raw.t if t is None else t, ranges, angles, raw.max_range, robot.compose(mount), mount,
+                     SCAN_KIND, raw.index)
+
+
 def _assemble(log: _Collected, where: str, fmt: str, topics: dict[str, str], base_frame: str) -> RosBag:
     """The :class:`RosBag` of what the pass collected: each scan posed by the odometry (and
     truth) at its time, through the laser's mount."""
@@ -636,9 +675,7 @@ def _assemble(log: _Collected, where: str, fmt: str, topics: dict[str, str], bas
         if robot is None or (choice.truth is not None and true_robot is None):
             unposed += 1
             continue
-        ranges, angles = _beams(raw, mount.upside_down)
-        scans.append(LaserScan(raw.t, ranges, angles, raw.max_range, robot.compose(mount.pose), mount.pose,
-                               SCAN_KIND, raw.index))
+        scans.append(posed_scan(raw, robot, mount.pose, mount.upside_down))
         if true_robot is not None:
             truth.append(true_robot.compose(mount.pose))
     first = mounts.get(laser) or _Mount(Pose(), False, None)

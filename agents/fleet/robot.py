@@ -88,6 +88,10 @@ class RobotOptions:
     carmen: str | None = None  # replay this CARMEN log instead of simulating (agents.fleet.carmen_fleet)
     scans: tuple[int, int] | None = None  # the log's scans [i0, i1) this robot replays
     lidar_profile: str = "lidar-slam"  # the replayed scans' real-lidar profile (mapping_run.LIDAR_PROFILES)
+    #: the robot's own lidar, live: (scan key, odometry key) on Zenoh (agents.fleet.live_lidar);
+    #: ``rate`` is then 0 (each scan is mapped as it comes)
+    live: tuple[str, str] | None = None
+    mount: Pose = field(default_factory=Pose)  # with ``live``: the laser's pose on the robot's base
     #: False when ``--start`` gave no heading: the simulated robot's heading (along its route)
     #: is taken without a word.
     heading_given: bool = True
@@ -105,8 +109,10 @@ class RobotStatus:
     viz_bytes: int = 0
     finished: bool = False
     step_ms: float = 0.0
+    live: dict[str, Any] | None = None  # a live lidar's counters (agents.fleet.live_lidar.LiveCounts)
 
     def as_dict(self) -> dict[str, Any]:
+        extra = {} if self.live is None else {"live": dict(self.live)}
         return {
             "step": self.step,
             "t": round(self.t, 3),
@@ -118,6 +124,7 @@ class RobotStatus:
             "viz_bytes": self.viz_bytes,
             "finished": self.finished,
             "step_ms": round(self.step_ms, 2),
+            **extra,
         }
 
 
@@ -218,8 +225,9 @@ class RobotAgent:
         session: Any,
         keys: Any,
         opts: RobotOptions,
-        steps: Iterator[StepLike] | None = None,
+        steps: Iterator[StepLike | None] | None = None,
         log: Callable[[str], None] | None = None,
+        live_counts: Callable[[], dict[str, Any]] | None = None,
     ) -> None:
         from wire_codec import encode
 
@@ -228,7 +236,8 @@ class RobotAgent:
         self.keys = keys
         self.opts = opts
         self.say = log or (lambda _s: None)
-        self.steps = steps if steps is not None else default_steps(opts)
+        self.steps: Iterator[StepLike | None] = steps if steps is not None else default_steps(opts)
+        self.live_counts = live_counts
         self.boot = time.time_ns()
         self.status = RobotStatus()
         self.last: StepLike | None = None
@@ -313,7 +322,8 @@ class RobotAgent:
 
     # ------------------------------------------------------------------ the loop
     def step(self) -> bool:
-        """Advance the simulation by one scan; False when the route has ended."""
+        """Advance the simulation by one scan; False when the route has ended (or, with a live
+        lidar, when no scan came meanwhile)."""
         if self.status.finished:
             return False
         t0 = time.perf_counter()
@@ -322,6 +332,8 @@ class RobotAgent:
         except StopIteration:
             self.status.finished = True
             self.say(f"route finished after {self.status.step} steps")
+            return False
+        if s is None:  # a live lidar had no scan ready
             return False
         self.status.step_ms = 1000.0 * (time.perf_counter() - t0)
         if self.last is None and s.true_pose is not None:
@@ -357,7 +369,14 @@ class RobotAgent:
 
     def run(self, stop: Any) -> RobotStatus:
         """Run until ``stop`` (a ``threading.Event``) is set."""
-        period = 1.0 / self.opts.rate
+        try:
+            return self._run(stop)
+        finally:
+            if self.live_counts is not None:
+                self.status.live = self.live_counts()
+
+    def _run(self, stop: Any) -> RobotStatus:
+        period = 1.0 / self.opts.rate if self.opts.rate > 0 else 0.0  # 0: a live lidar, as scans come
         pose_period = 1.0 / self.opts.pose_hz
         viz_period = 1.0 / self.opts.viz_hz if self.opts.viz_hz > 0 else math.inf
         now = time.monotonic()
@@ -375,6 +394,8 @@ class RobotAgent:
             if now - self._last_map_put >= self.opts.heartbeat_s:
                 self.publish_map(force=True)
             if now >= next_pose:
+                if self.live_counts is not None:
+                    self.status.live = self.live_counts()
                 self.publish_pose()
                 next_pose = max(next_pose + pose_period, now)
             if now >= next_viz:
@@ -382,9 +403,16 @@ class RobotAgent:
                 next_viz = max(next_viz + viz_period, now)
             if now - last_report >= 10.0:
                 last_report = now
+                if self.live_counts is not None:
+                    self.status.live = self.live_counts()
                 st = self.status
+                live = ""
+                if st.live is not None:
+                    live = (f"; live lidar: {st.live['posed']} scans posed, {st.live['scans']} received"
+                            + (" (calibrating: the first scans are mapped together)" if st.step == 0 else ""))
                 self.say(
                     f"step {st.step} t={st.t:.1f}s: {st.vertices} vertices, {st.edges} edges, {st.maps_sent} maps"  # noqa: E501
+                    + live
                 )
             wake = min(next_pose, next_viz, self._last_map_put + self.opts.heartbeat_s)
             if not self.status.finished:

@@ -1,0 +1,289 @@
+"""A robot's own lidar, live: ROS 2 ``LaserScan`` and ``Odometry`` messages over Zenoh
+(``wiremap robot --id ID --scan-key KEY --odom-key KEY``).
+
+How a ROS 2 robot's topics reach Zenoh
+--------------------------------------
+* **zenoh-bridge-ros2dds** (the Zenoh plugin/bridge for ROS 2 over DDS) routes each topic to
+  the key of its name: ``/scan`` -> ``scan``, ``/odom`` -> ``odom`` (behind the bridge's
+  namespace when one is set, e.g. ``robot1/scan``).
+* **rmw_zenoh** (ROS 2's own Zenoh middleware) puts a topic on
+  ``<domain>/<topic>/<type>/<type hash>``: subscribe with ``*/scan/**`` and ``*/odom/**``.
+
+Either way a payload is the message's CDR bytes with their 4-byte encapsulation header, which
+this module deserialises without a ROS install (the ``rosbags`` library's typestore, ROS 2 Humble
+definitions: ``sensor_msgs/msg/LaserScan`` and ``nav_msgs/msg/Odometry`` are the same in every ROS
+2 distribution). The keys are any Zenoh key expressions.
+
+What is made of them (choices)
+------------------------------
+* A scan is read as :mod:`agents.files.rosbag` reads a bag's scan (bearings, no returns, the
+  checks), and an odometry message as its ``Odometry`` (the pose of its child frame in its
+  header's frame). Both need a stamp: a zero stamp is refused (a bag has its record time to fall
+  back on; a live message has nothing).
+* **Pairing**: each scan gets the odometry *interpolated at its stamp*
+  (:func:`agents.files.rosbag.interpolate`), so it waits until an odometry message stamped at or
+  after it has come. A scan stamped before the oldest odometry kept (the last
+  ``ODOM_KEEP_S`` seconds), or still without one ``max_wait`` seconds (wall clock) after it
+  came, is dropped (``unposed``).
+* **Order**: a scan stamped at or before the previous scan is dropped (``out_of_order``); so is
+  an odometry message stamped before the newest one (``out_of_order``), so the odometry stays
+  sorted. A robot's clock that jumps back (a restart of its stack) thus drops scans until it
+  passes the old stamps: restart the agent with its robot.
+* **The laser's mount** on the robot's base (``mount``, ``--laser-mount X,Y,THETA``) is given,
+  not listened for on ``/tf_static``; default the identity (the laser at the base's origin).
+* **Time**: a scan's time is seconds since the first scan that was posed (the robot's ``t``).
+* **Backlog**: at most ``max_backlog`` posed scans wait for the mapper; beyond, the oldest is
+  dropped (``behind``): a mapper that cannot keep up maps the newest scans rather than falling
+  further behind.
+* **Bad payloads**: one that does not deserialise, or whose fields the reader refuses, is
+  counted (``bad_scans``, ``bad_odometry``), its reason kept (``last_issue``), and dropped;
+  nothing a publisher sends stops the agent.
+
+Thread-safety: the Zenoh callbacks (:meth:`LiveLidar.on_scan`, :meth:`LiveLidar.on_odometry`)
+and :meth:`LiveLidar.take` may run on different threads.
+"""
+
+from __future__ import annotations
+
+import collections
+import math
+import threading
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from agents.files.carmen import LaserScan
+from mapping.se2 import Pose
+
+SCAN_TYPE = "sensor_msgs/msg/LaserScan"
+ODOM_TYPE = "nav_msgs/msg/Odometry"
+ODOM_KEEP_S = 10.0
+"""Seconds of odometry kept for pairing (by stamp, behind the newest)."""
+
+
+@dataclass
+class LiveCounts:
+    """What a :class:`LiveLidar` received and what it made of it."""
+
+    scans: int = 0
+    odometry: int = 0
+    posed: int = 0
+    bad_scans: int = 0
+    bad_odometry: int = 0
+    unposed: int = 0
+    out_of_order: int = 0
+    behind: int = 0
+    last_issue: str = ""
+
+    def as_dict(self) -> dict[str, Any]:
+        return dict(self.__dict__)
+
+
+@dataclass
+class _Waiting:
+    raw: Any  # agents.files.rosbag._RawScan
+    arrived: float  # monotonic
+
+
+@dataclass
+class LiveLidar:
+    """Live scans paired with live odometry (module notes). Feed it the payloads
+    (:meth:`on_scan`, :meth:`on_odometry`: bytes, or Zenoh samples), take the posed scans
+    (:meth:`take`)."""
+
+    mount: Pose = field(default_factory=Pose)
+    max_wait: float = 0.5
+    max_backlog: int = 200
+    clock: Callable[[], float] = time.monotonic
+    counts: LiveCounts = field(default_factory=LiveCounts)
+
+    def __post_init__(self) -> None:
+        from rosbags.typesys import Stores, get_typestore
+
+        self._store = get_typestore(Stores.ROS2_HUMBLE)
+        self._cond = threading.Condition()
+        self._odom_t: list[float] = []
+        self._odom: list[Pose] = []
+        self._waiting: collections.deque[_Waiting] = collections.deque()
+        self._ready: collections.deque[LaserScan] = collections.deque()
+        self._last_scan_t = -math.inf
+        self._t0: float | None = None
+
+    # ------------------------------------------------------------------ the callbacks
+    def on_scan(self, payload: Any) -> None:
+        from agents.files.rosbag import MessageError, scan_beams
+
+        data = _bytes_of(payload)
+        with self._cond:
+            self.counts.scans += 1
+            number = self.counts.scans
+        try:
+            raw = scan_beams(self._store.deserialize_cdr(data, SCAN_TYPE), number - 1)
+        except MessageError as exc:
+            self._issue("bad_scans", f"scan {number}: {exc}")
+            return
+        except Exception as exc:  # what a bad buffer makes the deserialiser raise
+            self._issue("bad_scans",
+                        f"scan {number}: cannot be deserialised as {SCAN_TYPE} ({_one_line(exc)})")
+            return
+        with self._cond:
+            if raw.t <= self._last_scan_t:
+                self.counts.out_of_order += 1
+                self.counts.last_issue = f"scan {number}: stamped {raw.t:.6f}, not after the previous scan"
+                return
+            self._last_scan_t = raw.t
+            self._waiting.append(_Waiting(raw, self.clock()))
+            self._pair()
+
+    def on_odometry(self, payload: Any) -> None:
+        from agents.files.rosbag import MessageError, odometry_pose
+
+        data = _bytes_of(payload)
+        with self._cond:
+            self.counts.odometry += 1
+            number = self.counts.odometry
+        try:
+            t, pose = odometry_pose(self._store.deserialize_cdr(data, ODOM_TYPE))
+        except MessageError as exc:
+            self._issue("bad_odometry", f"odometry {number}: {exc}")
+            return
+        except Exception as exc:
+            self._issue("bad_odometry",
+                        f"odometry {number}: cannot be deserialised as {ODOM_TYPE} ({_one_line(exc)})")
+            return
+        with self._cond:
+            if self._odom_t and t < self._odom_t[-1]:
+                self.counts.out_of_order += 1
+                self.counts.last_issue = f"odometry {number}: stamped {t:.6f}, before the newest"
+                return
+            self._odom_t.append(t)
+            self._odom.append(pose)
+            while len(self._odom_t) > 2 and self._odom_t[1] < t - ODOM_KEEP_S:
+                del self._odom_t[0], self._odom[0]
+            self._pair()
+
+    def _issue(self, counter: str, text: str) -> None:
+        with self._cond:
+            setattr(self.counts, counter, getattr(self.counts, counter) + 1)
+            self.counts.last_issue = text
+
+    # ------------------------------------------------------------------ pairing (lock held)
+    def _pair(self) -> None:
+        from agents.files.rosbag import interpolate, posed_scan
+
+        now = self.clock()
+        stamps = np.asarray(self._odom_t, dtype=np.float64)
+        while self._waiting:
+            w = self._waiting[0]
+            if stamps.size and w.raw.t < stamps[0]:
+                self._drop_unposed(f"scan stamped {w.raw.t:.6f} before the odometry kept "
+                                   f"({stamps[0]:.6f} on)")
+                continue
+            robot = interpolate(stamps, self._odom, w.raw.t) if stamps.size else None
+            if robot is None:
+                if now - w.arrived > self.max_wait:
+                    self._drop_unposed(f"no odometry at or after the scan stamped {w.raw.t:.6f} "
+                                       f"within {self.max_wait:g} s")
+                    continue
+                break
+            self._waiting.popleft()
+            if self._t0 is None:
+                self._t0 = w.raw.t
+            self._ready.append(posed_scan(w.raw, robot, self.mount, t=w.raw.t - self._t0))
+            self.counts.posed += 1
+            while len(self._ready) > self.max_backlog:
+                self._ready.popleft()
+                self.counts.behind += 1
+            self._cond.notify_all()
+
+    def _drop_unposed(self, why: str) -> None:
+        self._waiting.popleft()
+        self.counts.unposed += 1
+        self.counts.last_issue = why
+
+    # ------------------------------------------------------------------ the mapper's side
+    def take(self, timeout: float) -> LaserScan | None:
+        """The oldest posed scan, waiting up to ``timeout`` seconds for one; None if none came."""
+        deadline = self.clock() + max(0.0, timeout)
+        with self._cond:
+            while not self._ready:
+                self._pair()  # scans whose wait ran out
+                left = deadline - self.clock()
+                if left <= 0 or self._ready:
+                    break
+                self._cond.wait(min(left, 0.05))
+            return self._ready.popleft() if self._ready else None
+
+    def snapshot(self) -> dict[str, Any]:
+        with self._cond:
+            return self.counts.as_dict()
+
+
+def _bytes_of(payload: Any) -> bytes:
+    return payload.to_bytes() if hasattr(payload, "to_bytes") else bytes(payload)
+
+
+def _one_line(exc: BaseException) -> str:
+    text = " ".join(str(exc).split()) or type(exc).__name__
+    return text if len(text) <= 120 else text[:117] + "..."
+
+
+def parse_mount(text: str) -> Pose:
+    """``X,Y[,THETA]`` (metres, radians) as a pose; ``ValueError`` with the reason."""
+    try:
+        vals = [float(v) for v in text.split(",")]
+    except ValueError:
+        raise ValueError(f"--laser-mount must be X,Y[,THETA] (metres, radians), got {text!r}") from None
+    if len(vals) not in (2, 3) or not all(math.isfinite(v) for v in vals):
+        raise ValueError(f"--laser-mount must be X,Y[,THETA] (metres, radians), got {text!r}")
+    return Pose(vals[0], vals[1], vals[2] if len(vals) == 3 else 0.0)
+
+
+def live_profile(opts: Any) -> tuple[dict[str, Any], Any, Any]:
+    """``(filter overrides, ExtractConfig, FrontendConfig)`` of the robot's lidar profile, with
+    ``opts.extra["calibration_scans"]`` when given (:func:`agents.mapping_run.split_profile`)."""
+    from agents import mapping_run as mr
+
+    prof = mr.lidar_profile(opts.lidar_profile)
+    if "calibration_scans" in opts.extra:
+        prof["frontend.calibration_scans"] = int(opts.extra["calibration_scans"])
+    return mr.split_profile(prof)
+
+
+def live_steps(opts: Any, source: LiveLidar, stop: threading.Event) -> Iterator[Any]:
+    """The robot's loop over live scans: each posed scan through :class:`agents.mapping_run.LiveInputs`
+    (profile ``opts.lidar_profile``, which must run its SLAM scan by scan) and the filter, one
+    :class:`agents.mapping_run.RunStep` per scan mapped; None while no scan is ready (up to 0.05 s
+    of waiting), so that the agent keeps publishing its pose and heartbeats meanwhile; ends when
+    ``stop`` is set. The filter's field of view and range come from the first scan (the range
+    capped at 20 m, as ``wiremap map --carmen`` caps it). The first
+    ``frontend.calibration_scans`` scans (:func:`live_profile`) are mapped together once the last
+    of them has come (:class:`agents.mapping_run.LiveInputs`)."""
+    from dataclasses import replace
+
+    from agents import mapping_run as mr
+    from agents.fleet.carmen_fleet import MAX_RANGE
+    from mapping.filter import WireframeFilter
+
+    settings, extract, frontend = live_profile(opts)
+    inputs = mr.LiveInputs(max_range=MAX_RANGE, extract=extract, frontend=frontend)
+    filt: WireframeFilter | None = None
+    k = 0
+    while not stop.is_set():
+        ls = source.take(0.05)
+        if ls is None:
+            yield None
+            continue
+        if filt is None:
+            max_range = min(float(ls.max_range), MAX_RANGE)
+            cfg = mr.filter_config_for(int(opts.particles), float(opts.threshold), max_range,
+                                       fov=mr.scan_fov(ls.angles),
+                                       overrides={**settings, **(opts.filter_overrides or {})})
+            filt = WireframeFilter(cfg, mr.seeds_for(int(opts.seed))["filter"], initial_pose=Pose.identity())
+            inputs.max_range = max_range
+        for step in mr.run_filter(inputs.add(ls), filt):
+            yield replace(step, index=k)
+            k += 1

@@ -1,0 +1,295 @@
+"""A robot's own lidar, live: ROS 2 ``LaserScan`` and ``Odometry`` (CDR, as zenoh-bridge-ros2dds
+or rmw_zenoh put them on Zenoh) made from the committed CARMEN excerpt.
+
+* :class:`agents.mapping_run.LiveInputs` gives, scan by scan, the inputs ``carmen_inputs``
+  gives for the whole log (the online SLAM profile; calibration held, then streamed);
+* :class:`agents.fleet.live_lidar.LiveLidar` poses each scan by the odometry interpolated at its
+  stamp, as the bag reader does, and counts and drops what it cannot use;
+* ``wiremap robot --scan-key ... --odom-key ...`` over a real router maps what it is sent, the
+  same map as the offline stream, and survives garbage on both keys; its flags' errors are one
+  line, exit 2.
+"""
+
+from __future__ import annotations
+
+import json
+import threading
+import time
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from agents import mapping_run as mr
+from agents.files.carmen import read_carmen_log
+from agents.fleet.live_lidar import LiveLidar, parse_mount
+from mapping.filter import WireframeFilter
+from mapping.se2 import Pose, wrap_angle
+from tests.rosbag_util import MessageMaker
+
+DATA = Path(__file__).parent / "data"
+EXCERPT = DATA / "freiburg-101-head.log.gz"
+MOUNT = Pose(0.12, -0.03, 0.05)
+CALIBRATION = 20  # scans held for the calibrations here (the profile's 100 exceed the excerpt)
+
+
+@pytest.fixture(scope="module")
+def scans() -> list[Any]:
+    log = read_carmen_log(EXCERPT, strict=True)
+    return log.scans
+
+
+def profile(calibration: int = CALIBRATION) -> tuple[dict[str, Any], Any, Any]:
+    settings, extract, frontend = mr.split_profile(mr.lidar_profile("lidar-slam-online"))
+    return settings, extract, replace(frontend, calibration_scans=calibration)
+
+
+def messages(scans: list[Any], mount: Pose | None = None) -> list[tuple[str, bytes]]:
+    """``("odom" | "scan", CDR bytes)`` in publishing order: per scan, the robot's odometry a
+    little before and at the scan's stamp (the robot's pose: the laser's composed with ``mount``
+    inverted), then the scan."""
+    mk = MessageMaker()
+    unmount = (mount or Pose()).inverse()
+    out: list[tuple[str, bytes]] = []
+    for k, s in enumerate(scans):
+        robot = s.odom.compose(unmount)
+        if k:
+            prev = scans[k - 1].odom.compose(unmount)
+            mid = Pose(0.5 * (prev.x + robot.x), 0.5 * (prev.y + robot.y),
+                       prev.theta + 0.5 * wrap_angle(robot.theta - prev.theta))
+            out.append(("odom", mk.serialize(mk.odometry(0.5 * (scans[k - 1].t + s.t), mid))))
+        out.append(("odom", mk.serialize(mk.odometry(s.t, robot))))
+        a = np.asarray(s.angles)
+        inc = float(a[-1] - a[0]) / (a.size - 1)
+        out.append(("scan", mk.serialize(mk.scan(s.t, s.ranges, float(a[0]), inc, angle_max=float(a[-1]),
+                                                  range_max=s.max_range))))
+    return out
+
+
+# ---------------------------------------------------------------- the stream is the log
+def test_live_inputs_are_the_logs_inputs_scan_for_scan(scans: list[Any]) -> None:
+    """Held for the calibration, then one by one: every input (time, odometry, points, corner
+    scan) is the one carmen_inputs makes of the whole log, bit for bit; nothing comes out while
+    calibrating; a stream that ends before the calibration is complete still maps its scans."""
+    _, extract, frontend = profile()
+    want = list(mr.carmen_inputs(scans, max_range=20.0, extract=extract, frontend=frontend))
+    live = mr.LiveInputs(max_range=20.0, extract=extract, frontend=frontend)
+    got: list[Any] = []
+    for k, ls in enumerate(scans):
+        out = live.add(ls)
+        assert live.calibrating == (k + 1 < CALIBRATION)
+        assert len(out) == (CALIBRATION if k + 1 == CALIBRATION else 0 if k + 1 < CALIBRATION else 1)
+        got += out
+    assert live.finish() == []
+    assert len(got) == len(want) == len(scans)
+    for g, w in zip(got, want):
+        assert g.t == w.t and g.odometry == w.odometry
+        assert np.array_equal(g.points, w.points)
+        assert np.array_equal(g.scan.points, w.scan.points) and np.array_equal(g.scan.edges, w.scan.edges)
+    short = mr.LiveInputs(max_range=20.0, extract=extract, frontend=profile(100)[2])
+    assert sum(len(short.add(ls)) for ls in scans[:30]) == 0
+    rest = short.finish()
+    want30 = list(mr.carmen_inputs(scans[:30], max_range=20.0, extract=extract, frontend=profile(100)[2]))
+    assert [r.odometry for r in rest] == [w.odometry for w in want30]
+
+
+def test_live_inputs_refuse_a_front_end_that_needs_the_whole_log() -> None:
+    _, extract, frontend = mr.split_profile(mr.lidar_profile("lidar-slam"))
+    with pytest.raises(ValueError, match="scan by scan"):
+        mr.LiveInputs(max_range=20.0, extract=extract, frontend=frontend)
+    _, extract, frontend = profile(0)
+    with pytest.raises(ValueError, match="calibration_scans"):
+        mr.LiveInputs(max_range=20.0, extract=extract, frontend=frontend)
+
+
+# ---------------------------------------------------------------- pairing and bad payloads
+def test_scans_are_posed_at_their_stamp_as_the_bag_reader_does(scans: list[Any]) -> None:
+    """Each scan gets the odometry at its stamp through the mount; times count from the first
+    scan; ranges and bearings are the log's to float32 precision."""
+    src = LiveLidar(mount=MOUNT)
+    got = []
+    for kind, data in messages(scans, MOUNT):
+        (src.on_scan if kind == "scan" else src.on_odometry)(data)
+        while (ls := src.take(0.0)) is not None:
+            got.append(ls)
+    assert len(got) == len(scans) and src.counts.posed == len(scans)
+    for g, c in zip(got, scans):
+        assert g.t == pytest.approx(c.t - scans[0].t, abs=1e-6)
+        assert g.odom.almost_equal(c.odom, tol=1e-6, angle_tol=1e-6)
+        assert g.mount == MOUNT
+        hit = np.isfinite(c.ranges)
+        assert np.array_equal(np.isfinite(g.ranges), hit)
+        assert np.allclose(g.ranges[hit], c.ranges[hit], rtol=1e-6)
+        assert np.allclose(g.angles, c.angles, atol=1e-6)
+    c = src.counts
+    assert (c.bad_scans, c.bad_odometry, c.unposed, c.out_of_order, c.behind) == (0, 0, 0, 0, 0)
+
+
+def test_what_cannot_be_used_is_counted_and_dropped(scans: list[Any]) -> None:
+    """Garbage, a zero stamp, a scan whose fields disagree, a scan or odometry out of order, a
+    scan older than the odometry kept, a scan whose odometry never comes (fake clock), a backlog
+    past its bound: each is counted with its reason and dropped; the good scans still come."""
+    mk = MessageMaker()
+    now = [0.0]
+    src = LiveLidar(max_wait=0.5, max_backlog=3, clock=lambda: now[0])
+    src.on_scan(b"\x00\x01\x00\x00garbage")
+    src.on_odometry(b"")
+    assert (src.counts.bad_scans, src.counts.bad_odometry) == (1, 1)
+    assert "deserialised" in src.counts.last_issue
+    src.on_scan(mk.serialize(mk.scan(0.0, [1.0, 2.0], 0.0, 0.1)))
+    assert src.counts.bad_scans == 2 and "zero stamp" in src.counts.last_issue
+    src.on_scan(mk.serialize(mk.scan(5.0, [1.0, 2.0, 3.0], 0.0, 0.1, angle_max=2.0)))
+    assert src.counts.bad_scans == 3 and "3 ranges" in src.counts.last_issue
+    src.on_odometry(mk.serialize(mk.odometry(10.0, Pose(0.0, 0.0, 0.0))))
+    src.on_odometry(mk.serialize(mk.odometry(9.0, Pose(0.0, 0.0, 0.0))))
+    assert src.counts.out_of_order == 1
+    src.on_scan(mk.serialize(mk.scan(9.5, [1.0, 2.0], 0.0, 0.1)))  # before the odometry kept
+    assert src.counts.unposed == 1
+    src.on_scan(mk.serialize(mk.scan(10.5, [1.0, 2.0], 0.0, 0.1)))  # waits for odometry
+    src.on_scan(mk.serialize(mk.scan(10.4, [1.0, 2.0], 0.0, 0.1)))  # out of order
+    assert src.counts.out_of_order == 2 and src.take(0.0) is None
+    now[0] = 1.0  # the wait ran out
+    assert src.take(0.0) is None and src.counts.unposed == 2 and "within 0.5 s" in src.counts.last_issue
+    for k in range(5):  # five posed scans, a backlog of three
+        src.on_odometry(mk.serialize(mk.odometry(11.0 + k, Pose(0.1 * k, 0.0, 0.0))))
+        src.on_scan(mk.serialize(mk.scan(11.0 + k, [1.0, 2.0], 0.0, 0.1)))
+    assert src.counts.posed == 5 and src.counts.behind == 2
+    kept = [src.take(0.0) for _ in range(3)]
+    assert [round(ls.odom.x, 6) for ls in kept if ls is not None] == [0.2, 0.3, 0.4]
+    assert src.take(0.0) is None
+
+
+def test_a_take_waits_for_a_scan_from_another_thread(scans: list[Any]) -> None:
+    src = LiveLidar()
+    msgs = messages(scans[:2])
+
+    def feed() -> None:
+        time.sleep(0.1)
+        for kind, data in msgs:
+            (src.on_scan if kind == "scan" else src.on_odometry)(data)
+
+    th = threading.Thread(target=feed)
+    th.start()
+    t0 = time.monotonic()
+    first = src.take(5.0)
+    th.join()
+    assert first is not None and first.t == 0.0 and 0.05 < time.monotonic() - t0 < 4.0
+    assert src.take(0.0) is not None
+
+
+def test_parse_mount() -> None:
+    assert parse_mount("0.1,-0.2") == Pose(0.1, -0.2, 0.0)
+    assert parse_mount("0.1,-0.2,0.5") == Pose(0.1, -0.2, 0.5)
+    for bad in ("x", "1", "1,2,3,4", "1,nan"):
+        with pytest.raises(ValueError, match="laser-mount"):
+            parse_mount(bad)
+
+
+# ---------------------------------------------------------------- the agent over a real router
+def offline_map(scans: list[Any], mount: Pose, particles: int, seed: int) -> Any:
+    """The map the live robot should end with: the posed scans through LiveInputs and the filter,
+    as :func:`agents.fleet.live_lidar.live_steps` runs them (``CALIBRATION`` scans held)."""
+    src = LiveLidar(mount=mount)
+    posed = []
+    for kind, data in messages(scans, mount):
+        (src.on_scan if kind == "scan" else src.on_odometry)(data)
+        while (ls := src.take(0.0)) is not None:
+            posed.append(ls)
+    settings, extract, frontend = profile()
+    live = mr.LiveInputs(max_range=20.0, extract=extract, frontend=frontend)
+    cfg = mr.filter_config_for(particles, 0.2, min(20.0, posed[0].max_range),
+                               fov=mr.scan_fov(posed[0].angles), overrides=settings)
+    filt = WireframeFilter(cfg, mr.seeds_for(seed)["filter"], initial_pose=Pose.identity())
+    for ls in posed:
+        for _ in mr.run_filter(live.add(ls), filt):
+            pass
+    for _ in mr.run_filter(live.finish(), filt):
+        pass
+    return filt.best
+
+
+@pytest.mark.fleet
+def test_a_live_robot_maps_what_its_lidar_sends(scans: list[Any], tmp_path: Path) -> None:
+    """A ``wiremap robot`` on a live lidar, over a real router: the test publishes the excerpt's
+    odometry and scans as CDR (with garbage on both keys), the robot maps every scan and its
+    last map is the offline stream's; its status counts the garbage; it stops cleanly."""
+    import zenoh
+
+    from agents.fleet.bus import FleetKeys, decode_pose
+    from tests.fleet_util import client, in_process_router, log_text, spawn, stop_process, wait_until
+    from wire_codec import decode
+
+    keys = FleetKeys("t")
+    latest: dict[str, Any] = {}
+    lock = threading.Lock()
+
+    def on_map(sample: Any) -> None:
+        with lock:
+            latest["map"] = decode(sample.payload.to_bytes())
+
+    def on_pose(sample: Any) -> None:
+        with lock:
+            latest["status"] = decode_pose(sample.payload.to_bytes())["status"]
+
+    status_file = tmp_path / "status.json"
+    with in_process_router() as ep, client(ep) as s:
+        subs = [s.declare_subscriber(keys.robot_map("live1"), on_map),
+                s.declare_subscriber(keys.robot_pose("live1"), on_pose)]
+        alive = s.liveliness().declare_subscriber(
+            keys.alive("live1"), lambda _s: latest.setdefault("alive", 1), history=True)
+        proc = spawn(["robot", "--id", "live1", "--scan-key", "lidar/scan",
+                      "--odom-key", "lidar/odom", "--laser-mount", "0.12,-0.03,0.05", "--particles", "3",
+                      "--seed", "2", "--calibration-scans", str(CALIBRATION), "--connect", ep, "--fleet", "t",
+                      "--status-file", str(status_file)],
+                     tmp_path / "robot.log")
+        try:
+            wait_until(lambda: "alive" in latest, 60, "the robot's token")
+            time.sleep(0.3)
+            s.put("lidar/scan", b"not a scan")
+            s.put("lidar/odom", b"\x00\x01\x00\x00")
+            for kind, data in messages(scans, MOUNT):
+                s.put(f"lidar/{kind}", data, congestion_control=zenoh.CongestionControl.BLOCK)
+                time.sleep(0.005)
+            wait_until(lambda: latest.get("status", {}).get("step") == len(scans), 120,
+                       "every scan mapped", step=0.2)
+            want = offline_map(scans, MOUNT, particles=3, seed=2)
+            wait_until(lambda: latest["map"].wireframe.n_edges == want.n_edges, 10, "the last map")
+            assert stop_process(proc, timeout=20) == 0, log_text(proc, tmp_path / "robot.log")
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait()
+            for sub in subs:
+                sub.undeclare()
+            alive.undeclare()
+    got = latest["map"]
+    assert got.meta.get("origin_unknown") is True and got.frame == "odom/live1"
+    assert np.allclose(np.sort(got.wireframe.points, axis=0), np.sort(want.points, axis=0), atol=0.026)
+    status = json.loads(status_file.read_text())
+    assert status["step"] == len(scans)
+    live = status["live"]
+    assert live["posed"] == len(scans) and live["bad_scans"] == 1 and live["bad_odometry"] == 1
+    assert live["unposed"] == 0 and live["behind"] == 0
+    text = (tmp_path / "robot.log").read_text()
+    assert "live lidar: scans on lidar/scan" in text and "bad_scans 1" in text
+
+
+@pytest.mark.parametrize(("argv", "needle"), [
+    (["--scan-key", "scan"], "both --scan-key and --odom-key"),
+    (["--scan-key", "scan", "--odom-key", "odom", "--world", "tiny"], "without --carmen or --world"),
+    (["--scan-key", "scan", "--odom-key", "odom", "--lidar-profile", "lidar-slam"], "lidar-slam-online"),
+    (["--scan-key", "a//b", "--odom-key", "odom"], "not a Zenoh key expression"),
+    (["--scan-key", "scan", "--odom-key", "odom", "--laser-mount", "1,x"], "laser-mount"),
+    (["--world", "tiny", "--start", "1,1", "--laser-mount", "0,0"], "for a live lidar"),
+    (["--scan-key", "scan", "--odom-key", "odom", "--calibration-scans", "0"], "calibration-scans"),
+])
+def test_live_flags_errors_are_one_line(
+    argv: list[str], needle: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from agents.cli import main
+
+    assert main(["robot", "--id", "r1", *argv]) == 2
+    err = capsys.readouterr().err.strip()
+    assert needle in err and "\n" not in err, err
