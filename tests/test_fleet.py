@@ -468,6 +468,38 @@ def test_run_carmen_log_as_two_robots(tmp_path: Path):
     assert (img == np.asarray(POINTS_COLOR, dtype=np.uint8)).all(axis=2).sum() > 200
 
 
+def test_run_rosbag_as_two_robots(tmp_path: Path):
+    """`wiremap run --rosbag BAG --robots 2 --truth-topic T`: the committed excerpt written as a
+    ROS 2 (mcap) bag with its truth runs as the log does: each robot replays its stretch of the
+    bag (its log says so), the report names the bag and scores the robots against the truth, and
+    every robot is registered or an island."""
+    import json
+
+    from agents.files.carmen import read_carmen_log, scan_truth
+    from tests.rosbag_util import write_scans_bag
+
+    log = read_carmen_log(Path(__file__).parent / "data" / "freiburg-101-head.log.gz", strict=True)
+    bag = write_scans_bag(tmp_path / "run-mcap", "mcap", log.scans, truth=scan_truth(log))
+    out = tmp_path / "out"
+    with Fleet(tmp_path) as fleet:
+        fleet.start("run", ["run", "--rosbag", bag, "--truth-topic", "/ground_truth", "--robots", "2",
+                            "--rate", "20", "--out", out, "--no-progress"])
+        p = fleet.procs["run"]
+        wait_until(lambda: p.poll() is not None, 180, "wiremap run --rosbag to finish")
+        assert p.returncode == 0, fleet.log("run")
+    report = json.loads((out / "report.json").read_text())
+    assert report["rosbag"] == str(bag) and "carmen" not in report
+    assert set(report["per_robot"]) == {"r1", "r2"}
+    for rid in ("r1", "r2"):
+        assert json.loads((out / "routes" / f"{rid}.json").read_text())["log"] == str(bag)
+        assert report["per_robot"][rid]["endpoint_precision_own_scans"] > 0.5, report["per_robot"]
+    assert "(lidar profile lidar-slam)" in (out / "logs" / "r1.log").read_text()
+    regs = set(report["registered"])
+    isl = {m for ms in report["islands"].values() for m in ms}
+    assert regs | isl == {"r1", "r2"} and not regs & isl
+    assert report["fused"]["endpoint_precision"] > 0.5
+
+
 def test_run_with_the_realistic_lidar(tmp_path: Path):
     """`wiremap run --sensor lidar-real`: every robot process simulates the realistic lidar
     (its log says so), the report records the sensor, and the fused map of two robots keeps

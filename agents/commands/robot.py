@@ -46,7 +46,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--carmen", metavar="LOG",
                         help="replay this CARMEN log instead of simulating a world")
-    parser.add_argument("--scans", metavar="I0:I1", help="with --carmen: replay the log's scans I0 to I1-1")
+    parser.add_argument("--rosbag", metavar="FILE",
+                        help="replay the LaserScan of this ROS bag instead of simulating a world "
+                        "(ROS 1 .bag, ROS 2 bag folder or its .db3/.mcap file; as wiremap map --rosbag)")
+    parser.add_argument("--scan-topic", metavar="TOPIC",
+                        help="with --rosbag: the LaserScan topic (default: the bag's only one)")
+    parser.add_argument("--odom-topic", metavar="TOPIC",
+                        help="with --rosbag: the Odometry topic, or /tf (default: the bag's only "
+                        "Odometry topic, else /tf)")
+    parser.add_argument("--scans", metavar="I0:I1",
+                        help="with --carmen or --rosbag: replay the log's scans I0 to I1-1")
     parser.add_argument(
         "--scan-key", metavar="KEY",
         help="map the robot's own lidar, live: ROS 2 sensor_msgs/LaserScan (CDR) on this Zenoh key "
@@ -129,19 +138,23 @@ def options_from_args(args: argparse.Namespace) -> RobotOptions:
     from agents.fleet.robot import RobotOptions, parse_route, start_pose_of
 
     rid = check_name(args.id)
+    if (args.scan_topic or args.odom_topic) and not args.rosbag:
+        raise UserError("--scan-topic and --odom-topic are for --rosbag")
     if args.scan_key or args.odom_key:
-        if args.carmen or args.world:
-            raise UserError("--scan-key maps a live lidar: give it without --carmen or --world")
+        if args.carmen or args.world or args.rosbag:
+            raise UserError("--scan-key maps a live lidar: give it without --carmen, --rosbag or --world")
         if args.sensor != "corners" or args.scene_seed is not None or args.route:
             raise UserError("--sensor, --scene-seed and --route are for a simulated world; "
                             "--scan-key maps the robot's own lidar")
         return _live_options(args, rid)
     if args.laser_mount or args.calibration_scans is not None:
         raise UserError("--laser-mount and --calibration-scans are for a live lidar (--scan-key)")
-    if args.carmen:
+    if args.carmen and args.rosbag:
+        raise UserError("give --carmen LOG or --rosbag FILE, not both")
+    if args.carmen or args.rosbag:
         if args.sensor != "corners" or args.scene_seed is not None:
             raise UserError("--sensor and --scene-seed are for a simulated world; "
-                            "--carmen replays the log's lidar")
+                            f"{'--carmen' if args.carmen else '--rosbag'} replays the log's lidar")
         return _carmen_options(args, rid)
     if not args.world:
         raise UserError("give --world NAME|FILE (or --carmen LOG)")
@@ -227,8 +240,17 @@ def _filter_config(args: argparse.Namespace) -> Resolved:
 
 
 def _carmen_options(args: argparse.Namespace, rid: str) -> RobotOptions:
-    """A robot replaying (part of) a CARMEN log, always in its own frame (unknown start)."""
+    """A robot replaying (part of) a CARMEN log or a ROS bag, always in its own frame (unknown
+    start)."""
     from agents.fleet.robot import RobotOptions
+
+    extra: dict[str, Any] = {}
+    if args.rosbag:
+        from pathlib import Path
+
+        if not Path(args.rosbag).exists():
+            raise UserError(f"--rosbag {args.rosbag}: no such file or folder")
+        extra["rosbag"] = {"scan_topic": args.scan_topic, "odom_topic": args.odom_topic}
 
     scans = None
     if args.scans:
@@ -244,8 +266,9 @@ def _carmen_options(args: argparse.Namespace, rid: str) -> RobotOptions:
         robot=rid, world="", start=Pose.identity(), rate=args.rate, seed=args.seed,
         particles=resolved.config.particles, resolution=args.resolution,
         threshold=resolved.config.merge_threshold, heartbeat_s=args.heartbeat,
-        viz_hz=max(0.0, args.viz_rate), duration=args.duration, unknown_start=True, carmen=args.carmen,
-        scans=scans, filter_overrides=resolved.overrides, lidar_profile=args.lidar_profile or "lidar-slam",
+        viz_hz=max(0.0, args.viz_rate), duration=args.duration, unknown_start=True,
+        carmen=args.carmen or args.rosbag, scans=scans, filter_overrides=resolved.overrides,
+        lidar_profile=args.lidar_profile or "lidar-slam", extra=extra,
     )
 
 

@@ -107,9 +107,22 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="split a real CARMEN log into --robots robots (overlapping stretches, each in its own frame)",
     )
     parser.add_argument(
+        "--rosbag", metavar="FILE",
+        help="split a ROS bag's LaserScan into --robots robots, as --carmen splits a log (ROS 1 .bag, "
+        "ROS 2 bag folder or its .db3/.mcap file)",
+    )
+    parser.add_argument("--scan-topic", metavar="TOPIC",
+                        help="with --rosbag: the LaserScan topic (default: the bag's only one)")
+    parser.add_argument("--odom-topic", metavar="TOPIC",
+                        help="with --rosbag: the Odometry topic, or /tf (default: the bag's only "
+                        "Odometry topic, else /tf)")
+    parser.add_argument("--truth-topic", metavar="TOPIC",
+                        help="with --rosbag: a topic with the robot's true pose, to score the robots "
+                        "and the fused map against (default: none)")
+    parser.add_argument(
         "--lidar-profile", choices=tuple(LIDAR_PROFILES), default=None,
-        help="with --carmen: the robots' real-lidar profile, lidar-slam (lidar SLAM over each robot's "
-        "stretch under its filter; default) or lidar (the filter's corner ICP alone)",
+        help="with --carmen or --rosbag: the robots' real-lidar profile, lidar-slam (lidar SLAM over "
+        "each robot's stretch under its filter; default) or lidar (the filter's corner ICP alone)",
     )
     parser.add_argument("--robots", required=True, type=int, metavar="N", help="number of robots (1-64)")
     parser.add_argument(
@@ -585,16 +598,28 @@ def _check_arguments(args: argparse.Namespace) -> int:
 
     check_output_dir("--out", args.out)
     n = int(args.robots)
+    if (args.scan_topic or args.odom_topic or args.truth_topic) and not args.rosbag:
+        raise UserError("--scan-topic, --odom-topic and --truth-topic are for --rosbag")
+    args.bag = None
+    if args.rosbag:
+        if args.carmen:
+            raise UserError("give --carmen LOG or --rosbag FILE, not both")
+        if not Path(args.rosbag).exists():
+            raise UserError(f"--rosbag {args.rosbag}: no such file or folder")
+        # a bag is run as a log is: args.carmen is the real log's path from here on
+        args.bag = {"scan_topic": args.scan_topic, "odom_topic": args.odom_topic,
+                    "truth_topic": args.truth_topic}
+        args.carmen = args.rosbag
     if bool(args.world) == bool(args.carmen):
-        raise UserError("give --world NAME|FILE or --carmen LOG (one of them)")
-    if args.carmen and not Path(args.carmen).is_file():
+        raise UserError("give --world NAME|FILE, --carmen LOG or --rosbag FILE (one of them)")
+    if args.carmen and args.bag is None and not Path(args.carmen).is_file():
         raise UserError(f"--carmen {args.carmen}: no such file")
     if not args.carmen and args.lidar_profile is not None:
-        raise UserError("--lidar-profile is for --carmen (a simulated world's robots use --sensor)")
+        raise UserError("--lidar-profile is for --carmen and --rosbag (a simulated world's robots use --sensor)")
     if args.lidar_profile is None:
         args.lidar_profile = "lidar-slam"
     if args.carmen and args.sensor != "corners":
-        raise UserError("--sensor is for a simulated world; --carmen replays the log's own lidar")
+        raise UserError("--sensor is for a simulated world; --carmen and --rosbag replay the log's own lidar")
     if args.anchor is not None and args.anchor not in [f"r{k + 1}" for k in range(max(0, n))]:
         raise UserError(f"--anchor must be one of the robot ids r1..r{n}, got {args.anchor!r}")
     if args.overlap is None:
@@ -822,8 +847,14 @@ def _carmen_robot_argv(
     its particles and settings as resolved, like a simulated robot's; ``args.particles`` is None
     unless given)."""
     i0, i1 = stretch
+    source = ["--carmen", str(args.carmen)]
+    if args.bag is not None:
+        source = ["--rosbag", str(args.carmen)]
+        for flag, key in (("--scan-topic", "scan_topic"), ("--odom-topic", "odom_topic")):
+            if args.bag[key]:
+                source += [flag, args.bag[key]]
     return [
-        "robot", "--id", rid, "--carmen", str(args.carmen), "--scans", f"{i0}:{i1}",
+        "robot", "--id", rid, *source, "--scans", f"{i0}:{i1}",
         "--rate", str(args.rate), "--seed", str(args.seed + k + 1), "--lidar-profile", args.lidar_profile,
         *filter_args,
         "--resolution", repr(float(args.resolution)), "--threshold", repr(threshold),

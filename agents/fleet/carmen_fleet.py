@@ -38,8 +38,15 @@ ENDPOINT_TOL = 0.2
 SAMPLE_STEP = 0.05
 
 
-def read_log(path: str | os.PathLike[str]) -> list[Any]:
-    """The log's laser scans (:func:`agents.files.carmen.read_carmen_log`; unreadable lines skipped)."""
+def read_log(path: str | os.PathLike[str], bag: dict[str, Any] | None = None) -> list[Any]:
+    """The log's laser scans (:func:`agents.files.carmen.read_carmen_log`; unreadable lines
+    skipped); with ``bag`` (its topics: ``scan_topic``, ``odom_topic``) the ROS bag's
+    (:func:`agents.files.rosbag.read_rosbag`; unreadable messages skipped)."""
+    if bag is not None:
+        from agents.files.rosbag import read_rosbag
+
+        rb = read_rosbag(path, scan_topic=bag.get("scan_topic"), odom_topic=bag.get("odom_topic"))
+        return list(rb.scans)
     from agents.files.carmen import read_carmen_log
 
     return list(read_carmen_log(path).scans)
@@ -61,12 +68,12 @@ def split(n_scans: int, robots: int, overlap: float = 0.3) -> list[tuple[int, in
 
 def robot_steps(opts: Any) -> Iterator[Any]:
     """The robot's loop (:func:`agents.mapping_run.run_filter`) over scans ``opts.scans`` of
-    ``opts.carmen`` through the real-lidar profile ``opts.lidar_profile``, its filter starting at
-    the identity (its own odometry frame)."""
+    ``opts.carmen`` (a ROS bag with ``opts.extra["rosbag"]``) through the real-lidar profile
+    ``opts.lidar_profile``, its filter starting at the identity (its own odometry frame)."""
     from agents import mapping_run as mr
     from mapping.filter import WireframeFilter
 
-    scans = read_log(opts.carmen)
+    scans = read_log(opts.carmen, opts.extra.get("rosbag"))
     i0, i1 = opts.scans if opts.scans is not None else (0, len(scans))
     part = scans[i0:i1]
     if not part:

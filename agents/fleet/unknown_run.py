@@ -78,12 +78,14 @@ def random_routes(
 # ---------------------------------------------------------------------- CARMEN
 @dataclass
 class CarmenWorld:
-    """What ``wiremap run`` needs of a log: a name, the scans and the truth (or None)."""
+    """What ``wiremap run`` needs of a log (a CARMEN log or a ROS bag): a name, the scans and
+    the truth (or None)."""
 
     name: str
     path: str
     scans: list[Any]
     truth: list[Pose] | None
+    kind: str = "carmen"  # or "rosbag": the report names the input under this key
 
     @property
     def t0(self) -> float:
@@ -92,6 +94,20 @@ class CarmenWorld:
 
 
 def carmen_world(args: argparse.Namespace) -> CarmenWorld:
+    """The log of ``args.carmen``, or the ROS bag there when ``args.bag`` gives its topics (the
+    topics chosen are written back into ``args.bag``)."""
+    if getattr(args, "bag", None) is not None:
+        from agents.files.rosbag import read_rosbag
+
+        bag = read_rosbag(args.carmen, scan_topic=args.bag["scan_topic"], odom_topic=args.bag["odom_topic"],
+                          truth_topic=args.bag["truth_topic"])
+        if not bag.scans:
+            raise UserError(f"{args.carmen}: no scan of {bag.scan_topic} has odometry ({bag.odometry})")
+        # the robots read the bag with the topics chosen here (with a truth topic, a bag has two
+        # Odometry topics, and a robot would not know which is its odometry)
+        args.bag.update(scan_topic=bag.scan_topic, odom_topic=bag.odometry)
+        name = Path(str(args.carmen).rstrip("/")).name.split(".")[0]
+        return CarmenWorld(name, str(args.carmen), list(bag.scans), bag.truth, "rosbag")
     from agents.files.carmen import read_carmen_log, scan_truth
 
     log = read_carmen_log(args.carmen)
@@ -399,7 +415,7 @@ def write_outputs_carmen(
             }
     report = {
         "log": world.name,
-        "carmen": world.path,
+        world.kind: world.path,
         **_registration_report(fr, starts, maps),
         "fused": fused,
         "per_robot": per_robot,
