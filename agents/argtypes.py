@@ -47,3 +47,13 @@ non_negative_float = _checked("non_negative_float", float, "not a number",
 non_negative_int = _checked("non_negative_int", int, "not an integer", lambda v: v >= 0, "must be >= 0")
 #: A picture's larger side in pixels: a whole number, at least 64.
 image_size = _checked("image_size", int, "not an integer", lambda v: v >= 64, "must be at least 64 pixels")
+
+
+def add_bag_topics(parser: argparse.ArgumentParser | argparse._ArgumentGroup, context: str = "") -> None:
+    """``--scan-topic`` and ``--odom-topic``, the ROS bag topics every command that reads a bag
+    takes (``context``: what the help says they go with, e.g. ``"with --rosbag: "``)."""
+    parser.add_argument("--scan-topic", metavar="TOPIC",
+                        help=f"{context}the sensor_msgs/LaserScan topic (default: the bag's only one)")
+    parser.add_argument("--odom-topic", metavar="TOPIC",
+                        help=f"{context}the nav_msgs/Odometry topic, or /tf (default: the bag's only "
+                        "Odometry topic, else /tf)")

@@ -68,6 +68,16 @@ def messages(scans: list[Any], mount: Pose | None = None) -> list[tuple[str, byt
     return out
 
 
+def posed_scans(src: LiveLidar, scans: list[Any], mount: Pose) -> list[Any]:
+    """``scans`` sent to ``src`` as :func:`messages`, and every scan it posed, taken as it came."""
+    out = []
+    for kind, data in messages(scans, mount):
+        (src.on_scan if kind == "scan" else src.on_odometry)(data)
+        while (ls := src.take(0.0)) is not None:
+            out.append(ls)
+    return out
+
+
 # ---------------------------------------------------------------- the stream is the log
 def test_live_inputs_are_the_logs_inputs_scan_for_scan(scans: list[Any]) -> None:
     """Held for the calibration, then one by one: every input (time, odometry, points, corner
@@ -109,11 +119,7 @@ def test_scans_are_posed_at_their_stamp_as_the_bag_reader_does(scans: list[Any])
     """Each scan gets the odometry at its stamp through the mount; times count from the first
     scan; ranges and bearings are the log's to float32 precision."""
     src = LiveLidar(mount=MOUNT)
-    got = []
-    for kind, data in messages(scans, MOUNT):
-        (src.on_scan if kind == "scan" else src.on_odometry)(data)
-        while (ls := src.take(0.0)) is not None:
-            got.append(ls)
+    got = posed_scans(src, scans, MOUNT)
     assert len(got) == len(scans) and src.counts.posed == len(scans)
     for g, c in zip(got, scans):
         assert g.t == pytest.approx(c.t - scans[0].t, abs=1e-6)
@@ -191,12 +197,7 @@ def test_parse_mount() -> None:
 def offline_map(scans: list[Any], mount: Pose, particles: int, seed: int) -> Any:
     """The map the live robot should end with: the posed scans through LiveInputs and the filter,
     as :func:`agents.fleet.live_lidar.live_steps` runs them (``CALIBRATION`` scans held)."""
-    src = LiveLidar(mount=mount)
-    posed = []
-    for kind, data in messages(scans, mount):
-        (src.on_scan if kind == "scan" else src.on_odometry)(data)
-        while (ls := src.take(0.0)) is not None:
-            posed.append(ls)
+    posed = posed_scans(LiveLidar(mount=mount), scans, mount)
     settings, extract, frontend = profile()
     live = mr.LiveInputs(max_range=20.0, extract=extract, frontend=frontend)
     cfg = mr.filter_config_for(particles, 0.2, min(20.0, posed[0].max_range),
@@ -278,7 +279,7 @@ def test_a_live_robot_maps_what_its_lidar_sends(scans: list[Any], tmp_path: Path
 
 @pytest.mark.parametrize(("argv", "needle"), [
     (["--scan-key", "scan"], "both --scan-key and --odom-key"),
-    (["--scan-key", "scan", "--odom-key", "odom", "--world", "tiny"], "without --carmen or --world"),
+    (["--scan-key", "scan", "--odom-key", "odom", "--world", "tiny"], "without --carmen, --rosbag or --world"),
     (["--scan-key", "scan", "--odom-key", "odom", "--lidar-profile", "lidar-slam"], "lidar-slam-online"),
     (["--scan-key", "a//b", "--odom-key", "odom"], "not a Zenoh key expression"),
     (["--scan-key", "scan", "--odom-key", "odom", "--laser-mount", "1,x"], "laser-mount"),

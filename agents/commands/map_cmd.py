@@ -52,7 +52,7 @@ from typing import Any
 
 import numpy as np
 
-from agents.argtypes import non_negative_int
+from agents.argtypes import add_bag_topics, non_negative_int
 from agents.errors import INTERRUPTED, UserError
 from agents.files.rosbag import DEFAULT_BASE_FRAME, DEFAULT_ODOM_FRAME
 from agents.mapping_run import LIDAR_PROFILES
@@ -89,11 +89,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="CARMEN log or ROS bag: an unreadable line or message is an error "
                              "(default: skip it and count it)")
     bag = parser.add_argument_group("ROS bag (--rosbag)")
-    bag.add_argument("--scan-topic", metavar="TOPIC",
-                     help="the sensor_msgs/LaserScan topic (default: the bag's only one)")
-    bag.add_argument("--odom-topic", metavar="TOPIC",
-                     help="the nav_msgs/Odometry topic, or /tf (default: the bag's only Odometry topic, "
-                          "else /tf)")
+    add_bag_topics(bag)
     bag.add_argument("--odom-frame", metavar="FRAME",
                      help=f"odometry from /tf: the odometry frame (default {DEFAULT_ODOM_FRAME})")
     bag.add_argument("--base-frame", metavar="FRAME",

@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from agents.argtypes import non_negative_float, non_negative_int, positive_float
+from agents.argtypes import add_bag_topics, non_negative_float, non_negative_int, positive_float
 from agents.errors import UserError
 from agents.fleet.bus import (
     StopFlag,
@@ -49,11 +49,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--rosbag", metavar="FILE",
                         help="replay the LaserScan of this ROS bag instead of simulating a world "
                         "(ROS 1 .bag, ROS 2 bag folder or its .db3/.mcap file; as wiremap map --rosbag)")
-    parser.add_argument("--scan-topic", metavar="TOPIC",
-                        help="with --rosbag: the LaserScan topic (default: the bag's only one)")
-    parser.add_argument("--odom-topic", metavar="TOPIC",
-                        help="with --rosbag: the Odometry topic, or /tf (default: the bag's only "
-                        "Odometry topic, else /tf)")
+    add_bag_topics(parser, "with --rosbag: ")
     parser.add_argument("--scans", metavar="I0:I1",
                         help="with --carmen or --rosbag: replay the log's scans I0 to I1-1")
     parser.add_argument(

@@ -62,7 +62,7 @@ from typing import Any
 
 import numpy as np
 
-from agents.argtypes import non_negative_int
+from agents.argtypes import add_bag_topics, non_negative_int
 from agents.errors import INTERRUPTED, UserError
 from agents.files.io import write_atomic, write_json
 from agents.fleet.bus import (
@@ -111,11 +111,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="split a ROS bag's LaserScan into --robots robots, as --carmen splits a log (ROS 1 .bag, "
         "ROS 2 bag folder or its .db3/.mcap file)",
     )
-    parser.add_argument("--scan-topic", metavar="TOPIC",
-                        help="with --rosbag: the LaserScan topic (default: the bag's only one)")
-    parser.add_argument("--odom-topic", metavar="TOPIC",
-                        help="with --rosbag: the Odometry topic, or /tf (default: the bag's only "
-                        "Odometry topic, else /tf)")
+    add_bag_topics(parser, "with --rosbag: ")
     parser.add_argument("--truth-topic", metavar="TOPIC",
                         help="with --rosbag: a topic with the robot's true pose, to score the robots "
                         "and the fused map against (default: none)")
@@ -615,7 +611,8 @@ def _check_arguments(args: argparse.Namespace) -> int:
     if args.carmen and args.bag is None and not Path(args.carmen).is_file():
         raise UserError(f"--carmen {args.carmen}: no such file")
     if not args.carmen and args.lidar_profile is not None:
-        raise UserError("--lidar-profile is for --carmen and --rosbag (a simulated world's robots use --sensor)")
+        raise UserError("--lidar-profile is for --carmen and --rosbag "
+                        "(a simulated world's robots use --sensor)")
     if args.lidar_profile is None:
         args.lidar_profile = "lidar-slam"
     if args.carmen and args.sensor != "corners":
