@@ -13,6 +13,7 @@ or rmw_zenoh put them on Zenoh) made from the committed CARMEN excerpt.
 from __future__ import annotations
 
 import json
+import math
 import threading
 import time
 from dataclasses import replace
@@ -105,6 +106,25 @@ def test_live_inputs_are_the_logs_inputs_scan_for_scan(scans: list[Any]) -> None
     assert [r.odometry for r in rest] == [w.odometry for w in want30]
 
 
+def test_the_motion_filter_takes_a_scan_per_distance_or_turn(scans: list[Any]) -> None:
+    """Scans 5 cm apart: one in ten is taken at 0.49 m (0.5 m a step's rounding away); a turn of
+    12 degrees on the spot is taken at 10; thresholds of 0 take every scan; negative thresholds
+    are refused."""
+    _, extract, frontend = profile(5)
+    base = scans[0]
+    moved = [replace(base, t=0.1 * k, odom=base.odom.compose(Pose(0.05 * k, 0.0, 0.0))) for k in range(31)]
+    live = mr.LiveInputs(max_range=20.0, extract=extract, frontend=frontend, min_travel=0.49,
+                         min_turn=math.radians(10.0))
+    taken = sum(len(live.add(ls)) for ls in moved) + len(live.finish())
+    assert (taken, live.skipped) == (4, 27)  # at 0, 0.5, 1.0, 1.5 m
+    turned = replace(base, t=9.0, odom=moved[-1].odom.compose(Pose(0.0, 0.0, math.radians(12.0))))
+    assert len(live.add(turned)) == 1
+    every = mr.LiveInputs(max_range=20.0, extract=extract, frontend=frontend)
+    assert sum(len(every.add(ls)) for ls in moved) == len(moved) and every.skipped == 0
+    with pytest.raises(ValueError, match=">= 0"):
+        mr.LiveInputs(max_range=20.0, extract=extract, frontend=frontend, min_travel=-1.0)
+
+
 def test_live_inputs_refuse_a_front_end_that_needs_the_whole_log() -> None:
     _, extract, frontend = mr.split_profile(mr.lidar_profile("lidar-slam"))
     with pytest.raises(ValueError, match="scan by scan"):
@@ -194,21 +214,24 @@ def test_parse_mount() -> None:
 
 
 # ---------------------------------------------------------------- the agent over a real router
-def offline_map(scans: list[Any], mount: Pose, particles: int, seed: int) -> Any:
-    """The map the live robot should end with: the posed scans through LiveInputs and the filter,
-    as :func:`agents.fleet.live_lidar.live_steps` runs them (``CALIBRATION`` scans held)."""
+def offline_map(
+    scans: list[Any], mount: Pose, particles: int, seed: int, min_travel: float, min_turn_deg: float
+) -> tuple[Any, int, int]:
+    """The map the live robot should end with, the scans it maps and those its motion filter
+    drops: the posed scans through LiveInputs (``CALIBRATION`` scans held) and the filter, as
+    :func:`agents.fleet.live_lidar.live_steps` runs them."""
     posed = posed_scans(LiveLidar(mount=mount), scans, mount)
     settings, extract, frontend = profile()
-    live = mr.LiveInputs(max_range=20.0, extract=extract, frontend=frontend)
+    live = mr.LiveInputs(max_range=20.0, extract=extract, frontend=frontend, min_travel=min_travel,
+                         min_turn=math.radians(min_turn_deg))
     cfg = mr.filter_config_for(particles, 0.2, min(20.0, posed[0].max_range),
                                fov=mr.scan_fov(posed[0].angles), overrides=settings)
     filt = WireframeFilter(cfg, mr.seeds_for(seed)["filter"], initial_pose=Pose.identity())
-    for ls in posed:
-        for _ in mr.run_filter(live.add(ls), filt):
-            pass
-    for _ in mr.run_filter(live.finish(), filt):
-        pass
-    return filt.best
+    mapped = 0
+    for ls in [*posed, None]:
+        for _ in mr.run_filter(live.add(ls) if ls is not None else live.finish(), filt):
+            mapped += 1
+    return filt.best, mapped, live.skipped
 
 
 @pytest.mark.fleet
@@ -242,7 +265,8 @@ def test_a_live_robot_maps_what_its_lidar_sends(scans: list[Any], tmp_path: Path
             keys.alive("live1"), lambda _s: latest.setdefault("alive", 1), history=True)
         proc = spawn(["robot", "--id", "live1", "--scan-key", "lidar/scan",
                       "--odom-key", "lidar/odom", "--laser-mount", "0.12,-0.03,0.05", "--particles", "3",
-                      "--seed", "2", "--calibration-scans", str(CALIBRATION), "--connect", ep, "--fleet", "t",
+                      "--seed", "2", "--calibration-scans", str(CALIBRATION), "--min-travel", "1.02",
+                      "--min-turn", "30", "--connect", ep, "--fleet", "t",
                       "--status-file", str(status_file)],
                      tmp_path / "robot.log")
         try:
@@ -253,9 +277,10 @@ def test_a_live_robot_maps_what_its_lidar_sends(scans: list[Any], tmp_path: Path
             for kind, data in messages(scans, MOUNT):
                 s.put(f"lidar/{kind}", data, congestion_control=zenoh.CongestionControl.BLOCK)
                 time.sleep(0.005)
-            wait_until(lambda: latest.get("status", {}).get("step") == len(scans), 120,
+            want, mapped, still = offline_map(scans, MOUNT, 3, 2, min_travel=1.02, min_turn_deg=30.0)
+            assert 0 < still < len(scans) // 2 and mapped == len(scans) - still
+            wait_until(lambda: latest.get("status", {}).get("step") == mapped, 120,
                        "every scan mapped", step=0.2)
-            want = offline_map(scans, MOUNT, particles=3, seed=2)
             wait_until(lambda: latest["map"].wireframe.n_edges == want.n_edges, 10, "the last map")
             assert stop_process(proc, timeout=20) == 0, log_text(proc, tmp_path / "robot.log")
         finally:
@@ -269,9 +294,10 @@ def test_a_live_robot_maps_what_its_lidar_sends(scans: list[Any], tmp_path: Path
     assert got.meta.get("origin_unknown") is True and got.frame == "odom/live1"
     assert np.allclose(np.sort(got.wireframe.points, axis=0), np.sort(want.points, axis=0), atol=0.026)
     status = json.loads(status_file.read_text())
-    assert status["step"] == len(scans)
+    assert status["step"] == mapped
     live = status["live"]
-    assert live["posed"] == len(scans) and live["bad_scans"] == 1 and live["bad_odometry"] == 1
+    assert live["posed"] == len(scans) and live["still"] == still
+    assert live["bad_scans"] == 1 and live["bad_odometry"] == 1
     assert live["unposed"] == 0 and live["behind"] == 0
     text = (tmp_path / "robot.log").read_text()
     assert "live lidar: scans on lidar/scan" in text and "bad_scans 1" in text

@@ -67,6 +67,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="with --scan-key: the laser's pose on the robot's base (metres, radians; default 0,0,0)",
     )
     parser.add_argument(
+        "--min-travel", type=non_negative_float, default=None, metavar="M",
+        help="with --scan-key: map a scan once the wheels have moved M metres since the last one "
+        "mapped (default 0.5; 0 with --min-turn 0: every scan)",
+    )
+    parser.add_argument(
+        "--min-turn", type=non_negative_float, default=None, metavar="DEG",
+        help="with --scan-key: ... or turned DEG degrees (default 10)",
+    )
+    parser.add_argument(
         "--calibration-scans", type=int, default=None, metavar="N",
         help="with --scan-key: scans held at the start to calibrate the laser's yaw and the wheels' "
         "noise before the first is mapped (default: the profile's, 100)",
@@ -143,8 +152,10 @@ def options_from_args(args: argparse.Namespace) -> RobotOptions:
             raise UserError("--sensor, --scene-seed and --route are for a simulated world; "
                             "--scan-key maps the robot's own lidar")
         return _live_options(args, rid)
-    if args.laser_mount or args.calibration_scans is not None:
-        raise UserError("--laser-mount and --calibration-scans are for a live lidar (--scan-key)")
+    if args.laser_mount or args.calibration_scans is not None or args.min_travel is not None \
+            or args.min_turn is not None:
+        raise UserError("--laser-mount, --calibration-scans, --min-travel and --min-turn are for a live "
+                        "lidar (--scan-key)")
     if args.carmen and args.rosbag:
         raise UserError("give --carmen LOG or --rosbag FILE, not both")
     if args.carmen or args.rosbag:
@@ -287,6 +298,10 @@ def _live_options(args: argparse.Namespace, rid: str) -> RobotOptions:
         if args.calibration_scans < 1:
             raise UserError(f"--calibration-scans must be >= 1, got {args.calibration_scans}")
         extra["calibration_scans"] = int(args.calibration_scans)
+    if args.min_travel is not None:
+        extra["min_travel"] = float(args.min_travel)
+    if args.min_turn is not None:
+        extra["min_turn"] = math.radians(float(args.min_turn))
     mount = Pose.identity()
     if args.laser_mount:
         try:
