@@ -1,0 +1,72 @@
+"""A development measurement (not a test): a CARMEN log fed to the live mapper's input stage one
+scan at a time (:class:`agents.mapping_run.LiveInputs`, the ``lidar-slam-online`` profile), with
+and without its motion filter; the online SLAM's poses integrated from the truth's first pose,
+ATE over the scans mapped.
+
+``python tests/live_ate.py LOG [LOG ...] [--filter M,DEG ...]`` (default filter 0.5,10).
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import time
+
+import numpy as np
+
+from agents import mapping_run as mr
+from agents.files.carmen import read_carmen_log, scan_truth
+
+
+def run(path: str, min_travel: float, min_turn_deg: float) -> tuple[int, int, float, float]:
+    """``(scans mapped, scans left out, ATE m, CPU ms per scan)``."""
+    log = read_carmen_log(path)
+    scans = list(log.scans)
+    truth = scan_truth(log)
+    if truth is None:
+        raise SystemExit(f"{path}: no truth")
+    _, extract, frontend = mr.split_profile(mr.lidar_profile("lidar-slam-online"))
+    live = mr.LiveInputs(max_range=20.0, extract=extract, frontend=frontend, min_travel=min_travel,
+                         min_turn=math.radians(min_turn_deg))
+    waiting: list[int] = []  # the scans taken, in order, whose inputs have not come out yet
+    est = []
+    pose = None
+    t0 = time.process_time()
+
+    def take(inputs: list[mr.ScanInput]) -> None:
+        nonlocal pose
+        for inp in inputs:
+            j = waiting.pop(0)
+            pose = truth[j] if pose is None else pose.compose(inp.odometry)
+            est.append((j, pose))
+
+    for k, ls in enumerate(scans):
+        before = live.skipped
+        out = live.add(ls)
+        if live.skipped == before:
+            waiting.append(k)
+        take(out)
+    take(live.finish())
+    ms = (time.process_time() - t0) / max(1, len(scans)) * 1e3
+    err = [math.hypot(p.x - truth[j].x, p.y - truth[j].y) for j, p in est]
+    return len(est), live.skipped, float(np.sqrt(np.mean(np.square(err)))), ms
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("logs", nargs="+")
+    ap.add_argument("--filter", action="append", metavar="M,DEG", help="motion filter thresholds (repeat)")
+    args = ap.parse_args()
+    filters = [tuple(float(v) for v in f.split(",")) for f in (args.filter or ["0.5,10"])]
+    for path in args.logs:
+        name = path.split("/")[-1].split(".")[0]
+        n, _, ate, _ = run(path, 0.0, 0.0)
+        line = f"{name:14s} every scan: {n} mapped, ATE {ate:.3f} m"
+        for d, a in filters:
+            n, still, ate, ms = run(path, d, a)
+            line += f" | {d:g} m / {a:g} deg: {n} mapped ({still} left out), ATE {ate:.3f} m, {ms:.1f} ms/scan"
+        print(line, flush=True)
+
+
+if __name__ == "__main__":
+    main()
