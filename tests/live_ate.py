@@ -64,7 +64,8 @@ def main() -> None:
         line = f"{name:14s} every scan: {n} mapped, ATE {ate:.3f} m"
         for d, a in filters:
             n, still, ate, ms = run(path, d, a)
-            line += f" | {d:g} m / {a:g} deg: {n} mapped ({still} left out), ATE {ate:.3f} m, {ms:.1f} ms/scan"
+            line += (f" | {d:g} m / {a:g} deg: {n} mapped ({still} left out), ATE {ate:.3f} m, "
+                     f"{ms:.1f} ms/scan")
         print(line, flush=True)
 
 
