@@ -399,6 +399,8 @@ def slam_increments(
 #: :func:`online_increments` measures the wheels' heading noise again every this many scans while
 #: the first ``calibration_scans`` gave too few scan pairs for it.
 ONLINE_RECALIBRATE = 25
+#: ... and gives up after this many scans (the scans it measures on are kept until then).
+ONLINE_RECALIBRATE_MAX_SCANS = 5000
 
 
 class OnlineSlam:
@@ -409,7 +411,9 @@ class OnlineSlam:
     heading noise measured so far (``odo_calibration``); while it rests on too few scan pairs and
     ``config.calibration_scans`` limited it to the first scans, it is measured again on every
     scan so far each :data:`ONLINE_RECALIBRATE` scans, and ``on_noise`` is given the measure the
-    SLAM then runs with. The scans are kept only until then."""
+    SLAM then runs with. The scans are kept only until then, and at most
+    :data:`ONLINE_RECALIBRATE_MAX_SCANS` of them: a stream that has not pinned the noise down by
+    then keeps the prior it has."""
 
     def __init__(
         self, config: FrontendConfig, noise: OdometryNoise | None = None,
@@ -437,6 +441,9 @@ class OnlineSlam:
                 self._points, self._odometry = [], []
                 if self.on_noise is not None:
                     self.on_noise(now_noise)
+        if self.pending and k >= ONLINE_RECALIBRATE_MAX_SCANS:
+            self.pending = False  # a stream that never pins the noise down: the prior stays as it is
+            self._points, self._odometry = [], []
         if self.pending:
             self._points.append(points)
             self._odometry.append(odometry)

@@ -172,14 +172,15 @@ def write_scans_bag(
     *,
     odometry: str = "topic",
     mount: Pose | None = None,
-    truth: Sequence[Pose] | None = None,
+    truth: Sequence[Pose | None] | None = None,
 ) -> Path:
     """A bag of ``scans`` (the CARMEN reader's): ``/scan`` (their ranges, ``inf`` for no return,
     their bearings as ``angle_min`` and a constant increment, ``range_max`` their maximum range),
     the robot's odometry at each scan's time on ``/odom`` (``odometry="topic"``) or as
     ``odom -> base_link`` on ``/tf`` (``odometry="tf"``), the laser at ``mount`` on the robot on
     ``/tf_static`` (none when ``mount`` is None: the laser at the base's origin) and, with
-    ``truth`` (the laser's true poses), the robot's true pose on ``/ground_truth``. The robot's
+    ``truth`` (the laser's true poses; None for a scan without one), the robot's true pose on
+    ``/ground_truth``. The robot's
     poses are the scans' laser poses composed with ``mount`` inverted."""
     unmount = (mount or Pose()).inverse()
     with BagWriter(path, fmt) as bag:
@@ -196,6 +197,6 @@ def write_scans_bag(
                 bag.write("/tf", s.t, bag.transforms(s.t, [("odom", "base_link", robot)]))
             else:
                 bag.write("/odom", s.t, bag.odometry(s.t, robot))
-            if truth is not None:
+            if truth is not None and truth[k] is not None:
                 bag.write("/ground_truth", s.t, bag.odometry(s.t, truth[k].compose(unmount), frame="map"))
     return path

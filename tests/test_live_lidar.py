@@ -155,8 +155,9 @@ def test_scans_are_posed_at_their_stamp_as_the_bag_reader_does(scans: list[Any])
 
 def test_what_cannot_be_used_is_counted_and_dropped(scans: list[Any]) -> None:
     """Garbage, a zero stamp, a scan whose fields disagree, a scan or odometry out of order, a
-    scan older than the odometry kept, a scan whose odometry never comes (fake clock), a backlog
-    past its bound: each is counted with its reason and dropped; the good scans still come."""
+    scan older than the odometry kept, a scan that waits while odometry keeps coming and goes once
+    the odometry has been silent for max_wait (fake clock), a backlog past its bound: each is
+    counted with its reason and dropped; the good scans still come."""
     mk = MessageMaker()
     now = [0.0]
     src = LiveLidar(max_wait=0.5, max_backlog=3, clock=lambda: now[0])
@@ -176,8 +177,13 @@ def test_what_cannot_be_used_is_counted_and_dropped(scans: list[Any]) -> None:
     src.on_scan(mk.serialize(mk.scan(10.5, [1.0, 2.0], 0.0, 0.1)))  # waits for odometry
     src.on_scan(mk.serialize(mk.scan(10.4, [1.0, 2.0], 0.0, 0.1)))  # out of order
     assert src.counts.out_of_order == 2 and src.take(0.0) is None
-    now[0] = 1.0  # the wait ran out
-    assert src.take(0.0) is None and src.counts.unposed == 2 and "within 0.5 s" in src.counts.last_issue
+    now[0] = 0.4
+    src.on_odometry(mk.serialize(mk.odometry(10.2, Pose(0.0, 0.0, 0.0))))  # odometry still coming
+    now[0] = 0.8
+    assert src.take(0.0) is None and src.counts.unposed == 1  # waited 0.8 s, odometry 0.4 s ago
+    now[0] = 1.0  # the odometry has been silent for 0.6 s
+    assert src.take(0.0) is None and src.counts.unposed == 2
+    assert "no odometry for 0.5 s" in src.counts.last_issue
     for k in range(5):  # five posed scans, a backlog of three
         src.on_odometry(mk.serialize(mk.odometry(11.0 + k, Pose(0.1 * k, 0.0, 0.0))))
         src.on_scan(mk.serialize(mk.scan(11.0 + k, [1.0, 2.0], 0.0, 0.1)))
@@ -185,6 +191,65 @@ def test_what_cannot_be_used_is_counted_and_dropped(scans: list[Any]) -> None:
     kept = [src.take(0.0) for _ in range(3)]
     assert [round(ls.odom.x, 6) for ls in kept if ls is not None] == [0.2, 0.3, 0.4]
     assert src.take(0.0) is None
+
+
+def test_hostile_values_are_refused_and_a_stream_out_of_order_starts_again(scans: list[Any]) -> None:
+    """Valid CDR with hostile values: an odometry pose 1.7e308 m out and a stamp with 4e9
+    nanoseconds are refused; one odometry message from the future holds the odometry back for
+    RESET_AFTER messages, then the stream starts again and scans are posed again; the same for a
+    scan from the future (which goes with the reset instead of holding the scans behind it)."""
+    from agents.fleet.live_lidar import RESET_AFTER
+
+    mk = MessageMaker()
+    now = [0.0]
+    src = LiveLidar(clock=lambda: now[0])
+    src.on_odometry(mk.serialize(mk.odometry(10.0, Pose(1.7e308, 0.0, 0.0))))
+    assert src.counts.bad_odometry == 1 and "from its frame's origin" in src.counts.last_issue
+    bad_ns = mk.scan(10.0, [1.0, 2.0], 0.0, 0.1)
+    bad_ns.header.stamp.nanosec = 4_000_000_000
+    src.on_scan(mk.serialize(bad_ns))
+    assert src.counts.bad_scans == 1 and "nanoseconds" in src.counts.last_issue
+    src.on_odometry(mk.serialize(mk.odometry(2e9, Pose())))  # from the future
+    t = 10.0
+    for _ in range(RESET_AFTER + 3):
+        t += 0.1
+        src.on_odometry(mk.serialize(mk.odometry(t, Pose(t, 0.0, 0.0))))
+        src.on_scan(mk.serialize(mk.scan(t, [1.0, 2.0], 0.0, 0.1)))
+    assert src.counts.out_of_order == RESET_AFTER - 1 and src.counts.resets == 1
+    assert src.counts.posed >= 3
+    posed = src.counts.posed
+    src.on_scan(mk.serialize(mk.scan(2e9, [1.0, 2.0], 0.0, 0.1)))  # a scan from the future
+    for _ in range(RESET_AFTER + 3):
+        t += 0.1
+        src.on_odometry(mk.serialize(mk.odometry(t, Pose(t, 0.0, 0.0))))
+        src.on_scan(mk.serialize(mk.scan(t, [1.0, 2.0], 0.0, 0.1)))
+    assert src.counts.resets == 2 and src.counts.posed >= posed + 3
+
+
+def test_the_mapper_yields_while_it_holds_or_skips_scans(scans: list[Any]) -> None:
+    """live_steps gives the agent a step (None) for every scan held for the calibration or left
+    out by the motion filter, so that a parked robot's agent keeps publishing: one next() per
+    scan, none waiting for more; once calibrated, the held scans come out as steps."""
+    import types
+
+    from agents.fleet.live_lidar import live_steps
+
+    src = LiveLidar()
+    posed = posed_scans(src, scans, Pose())
+    for ls in posed:  # the source hands them out again, one per take()
+        src._ready.append(ls)
+    opts = types.SimpleNamespace(lidar_profile="lidar-slam-online", particles=2, threshold=0.2, seed=0,
+                                 filter_overrides={}, extra={"calibration_scans": 30})
+    stop = threading.Event()
+    steps = live_steps(opts, src, stop)
+    t0 = time.monotonic()
+    first = [next(steps) for _ in range(29)]
+    assert first == [None] * 29 and time.monotonic() - t0 < 20.0
+    made = [next(steps) for _ in range(30)]  # the 30th scan releases all thirty
+    assert all(m is not None for m in made) and [m.index for m in made] == list(range(30))
+    stop.set()
+    rest = list(steps)
+    assert all(r is None or r.index >= 30 for r in rest)
 
 
 def test_a_take_waits_for_a_scan_from_another_thread(scans: list[Any]) -> None:
@@ -276,7 +341,7 @@ def test_a_live_robot_maps_what_its_lidar_sends(scans: list[Any], tmp_path: Path
             s.put("lidar/odom", b"\x00\x01\x00\x00")
             for kind, data in messages(scans, MOUNT):
                 s.put(f"lidar/{kind}", data, congestion_control=zenoh.CongestionControl.BLOCK)
-                time.sleep(0.005)
+                time.sleep(0.01)
             want, mapped, still = offline_map(scans, MOUNT, 3, 2, min_travel=1.02, min_turn_deg=30.0)
             assert 0 < still < len(scans) // 2 and mapped == len(scans) - still
             wait_until(lambda: latest.get("status", {}).get("step") == mapped, 120,
@@ -311,6 +376,11 @@ def test_a_live_robot_maps_what_its_lidar_sends(scans: list[Any], tmp_path: Path
     (["--scan-key", "scan", "--odom-key", "odom", "--laser-mount", "1,x"], "laser-mount"),
     (["--world", "tiny", "--start", "1,1", "--laser-mount", "0,0"], "for a live lidar"),
     (["--scan-key", "scan", "--odom-key", "odom", "--calibration-scans", "0"], "calibration-scans"),
+    (["--scan-key", "scan", "--odom-key", "odom", "--calibration-scans", "1000000"], "calibration-scans"),
+    (["--scan-key", "scan", "--odom-key", "odom", "--scans", "0:10"], "--scans is for"),
+    (["--scan-key", "scan", "--odom-key", "odom", "--rate", "10"], "--rate is for"),
+    (["--scan-key", "robot/**", "--odom-key", "robot/odom"], "overlap"),
+    (["--scan-key", "scan", "--odom-key", "odom", "--laser-mount", "1e308,0"], "from the robot's base"),
 ])
 def test_live_flags_errors_are_one_line(
     argv: list[str], needle: str, capsys: pytest.CaptureFixture[str]

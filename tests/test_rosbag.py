@@ -5,6 +5,7 @@ odometry and mount conventions on small hand-made bags; ``wiremap map --rosbag``
 
 from __future__ import annotations
 
+import itertools
 import json
 import math
 from pathlib import Path
@@ -355,3 +356,31 @@ def test_no_scan_has_odometry(tmp_path: Path, capsys: pytest.CaptureFixture[str]
         bag.write("/scan", 1.0, bag.scan(1.0, [1.0], 0.0, 0.1))
     line = one_line_exit_2(["map", "--rosbag", str(p), "--out", str(tmp_path / "o"), "--quiet"], capsys)
     assert "no scan to map" in line and "1 without odometry at their time" in line
+
+
+def test_a_bag_run_and_its_robots_read_the_same_scans(
+    tmp_path: Path, excerpt: tuple[CarmenLog, list[Pose]]
+) -> None:
+    """`wiremap run --rosbag --truth-topic` splits the scans that have a true pose; each robot
+    is given the topics (the truth's too) and reads the same list, so that its --scans I0:I1 are
+    the run's (a truth that starts at scan 10 left them ten scans apart)."""
+    import argparse
+
+    from agents.commands.run import _carmen_robot_argv
+    from agents.fleet.carmen_fleet import read_log
+    from agents.fleet.unknown_run import carmen_world
+
+    log, truth = excerpt
+    bag = write_scans_bag(tmp_path / "late.bag", "ros1", log.scans,
+                          truth=[None] * 10 + list(truth[10:]))
+    args = argparse.Namespace(carmen=str(bag), bag={"scan_topic": None, "odom_topic": None,
+                                                    "truth_topic": "/ground_truth"},
+                              rate=20.0, seed=0, lidar_profile="lidar-slam", resolution=0.05)
+    world = carmen_world(args)
+    assert len(world.scans) == 50 and args.bag["odom_topic"] == "/odom"
+    argv = _carmen_robot_argv(args, tmp_path, "r1", 0, (0, 25), 0.2, [], [])
+    given = dict(itertools.pairwise(argv))
+    robot_bag = {"scan_topic": given["--scan-topic"], "odom_topic": given["--odom-topic"],
+                 "truth_topic": given["--truth-topic"]}
+    mine = read_log(given["--rosbag"], robot_bag)
+    assert [s.t for s in mine] == [s.t for s in world.scans]

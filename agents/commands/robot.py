@@ -34,6 +34,8 @@ if TYPE_CHECKING:
     from agents.fleet.robot import RobotOptions
 
 HELP = "one robot agent process"
+DEFAULT_RATE = 5.0  # a simulated or replayed robot's scans per second
+MAX_CALIBRATION_SCANS = 10_000  # a live robot's scans held for its calibrations, at most
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -50,6 +52,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="replay the LaserScan of this ROS bag instead of simulating a world "
                         "(ROS 1 .bag, ROS 2 bag folder or its .db3/.mcap file; as wiremap map --rosbag)")
     add_bag_topics(parser, "with --rosbag: ")
+    parser.add_argument("--truth-topic", metavar="TOPIC",
+                        help="with --rosbag: read the bag as wiremap run --truth-topic does (scans "
+                        "without a true pose left out), so that --scans indexes the same scans")
     parser.add_argument("--scans", metavar="I0:I1",
                         help="with --carmen or --rosbag: replay the log's scans I0 to I1-1")
     parser.add_argument(
@@ -96,7 +101,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="X,Y;X,Y;...|FILE",
         help="waypoints, or a JSON file of [[x, y], ...] (default: a coverage route from --start)",
     )
-    parser.add_argument("--rate", type=float, default=5.0, metavar="HZ", help="scans per second (default 5)")
+    parser.add_argument("--rate", type=float, default=None, metavar="HZ",
+                        help="scans per second (default 5; not with --scan-key: a live lidar's scans "
+                        "are mapped as they come)")
     parser.add_argument("--seed", type=non_negative_int, default=0, help="random seed (default 0)")
     parser.add_argument(
         "--sensor", choices=SENSORS, default="corners",
@@ -126,7 +133,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--duration", type=positive_float, metavar="S",
         help="stop mapping after S simulated seconds (simulated time runs 2.5x the wall clock at --rate 5: "
-        "each scan is 0.5 s of driving)",
+        "each scan is 0.5 s of driving); with --scan-key: S seconds of the lidar's stamps after the "
+        "first scan, checked at each scan mapped",
     )
     parser.add_argument(
         "--router-timeout", type=float, metavar="S",
@@ -143,8 +151,13 @@ def options_from_args(args: argparse.Namespace) -> RobotOptions:
     from agents.fleet.robot import RobotOptions, parse_route, start_pose_of
 
     rid = check_name(args.id)
-    if (args.scan_topic or args.odom_topic) and not args.rosbag:
-        raise UserError("--scan-topic and --odom-topic are for --rosbag")
+    live = bool(args.scan_key or args.odom_key)
+    if live and args.rate is not None:
+        raise UserError("--rate is for a simulated or replayed robot; a live lidar maps scans as they come")
+    if args.rate is None:
+        args.rate = DEFAULT_RATE
+    if (args.scan_topic or args.odom_topic or args.truth_topic) and not args.rosbag:
+        raise UserError("--scan-topic, --odom-topic and --truth-topic are for --rosbag")
     if args.scan_key or args.odom_key:
         if args.carmen or args.world or args.rosbag:
             raise UserError("--scan-key maps a live lidar: give it without --carmen, --rosbag or --world")
@@ -257,7 +270,8 @@ def _carmen_options(args: argparse.Namespace, rid: str) -> RobotOptions:
 
         if not Path(args.rosbag).exists():
             raise UserError(f"--rosbag {args.rosbag}: no such file or folder")
-        extra["rosbag"] = {"scan_topic": args.scan_topic, "odom_topic": args.odom_topic}
+        extra["rosbag"] = {"scan_topic": args.scan_topic, "odom_topic": args.odom_topic,
+                           "truth_topic": args.truth_topic}
 
     scans = None
     if args.scans:
@@ -287,16 +301,22 @@ def _live_options(args: argparse.Namespace, rid: str) -> RobotOptions:
 
     if not (args.scan_key and args.odom_key):
         raise UserError("a live lidar needs both --scan-key and --odom-key")
-    for flag, key in (("--scan-key", args.scan_key), ("--odom-key", args.odom_key)):
-        _check_key_expr(flag, key)
+    if args.scans:
+        raise UserError("--scans is for --carmen and --rosbag; a live lidar maps every scan that comes")
+    scan_ke = _check_key_expr("--scan-key", args.scan_key)
+    odom_ke = _check_key_expr("--odom-key", args.odom_key)
+    if scan_ke.intersects(odom_ke):
+        raise UserError(f"--scan-key {args.scan_key} and --odom-key {args.odom_key} overlap: a message on "
+                        "both would be read as a scan and as odometry; give keys that do not")
     profile = args.lidar_profile or "lidar-slam-online"
     if profile != "lidar-slam-online":
         raise UserError(f"--lidar-profile {profile} needs the whole log first; a live lidar maps with "
                         "lidar-slam-online (its SLAM runs scan by scan)")
     extra: dict[str, Any] = {}
     if args.calibration_scans is not None:
-        if args.calibration_scans < 1:
-            raise UserError(f"--calibration-scans must be >= 1, got {args.calibration_scans}")
+        if not 1 <= args.calibration_scans <= MAX_CALIBRATION_SCANS:
+            raise UserError(f"--calibration-scans must be within 1..{MAX_CALIBRATION_SCANS}, "
+                            f"got {args.calibration_scans}")
         extra["calibration_scans"] = int(args.calibration_scans)
     if args.min_travel is not None:
         extra["min_travel"] = float(args.min_travel)
@@ -349,11 +369,11 @@ def _live_steps(session: Any, opts: RobotOptions, stop: Any, subs: list[Any]) ->
     return live_steps(opts, source, stop), source.snapshot
 
 
-def _check_key_expr(flag: str, key: str) -> None:
+def _check_key_expr(flag: str, key: str) -> Any:
     import zenoh
 
     try:
-        zenoh.KeyExpr(key)
+        return zenoh.KeyExpr(key)
     except Exception as exc:  # zenoh's own error type for a malformed key expression
         raise UserError(f"{flag} {key!r} is not a Zenoh key expression ({exc})") from None
 

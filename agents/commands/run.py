@@ -847,7 +847,8 @@ def _carmen_robot_argv(
     source = ["--carmen", str(args.carmen)]
     if args.bag is not None:
         source = ["--rosbag", str(args.carmen)]
-        for flag, key in (("--scan-topic", "scan_topic"), ("--odom-topic", "odom_topic")):
+        for flag, key in (("--scan-topic", "scan_topic"), ("--odom-topic", "odom_topic"),
+                          ("--truth-topic", "truth_topic")):
             if args.bag[key]:
                 source += [flag, args.bag[key]]
     return [

@@ -622,12 +622,23 @@ class MessageError(ValueError):
     """A live message (:mod:`agents.fleet.live_lidar`) that cannot be used; the text says why."""
 
 
+#: A live odometry pose farther than this (metres) from its frame's origin is refused.
+MAX_COORD = 10_000.0
+
+
+def _live_stamp(header: Any, what: str) -> None:
+    sec, nsec = int(header.stamp.sec), int(header.stamp.nanosec)
+    if sec == 0 and nsec == 0:
+        raise MessageError(f"{what} has a zero stamp")
+    if not 0 <= nsec < 1_000_000_000:
+        raise MessageError(f"{what} stamp has {nsec} nanoseconds (0 to 999999999)")
+
+
 def scan_beams(msg: Any, index: int) -> _RawScan:
     """A deserialised ``LaserScan`` message's beams, as a bag's scan is read (module notes),
-    without a record time: a zero stamp is a :class:`MessageError`, as is every field the bag
-    reader would refuse."""
-    if int(msg.header.stamp.sec) == 0 and int(msg.header.stamp.nanosec) == 0:
-        raise MessageError("LaserScan has a zero stamp")
+    without a record time: a zero stamp or one whose nanoseconds are not below 1e9 is a
+    :class:`MessageError`, as is every field the bag reader would refuse."""
+    _live_stamp(msg.header, "LaserScan")
     try:
         return _raw_scan(msg, index, 0)
     except _Bad as exc:
@@ -636,14 +647,18 @@ def scan_beams(msg: Any, index: int) -> _RawScan:
 
 def odometry_pose(msg: Any) -> tuple[float, Pose]:
     """A deserialised ``nav_msgs/Odometry`` message's stamp (seconds) and planar pose (of its
-    child frame, the robot's base, in its header's frame); :class:`MessageError` for a zero
-    stamp or a pose that is not finite or not a rotation."""
-    if int(msg.header.stamp.sec) == 0 and int(msg.header.stamp.nanosec) == 0:
-        raise MessageError("Odometry has a zero stamp")
+    child frame, the robot's base, in its header's frame); :class:`MessageError` for a stamp as
+    :func:`scan_beams` refuses it, or a pose that is not finite, not a rotation, or farther than
+    :data:`MAX_COORD` from the origin."""
+    _live_stamp(msg.header, "Odometry")
     try:
-        return _stamp(msg.header, 0), _planar(msg.pose.pose.position, msg.pose.pose.orientation)
+        pose = _planar(msg.pose.pose.position, msg.pose.pose.orientation)
     except (_Bad, ValueError) as exc:
         raise MessageError(f"Odometry {exc}") from None
+    if max(abs(pose.x), abs(pose.y)) > MAX_COORD:
+        raise MessageError(f"Odometry position ({pose.x:.6g}, {pose.y:.6g}) is more than {MAX_COORD:g} m "
+                           "from its frame's origin")
+    return _stamp(msg.header, 0), pose
 
 
 def posed_scan(

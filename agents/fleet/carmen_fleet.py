@@ -40,12 +40,14 @@ SAMPLE_STEP = 0.05
 
 def read_log(path: str | os.PathLike[str], bag: dict[str, Any] | None = None) -> list[Any]:
     """The log's laser scans (:func:`agents.files.carmen.read_carmen_log`; unreadable lines
-    skipped); with ``bag`` (its topics: ``scan_topic``, ``odom_topic``) the ROS bag's
-    (:func:`agents.files.rosbag.read_rosbag`; unreadable messages skipped)."""
+    skipped); with ``bag`` (its topics: ``scan_topic``, ``odom_topic``, ``truth_topic``) the ROS
+    bag's (:func:`agents.files.rosbag.read_rosbag`; unreadable messages skipped; with a truth
+    topic, the scans without a true pose left out, as ``wiremap run`` reads the bag)."""
     if bag is not None:
         from agents.files.rosbag import read_rosbag
 
-        rb = read_rosbag(path, scan_topic=bag.get("scan_topic"), odom_topic=bag.get("odom_topic"))
+        rb = read_rosbag(path, scan_topic=bag.get("scan_topic"), odom_topic=bag.get("odom_topic"),
+                         truth_topic=bag.get("truth_topic"))
         return list(rb.scans)
     from agents.files.carmen import read_carmen_log
 

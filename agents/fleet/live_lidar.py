@@ -22,13 +22,19 @@ What is made of them (choices)
   back on; a live message has nothing).
 * **Pairing**: each scan gets the odometry *interpolated at its stamp*
   (:func:`agents.files.rosbag.interpolate`), so it waits until an odometry message stamped at or
-  after it has come. A scan stamped before the oldest odometry kept (the last
-  ``ODOM_KEEP_S`` seconds), or still without one ``max_wait`` seconds (wall clock) after it
-  came, is dropped (``unposed``).
+  after it has come (the two streams' callbacks may run late and in any order in a busy
+  process). A scan stamped before the oldest odometry kept (``ODOM_KEEP_N`` messages, at least
+  ``ODOM_KEEP_S`` seconds) is dropped (``unposed``), as is one still waiting once the odometry
+  has been silent for ``max_wait`` seconds (1 s, wall clock), or once ``MAX_WAITING`` scans wait
+  (odometry whose stamps never reach the scans': another clock).
 * **Order**: a scan stamped at or before the previous scan is dropped (``out_of_order``); so is
   an odometry message stamped before the newest one (``out_of_order``), so the odometry stays
-  sorted. A robot's clock that jumps back (a restart of its stack) thus drops scans until it
-  passes the old stamps: restart the agent with its robot.
+  sorted. After ``RESET_AFTER`` (20) such messages in a row a stream starts again from the next
+  one (``resets``): a robot's clock that jumped back (its stack restarted) or a message stamped
+  in the future stops the mapping for 20 messages, not for good.
+* **Bounds**: an odometry pose farther than ``MAX_COORD`` (10 km) from its frame's origin, or a
+  stamp whose nanoseconds are not below 1e9, is refused (``bad_odometry``, ``bad_scans``): the
+  SLAM's arithmetic stays finite whatever a publisher sends.
 * **The laser's mount** on the robot's base (``mount``, ``--laser-mount X,Y,THETA``) is given,
   not listened for on ``/tf_static``; default the identity (the laser at the base's origin).
 * **Time**: a scan's time is seconds since the first scan that was posed (the robot's ``t``).
@@ -39,8 +45,7 @@ What is made of them (choices)
   dropped (``behind``): a mapper that cannot keep up maps the newest scans rather than falling
   further behind.
 * **Bad payloads**: one that does not deserialise, or whose fields the reader refuses, is
-  counted (``bad_scans``, ``bad_odometry``), its reason kept (``last_issue``), and dropped;
-  nothing a publisher sends stops the agent.
+  counted (``bad_scans``, ``bad_odometry``), its reason kept (``last_issue``), and dropped.
 
 Thread-safety: the Zenoh callbacks (:meth:`LiveLidar.on_scan`, :meth:`LiveLidar.on_odometry`)
 and :meth:`LiveLidar.take` may run on different threads.
@@ -64,7 +69,16 @@ from mapping.se2 import Pose
 SCAN_TYPE = "sensor_msgs/msg/LaserScan"
 ODOM_TYPE = "nav_msgs/msg/Odometry"
 ODOM_KEEP_S = 10.0
-"""Seconds of odometry kept for pairing (by stamp, behind the newest)."""
+ODOM_KEEP_N = 1000
+"""Odometry kept for pairing: the last ``ODOM_KEEP_N`` messages, and more while they span less
+than ``ODOM_KEEP_S`` seconds of stamps (a scan whose callback runs after several odometry
+callbacks, in a busy process, still finds its odometry)."""
+MAX_MOUNT_M = 10.0  # a laser's mount farther than this from the robot's base is a typing error
+MAX_WAITING = 100  # scans waiting for odometry at or after their stamp, at most
+RESET_AFTER = 20
+"""Messages of one stream refused in a row for their stamp (before the newest) after which that
+stream starts again from the next one: a robot whose clock went back, or one message stamped in
+the future, costs at most this many messages instead of stopping the mapping for good."""
 MIN_TRAVEL = 0.5
 MIN_TURN = math.radians(10.0)
 """The live mapper's motion filter (``--min-travel``, ``--min-turn``): a scan is mapped once the
@@ -84,6 +98,7 @@ class LiveCounts:
     bad_odometry: int = 0
     unposed: int = 0
     out_of_order: int = 0
+    resets: int = 0  # a stream that started again after RESET_AFTER messages in a row out of order
     behind: int = 0
     still: int = 0  # posed scans the mapper's motion filter dropped (agents.mapping_run.LiveInputs)
     last_issue: str = ""
@@ -105,7 +120,7 @@ class LiveLidar:
     (:meth:`take`)."""
 
     mount: Pose = field(default_factory=Pose)
-    max_wait: float = 0.5
+    max_wait: float = 1.0
     max_backlog: int = 200
     clock: Callable[[], float] = time.monotonic
     counts: LiveCounts = field(default_factory=LiveCounts)
@@ -121,6 +136,9 @@ class LiveLidar:
         self._ready: collections.deque[LaserScan] = collections.deque()
         self._last_scan_t = -math.inf
         self._t0: float | None = None
+        self._scan_refused = 0  # scans refused in a row for their stamp
+        self._odom_arrived = -math.inf  # when the last odometry was taken (clock)
+        self._odom_refused = 0
 
     # ------------------------------------------------------------------ the callbacks
     def on_scan(self, payload: Any) -> None:
@@ -141,9 +159,18 @@ class LiveLidar:
             return
         with self._cond:
             if raw.t <= self._last_scan_t:
-                self.counts.out_of_order += 1
-                self.counts.last_issue = f"scan {number}: stamped {raw.t:.6f}, not after the previous scan"
-                return
+                self._scan_refused += 1
+                if self._scan_refused < RESET_AFTER:
+                    self.counts.out_of_order += 1
+                    self.counts.last_issue = (f"scan {number}: stamped {raw.t:.6f}, not after the "
+                                              "previous scan")
+                    return
+                self.counts.resets += 1  # the scans' clock went back (or one came from the future)
+                self.counts.last_issue = (f"scan {number}: {RESET_AFTER} scans in a row stamped before "
+                                          f"{self._last_scan_t:.6f}; the scans' clock starts again")
+                self.counts.unposed += len(self._waiting)  # scans of the old clock go with it
+                self._waiting.clear()
+            self._scan_refused = 0
             self._last_scan_t = raw.t
             self._waiting.append(_Waiting(raw, self.clock()))
             self._pair()
@@ -166,12 +193,20 @@ class LiveLidar:
             return
         with self._cond:
             if self._odom_t and t < self._odom_t[-1]:
-                self.counts.out_of_order += 1
-                self.counts.last_issue = f"odometry {number}: stamped {t:.6f}, before the newest"
-                return
+                self._odom_refused += 1
+                if self._odom_refused < RESET_AFTER:
+                    self.counts.out_of_order += 1
+                    self.counts.last_issue = f"odometry {number}: stamped {t:.6f}, before the newest"
+                    return
+                self.counts.resets += 1
+                self.counts.last_issue = (f"odometry {number}: {RESET_AFTER} messages in a row stamped "
+                                          f"before {self._odom_t[-1]:.6f}; the odometry starts again")
+                self._odom_t, self._odom = [], []
+            self._odom_refused = 0
+            self._odom_arrived = self.clock()
             self._odom_t.append(t)
             self._odom.append(pose)
-            while len(self._odom_t) > 2 and self._odom_t[1] < t - ODOM_KEEP_S:
+            if len(self._odom_t) > ODOM_KEEP_N and self._odom_t[1] < t - ODOM_KEEP_S:
                 del self._odom_t[0], self._odom[0]
             self._pair()
 
@@ -184,6 +219,8 @@ class LiveLidar:
     def _pair(self) -> None:
         from agents.files.rosbag import interpolate, posed_scan
 
+        if not self._waiting:
+            return
         now = self.clock()
         stamps = np.asarray(self._odom_t, dtype=np.float64)
         while self._waiting:
@@ -192,11 +229,21 @@ class LiveLidar:
                 self._drop_unposed(f"scan stamped {w.raw.t:.6f} before the odometry kept "
                                    f"({stamps[0]:.6f} on)")
                 continue
-            robot = interpolate(stamps, self._odom, w.raw.t) if stamps.size else None
+            try:
+                robot = interpolate(stamps, self._odom, w.raw.t) if stamps.size else None
+            except (ValueError, ArithmeticError) as exc:  # bounded poses make this unreachable
+                self._drop_unposed(f"scan stamped {w.raw.t:.6f}: cannot be posed ({_one_line(exc)})")
+                continue
             if robot is None:
-                if now - w.arrived > self.max_wait:
-                    self._drop_unposed(f"no odometry at or after the scan stamped {w.raw.t:.6f} "
-                                       f"within {self.max_wait:g} s")
+                # the odometry has not passed the scan yet: wait while it keeps coming (a busy
+                # process may run the two streams' callbacks late and in any order); drop the scan
+                # once the odometry has been silent for max_wait, or when too many scans wait
+                silent = now - w.arrived > self.max_wait and now - self._odom_arrived > self.max_wait
+                if silent or len(self._waiting) > MAX_WAITING:
+                    why = (f"no odometry for {self.max_wait:g} s" if silent
+                           else f"{MAX_WAITING} scans waiting for odometry")
+                    self._drop_unposed(f"scan stamped {w.raw.t:.6f}: {why} (odometry up to "
+                                       f"{stamps[-1] if stamps.size else float('nan'):.6f})")
                     continue
                 break
             self._waiting.popleft()
@@ -219,6 +266,7 @@ class LiveLidar:
         """The oldest posed scan, waiting up to ``timeout`` seconds for one; None if none came."""
         deadline = self.clock() + max(0.0, timeout)
         with self._cond:
+            self._pair()  # scans whose wait ran out go, and those behind them may be posed
             while not self._ready:
                 self._pair()  # scans whose wait ran out
                 left = deadline - self.clock()
@@ -249,6 +297,8 @@ def parse_mount(text: str) -> Pose:
         raise ValueError(f"--laser-mount must be X,Y[,THETA] (metres, radians), got {text!r}") from None
     if len(vals) not in (2, 3) or not all(math.isfinite(v) for v in vals):
         raise ValueError(f"--laser-mount must be X,Y[,THETA] (metres, radians), got {text!r}")
+    if max(abs(vals[0]), abs(vals[1])) > MAX_MOUNT_M:
+        raise ValueError(f"--laser-mount {text}: a laser more than {MAX_MOUNT_M:g} m from the robot's base")
     return Pose(vals[0], vals[1], vals[2] if len(vals) == 3 else 0.0)
 
 
@@ -266,12 +316,13 @@ def live_profile(opts: Any) -> tuple[dict[str, Any], Any, Any]:
 def live_steps(opts: Any, source: LiveLidar, stop: threading.Event) -> Iterator[Any]:
     """The robot's loop over live scans: each posed scan through :class:`agents.mapping_run.LiveInputs`
     (profile ``opts.lidar_profile``, which must run its SLAM scan by scan) and the filter, one
-    :class:`agents.mapping_run.RunStep` per scan mapped; None while no scan is ready (up to 0.05 s
-    of waiting), so that the agent keeps publishing its pose and heartbeats meanwhile; ends when
-    ``stop`` is set. The filter's field of view and range come from the first scan (the range
-    capped at 20 m, as ``wiremap map --carmen`` caps it). The first
-    ``frontend.calibration_scans`` scans (:func:`live_profile`) are mapped together once the last
-    of them has come (:class:`agents.mapping_run.LiveInputs`)."""
+    :class:`agents.mapping_run.RunStep` per scan mapped; None when a scan mapped nothing (held for
+    the calibration, left out by the motion filter) or none came within 0.05 s, so that the
+    agent keeps publishing its pose and heartbeats meanwhile; ends when ``stop`` is set. The
+    filter's field of view and range come from the first scan (the range capped at 20 m, as
+    ``wiremap map --carmen`` caps it). The first ``frontend.calibration_scans`` scans
+    (:func:`live_profile`) are mapped together once the last of them has come
+    (:class:`agents.mapping_run.LiveInputs`)."""
     from dataclasses import replace
 
     from agents import mapping_run as mr
@@ -298,6 +349,9 @@ def live_steps(opts: Any, source: LiveLidar, stop: threading.Event) -> Iterator[
             inputs.max_range = max_range
         ready = inputs.add(ls)
         source.counts.still = inputs.skipped
+        if not ready:  # held for the calibration, or left out by the motion filter
+            yield None
+            continue
         for step in mr.run_filter(ready, filt):
             yield replace(step, index=k)
             k += 1

@@ -331,7 +331,8 @@ class RobotAgent:
             s = next(self.steps)
         except StopIteration:
             self.status.finished = True
-            self.say(f"route finished after {self.status.step} steps")
+            if self.opts.live is None:  # a live lidar's steps end only when the agent stops
+                self.say(f"route finished after {self.status.step} steps")
             return False
         if s is None:  # a live lidar had no scan ready
             return False
@@ -408,7 +409,10 @@ class RobotAgent:
                 st = self.status
                 live = ""
                 if st.live is not None:
+                    dropped = ", ".join(f"{k} {v}" for k, v in st.live.items()
+                                        if k not in ("scans", "odometry", "posed", "last_issue") and v)
                     live = (f"; live lidar: {st.live['posed']} scans posed, {st.live['scans']} received"
+                            + (f" ({dropped})" if dropped else "")
                             + (" (calibrating: the first scans are mapped together)" if st.step == 0 else ""))
                 self.say(
                     f"step {st.step} t={st.t:.1f}s: {st.vertices} vertices, {st.edges} edges, {st.maps_sent} maps"  # noqa: E501
