@@ -83,7 +83,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--calibration-scans", type=int, default=None, metavar="N",
         help="with --scan-key: scans held at the start to calibrate the laser's yaw and the wheels' "
-        "noise before the first is mapped (default: the profile's, 100)",
+        "noise before the first is mapped (default 30)",
     )
     parser.add_argument(
         "--lidar-profile", choices=tuple(LIDAR_PROFILES), default=None,

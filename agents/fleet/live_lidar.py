@@ -73,6 +73,14 @@ ODOM_KEEP_N = 1000
 """Odometry kept for pairing: the last ``ODOM_KEEP_N`` messages, and more while they span less
 than ``ODOM_KEEP_S`` seconds of stamps (a scan whose callback runs after several odometry
 callbacks, in a busy process, still finds its odometry)."""
+CALIBRATION_SCANS = 30
+"""A live robot's scans held for the laser's yaw and the wheels' noise (``--calibration-scans``;
+the ``lidar-slam-online`` profile's 100 are for a log in hand): behind the motion filter, 30
+scans are about 15 m of driving before the first map, 100 about 50 m. On the seven logs fed
+one scan at a time (``tests/live_ate.py --calibration 30`` / ``100``) neither is better:
+median ATE 0.510 / 0.484 m, the difference one log's loops (``docs/experiments.md``, session
+25). The noise is measured again every 25 scans until it is pinned down
+(:class:`mapping.lidar_frontend.OnlineSlam`)."""
 MAX_MOUNT_M = 10.0  # a laser's mount farther than this from the robot's base is a typing error
 MAX_WAITING = 100  # scans waiting for odometry at or after their stamp, at most
 RESET_AFTER = 20
@@ -303,13 +311,13 @@ def parse_mount(text: str) -> Pose:
 
 
 def live_profile(opts: Any) -> tuple[dict[str, Any], Any, Any]:
-    """``(filter overrides, ExtractConfig, FrontendConfig)`` of the robot's lidar profile, with
-    ``opts.extra["calibration_scans"]`` when given (:func:`agents.mapping_run.split_profile`)."""
+    """``(filter overrides, ExtractConfig, FrontendConfig)`` of the robot's lidar profile, its
+    scans held for the calibrations ``opts.extra["calibration_scans"]`` when given, else
+    :data:`CALIBRATION_SCANS` (:func:`agents.mapping_run.split_profile`)."""
     from agents import mapping_run as mr
 
     prof = mr.lidar_profile(opts.lidar_profile)
-    if "calibration_scans" in opts.extra:
-        prof["frontend.calibration_scans"] = int(opts.extra["calibration_scans"])
+    prof["frontend.calibration_scans"] = int(opts.extra.get("calibration_scans", CALIBRATION_SCANS))
     return mr.split_profile(prof)
 
 
