@@ -27,6 +27,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "world": ("agents.commands.world", "draw a world or write it out as a world file"),
     "run": ("agents.commands.run", "the main job: router, N robots and the fusion service"),
     "robot": ("agents.commands.robot", "one robot agent process"),
+    "play": ("agents.commands.play", "publish a log's scans and odometry as a ROS 2 robot would"),
     "fuse": ("agents.commands.fuse", "the fusion service"),
     "router": ("agents.commands.router", "a Zenoh router"),
     "watch": ("agents.commands.watch", "subscribe to the fused map and show each version"),

@@ -59,7 +59,8 @@ ROBOT = ["robot", "--id", "r1", "--world", "paper-small"]
 CASES: dict[str, list[str]] = {
     # every subcommand: an unknown flag
     **{f"{c}-bad-flag": [c, "--no-such-flag"] for c in
-       ("map", "worlds", "world", "run", "robot", "fuse", "router", "watch", "replay", "export", "bench")},
+       ("map", "worlds", "world", "run", "robot", "play", "fuse", "router", "watch", "replay", "export",
+        "bench")},
     "no-command-flag": ["--no-such-flag"],
     "unknown-command": ["frobnicate"],
     # map

@@ -390,3 +390,82 @@ def test_live_flags_errors_are_one_line(
     assert main(["robot", "--id", "r1", *argv]) == 2
     err = capsys.readouterr().err.strip()
     assert needle in err and "\n" not in err, err
+
+
+# ---------------------------------------------------------------- wiremap play
+def test_played_messages_read_back_as_the_logs_scans(scans: list[Any]) -> None:
+    """What `wiremap play` sends (agents.files.ros_messages), read by a live robot's source
+    with the log's mount: the log's scans, poses to 1e-6, ranges to float32 precision."""
+    from agents.files.ros_messages import Ros2Messages
+
+    make = Ros2Messages()
+    mount = scans[0].mount
+    src = LiveLidar(mount=mount)
+    got = []
+    for ls in scans:
+        odom, scan = make.of_scan(ls)
+        src.on_odometry(odom)
+        src.on_scan(scan)
+        while (p := src.take(0.0)) is not None:
+            got.append(p)
+    assert len(got) == len(scans) and src.counts.bad_scans == src.counts.bad_odometry == 0
+    for g, c in zip(got, scans):
+        assert g.odom.almost_equal(c.odom, tol=1e-6, angle_tol=1e-6)
+        hit = np.isfinite(c.ranges)
+        assert np.array_equal(np.isfinite(g.ranges), hit)
+        assert np.allclose(g.ranges[hit], c.ranges[hit], rtol=1e-6)
+        assert np.allclose(g.angles, c.angles, atol=1e-6)
+
+
+@pytest.mark.fleet
+def test_wiremap_play_feeds_a_live_robot(tmp_path: Path) -> None:
+    """`wiremap play --carmen LOG` over a real router into `wiremap robot --scan-key --odom-key`:
+    the robot poses and maps every scan of the excerpt (motion filter off), and play says what
+    it sent and exits 0."""
+    from tests.fleet_util import in_process_router, log_text, spawn, stop_process, wait_until
+
+    status_file = tmp_path / "status.json"
+    robot_log, play_log = tmp_path / "robot.log", tmp_path / "play.log"
+    with in_process_router() as ep:
+        robot = spawn(["robot", "--id", "p1", "--scan-key", "pl/scan", "--odom-key", "pl/odom",
+                       "--calibration-scans", "20", "--min-travel", "0", "--min-turn", "0",
+                       "--particles", "2", "--connect", ep, "--fleet", "t",
+                       "--status-file", str(status_file)], robot_log)
+        play = None
+        try:
+            wait_until(lambda: "on the bus" in robot_log.read_text(), 60, "the robot on the bus")
+            play = spawn(["play", "--carmen", str(EXCERPT), "--speed", "200", "--scan-key", "pl/scan",
+                          "--odom-key", "pl/odom", "--connect", ep, "--fleet", "t"], play_log)
+            wait_until(lambda: play.poll() is not None, 60, "play to finish")
+            assert play.returncode == 0, log_text(play, play_log)
+            assert "sent 60 scans in 1 full pass" in play_log.read_text()
+            time.sleep(3)  # what was sent is mapped
+            assert stop_process(robot, timeout=20) == 0, log_text(robot, robot_log)
+        finally:
+            for p in (robot, play):
+                if p is not None:
+                    stop_process(p, timeout=5)
+    status = json.loads(status_file.read_text())
+    assert status["live"]["posed"] == 60 and status["step"] == 60, status
+
+
+@pytest.mark.parametrize(("argv", "needle"), [
+    (["--carmen", "{log}", "--scan-key", "a/**", "--odom-key", "a/odom"], "overlap"),
+    (["--carmen", "{missing}", "--scan-key", "scan", "--odom-key", "odom"], "no such file"),
+    (["--carmen", "{log}", "--scan-key", "scan", "--odom-key", "odom", "--scans", "5:2"], "--scans"),
+    (["--carmen", "{log}", "--scan-key", "scan", "--odom-key", "odom", "--speed", "0"], "--speed"),
+    (["--carmen", "{log}", "--scan-key", "scan", "--odom-key", "odom", "--scan-topic", "/s"], "for --rosbag"),
+    (["--carmen", "{log}", "--scan-key", "scan"], "--odom-key"),
+])
+def test_play_errors_are_one_line(argv: list[str], needle: str, tmp_path: Path,
+                                  capsys: pytest.CaptureFixture[str]) -> None:
+    from agents.cli import main
+
+    argv = [a.replace("{log}", str(EXCERPT)).replace("{missing}", str(tmp_path / "none.log")) for a in argv]
+    try:
+        code = main(["play", *argv])
+    except SystemExit as exc:  # argparse's own errors
+        code = exc.code
+    assert code == 2
+    err = capsys.readouterr().err.strip()
+    assert needle in err and "\n" not in err, err

@@ -296,18 +296,14 @@ def _carmen_options(args: argparse.Namespace, rid: str) -> RobotOptions:
 def _live_options(args: argparse.Namespace, rid: str) -> RobotOptions:
     """A robot mapping its own lidar, live (:mod:`agents.fleet.live_lidar`): in the fleet frame
     from ``--start`` when given, else in its own frame (unknown start, registered by fusion)."""
-    from agents.fleet.live_lidar import parse_mount
+    from agents.fleet.live_lidar import check_keys, parse_mount
     from agents.fleet.robot import RobotOptions
 
     if not (args.scan_key and args.odom_key):
         raise UserError("a live lidar needs both --scan-key and --odom-key")
     if args.scans:
         raise UserError("--scans is for --carmen and --rosbag; a live lidar maps every scan that comes")
-    scan_ke = _check_key_expr("--scan-key", args.scan_key)
-    odom_ke = _check_key_expr("--odom-key", args.odom_key)
-    if scan_ke.intersects(odom_ke):
-        raise UserError(f"--scan-key {args.scan_key} and --odom-key {args.odom_key} overlap: a message on "
-                        "both would be read as a scan and as odometry; give keys that do not")
+    check_keys(args.scan_key, args.odom_key)
     profile = args.lidar_profile or "lidar-slam-online"
     if profile != "lidar-slam-online":
         raise UserError(f"--lidar-profile {profile} needs the whole log first; a live lidar maps with "
@@ -369,13 +365,6 @@ def _live_steps(session: Any, opts: RobotOptions, stop: Any, subs: list[Any]) ->
     return live_steps(opts, source, stop), source.snapshot
 
 
-def _check_key_expr(flag: str, key: str) -> Any:
-    import zenoh
-
-    try:
-        return zenoh.KeyExpr(key)
-    except Exception as exc:  # zenoh's own error type for a malformed key expression
-        raise UserError(f"{flag} {key!r} is not a Zenoh key expression ({exc})") from None
 
 
 def run(args: argparse.Namespace) -> int:

@@ -297,6 +297,25 @@ def _one_line(exc: BaseException) -> str:
     return text if len(text) <= 120 else text[:117] + "..."
 
 
+def check_keys(scan_key: str, odom_key: str) -> None:
+    """``--scan-key`` and ``--odom-key`` as Zenoh key expressions that do not overlap (a message
+    on both would be read as a scan and as odometry); :class:`agents.errors.UserError` with the
+    reason."""
+    import zenoh
+
+    from agents.errors import UserError
+
+    kes = []
+    for flag, key in (("--scan-key", scan_key), ("--odom-key", odom_key)):
+        try:
+            kes.append(zenoh.KeyExpr(key))
+        except Exception as exc:  # zenoh's own error type for a malformed key expression
+            raise UserError(f"{flag} {key!r} is not a Zenoh key expression ({exc})") from None
+    if kes[0].intersects(kes[1]):
+        raise UserError(f"--scan-key {scan_key} and --odom-key {odom_key} overlap: a message on both "
+                        "would be read as a scan and as odometry; give keys that do not")
+
+
 def parse_mount(text: str) -> Pose:
     """``X,Y[,THETA]`` (metres, radians) as a pose; ``ValueError`` with the reason."""
     try:
