@@ -57,3 +57,15 @@ def add_bag_topics(parser: argparse.ArgumentParser | argparse._ArgumentGroup, co
     parser.add_argument("--odom-topic", metavar="TOPIC",
                         help=f"{context}the nav_msgs/Odometry topic, or /tf (default: the bag's only "
                         "Odometry topic, else /tf)")
+
+
+def scan_range(text: str) -> tuple[int, int]:
+    """``--scans I0:I1``: scans ``I0`` to ``I1 - 1`` of a log (``0 <= I0 < I1``), as a ``type=``."""
+    try:
+        a, b = (int(v) for v in text.split(":"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be I0:I1, got {text!r}") from None
+    if not 0 <= a < b:
+        raise argparse.ArgumentTypeError(f"must be I0:I1 with 0 <= I0 < I1, got {text!r}")
+    return a, b
+

@@ -13,7 +13,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from agents.argtypes import add_bag_topics, positive_float
+from agents.argtypes import add_bag_topics, positive_float, scan_range
 from agents.errors import UserError
 from agents.fleet.bus import StopFlag, add_bus_arguments, config_from_args, open_session, watch_parent
 
@@ -31,7 +31,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="Zenoh key the odometry goes on (as a live robot's --odom-key)")
     parser.add_argument("--speed", type=positive_float, default=1.0, metavar="X",
                         help="times the log's own pace (default 1)")
-    parser.add_argument("--scans", metavar="I0:I1", help="play the log's scans I0 to I1-1 (default all)")
+    parser.add_argument("--scans", type=scan_range, metavar="I0:I1",
+                        help="play the log's scans I0 to I1-1 (default all)")
     parser.add_argument("--loop", action="store_true", help="start again at the end, until stopped")
     add_bus_arguments(parser)
 
@@ -52,13 +53,7 @@ def _scans(args: argparse.Namespace) -> list[Any]:
             raise UserError(f"--carmen {args.carmen}: no such file")
         scans = list(read_carmen_log(args.carmen).scans)
     if args.scans:
-        try:
-            a, b = (int(v) for v in args.scans.split(":"))
-        except ValueError:
-            raise UserError(f"--scans must be I0:I1, got {args.scans!r}") from None
-        if not 0 <= a < b:
-            raise UserError(f"--scans must be I0:I1 with 0 <= I0 < I1, got {args.scans!r}")
-        scans = scans[a:b]
+        scans = scans[args.scans[0]:args.scans[1]]
     if not scans:
         raise UserError(f"{args.carmen or args.rosbag}: no scans to play")
     return scans

@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from agents.argtypes import add_bag_topics, non_negative_float, non_negative_int, positive_float
+from agents.argtypes import add_bag_topics, non_negative_float, non_negative_int, positive_float, scan_range
 from agents.errors import UserError
 from agents.fleet.bus import (
     StopFlag,
@@ -55,7 +55,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--truth-topic", metavar="TOPIC",
                         help="with --rosbag: read the bag as wiremap run --truth-topic does (scans "
                         "without a true pose left out), so that --scans indexes the same scans")
-    parser.add_argument("--scans", metavar="I0:I1",
+    parser.add_argument("--scans", type=scan_range, metavar="I0:I1",
                         help="with --carmen or --rosbag: replay the log's scans I0 to I1-1")
     parser.add_argument(
         "--scan-key", metavar="KEY",
@@ -273,15 +273,7 @@ def _carmen_options(args: argparse.Namespace, rid: str) -> RobotOptions:
         extra["rosbag"] = {"scan_topic": args.scan_topic, "odom_topic": args.odom_topic,
                            "truth_topic": args.truth_topic}
 
-    scans = None
-    if args.scans:
-        try:
-            a, b = (int(v) for v in args.scans.split(":"))
-        except ValueError:
-            raise UserError(f"--scans must be I0:I1, got {args.scans!r}") from None
-        if not 0 <= a < b:
-            raise UserError(f"--scans must be I0:I1 with 0 <= I0 < I1, got {args.scans!r}")
-        scans = (a, b)
+    scans = args.scans
     resolved = _filter_config(args)
     return RobotOptions(
         robot=rid, world="", start=Pose.identity(), rate=args.rate, seed=args.seed,
