@@ -3,7 +3,7 @@ real router on loopback, as ROS 2 CDR messages at SPEED times the log's own pace
 robot's final map precision against the log's real scan endpoints (the map placed at the truth's
 first pose), its live counters and its ms per step, as one JSON line.
 
-``python tests/live_feed.py LOG SPEED`` (from the repository's folder).
+``python -m tests.live_feed LOG SPEED`` (from the repository's folder).
 """
 
 from __future__ import annotations
@@ -19,6 +19,7 @@ from typing import Any
 
 import zenoh
 
+from agents.commands.play import _timed
 from agents.files.carmen import read_carmen_log, scan_truth
 from agents.fleet.bus import FleetKeys, decode_pose, free_port
 from agents.fleet.carmen_fleet import endpoint_precision, endpoints
@@ -27,9 +28,11 @@ from wire_codec import decode
 
 
 def main() -> None:
+    if len(sys.argv) != 3:
+        raise SystemExit(__doc__)
     log_path, speed = sys.argv[1], float(sys.argv[2])
     log = read_carmen_log(log_path)
-    scans = list(log.scans)
+    scans = _timed(list(log.scans), 10.0)  # times a live robot can pair, as wiremap play gives them
     truth = scan_truth(log)
     if truth is None:
         raise SystemExit(f"{log_path}: no truth")

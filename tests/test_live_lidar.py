@@ -394,15 +394,16 @@ def test_live_flags_errors_are_one_line(
 
 # ---------------------------------------------------------------- wiremap play
 def test_played_messages_read_back_as_the_logs_scans(scans: list[Any]) -> None:
-    """What `wiremap play` sends (agents.files.ros_messages), read by a live robot's source
-    with the log's mount: the log's scans, poses to 1e-6, ranges to float32 precision."""
+    """What `wiremap play` sends (agents.files.ros_messages) for scans with a laser mount, read by
+    a live robot's source given that mount: the log's scans (the laser's poses to 1e-6: the base's
+    odometry composed with the mount), ranges to float32 precision."""
     from agents.files.ros_messages import Ros2Messages
 
     make = Ros2Messages()
-    mount = scans[0].mount
-    src = LiveLidar(mount=mount)
+    mounted = [replace(ls, mount=MOUNT) for ls in scans]  # the laser off the base: a mount to undo
+    src = LiveLidar(mount=MOUNT)
     got = []
-    for ls in scans:
+    for ls in mounted:
         odom, scan = make.of_scan(ls)
         src.on_odometry(odom)
         src.on_scan(scan)
@@ -415,6 +416,19 @@ def test_played_messages_read_back_as_the_logs_scans(scans: list[Any]) -> None:
         assert np.array_equal(np.isfinite(g.ranges), hit)
         assert np.allclose(g.ranges[hit], c.ranges[hit], rtol=1e-6)
         assert np.allclose(g.angles, c.angles, atol=1e-6)
+
+
+def test_play_times_scans_a_live_robot_can_pair(scans: list[Any]) -> None:
+    """A log's increasing times are kept; times from zero are shifted to start at 1 s (a zero
+    stamp means none); times that do not increase (orebro, belgioioso stamp every scan alike) are
+    replaced by one every 1 / rate s."""
+    from agents.commands.play import _timed
+
+    assert _timed(scans, 10.0) == scans
+    from_zero = _timed([replace(ls, t=ls.t - scans[0].t) for ls in scans], 10.0)
+    assert from_zero[0].t == 1.0 and from_zero[-1].t == pytest.approx(1.0 + scans[-1].t - scans[0].t)
+    alike = _timed([replace(ls, t=5.0) for ls in scans], 20.0)
+    assert [ls.t for ls in alike] == [1.0 + k / 20.0 for k in range(len(scans))]
 
 
 @pytest.mark.fleet

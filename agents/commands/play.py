@@ -9,6 +9,7 @@ stamped after the last) or on Ctrl-C/SIGTERM; one progress line every 10 s."""
 from __future__ import annotations
 
 import argparse
+import itertools
 import time
 from pathlib import Path
 from typing import Any
@@ -33,7 +34,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="times the log's own pace (default 1)")
     parser.add_argument("--scans", type=scan_range, metavar="I0:I1",
                         help="play the log's scans I0 to I1-1 (default all)")
-    parser.add_argument("--loop", action="store_true", help="start again at the end, until stopped")
+    parser.add_argument("--rate", type=positive_float, default=10.0, metavar="HZ",
+                        help="scans per second for a log whose scan times do not increase (default 10)")
+    parser.add_argument("--loop", action="store_true",
+                        help="start again at the end, until stopped (each pass stamped after the last; "
+                        "the odometry jumps back to the start: a kidnapped robot)")
     add_bus_arguments(parser)
 
 
@@ -54,8 +59,27 @@ def _scans(args: argparse.Namespace) -> list[Any]:
         scans = list(read_carmen_log(args.carmen).scans)
     if args.scans:
         scans = scans[args.scans[0]:args.scans[1]]
+    scans = [ls for ls in scans if len(ls.ranges) >= 1]  # a scan line with no beams is no LaserScan
     if not scans:
         raise UserError(f"{args.carmen or args.rosbag}: no scans to play")
+    mounts = {ls.mount.as_tuple() for ls in scans}
+    if len(mounts) > 1:
+        raise UserError(f"{args.carmen or args.rosbag}: the scans have {len(mounts)} different laser mounts; "
+                        "a live robot takes one (--laser-mount): play a stretch with one (--scans)")
+    return _timed(scans, args.rate)
+
+
+def _timed(scans: list[Any], rate: float) -> list[Any]:
+    """The scans with times a live robot can pair: the log's own when they increase and are
+    positive; shifted to start at 1 s when the first is not (a zero stamp means "none" in ROS);
+    every ``1 / rate`` s from 1 s when they do not increase (some logs stamp every scan alike)."""
+    from dataclasses import replace
+
+    ts = [float(ls.t) for ls in scans]
+    if any(b <= a for a, b in itertools.pairwise(ts)):
+        return [replace(ls, t=1.0 + k / rate) for k, ls in enumerate(scans)]
+    if ts[0] < 1.0:
+        return [replace(ls, t=t - ts[0] + 1.0) for ls, t in zip(scans, ts)]
     return scans
 
 
@@ -65,6 +89,7 @@ def run(args: argparse.Namespace) -> int:
 
     check_keys(args.scan_key, args.odom_key)
     scans = _scans(args)
+    mount = scans[0].mount
     make = Ros2Messages()
     # every message made before going on the bus: a scan the codec cannot write is an error now
     msgs = [make.of_scan(ls) for ls in scans]
@@ -85,13 +110,16 @@ def run(args: argparse.Namespace) -> int:
             return 0
         try:
             say(f"{len(scans)} scans ({span:.0f} s of log) on {args.scan_key}, odometry on {args.odom_key}, "
-                f"at {args.speed:g}x")
+                f"at {args.speed:g}x; the laser on the robot: --laser-mount "
+                f"{mount.x:.6g},{mount.y:.6g},{mount.theta:.6g}")
             t0, last_say = time.monotonic(), time.monotonic()
             while not stop.is_set():
                 for k, ls in enumerate(scans):
                     offset = passes * period + (ls.t - scans[0].t)
-                    wait = t0 + offset / args.speed - time.monotonic()
-                    if wait > 0 and stop.wait(wait):
+                    due = t0 + offset / args.speed
+                    while not stop.is_set() and time.monotonic() < due:
+                        stop.wait(min(due - time.monotonic(), 0.5))
+                    if stop.is_set():
                         break
                     odom, scan = msgs[k] if passes == 0 else make.of_scan(_shifted(ls, passes * period))
                     session.put(args.odom_key, odom, congestion_control=zenoh.CongestionControl.BLOCK)

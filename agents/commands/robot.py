@@ -357,8 +357,6 @@ def _live_steps(session: Any, opts: RobotOptions, stop: Any, subs: list[Any]) ->
     return live_steps(opts, source, stop), source.snapshot
 
 
-
-
 def run(args: argparse.Namespace) -> int:
     from agents.fleet.robot import RobotAgent, default_steps
 
