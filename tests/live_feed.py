@@ -19,7 +19,7 @@ from typing import Any
 
 import zenoh
 
-from agents.commands.play import _timed
+from agents.commands.play import live_times
 from agents.files.carmen import read_carmen_log, scan_truth
 from agents.fleet.bus import FleetKeys, decode_pose, free_port
 from agents.fleet.carmen_fleet import endpoint_precision, endpoints
@@ -32,7 +32,7 @@ def main() -> None:
         raise SystemExit(__doc__)
     log_path, speed = sys.argv[1], float(sys.argv[2])
     log = read_carmen_log(log_path)
-    scans = _timed(list(log.scans), 10.0)  # times a live robot can pair, as wiremap play gives them
+    scans = live_times(list(log.scans), 10.0)  # times a live robot can pair, as wiremap play gives them
     truth = scan_truth(log)
     if truth is None:
         raise SystemExit(f"{log_path}: no truth")

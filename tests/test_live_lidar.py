@@ -422,12 +422,12 @@ def test_play_times_scans_a_live_robot_can_pair(scans: list[Any]) -> None:
     """A log's increasing times are kept; times from zero are shifted to start at 1 s (a zero
     stamp means none); times that do not increase (orebro, belgioioso stamp every scan alike) are
     replaced by one every 1 / rate s."""
-    from agents.commands.play import _timed
+    from agents.commands.play import live_times
 
-    assert _timed(scans, 10.0) == scans
-    from_zero = _timed([replace(ls, t=ls.t - scans[0].t) for ls in scans], 10.0)
+    assert live_times(scans, 10.0) == scans
+    from_zero = live_times([replace(ls, t=ls.t - scans[0].t) for ls in scans], 10.0)
     assert from_zero[0].t == 1.0 and from_zero[-1].t == pytest.approx(1.0 + scans[-1].t - scans[0].t)
-    alike = _timed([replace(ls, t=5.0) for ls in scans], 20.0)
+    alike = live_times([replace(ls, t=5.0) for ls in scans], 20.0)
     assert [ls.t for ls in alike] == [1.0 + k / 20.0 for k in range(len(scans))]
 
 

@@ -43,20 +43,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _scans(args: argparse.Namespace) -> list[Any]:
-    if args.rosbag:
-        from agents.files.rosbag import read_rosbag
+    from agents.fleet.carmen_fleet import read_log
 
+    if args.rosbag:
         if not Path(args.rosbag).exists():
             raise UserError(f"--rosbag {args.rosbag}: no such file or folder")
-        scans = list(read_rosbag(args.rosbag, scan_topic=args.scan_topic, odom_topic=args.odom_topic).scans)
+        scans = read_log(args.rosbag, {"scan_topic": args.scan_topic, "odom_topic": args.odom_topic})
     else:
-        from agents.files.carmen import read_carmen_log
-
         if args.scan_topic or args.odom_topic:
             raise UserError("--scan-topic and --odom-topic are for --rosbag")
         if not Path(args.carmen).is_file():
             raise UserError(f"--carmen {args.carmen}: no such file")
-        scans = list(read_carmen_log(args.carmen).scans)
+        scans = read_log(args.carmen)
     if args.scans:
         scans = scans[args.scans[0]:args.scans[1]]
     scans = [ls for ls in scans if len(ls.ranges) >= 1]  # a scan line with no beams is no LaserScan
@@ -66,10 +64,10 @@ def _scans(args: argparse.Namespace) -> list[Any]:
     if len(mounts) > 1:
         raise UserError(f"{args.carmen or args.rosbag}: the scans have {len(mounts)} different laser mounts; "
                         "a live robot takes one (--laser-mount): play a stretch with one (--scans)")
-    return _timed(scans, args.rate)
+    return live_times(scans, args.rate)
 
 
-def _timed(scans: list[Any], rate: float) -> list[Any]:
+def live_times(scans: list[Any], rate: float) -> list[Any]:
     """The scans with times a live robot can pair: the log's own when they increase and are
     positive; shifted to start at 1 s when the first is not (a zero stamp means "none" in ROS);
     every ``1 / rate`` s from 1 s when they do not increase (some logs stamp every scan alike)."""

@@ -158,7 +158,7 @@ def options_from_args(args: argparse.Namespace) -> RobotOptions:
         args.rate = DEFAULT_RATE
     if (args.scan_topic or args.odom_topic or args.truth_topic) and not args.rosbag:
         raise UserError("--scan-topic, --odom-topic and --truth-topic are for --rosbag")
-    if args.scan_key or args.odom_key:
+    if live:
         if args.carmen or args.world or args.rosbag:
             raise UserError("--scan-key maps a live lidar: give it without --carmen, --rosbag or --world")
         if args.sensor != "corners" or args.scene_seed is not None or args.route:
