@@ -274,11 +274,16 @@ LIDAR_SLAM_PROFILE: dict[str, Any] = {
 
 #: ``lidar-slam`` as a robot mapping while it drives runs it: each scan mapped at the pose the
 #: SLAM gave it when it came (``slam.online``; no offline smoothing), the laser's yaw and the
-#: wheels' noise measured on the first 100 scans only (``frontend.calibration_scans``).
+#: wheels' noise measured on the first 100 scans only (``frontend.calibration_scans``), and a loop
+#: that moves the estimate less than 2 cm and 0.2 degree *settled* (``slam.loop_settled_xy``,
+#: ``loop_settled_theta``: its edge kept, the graph not optimised for it), so that a robot driving
+#: a building it has mapped keeps its time per scan (``wiremap bench live``).
 LIDAR_SLAM_ONLINE_PROFILE: dict[str, Any] = {
     **LIDAR_SLAM_PROFILE,
     "slam.online": True,
     "frontend.calibration_scans": 100,
+    "slam.loop_settled_xy": 0.02,
+    "slam.loop_settled_theta": math.radians(0.2),
 }
 
 #: The real-lidar profiles by name (``--profile`` of ``wiremap bench lidar``, ``--lidar-profile``
@@ -706,6 +711,11 @@ class LiveInputs:
     @property
     def calibrating(self) -> bool:
         return self.calibration is None
+
+    @property
+    def slam(self) -> Any:
+        """The online SLAM (:class:`mapping.lidar_slam.LidarSlam`) once calibrated, else None."""
+        return None if self._slam is None else self._slam.slam
 
     def add(self, ls: Any) -> list[ScanInput]:
         if self._taken is not None and (self.min_travel > 0.0 or self.min_turn > 0.0):

@@ -121,6 +121,14 @@ class SlamConfig:
     loop_max_chi2 : float
         A loop is refused when, after optimising with it, a link of the chain or the loop's own
         edge is strained beyond this chi-square (25).
+    loop_settled_xy, loop_settled_theta : float
+        A loop whose match puts the scan within this many metres and radians of where the
+        estimate already has it is *settled*: its edge joins the graph, but the graph is not
+        optimised for it (nor checked for strain: optimising would move nothing that matters).
+        The next loop that does move the estimate optimises with every edge so far. A robot that
+        drives a building it has mapped closes a loop every ``loop_every`` scans, each a
+        Gauss-Newton over the whole graph: without this, its time per scan grows with every scan
+        it has ever taken (0 and 0: every loop optimises).
     map_radius : float
         Old scans whose estimated position is within this many metres of the prediction join
         the local submap (4.0; 0: the recent scans only).
@@ -176,6 +184,8 @@ class SlamConfig:
     loop_kernel: float = 3.0
     effective_points: float = 2.0
     loop_max_chi2: float = 25.0
+    loop_settled_xy: float = 0.0
+    loop_settled_theta: float = 0.0
     map_radius: float = 4.0
     map_scans: int = 15
     refine_passes: int = 3
@@ -198,6 +208,8 @@ class SlamConfig:
                              "odo_calibration_min_pairs >= 2")
         if not (0 < self.loop_min_inliers <= 1):
             raise ValueError("loop_min_inliers must be in (0, 1]")
+        if not (self.loop_settled_xy >= 0 and self.loop_settled_theta >= 0):
+            raise ValueError("loop_settled_xy and loop_settled_theta must be >= 0")
 
 
 # ---------------------------------------------------------------------------------------- SE(2)
@@ -635,6 +647,9 @@ def _chi2(x: FloatArray, edges: list[Edge]) -> FloatArray:
 # ------------------------------------------------------------------------------------- the SLAM
 
 
+#: Scans whose world-frame cloud :class:`LidarSlam` keeps (12 KB a scan of 361 beams: about 50 MB).
+CLOUD_CACHE = 4096
+
 #: Submaps :meth:`LidarSlam.refine` keeps for reuse (points, normals and grid: 121 KB a submap
 #: on fhw on average, 249 KB at the 95th percentile: about 30 MB for all, 64 MB at worst).
 _REFINE_SUBMAPS = 256
@@ -652,7 +667,13 @@ class LidarSlam:
     """Online lidar SLAM over a log's scans: :meth:`add` per scan, in order.
 
     ``poses`` holds every scan's current estimate (a loop closure moves them all);
-    ``online`` what :meth:`add` returned for each scan at the time."""
+    ``online`` what :meth:`add` returned for each scan at the time; ``settled`` counts the loops
+    of ``loops`` that were settled (``SlamConfig.loop_settled_xy``).
+
+    A robot runs this for hours: what a scan costs must not grow with the scans before it
+    beyond what the graph's own size forces. The scans' world-frame clouds are a cache of at
+    most :data:`CLOUD_CACHE` scans (recomputed, the same arrays, when an evicted scan is needed
+    again); the loop search finds its old candidates by the travel array's prefix."""
 
     config: SlamConfig = field(default_factory=SlamConfig)
     start: FloatArray = field(default_factory=lambda: np.zeros(3))
@@ -661,7 +682,9 @@ class LidarSlam:
     edges: list[Edge] = field(default_factory=list)
     loops: list[tuple[int, int]] = field(default_factory=list)
     rejected: list[tuple[int, int]] = field(default_factory=list)
+    settled: int = 0
     _nodes: list[_Node] = field(default_factory=list)
+    _travel: FloatArray = field(default_factory=lambda: np.zeros(1024))  # _Node.travel, grown by doubling
     _last_loop: tuple[float, int] = (-math.inf, -(10**9))
     _clouds: dict[int, tuple[bytes, tuple[FloatArray, FloatArray]]] = field(default_factory=dict)
 
@@ -672,12 +695,15 @@ class LidarSlam:
         moves it (the same function of the same numbers, so the same arrays)."""
         pose = self.poses[k]
         key = pose.tobytes()
-        kept = self._clouds.get(k)
+        kept = self._clouds.pop(k, None)
         if kept is not None and kept[0] == key:
+            self._clouds[k] = kept  # the most recently used last
             return kept[1]
         nd = self._nodes[k]
         cloud = (_apply(pose, nd.points), nd.normals @ _rot(pose[2]).T)
         self._clouds[k] = (key, cloud)
+        if len(self._clouds) > CLOUD_CACHE:
+            del self._clouds[next(iter(self._clouds))]  # the least recently used
         return cloud
 
     def _edge_information(self, hessian: FloatArray, theta_j: float) -> FloatArray:
@@ -701,6 +727,9 @@ class LidarSlam:
         d = math.hypot(odo[0], odo[1])
         travel = 0.0 if k == 0 else self._nodes[-1].travel + d
         self._nodes.append(_Node(pts, nrm, travel))
+        if k == len(self._travel):
+            self._travel = np.concatenate([self._travel, np.zeros(len(self._travel))])
+        self._travel[k] = travel
         if k == 0:
             self.poses = np.array([self.start], dtype=np.float64)
             self.online.append(self.poses[0].copy())
@@ -741,14 +770,13 @@ class LidarSlam:
     def _close_loop(self, k: int) -> None:
         cfg = self.config
         here = self._nodes[k].travel
-        cand = [j for j in range(k) if here - self._nodes[j].travel >= cfg.loop_min_travel]
-        if not cand:
+        cj = np.flatnonzero(here - self._travel[:k] >= cfg.loop_min_travel)
+        if len(cj) == 0:
             return
-        cj = np.array(cand)
         dist = np.hypot(*(self.poses[cj, :2] - self.poses[k, :2]).T)
         # The window grows with the distance driven since the old scan -- or since the last loop
         # closed, when that loop's old end is near this one's: it tied the two ends together.
-        travel = np.array([self._nodes[j].travel for j in cand])
+        travel = self._travel[cj]
         tied = np.abs(cj - self._last_loop[1]) <= 3 * cfg.loop_submap_scans
         driven = np.where(tied, np.minimum(here - travel, here - self._last_loop[0]), here - travel)
         radius = np.minimum(cfg.loop_radius + cfg.loop_radius_per_m * driven, cfg.loop_radius_max)
@@ -776,6 +804,14 @@ class LidarSlam:
         z = _between(self.poses[j], m.pose)
         omega = self._edge_information(m.hessian, m.pose[2])
         edge = Edge(j, k, z, omega, robust=True)
+        move = m.pose - self.poses[k]
+        if (math.hypot(move[0], move[1]) <= cfg.loop_settled_xy
+                and abs(wrap_angle(float(move[2]))) <= cfg.loop_settled_theta):
+            self.edges.append(edge)
+            self.loops.append((j, k))
+            self.settled += 1
+            self._last_loop = (here, j)
+            return
         poses = optimize(self.poses, [*self.edges, edge], kernel=cfg.loop_kernel)
         # Verification by the graph: a loop the chain of matches can only meet by straining
         # some of its links far beyond their noise is an alias (a corridor's other door), not

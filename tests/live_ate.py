@@ -3,8 +3,8 @@ scan at a time (:class:`agents.mapping_run.LiveInputs`, the ``lidar-slam-online`
 and without its motion filter; the online SLAM's poses integrated from the truth's first pose,
 ATE over the scans mapped.
 
-``python tests/live_ate.py LOG [LOG ...] [--filter M,DEG ...] [--calibration N]`` (default filter
-0.5,10; 100 scans held for the calibrations).
+``python tests/live_ate.py LOG [LOG ...] [--filter M,DEG ...] [--calibration N] [--set KEY=VALUE
+...]`` (default filter 0.5,10; 100 scans held for the calibrations; ``--set`` over the profile).
 """
 
 from __future__ import annotations
@@ -20,7 +20,8 @@ from agents.files.carmen import read_carmen_log, scan_truth
 
 
 def run(
-    path: str, min_travel: float, min_turn_deg: float, calibration: int = 100
+    path: str, min_travel: float, min_turn_deg: float, calibration: int = 100,
+    sets: dict[str, str] | None = None,
 ) -> tuple[int, int, float, float]:
     """``(scans mapped, scans left out, ATE m, CPU ms per scan)``."""
     log = read_carmen_log(path)
@@ -29,7 +30,7 @@ def run(
     if truth is None:
         raise SystemExit(f"{path}: no truth")
     _, extract, frontend = mr.split_profile({**mr.lidar_profile("lidar-slam-online"),
-                                             "frontend.calibration_scans": calibration})
+                                             "frontend.calibration_scans": calibration, **(sets or {})})
     live = mr.LiveInputs(max_range=20.0, extract=extract, frontend=frontend, min_travel=min_travel,
                          min_turn=math.radians(min_turn_deg))
     waiting: list[int] = []  # the scans taken, in order, whose inputs have not come out yet
@@ -61,14 +62,17 @@ def main() -> None:
     ap.add_argument("logs", nargs="+")
     ap.add_argument("--filter", action="append", metavar="M,DEG", help="motion filter thresholds (repeat)")
     ap.add_argument("--calibration", type=int, default=100, help="scans held for the calibrations")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", dest="sets",
+                    help="a setting over the profile's (e.g. slam.loop_settled_xy=0)")
     args = ap.parse_args()
+    sets = dict(item.split("=", 1) for item in args.sets)
     filters = [tuple(float(v) for v in f.split(",")) for f in (args.filter or ["0.5,10"])]
     for path in args.logs:
         name = path.split("/")[-1].split(".")[0]
-        n, _, ate, _ = run(path, 0.0, 0.0, args.calibration)
+        n, _, ate, _ = run(path, 0.0, 0.0, args.calibration, sets)
         line = f"{name:14s} every scan: {n} mapped, ATE {ate:.3f} m"
         for d, a in filters:
-            n, still, ate, ms = run(path, d, a, args.calibration)
+            n, still, ate, ms = run(path, d, a, args.calibration, sets)
             line += (f" | {d:g} m / {a:g} deg: {n} mapped ({still} left out), ATE {ate:.3f} m, "
                      f"{ms:.1f} ms/scan")
         print(line, flush=True)

@@ -193,6 +193,73 @@ def test_slam_closes_a_loop_in_a_simulated_hall_and_is_deterministic() -> None:
     assert np.array_equal(run().poses, slam.poses)
 
 
+def _two_laps(cfg: SlamConfig) -> tuple[LidarSlam, np.ndarray, int]:
+    """The hall drive twice over (the second lap's odometry the first's again): the SLAM, the
+    truth and how many times the graph was optimised."""
+    import mapping.lidar_slam as ls
+
+    route, odo, scans = _hall_drive()
+    back = route[-1].between(route[0])  # from the drive's end to its start, one step
+    route2 = route + route
+    odo2 = [*odo, back, *odo[1:]]
+    scans2 = scans + scans
+    calls = [0]
+    plain = ls.optimize
+
+    def counted(*a: object, **k: object) -> np.ndarray:
+        calls[0] += 1
+        return plain(*a, **k)  # type: ignore[arg-type]
+
+    ls.optimize = counted  # type: ignore[assignment]
+    try:
+        slam = LidarSlam(cfg, start=np.array(route2[0].as_tuple()))
+        for k, (pts, o) in enumerate(zip(scans2, odo2)):
+            slam.add(pts, np.zeros(3) if k == 0 else np.array(o.as_tuple()))
+    finally:
+        ls.optimize = plain  # type: ignore[assignment]
+    return slam, np.array([p.as_tuple() for p in route2]), calls[0]
+
+
+def test_a_settled_loop_keeps_its_edge_and_optimises_nothing() -> None:
+    """Two laps of the hall: with ``loop_settled_xy`` / ``loop_settled_theta``, a loop that
+    agrees with the estimate adds its edge without a Gauss-Newton over the graph (one
+    optimisation per unsettled loop tried, none per settled one); the trajectory stays as good;
+    settling off optimises for every loop. (The drive's odometry turns 2 degrees a metre, so
+    most of its loops move the estimate by more than 0.2 degree: only a few settle here.)"""
+    on, truth, calls_on = _two_laps(SlamConfig(loop_settled_xy=0.02, loop_settled_theta=math.radians(0.2)))
+    off, _, calls_off = _two_laps(SlamConfig())
+    assert off.settled == 0 and calls_off == len(off.loops) + len(off.rejected)
+    assert 0 < on.settled < len(on.loops), (on.settled, len(on.loops))
+    assert calls_on == len(on.loops) - on.settled + len(on.rejected)
+    loop_edges = [e for e in on.edges if e.j != e.i + 1]
+    assert [(e.i, e.j) for e in loop_edges] == on.loops  # every loop's edge is in the graph, settled or not
+
+    def rms(slam: LidarSlam) -> float:
+        return float(np.sqrt(np.mean(np.sum((slam.poses[:, :2] - truth[:, :2]) ** 2, axis=1))))
+
+    assert rms(on) < 0.2 and rms(on) < rms(off) + 0.02, (rms(on), rms(off))
+
+
+def test_the_cloud_cache_bound_changes_nothing(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The SLAM keeps the world-frame clouds of at most ``CLOUD_CACHE`` scans; one evicted and
+    needed again is computed again, the same arrays: a cache of 4 gives the same poses bit for
+    bit as the default."""
+    import mapping.lidar_slam as ls
+
+    route, odo, scans = _hall_drive()
+
+    def run() -> np.ndarray:
+        slam = LidarSlam(SlamConfig(), start=np.array(route[0].as_tuple()))
+        for k, (pts, o) in enumerate(zip(scans, odo)):
+            slam.add(pts, np.zeros(3) if k == 0 else np.array(o.as_tuple()))
+        assert len(slam._clouds) <= ls.CLOUD_CACHE
+        return slam.poses
+
+    full = run()
+    monkeypatch.setattr(ls, "CLOUD_CACHE", 4)
+    assert np.array_equal(run(), full)
+
+
 def test_refine_ties_a_revisit_the_loop_search_never_tried() -> None:
     """With the online loop search off, the drive's end (along the first wall again) has drifted
     by the odometry's heading error; the offline refinement matches each scan against the other
@@ -254,7 +321,8 @@ def test_slam_on_the_real_excerpt_beats_its_odometry() -> None:
 
 @pytest.mark.parametrize("bad", [{"local_scans": 0}, {"gate_start": 0.1, "gate_end": 0.2},
                                  {"loop_min_inliers": 0.0}, {"refine_passes": -1},
-                                 {"refine_visit_gap": 0}])
+                                 {"refine_visit_gap": 0}, {"loop_settled_xy": -0.01},
+                                 {"loop_settled_theta": -0.01}])
 def test_bad_settings_are_refused(bad: dict[str, float]) -> None:
     with pytest.raises(ValueError):
         SlamConfig(**bad)  # type: ignore[arg-type]

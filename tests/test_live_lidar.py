@@ -483,3 +483,44 @@ def test_play_errors_are_one_line(argv: list[str], needle: str, tmp_path: Path,
     assert code == 2
     err = capsys.readouterr().err.strip()
     assert needle in err and "\n" not in err, err
+
+
+def test_shift_drives_the_log_forward_and_back(scans: list[Any]) -> None:
+    """``bench live``'s shift: forward, back, forward, the log's own scans, times increasing."""
+    from agents.bench.live import shift
+
+    few = scans[:4]
+    got = shift(few, 3)
+    assert [k for k, _ in got] == [0, 1, 2, 3, 3, 2, 1, 0, 0, 1, 2, 3]
+    assert all(np.array_equal(ls.ranges, few[k].ranges) and ls.odom == few[k].odom for k, ls in got)
+    times = [ls.t for _, ls in got]
+    assert times == sorted(times) and len(set(times)) == len(times)
+
+
+def test_bench_live_on_the_excerpt(capsys: pytest.CaptureFixture[str]) -> None:
+    """``wiremap bench live LOG --passes 3 --json``: every scan of three passes fed, a row per
+    pass, the map scored in the truth's frame (a precision near the offline map's, not the
+    near-zero of a map left in the robot's frame), the RSS measured; the online profile settles
+    loops. A bad flag is a one-line error."""
+    from agents.cli import main
+
+    assert main(["bench", "live", str(EXCERPT), "--passes", "3", "--calibration-scans", str(CALIBRATION),
+                 "--json", "--quiet"]) == 0
+    last = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    r = last["logs"]["freiburg-101-head"]
+    assert r["scans_fed"] == 3 * r["scans"] == 180
+    assert 0.8 * r["scans_fed"] < r["scans_mapped"] <= r["scans_fed"]
+    assert [p["pass"] for p in r["by_pass"]] == [1, 2, 3]
+    assert sum(p["scans_mapped"] for p in r["by_pass"]) == r["scans_mapped"]
+    assert r["map_precision_first"] > 0.8 and r["map_precision_last"] > 0.8, r
+    assert r["ate_rmse_m"] < 0.3, r
+    assert r["rss_mb_last"] > 50 and r["ms_per_scan_first"] > 0
+    assert last["settings"]["slam.loop_settled_xy"] == 0.02
+    assert last["settings"]["frontend.calibration_scans"] == str(CALIBRATION)
+    with pytest.raises(SystemExit) as exc:
+        main(["bench", "live", str(EXCERPT), "--passes", "0"])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--passes" in err[0]
+    assert main(["bench", "live", str(EXCERPT), "--threshold", "0"]) == 2
+    assert capsys.readouterr().err.strip() == "wiremap bench live: --threshold must be > 0, got 0.0"

@@ -24,6 +24,7 @@ import hashlib
 import json
 import math
 import os
+import shutil
 import signal
 import struct
 import subprocess
@@ -658,6 +659,38 @@ def print_table(head: Sequence[str], rows: Sequence[Sequence[Any]]) -> None:
     for r in cells:
         print("  ".join(c.ljust(w) if i == 0 else c.rjust(w) for i, (c, w) in enumerate(zip(r, widths))))
     sys.stdout.flush()
+
+
+class Progress:
+    """One live line on stderr, cut to the terminal's width (a line per run when stderr is not
+    a terminal or several logs run at once)."""
+
+    def __init__(self, enabled: bool, live: bool) -> None:
+        self.enabled = enabled
+        self.live = live and enabled and sys.stderr.isatty()
+        self._last = 0.0
+        self._shown = False
+
+    def update(self, text: str) -> None:
+        if not self.live:
+            return
+        now = time.monotonic()
+        if now - self._last < 0.2:
+            return
+        self._last = now
+        cols = shutil.get_terminal_size((80, 24)).columns - 1
+        sys.stderr.write("\r" + text[:cols].ljust(cols))
+        sys.stderr.flush()
+        self._shown = True
+
+    def line(self, text: str) -> None:
+        if not self.enabled:
+            return
+        if self._shown:
+            sys.stderr.write("\r" + " " * (shutil.get_terminal_size((80, 24)).columns - 1) + "\r")
+            self._shown = False
+        sys.stderr.write(text + "\n")
+        sys.stderr.flush()
 
 
 def aligned_rows(rows: Sequence[Sequence[str]], left: int = 1) -> str:

@@ -50,8 +50,6 @@ import argparse
 import functools
 import json
 import math
-import shutil
-import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -59,7 +57,7 @@ from typing import Any
 import numpy as np
 
 from agents.argtypes import non_negative_int, positive_int
-from agents.bench.common import aligned_rows, fmt_cell
+from agents.bench.common import Progress, aligned_rows, fmt_cell
 from agents.errors import UserError
 from agents.mapping_run import LIDAR_PROFILES
 
@@ -182,38 +180,6 @@ def _check(args: argparse.Namespace) -> None:
             raise UserError(f"{flag} must be a positive number of metres, got {v}")
 
 
-class _Progress:
-    """One live line on stderr, cut to the terminal's width (a line per run when stderr is not
-    a terminal or several logs run at once)."""
-
-    def __init__(self, enabled: bool, live: bool) -> None:
-        self.enabled = enabled
-        self.live = live and enabled and sys.stderr.isatty()
-        self._last = 0.0
-        self._shown = False
-
-    def update(self, text: str) -> None:
-        if not self.live:
-            return
-        now = time.monotonic()
-        if now - self._last < 0.2:
-            return
-        self._last = now
-        cols = shutil.get_terminal_size((80, 24)).columns - 1
-        sys.stderr.write("\r" + text[:cols].ljust(cols))
-        sys.stderr.flush()
-        self._shown = True
-
-    def line(self, text: str) -> None:
-        if not self.enabled:
-            return
-        if self._shown:
-            sys.stderr.write("\r" + " " * (shutil.get_terminal_size((80, 24)).columns - 1) + "\r")
-            self._shown = False
-        sys.stderr.write(text + "\n")
-        sys.stderr.flush()
-
-
 def wire_bytes(wf: Any, pose: Any) -> int:
     """Bytes of ``wf`` as one ``ROBOT_MAP`` wire message (:func:`wire_codec.encode`)."""
     from mapping.se2 import Pose
@@ -251,7 +217,7 @@ def run_log(
     from mapping.lidar_metrics import ate, rpe, scan_endpoints, score_run
 
     name = log_name(path)
-    show = _Progress(progress, live=True)
+    show = Progress(progress, live=True)
     log = read_carmen_log(path)
     if not log.scans:
         raise UserError(f"{path}: no laser scans in the log")
@@ -422,7 +388,7 @@ def run(args: argparse.Namespace) -> int:
         truth_poses=bool(args.truth_poses),
     )
     results: dict[str, dict[str, Any]] = {}
-    say = _Progress(not args.quiet, live=False)
+    say = Progress(not args.quiet, live=False)
     t0 = time.perf_counter()
     if args.jobs == 1 or len(paths) == 1:
         for p in paths:

@@ -1,0 +1,282 @@
+"""``wiremap bench live``: a real robot's live mapper over a long shift, on real CARMEN logs.
+
+A robot maps for hours; a log lasts minutes. This bench drives each log forward, then back
+along the same scans, ``--passes`` times -- a robot on duty sees its building again and again --
+through what ``wiremap robot --scan-key`` runs on each scan it takes: the live input stage
+(:class:`agents.mapping_run.LiveInputs`: the motion filter, the calibrations on the first
+``--calibration-scans``, the online SLAM of the ``lidar-slam-online`` profile) and the filter,
+with the live robot's settings (:func:`agents.fleet.live_lidar.live_profile`, ``--particles``
+and ``--threshold`` as ``wiremap robot``'s defaults). One log runs in one process of its own, so
+its memory is its own.
+
+What it answers: does a scan cost the same in the tenth pass as in the first (the online SLAM's
+graph grows with every scan, and every loop it closes was a Gauss-Newton over all of it), does
+the memory stay within what the scans themselves need, and does the map stay right.
+
+Per log and per pass (JSON ``by_pass``): scans mapped, CPU ms per scan mapped of the input stage
+(extraction and SLAM) and of the filter, loops closed and how many of them were *settled*
+(:attr:`mapping.lidar_slam.SlamConfig.loop_settled_xy`: no re-optimisation), the pass's ATE
+(the filter's pose, the robot's published pose, from the truth's first pose) and the process's
+RSS at the pass's end. Per log: ``scans`` (the log's), ``passes``, ``scans_fed``,
+``scans_mapped``, ``ms_per_scan_first`` / ``ms_per_scan_last`` (first and last pass, input
+stage and filter) and ``ms_growth`` (last / first), ``ate_rmse_m`` (every mapped scan),
+``ate_rmse_m_first`` / ``ate_rmse_m_last``, ``map_precision_first`` / ``map_precision_last`` (the
+best map after the first and the last pass against the log's scan endpoints at the true poses,
+within 0.2 m, as ``wiremap bench lidar`` scores it), ``rss_mb_first`` / ``rss_mb_last`` and
+``rss_mb_per_1000_scans`` (the least-squares slope of RSS over scans mapped, after the first
+pass), ``loops``, ``loops_settled``, ``cpu_s``.
+
+Output: a table (a row per log), progress on stderr, and with ``--json`` one last line::
+
+    {"logs": {NAME: {...}}, "median": {...}, "passes": N, "settings": {...}}
+"""
+
+from __future__ import annotations
+
+import argparse
+import functools
+import json
+import math
+import os
+import time
+from dataclasses import replace
+from typing import Any
+
+import numpy as np
+
+from agents.argtypes import positive_int
+from agents.bench.common import Progress, aligned_rows, fmt_cell
+from agents.bench.lidar import find_logs, log_name, pose_array, settings_for
+from agents.errors import UserError
+
+HELP = "a live robot's mapper over a long shift: real logs driven back and forth, time and memory per pass"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("logs", nargs="*", metavar="LOG", help="CARMEN logs (.log or .log.gz) with a truth")
+    parser.add_argument("--data", metavar="DIR", help="take every *.log and *.log.gz in DIR")
+    parser.add_argument("--passes", type=positive_int, default=10, metavar="N",
+                        help="times each log is driven, forward then back (default 10)")
+    parser.add_argument("--seed", type=int, default=1, help="random seed of the filter (default 1)")
+    parser.add_argument("--particles", type=positive_int, default=5,
+                        help="particles (default 5, as wiremap robot)")
+    parser.add_argument("--threshold", type=float, default=0.2, metavar="M",
+                        help="merge threshold, metres (default 0.2, as wiremap robot)")
+    parser.add_argument("--min-travel", type=float, default=0.5, metavar="M",
+                        help="the motion filter's distance (default 0.5, as wiremap robot)")
+    parser.add_argument("--min-turn", type=float, default=10.0, metavar="DEG",
+                        help="the motion filter's turn (default 10, as wiremap robot)")
+    parser.add_argument("--calibration-scans", type=positive_int, default=30, metavar="N",
+                        help="scans held for the calibrations (default 30, as wiremap robot)")
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", dest="sets",
+                        help="override one setting of the lidar-slam-online profile; repeatable")
+    parser.add_argument("--jobs", type=positive_int, default=1, metavar="N",
+                        help="logs at once, each in its own process (default 1)")
+    parser.add_argument("--json", action="store_true", help="print the JSON summary as the last line")
+    parser.add_argument("--quiet", action="store_true", help="no progress on stderr")
+
+
+def shift(scans: list[Any], passes: int) -> list[tuple[int, Any]]:
+    """The log's scans forward, back, forward ... ``passes`` times, as ``(index in the log,
+    scan)``; the scans' times made to increase by 0.1 s a scan (the live stage does not read
+    them)."""
+    order: list[int] = []
+    for p in range(passes):
+        order += list(range(len(scans))) if p % 2 == 0 else list(range(len(scans) - 1, -1, -1))
+    return [(k, replace(scans[k], t=0.1 * i)) for i, k in enumerate(order)]
+
+
+def _rss_mb() -> float:
+    from agents.bench.common import rss_bytes
+
+    got = rss_bytes(os.getpid())
+    if got is None:  # no /proc: the peak, which is what the robot must have anyway
+        import resource
+
+        return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    return got / 2**20
+
+
+def run_log(path: str, *, passes: int, seed: int, particles: int, threshold: float, min_travel: float,
+            min_turn_deg: float, settings: dict[str, Any],
+            progress: bool = False) -> dict[str, Any]:
+    """One log's shift (see the module notes); runs in a worker process of its own (``progress``:
+    a live line on its stderr)."""
+    from agents import mapping_run as mr
+    from agents.files.carmen import read_carmen_log, scan_truth
+    from mapping.filter import WireframeFilter
+    from mapping.lidar_metrics import ate, map_precision, scan_endpoints
+    from mapping.se2 import Pose
+
+    log = read_carmen_log(path)
+    truth = scan_truth(log)
+    if truth is None:
+        raise UserError(f"{path}: no truth (NAME.truth.tsv or TRUEPOS lines)")
+    scans = list(log.scans)
+    if not scans:
+        raise UserError(f"{path}: no laser scans in the log")
+    filter_overrides, extract, frontend = mr.split_profile(settings)
+    cap = min(float(scans[0].max_range), 20.0)
+    live = mr.LiveInputs(max_range=cap, extract=extract, frontend=frontend, min_travel=min_travel,
+                         min_turn=math.radians(min_turn_deg))
+    cfg = mr.filter_config_for(particles, threshold, cap, fov=mr.scan_fov(scans[0].angles),
+                               overrides=filter_overrides)
+    filt = WireframeFilter(cfg, mr.seeds_for(seed)["filter"], initial_pose=Pose.identity())
+    endpoints = scan_endpoints(pose_array(truth), [s.ranges for s in scans], [s.angles for s in scans],
+                               max_range=cap)
+    origin = truth[0]
+    waiting: list[int] = []  # log indexes of the scans taken whose inputs have not come out yet
+    est: list[tuple[int, Pose]] = []
+    rows: list[dict[str, Any]] = []
+    cpu_in = cpu_filter = 0.0
+    mapped_before = loops_before = settled_before = 0
+    fed = shift(scans, passes)
+    per_pass = len(scans)
+    cpu0 = time.process_time()
+    rss_at: list[tuple[int, float]] = []
+    show = Progress(progress, live=True)
+    name = log_name(path)
+
+    def take(inputs: list[Any]) -> None:
+        nonlocal cpu_filter
+        for inp in inputs:
+            j = waiting.pop(0)
+            t0 = time.process_time()
+            filt.step(inp.odometry, inp.scan, points=inp.points)
+            cpu_filter += time.process_time() - t0
+            est.append((j, origin.compose(filt.pose)))
+
+    for i, (k, ls) in enumerate(fed):
+        before = live.skipped
+        t0 = time.process_time()
+        ready = live.add(ls)
+        cpu_in += time.process_time() - t0
+        if live.skipped == before:
+            waiting.append(k)
+        take(ready)
+        show.update(f"{name}: pass {i // per_pass + 1}/{passes}, scan {i + 1}/{len(fed)}, {len(est)} mapped")
+        if (i + 1) % per_pass == 0 or i + 1 == len(fed):
+            if i + 1 == len(fed):
+                t0 = time.process_time()
+                ready = live.finish()
+                cpu_in += time.process_time() - t0
+                take(ready)
+            slam = live.slam
+            mapped = len(est) - mapped_before
+            part = est[mapped_before:]
+            loops = len(slam.loops) if slam is not None else 0
+            settled = slam.settled if slam is not None else 0
+            rss = _rss_mb()
+            rss_at.append((len(est), rss))
+            rows.append({
+                "pass": len(rows) + 1,
+                "scans_mapped": mapped,
+                "ms_input": 1000.0 * cpu_in / max(1, mapped),
+                "ms_filter": 1000.0 * cpu_filter / max(1, mapped),
+                "loops": loops - loops_before,
+                "loops_settled": settled - settled_before,
+                "ate_rmse_m": _ate(part, truth, ate),
+                # the first and the last pass's (a map's precision costs a second on a long log)
+                "map_precision": (map_precision(filt.best.transformed(origin), endpoints, 0.2)
+                                  if len(rows) in (0, passes - 1) else None),
+                "rss_mb": rss,
+            })
+            cpu_in = cpu_filter = 0.0
+            mapped_before, loops_before, settled_before = len(est), loops, settled
+    first, last = rows[0], rows[-1]
+    ms_first = first["ms_input"] + first["ms_filter"]
+    ms_last = last["ms_input"] + last["ms_filter"]
+    slope = _slope(rss_at[1:]) if len(rss_at) >= 3 else None
+    return {
+        "scans": len(scans), "passes": passes, "scans_fed": len(fed), "scans_mapped": len(est),
+        "ms_per_scan_first": ms_first, "ms_per_scan_last": ms_last,
+        "ms_growth": ms_last / ms_first if ms_first > 0 else None,
+        "ate_rmse_m": _ate(est, truth, ate), "ate_rmse_m_first": first["ate_rmse_m"],
+        "ate_rmse_m_last": last["ate_rmse_m"],
+        "map_precision_first": first["map_precision"], "map_precision_last": last["map_precision"],
+        "rss_mb_first": first["rss_mb"], "rss_mb_last": last["rss_mb"],
+        "rss_mb_per_1000_scans": None if slope is None else 1000.0 * slope,
+        "loops": sum(r["loops"] for r in rows), "loops_settled": sum(r["loops_settled"] for r in rows),
+        "cpu_s": time.process_time() - cpu0, "by_pass": [_rounded(r) for r in rows],
+    }
+
+
+def _ate(part: list[tuple[int, Any]], truth: list[Any], ate: Any) -> float | None:
+    if not part:
+        return None
+    return float(ate(pose_array([p for _, p in part]), pose_array([truth[j] for j, _ in part]))[0])
+
+
+def _slope(points: list[tuple[int, float]]) -> float | None:
+    """Least-squares slope of ``(x, y)`` points, or None when the x do not vary."""
+    x = np.array([p[0] for p in points], dtype=np.float64)
+    y = np.array([p[1] for p in points], dtype=np.float64)
+    if np.ptp(x) == 0:
+        return None
+    return float(np.polyfit(x, y, 1)[0])
+
+
+def _rounded(d: dict[str, Any]) -> dict[str, Any]:
+    return {k: (round(v, 6) if isinstance(v, float) else v) for k, v in d.items()}
+
+
+MEDIAN_KEYS = ("ms_per_scan_first", "ms_per_scan_last", "ms_growth", "ate_rmse_m", "ate_rmse_m_first",
+               "ate_rmse_m_last", "map_precision_first", "map_precision_last", "rss_mb_per_1000_scans")
+
+
+def run(args: argparse.Namespace) -> int:
+    from concurrent.futures import ProcessPoolExecutor
+
+    if args.threshold <= 0:
+        raise UserError(f"--threshold must be > 0, got {args.threshold}")
+    if not (args.min_travel >= 0 and args.min_turn >= 0):
+        raise UserError("--min-travel and --min-turn must be >= 0")
+    paths = find_logs(list(args.logs), args.data)
+    for p in paths:
+        if not p.is_file():
+            raise UserError(f"{p}: no such file")
+    settings = settings_for("lidar-slam-online",
+                            [f"frontend.calibration_scans={args.calibration_scans}", *args.sets])
+    job = functools.partial(run_log, passes=args.passes, seed=args.seed, particles=args.particles,
+                            threshold=args.threshold, min_travel=args.min_travel, min_turn_deg=args.min_turn,
+                            settings=settings)
+    say = Progress(not args.quiet, live=False)
+    results: dict[str, dict[str, Any]] = {}
+    t0 = time.perf_counter()
+
+    def done(name: str, r: dict[str, Any]) -> None:
+        results[name] = r = _rounded(r)
+        say.line(f"{name}: {r['scans_mapped']} scans mapped in {args.passes} passes, "
+                 f"{r['ms_per_scan_first']:.1f} -> {r['ms_per_scan_last']:.1f} ms/scan, "
+                 f"RSS {r['rss_mb_first']:.0f} -> {r['rss_mb_last']:.0f} MB "
+                 f"[{len(results)}/{len(paths)} logs, {time.perf_counter() - t0:.0f} s]")
+
+    if len(paths) == 1:  # here: the RSS is this process's, one log's
+        done(log_name(paths[0]), job(str(paths[0]), progress=not args.quiet))
+    else:  # a process per log (max_tasks_per_child=1), so that each log's RSS is its own
+        with ProcessPoolExecutor(max_workers=min(args.jobs, len(paths)), max_tasks_per_child=1) as pool:
+            futures = {log_name(p): pool.submit(job, str(p)) for p in paths}
+            for name, fut in futures.items():
+                done(name, fut.result())
+    med: dict[str, Any] = {}
+    for key in MEDIAN_KEYS:
+        vals = [r[key] for r in results.values() if r.get(key) is not None]
+        med[key] = round(float(np.median(vals)), 6) if vals else None
+    print(format_table(results, med, args.passes))
+    if args.json:
+        print(json.dumps({"logs": results, "median": med, "passes": args.passes, "settings": settings}))
+    return 0
+
+
+def format_table(logs: dict[str, dict[str, Any]], med: dict[str, Any], passes: int) -> str:
+    head = ["log", "mapped", "ms/scan pass 1", f"pass {passes}", "growth", "ATE m pass 1", f"pass {passes}",
+            "precision pass 1", f"pass {passes}", "RSS MB pass 1", f"pass {passes}", "MB/1000 scans",
+            "loops (settled)"]
+    cells = (("ms_per_scan_first", "{:.1f}"), ("ms_per_scan_last", "{:.1f}"), ("ms_growth", "{:.2f}"),
+             ("ate_rmse_m_first", "{:.3f}"), ("ate_rmse_m_last", "{:.3f}"), ("map_precision_first", "{:.3f}"),
+             ("map_precision_last", "{:.3f}"), ("rss_mb_first", "{:.0f}"), ("rss_mb_last", "{:.0f}"),
+             ("rss_mb_per_1000_scans", "{:.1f}"))
+    rows = [[n, str(r["scans_mapped"]), *(fmt_cell(r[k], f) for k, f in cells),
+             f"{r['loops']} ({r['loops_settled']})"] for n, r in logs.items()]
+    rows.append(["median", "", *(fmt_cell(med.get(k), f) for k, f in cells), ""])
+    return aligned_rows([head, *rows])
