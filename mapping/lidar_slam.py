@@ -647,8 +647,10 @@ def _chi2(x: FloatArray, edges: list[Edge]) -> FloatArray:
 # ------------------------------------------------------------------------------------- the SLAM
 
 
-#: Scans whose world-frame cloud :class:`LidarSlam` keeps (12 KB a scan of 361 beams: about 50 MB).
-CLOUD_CACHE = 4096
+#: Scans whose world-frame cloud :class:`LidarSlam` keeps (11.5 KB a scan of 361 beams: 12 MB
+#: at most). A scan's submap takes 15-45 scans, most of them recent; the offline refinement
+#: visits every scan's neighbours, and computes an evicted cloud again in microseconds.
+CLOUD_CACHE = 1024
 
 #: Submaps :meth:`LidarSlam.refine` keeps for reuse (points, normals and grid: 121 KB a submap
 #: on fhw on average, 249 KB at the 95th percentile: about 30 MB for all, 64 MB at worst).
