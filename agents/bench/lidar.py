@@ -76,8 +76,7 @@ EXTRA_RUNS = {"baseline": "baseline", "truth_poses": "truth-poses"}
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("logs", nargs="*", metavar="LOG", help="CARMEN logs (.log or .log.gz)")
-    parser.add_argument("--data", metavar="DIR", help="take every *.log and *.log.gz in DIR")
+    add_log_arguments(parser)
     parser.add_argument("--seed", type=non_negative_int, default=1,
                         help="random seed of the filter (default 1)")
     parser.add_argument("--particles", type=int, default=10, help="particles (default 10)")
@@ -139,17 +138,26 @@ def log_name(path: str | Path) -> str:
     return name
 
 
+def add_log_arguments(parser: argparse.ArgumentParser, what: str = "CARMEN logs (.log or .log.gz)") -> None:
+    """The logs a real-log benchmark runs: ``LOG ...`` or ``--data DIR`` (:func:`find_logs`)."""
+    parser.add_argument("logs", nargs="*", metavar="LOG", help=what)
+    parser.add_argument("--data", metavar="DIR", help="take every *.log and *.log.gz in DIR")
+
+
 def find_logs(logs: list[str], data: str | None) -> list[Path]:
     """The logs to run: those named, else every ``*.log`` / ``*.log.gz`` in ``data``.
 
     Raises
     ------
     UserError
-        Without logs and without ``data``, for a missing folder or one without logs, and for
-        two logs of the same name.
+        Without logs and without ``data``, for a named log that is not a file, for a missing
+        folder or one without logs, and for two logs of the same name.
     """
     if logs:
         paths = [Path(p) for p in logs]
+        missing = next((p for p in paths if not p.is_file()), None)
+        if missing is not None:
+            raise UserError(f"{missing}: no such file")
     elif data is not None:
         d = Path(data)
         if not d.is_dir():
@@ -378,9 +386,6 @@ def run(args: argparse.Namespace) -> int:
 
     _check(args)
     paths = find_logs(list(args.logs), args.data)
-    for p in paths:
-        if not p.is_file():
-            raise UserError(f"{p}: no such file")
     settings = settings_for(args.profile, list(args.sets))
     job = functools.partial(
         run_log, seed=args.seed, particles=args.particles, steps=args.steps, max_range=args.max_range,

@@ -44,20 +44,20 @@ from typing import Any
 
 import numpy as np
 
-from agents.argtypes import positive_int
+from agents.argtypes import non_negative_int, positive_int
 from agents.bench.common import Progress, aligned_rows, fmt_cell
-from agents.bench.lidar import find_logs, log_name, pose_array, settings_for
+from agents.bench.lidar import add_log_arguments, find_logs, log_name, pose_array, settings_for
 from agents.errors import UserError
 
 HELP = "a live robot's mapper over a long shift: real logs driven back and forth, time and memory per pass"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("logs", nargs="*", metavar="LOG", help="CARMEN logs (.log or .log.gz) with a truth")
-    parser.add_argument("--data", metavar="DIR", help="take every *.log and *.log.gz in DIR")
+    add_log_arguments(parser, "CARMEN logs (.log or .log.gz) with a truth")
     parser.add_argument("--passes", type=positive_int, default=10, metavar="N",
                         help="times each log is driven, forward then back (default 10)")
-    parser.add_argument("--seed", type=int, default=1, help="random seed of the filter (default 1)")
+    parser.add_argument("--seed", type=non_negative_int, default=1,
+                        help="random seed of the filter (default 1)")
     parser.add_argument("--particles", type=positive_int, default=5,
                         help="particles (default 5, as wiremap robot)")
     parser.add_argument("--threshold", type=float, default=0.2, metavar="M",
@@ -232,9 +232,6 @@ def run(args: argparse.Namespace) -> int:
     if not (args.min_travel >= 0 and args.min_turn >= 0):
         raise UserError("--min-travel and --min-turn must be >= 0")
     paths = find_logs(list(args.logs), args.data)
-    for p in paths:
-        if not p.is_file():
-            raise UserError(f"{p}: no such file")
     settings = settings_for("lidar-slam-online",
                             [f"frontend.calibration_scans={args.calibration_scans}", *args.sets])
     job = functools.partial(run_log, passes=args.passes, seed=args.seed, particles=args.particles,

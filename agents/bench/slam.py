@@ -32,15 +32,14 @@ import numpy as np
 
 from agents.argtypes import non_negative_int
 from agents.bench.common import aligned_rows, fmt_cell
-from agents.bench.lidar import find_logs, log_name, settings_for
+from agents.bench.lidar import add_log_arguments, find_logs, log_name, settings_for
 from agents.errors import UserError
 
 HELP = "the lidar SLAM alone on real CARMEN logs, median over several start frames"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("logs", nargs="*", metavar="LOG", help="CARMEN logs (.log or .log.gz)")
-    parser.add_argument("--data", metavar="DIR", help="take every *.log and *.log.gz in DIR")
+    add_log_arguments(parser)
     parser.add_argument("--starts", type=int, default=4, metavar="K",
                         help="start frames per log (default 4: origin, true start, 2 drawn)")
     parser.add_argument("--seed", type=non_negative_int, default=1,
@@ -139,9 +138,6 @@ def run(args: argparse.Namespace) -> int:
     if args.jobs < 1:
         raise UserError(f"--jobs must be >= 1, got {args.jobs}")
     paths = find_logs(list(args.logs), args.data)
-    for p in paths:
-        if not p.is_file():
-            raise UserError(f"{p}: no such file")
     settings = settings_for("lidar-slam", list(args.sets))
     starts = start_frames(args.starts, args.seed)
     logs_in = [str(p) for p in paths for _ in starts]
