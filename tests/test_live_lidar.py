@@ -364,6 +364,8 @@ def test_a_live_robot_maps_what_its_lidar_sends(scans: list[Any], tmp_path: Path
     assert live["posed"] == len(scans) and live["still"] == still
     assert live["bad_scans"] == 1 and live["bad_odometry"] == 1
     assert live["unposed"] == 0 and live["behind"] == 0
+    # every scan mapped is a node of the SLAM's graph
+    assert live["graph"] == mapped and live["loops"] >= live["settled"] >= 0
     text = (tmp_path / "robot.log").read_text()
     assert "live lidar: scans on lidar/scan" in text and "bad_scans 1" in text
 

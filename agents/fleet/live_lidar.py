@@ -110,6 +110,11 @@ class LiveCounts:
     behind: int = 0
     still: int = 0  # posed scans the mapper's motion filter dropped (agents.mapping_run.LiveInputs)
     last_issue: str = ""
+    # the online SLAM's pose graph: its scans (each kept for loop closure), the loops it closed,
+    # and how many of them were settled (mapping.lidar_slam.SlamConfig.loop_settled_xy)
+    graph: int = 0
+    loops: int = 0
+    settled: int = 0
 
     def as_dict(self) -> dict[str, Any]:
         return dict(self.__dict__)
@@ -376,6 +381,10 @@ def live_steps(opts: Any, source: LiveLidar, stop: threading.Event) -> Iterator[
             inputs.max_range = max_range
         ready = inputs.add(ls)
         source.counts.still = inputs.skipped
+        slam = inputs.slam
+        if slam is not None:
+            source.counts.graph, source.counts.loops = len(slam.poses), len(slam.loops)
+            source.counts.settled = slam.settled
         if not ready:  # held for the calibration, or left out by the motion filter
             yield None
             continue

@@ -409,11 +409,13 @@ class RobotAgent:
                 st = self.status
                 live = ""
                 if st.live is not None:
-                    dropped = ", ".join(f"{k} {v}" for k, v in st.live.items()
-                                        if k not in ("scans", "odometry", "posed", "last_issue") and v)
+                    kept = ("scans", "odometry", "posed", "last_issue", "graph", "loops", "settled")
+                    dropped = ", ".join(f"{k} {v}" for k, v in st.live.items() if k not in kept and v)
                     live = (f"; live lidar: {st.live['posed']} scans posed, {st.live['scans']} received"
                             + (f" ({dropped})" if dropped else "")
-                            + (" (calibrating: the first scans are mapped together)" if st.step == 0 else ""))
+                            + (" (calibrating: the first scans are mapped together)" if st.step == 0 else "")
+                            + (f"; SLAM: {st.live['graph']} scans in its graph, {st.live['loops']} loops "
+                               f"({st.live['settled']} settled)" if st.live.get("graph") else ""))
                 self.say(
                     f"step {st.step} t={st.t:.1f}s: {st.vertices} vertices, {st.edges} edges, {st.maps_sent} maps"  # noqa: E501
                     + live
