@@ -260,6 +260,29 @@ def test_the_cloud_cache_bound_changes_nothing(monkeypatch: pytest.MonkeyPatch) 
     assert np.array_equal(run(), full)
 
 
+def test_the_travel_array_grows_and_refine_recomputes_evicted_clouds(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The loop search's travel array starts at one entry and doubles as scans come (the same
+    loops and poses as one that never grows), and the offline refinement, which visits every
+    scan's neighbours, gives the same poses with 3 clouds cached as with the default cache."""
+    import mapping.lidar_slam as ls
+
+    route, odo, scans = _hall_drive()
+
+    def run(**fields: object) -> LidarSlam:
+        slam = LidarSlam(SlamConfig(), start=np.array(route[0].as_tuple()), **fields)  # type: ignore[arg-type]
+        for k, (pts, o) in enumerate(zip(scans, odo)):
+            slam.add(pts, np.zeros(3) if k == 0 else np.array(o.as_tuple()))
+        return slam
+
+    big, small = run(), run(_travel=np.zeros(1))
+    assert len(small._travel) >= len(scans) and np.array_equal(small.poses, big.poses)
+    assert small.loops == big.loops and small.rejected == big.rejected
+    big.refine()
+    monkeypatch.setattr(ls, "CLOUD_CACHE", 3)
+    small.refine()
+    assert np.array_equal(small.poses, big.poses)
+
+
 def test_refine_ties_a_revisit_the_loop_search_never_tried() -> None:
     """With the online loop search off, the drive's end (along the first wall again) has drifted
     by the odometry's heading error; the offline refinement matches each scan against the other

@@ -518,11 +518,32 @@ def test_bench_live_on_the_excerpt(capsys: pytest.CaptureFixture[str]) -> None:
     assert r["ate_rmse_m"] < 0.3, r
     assert r["rss_mb_last"] > 50 and r["ms_per_scan_first"] > 0
     assert last["settings"]["slam.loop_settled_xy"] == 0.02
-    assert last["settings"]["frontend.calibration_scans"] == str(CALIBRATION)
+    assert last["settings"]["frontend.calibration_scans"] == CALIBRATION
     with pytest.raises(SystemExit) as exc:
         main(["bench", "live", str(EXCERPT), "--passes", "0"])
     assert exc.value.code == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--passes" in err[0]
-    assert main(["bench", "live", str(EXCERPT), "--threshold", "0"]) == 2
-    assert capsys.readouterr().err.strip() == "wiremap bench live: --threshold must be > 0, got 0.0"
+    for argv, needle in ((["--threshold", "nan"], "--threshold must be a number > 0, got nan"),
+                         (["--set", "slam.online=false"], "a live robot needs a SLAM that runs scan by scan"),
+                         (["--set", "frontend.calibration_scans=0"], "calibrates on its first scans")):
+        assert main(["bench", "live", str(EXCERPT), *argv]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and needle in err[0], err
+
+
+def test_bench_live_counts_a_pass_held_for_the_calibrations(capsys: pytest.CaptureFixture[str]) -> None:
+    """A log shorter than the calibration's scans: its first pass maps nothing (None, not a time
+    per scan of nothing), the next pass that maps is the baseline, and the JSON line is JSON."""
+    from agents.cli import main
+
+    assert main(["bench", "live", str(EXCERPT), "--passes", "2", "--calibration-scans", "100",
+                 "--json", "--quiet"]) == 0
+    out = capsys.readouterr().out.strip().splitlines()[-1]
+    assert "NaN" not in out
+    r = json.loads(out)["logs"]["freiburg-101-head"]
+    first, second = r["by_pass"]
+    assert first["scans_mapped"] == 0 and first["ms_input"] is None
+    assert second["scans_mapped"] == r["scans_mapped"] > 100  # the held scans mapped in the second pass
+    assert r["ms_per_scan_first"] == pytest.approx(second["ms_input"] + second["ms_filter"], abs=1e-5)
+    assert r["map_precision_first"] == second["map_precision"] > 0.8

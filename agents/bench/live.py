@@ -19,7 +19,9 @@ Per log and per pass (JSON ``by_pass``): scans mapped, CPU ms per scan mapped of
 (the filter's pose, the robot's published pose, from the truth's first pose) and the process's
 RSS at the pass's end. Per log: ``scans`` (the log's), ``passes``, ``scans_fed``,
 ``scans_mapped``, ``ms_per_scan_first`` / ``ms_per_scan_last`` (first and last pass, input
-stage and filter) and ``ms_growth`` (last / first), ``ate_rmse_m`` (every mapped scan),
+stage and filter; "first" is the first pass that mapped a scan, as a short log's first pass may
+only have been held for the calibrations; None for a pass that mapped nothing) and
+``ms_growth`` (last / first), ``ate_rmse_m`` (every mapped scan),
 ``ate_rmse_m_first`` / ``ate_rmse_m_last``, ``map_precision_first`` / ``map_precision_last`` (the
 best map after the first and the last pass against the log's scan endpoints at the true poses,
 within 0.2 m, as ``wiremap bench lidar`` scores it), ``rss_mb_first`` / ``rss_mb_last`` and
@@ -171,26 +173,31 @@ def run_log(path: str, *, passes: int, seed: int, particles: int, threshold: flo
             rows.append({
                 "pass": len(rows) + 1,
                 "scans_mapped": mapped,
-                "ms_input": 1000.0 * cpu_in / max(1, mapped),
-                "ms_filter": 1000.0 * cpu_filter / max(1, mapped),
+                # None for a pass that mapped nothing (its scans all held for the calibrations)
+                "ms_input": 1000.0 * cpu_in / mapped if mapped else None,
+                "ms_filter": 1000.0 * cpu_filter / mapped if mapped else None,
                 "loops": loops - loops_before,
                 "loops_settled": settled - settled_before,
                 "ate_rmse_m": _ate(part, truth, ate),
-                # the first and the last pass's (a map's precision costs a second on a long log)
+                # the first pass that mapped and the last pass's (a second on a long log)
                 "map_precision": (map_precision(filt.best.transformed(origin), endpoints, 0.2)
-                                  if len(rows) in (0, passes - 1) else None),
+                                  if (mapped and not any(r["scans_mapped"] for r in rows))
+                                  or len(rows) == passes - 1 else None),
                 "rss_mb": rss,
             })
             cpu_in = cpu_filter = 0.0
             mapped_before, loops_before, settled_before = len(est), loops, settled
-    first, last = rows[0], rows[-1]
-    ms_first = first["ms_input"] + first["ms_filter"]
-    ms_last = last["ms_input"] + last["ms_filter"]
+    # The first pass that mapped a scan is the baseline (a short log's first pass may only
+    # have been held for the calibrations).
+    first = next((r for r in rows if r["scans_mapped"]), rows[0])
+    last = rows[-1]
+    ms_first = first["ms_input"] + first["ms_filter"] if first["scans_mapped"] else None
+    ms_last = last["ms_input"] + last["ms_filter"] if last["scans_mapped"] else None
     slope = _slope(rss_at[1:]) if len(rss_at) >= 3 else None
     return {
         "scans": len(scans), "passes": passes, "scans_fed": len(fed), "scans_mapped": len(est),
         "ms_per_scan_first": ms_first, "ms_per_scan_last": ms_last,
-        "ms_growth": ms_last / ms_first if ms_first > 0 else None,
+        "ms_growth": ms_last / ms_first if ms_first and ms_last is not None else None,
         "ate_rmse_m": _ate(est, truth, ate), "ate_rmse_m_first": first["ate_rmse_m"],
         "ate_rmse_m_last": last["ate_rmse_m"],
         "map_precision_first": first["map_precision"], "map_precision_last": last["map_precision"],
@@ -217,7 +224,10 @@ def _slope(points: list[tuple[int, float]]) -> float | None:
 
 
 def _rounded(d: dict[str, Any]) -> dict[str, Any]:
-    return {k: (round(v, 6) if isinstance(v, float) else v) for k, v in d.items()}
+    """Floats to 6 decimals, a non-finite one (the precision of a map without walls) None: the
+    JSON line stays JSON."""
+    return {k: (None if isinstance(v, float) and not math.isfinite(v) else round(v, 6) if isinstance(v, float)
+                else v) for k, v in d.items()}
 
 
 MEDIAN_KEYS = ("ms_per_scan_first", "ms_per_scan_last", "ms_growth", "ate_rmse_m", "ate_rmse_m_first",
@@ -225,15 +235,24 @@ MEDIAN_KEYS = ("ms_per_scan_first", "ms_per_scan_last", "ms_growth", "ate_rmse_m
 
 
 def run(args: argparse.Namespace) -> int:
-    from concurrent.futures import ProcessPoolExecutor
+    import multiprocessing
 
-    if args.threshold <= 0:
-        raise UserError(f"--threshold must be > 0, got {args.threshold}")
-    if not (args.min_travel >= 0 and args.min_turn >= 0):
-        raise UserError("--min-travel and --min-turn must be >= 0")
+    from agents import mapping_run as mr
+
+    if not (math.isfinite(args.threshold) and args.threshold > 0):
+        raise UserError(f"--threshold must be a number > 0, got {args.threshold}")
+    if not (math.isfinite(args.min_travel) and math.isfinite(args.min_turn)
+            and args.min_travel >= 0 and args.min_turn >= 0):
+        raise UserError("--min-travel and --min-turn must be numbers >= 0")
     paths = find_logs(list(args.logs), args.data)
     settings = settings_for("lidar-slam-online",
                             [f"frontend.calibration_scans={args.calibration_scans}", *args.sets])
+    try:  # what the live stage refuses (a SLAM that is not online, no calibration scans), here
+        _, extract, frontend = mr.split_profile(settings)
+        mr.LiveInputs(max_range=None, extract=extract, frontend=frontend)
+    except ValueError as exc:
+        raise UserError(f"--set: {exc}") from None
+    settings["frontend.calibration_scans"] = frontend.calibration_scans  # as a number, --set's or the flag's
     job = functools.partial(run_log, passes=args.passes, seed=args.seed, particles=args.particles,
                             threshold=args.threshold, min_travel=args.min_travel, min_turn_deg=args.min_turn,
                             settings=settings)
@@ -243,18 +262,21 @@ def run(args: argparse.Namespace) -> int:
 
     def done(name: str, r: dict[str, Any]) -> None:
         results[name] = r = _rounded(r)
-        say.line(f"{name}: {r['scans_mapped']} scans mapped in {args.passes} passes, "
-                 f"{r['ms_per_scan_first']:.1f} -> {r['ms_per_scan_last']:.1f} ms/scan, "
+        ms = f"{fmt_cell(r['ms_per_scan_first'], '{:.1f}')} -> {fmt_cell(r['ms_per_scan_last'], '{:.1f}')}"
+        say.line(f"{name}: {r['scans_mapped']} scans mapped in {args.passes} passes, {ms} ms/scan, "
                  f"RSS {r['rss_mb_first']:.0f} -> {r['rss_mb_last']:.0f} MB "
                  f"[{len(results)}/{len(paths)} logs, {time.perf_counter() - t0:.0f} s]")
 
     if len(paths) == 1:  # here: the RSS is this process's, one log's
         done(log_name(paths[0]), job(str(paths[0]), progress=not args.quiet))
-    else:  # a process per log (max_tasks_per_child=1), so that each log's RSS is its own
-        with ProcessPoolExecutor(max_workers=min(args.jobs, len(paths)), max_tasks_per_child=1) as pool:
-            futures = {log_name(p): pool.submit(job, str(p)) for p in paths}
-            for name, fut in futures.items():
-                done(name, fut.result())
+    else:
+        # A fresh process per log (maxtasksperchild=1), so that each log's RSS is its own; a
+        # log that fails ends the run at once (leaving the block terminates the others).
+        ctx = multiprocessing.get_context("spawn")
+        with ctx.Pool(processes=min(args.jobs, len(paths)), maxtasksperchild=1) as pool:
+            pending = [(log_name(p), pool.apply_async(job, (str(p),))) for p in paths]
+            for name, res in pending:
+                done(name, res.get())
     med: dict[str, Any] = {}
     for key in MEDIAN_KEYS:
         vals = [r[key] for r in results.values() if r.get(key) is not None]
@@ -266,9 +288,9 @@ def run(args: argparse.Namespace) -> int:
 
 
 def format_table(logs: dict[str, dict[str, Any]], med: dict[str, Any], passes: int) -> str:
-    head = ["log", "mapped", "ms/scan pass 1", f"pass {passes}", "growth", "ATE m pass 1", f"pass {passes}",
-            "precision pass 1", f"pass {passes}", "RSS MB pass 1", f"pass {passes}", "MB/1000 scans",
-            "loops (settled)"]
+    last = f"pass {passes}"
+    head = ["log", "mapped", "ms/scan first pass", last, "growth", "ATE m first", last, "precision first",
+            last, "RSS MB first", last, "MB/1000 scans", "loops (settled)"]
     cells = (("ms_per_scan_first", "{:.1f}"), ("ms_per_scan_last", "{:.1f}"), ("ms_growth", "{:.2f}"),
              ("ate_rmse_m_first", "{:.3f}"), ("ate_rmse_m_last", "{:.3f}"), ("map_precision_first", "{:.3f}"),
              ("map_precision_last", "{:.3f}"), ("rss_mb_first", "{:.0f}"), ("rss_mb_last", "{:.0f}"),
