@@ -499,7 +499,7 @@ def test_shift_drives_the_log_forward_and_back(scans: list[Any]) -> None:
     assert times == sorted(times) and len(set(times)) == len(times)
 
 
-def test_bench_live_on_the_excerpt(capsys: pytest.CaptureFixture[str]) -> None:
+def test_bench_live_on_the_excerpt(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
     """``wiremap bench live LOG --passes 3 --json``: every scan of three passes fed, a row per
     pass, the map scored in the truth's frame (a precision near the offline map's, not the
     near-zero of a map left in the robot's frame), the RSS measured; the online profile settles
@@ -507,7 +507,10 @@ def test_bench_live_on_the_excerpt(capsys: pytest.CaptureFixture[str]) -> None:
     from agents.cli import main
 
     assert main(["bench", "live", str(EXCERPT), "--passes", "3", "--calibration-scans", str(CALIBRATION),
-                 "--json", "--quiet"]) == 0
+                 "--out", str(tmp_path), "--json", "--quiet"]) == 0
+    pngs = sorted(p.name for p in tmp_path.glob("*.png"))
+    assert pngs == ["freiburg-101-head-pass-1.png", "freiburg-101-head-pass-3.png"]
+    assert (tmp_path / pngs[0]).read_bytes().startswith(b"\x89PNG")
     last = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     r = last["logs"]["freiburg-101-head"]
     assert r["scans_fed"] == 3 * r["scans"] == 180
@@ -532,13 +535,15 @@ def test_bench_live_on_the_excerpt(capsys: pytest.CaptureFixture[str]) -> None:
         assert len(err) == 1 and needle in err[0], err
 
 
-def test_bench_live_counts_a_pass_held_for_the_calibrations(capsys: pytest.CaptureFixture[str]) -> None:
+def test_bench_live_counts_a_pass_held_for_the_calibrations(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
     """A log shorter than the calibration's scans: its first pass maps nothing (None, not a time
     per scan of nothing), the next pass that maps is the baseline, and the JSON line is JSON."""
     from agents.cli import main
 
     assert main(["bench", "live", str(EXCERPT), "--passes", "2", "--calibration-scans", "100",
-                 "--json", "--quiet"]) == 0
+                 "--out", str(tmp_path), "--json", "--quiet"]) == 0
     out = capsys.readouterr().out.strip().splitlines()[-1]
     assert "NaN" not in out
     r = json.loads(out)["logs"]["freiburg-101-head"]

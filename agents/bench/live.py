@@ -28,7 +28,9 @@ within 0.2 m, as ``wiremap bench lidar`` scores it), ``rss_mb_first`` / ``rss_mb
 ``rss_mb_per_1000_scans`` (the least-squares slope of RSS over scans mapped, after the first
 pass), ``loops``, ``loops_settled``, ``cpu_s``.
 
-Output: a table (a row per log), progress on stderr, and with ``--json`` one last line::
+Output: a table (a row per log), progress on stderr, ``NAME-pass-K.png`` in ``--out`` (the map
+after the first pass that mapped and after the last, over the log's real scan endpoints at the
+true poses, with that pass's path), and with ``--json`` one last line::
 
     {"logs": {NAME: {...}}, "median": {...}, "passes": N, "settings": {...}}
 """
@@ -75,6 +77,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--jobs", type=positive_int, default=1, metavar="N",
                         help="logs at once, each in its own process (default 1)")
     parser.add_argument("--json", action="store_true", help="print the JSON summary as the last line")
+    parser.add_argument("--out", default="out/bench-live", metavar="DIR",
+                        help="where the PNGs go: each log's map after its first and its last pass")
     parser.add_argument("--quiet", action="store_true", help="no progress on stderr")
 
 
@@ -101,7 +105,7 @@ def _rss_mb() -> float:
 
 def run_log(path: str, *, passes: int, seed: int, particles: int, threshold: float, min_travel: float,
             min_turn_deg: float, settings: dict[str, Any],
-            progress: bool = False) -> dict[str, Any]:
+            progress: bool = False, out: str | None = None) -> dict[str, Any]:
     """One log's shift (see the module notes); runs in a worker process of its own (``progress``:
     a live line on its stderr)."""
     from agents import mapping_run as mr
@@ -137,6 +141,7 @@ def run_log(path: str, *, passes: int, seed: int, particles: int, threshold: flo
     cpu0 = time.process_time()
     rss_at: list[tuple[int, float]] = []
     show = Progress(progress, live=True)
+    pictures: list[tuple[int, Any, list[tuple[int, Any]], float]] = []  # (pass, map, its poses, precision)
     name = log_name(path)
 
     def take(inputs: list[Any]) -> None:
@@ -170,6 +175,13 @@ def run_log(path: str, *, passes: int, seed: int, particles: int, threshold: flo
             settled = slam.settled if slam is not None else 0
             rss = _rss_mb()
             rss_at.append((len(est), rss))
+            scored = (mapped and not any(r["scans_mapped"] for r in rows)) or len(rows) == passes - 1
+            precision = None
+            if scored:  # the first pass that mapped and the last (a second on a long log): scored, drawn
+                world = filt.best.transformed(origin)
+                precision = map_precision(world, endpoints, 0.2)
+                if out is not None:
+                    pictures.append((len(rows) + 1, world, part, precision))
             rows.append({
                 "pass": len(rows) + 1,
                 "scans_mapped": mapped,
@@ -179,14 +191,13 @@ def run_log(path: str, *, passes: int, seed: int, particles: int, threshold: flo
                 "loops": loops - loops_before,
                 "loops_settled": settled - settled_before,
                 "ate_rmse_m": _ate(part, truth, ate),
-                # the first pass that mapped and the last pass's (a second on a long log)
-                "map_precision": (map_precision(filt.best.transformed(origin), endpoints, 0.2)
-                                  if (mapped and not any(r["scans_mapped"] for r in rows))
-                                  or len(rows) == passes - 1 else None),
+                "map_precision": precision,
                 "rss_mb": rss,
             })
             cpu_in = cpu_filter = 0.0
             mapped_before, loops_before, settled_before = len(est), loops, settled
+    if out is not None:
+        _pictures(out, name, pictures, endpoints, pose_array(truth))
     # The first pass that mapped a scan is the baseline (a short log's first pass may only
     # have been held for the calibrations).
     first = next((r for r in rows if r["scans_mapped"]), rows[0])
@@ -206,6 +217,22 @@ def run_log(path: str, *, passes: int, seed: int, particles: int, threshold: flo
         "loops": sum(r["loops"] for r in rows), "loops_settled": sum(r["loops_settled"] for r in rows),
         "cpu_s": time.process_time() - cpu0, "by_pass": [_rounded(r) for r in rows],
     }
+
+
+def _pictures(out: str, name: str, pictures: list[tuple[int, Any, list[tuple[int, Any]], float]],
+              endpoints: np.ndarray, truth_xyt: np.ndarray) -> None:
+    """``NAME-pass-K.png`` in ``out`` for each scored pass: the map after it over the log's real
+    scan endpoints at the true poses, the true path and that pass's estimated path."""
+    from pathlib import Path
+
+    from agents.bench.lidar_png import lidar_png
+    from agents.files.io import write_atomic
+
+    for k, world, part, precision in pictures:
+        est = pose_array([p for _, p in part])[:, :2]
+        title = f"{name} after pass {k}: precision {precision:.2f}"
+        write_atomic(Path(out) / f"{name}-pass-{k}.png", lidar_png(world, endpoints, truth_xyt[:, :2], est,
+                                                                  title=title))
 
 
 def _ate(part: list[tuple[int, Any]], truth: list[Any], ate: Any) -> float | None:
@@ -255,7 +282,7 @@ def run(args: argparse.Namespace) -> int:
     settings["frontend.calibration_scans"] = frontend.calibration_scans  # as a number, --set's or the flag's
     job = functools.partial(run_log, passes=args.passes, seed=args.seed, particles=args.particles,
                             threshold=args.threshold, min_travel=args.min_travel, min_turn_deg=args.min_turn,
-                            settings=settings)
+                            settings=settings, out=str(args.out))
     say = Progress(not args.quiet, live=False)
     results: dict[str, dict[str, Any]] = {}
     t0 = time.perf_counter()
@@ -282,6 +309,7 @@ def run(args: argparse.Namespace) -> int:
         vals = [r[key] for r in results.values() if r.get(key) is not None]
         med[key] = round(float(np.median(vals)), 6) if vals else None
     print(format_table(results, med, args.passes))
+    print(f"PNGs in {args.out}/")
     if args.json:
         print(json.dumps({"logs": results, "median": med, "passes": args.passes, "settings": settings}))
     return 0
