@@ -520,6 +520,8 @@ def test_bench_live_on_the_excerpt(capsys: pytest.CaptureFixture[str], tmp_path:
     assert r["map_precision_first"] > 0.8 and r["map_precision_last"] > 0.8, r
     assert r["ate_rmse_m"] < 0.3, r
     assert r["rss_mb_last"] > 50 and r["ms_per_scan_first"] > 0
+    moved = [p["moved_after_mapping_m_p90"] for p in r["by_pass"]]
+    assert all(0 <= m < 1.0 for m in moved) and r["moved_after_mapping_m_p90_first"] == moved[0]
     assert last["settings"]["slam.loop_settled_xy"] == 0.02
     assert last["settings"]["frontend.calibration_scans"] == CALIBRATION
     with pytest.raises(SystemExit) as exc:

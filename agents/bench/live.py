@@ -16,8 +16,10 @@ the memory stay within what the scans themselves need, and does the map stay rig
 Per log and per pass (JSON ``by_pass``): scans mapped, CPU ms per scan mapped of the input stage
 (extraction and SLAM) and of the filter, loops closed and how many of them were *settled*
 (:attr:`mapping.lidar_slam.SlamConfig.loop_settled_xy`: no re-optimisation), the pass's ATE
-(the filter's pose, the robot's published pose, from the truth's first pose) and the process's
-RSS at the pass's end. Per log: ``scans`` (the log's), ``passes``, ``scans_fed``,
+(the filter's pose, the robot's published pose, from the truth's first pose), the process's
+RSS at the pass's end, and how far the SLAM's graph moved the pass's scans after the filter had
+mapped them (``moved_after_mapping_m_p90`` / ``_max``, at the end of the run: the map built on
+them stays where they were). Per log: ``scans`` (the log's), ``passes``, ``scans_fed``,
 ``scans_mapped``, ``ms_per_scan_first`` / ``ms_per_scan_last`` (first and last pass, input
 stage and filter; "first" is the first pass that mapped a scan, as a short log's first pass may
 only have been held for the calibrations; None for a pass that mapped nothing) and
@@ -26,7 +28,8 @@ only have been held for the calibrations; None for a pass that mapped nothing) a
 best map after the first and the last pass against the log's scan endpoints at the true poses,
 within 0.2 m, as ``wiremap bench lidar`` scores it), ``rss_mb_first`` / ``rss_mb_last`` and
 ``rss_mb_per_1000_scans`` (the least-squares slope of RSS over scans mapped, after the first
-pass), ``loops``, ``loops_settled``, ``cpu_s``.
+pass), ``moved_after_mapping_m_p90_first`` (the first pass's), ``loops``, ``loops_settled``,
+``cpu_s``.
 
 Output: a table (a row per log), progress on stderr, ``NAME-pass-K.png`` in ``--out`` (the map
 after the first pass that mapped and after the last, over the log's real scan endpoints at the
@@ -198,6 +201,20 @@ def run_log(path: str, *, passes: int, seed: int, particles: int, threshold: flo
             mapped_before, loops_before, settled_before = len(est), loops, settled
     if out is not None:
         _pictures(out, name, pictures, endpoints, pose_array(truth))
+    # How far the SLAM's graph moved each pass's scans after the filter had mapped them at the
+    # pose it gave them then (node k is the k-th scan mapped): a map built on a trajectory that
+    # a later loop reshapes stays where it was, and the scans placed on the new one map its
+    # walls again beside it.
+    slam = live.slam
+    if slam is not None:
+        moved = np.hypot(*(np.asarray(slam.online)[:, :2] - slam.poses[:, :2]).T)
+        lo = 0
+        for r in rows:
+            hi = lo + r["scans_mapped"]
+            part_moved = moved[lo:hi]
+            r["moved_after_mapping_m_p90"] = float(np.percentile(part_moved, 90)) if len(part_moved) else None
+            r["moved_after_mapping_m_max"] = float(part_moved.max()) if len(part_moved) else None
+            lo = hi
     # The first pass that mapped a scan is the baseline (a short log's first pass may only
     # have been held for the calibrations).
     first = next((r for r in rows if r["scans_mapped"]), rows[0])
@@ -214,6 +231,7 @@ def run_log(path: str, *, passes: int, seed: int, particles: int, threshold: flo
         "map_precision_first": first["map_precision"], "map_precision_last": last["map_precision"],
         "rss_mb_first": first["rss_mb"], "rss_mb_last": last["rss_mb"],
         "rss_mb_per_1000_scans": None if slope is None else 1000.0 * slope,
+        "moved_after_mapping_m_p90_first": first.get("moved_after_mapping_m_p90"),
         "loops": sum(r["loops"] for r in rows), "loops_settled": sum(r["loops_settled"] for r in rows),
         "cpu_s": time.process_time() - cpu0, "by_pass": [_rounded(r) for r in rows],
     }
@@ -258,7 +276,8 @@ def _rounded(d: dict[str, Any]) -> dict[str, Any]:
 
 
 MEDIAN_KEYS = ("ms_per_scan_first", "ms_per_scan_last", "ms_growth", "ate_rmse_m", "ate_rmse_m_first",
-               "ate_rmse_m_last", "map_precision_first", "map_precision_last", "rss_mb_per_1000_scans")
+               "ate_rmse_m_last", "map_precision_first", "map_precision_last", "rss_mb_per_1000_scans",
+               "moved_after_mapping_m_p90_first")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -318,11 +337,11 @@ def run(args: argparse.Namespace) -> int:
 def format_table(logs: dict[str, dict[str, Any]], med: dict[str, Any], passes: int) -> str:
     last = f"pass {passes}"
     head = ["log", "mapped", "ms/scan first pass", last, "growth", "ATE m first", last, "precision first",
-            last, "RSS MB first", last, "MB/1000 scans", "loops (settled)"]
+            last, "RSS MB first", last, "MB/1000 scans", "moved m p90 first", "loops (settled)"]
     cells = (("ms_per_scan_first", "{:.1f}"), ("ms_per_scan_last", "{:.1f}"), ("ms_growth", "{:.2f}"),
              ("ate_rmse_m_first", "{:.3f}"), ("ate_rmse_m_last", "{:.3f}"), ("map_precision_first", "{:.3f}"),
              ("map_precision_last", "{:.3f}"), ("rss_mb_first", "{:.0f}"), ("rss_mb_last", "{:.0f}"),
-             ("rss_mb_per_1000_scans", "{:.1f}"))
+             ("rss_mb_per_1000_scans", "{:.1f}"), ("moved_after_mapping_m_p90_first", "{:.3f}"))
     rows = [[n, str(r["scans_mapped"]), *(fmt_cell(r[k], f) for k, f in cells),
              f"{r['loops']} ({r['loops_settled']})"] for n, r in logs.items()]
     rows.append(["median", "", *(fmt_cell(med.get(k), f) for k, f in cells), ""])
