@@ -683,12 +683,17 @@ class Progress:
         sys.stderr.flush()
         self._shown = True
 
+    def clear(self) -> None:
+        """Erase the live line, if one is shown."""
+        if self._shown:
+            sys.stderr.write("\r" + " " * (shutil.get_terminal_size((80, 24)).columns - 1) + "\r")
+            sys.stderr.flush()
+            self._shown = False
+
     def line(self, text: str) -> None:
         if not self.enabled:
             return
-        if self._shown:
-            sys.stderr.write("\r" + " " * (shutil.get_terminal_size((80, 24)).columns - 1) + "\r")
-            self._shown = False
+        self.clear()
         sys.stderr.write(text + "\n")
         sys.stderr.flush()
 

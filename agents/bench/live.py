@@ -199,6 +199,7 @@ def run_log(path: str, *, passes: int, seed: int, particles: int, threshold: flo
             })
             cpu_in = cpu_filter = 0.0
             mapped_before, loops_before, settled_before = len(est), loops, settled
+    show.clear()
     if out is not None:
         _pictures(out, name, pictures, endpoints, pose_array(truth))
     # How far the SLAM's graph moved each pass's scans after the filter had mapped them at the
