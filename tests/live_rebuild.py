@@ -1,0 +1,69 @@
+"""A development measurement (not a test): a live robot's map after N passes of a log (as ``wiremap
+bench live`` drives it, with the live robot's defaults) against the same filter inputs mapped again
+at the online SLAM's *final* poses -- an oracle for walls that move with the pose graph.
+
+``python tests/live_rebuild.py LOG PASSES``
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+import time
+
+from agents import mapping_run as mr
+from agents.bench.lidar import pose_array
+from agents.bench.live import shift
+from agents.files.carmen import read_carmen_log, scan_truth
+from mapping.filter import WireframeFilter
+from mapping.lidar_metrics import map_precision, scan_endpoints
+from mapping.se2 import Pose
+
+
+def main() -> None:
+    path, passes = sys.argv[1], int(sys.argv[2])
+    log = read_carmen_log(path)
+    scans = list(log.scans)
+    truth = scan_truth(log)
+    if truth is None:
+        raise SystemExit(f"{path}: no truth")
+    fo, extract, frontend = mr.split_profile({**mr.lidar_profile("lidar-slam-online"),
+                                              "frontend.calibration_scans": 30})
+    cap = min(float(scans[0].max_range), 20.0)
+    live = mr.LiveInputs(max_range=cap, extract=extract, frontend=frontend, min_travel=0.5,
+                         min_turn=math.radians(10))
+
+    def new_filter() -> WireframeFilter:
+        cfg = mr.filter_config_for(5, 0.2, cap, fov=mr.scan_fov(scans[0].angles), overrides=fo)
+        return WireframeFilter(cfg, mr.seeds_for(1)["filter"], initial_pose=Pose.identity())
+
+    filt = new_filter()
+    endpoints = scan_endpoints(pose_array(truth), [s.ranges for s in scans], [s.angles for s in scans],
+                               max_range=cap)
+    kept: list[mr.ScanInput] = []
+    for _, ls in shift(scans, passes):
+        for inp in live.add(ls):
+            filt.step(inp.odometry, inp.scan, points=inp.points)
+            kept.append(inp)
+    for inp in live.finish():
+        filt.step(inp.odometry, inp.scan, points=inp.points)
+        kept.append(inp)
+    origin = truth[0]
+    p_live = map_precision(filt.best.transformed(origin), endpoints, 0.2)
+    poses = [Pose(*map(float, p)) for p in live.slam.poses]  # node k: the k-th scan mapped
+    assert len(poses) == len(kept), (len(poses), len(kept))
+    t0 = time.process_time()
+    again = new_filter()
+    prev: Pose | None = None
+    for inp, p in zip(kept, poses, strict=True):
+        again.step(Pose.identity() if prev is None else prev.between(p), inp.scan, points=inp.points)
+        prev = p
+    dt = time.process_time() - t0
+    p_again = map_precision(again.best.transformed(origin), endpoints, 0.2)
+    print(f"{path.split('/')[-1]} {passes} passes, {len(kept)} scans: live map precision {p_live:.3f}, "
+          f"mapped again at the final poses {p_again:.3f} ({dt:.1f} s CPU, "
+          f"{1000 * dt / len(kept):.1f} ms a scan)")
+
+
+if __name__ == "__main__":
+    main()
