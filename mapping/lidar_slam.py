@@ -661,7 +661,6 @@ _REFINE_SUBMAPS = 256
 class _Node:
     points: FloatArray  # robot frame
     normals: FloatArray  # robot frame, NaN where none
-    travel: float  # metres driven from the first scan
 
 
 @dataclass
@@ -686,7 +685,8 @@ class LidarSlam:
     rejected: list[tuple[int, int]] = field(default_factory=list)
     settled: int = 0
     _nodes: list[_Node] = field(default_factory=list)
-    _travel: FloatArray = field(default_factory=lambda: np.zeros(1024))  # _Node.travel, grown by doubling
+    # metres driven from the first scan to each scan (the first len(_nodes)), grown by doubling
+    _travel: FloatArray = field(default_factory=lambda: np.zeros(1024))
     _last_loop: tuple[float, int] = (-math.inf, -(10**9))
     _clouds: dict[int, tuple[bytes, tuple[FloatArray, FloatArray]]] = field(default_factory=dict)
 
@@ -727,8 +727,8 @@ class LidarSlam:
         k = len(self._nodes)
         nrm = scan_normals(pts, cfg.normal_gap)
         d = math.hypot(odo[0], odo[1])
-        travel = 0.0 if k == 0 else self._nodes[-1].travel + d
-        self._nodes.append(_Node(pts, nrm, travel))
+        travel = 0.0 if k == 0 else float(self._travel[k - 1]) + d
+        self._nodes.append(_Node(pts, nrm))
         if k == len(self._travel):
             self._travel = np.concatenate([self._travel, np.zeros(len(self._travel))])
         self._travel[k] = travel
@@ -771,7 +771,7 @@ class LidarSlam:
 
     def _close_loop(self, k: int) -> None:
         cfg = self.config
-        here = self._nodes[k].travel
+        here = float(self._travel[k])
         cj = np.flatnonzero(here - self._travel[:k] >= cfg.loop_min_travel)
         if len(cj) == 0:
             return
@@ -792,7 +792,7 @@ class LidarSlam:
         lo = max(0, j - cfg.loop_submap_scans)
         hi = min(k, j + cfg.loop_submap_scans + 1)
         # The old submap must be old: no scan driven within loop_min_travel of here.
-        ids = [i for i in range(lo, hi) if here - self._nodes[i].travel >= cfg.loop_min_travel]
+        ids = [i for i in range(lo, hi) if here - float(self._travel[i]) >= cfg.loop_min_travel]
         sub = Submap.build([self._cloud(i) for i in ids], cfg.voxel)
         # The query: the recent scans in scan k's frame.
         q = [_apply(_between(self.poses[k], self.poses[i]), self._nodes[i].points)
@@ -807,25 +807,22 @@ class LidarSlam:
         omega = self._edge_information(m.hessian, m.pose[2])
         edge = Edge(j, k, z, omega, robust=True)
         move = m.pose - self.poses[k]
-        if (math.hypot(move[0], move[1]) <= cfg.loop_settled_xy
-                and abs(wrap_angle(float(move[2]))) <= cfg.loop_settled_theta):
-            self.edges.append(edge)
-            self.loops.append((j, k))
-            self.settled += 1
-            self._last_loop = (here, j)
-            return
-        poses = optimize(self.poses, [*self.edges, edge], kernel=cfg.loop_kernel)
-        # Verification by the graph: a loop the chain of matches can only meet by straining
-        # some of its links far beyond their noise is an alias (a corridor's other door), not
-        # a loop. The chain's links are the sequential edges.
-        strain = float(_chi2(poses, [e for e in self.edges if e.j == e.i + 1]).max(initial=0.0))
-        if strain > cfg.loop_max_chi2 or float(_chi2(poses, [edge])[0]) > cfg.loop_max_chi2:
-            self.rejected.append((j, k))
-            return
+        settled = (math.hypot(move[0], move[1]) <= cfg.loop_settled_xy
+                   and abs(wrap_angle(float(move[2]))) <= cfg.loop_settled_theta)
+        if not settled:
+            poses = optimize(self.poses, [*self.edges, edge], kernel=cfg.loop_kernel)
+            # Verification by the graph: a loop the chain of matches can only meet by straining
+            # some of its links far beyond their noise is an alias (a corridor's other door), not
+            # a loop. The chain's links are the sequential edges.
+            strain = float(_chi2(poses, [e for e in self.edges if e.j == e.i + 1]).max(initial=0.0))
+            if strain > cfg.loop_max_chi2 or float(_chi2(poses, [edge])[0]) > cfg.loop_max_chi2:
+                self.rejected.append((j, k))
+                return
+            self.poses = poses
         self.edges.append(edge)
         self.loops.append((j, k))
+        self.settled += settled
         self._last_loop = (here, j)
-        self.poses = poses
 
     def refine(self) -> None:
         """One offline pass over the whole trajectory (the log in hand): every scan is matched
@@ -846,7 +843,7 @@ class LidarSlam:
         x = self.poses
         if len(x) < 2:
             return
-        travel = np.array([nd.travel for nd in self._nodes])
+        travel = self._travel[: len(x)]
         edges: list[Edge] = []
         # The poses stay put during the pass, so a submap is a function of its scans: the
         # last _REFINE_SUBMAPS submaps are kept, since nearby scans see the same visits (about

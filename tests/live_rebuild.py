@@ -7,7 +7,6 @@ at the online SLAM's *final* poses -- an oracle for walls that move with the pos
 
 from __future__ import annotations
 
-import math
 import sys
 import time
 
@@ -15,7 +14,7 @@ from agents import mapping_run as mr
 from agents.bench.lidar import pose_array
 from agents.bench.live import shift
 from agents.files.carmen import read_carmen_log, scan_truth
-from mapping.filter import WireframeFilter
+from agents.fleet.live_lidar import CALIBRATION_SCANS, MIN_TRAVEL, MIN_TURN, live_filter
 from mapping.lidar_metrics import map_precision, scan_endpoints
 from mapping.se2 import Pose
 
@@ -28,16 +27,10 @@ def main() -> None:
     if truth is None:
         raise SystemExit(f"{path}: no truth")
     fo, extract, frontend = mr.split_profile({**mr.lidar_profile("lidar-slam-online"),
-                                              "frontend.calibration_scans": 30})
-    cap = min(float(scans[0].max_range), 20.0)
-    live = mr.LiveInputs(max_range=cap, extract=extract, frontend=frontend, min_travel=0.5,
-                         min_turn=math.radians(10))
-
-    def new_filter() -> WireframeFilter:
-        cfg = mr.filter_config_for(5, 0.2, cap, fov=mr.scan_fov(scans[0].angles), overrides=fo)
-        return WireframeFilter(cfg, mr.seeds_for(1)["filter"], initial_pose=Pose.identity())
-
-    filt = new_filter()
+                                              "frontend.calibration_scans": CALIBRATION_SCANS})
+    filt, cap = live_filter(scans[0], 5, 0.2, 1, fo)  # the live robot's, at its defaults
+    live = mr.LiveInputs(max_range=cap, extract=extract, frontend=frontend, min_travel=MIN_TRAVEL,
+                         min_turn=MIN_TURN)
     endpoints = scan_endpoints(pose_array(truth), [s.ranges for s in scans], [s.angles for s in scans],
                                max_range=cap)
     kept: list[mr.ScanInput] = []
@@ -53,7 +46,7 @@ def main() -> None:
     poses = [Pose(*map(float, p)) for p in live.slam.poses]  # node k: the k-th scan mapped
     assert len(poses) == len(kept), (len(poses), len(kept))
     t0 = time.process_time()
-    again = new_filter()
+    again = live_filter(scans[0], 5, 0.2, 1, fo)[0]
     prev: Pose | None = None
     for inp, p in zip(kept, poses, strict=True):
         again.step(Pose.identity() if prev is None else prev.between(p), inp.scan, points=inp.points)

@@ -113,7 +113,7 @@ def run_log(path: str, *, passes: int, seed: int, particles: int, threshold: flo
     a live line on its stderr)."""
     from agents import mapping_run as mr
     from agents.files.carmen import read_carmen_log, scan_truth
-    from mapping.filter import WireframeFilter
+    from agents.fleet.live_lidar import live_filter
     from mapping.lidar_metrics import ate, map_precision, scan_endpoints
     from mapping.se2 import Pose
 
@@ -125,12 +125,9 @@ def run_log(path: str, *, passes: int, seed: int, particles: int, threshold: flo
     if not scans:
         raise UserError(f"{path}: no laser scans in the log")
     filter_overrides, extract, frontend = mr.split_profile(settings)
-    cap = min(float(scans[0].max_range), 20.0)
+    filt, cap = live_filter(scans[0], particles, threshold, seed, filter_overrides)  # as the robot's
     live = mr.LiveInputs(max_range=cap, extract=extract, frontend=frontend, min_travel=min_travel,
                          min_turn=math.radians(min_turn_deg))
-    cfg = mr.filter_config_for(particles, threshold, cap, fov=mr.scan_fov(scans[0].angles),
-                               overrides=filter_overrides)
-    filt = WireframeFilter(cfg, mr.seeds_for(seed)["filter"], initial_pose=Pose.identity())
     endpoints = scan_endpoints(pose_array(truth), [s.ranges for s in scans], [s.angles for s in scans],
                                max_range=cap)
     origin = truth[0]

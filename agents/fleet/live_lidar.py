@@ -279,11 +279,10 @@ class LiveLidar:
         """The oldest posed scan, waiting up to ``timeout`` seconds for one; None if none came."""
         deadline = self.clock() + max(0.0, timeout)
         with self._cond:
-            self._pair()  # scans whose wait ran out go, and those behind them may be posed
-            while not self._ready:
-                self._pair()  # scans whose wait ran out
+            while True:
+                self._pair()  # scans whose wait ran out go, and those behind them may be posed
                 left = deadline - self.clock()
-                if left <= 0 or self._ready:
+                if self._ready or left <= 0:
                     break
                 self._cond.wait(min(left, 0.05))
             return self._ready.popleft() if self._ready else None
@@ -345,6 +344,21 @@ def live_profile(opts: Any) -> tuple[dict[str, Any], Any, Any]:
     return mr.split_profile(prof)
 
 
+def live_filter(first: Any, particles: int, threshold: float, seed: int,
+                overrides: dict[str, Any]) -> tuple[Any, float]:
+    """The live mapper's filter (:class:`mapping.filter.WireframeFilter`, in the robot's own
+    frame: its first pose the identity) set from the first scan that comes: its field of view,
+    and its range capped at :data:`agents.fleet.carmen_fleet.MAX_RANGE` (20 m, as ``wiremap map
+    --carmen`` caps it); with the cap, which :class:`agents.mapping_run.LiveInputs` takes too."""
+    from agents import mapping_run as mr
+    from agents.fleet.carmen_fleet import MAX_RANGE
+    from mapping.filter import WireframeFilter
+
+    cap = min(float(first.max_range), MAX_RANGE)
+    cfg = mr.filter_config_for(particles, threshold, cap, fov=mr.scan_fov(first.angles), overrides=overrides)
+    return WireframeFilter(cfg, mr.seeds_for(seed)["filter"], initial_pose=Pose.identity()), cap
+
+
 def live_steps(opts: Any, source: LiveLidar, stop: threading.Event) -> Iterator[Any]:
     """The robot's loop over live scans: each posed scan through :class:`agents.mapping_run.LiveInputs`
     (profile ``opts.lidar_profile``, which must run its SLAM scan by scan) and the filter, one
@@ -373,12 +387,9 @@ def live_steps(opts: Any, source: LiveLidar, stop: threading.Event) -> Iterator[
             yield None
             continue
         if filt is None:
-            max_range = min(float(ls.max_range), MAX_RANGE)
-            cfg = mr.filter_config_for(int(opts.particles), float(opts.threshold), max_range,
-                                       fov=mr.scan_fov(ls.angles),
-                                       overrides={**settings, **(opts.filter_overrides or {})})
-            filt = WireframeFilter(cfg, mr.seeds_for(int(opts.seed))["filter"], initial_pose=Pose.identity())
-            inputs.max_range = max_range
+            overrides = {**settings, **(opts.filter_overrides or {})}
+            filt, inputs.max_range = live_filter(ls, int(opts.particles), float(opts.threshold),
+                                                 int(opts.seed), overrides)
         ready = inputs.add(ls)
         source.counts.still = inputs.skipped
         slam = inputs.slam
