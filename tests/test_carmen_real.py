@@ -169,7 +169,7 @@ def test_bench_lidar_profile_and_set(tmp_path: Path, capsys: pytest.CaptureFixtu
     assert main(args) == 0
     summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert summary["profile"] == "none"
-    assert summary["settings"] == {"odometry.rot_per_m": "0.02", "extract.jump_beams": "3"}
+    assert summary["settings"] == {"odometry.rot_per_m": 0.02, "extract.jump_beams": 3.0}  # as numbers
     for bad in ("odometry.nope=1", "odometry.rot_per_m=-1", "extract.jump=0", "novalue"):
         assert main(["bench", "lidar", str(EXCERPT), "--steps", "2", "--quiet", "--set", bad]) == 2
         assert "--set" in capsys.readouterr().err
@@ -181,7 +181,7 @@ def test_bench_lidar_slam_profile(tmp_path: Path, capsys: pytest.CaptureFixture[
     assert main(args) == 0
     summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert summary["profile"] == "lidar-slam"
-    assert summary["settings"]["slam.enabled"] is True and summary["settings"]["slam.map_radius"] == "0"
+    assert summary["settings"]["slam.enabled"] is True and summary["settings"]["slam.map_radius"] == 0.0
     assert summary["logs"]["freiburg-101-head"]["ate_rmse_m"] < summary["logs"]["freiburg-101-head"][
         "odometry_ate_rmse_m"]
     assert main(["bench", "lidar", str(EXCERPT), "--steps", "2", "--quiet", "--set", "slam.nope=1"]) == 2

@@ -12,6 +12,7 @@ or rmw_zenoh put them on Zenoh) made from the committed CARMEN excerpt.
 
 from __future__ import annotations
 
+import itertools
 import json
 import math
 import threading
@@ -507,7 +508,7 @@ def test_bench_live_on_the_excerpt(capsys: pytest.CaptureFixture[str], tmp_path:
     from agents.cli import main
 
     assert main(["bench", "live", str(EXCERPT), "--passes", "3", "--calibration-scans", str(CALIBRATION),
-                 "--out", str(tmp_path), "--json", "--quiet"]) == 0
+                 "--set", "slam.loop_min_travel=12", "--out", str(tmp_path), "--json", "--quiet"]) == 0
     pngs = sorted(p.name for p in tmp_path.glob("*.png"))
     assert pngs == ["freiburg-101-head-pass-1.png", "freiburg-101-head-pass-3.png"]
     assert (tmp_path / pngs[0]).read_bytes().startswith(b"\x89PNG")
@@ -523,6 +524,11 @@ def test_bench_live_on_the_excerpt(capsys: pytest.CaptureFixture[str], tmp_path:
     moved = [p["moved_after_mapping_m_p90"] for p in r["by_pass"]]
     assert all(0 <= m < 1.0 for m in moved) and r["moved_after_mapping_m_p90_first"] == moved[0]
     assert last["settings"]["slam.loop_settled_xy"] == 0.02
+    assert last["settings"]["slam.loop_min_travel"] == 12.0  # a --set value as a number, not its text
+    # every scan mapped is a node of the SLAM's graph, one more after each pass
+    mapped = list(itertools.accumulate(p["scans_mapped"] for p in r["by_pass"]))
+    assert [p["graph"] for p in r["by_pass"]] == mapped
+    assert (r["graph_first"], r["graph_last"]) == (r["by_pass"][0]["graph"], r["scans_mapped"])
     assert last["settings"]["frontend.calibration_scans"] == CALIBRATION
     with pytest.raises(SystemExit) as exc:
         main(["bench", "live", str(EXCERPT), "--passes", "0"])

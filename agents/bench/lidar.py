@@ -122,10 +122,16 @@ def settings_for(profile: str, sets: list[str]) -> dict[str, Any]:
             raise UserError(f"--set {item!r}: expected KEY=VALUE")
         out[key.strip()] = value.strip()
     try:
-        fo, _, _ = mr.split_profile(out)
-        with_overrides(FilterConfig(), fo)
+        fo, extract, frontend = mr.split_profile(out)
+        fcfg = with_overrides(FilterConfig(), fo)
     except (ConfigError, ValueError) as exc:
         raise UserError(f"--set: {exc}") from None
+    for item in sets:  # each --set value as the configuration took it (a number, not its text)
+        key = item.partition("=")[0].strip()
+        head, _, rest = key.partition(".")
+        obj, path = {"extract": (extract, rest), "frontend": (frontend, rest),
+                     "slam": (frontend, key)}.get(head, (fcfg, key))
+        out[key] = functools.reduce(getattr, path.split("."), obj)
     return out
 
 

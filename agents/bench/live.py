@@ -15,7 +15,8 @@ the memory stay within what the scans themselves need, and does the map stay rig
 
 Per log and per pass (JSON ``by_pass``): scans mapped, CPU ms per scan mapped of the input stage
 (extraction and SLAM) and of the filter, loops closed and how many of them were *settled*
-(:attr:`mapping.lidar_slam.SlamConfig.loop_settled_xy`: no re-optimisation), the pass's ATE
+(:attr:`mapping.lidar_slam.SlamConfig.loop_settled_xy`: no re-optimisation), the SLAM's graph
+at the pass's end (``graph``: its nodes, a scan each), the pass's ATE
 (the filter's pose, the robot's published pose, from the truth's first pose), the process's
 RSS at the pass's end, and how far the SLAM's graph moved the pass's scans after the filter had
 mapped them (``moved_after_mapping_m_p90`` / ``_max``, at the end of the run: the map built on
@@ -29,7 +30,7 @@ best map after the first and the last pass against the log's scan endpoints at t
 within 0.2 m, as ``wiremap bench lidar`` scores it), ``rss_mb_first`` / ``rss_mb_last`` and
 ``rss_mb_per_1000_scans`` (the least-squares slope of RSS over scans mapped, after the first
 pass), ``moved_after_mapping_m_p90_first`` (the first pass's), ``loops``, ``loops_settled``,
-``cpu_s``.
+``graph_first`` / ``graph_last``, ``cpu_s``.
 
 Output: a table (a row per log), progress on stderr, ``NAME-pass-K.png`` in ``--out`` (the map
 after the first pass that mapped and after the last, over the log's real scan endpoints at the
@@ -173,6 +174,7 @@ def run_log(path: str, *, passes: int, seed: int, particles: int, threshold: flo
             part = est[mapped_before:]
             loops = len(slam.loops) if slam is not None else 0
             settled = slam.settled if slam is not None else 0
+            graph = len(slam.poses) if slam is not None else 0
             rss = _rss_mb()
             rss_at.append((len(est), rss))
             scored = (mapped and not any(r["scans_mapped"] for r in rows)) or len(rows) == passes - 1
@@ -190,6 +192,7 @@ def run_log(path: str, *, passes: int, seed: int, particles: int, threshold: flo
                 "ms_filter": 1000.0 * cpu_filter / mapped if mapped else None,
                 "loops": loops - loops_before,
                 "loops_settled": settled - settled_before,
+                "graph": graph,
                 "ate_rmse_m": _ate(part, truth, ate),
                 "map_precision": precision,
                 "rss_mb": rss,
@@ -231,6 +234,7 @@ def run_log(path: str, *, passes: int, seed: int, particles: int, threshold: flo
         "rss_mb_per_1000_scans": None if slope is None else 1000.0 * slope,
         "moved_after_mapping_m_p90_first": first.get("moved_after_mapping_m_p90"),
         "loops": sum(r["loops"] for r in rows), "loops_settled": sum(r["loops_settled"] for r in rows),
+        "graph_first": first["graph"], "graph_last": last["graph"],
         "cpu_s": time.process_time() - cpu0, "by_pass": [_rounded(r) for r in rows],
     }
 
@@ -296,7 +300,6 @@ def run(args: argparse.Namespace) -> int:
         mr.LiveInputs(max_range=None, extract=extract, frontend=frontend)
     except ValueError as exc:
         raise UserError(f"--set: {exc}") from None
-    settings["frontend.calibration_scans"] = frontend.calibration_scans  # as a number, --set's or the flag's
     job = functools.partial(run_log, passes=args.passes, seed=args.seed, particles=args.particles,
                             threshold=args.threshold, min_travel=args.min_travel, min_turn_deg=args.min_turn,
                             settings=settings, out=str(args.out))
@@ -334,13 +337,15 @@ def run(args: argparse.Namespace) -> int:
 
 def format_table(logs: dict[str, dict[str, Any]], med: dict[str, Any], passes: int) -> str:
     last = f"pass {passes}"
-    head = ["log", "mapped", "ms/scan first pass", last, "growth", "ATE m first", last, "precision first",
-            last, "RSS MB first", last, "MB/1000 scans", "moved m p90 first", "loops (settled)"]
+    head = ["log", "mapped", "graph first", last, "ms/scan first pass", last, "growth", "ATE m first", last,
+            "precision first", last, "RSS MB first", last, "MB/1000 scans", "moved m p90 first",
+            "loops (settled)"]
     cells = (("ms_per_scan_first", "{:.1f}"), ("ms_per_scan_last", "{:.1f}"), ("ms_growth", "{:.2f}"),
              ("ate_rmse_m_first", "{:.3f}"), ("ate_rmse_m_last", "{:.3f}"), ("map_precision_first", "{:.3f}"),
              ("map_precision_last", "{:.3f}"), ("rss_mb_first", "{:.0f}"), ("rss_mb_last", "{:.0f}"),
              ("rss_mb_per_1000_scans", "{:.1f}"), ("moved_after_mapping_m_p90_first", "{:.3f}"))
-    rows = [[n, str(r["scans_mapped"]), *(fmt_cell(r[k], f) for k, f in cells),
-             f"{r['loops']} ({r['loops_settled']})"] for n, r in logs.items()]
-    rows.append(["median", "", *(fmt_cell(med.get(k), f) for k, f in cells), ""])
+    rows = [[n, str(r["scans_mapped"]), str(r["graph_first"]), str(r["graph_last"]),
+             *(fmt_cell(r[k], f) for k, f in cells), f"{r['loops']} ({r['loops_settled']})"]
+            for n, r in logs.items()]
+    rows.append(["median", "", "", "", *(fmt_cell(med.get(k), f) for k, f in cells), ""])
     return aligned_rows([head, *rows])
