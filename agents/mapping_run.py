@@ -276,14 +276,20 @@ LIDAR_SLAM_PROFILE: dict[str, Any] = {
 #: SLAM gave it when it came (``slam.online``; no offline smoothing), the laser's yaw and the
 #: wheels' noise measured on the first 100 scans only (``frontend.calibration_scans``), and a loop
 #: that moves the estimate less than 2 cm and 0.2 degree *settled* (``slam.loop_settled_xy``,
-#: ``loop_settled_theta``: its edge kept, the graph not optimised for it), so that a robot driving
-#: a building it has mapped keeps its time per scan (``wiremap bench live``).
+#: ``loop_settled_theta``: its edge kept, the graph not optimised for it), and a scan taken where
+#: the graph holds two visits already, within 0.5 m and 20 degrees, and located on the old walls
+#: *redundant*, no node of the graph (``slam.revisit_xy``, ``revisit_theta``, ``revisit_visits``),
+#: so that a robot driving a building it has mapped keeps its time per scan and its memory
+#: (``wiremap bench live``; docs/experiments.md, "Session 27").
 LIDAR_SLAM_ONLINE_PROFILE: dict[str, Any] = {
     **LIDAR_SLAM_PROFILE,
     "slam.online": True,
     "frontend.calibration_scans": 100,
     "slam.loop_settled_xy": 0.02,
     "slam.loop_settled_theta": math.radians(0.2),
+    "slam.revisit_xy": 0.5,
+    "slam.revisit_theta": math.radians(20.0),
+    "slam.revisit_visits": 2,
 }
 
 #: The real-lidar profiles by name (``--profile`` of ``wiremap bench lidar``, ``--lidar-profile``

@@ -393,7 +393,7 @@ def slam_increments(
     closed at the end straightens the increments of the whole loop before the filter maps it.
     """
     slam = run_slam(points, odometry, config, noise=noise)
-    return increments([Pose(*map(float, p)) for p in slam.poses]), slam
+    return increments([Pose(*map(float, p)) for p in slam.scan_poses()]), slam
 
 
 #: :func:`online_increments` measures the wheels' heading noise again every this many scans while

@@ -129,6 +129,26 @@ class SlamConfig:
         drives a building it has mapped closes a loop every ``loop_every`` scans, each a
         Gauss-Newton over the whole graph: without this, its time per scan grows with every scan
         it has ever taken (0 and 0: every loop optimises).
+    revisit_xy, revisit_theta : float
+        A scan is *redundant* when the graph already holds, within ``revisit_xy`` metres and
+        ``revisit_theta`` radians of where the local match puts it, nodes of at least
+        ``revisit_visits`` earlier visits of the place (runs of nodes ``refine_visit_gap``
+        apart, each taken at least ``loop_min_travel`` of driving before), while the robot is
+        tied to them -- a loop closed, or a scan located on old nodes, within ``revisit_lock``
+        metres of driving -- and when matched again against the nearest such node's visit alone
+        (:meth:`LidarSlam._locate`) it lands on the old walls. It then takes that pose and is
+        no node: its pose is kept in that node's frame (:meth:`LidarSlam.scan_poses`), and the
+        next scan that is not redundant links to that node. So the graph, and with it a scan's
+        cost and the SLAM's memory, grows with the ground covered (``revisit_visits`` times)
+        and the driving off the old track, not with the time on duty (Johannsson et al.,
+        "Temporally scalable visual SLAM using a reduced pose graph", 2013: a revisit re-uses
+        the old nodes; the idea, not their code). 0 and 0: every scan is a node.
+    revisit_lock : float
+        Metres (8).
+    revisit_visits : int
+        Visits of a place in the graph before a scan there is redundant (1: the first revisit
+        adds no node; 2: the first revisit's nodes and loops tie the map together, as a second
+        pass over a log does, before the graph stops growing there).
     map_radius : float
         Old scans whose estimated position is within this many metres of the prediction join
         the local submap (4.0; 0: the recent scans only).
@@ -186,6 +206,10 @@ class SlamConfig:
     loop_max_chi2: float = 25.0
     loop_settled_xy: float = 0.0
     loop_settled_theta: float = 0.0
+    revisit_xy: float = 0.0
+    revisit_theta: float = 0.0
+    revisit_lock: float = 8.0
+    revisit_visits: int = 1
     map_radius: float = 4.0
     map_scans: int = 15
     refine_passes: int = 3
@@ -210,6 +234,9 @@ class SlamConfig:
             raise ValueError("loop_min_inliers must be in (0, 1]")
         if not (self.loop_settled_xy >= 0 and self.loop_settled_theta >= 0):
             raise ValueError("loop_settled_xy and loop_settled_theta must be >= 0")
+        if not (self.revisit_xy >= 0 and self.revisit_theta >= 0 and self.revisit_lock >= 0
+                and self.revisit_visits >= 1):
+            raise ValueError("revisit_xy, revisit_theta and revisit_lock must be >= 0, revisit_visits >= 1")
 
 
 # ---------------------------------------------------------------------------------------- SE(2)
@@ -667,9 +694,11 @@ class _Node:
 class LidarSlam:
     """Online lidar SLAM over a log's scans: :meth:`add` per scan, in order.
 
-    ``poses`` holds every scan's current estimate (a loop closure moves them all);
-    ``online`` what :meth:`add` returned for each scan at the time; ``settled`` counts the loops
-    of ``loops`` that were settled (``SlamConfig.loop_settled_xy``).
+    ``poses`` holds every node's current estimate (a loop closure moves them all): every scan's,
+    unless ``SlamConfig.revisit_xy`` leaves redundant scans out of the graph (``skipped``
+    counts them; :meth:`scan_poses` gives every scan's); ``online`` what :meth:`add` returned
+    for each scan at the time; ``settled`` counts the loops of ``loops`` that were settled
+    (``SlamConfig.loop_settled_xy``).
 
     A robot runs this for hours: what a scan costs must not grow with the scans before it
     beyond what the graph's own size forces. The scans' world-frame clouds are a cache of at
@@ -684,7 +713,13 @@ class LidarSlam:
     loops: list[tuple[int, int]] = field(default_factory=list)
     rejected: list[tuple[int, int]] = field(default_factory=list)
     settled: int = 0
+    skipped: int = 0
     _nodes: list[_Node] = field(default_factory=list)
+    # each scan added: the node it is, or the node it was redundant with and its pose in that
+    # node's frame
+    _scans: list[tuple[int, FloatArray | None]] = field(default_factory=list)
+    _driven: float = 0.0  # metres driven from the first scan to the last
+    _located: float = -math.inf  # metres driven to the last scan located on an old node
     # metres driven from the first scan to each scan (the first len(_nodes)), grown by doubling
     _travel: FloatArray = field(default_factory=lambda: np.zeros(1024))
     _last_loop: tuple[float, int] = (-math.inf, -(10**9))
@@ -725,18 +760,16 @@ class LidarSlam:
         pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)
         odo = np.asarray(odometry, dtype=np.float64)
         k = len(self._nodes)
-        nrm = scan_normals(pts, cfg.normal_gap)
         d = math.hypot(odo[0], odo[1])
-        travel = 0.0 if k == 0 else float(self._travel[k - 1]) + d
-        self._nodes.append(_Node(pts, nrm))
-        if k == len(self._travel):
-            self._travel = np.concatenate([self._travel, np.zeros(len(self._travel))])
-        self._travel[k] = travel
+        here = 0.0 if k == 0 else self._driven + d
         if k == 0:
+            self._add_node(pts, here)
             self.poses = np.array([self.start], dtype=np.float64)
+            self._scans.append((0, None))
             self.online.append(self.poses[0].copy())
             return np.array(self.poses[0])
-        guess = _compose(self.poses[k - 1], odo)
+        anchor, rel = self._scans[-1]
+        guess = _compose(self.poses[k - 1] if rel is None else _compose(self.poses[anchor], rel), odo)
         sxy = max(cfg.odo_floor_xy, cfg.odo_trans_per_m * d)
         sth = max(cfg.odo_floor_theta, cfg.odo_rot_per_m * d + cfg.odo_rot_per_rad * abs(odo[2]))
         prior = np.diag([1 / sxy**2, 1 / sxy**2, 1 / sth**2])
@@ -752,17 +785,85 @@ class LidarSlam:
         sub = Submap.build([self._cloud(i) for i in ids], cfg.voxel)
         m = match_scan(pts, sub, guess, cfg, prior_information=prior)
         pose = m.pose if m.matched >= 10 else guess
+        self._driven = here
+        twin = self._redundant_with(pose, here) if m.matched >= 10 else None
+        located = None if twin is None else self._locate(pts, pose, twin, here)
+        if twin is not None and located is not None:
+            self._scans.append((twin, _between(self.poses[twin], located)))
+            self.skipped += 1
+            self._located = here
+            self.online.append(located.copy())
+            return np.array(located)
+        self._add_node(pts, here)
         self.poses = np.vstack([self.poses, pose])
-        z = _between(self.poses[k - 1], pose)
+        self._scans.append((k, None))
+        # The edge from the node the previous scan is (or was redundant with, in which case the
+        # robot is back on new ground: search for a loop at once).
+        z = _between(self.poses[anchor], pose)
         if m.matched >= 10:
             omega = self._edge_information(m.hessian, pose[2]) + self._odometry_information(prior, pose[2])
         else:
             omega = self._odometry_information(prior, pose[2])
-        self.edges.append(Edge(k - 1, k, z, omega))
-        if k % cfg.loop_every == 0:
+        self.edges.append(Edge(anchor, k, z, omega))
+        if k % cfg.loop_every == 0 or rel is not None:
             self._close_loop(k)
         self.online.append(self.poses[k].copy())
         return np.array(self.poses[k])
+
+    def _add_node(self, pts: FloatArray, travel: float) -> None:
+        k = len(self._nodes)
+        self._nodes.append(_Node(pts, scan_normals(pts, self.config.normal_gap)))
+        if k == len(self._travel):
+            self._travel = np.concatenate([self._travel, np.zeros(len(self._travel))])
+        self._travel[k] = travel
+
+    def _redundant_with(self, pose: FloatArray, here: float) -> int | None:
+        """The old node a scan matched at ``pose`` is redundant with (``SlamConfig.revisit_xy``),
+        the nearest, or None."""
+        cfg = self.config
+        if cfg.revisit_xy <= 0 or here - max(self._last_loop[0], self._located) > cfg.revisit_lock:
+            return None
+        n = len(self._nodes)
+        old = np.flatnonzero(here - self._travel[:n] >= cfg.loop_min_travel)
+        if len(old) == 0:
+            return None
+        dist = np.hypot(*(self.poses[old, :2] - pose[:2]).T)
+        turn = np.abs(np.remainder(self.poses[old, 2] - pose[2] + math.pi, 2 * math.pi) - math.pi)
+        ok = (dist <= cfg.revisit_xy) & (turn <= cfg.revisit_theta)
+        if not ok.any():
+            return None
+        near = old[ok]  # ascending: visits are runs of consecutive nodes
+        if 1 + int(np.count_nonzero(np.diff(near) > cfg.refine_visit_gap)) < cfg.revisit_visits:
+            return None
+        return int(near[np.argmin(dist[ok])])
+
+    def _locate(self, pts: FloatArray, pose: FloatArray, twin: int, here: float) -> FloatArray | None:
+        """A redundant scan's pose on the old map: matched, from ``pose``, against the visit of
+        node ``twin`` (its ``loop_submap_scans`` either side, as a loop's old submap), with no
+        odometry prior -- the local match leans on the wheels, and the loops that would have
+        pulled its heading back are not searched for a scan that is no node (without this, the
+        hall of the tests drifts 16 degrees in twelve redundant scans). None when fewer than
+        ``loop_min_inliers`` of its points land on the old walls, or it moves more than
+        ``revisit_xy`` / ``revisit_theta``: the scan becomes a node."""
+        cfg = self.config
+        n = len(self._nodes)
+        ids = range(max(0, twin - cfg.loop_submap_scans), min(n, twin + cfg.loop_submap_scans + 1))
+        old = [self._cloud(i) for i in ids if here - float(self._travel[i]) >= cfg.loop_min_travel]
+        m = match_scan(pts, Submap.build(old, cfg.voxel), pose, cfg, inlier_distance=cfg.loop_inlier_distance)
+        move = m.pose - pose
+        if (m.matched < 10 or m.inliers < cfg.loop_min_inliers
+                or math.hypot(move[0], move[1]) > cfg.revisit_xy
+                or abs(wrap_angle(float(move[2]))) > cfg.revisit_theta):
+            return None
+        return m.pose
+
+    def scan_poses(self) -> FloatArray:
+        """Every scan's current estimate, in the order :meth:`add` took them: a node's pose, or
+        a redundant scan's pose in its node's frame composed with that node's pose now."""
+        out = np.empty((len(self._scans), 3))
+        for i, (node, rel) in enumerate(self._scans):
+            out[i] = self.poses[node] if rel is None else _compose(self.poses[node], rel)
+        return out
 
     def _odometry_information(self, prior: FloatArray, theta_j: float) -> FloatArray:
         rb = np.eye(3)
@@ -794,7 +895,11 @@ class LidarSlam:
         # The old submap must be old: no scan driven within loop_min_travel of here.
         ids = [i for i in range(lo, hi) if here - float(self._travel[i]) >= cfg.loop_min_travel]
         sub = Submap.build([self._cloud(i) for i in ids], cfg.voxel)
-        # The query: the recent scans in scan k's frame.
+        # The query: the recent scans in scan k's frame. After redundant scans, the recent
+        # nodes, from before them too (placed through the graph): of the alternatives, scan k
+        # alone took wrong loops (edmonton's final ATE after four passes 0.44 -> 1.10 m), the
+        # recent scans with the redundant ones at their poses on their old nodes did worse on
+        # five logs of seven (docs/experiments.md, "Session 27").
         q = [_apply(_between(self.poses[k], self.poses[i]), self._nodes[i].points)
              for i in range(max(0, k - cfg.loop_query_scans + 1), k + 1)]
         query = np.concatenate(q)
@@ -813,8 +918,9 @@ class LidarSlam:
             poses = optimize(self.poses, [*self.edges, edge], kernel=cfg.loop_kernel)
             # Verification by the graph: a loop the chain of matches can only meet by straining
             # some of its links far beyond their noise is an alias (a corridor's other door), not
-            # a loop. The chain's links are the sequential edges.
-            strain = float(_chi2(poses, [e for e in self.edges if e.j == e.i + 1]).max(initial=0.0))
+            # a loop. The chain's links are the edges that are not loops' (each from the node
+            # before, or from the node the scan before was redundant with).
+            strain = float(_chi2(poses, [e for e in self.edges if not e.robust]).max(initial=0.0))
             if strain > cfg.loop_max_chi2 or float(_chi2(poses, [edge])[0]) > cfg.loop_max_chi2:
                 self.rejected.append((j, k))
                 return

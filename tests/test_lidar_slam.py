@@ -193,16 +193,16 @@ def test_slam_closes_a_loop_in_a_simulated_hall_and_is_deterministic() -> None:
     assert np.array_equal(run().poses, slam.poses)
 
 
-def _two_laps(cfg: SlamConfig) -> tuple[LidarSlam, np.ndarray, int]:
-    """The hall drive twice over (the second lap's odometry the first's again): the SLAM, the
+def _laps(cfg: SlamConfig, laps: int = 2) -> tuple[LidarSlam, np.ndarray, int]:
+    """The hall drive ``laps`` times over (each lap's odometry the first's again): the SLAM, the
     truth and how many times the graph was optimised."""
     import mapping.lidar_slam as ls
 
     route, odo, scans = _hall_drive()
     back = route[-1].between(route[0])  # from the drive's end to its start, one step
-    route2 = route + route
-    odo2 = [*odo, back, *odo[1:]]
-    scans2 = scans + scans
+    route_all = route * laps
+    odo_all = [*odo] + [*[back, *odo[1:]]] * (laps - 1)
+    scans_all = scans * laps
     calls = [0]
     plain = ls.optimize
 
@@ -212,12 +212,12 @@ def _two_laps(cfg: SlamConfig) -> tuple[LidarSlam, np.ndarray, int]:
 
     ls.optimize = counted  # type: ignore[assignment]
     try:
-        slam = LidarSlam(cfg, start=np.array(route2[0].as_tuple()))
-        for k, (pts, o) in enumerate(zip(scans2, odo2)):
+        slam = LidarSlam(cfg, start=np.array(route_all[0].as_tuple()))
+        for k, (pts, o) in enumerate(zip(scans_all, odo_all, strict=True)):
             slam.add(pts, np.zeros(3) if k == 0 else np.array(o.as_tuple()))
     finally:
         ls.optimize = plain  # type: ignore[assignment]
-    return slam, np.array([p.as_tuple() for p in route2]), calls[0]
+    return slam, np.array([p.as_tuple() for p in route_all]), calls[0]
 
 
 def test_a_settled_loop_keeps_its_edge_and_optimises_nothing() -> None:
@@ -226,8 +226,8 @@ def test_a_settled_loop_keeps_its_edge_and_optimises_nothing() -> None:
     optimisation per unsettled loop tried, none per settled one); the trajectory stays as good;
     settling off optimises for every loop. (The drive's odometry turns 2 degrees a metre, so
     most of its loops move the estimate by more than 0.2 degree: only a few settle here.)"""
-    on, truth, calls_on = _two_laps(SlamConfig(loop_settled_xy=0.02, loop_settled_theta=math.radians(0.2)))
-    off, _, calls_off = _two_laps(SlamConfig())
+    on, truth, calls_on = _laps(SlamConfig(loop_settled_xy=0.02, loop_settled_theta=math.radians(0.2)))
+    off, _, calls_off = _laps(SlamConfig())
     assert off.settled == 0 and calls_off == len(off.loops) + len(off.rejected)
     assert 0 < on.settled < len(on.loops), (on.settled, len(on.loops))
     assert calls_on == len(on.loops) - on.settled + len(on.rejected)
@@ -238,6 +238,36 @@ def test_a_settled_loop_keeps_its_edge_and_optimises_nothing() -> None:
         return float(np.sqrt(np.mean(np.sum((slam.poses[:, :2] - truth[:, :2]) ** 2, axis=1))))
 
     assert rms(on) < 0.2 and rms(on) < rms(off) + 0.02, (rms(on), rms(off))
+
+
+@pytest.mark.parametrize("visits", [1, 2])
+def test_a_revisit_reuses_the_old_nodes(visits: int) -> None:
+    """Four laps of the hall with ``revisit_xy``: once a loop has tied the path to the first
+    lap, a scan matched near ``visits`` earlier visits of its place (and located on the nearest
+    one's walls) is no node of its own. The graph after four laps holds about ``visits`` laps'
+    nodes; every scan still has a pose (:meth:`LidarSlam.scan_poses`), as good as when every
+    scan is a node (the lap's drift is held on the old walls, not on the wheels); the chain
+    stays connected (a link into each node but the first); no scan before the first loop is
+    left out. Off, nothing is left out and ``scan_poses`` is ``poses``."""
+    settled = {"loop_settled_xy": 0.02, "loop_settled_theta": math.radians(0.2)}
+    cfg = SlamConfig(revisit_xy=0.5, revisit_theta=0.35, revisit_visits=visits, **settled)
+    on, truth, _ = _laps(cfg, laps=4)
+    off, _, _ = _laps(SlamConfig(**settled), laps=4)
+    lap = len(truth) // 4
+    assert off.skipped == 0 and np.array_equal(off.scan_poses(), off.poses)
+    assert len(on.poses) + on.skipped == len(truth) == len(on.online)
+    assert visits * lap * 0.8 < len(on.poses) < visits * lap + 10, (len(on.poses), lap)
+    chain = sorted(e.j for e in on.edges if not e.robust)
+    assert chain == list(range(1, len(on.poses)))
+    first_loop = on.loops[0][1]
+    assert all(rel is None for _, rel in on._scans[: first_loop + 1])
+
+    def rms(poses: np.ndarray, part: slice = slice(None)) -> float:
+        return float(np.sqrt(np.mean(np.sum((poses[part, :2] - truth[part, :2]) ** 2, axis=1))))
+
+    assert rms(on.scan_poses()) < 0.2 and rms(on.scan_poses()) < rms(off.poses) + 0.01, (
+        rms(on.scan_poses()), rms(off.poses))
+    assert rms(on.scan_poses(), slice(-lap, None)) < 0.2  # the last lap held, not drifting on the wheels
 
 
 def test_the_cloud_cache_bound_changes_nothing(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -345,7 +375,8 @@ def test_slam_on_the_real_excerpt_beats_its_odometry() -> None:
 @pytest.mark.parametrize("bad", [{"local_scans": 0}, {"gate_start": 0.1, "gate_end": 0.2},
                                  {"loop_min_inliers": 0.0}, {"refine_passes": -1},
                                  {"refine_visit_gap": 0}, {"loop_settled_xy": -0.01},
-                                 {"loop_settled_theta": -0.01}])
+                                 {"loop_settled_theta": -0.01}, {"revisit_xy": -0.1},
+                                 {"revisit_lock": -1.0}, {"revisit_visits": 0}])
 def test_bad_settings_are_refused(bad: dict[str, float]) -> None:
     with pytest.raises(ValueError):
         SlamConfig(**bad)  # type: ignore[arg-type]

@@ -16,7 +16,8 @@ the memory stay within what the scans themselves need, and does the map stay rig
 Per log and per pass (JSON ``by_pass``): scans mapped, CPU ms per scan mapped of the input stage
 (extraction and SLAM) and of the filter, loops closed and how many of them were *settled*
 (:attr:`mapping.lidar_slam.SlamConfig.loop_settled_xy`: no re-optimisation), the SLAM's graph
-at the pass's end (``graph``: its nodes, a scan each), the pass's ATE
+at the pass's end (``graph``: its nodes) and the scans it posed on old nodes instead
+(``revisits``: :attr:`mapping.lidar_slam.SlamConfig.revisit_xy`), the pass's ATE
 (the filter's pose, the robot's published pose, from the truth's first pose), the process's
 RSS at the pass's end, and how far the SLAM's graph moved the pass's scans after the filter had
 mapped them (``moved_after_mapping_m_p90`` / ``_max``, at the end of the run: the map built on
@@ -30,7 +31,7 @@ best map after the first and the last pass against the log's scan endpoints at t
 within 0.2 m, as ``wiremap bench lidar`` scores it), ``rss_mb_first`` / ``rss_mb_last`` and
 ``rss_mb_per_1000_scans`` (the least-squares slope of RSS over scans mapped, after the first
 pass), ``moved_after_mapping_m_p90_first`` (the first pass's), ``loops``, ``loops_settled``,
-``graph_first`` / ``graph_last``, ``cpu_s``.
+``graph_first`` / ``graph_last``, ``revisits``, ``cpu_s``.
 
 Output: a table (a row per log), progress on stderr, ``NAME-pass-K.png`` in ``--out`` (the map
 after the first pass that mapped and after the last, over the log's real scan endpoints at the
@@ -136,7 +137,7 @@ def run_log(path: str, *, passes: int, seed: int, particles: int, threshold: flo
     est: list[tuple[int, Pose]] = []
     rows: list[dict[str, Any]] = []
     cpu_in = cpu_filter = 0.0
-    mapped_before = loops_before = settled_before = 0
+    mapped_before = loops_before = settled_before = revisits_before = 0
     fed = shift(scans, passes)
     per_pass = len(scans)
     cpu0 = time.process_time()
@@ -175,6 +176,7 @@ def run_log(path: str, *, passes: int, seed: int, particles: int, threshold: flo
             loops = len(slam.loops) if slam is not None else 0
             settled = slam.settled if slam is not None else 0
             graph = len(slam.poses) if slam is not None else 0
+            revisits = slam.skipped if slam is not None else 0
             rss = _rss_mb()
             rss_at.append((len(est), rss))
             scored = (mapped and not any(r["scans_mapped"] for r in rows)) or len(rows) == passes - 1
@@ -193,22 +195,23 @@ def run_log(path: str, *, passes: int, seed: int, particles: int, threshold: flo
                 "loops": loops - loops_before,
                 "loops_settled": settled - settled_before,
                 "graph": graph,
+                "revisits": revisits - revisits_before,
                 "ate_rmse_m": _ate(part, truth, ate),
                 "map_precision": precision,
                 "rss_mb": rss,
             })
             cpu_in = cpu_filter = 0.0
-            mapped_before, loops_before, settled_before = len(est), loops, settled
+            mapped_before, loops_before, settled_before, revisits_before = len(est), loops, settled, revisits
     show.clear()
     if out is not None:
         _pictures(out, name, pictures, endpoints, pose_array(truth))
     # How far the SLAM's graph moved each pass's scans after the filter had mapped them at the
-    # pose it gave them then (node k is the k-th scan mapped): a map built on a trajectory that
-    # a later loop reshapes stays where it was, and the scans placed on the new one map its
-    # walls again beside it.
+    # pose it gave them then (the k-th scan mapped is the SLAM's k-th scan): a map built on a
+    # trajectory that a later loop reshapes stays where it was, and the scans placed on the new
+    # one map its walls again beside it.
     slam = live.slam
     if slam is not None:
-        moved = np.hypot(*(np.asarray(slam.online)[:, :2] - slam.poses[:, :2]).T)
+        moved = np.hypot(*(np.asarray(slam.online)[:, :2] - slam.scan_poses()[:, :2]).T)
         lo = 0
         for r in rows:
             hi = lo + r["scans_mapped"]
@@ -235,6 +238,7 @@ def run_log(path: str, *, passes: int, seed: int, particles: int, threshold: flo
         "moved_after_mapping_m_p90_first": first.get("moved_after_mapping_m_p90"),
         "loops": sum(r["loops"] for r in rows), "loops_settled": sum(r["loops_settled"] for r in rows),
         "graph_first": first["graph"], "graph_last": last["graph"],
+        "revisits": sum(r["revisits"] for r in rows),
         "cpu_s": time.process_time() - cpu0, "by_pass": [_rounded(r) for r in rows],
     }
 

@@ -111,10 +111,12 @@ class LiveCounts:
     still: int = 0  # posed scans the mapper's motion filter dropped (agents.mapping_run.LiveInputs)
     last_issue: str = ""
     # the online SLAM's pose graph: its scans (each kept for loop closure), the loops it closed,
-    # and how many of them were settled (mapping.lidar_slam.SlamConfig.loop_settled_xy)
+    # how many of them were settled (mapping.lidar_slam.SlamConfig.loop_settled_xy), and the
+    # scans posed on an old node instead of becoming one (SlamConfig.revisit_xy)
     graph: int = 0
     loops: int = 0
     settled: int = 0
+    revisits: int = 0
 
     def as_dict(self) -> dict[str, Any]:
         return dict(self.__dict__)
@@ -395,7 +397,7 @@ def live_steps(opts: Any, source: LiveLidar, stop: threading.Event) -> Iterator[
         slam = inputs.slam
         if slam is not None:
             source.counts.graph, source.counts.loops = len(slam.poses), len(slam.loops)
-            source.counts.settled = slam.settled
+            source.counts.settled, source.counts.revisits = slam.settled, slam.skipped
         if not ready:  # held for the calibration, or left out by the motion filter
             yield None
             continue
