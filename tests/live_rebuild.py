@@ -43,7 +43,7 @@ def main() -> None:
         kept.append(inp)
     origin = truth[0]
     p_live = map_precision(filt.best.transformed(origin), endpoints, 0.2)
-    poses = [Pose(*map(float, p)) for p in live.slam.poses]  # node k: the k-th scan mapped
+    poses = [Pose(*map(float, p)) for p in live.slam.scan_poses()]  # the k-th scan mapped
     assert len(poses) == len(kept), (len(poses), len(kept))
     t0 = time.process_time()
     again = live_filter(scans[0], 5, 0.2, 1, fo)[0]
