@@ -9,7 +9,8 @@ that every scan point holds, the way Cartographer's local and global SLAM do (id
   nearby (scan-to-map) at their estimated poses, with their normals, the wheel odometry's noise
   as the prior. The result is a node of a pose graph
   and an edge to the previous node whose information is the match's own Hessian: a corridor
-  pins the pose across itself, not along it.
+  pins the pose across itself, not along it. (Where the graph already holds the place, a scan
+  may instead be posed on an old node and be none: ``SlamConfig.revisit_xy``.)
 * **Loop closure** (:func:`search_loop`): every ``loop_every`` scans, the recent scans
   (``loop_query_scans``) are searched for in an old submap near the estimate -- a correlative
   search (Olson 2009) over a window that grows with the distance driven since, on a
@@ -132,8 +133,9 @@ class SlamConfig:
     revisit_xy, revisit_theta : float
         A scan is *redundant* when the graph already holds, within ``revisit_xy`` metres and
         ``revisit_theta`` radians of where the local match puts it, nodes of at least
-        ``revisit_visits`` earlier visits of the place (runs of nodes ``refine_visit_gap``
-        apart, each taken at least ``loop_min_travel`` of driving before), while the robot is
+        ``revisit_visits`` earlier visits of the place (runs of nodes at most
+        ``refine_visit_gap`` apart on one chain, each taken at least ``loop_min_travel`` of
+        driving before), while the robot is
         tied to them -- a loop closed, or a scan located on old nodes, within ``revisit_lock``
         metres of driving -- and when matched again against the nearest such node's visit alone
         (:meth:`LidarSlam._locate`) it lands on the old walls. It then takes that pose and is
@@ -719,9 +721,11 @@ class LidarSlam:
     # node's frame
     _scans: list[tuple[int, FloatArray | None]] = field(default_factory=list)
     _driven: float = 0.0  # metres driven from the first scan to the last
-    _located: float = -math.inf  # metres driven to the last scan located on an old node
-    # metres driven from the first scan to each scan (the first len(_nodes)), grown by doubling
+    # metres driven from the first scan to each node's (the first len(_nodes)), grown by doubling
     _travel: FloatArray = field(default_factory=lambda: np.zeros(1024))
+    # per node: its chain edge is not from the node before (redundant scans came between them),
+    # so the two are not one visit; grown with _travel
+    _gap: NDArray[np.bool_] = field(default_factory=lambda: np.zeros(1024, dtype=bool))
     _last_loop: tuple[float, int] = (-math.inf, -(10**9))
     _clouds: dict[int, tuple[bytes, tuple[FloatArray, FloatArray]]] = field(default_factory=dict)
 
@@ -791,14 +795,15 @@ class LidarSlam:
         if twin is not None and located is not None:
             self._scans.append((twin, _between(self.poses[twin], located)))
             self.skipped += 1
-            self._located = here
+            self._last_loop = (here, twin)  # tied to the old nodes as a loop ties it
             self.online.append(located.copy())
             return np.array(located)
         self._add_node(pts, here)
         self.poses = np.vstack([self.poses, pose])
         self._scans.append((k, None))
-        # The edge from the node the previous scan is (or was redundant with, in which case the
-        # robot is back on new ground: search for a loop at once).
+        # The edge from the node the previous scan is, or was posed on (the robot is then back
+        # on new ground: a loop is searched for at once, with the recent nodes as the query --
+        # from before the redundant scans too, so it is found only where they agree).
         z = _between(self.poses[anchor], pose)
         if m.matched >= 10:
             omega = self._edge_information(m.hessian, pose[2]) + self._odometry_information(prior, pose[2])
@@ -815,13 +820,30 @@ class LidarSlam:
         self._nodes.append(_Node(pts, scan_normals(pts, self.config.normal_gap)))
         if k == len(self._travel):
             self._travel = np.concatenate([self._travel, np.zeros(len(self._travel))])
+            self._gap = np.concatenate([self._gap, np.zeros(len(self._gap), dtype=bool)])
         self._travel[k] = travel
+        self._gap[k] = k > 0 and self._scans[-1][1] is not None
+
+    def _visit(self, j: int, span: int, end: int) -> range:
+        """Node ``j`` and up to ``span`` nodes either side of it (before ``end``) on the same
+        chain, without crossing a gap: nodes that follow each other across redundant scans are
+        not one visit of a place. Without gaps, ``j - span`` to ``j + span`` clipped."""
+        lo, hi = max(0, j - span), min(end, j + span + 1)
+        gaps = np.flatnonzero(self._gap[lo:hi]) + lo
+        return range(int(gaps[gaps <= j].max(initial=lo)), int(gaps[gaps > j].min(initial=hi)))
+
+    def _runs(self, nodes: NDArray[np.int64]) -> list[NDArray[np.int64]]:
+        """Ascending ``nodes`` split into visits: runs at most ``refine_visit_gap`` apart on one
+        chain (no gap between)."""
+        chain = np.cumsum(self._gap[: int(nodes[-1]) + 1])[nodes] if len(nodes) else nodes
+        cut = (np.diff(nodes) > self.config.refine_visit_gap) | (np.diff(chain) != 0)
+        return np.split(nodes, np.flatnonzero(cut) + 1)
 
     def _redundant_with(self, pose: FloatArray, here: float) -> int | None:
         """The old node a scan matched at ``pose`` is redundant with (``SlamConfig.revisit_xy``),
         the nearest, or None."""
         cfg = self.config
-        if cfg.revisit_xy <= 0 or here - max(self._last_loop[0], self._located) > cfg.revisit_lock:
+        if cfg.revisit_xy <= 0 or here - self._last_loop[0] > cfg.revisit_lock:
             return None
         n = len(self._nodes)
         old = np.flatnonzero(here - self._travel[:n] >= cfg.loop_min_travel)
@@ -832,8 +854,8 @@ class LidarSlam:
         ok = (dist <= cfg.revisit_xy) & (turn <= cfg.revisit_theta)
         if not ok.any():
             return None
-        near = old[ok]  # ascending: visits are runs of consecutive nodes
-        if 1 + int(np.count_nonzero(np.diff(near) > cfg.refine_visit_gap)) < cfg.revisit_visits:
+        near = old[ok]
+        if len(self._runs(near)) < cfg.revisit_visits:
             return None
         return int(near[np.argmin(dist[ok])])
 
@@ -847,7 +869,7 @@ class LidarSlam:
         ``revisit_xy`` / ``revisit_theta``: the scan becomes a node."""
         cfg = self.config
         n = len(self._nodes)
-        ids = range(max(0, twin - cfg.loop_submap_scans), min(n, twin + cfg.loop_submap_scans + 1))
+        ids = self._visit(twin, cfg.loop_submap_scans, n)
         old = [self._cloud(i) for i in ids if here - float(self._travel[i]) >= cfg.loop_min_travel]
         m = match_scan(pts, Submap.build(old, cfg.voxel), pose, cfg, inlier_distance=cfg.loop_inlier_distance)
         move = m.pose - pose
@@ -890,10 +912,9 @@ class LidarSlam:
         r = float(radius[near][np.argmin(dist[near])])
         driven_j = float(driven[near][np.argmin(dist[near])])
         ang = float(min(cfg.loop_angle + cfg.loop_angle_per_m * driven_j, cfg.loop_angle_max))
-        lo = max(0, j - cfg.loop_submap_scans)
-        hi = min(k, j + cfg.loop_submap_scans + 1)
         # The old submap must be old: no scan driven within loop_min_travel of here.
-        ids = [i for i in range(lo, hi) if here - float(self._travel[i]) >= cfg.loop_min_travel]
+        ids = [i for i in self._visit(j, cfg.loop_submap_scans, k)
+               if here - float(self._travel[i]) >= cfg.loop_min_travel]
         sub = Submap.build([self._cloud(i) for i in ids], cfg.voxel)
         # The query: the recent scans in scan k's frame. After redundant scans, the recent
         # nodes, from before them too (placed through the graph): of the alternatives, scan k
@@ -931,7 +952,7 @@ class LidarSlam:
         self._last_loop = (here, j)
 
     def refine(self) -> None:
-        """One offline pass over the whole trajectory (the log in hand): every scan is matched
+        """One offline pass over the whole trajectory (the log in hand): every node is matched
         again, from its current pose, against each other *visit* of its place -- the scans taken
         within ``map_radius`` of it, at least ``loop_min_travel`` of driving away, split into runs
         of consecutive scans (``refine_visit_gap``), the nearest ``map_scans`` of each run -- and
@@ -960,8 +981,7 @@ class LidarSlam:
             old = np.flatnonzero((np.abs(travel - travel[k]) >= cfg.loop_min_travel) & (d <= cfg.map_radius))
             if len(old) < 2:
                 continue
-            runs = np.split(old, np.flatnonzero(np.diff(old) > cfg.refine_visit_gap) + 1)
-            for run in runs:
+            for run in self._runs(old):
                 if len(run) < 2:
                     continue
                 run = run[np.argsort(d[run], kind="stable")[: cfg.map_scans]]

@@ -44,7 +44,7 @@ def _whole(path: str, settings: dict[str, Any]) -> None:
 
     run = slam_over_log(path, settings)
     slam = run.slam
-    est, tr = np.asarray(slam.poses), pose_array(run.truth)
+    est, tr = slam.scan_poses(), pose_array(run.truth)
     odo = pose_array([s.odom for s in run.scans])
     heading = _wrap_deg(np.degrees(est[:, 2] - tr[:, 2]))
     turn_t = _wrap_deg(np.degrees(np.diff(tr[:, 2])))
@@ -87,9 +87,10 @@ def _stretch(path: str, settings: dict[str, Any], i0: int, i1: int) -> None:
     _, _, fcfg = mr.split_profile(settings)
     cal = mr.calibrate_log(part, fcfg)
     alone = run_slam(cal.points, mr.wheel_increments(part), fcfg.slam, noise=cal.noise)
-    for name, est, loops in (("whole log's SLAM", placed(run.slam.poses, i0)[i0:i1], len(run.slam.loops)),
+    whole = placed(run.slam.scan_poses(), i0)[i0:i1]
+    for name, est, loops in (("whole log's SLAM", whole, len(run.slam.loops)),
                              ("whole log's SLAM online", placed(run.slam.online, i0)[i0:i1], None),
-                             ("the stretch's own SLAM", placed(alone.poses, 0), len(alone.loops))):
+                             ("the stretch's own SLAM", placed(alone.scan_poses(), 0), len(alone.loops))):
         h = _wrap_deg(np.degrees(est[:, 2] - tr[:, 2]))
         every = max(1, len(est) // 8)
         print(f"{path} {i0}:{i1} {name}: ATE {ate(est, tr)[0]:.3f} m, max {ate(est, tr)[1]:.3f}"

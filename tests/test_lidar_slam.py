@@ -259,6 +259,13 @@ def test_a_revisit_reuses_the_old_nodes(visits: int) -> None:
     assert visits * lap * 0.8 < len(on.poses) < visits * lap + 10, (len(on.poses), lap)
     chain = sorted(e.j for e in on.edges if not e.robust)
     assert chain == list(range(1, len(on.poses)))
+    # each node's chain edge comes from the node the scan before it is, or was posed on
+    into = {e.j: e.i for e in on.edges if not e.robust}
+    after_skip = [(node, prev[0]) for prev, (node, rel) in itertools.pairwise(on._scans)
+                  if rel is None and prev[1] is not None]
+    assert after_skip and all(into[node] == twin != node - 1 for node, twin in after_skip), after_skip
+    assert all(into[node] == prev[0] for prev, (node, rel) in itertools.pairwise(on._scans)
+               if rel is None and prev[1] is None)
     first_loop = on.loops[0][1]
     assert all(rel is None for _, rel in on._scans[: first_loop + 1])
 

@@ -107,7 +107,7 @@ def run_one(path: str, start: tuple[float, float, float] | None, settings: dict[
 
     scans, truth, cal, slam, st, cpu = slam_over_log(path, settings, start)
     to_truth = truth[0].compose(st.inverse())
-    est = np.array([to_truth.compose(Pose(*map(float, p))).as_tuple() for p in slam.poses])
+    est = np.array([to_truth.compose(Pose(*map(float, p))).as_tuple() for p in slam.scan_poses()])
     tr = pose_array(truth)
     rmse, mx = ate(est, tr)
     return {"ate_rmse_m": rmse, "ate_max_m": mx, "rpe_1m_m": rpe(est, tr), "loops": len(slam.loops),

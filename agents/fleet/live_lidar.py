@@ -110,7 +110,7 @@ class LiveCounts:
     behind: int = 0
     still: int = 0  # posed scans the mapper's motion filter dropped (agents.mapping_run.LiveInputs)
     last_issue: str = ""
-    # the online SLAM's pose graph: its scans (each kept for loop closure), the loops it closed,
+    # the online SLAM's pose graph: its nodes (scans kept for loop closure), the loops it closed,
     # how many of them were settled (mapping.lidar_slam.SlamConfig.loop_settled_xy), and the
     # scans posed on an old node instead of becoming one (SlamConfig.revisit_xy)
     graph: int = 0
