@@ -634,6 +634,23 @@ class WireframeFilter:
     def steps(self) -> int:
         return self._steps
 
+    def warp(self, fn: Callable[[FloatArray], FloatArray]) -> None:
+        """Move every particle's vertices by ``fn`` (``(n, 2)`` map-frame points to new ones,
+        row for row: labels, edges and likelihoods stay), and the spans seen through at the last
+        step with them. For a pose graph that reshapes the trajectory the map was built on
+        (:func:`mapping.lidar_slam.graph_warp`); the pose is the caller's (the next step's
+        odometry carries the graph's move of the current pose)."""
+        moved: dict[int, Wireframe] = {}
+        for p in self._particles:
+            if id(p) not in moved:
+                pts = np.ascontiguousarray(fn(p.points), dtype=np.float64)
+                moved[id(p)] = p.moved_to(pts) if len(p) else p
+        self._particles = [moved[id(p)] for p in self._particles]
+        if len(self._pending_spans):
+            self._pending_spans = fn(self._pending_spans.reshape(-1, 2)).reshape(-1, 2, 2)
+        self._spans.clear()
+        self._through.clear()
+
     def memory_bytes(self) -> int:
         """Particle-set storage by the paper's accounting (Sec. IV-G), every particle counted
         (:func:`particle_bytes` of :attr:`particles`)."""

@@ -121,6 +121,11 @@ class FrontendConfig:
         The laser's yaw in degrees when known (measured once for the robot, e.g. the
         ``laser_yaw_estimate_deg`` of ``wiremap map --carmen`` on an earlier log): taken off
         every bearing instead of estimated; NaN (the default) when not known.
+    follow_graph : bool
+        With the online SLAM scan by scan (:class:`agents.mapping_run.LiveInputs`): when a loop
+        reshapes the SLAM's graph, the map built so far moves with it
+        (:func:`mapping.lidar_slam.graph_warp`, each vertex with its nearest node) before the
+        next scan is mapped (default False).
     """
 
     point_range: float = 20.0
@@ -135,6 +140,7 @@ class FrontendConfig:
     odo_floor_theta: float = 0.02
     link_gap: float = 0.3
     slam: SlamConfig = field(default_factory=SlamConfig)
+    follow_graph: bool = False
     yaw_calibration: bool = False
     yaw_min_step: float = 0.3
     yaw_max_pairs: int = 400

@@ -49,8 +49,8 @@ from mapping.se2 import wrap_angle
 
 FloatArray = NDArray[np.float64]
 
-__all__ = ["Edge", "LidarSlam", "Match", "SlamConfig", "match_scan", "optimize", "scan_normals",
-           "search_loop"]
+__all__ = ["Edge", "LidarSlam", "Match", "SlamConfig", "graph_warp", "match_scan", "optimize",
+           "scan_normals", "search_loop"]
 
 
 @dataclass(frozen=True)
@@ -268,6 +268,32 @@ def _apply(pose: FloatArray, pts: FloatArray) -> FloatArray:
     out[:, 0] = c * pts[:, 0] - s * pts[:, 1] + pose[0]
     out[:, 1] = s * pts[:, 0] + c * pts[:, 1] + pose[1]
     return out
+
+
+def graph_warp(then: FloatArray, now: FloatArray, points: FloatArray, neighbours: int = 8,
+               sigma: float = 1.5) -> FloatArray:
+    """``points`` (world frame, ``(n, 2)``) carried along as the graph's nodes moved from
+    ``then`` to ``now`` (``(m, 3)`` poses, node for node): each point moves rigidly with the nodes
+    nearest it in ``then`` -- the map a robot built at the poses its nodes had follows them when
+    a loop reshapes the graph (as Cartographer's submaps move with their poses; the idea, not
+    their code). With ``neighbours`` > 1, the point's places under its nearest nodes' moves are
+    averaged with Gaussian weights of its distance to them (``sigma`` metres)."""
+    from scipy.spatial import cKDTree
+
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+    if len(pts) == 0 or len(then) == 0:
+        return pts.copy()
+    k = min(neighbours, len(then))
+    dist, idx = cKDTree(then[:, :2]).query(pts, k=k)
+    dist, idx = dist.reshape(len(pts), k), idx.reshape(len(pts), k)
+    a, b = then[idx], now[idx]  # (n, k, 3)
+    turn = b[..., 2] - a[..., 2]
+    c, s = np.cos(turn), np.sin(turn)
+    d = pts[:, None, :] - a[..., :2]
+    moved = np.stack([b[..., 0] + c * d[..., 0] - s * d[..., 1],
+                      b[..., 1] + s * d[..., 0] + c * d[..., 1]], axis=-1)
+    w = np.exp(-0.5 * ((dist - dist[:, :1]) / sigma) ** 2)
+    return np.asarray(np.einsum("nk,nkd->nd", w / w.sum(axis=1, keepdims=True), moved))
 
 
 # ------------------------------------------------------------------------------------- normals

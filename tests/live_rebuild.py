@@ -36,10 +36,10 @@ def main() -> None:
     kept: list[mr.ScanInput] = []
     for _, ls in shift(scans, passes):
         for inp in live.add(ls):
-            filt.step(inp.odometry, inp.scan, points=inp.points)
+            mr.feed(filt, inp)
             kept.append(inp)
     for inp in live.finish():
-        filt.step(inp.odometry, inp.scan, points=inp.points)
+        mr.feed(filt, inp)
         kept.append(inp)
     origin = truth[0]
     p_live = map_precision(filt.best.transformed(origin), endpoints, 0.2)

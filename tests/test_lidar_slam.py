@@ -16,6 +16,7 @@ from mapping.lidar_slam import (
     LidarSlam,
     SlamConfig,
     Submap,
+    graph_warp,
     match_scan,
     optimize,
     scan_normals,
@@ -442,3 +443,23 @@ def test_first_of_each_row_is_uniques_index(scale):
         np.testing.assert_array_equal(_first_of_each_row(keys), expected)
         np.testing.assert_array_equal(_first_of_each_row(keys[::-1]), np.unique(keys[::-1], axis=0,
                                                                                  return_index=True)[1])
+
+
+def test_graph_warp_moves_points_with_their_nodes() -> None:
+    """A map point follows the nodes nearest it: unchanged when the graph did not move; with
+    one node, rigidly with it (a quarter turn about the node turns the point about it); with two
+    nodes 20 m apart, a point by each moves with its own node only."""
+    pts = np.array([[0.0, 1.0], [1.0, 0.0], [20.0, 1.5], [19.0, -0.5]])
+    then = np.array([[0.0, 0.0, 0.0], [20.0, 0.0, 0.0]])
+    assert np.allclose(graph_warp(then, then.copy(), pts), pts)
+    assert graph_warp(then, then, np.zeros((0, 2))).shape == (0, 2)
+    one = graph_warp(then[:1], np.array([[0.0, 0.0, math.pi / 2]]), pts[:2])
+    assert np.allclose(one, [[-1.0, 0.0], [0.0, 1.0]])
+    now = then + np.array([[0.0, 0.0, 0.0], [1.0, -2.0, 0.0]])
+    moved = graph_warp(then, now, pts)
+    assert np.allclose(moved[:2], pts[:2], atol=1e-9)
+    assert np.allclose(moved[2:], pts[2:] + np.array([1.0, -2.0]), atol=1e-9)
+    # between two nodes that moved apart, a point moves part of the way (the Gaussian weights)
+    mid = graph_warp(np.array([[0.0, 0.0, 0.0], [2.0, 0.0, 0.0]]), np.array([[0.0, 0.0, 0.0], [2.0, 1.0, 0.0]]),
+                     np.array([[1.0, 0.0]]))
+    assert np.allclose(mid, [[1.0, 0.5]])

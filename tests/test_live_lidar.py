@@ -26,7 +26,7 @@ import pytest
 
 from agents import mapping_run as mr
 from agents.files.carmen import read_carmen_log
-from agents.fleet.live_lidar import LiveLidar, parse_mount
+from agents.fleet.live_lidar import LiveLidar, live_filter, parse_mount
 from mapping.filter import WireframeFilter
 from mapping.se2 import Pose, wrap_angle
 from tests.rosbag_util import MessageMaker
@@ -564,3 +564,37 @@ def test_bench_live_counts_a_pass_held_for_the_calibrations(
     assert second["scans_mapped"] == r["scans_mapped"] > 100  # the held scans mapped in the second pass
     assert r["ms_per_scan_first"] == pytest.approx(second["ms_input"] + second["ms_filter"], abs=1e-5)
     assert r["map_precision_first"] == second["map_precision"] > 0.8
+
+
+def test_the_map_follows_the_slams_graph(scans: list[Any]) -> None:
+    """``frontend.follow_graph`` (on in the online profile): when a loop optimises the SLAM's
+    graph, the next input carries the nodes before and after (``warp``), and the filter fed it
+    (``mapping_run.feed``) moves its maps with them before the step -- every particle's vertices
+    as :func:`mapping.lidar_slam.graph_warp` moves them, edges and labels kept. Off, no input
+    carries one, and the inputs are the same but for it."""
+    from mapping.lidar_slam import graph_warp
+
+    _, extract, frontend = profile()
+    assert frontend.follow_graph
+
+    def inputs(follow: bool) -> list[Any]:
+        live = mr.LiveInputs(max_range=20.0, extract=extract, frontend=replace(frontend, follow_graph=follow),
+                             min_travel=0.5, min_turn=math.radians(10))
+        return [inp for ls in [*scans, *scans[::-1], *scans] for inp in live.add(ls)]
+
+    on, off = inputs(True), inputs(False)
+    warps = [k for k, inp in enumerate(on) if inp.warp is not None]
+    assert warps and all(inp.warp is None for inp in off)
+    assert [(a.odometry, a.t) for a in on] == [(b.odometry, b.t) for b in off]
+    for k in warps:
+        then, now = on[k].warp
+        assert then.shape == now.shape and then.shape[1] == 3 and np.abs(now - then).max() > 0
+    settings, _, _ = profile()
+    filt, _ = live_filter(scans[0], 3, 0.2, 1, settings)
+    for inp in on[: warps[0]]:
+        mr.feed(filt, inp)
+    before = filt.particles
+    filt.warp(lambda p: graph_warp(*on[warps[0]].warp, p))
+    for a, b in zip(before, filt.particles, strict=True):
+        assert np.allclose(b.points, graph_warp(*on[warps[0]].warp, a.points))
+        assert np.array_equal(a.edges, b.edges) and np.array_equal(a.labels, b.labels)

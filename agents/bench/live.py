@@ -151,7 +151,7 @@ def run_log(path: str, *, passes: int, seed: int, particles: int, threshold: flo
         for inp in inputs:
             j = waiting.pop(0)
             t0 = time.process_time()
-            filt.step(inp.odometry, inp.scan, points=inp.points)
+            mr.feed(filt, inp)
             cpu_filter += time.process_time() - t0
             est.append((j, origin.compose(filt.pose)))
 
