@@ -460,6 +460,6 @@ def test_graph_warp_moves_points_with_their_nodes() -> None:
     assert np.allclose(moved[:2], pts[:2], atol=1e-9)
     assert np.allclose(moved[2:], pts[2:] + np.array([1.0, -2.0]), atol=1e-9)
     # between two nodes that moved apart, a point moves part of the way (the Gaussian weights)
-    mid = graph_warp(np.array([[0.0, 0.0, 0.0], [2.0, 0.0, 0.0]]), np.array([[0.0, 0.0, 0.0], [2.0, 1.0, 0.0]]),
-                     np.array([[1.0, 0.0]]))
+    pair = np.array([[0.0, 0.0, 0.0], [2.0, 0.0, 0.0]])
+    mid = graph_warp(pair, pair + np.array([[0.0, 0.0, 0.0], [0.0, 1.0, 0.0]]), np.array([[1.0, 0.0]]))
     assert np.allclose(mid, [[1.0, 0.5]])
