@@ -286,8 +286,9 @@ LIDAR_SLAM_PROFILE: dict[str, Any] = {
 #: *redundant*, no node of the graph (``slam.revisit_xy``, ``revisit_theta``, ``revisit_visits``),
 #: so that a robot driving a building it has mapped keeps its time per scan and its memory
 #: (``wiremap bench live``; docs/experiments.md, "Session 27"); and when a loop reshapes the
-#: graph, the map built so far moves with it (``frontend.follow_graph``: the first pass's map
-#: precision median 0.595 -> 0.906 over the seven logs).
+#: graph, a live robot's map built so far moves with it (``frontend.follow_graph``, applied by
+#: :class:`LiveInputs`: the first pass's map precision median 0.595 -> 0.906 over the seven
+#: logs; the offline paths that take this profile, ``carmen_inputs``, map without it).
 LIDAR_SLAM_ONLINE_PROFILE: dict[str, Any] = {
     **LIDAR_SLAM_PROFILE,
     "slam.online": True,
@@ -672,7 +673,8 @@ def _scan_input(
 class LiveInputs:
     """Real scans that come one at a time (a robot's own lidar, live) as filter inputs, through a
     profile whose SLAM runs scan by scan (``lidar-slam-online``): what :func:`carmen_inputs`
-    gives for the same scans, input for input.
+    gives for the same scans, input for input (and, with ``frontend.follow_graph``, each input
+    after a loop moved the SLAM's graph carries the move: ``ScanInput.warp``).
 
     :meth:`add` takes a scan (:class:`agents.files.carmen.LaserScan`: ranges, bearings, time,
     the wheels' pose) and returns the inputs it made ready. The calibrations (the laser's yaw, the
@@ -722,7 +724,6 @@ class LiveInputs:
         self._taken: Pose | None = None  # the wheels' pose of the last scan taken
         self.skipped = 0
         self._graph = np.zeros((0, 3))  # the SLAM's nodes after the last scan (follow_graph)
-        self._moves = 0
 
     @property
     def calibrating(self) -> bool:
@@ -778,13 +779,11 @@ class LiveInputs:
         warp = None
         if self._slam is not None:
             odo = self._slam.add(points, odo)
-            slam = self._slam.slam
-            moves = len(slam.loops) - slam.settled  # the loops that optimised the graph
-            if self.frontend.follow_graph and moves != self._moves and len(self._graph):
-                warp = (self._graph, slam.poses[: len(self._graph)].copy())
-            self._moves = moves
-            if self.frontend.follow_graph:
-                self._graph = slam.poses.copy()
+            if self.frontend.follow_graph:  # a loop moved the nodes the map was built at
+                now, n = self._slam.slam.poses, len(self._graph)
+                if n and not np.array_equal(now[:n], self._graph) and np.isfinite(now[:n]).all():
+                    warp = (self._graph, now[:n].copy())
+                self._graph = now.copy()
         elif self.frontend.scan_odometry and self._prev_points is not None:
             odo = scan_increment(self._prev_points, points, odo, self.frontend)[0]
         self._prev_points = points
@@ -817,7 +816,10 @@ def profiled_inputs(
 
 def feed(filt: WireframeFilter, inp: ScanInput) -> StepInfo:
     """One input's step of ``filt``; first, when the SLAM's graph moved (``inp.warp``), the map
-    moved with it (:meth:`mapping.filter.WireframeFilter.warp`)."""
+    moved with it (:meth:`mapping.filter.WireframeFilter.warp`). The warp is in the SLAM's
+    frame, which is the filter's when the filter started at the identity and composes the
+    SLAM's increments unchanged (a live robot's: no corner ICP, compass or loop closer of its
+    own, as ``lidar-slam-online`` has it)."""
     if inp.warp is not None:
         from mapping.lidar_slam import graph_warp
 

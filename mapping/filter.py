@@ -636,16 +636,21 @@ class WireframeFilter:
 
     def warp(self, fn: Callable[[FloatArray], FloatArray]) -> None:
         """Move every particle's vertices by ``fn`` (``(n, 2)`` map-frame points to new ones,
-        row for row: labels, edges and likelihoods stay), and the spans seen through at the last
-        step with them. For a pose graph that reshapes the trajectory the map was built on
-        (:func:`mapping.lidar_slam.graph_warp`); the pose is the caller's (the next step's
-        odometry carries the graph's move of the current pose)."""
+        row for row: labels, edges and likelihoods stay), the spans seen through at the last
+        step with them, and the corners' births and counts to their new coordinates
+        (:meth:`mapping.loops.LoopCloser.warped`; its keyframes stay). For a pose graph that
+        reshapes the trajectory the map was built on (:func:`mapping.lidar_slam.graph_warp`);
+        the pose is the caller's (the next step's odometry carries the graph's move of the
+        current pose)."""
         moved: dict[int, Wireframe] = {}
+        pairs: list[tuple[FloatArray, FloatArray]] = []
         for p in self._particles:
-            if id(p) not in moved:
+            if id(p) not in moved and len(p):
                 pts = np.ascontiguousarray(fn(p.points), dtype=np.float64)
-                moved[id(p)] = p.moved_to(pts) if len(p) else p
-        self._particles = [moved[id(p)] for p in self._particles]
+                moved[id(p)] = p.moved_to(pts)
+                pairs.append((p.points, pts))
+        self._particles = [moved.get(id(p), p) for p in self._particles]
+        self._loops.warped(pairs)
         if len(self._pending_spans):
             self._pending_spans = fn(self._pending_spans.reshape(-1, 2)).reshape(-1, 2, 2)
         self._spans.clear()

@@ -122,10 +122,10 @@ class FrontendConfig:
         ``laser_yaw_estimate_deg`` of ``wiremap map --carmen`` on an earlier log): taken off
         every bearing instead of estimated; NaN (the default) when not known.
     follow_graph : bool
-        With the online SLAM scan by scan (:class:`agents.mapping_run.LiveInputs`): when a loop
-        reshapes the SLAM's graph, the map built so far moves with it
-        (:func:`mapping.lidar_slam.graph_warp`, each vertex with its nearest node) before the
-        next scan is mapped (default False).
+        A live robot's online SLAM (:class:`agents.mapping_run.LiveInputs` only): when a loop
+        reshapes the SLAM's graph, the map built so far moves with it before the next scan is
+        mapped (:func:`mapping.lidar_slam.graph_warp`, each vertex under its 8 nearest nodes'
+        moves; :func:`agents.mapping_run.feed`) (default False; on in ``lidar-slam-online``).
     """
 
     point_range: float = 20.0

@@ -276,8 +276,10 @@ def graph_warp(then: FloatArray, now: FloatArray, points: FloatArray, neighbours
     ``then`` to ``now`` (``(m, 3)`` poses, node for node): each point moves rigidly with the nodes
     nearest it in ``then`` -- the map a robot built at the poses its nodes had follows them when
     a loop reshapes the graph (as Cartographer's submaps move with their poses; the idea, not
-    their code). With ``neighbours`` > 1, the point's places under its nearest nodes' moves are
-    averaged with Gaussian weights of its distance to them (``sigma`` metres)."""
+    their code). The point's places under the moves of its ``neighbours`` nearest nodes are
+    averaged with Gaussian weights (``sigma`` metres) of how much farther each node is than the
+    nearest: a wall's nearest node is often one of another visit, or across the wall, whose
+    move differs (docs/experiments.md, "Session 27")."""
     from scipy.spatial import cKDTree
 
     pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)

@@ -377,6 +377,25 @@ class LoopCloser:
         keys, first = np.unique(keys, return_index=True)  # the refined entries win
         self._known, self._birth, self._count = keys, births[first], cnt[first]
 
+    def warped(self, pairs: Sequence[tuple[FloatArray, FloatArray]]) -> None:
+        """Every particle's corners moved at once, ``(old, new)`` coordinates per particle (a
+        map carried along with a pose graph: :meth:`mapping.filter.WireframeFilter.warp`): each
+        known corner keeps its birth and count under its new key, and the old keys are dropped
+        (no particle has them any more). The keyframes are not moved."""
+        keys: list[NDArray[np.complex128]] = []
+        births: list[IntArray] = []
+        counts: list[IntArray] = []
+        for old, new in pairs:
+            b = self.births(old)
+            known = b >= 0
+            keys.append(_keys(new)[known])
+            births.append(b[known])
+            counts.append(self.counts(old)[known])
+        if keys:
+            k, first = np.unique(np.concatenate(keys), return_index=True)
+            self._known = k
+            self._birth, self._count = np.concatenate(births)[first], np.concatenate(counts)[first]
+
     def stamp(self, particles: Sequence[Wireframe]) -> None:
         """Stamp the corners of ``particles`` not seen before with the current keyframe.
 

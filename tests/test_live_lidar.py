@@ -594,7 +594,26 @@ def test_the_map_follows_the_slams_graph(scans: list[Any]) -> None:
     for inp in on[: warps[0]]:
         mr.feed(filt, inp)
     before = filt.particles
+    born = [filt._loops.births(p.points) for p in before]
+    assert filt.best.n_vertices > 0 and all((b >= 0).all() for b in born)
     filt.warp(lambda p: graph_warp(*on[warps[0]].warp, p))
-    for a, b in zip(before, filt.particles, strict=True):
+    for a, b, was in zip(before, filt.particles, born, strict=True):
         assert np.allclose(b.points, graph_warp(*on[warps[0]].warp, a.points))
         assert np.array_equal(a.edges, b.edges) and np.array_equal(a.labels, b.labels)
+        assert np.array_equal(filt._loops.births(b.points), was)  # the corners keep their births
+    # feed applies each input's warp before its step, and only those
+    calls: list[int] = []
+    plain = WireframeFilter.warp
+    filt, _ = live_filter(scans[0], 3, 0.2, 1, settings)
+
+    def counted(self: WireframeFilter, fn: Any) -> None:
+        calls.append(self.steps)
+        plain(self, fn)
+
+    WireframeFilter.warp = counted  # type: ignore[method-assign]
+    try:
+        for inp in on:
+            mr.feed(filt, inp)
+    finally:
+        WireframeFilter.warp = plain  # type: ignore[method-assign]
+    assert calls == warps

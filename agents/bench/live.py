@@ -206,9 +206,8 @@ def run_log(path: str, *, passes: int, seed: int, particles: int, threshold: flo
     if out is not None:
         _pictures(out, name, pictures, endpoints, pose_array(truth))
     # How far the SLAM's graph moved each pass's scans after the filter had mapped them at the
-    # pose it gave them then (the k-th scan mapped is the SLAM's k-th scan): a map built on a
-    # trajectory that a later loop reshapes stays where it was, and the scans placed on the new
-    # one map its walls again beside it.
+    # pose it gave them then (the k-th scan mapped is the SLAM's k-th scan): what the map must
+    # follow (frontend.follow_graph) or, where it does not, the walls mapped again beside it.
     slam = live.slam
     if slam is not None:
         moved = np.hypot(*(np.asarray(slam.online)[:, :2] - slam.scan_poses()[:, :2]).T)
