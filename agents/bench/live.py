@@ -35,7 +35,7 @@ pass), ``moved_after_mapping_m_p90_first`` (the first pass's), ``loops``, ``loop
 
 Output: a table (a row per log), progress on stderr, ``NAME-pass-K.png`` in ``--out`` (the map
 after the first pass that mapped and after the last, over the log's real scan endpoints at the
-true poses, with that pass's path), and with ``--json`` one last line::
+true poses, with that pass's path where the SLAM's graph has it then), and with ``--json`` one last line::
 
     {"logs": {NAME: {...}}, "median": {...}, "passes": N, "settings": {...}}
 """
@@ -185,7 +185,12 @@ def run_log(path: str, *, passes: int, seed: int, particles: int, threshold: flo
                 world = filt.best.transformed(origin)
                 precision = map_precision(world, endpoints, 0.2)
                 if out is not None:
-                    pictures.append((len(rows) + 1, world, part, precision))
+                    drawn = part
+                    if slam is not None:  # the pass's scans where the graph has them now, as the map
+                        now = slam.scan_poses()[mapped_before:len(est)]
+                        drawn = [(j, origin.compose(Pose(*map(float, q))))
+                                 for (j, _), q in zip(part, now, strict=True)]
+                    pictures.append((len(rows) + 1, world, drawn, precision))
             rows.append({
                 "pass": len(rows) + 1,
                 "scans_mapped": mapped,
