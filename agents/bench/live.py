@@ -35,7 +35,8 @@ pass), ``moved_after_mapping_m_p90_first`` (the first pass's), ``loops``, ``loop
 
 Output: a table (a row per log), progress on stderr, ``NAME-pass-K.png`` in ``--out`` (the map
 after the first pass that mapped and after the last, over the log's real scan endpoints at the
-true poses, with that pass's path where the SLAM's graph has it then), and with ``--json`` one last line::
+true poses, with that pass's path where the SLAM's graph has it then), and with ``--json`` one
+last line::
 
     {"logs": {NAME: {...}}, "median": {...}, "passes": N, "settings": {...}}
 """
