@@ -286,9 +286,8 @@ LIDAR_SLAM_PROFILE: dict[str, Any] = {
 #: *redundant*, no node of the graph (``slam.revisit_xy``, ``revisit_theta``, ``revisit_visits``),
 #: so that a robot driving a building it has mapped keeps its time per scan and its memory
 #: (``wiremap bench live``; docs/experiments.md, "Session 27"); and when a loop reshapes the
-#: graph, a live robot's map built so far moves with it (``frontend.follow_graph``, applied by
-#: :class:`LiveInputs`: the first pass's map precision median 0.595 -> 0.906 over the seven
-#: logs; the offline paths that take this profile, ``carmen_inputs``, map without it).
+#: graph, the map built so far moves with it (``frontend.follow_graph``: a live robot's map after
+#: the first pass of the seven logs, median precision 0.595 -> 0.906).
 LIDAR_SLAM_ONLINE_PROFILE: dict[str, Any] = {
     **LIDAR_SLAM_PROFILE,
     "slam.online": True,
@@ -606,7 +605,7 @@ def carmen_inputs(
         ``frontend``); ``yaw`` is then not used.
     on_noise : callable, optional
         With the online SLAM (``frontend.slam.online``): given the wheels' heading noise when it
-        is measured again during the run (:func:`mapping.lidar_frontend.online_increments`),
+        is measured again during the run (:class:`mapping.lidar_frontend.OnlineSlam`),
         for a report of the prior the SLAM ended with.
     """
     from mapping.extract import ExtractConfig
@@ -629,12 +628,13 @@ def carmen_inputs(
     pts, turn = cal.points, cal.turn
     wheels = wheel_increments(scans)
     slam_odo: Iterator[Pose] | None = None  # the increments the filter gets from the lidar SLAM
+    online = None
     if fcfg.slam.enabled and fcfg.slam.online:
         # Lidar SLAM scan by scan (mapping.lidar_slam): each increment as the SLAM gives it
-        # when the scan comes, drawn as the scans are.
-        from mapping.lidar_frontend import online_increments
+        # when the scan comes, drawn as the scans are (and the graph's moves, follow_graph).
+        from mapping.lidar_frontend import OnlineSlam
 
-        slam_odo = online_increments(pts, wheels, fcfg, cal.noise, on_noise)
+        online = OnlineSlam(fcfg, cal.noise, on_noise)
     elif fcfg.slam.enabled:
         # Lidar SLAM over the whole log first (mapping.lidar_slam); the filter then maps on its
         # smoothed increments.
@@ -645,13 +645,18 @@ def carmen_inputs(
     for k, ls in enumerate(scans):
         points = pts[k]
         odo = wheels[k]
-        if slam_odo is not None:
+        warp = None
+        if online is not None:
+            odo = online.add(points, odo)
+            warp = online.warp
+        elif slam_odo is not None:
             odo = next(slam_odo)
         elif fcfg.scan_odometry and prev_points is not None:
             # The wheel increment refined by the previous scan (mapping.lidar_frontend.scan_increment).
             odo = scan_increment(prev_points, points, odo, fcfg)[0]
         prev_points = points
-        yield _scan_input(ls, max_range, turn, ecfg, odo, points, None if truth is None else truth[k])
+        got = _scan_input(ls, max_range, turn, ecfg, odo, points, None if truth is None else truth[k])
+        yield got if warp is None else replace(got, warp=warp)
 
 
 def _scan_input(
@@ -723,7 +728,6 @@ class LiveInputs:
         self.min_travel, self.min_turn = float(min_travel), float(min_turn)
         self._taken: Pose | None = None  # the wheels' pose of the last scan taken
         self.skipped = 0
-        self._graph = np.zeros((0, 3))  # the SLAM's nodes after the last scan (follow_graph)
 
     @property
     def calibrating(self) -> bool:
@@ -779,11 +783,7 @@ class LiveInputs:
         warp = None
         if self._slam is not None:
             odo = self._slam.add(points, odo)
-            if self.frontend.follow_graph:  # a loop moved the nodes the map was built at
-                now, n = self._slam.slam.poses, len(self._graph)
-                if n and not np.array_equal(now[:n], self._graph) and np.isfinite(now[:n]).all():
-                    warp = (self._graph, now[:n].copy())
-                self._graph = now.copy()
+            warp = self._slam.warp
         elif self.frontend.scan_odometry and self._prev_points is not None:
             odo = scan_increment(self._prev_points, points, odo, self.frontend)[0]
         self._prev_points = points
@@ -816,14 +816,22 @@ def profiled_inputs(
 
 def feed(filt: WireframeFilter, inp: ScanInput) -> StepInfo:
     """One input's step of ``filt``; first, when the SLAM's graph moved (``inp.warp``), the map
-    moved with it (:meth:`mapping.filter.WireframeFilter.warp`). The warp is in the SLAM's
-    frame, which is the filter's when the filter started at the identity and composes the
-    SLAM's increments unchanged (a live robot's: no corner ICP, compass or loop closer of its
-    own, as ``lidar-slam-online`` has it)."""
+    moved with it (:meth:`mapping.filter.WireframeFilter.warp`). The warp's nodes are in the
+    SLAM's frame, whose first pose is the filter's ``origin``: the filter composes the SLAM's
+    increments unchanged (no corner ICP, compass or loop closer of its own, as
+    ``lidar-slam-online`` has it), so its map frame is the SLAM's moved by its origin."""
     if inp.warp is not None:
         from mapping.lidar_slam import graph_warp
 
-        filt.warp(functools.partial(graph_warp, *inp.warp))
+        o = filt.origin
+        c, s = math.cos(o.theta), math.sin(o.theta)
+
+        def placed(nodes: NDArray[np.float64]) -> NDArray[np.float64]:
+            x, y = nodes[:, 0], nodes[:, 1]
+            return np.column_stack([o.x + c * x - s * y, o.y + s * x + c * y, o.theta + nodes[:, 2]])
+
+        then, now = inp.warp
+        filt.warp(functools.partial(graph_warp, placed(then), placed(now)))
     return filt.step(inp.odometry, inp.scan, points=inp.points)
 
 

@@ -573,6 +573,7 @@ class WireframeFilter:
         self.config = config
         self.rng = rng
         self._pose = initial_pose or Pose.identity()
+        self.origin = self._pose  # the map frame's pose of the first scan
         empty = Wireframe.empty()
         self._particles: list[Wireframe] = [empty] * config.particles
         self._weights = np.full(config.particles, 1.0 / config.particles)

@@ -122,10 +122,10 @@ class FrontendConfig:
         ``laser_yaw_estimate_deg`` of ``wiremap map --carmen`` on an earlier log): taken off
         every bearing instead of estimated; NaN (the default) when not known.
     follow_graph : bool
-        A live robot's online SLAM (:class:`agents.mapping_run.LiveInputs` only): when a loop
-        reshapes the SLAM's graph, the map built so far moves with it before the next scan is
-        mapped (:func:`mapping.lidar_slam.graph_warp`, each vertex under its 8 nearest nodes'
-        moves; :func:`agents.mapping_run.feed`) (default False; on in ``lidar-slam-online``).
+        With the online SLAM (``slam.online``, :class:`OnlineSlam`): when a loop reshapes the
+        SLAM's graph, the map built so far moves with it before the next scan is mapped
+        (:func:`mapping.lidar_slam.graph_warp`, each vertex under its 8 nearest nodes' moves;
+        :func:`agents.mapping_run.feed`) (default False; on in ``lidar-slam-online``).
     """
 
     point_range: float = 20.0
@@ -419,7 +419,9 @@ class OnlineSlam:
     scan so far each :data:`ONLINE_RECALIBRATE` scans, and ``on_noise`` is given the measure the
     SLAM then runs with. The scans are kept only until then, and at most
     :data:`ONLINE_RECALIBRATE_MAX_SCANS` of them: a stream that has not pinned the noise down by
-    then keeps the prior it has."""
+    then keeps the prior it has. With ``config.follow_graph``, ``warp`` is the SLAM's nodes
+    before and after the loop that moved them during the last :meth:`add` (else None): the map
+    built so far follows them (:func:`agents.mapping_run.feed`)."""
 
     def __init__(
         self, config: FrontendConfig, noise: OdometryNoise | None = None,
@@ -435,6 +437,8 @@ class OnlineSlam:
         self._odometry: list[Pose] = []
         self._last: Pose | None = None
         self.scans = 0
+        self._graph = np.zeros((0, 3))  # the nodes after the scan before (config.follow_graph)
+        self.warp: tuple[FloatArray, FloatArray] | None = None
 
     def add(self, points: FloatArray, odometry: Pose) -> Pose:
         k = self.scans
@@ -455,6 +459,12 @@ class OnlineSlam:
             self._odometry.append(odometry)
         prior = np.zeros(3) if k == 0 else np.array(odometry.as_tuple())
         now = Pose(*map(float, self.slam.add(points, prior)))
+        self.warp = None
+        if cfg.follow_graph:  # a loop moved the nodes scans were mapped at
+            nodes, n = self.slam.poses, len(self._graph)
+            if n and not np.array_equal(nodes[:n], self._graph) and np.isfinite(nodes[:n]).all():
+                self.warp = (self._graph, nodes[:n].copy())
+            self._graph = nodes.copy()
         step = Pose.identity() if self._last is None else self._last.between(now)
         self._last = now
         self.scans += 1

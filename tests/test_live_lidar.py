@@ -98,6 +98,9 @@ def test_live_inputs_are_the_logs_inputs_scan_for_scan(scans: list[Any]) -> None
     assert len(got) == len(want) == len(scans)
     for g, w in zip(got, want):
         assert g.t == w.t and g.odometry == w.odometry
+        assert (g.warp is None) == (w.warp is None)  # the graph's moves too (follow_graph)
+        if g.warp is not None:
+            assert all(np.array_equal(a, b) for a, b in zip(g.warp, w.warp, strict=True))
         assert np.array_equal(g.points, w.points)
         assert np.array_equal(g.scan.points, w.scan.points) and np.array_equal(g.scan.edges, w.scan.edges)
     short = mr.LiveInputs(max_range=20.0, extract=extract, frontend=profile(100)[2])
@@ -617,3 +620,30 @@ def test_the_map_follows_the_slams_graph(scans: list[Any]) -> None:
     finally:
         WireframeFilter.warp = plain  # type: ignore[method-assign]
     assert calls == warps
+
+
+def test_feed_warps_in_the_filters_frame() -> None:
+    """The warp's nodes are in the SLAM's frame; a filter that started at ``origin`` maps in
+    that frame moved by the origin, so ``feed`` moves the nodes there first: a map point follows
+    its node as the SLAM's graph says, seen from the filter's frame."""
+    from mapping.lidar_slam import graph_warp
+
+    o = Pose(3.0, -1.0, 0.7)
+    then = np.array([[0.0, 0.0, 0.0], [10.0, 0.0, 0.0]])
+    now = then + np.array([[0.5, 0.2, 0.1], [0.0, 0.0, 0.0]])
+    seen: list[Any] = []
+
+    class Recorder:  # feed's view of a filter: its origin, warp and step
+        origin = o
+
+        def warp(self, fn: Any) -> None:
+            seen.append(fn)
+
+        def step(self, *a: Any, **k: Any) -> None:
+            return None
+
+    inp = mr.ScanInput(0.0, Pose.identity(), mr.Wireframe.empty(), warp=(then, now))
+    mr.feed(Recorder(), inp)  # type: ignore[arg-type]
+    slam_pts = np.array([[1.0, 1.0], [9.0, -1.0]])
+    in_filter = o.apply(slam_pts)
+    assert np.allclose(seen[0](in_filter), o.apply(graph_warp(then, now, slam_pts)))
