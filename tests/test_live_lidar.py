@@ -647,3 +647,28 @@ def test_feed_warps_in_the_filters_frame() -> None:
     slam_pts = np.array([[1.0, 1.0], [9.0, -1.0]])
     in_filter = o.apply(slam_pts)
     assert np.allclose(seen[0](in_filter), o.apply(graph_warp(then, now, slam_pts)))
+
+
+def test_the_warps_carry_every_node_to_where_the_graph_has_it(scans: list[Any]) -> None:
+    """Over three passes of the excerpt, each node's position as the SLAM first gave it, carried
+    through every warp :class:`mapping.lidar_frontend.OnlineSlam` reports (each point with its
+    nearest node), ends where the final graph has the node: no move of the graph is missed or
+    reported wrong."""
+    from mapping.lidar_frontend import OnlineSlam
+    from mapping.lidar_slam import graph_warp
+
+    _, _, frontend = profile()
+    laps = [*scans, *scans[::-1], *scans]
+    cal = mr.calibrate_log(laps, frontend)
+    online = OnlineSlam(frontend, cal.noise)
+    carried = np.zeros((0, 2))
+    warps = 0
+    for pts, odo in zip(cal.points, mr.wheel_increments(laps), strict=True):
+        online.add(pts, odo)
+        if online.warp is not None:
+            warps += 1
+            carried = graph_warp(*online.warp, carried, neighbours=1)
+        nodes = online.slam.poses
+        carried = np.vstack([carried, nodes[len(carried):, :2]])
+    assert warps > 0 and len(carried) == len(online.slam.poses)
+    assert np.allclose(carried, online.slam.poses[:, :2], atol=1e-9)
