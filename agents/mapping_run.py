@@ -826,7 +826,7 @@ def feed(filt: WireframeFilter, inp: ScanInput) -> StepInfo:
         o = filt.origin
         c, s = math.cos(o.theta), math.sin(o.theta)
 
-        def placed(nodes: NDArray[np.float64]) -> NDArray[np.float64]:
+        def placed(nodes: NDArray[np.float64]) -> NDArray[np.float64]:  # origin composed with each node
             x, y = nodes[:, 0], nodes[:, 1]
             return np.column_stack([o.x + c * x - s * y, o.y + s * x + c * y, o.theta + nodes[:, 2]])
 

@@ -438,6 +438,7 @@ class OnlineSlam:
         self._last: Pose | None = None
         self.scans = 0
         self._graph = np.zeros((0, 3))  # the nodes after the scan before (config.follow_graph)
+        self._reshaped = 0
         self.warp: tuple[FloatArray, FloatArray] | None = None
 
     def add(self, points: FloatArray, odometry: Pose) -> Pose:
@@ -462,9 +463,10 @@ class OnlineSlam:
         self.warp = None
         if cfg.follow_graph:  # a loop moved the nodes scans were mapped at
             nodes, n = self.slam.poses, len(self._graph)
-            if n and not np.array_equal(nodes[:n], self._graph) and np.isfinite(nodes[:n]).all():
-                self.warp = (self._graph, nodes[:n].copy())
-            self._graph = nodes.copy()
+            if self.slam.reshaped != self._reshaped and n and np.isfinite(nodes[:n]).all():
+                self.warp = (self._graph, nodes[:n])
+            self._reshaped = self.slam.reshaped
+            self._graph = nodes  # the SLAM replaces its poses, never edits them: no copy
         step = Pose.identity() if self._last is None else self._last.between(now)
         self._last = now
         self.scans += 1

@@ -45,7 +45,7 @@ from numpy.typing import NDArray
 from scipy.ndimage import distance_transform_edt, maximum_filter
 
 from mapping.kernels import PointGrid, field_scores, gauss_newton
-from mapping.se2 import wrap_angle
+from mapping.se2 import wrap_angle, wrap_angles
 
 FloatArray = NDArray[np.float64]
 
@@ -744,6 +744,7 @@ class LidarSlam:
     rejected: list[tuple[int, int]] = field(default_factory=list)
     settled: int = 0
     skipped: int = 0
+    reshaped: int = 0  # optimisations that moved the nodes (each replaces ``poses``; none edits it)
     _nodes: list[_Node] = field(default_factory=list)
     # each scan added: the node it is, or the node it was redundant with and its pose in that
     # node's frame
@@ -801,7 +802,7 @@ class LidarSlam:
             self.online.append(self.poses[0].copy())
             return np.array(self.poses[0])
         anchor, rel = self._scans[-1]
-        guess = _compose(self.poses[k - 1] if rel is None else _compose(self.poses[anchor], rel), odo)
+        guess = _compose(self.poses[anchor] if rel is None else _compose(self.poses[anchor], rel), odo)
         sxy = max(cfg.odo_floor_xy, cfg.odo_trans_per_m * d)
         sth = max(cfg.odo_floor_theta, cfg.odo_rot_per_m * d + cfg.odo_rot_per_rad * abs(odo[2]))
         prior = np.diag([1 / sxy**2, 1 / sxy**2, 1 / sth**2])
@@ -878,7 +879,7 @@ class LidarSlam:
         if len(old) == 0:
             return None
         dist = np.hypot(*(self.poses[old, :2] - pose[:2]).T)
-        turn = np.abs(np.remainder(self.poses[old, 2] - pose[2] + math.pi, 2 * math.pi) - math.pi)
+        turn = np.abs(wrap_angles(self.poses[old, 2] - pose[2]))
         ok = (dist <= cfg.revisit_xy) & (turn <= cfg.revisit_theta)
         if not ok.any():
             return None
@@ -891,8 +892,8 @@ class LidarSlam:
         """A redundant scan's pose on the old map: matched, from ``pose``, against the visit of
         node ``twin`` (its ``loop_submap_scans`` either side, as a loop's old submap), with no
         odometry prior -- the local match leans on the wheels, and the loops that would have
-        pulled its heading back are not searched for a scan that is no node (without this, the
-        hall of the tests drifts 16 degrees in twelve redundant scans). None when fewer than
+        pulled its heading back are not searched for a scan that is no node (docs/experiments.md,
+        "Session 27"). None when fewer than
         ``loop_min_inliers`` of its points land on the old walls, or it moves more than
         ``revisit_xy`` / ``revisit_theta``: the scan becomes a node."""
         cfg = self.config
@@ -944,11 +945,9 @@ class LidarSlam:
         ids = [i for i in self._visit(j, cfg.loop_submap_scans, k)
                if here - float(self._travel[i]) >= cfg.loop_min_travel]
         sub = Submap.build([self._cloud(i) for i in ids], cfg.voxel)
-        # The query: the recent scans in scan k's frame. After redundant scans, the recent
-        # nodes, from before them too (placed through the graph): of the alternatives, scan k
-        # alone took wrong loops (edmonton's final ATE after four passes 0.44 -> 1.10 m), the
-        # recent scans with the redundant ones at their poses on their old nodes did worse on
-        # five logs of seven (docs/experiments.md, "Session 27").
+        # The query: the recent scans in scan k's frame; after redundant scans, the recent
+        # nodes, from before them too (placed through the graph: the alternatives tried are in
+        # docs/experiments.md, "Session 27").
         q = [_apply(_between(self.poses[k], self.poses[i]), self._nodes[i].points)
              for i in range(max(0, k - cfg.loop_query_scans + 1), k + 1)]
         query = np.concatenate(q)
@@ -974,6 +973,7 @@ class LidarSlam:
                 self.rejected.append((j, k))
                 return
             self.poses = poses
+            self.reshaped += 1
         self.edges.append(edge)
         self.loops.append((j, k))
         self.settled += settled
@@ -1032,3 +1032,4 @@ class LidarSlam:
         moved = optimize(x, [*self.edges, *edges], kernel=cfg.loop_kernel)
         kept = [e for e, c in zip(edges, _chi2(moved, edges)) if c <= cfg.loop_max_chi2]
         self.poses = optimize(x, [*self.edges, *kept], kernel=cfg.loop_kernel)
+        self.reshaped += 1

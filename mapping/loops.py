@@ -374,8 +374,7 @@ class LoopCloser:
         keys = np.concatenate([_keys(new), self._known])
         births = np.concatenate([b, self._birth])
         cnt = np.concatenate([np.asarray(counts, dtype=np.int64), self._count])
-        keys, first = np.unique(keys, return_index=True)  # the refined entries win
-        self._known, self._birth, self._count = keys, births[first], cnt[first]
+        self._set_table(keys, births, cnt)  # the refined entries win
 
     def warped(self, pairs: Sequence[tuple[FloatArray, FloatArray]]) -> None:
         """Every particle's corners moved at once, ``(old, new)`` coordinates per particle (a
@@ -392,9 +391,12 @@ class LoopCloser:
             births.append(b[known])
             counts.append(self.counts(old)[known])
         if keys:
-            k, first = np.unique(np.concatenate(keys), return_index=True)
-            self._known = k
-            self._birth, self._count = np.concatenate(births)[first], np.concatenate(counts)[first]
+            self._set_table(np.concatenate(keys), np.concatenate(births), np.concatenate(counts))
+
+    def _set_table(self, keys: NDArray[np.complex128], births: IntArray, counts: IntArray) -> None:
+        """The corner table: each key once, with the birth and count of its first entry."""
+        keys, first = np.unique(keys, return_index=True)
+        self._known, self._birth, self._count = keys, births[first], counts[first]
 
     def stamp(self, particles: Sequence[Wireframe]) -> None:
         """Stamp the corners of ``particles`` not seen before with the current keyframe.
@@ -424,8 +426,7 @@ class LoopCloser:
                                 + [np.full(len(k), b, dtype=np.int64) for k, b in self._pending])
         cnt = np.concatenate([self._count] + [np.ones(len(k), dtype=np.int64) for k, _ in self._pending])
         self._pending = []
-        keys, first = np.unique(keys, return_index=True)  # keeps the first stamp of a key
-        self._known, self._birth, self._count = keys, births[first], cnt[first]
+        self._set_table(keys, births, cnt)  # keeps the first stamp of a key
 
     def prune(self, particles: Sequence[Wireframe]) -> None:
         """Forget the corners no particle has any more."""
@@ -523,8 +524,7 @@ class LoopCloser:
             keys = np.concatenate([m for m, _, _ in moved_keys])
             births = np.concatenate([bb for _, bb, _ in moved_keys])
             cnt = np.concatenate([cc for _, _, cc in moved_keys])
-            keys, first = np.unique(keys, return_index=True)
-            self._known, self._birth, self._count = keys, births[first], cnt[first]
+            self._set_table(keys, births, cnt)
         self.keyframes = [row.copy() for row in new_kf]
         new_pose = Pose(*new_kf[cur]).compose(at_cur)
         return new_pose, [out[id(p)] for p in particles]

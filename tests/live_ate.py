@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import math
 import time
+from typing import Any
 
 import numpy as np
 
@@ -19,18 +20,26 @@ from agents import mapping_run as mr
 from agents.files.carmen import read_carmen_log, scan_truth
 
 
+def live_log(
+    path: str, calibration: int, sets: dict[str, Any] | None = None
+) -> tuple[list[Any], list[Any], dict[str, Any], Any, Any]:
+    """A log with a truth, and the live robot's profile (``lidar-slam-online``, ``calibration``
+    scans held, ``sets`` over it): ``(scans, truth, filter overrides, extractor, front end)``."""
+    log = read_carmen_log(path)
+    truth = scan_truth(log)
+    if truth is None:
+        raise SystemExit(f"{path}: no truth")
+    fo, extract, frontend = mr.split_profile({**mr.lidar_profile("lidar-slam-online"),
+                                              "frontend.calibration_scans": calibration, **(sets or {})})
+    return list(log.scans), truth, fo, extract, frontend
+
+
 def run(
     path: str, min_travel: float, min_turn_deg: float, calibration: int = 100,
     sets: dict[str, str] | None = None,
 ) -> tuple[int, int, float, float]:
     """``(scans mapped, scans left out, ATE m, CPU ms per scan)``."""
-    log = read_carmen_log(path)
-    scans = list(log.scans)
-    truth = scan_truth(log)
-    if truth is None:
-        raise SystemExit(f"{path}: no truth")
-    _, extract, frontend = mr.split_profile({**mr.lidar_profile("lidar-slam-online"),
-                                             "frontend.calibration_scans": calibration, **(sets or {})})
+    scans, truth, _, extract, frontend = live_log(path, calibration, sets)
     live = mr.LiveInputs(max_range=20.0, extract=extract, frontend=frontend, min_travel=min_travel,
                          min_turn=math.radians(min_turn_deg))
     waiting: list[int] = []  # the scans taken, in order, whose inputs have not come out yet

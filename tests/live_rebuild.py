@@ -2,7 +2,7 @@
 bench live`` drives it, with the live robot's defaults) against the same filter inputs mapped again
 at the online SLAM's *final* poses -- an oracle for walls that move with the pose graph.
 
-``python tests/live_rebuild.py LOG PASSES``
+``python -m tests.live_rebuild LOG PASSES`` (from the repository's folder)
 """
 
 from __future__ import annotations
@@ -13,21 +13,15 @@ import time
 from agents import mapping_run as mr
 from agents.bench.lidar import pose_array
 from agents.bench.live import shift
-from agents.files.carmen import read_carmen_log, scan_truth
 from agents.fleet.live_lidar import CALIBRATION_SCANS, MIN_TRAVEL, MIN_TURN, live_filter
 from mapping.lidar_metrics import map_precision, scan_endpoints
 from mapping.se2 import Pose
+from tests.live_ate import live_log
 
 
 def main() -> None:
     path, passes = sys.argv[1], int(sys.argv[2])
-    log = read_carmen_log(path)
-    scans = list(log.scans)
-    truth = scan_truth(log)
-    if truth is None:
-        raise SystemExit(f"{path}: no truth")
-    fo, extract, frontend = mr.split_profile({**mr.lidar_profile("lidar-slam-online"),
-                                              "frontend.calibration_scans": CALIBRATION_SCANS})
+    scans, truth, fo, extract, frontend = live_log(path, CALIBRATION_SCANS)
     filt, cap = live_filter(scans[0], 5, 0.2, 1, fo)  # the live robot's, at its defaults
     live = mr.LiveInputs(max_range=cap, extract=extract, frontend=frontend, min_travel=MIN_TRAVEL,
                          min_turn=MIN_TURN)
