@@ -298,6 +298,7 @@ LIDAR_SLAM_ONLINE_PROFILE: dict[str, Any] = {
     "slam.revisit_theta": math.radians(20.0),
     "slam.revisit_visits": 2,
     "frontend.follow_graph": True,
+    "slam.refine_online_nodes": 8,
 }
 
 #: The real-lidar profiles by name (``--profile`` of ``wiremap bench lidar``, ``--lidar-profile``

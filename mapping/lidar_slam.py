@@ -161,6 +161,26 @@ class SlamConfig:
     refine_visit_gap : int
         Old scans near a scan form one *visit* of its place while their indices are at most this
         far apart (3).
+    refine_online_nodes : int
+        The refinement while the robot drives (0: off, the default): before each scan, this many
+        nodes of a sweep that goes round the graph are matched again against the other visits
+        of their places, as :meth:`LidarSlam.refine` matches every node after a log; each node's
+        edges replace those of its last turn, and the graph is optimised with them every
+        ``refine_online_batch`` nodes and at the end of each sweep (and a loop's optimisation
+        keeps them). A node whose visits are the same nodes, where they were in its frame at its
+        last match (within ``loop_settled_xy`` / ``loop_settled_theta``, at least 2 cm / 0.2
+        degree), is not matched again, and a sweep that matched nothing optimises nothing: once
+        the graph has settled, a robot driving where it has mapped pays only a look at each
+        node. Without it a live robot's graph is optimised only by loops, and a settled loop not
+        even then; the offline refinement's gain (docs/experiments.md, "Session 28").
+    refine_online_batch : int
+        Nodes matched between two optimisations of the sweep (200).
+    refine_online_facing : float
+        The sweep matches a node against a visit whose nearest node faces at most this many
+        radians away from it (pi / 2): a scanner that sees half a circle sees other walls of a
+        place from the other way, and such matches are the sweep's wrong ones (on freiburg-101
+        and seattle, 9 % and 3 % of them more than 0.2 m or 1 degree off the truth's relative
+        pose, against 1 % and 0.2 % of those facing the same way).
     enabled : bool
         Used by the front end (:attr:`mapping.lidar_frontend.FrontendConfig.slam`): run the SLAM
         under the filter (False).
@@ -216,6 +236,9 @@ class SlamConfig:
     map_scans: int = 15
     refine_passes: int = 3
     refine_visit_gap: int = 3
+    refine_online_nodes: int = 0
+    refine_online_batch: int = 200
+    refine_online_facing: float = math.pi / 2
     enabled: bool = False
     online: bool = False
 
@@ -228,6 +251,9 @@ class SlamConfig:
             raise ValueError("voxel, kernel, sigma and information_scale must be > 0")
         if self.refine_passes < 0 or self.refine_visit_gap < 1:
             raise ValueError("refine_passes must be >= 0 and refine_visit_gap >= 1")
+        if not (self.refine_online_nodes >= 0 and self.refine_online_batch >= 1
+                and self.refine_online_facing >= 0):
+            raise ValueError("refine_online_nodes and refine_online_facing must be >= 0, refine_online_batch >= 1")
         if (min(self.odo_calibration_scale, self.odo_calibration_max) <= 0
                 or self.odo_calibration_min_pairs < 2):
             raise ValueError("odo_calibration_scale and odo_calibration_max must be > 0, "
@@ -614,6 +640,15 @@ class _Assembly:
         return h
 
 
+def _near(rel: FloatArray, last: FloatArray, config: SlamConfig) -> bool:
+    """Two sets of relative poses (node for node) within ``loop_settled_xy`` / ``_theta`` (at
+    least 2 cm / 0.2 degree) of each other: a match between them would find what it found."""
+    xy = max(config.loop_settled_xy, 0.02)
+    th = max(config.loop_settled_theta, math.radians(0.2))
+    return bool(np.all(np.hypot(*(rel[:, :2] - last[:, :2]).T) <= xy)
+                and np.all(np.abs(wrap_angles(rel[:, 2] - last[:, 2])) <= th))
+
+
 def optimize(poses: FloatArray, edges: list[Edge], iterations: int = 10, kernel: float = 3.0) -> FloatArray:
     """Gauss-Newton over the poses ``(n, 3)`` with node 0 fixed; returns the new poses.
 
@@ -715,6 +750,27 @@ _REFINE_SUBMAPS = 256
 
 
 @dataclass
+class _Sweep:
+    """The online refinement's state (:attr:`SlamConfig.refine_online_nodes`)."""
+
+    next: int = 0  # the next node to match again
+    edges: dict[int, list[Edge]] = field(default_factory=dict)  # each node's edges of its last turn
+    # each node's visits and their nodes' poses in its frame at its last match
+    seen: dict[int, tuple[tuple[tuple[int, ...], ...], FloatArray]] = field(default_factory=dict)
+    unsolved: int = 0  # nodes matched since the last optimisation
+    matched: int = 0  # nodes matched in all (a count for benches and tests)
+    submaps: dict[tuple[int, ...], Submap] = field(default_factory=dict)  # valid while poses stay
+    at: int = -1  # ``reshaped`` the submaps were built at
+    optimised: int = 0  # the sweep's optimisations (a count for benches and tests)
+    changes: int = 0  # nodes whose visits were looked at anew, in all
+    changes_at: int = 0  # ``changes`` when this sweep began
+    idle: tuple[int, int] | None = None  # (nodes, ``reshaped``) after a sweep that changed nothing
+
+    def all_edges(self) -> list[Edge]:
+        return [e for es in self.edges.values() for e in es]
+
+
+@dataclass
 class _Node:
     points: FloatArray  # robot frame
     normals: FloatArray  # robot frame, NaN where none
@@ -757,6 +813,12 @@ class LidarSlam:
     _gap: NDArray[np.bool_] = field(default_factory=lambda: np.zeros(1024, dtype=bool))
     _last_loop: tuple[float, int] = (-math.inf, -(10**9))
     _clouds: dict[int, tuple[bytes, tuple[FloatArray, FloatArray]]] = field(default_factory=dict)
+    _sweep: _Sweep = field(default_factory=lambda: _Sweep())
+
+    @property
+    def refined(self) -> int:
+        """Nodes the online refinement matched again (:attr:`SlamConfig.refine_online_nodes`)."""
+        return self._sweep.matched
 
     def _cloud(self, k: int) -> tuple[FloatArray, FloatArray]:
         """Scan ``k``'s points and normals in the world frame at its current pose. Kept with
@@ -801,6 +863,8 @@ class LidarSlam:
             self._scans.append((0, None))
             self.online.append(self.poses[0].copy())
             return np.array(self.poses[0])
+        if cfg.refine_online_nodes:
+            self._refine_online()
         anchor, rel = self._scans[-1]
         guess = _compose(self.poses[anchor] if rel is None else _compose(self.poses[anchor], rel), odo)
         sxy = max(cfg.odo_floor_xy, cfg.odo_trans_per_m * d)
@@ -963,7 +1027,10 @@ class LidarSlam:
         settled = (math.hypot(move[0], move[1]) <= cfg.loop_settled_xy
                    and abs(wrap_angle(float(move[2]))) <= cfg.loop_settled_theta)
         if not settled:
-            poses = optimize(self.poses, [*self.edges, edge], kernel=cfg.loop_kernel)
+            # With the online refinement's edges: the optimum of the chain and loops alone
+            # would undo what it found.
+            poses = optimize(self.poses, [*self.edges, *self._sweep.all_edges(), edge],
+                             kernel=cfg.loop_kernel)
             # Verification by the graph: a loop the chain of matches can only meet by straining
             # some of its links far beyond their noise is an alias (a corridor's other door), not
             # a loop. The chain's links are the edges that are not loops' (each from the node
@@ -998,38 +1065,125 @@ class LidarSlam:
         x = self.poses
         if len(x) < 2:
             return
-        travel = self._travel[: len(x)]
         edges: list[Edge] = []
         # The poses stay put during the pass, so a submap is a function of its scans: the
         # last _REFINE_SUBMAPS submaps are kept, since nearby scans see the same visits (about
         # 40 % of the submaps repeat).
         submaps: dict[tuple[int, ...], Submap] = {}
         for k in range(len(x)):
-            d = np.hypot(*(x[:, :2] - x[k, :2]).T)
-            old = np.flatnonzero((np.abs(travel - travel[k]) >= cfg.loop_min_travel) & (d <= cfg.map_radius))
-            if len(old) < 2:
-                continue
-            for run in self._runs(old):
-                if len(run) < 2:
-                    continue
-                run = run[np.argsort(d[run], kind="stable")[: cfg.map_scans]]
-                ids = tuple(np.sort(run).tolist())
-                sub = submaps.pop(ids, None)
-                if sub is None:
-                    sub = Submap.build([self._cloud(i) for i in ids], cfg.voxel)
-                    if len(submaps) >= _REFINE_SUBMAPS:
-                        del submaps[next(iter(submaps))]  # the least recently used
-                submaps[ids] = sub
-                m = match_scan(self._nodes[k].points, sub, x[k], cfg,
-                               inlier_distance=cfg.loop_inlier_distance)
-                if m.inliers < cfg.loop_min_inliers or m.matched < 10:
-                    continue
-                j = int(run[0])
-                edges.append(Edge(j, k, _between(x[j], m.pose), self._edge_information(m.hessian, m.pose[2]),
-                                  robust=True))
+            edges += self._revisit_edges(k, submaps)
         if not edges:
             return
         moved = optimize(x, [*self.edges, *edges], kernel=cfg.loop_kernel)
         kept = [e for e, c in zip(edges, _chi2(moved, edges)) if c <= cfg.loop_max_chi2]
         self.poses = optimize(x, [*self.edges, *kept], kernel=cfg.loop_kernel)
         self.reshaped += 1
+
+    def _refine_online(self) -> None:
+        """The next ``refine_online_nodes`` nodes of the sweep (:attr:`SlamConfig.refine_online_nodes`)
+        matched again, unless nothing about them changed since their last turn; the graph
+        optimised with every node's last edges every ``refine_online_batch`` nodes and at the
+        sweep's end when some node was matched again since the last time."""
+        cfg, sw = self.config, self._sweep
+        n = len(self.poses)
+        if n < 2 or sw.idle == (n, self.reshaped):
+            return
+        sw.idle = None
+        if sw.at != self.reshaped:  # a loop or the sweep moved the nodes the submaps were built at
+            sw.submaps.clear()
+            sw.at = self.reshaped
+        for _ in range(min(cfg.refine_online_nodes, n)):
+            k = sw.next
+            facing = self.poses[k, 2]
+            visits = [(j, ids) for j, ids in self._revisit_visits(k)
+                      if abs(wrap_angle(float(self.poses[j, 2] - facing))) <= cfg.refine_online_facing]
+            key = tuple(ids for _, ids in visits)
+            rel = self._relative(k, np.unique(np.concatenate(key))) if key else np.zeros((0, 3))
+            last = sw.seen.get(k)
+            if last is None or last[0] != key or not _near(rel, last[1], cfg):
+                sw.seen[k] = (key, rel)
+                if key:
+                    sw.edges[k] = self._revisit_edges(k, sw.submaps, visits)
+                    sw.matched += 1
+                    sw.unsolved += 1
+                elif sw.edges.pop(k, None):  # its visits are gone (the graph moved): so are its edges
+                    sw.unsolved += 1
+                sw.changes += 1
+            sw.next += 1
+            if sw.next >= n:  # the sweep is round
+                sw.next = 0
+                break
+        if sw.unsolved and (sw.next == 0 or sw.unsolved >= cfg.refine_online_batch):
+            self._solve_sweep()
+        if sw.next == 0:  # a sweep that changed nothing: none until a node comes or a loop moves them
+            if sw.changes == sw.changes_at:
+                sw.idle = (n, self.reshaped)
+            sw.changes_at = sw.changes
+
+    def _relative(self, k: int, ids: NDArray[np.int64]) -> FloatArray:
+        """Nodes ``ids``' poses in node ``k``'s frame, ``(len(ids), 3)``."""
+        x = self.poses
+        c, s = math.cos(x[k, 2]), math.sin(x[k, 2])
+        dx, dy = x[ids, 0] - x[k, 0], x[ids, 1] - x[k, 1]
+        return np.column_stack([c * dx + s * dy, -s * dx + c * dy, wrap_angles(x[ids, 2] - x[k, 2])])
+
+    def _solve_sweep(self) -> None:
+        cfg, sw = self.config, self._sweep
+        sw.unsolved = 0
+        edges = sw.all_edges()
+        if not edges:
+            return
+        x = self.poses
+        moved = optimize(x, [*self.edges, *edges], kernel=cfg.loop_kernel)
+        strained = {id(e) for e, c in zip(edges, _chi2(moved, edges)) if c > cfg.loop_max_chi2}
+        if strained:  # dropped until their node's next turn matches it again
+            for k, es in sw.edges.items():
+                sw.edges[k] = [e for e in es if id(e) not in strained]
+            moved = optimize(x, [*self.edges, *(e for e in edges if id(e) not in strained)],
+                             kernel=cfg.loop_kernel)
+        self.poses = moved
+        self.reshaped += 1
+        sw.at = self.reshaped
+        sw.submaps.clear()
+        sw.optimised += 1
+
+    def _revisit_visits(self, k: int) -> list[tuple[int, tuple[int, ...]]]:
+        """The other visits of node ``k``'s place (:meth:`refine`): per visit, its node nearest
+        ``k`` and its ``map_scans`` nearest nodes (ascending)."""
+        cfg = self.config
+        x = self.poses
+        travel = self._travel[: len(x)]
+        d = np.hypot(*(x[:, :2] - x[k, :2]).T)
+        old = np.flatnonzero((np.abs(travel - travel[k]) >= cfg.loop_min_travel) & (d <= cfg.map_radius))
+        if len(old) < 2:
+            return []
+        out = []
+        for run in self._runs(old):
+            if len(run) < 2:
+                continue
+            run = run[np.argsort(d[run], kind="stable")[: cfg.map_scans]]
+            out.append((int(run[0]), tuple(np.sort(run).tolist())))
+        return out
+
+    def _revisit_edges(self, k: int, submaps: dict[tuple[int, ...], Submap],
+                       visits: list[tuple[int, tuple[int, ...]]] | None = None) -> list[Edge]:
+        """Node ``k`` matched, from its current pose, against each other visit of its place
+        (``visits``, by default :meth:`_revisit_visits`): a robust edge from each visit's nearest
+        node that the match lands on. ``submaps`` is an LRU cache of the visits' submaps, valid
+        while the poses stay put."""
+        cfg = self.config
+        x = self.poses
+        edges: list[Edge] = []
+        for j, ids in self._revisit_visits(k) if visits is None else visits:
+            sub = submaps.pop(ids, None)
+            if sub is None:
+                sub = Submap.build([self._cloud(i) for i in ids], cfg.voxel)
+                if len(submaps) >= _REFINE_SUBMAPS:
+                    del submaps[next(iter(submaps))]  # the least recently used
+            submaps[ids] = sub
+            m = match_scan(self._nodes[k].points, sub, x[k], cfg, inlier_distance=cfg.loop_inlier_distance)
+            if m.inliers < cfg.loop_min_inliers or m.matched < 10:
+                continue
+            edges.append(Edge(j, k, _between(x[j], m.pose), self._edge_information(m.hessian, m.pose[2]),
+                              robust=True))
+        return edges

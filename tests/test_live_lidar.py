@@ -370,6 +370,7 @@ def test_a_live_robot_maps_what_its_lidar_sends(scans: list[Any], tmp_path: Path
     assert live["unposed"] == 0 and live["behind"] == 0
     # every scan mapped is a node of the SLAM's graph, or posed on an old one
     assert live["graph"] + live["revisits"] == mapped and live["loops"] >= live["settled"] >= 0
+    assert 0 <= live["refined"] <= live["graph"] * mapped  # the online refinement's count is reported
     text = (tmp_path / "robot.log").read_text()
     assert "live lidar: scans on lidar/scan" in text and "bad_scans 1" in text
 
@@ -536,6 +537,9 @@ def test_bench_live_on_the_excerpt(capsys: pytest.CaptureFixture[str], tmp_path:
     assert (r["graph_first"], r["graph_last"]) == (r["by_pass"][0]["graph"], r["by_pass"][-1]["graph"])
     assert r["revisits"] == revisits[-1] and r["by_pass"][0]["revisits"] == 0
     assert r["by_pass"][2]["revisits"] > r["by_pass"][2]["scans_mapped"] / 2
+    # the online refinement matched nodes again while the graph grew (the profile's setting)
+    assert last["settings"]["slam.refine_online_nodes"] > 0
+    assert r["refined"] == sum(p["refined"] for p in r["by_pass"]) and r["by_pass"][1]["refined"] > 0
     assert last["settings"]["frontend.calibration_scans"] == CALIBRATION
     with pytest.raises(SystemExit) as exc:
         main(["bench", "live", str(EXCERPT), "--passes", "0"])

@@ -17,7 +17,9 @@ Per log and per pass (JSON ``by_pass``): scans mapped, CPU ms per scan mapped of
 (extraction and SLAM) and of the filter, loops closed and how many of them were *settled*
 (:attr:`mapping.lidar_slam.SlamConfig.loop_settled_xy`: no re-optimisation), the SLAM's graph
 at the pass's end (``graph``: its nodes) and the scans it posed on old nodes instead
-(``revisits``: :attr:`mapping.lidar_slam.SlamConfig.revisit_xy`), the pass's ATE
+(``revisits``: :attr:`mapping.lidar_slam.SlamConfig.revisit_xy`), the nodes its online
+refinement matched again (``refined``: :attr:`mapping.lidar_slam.SlamConfig.refine_online_nodes`;
+none once the graph has settled), the pass's ATE
 (the filter's pose, the robot's published pose, from the truth's first pose), the process's
 RSS at the pass's end, and how far the SLAM's graph moved the pass's scans after the filter had
 mapped them (``moved_after_mapping_m_p90`` / ``_max``, at the end of the run: the map built on
@@ -31,7 +33,7 @@ best map after the first and the last pass against the log's scan endpoints at t
 within 0.2 m, as ``wiremap bench lidar`` scores it), ``rss_mb_first`` / ``rss_mb_last`` and
 ``rss_mb_per_1000_scans`` (the least-squares slope of RSS over scans mapped, after the first
 pass), ``moved_after_mapping_m_p90_first`` (the first pass's), ``loops``, ``loops_settled``,
-``graph_first`` / ``graph_last``, ``revisits``, ``cpu_s``.
+``graph_first`` / ``graph_last``, ``revisits``, ``refined``, ``cpu_s``.
 
 Output: a table (a row per log), progress on stderr, ``NAME-pass-K.png`` in ``--out`` (the map
 after the first pass that mapped and after the last, over the log's real scan endpoints at the
@@ -138,7 +140,7 @@ def run_log(path: str, *, passes: int, seed: int, particles: int, threshold: flo
     est: list[tuple[int, Pose]] = []
     rows: list[dict[str, Any]] = []
     cpu_in = cpu_filter = 0.0
-    mapped_before = loops_before = settled_before = revisits_before = 0
+    mapped_before = loops_before = settled_before = revisits_before = refined_before = 0
     fed = shift(scans, passes)
     per_pass = len(scans)
     cpu0 = time.process_time()
@@ -178,6 +180,7 @@ def run_log(path: str, *, passes: int, seed: int, particles: int, threshold: flo
             settled = slam.settled if slam is not None else 0
             graph = len(slam.poses) if slam is not None else 0
             revisits = slam.skipped if slam is not None else 0
+            refined = slam.refined if slam is not None else 0
             rss = _rss_mb()
             rss_at.append((len(est), rss))
             scored = (mapped and not any(r["scans_mapped"] for r in rows)) or len(rows) == passes - 1
@@ -202,12 +205,14 @@ def run_log(path: str, *, passes: int, seed: int, particles: int, threshold: flo
                 "loops_settled": settled - settled_before,
                 "graph": graph,
                 "revisits": revisits - revisits_before,
+                "refined": refined - refined_before,
                 "ate_rmse_m": _ate(part, truth, ate),
                 "map_precision": precision,
                 "rss_mb": rss,
             })
             cpu_in = cpu_filter = 0.0
-            mapped_before, loops_before, settled_before, revisits_before = len(est), loops, settled, revisits
+            mapped_before, loops_before, settled_before, revisits_before, refined_before = (
+                len(est), loops, settled, revisits, refined)
     show.clear()
     if out is not None:
         _pictures(out, name, pictures, endpoints, pose_array(truth))
@@ -244,6 +249,7 @@ def run_log(path: str, *, passes: int, seed: int, particles: int, threshold: flo
         "loops": sum(r["loops"] for r in rows), "loops_settled": sum(r["loops_settled"] for r in rows),
         "graph_first": first["graph"], "graph_last": last["graph"],
         "revisits": sum(r["revisits"] for r in rows),
+        "refined": sum(r["refined"] for r in rows),
         "cpu_s": time.process_time() - cpu0, "by_pass": [_rounded(r) for r in rows],
     }
 

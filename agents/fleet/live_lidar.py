@@ -111,12 +111,14 @@ class LiveCounts:
     still: int = 0  # posed scans the mapper's motion filter dropped (agents.mapping_run.LiveInputs)
     last_issue: str = ""
     # the online SLAM's pose graph: its nodes (scans kept for loop closure), the loops it closed,
-    # how many of them were settled (mapping.lidar_slam.SlamConfig.loop_settled_xy), and the
-    # scans posed on an old node instead of becoming one (SlamConfig.revisit_xy)
+    # how many of them were settled (mapping.lidar_slam.SlamConfig.loop_settled_xy), the
+    # scans posed on an old node instead of becoming one (SlamConfig.revisit_xy), and the nodes
+    # its online refinement matched again (SlamConfig.refine_online_nodes)
     graph: int = 0
     loops: int = 0
     settled: int = 0
     revisits: int = 0
+    refined: int = 0
 
     def as_dict(self) -> dict[str, Any]:
         return dict(self.__dict__)
@@ -398,6 +400,7 @@ def live_steps(opts: Any, source: LiveLidar, stop: threading.Event) -> Iterator[
         if slam is not None:
             source.counts.graph, source.counts.loops = len(slam.poses), len(slam.loops)
             source.counts.settled, source.counts.revisits = slam.settled, slam.skipped
+            source.counts.refined = slam.refined
         if not ready:  # held for the calibration, or left out by the motion filter
             yield None
             continue

@@ -410,14 +410,15 @@ class RobotAgent:
                 live = ""
                 if st.live is not None:
                     kept = ("scans", "odometry", "posed", "last_issue", "graph", "loops", "settled",
-                            "revisits")
+                            "revisits", "refined")
                     dropped = ", ".join(f"{k} {v}" for k, v in st.live.items() if k not in kept and v)
                     live = (f"; live lidar: {st.live['posed']} scans posed, {st.live['scans']} received"
                             + (f" ({dropped})" if dropped else "")
                             + (" (calibrating: the first scans are mapped together)" if st.step == 0 else "")
                             + (f"; SLAM: {st.live['graph']} scans in its graph, {st.live['loops']} loops "
                                f"({st.live['settled']} settled), {st.live.get('revisits', 0)} scans on old "
-                               "nodes" if st.live.get("graph") else ""))
+                               f"nodes, {st.live.get('refined', 0)} nodes refined"
+                               if st.live.get("graph") else ""))
                 self.say(
                     f"step {st.step} t={st.t:.1f}s: {st.vertices} vertices, {st.edges} edges, {st.maps_sent} maps"  # noqa: E501
                     + live
