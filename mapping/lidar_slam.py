@@ -253,7 +253,8 @@ class SlamConfig:
             raise ValueError("refine_passes must be >= 0 and refine_visit_gap >= 1")
         if not (self.refine_online_nodes >= 0 and self.refine_online_batch >= 1
                 and self.refine_online_facing >= 0):
-            raise ValueError("refine_online_nodes and refine_online_facing must be >= 0, refine_online_batch >= 1")
+            raise ValueError("refine_online_nodes and refine_online_facing must be >= 0, "
+                             "refine_online_batch >= 1")
         if (min(self.odo_calibration_scale, self.odo_calibration_max) <= 0
                 or self.odo_calibration_min_pairs < 2):
             raise ValueError("odo_calibration_scale and odo_calibration_max must be > 0, "
