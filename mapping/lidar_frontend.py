@@ -122,8 +122,9 @@ class FrontendConfig:
         ``laser_yaw_estimate_deg`` of ``wiremap map --carmen`` on an earlier log): taken off
         every bearing instead of estimated; NaN (the default) when not known.
     follow_graph : bool
-        With the online SLAM (``slam.online``, :class:`OnlineSlam`): when a loop reshapes the
-        SLAM's graph, the map built so far moves with it before the next scan is mapped
+        With the online SLAM (``slam.online``, :class:`OnlineSlam`): when a loop or the online
+        refinement (``slam.refine_online_nodes``) reshapes the SLAM's graph, the map built so far
+        moves with it before the next scan is mapped
         (:func:`mapping.lidar_slam.graph_warp`, each vertex under its 8 nearest nodes' moves;
         :func:`agents.mapping_run.feed`) (default False; on in ``lidar-slam-online``).
     """
@@ -413,14 +414,15 @@ class OnlineSlam:
     """The lidar SLAM scan by scan, as a robot mapping while it drives runs it
     (``config.slam.online``): :meth:`add` takes one scan's points and the wheels' motion into it
     and gives the motion from the pose the SLAM gave the scan before to the pose it gives this
-    one (the scan-to-map match, loops closed so far; no refine passes). ``noise``: the wheels'
+    one (the scan-to-map match, loops closed so far, the online refinement's sweep when
+    ``slam.refine_online_nodes`` is on; no offline refine passes). ``noise``: the wheels'
     heading noise measured so far (``odo_calibration``); while it rests on too few scan pairs and
     ``config.calibration_scans`` limited it to the first scans, it is measured again on every
     scan so far each :data:`ONLINE_RECALIBRATE` scans, and ``on_noise`` is given the measure the
     SLAM then runs with. The scans are kept only until then, and at most
     :data:`ONLINE_RECALIBRATE_MAX_SCANS` of them: a stream that has not pinned the noise down by
     then keeps the prior it has. With ``config.follow_graph``, ``warp`` is the SLAM's nodes
-    before and after the loop that moved them during the last :meth:`add` (else None): the map
+    before and after the loops or refinement that moved them during the last :meth:`add` (else None): the map
     built so far follows them (:func:`agents.mapping_run.feed`)."""
 
     def __init__(

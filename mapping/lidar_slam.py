@@ -167,12 +167,17 @@ class SlamConfig:
         of their places, as :meth:`LidarSlam.refine` matches every node after a log; each node's
         edges replace those of its last turn, and the graph is optimised with them every
         ``refine_online_batch`` nodes and at the end of each sweep (and a loop's optimisation
-        keeps them). A node whose visits are the same nodes, where they were in its frame at its
-        last match (within ``loop_settled_xy`` / ``loop_settled_theta``, at least 2 cm / 0.2
-        degree), is not matched again, and a sweep that matched nothing optimises nothing: once
-        the graph has settled, a robot driving where it has mapped pays only a look at each
-        node. Without it a live robot's graph is optimised only by loops, and a settled loop not
-        even then; the offline refinement's gain (docs/experiments.md, "Session 28").
+        keeps them). Only visits whose nearest node faces within ``refine_online_facing`` of the
+        node are matched (the offline refinement matches all). A node whose visits are the same
+        nodes, where they were in its frame at its last match (within ``loop_settled_xy`` /
+        ``loop_settled_theta``, at least 2 cm / 0.2 degree), is not matched again, and a sweep
+        that changed nothing rests until a node is added or the graph moves: a robot driving
+        where it has mapped pays nothing for it once the graph has settled. While the graph
+        grows, a look at a node costs a pass over the graph's positions (8 looks about 1 ms a
+        scan at 1,700 nodes), a match about 0.7 ms, and each optimisation of the sweep (every
+        ``refine_online_batch`` nodes matched, 40-100 ms at 1,700 nodes) moves the nodes, so the
+        map follows (``frontend.follow_graph``). Without it a live robot's graph is optimised
+        only by loops, and a settled loop not even then (docs/experiments.md, "Session 28").
     refine_online_batch : int
         Nodes matched between two optimisations of the sweep (200).
     refine_online_facing : float
@@ -749,6 +754,10 @@ CLOUD_CACHE = 1024
 #: on fhw on average, 249 KB at the 95th percentile: about 30 MB for all, 64 MB at worst).
 _REFINE_SUBMAPS = 256
 
+#: Submaps the online refinement keeps between scans (:attr:`SlamConfig.refine_online_nodes`):
+#: a scan's 8 nodes look at a few visits each, and neighbouring nodes share them.
+_SWEEP_SUBMAPS = 32
+
 
 @dataclass
 class _Sweep:
@@ -758,7 +767,9 @@ class _Sweep:
     edges: dict[int, list[Edge]] = field(default_factory=dict)  # each node's edges of its last turn
     # each node's visits and their nodes' poses in its frame at its last match
     seen: dict[int, tuple[tuple[tuple[int, ...], ...], FloatArray]] = field(default_factory=dict)
-    unsolved: int = 0  # nodes matched since the last optimisation
+    unsolved: int = 0  # nodes matched, or whose edges were dropped, since the last optimisation
+    fresh: set[int] = field(default_factory=set)  # nodes matched since the last optimisation
+    refused: int = 0  # optimisations refused for straining the chain
     matched: int = 0  # nodes matched in all (a count for benches and tests)
     submaps: dict[tuple[int, ...], Submap] = field(default_factory=dict)  # valid while poses stay
     at: int = -1  # ``reshaped`` the submaps were built at
@@ -781,7 +792,8 @@ class _Node:
 class LidarSlam:
     """Online lidar SLAM over a log's scans: :meth:`add` per scan, in order.
 
-    ``poses`` holds every node's current estimate (a loop closure moves them all): every scan's,
+    ``poses`` holds every node's current estimate (a loop closure or the refinement moves them
+    all): every scan's,
     unless ``SlamConfig.revisit_xy`` leaves redundant scans out of the graph (``skipped``
     counts them; :meth:`scan_poses` gives every scan's); ``online`` what :meth:`add` returned
     for each scan at the time; ``settled`` counts the loops of ``loops`` that were settled
@@ -1058,11 +1070,11 @@ class LidarSlam:
         pass's edges are rebuilt from the poses on every pass).
 
         The online pass folds its scan-to-map matches into the edge from the previous scan, so
-        the graph forgets them when a loop moves the poses; and a corridor driven back the
+        the graph forgets them when a loop moves the poses (unless ``refine_online_nodes``
+        matches them again as it drives); and a corridor driven back the
         other way rarely passes the loop search. Matched from poses the loops have already
         corrected, every revisit becomes a constraint. One visit per edge: a submap mixing
         visits is blurred by the very error the pass corrects."""
-        cfg = self.config
         x = self.poses
         if len(x) < 2:
             return
@@ -1075,10 +1087,20 @@ class LidarSlam:
             edges += self._revisit_edges(k, submaps)
         if not edges:
             return
+        self.poses, _ = self._optimise_with(edges)
+        self.reshaped += 1
+
+    def _optimise_with(self, edges: list[Edge]) -> tuple[FloatArray, list[Edge]]:
+        """The graph optimised with ``edges`` (robust, found by matching) beside its own, those
+        strained past ``loop_max_chi2`` by it dropped and the graph optimised again from the
+        same poses without them: ``(poses, the edges kept)``."""
+        cfg = self.config
+        x = self.poses
         moved = optimize(x, [*self.edges, *edges], kernel=cfg.loop_kernel)
         kept = [e for e, c in zip(edges, _chi2(moved, edges)) if c <= cfg.loop_max_chi2]
-        self.poses = optimize(x, [*self.edges, *kept], kernel=cfg.loop_kernel)
-        self.reshaped += 1
+        if len(kept) < len(edges):  # (with none dropped it is the same optimisation again)
+            moved = optimize(x, [*self.edges, *kept], kernel=cfg.loop_kernel)
+        return moved, kept
 
     def _refine_online(self) -> None:
         """The next ``refine_online_nodes`` nodes of the sweep (:attr:`SlamConfig.refine_online_nodes`)
@@ -1104,9 +1126,10 @@ class LidarSlam:
             if last is None or last[0] != key or not _near(rel, last[1], cfg):
                 sw.seen[k] = (key, rel)
                 if key:
-                    sw.edges[k] = self._revisit_edges(k, sw.submaps, visits)
+                    sw.edges[k] = self._revisit_edges(k, sw.submaps, visits, _SWEEP_SUBMAPS)
                     sw.matched += 1
                     sw.unsolved += 1
+                    sw.fresh.add(k)
                 elif sw.edges.pop(k, None):  # its visits are gone (the graph moved): so are its edges
                     sw.unsolved += 1
                 sw.changes += 1
@@ -1119,6 +1142,7 @@ class LidarSlam:
         if sw.next == 0:  # a sweep that changed nothing: none until a node comes or a loop moves them
             if sw.changes == sw.changes_at:
                 sw.idle = (n, self.reshaped)
+                sw.submaps.clear()
             sw.changes_at = sw.changes
 
     def _relative(self, k: int, ids: NDArray[np.int64]) -> FloatArray:
@@ -1129,19 +1153,28 @@ class LidarSlam:
         return np.column_stack([c * dx + s * dy, -s * dx + c * dy, wrap_angles(x[ids, 2] - x[k, 2])])
 
     def _solve_sweep(self) -> None:
+        """The graph optimised with every node's latest edges (:meth:`_optimise_with`); the
+        strained ones are dropped, and stay dropped until their node is matched again (when its
+        visits move). Refused, the poses kept and the edges of the nodes matched since the last
+        time dropped, when it would strain a link of the chain past ``loop_max_chi2``: the
+        chain's matches are the graph's backbone, and a loop's own check
+        (:meth:`_close_loop`) would then blame every later loop for that strain."""
         cfg, sw = self.config, self._sweep
         sw.unsolved = 0
+        fresh, sw.fresh = sw.fresh, set()
         edges = sw.all_edges()
         if not edges:
             return
-        x = self.poses
-        moved = optimize(x, [*self.edges, *edges], kernel=cfg.loop_kernel)
-        strained = {id(e) for e, c in zip(edges, _chi2(moved, edges)) if c > cfg.loop_max_chi2}
-        if strained:  # dropped until their node's next turn matches it again
+        moved, kept = self._optimise_with(edges)
+        if float(_chi2(moved, [e for e in self.edges if not e.robust]).max(initial=0.0)) > cfg.loop_max_chi2:
+            for k in fresh:
+                sw.edges.pop(k, None)
+            sw.refused += 1
+            return
+        if len(kept) < len(edges):
+            ids = {id(e) for e in kept}
             for k, es in sw.edges.items():
-                sw.edges[k] = [e for e in es if id(e) not in strained]
-            moved = optimize(x, [*self.edges, *(e for e in edges if id(e) not in strained)],
-                             kernel=cfg.loop_kernel)
+                sw.edges[k] = [e for e in es if id(e) in ids]
         self.poses = moved
         self.reshaped += 1
         sw.at = self.reshaped
@@ -1167,11 +1200,12 @@ class LidarSlam:
         return out
 
     def _revisit_edges(self, k: int, submaps: dict[tuple[int, ...], Submap],
-                       visits: list[tuple[int, tuple[int, ...]]] | None = None) -> list[Edge]:
+                       visits: list[tuple[int, tuple[int, ...]]] | None = None,
+                       cache: int = 0) -> list[Edge]:
         """Node ``k`` matched, from its current pose, against each other visit of its place
         (``visits``, by default :meth:`_revisit_visits`): a robust edge from each visit's nearest
         node that the match lands on. ``submaps`` is an LRU cache of the visits' submaps, valid
-        while the poses stay put."""
+        while the poses stay put, of at most ``cache`` (by default :data:`_REFINE_SUBMAPS`)."""
         cfg = self.config
         x = self.poses
         edges: list[Edge] = []
@@ -1179,7 +1213,7 @@ class LidarSlam:
             sub = submaps.pop(ids, None)
             if sub is None:
                 sub = Submap.build([self._cloud(i) for i in ids], cfg.voxel)
-                if len(submaps) >= _REFINE_SUBMAPS:
+                if len(submaps) >= (cache or _REFINE_SUBMAPS):
                     del submaps[next(iter(submaps))]  # the least recently used
             submaps[ids] = sub
             m = match_scan(self._nodes[k].points, sub, x[k], cfg, inlier_distance=cfg.loop_inlier_distance)

@@ -354,7 +354,7 @@ def test_the_online_refinement_ties_a_revisit_while_driving_and_then_rests() -> 
     as the offline refinement pulls it: RMS error less than half, deterministic. Once the
     graph has settled, a sweep matches nothing again (each node's visits sit where they sat at
     its last match) and optimises nothing: it costs a robot that stands in a mapped place no
-    matches. Off, the online SLAM is what it was (no sweep state touched)."""
+    matches. Off, no sweep state is touched."""
     route, odo, scans = _hall_drive()
     truth = np.array([p.as_tuple() for p in route])
 
@@ -372,6 +372,7 @@ def test_the_online_refinement_ties_a_revisit_while_driving_and_then_rests() -> 
     assert not off.loops and not on.loops
     assert off._sweep.matched == 0 and not off._sweep.edges
     assert on._sweep.matched > 0 and on._sweep.optimised > 0 and on.reshaped == on._sweep.optimised
+    assert on._sweep.refused == 0
     assert rms(on.poses) < 0.5 * rms(off.poses), (rms(off.poses), rms(on.poses))
     assert np.array_equal(run(8).poses, on.poses)
     # standing in the mapped place: sweeps go round until one matches nothing again
@@ -427,7 +428,8 @@ def test_slam_on_the_real_excerpt_beats_its_odometry() -> None:
                                  {"refine_visit_gap": 0}, {"loop_settled_xy": -0.01},
                                  {"loop_settled_theta": -0.01}, {"revisit_xy": -0.1},
                                  {"revisit_lock": -1.0}, {"revisit_visits": 0},
-                                 {"refine_online_nodes": -1}, {"refine_online_batch": 0}])
+                                 {"refine_online_nodes": -1}, {"refine_online_batch": 0},
+                                 {"refine_online_facing": -0.1}])
 def test_bad_settings_are_refused(bad: dict[str, float]) -> None:
     with pytest.raises(ValueError):
         SlamConfig(**bad)  # type: ignore[arg-type]
