@@ -659,24 +659,24 @@ def carmen_inputs(
             # The wheel increment refined by the previous scan (mapping.lidar_frontend.scan_increment).
             odo = scan_increment(prev_points, points, odo, fcfg)[0]
         prev_points = points
-        got = _scan_input(ls, max_range, turn, ecfg, odo, points, None if truth is None else truth[k])
-        yield got if warp is None else replace(got, warp=warp)
+        yield _scan_input(ls, max_range, turn, ecfg, odo, points, None if truth is None else truth[k], warp)
 
 
 def _scan_input(
     ls: Any, max_range: float | None, turn: float, extract: Any, odometry: Pose, points: NDArray[np.float64],
-    true_pose: Pose | None,
+    true_pose: Pose | None, warp: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None,
 ) -> ScanInput:
     """One real scan's filter input: its corners (split-and-merge of the ranges, bearings turned
     by ``-turn``, returns at the scanner's or ``max_range``'s limit no return), the motion into
-    it and its points to match."""
+    it, its points to match and the SLAM's graph's move before it (``ScanInput.warp``)."""
     from mapping.extract import extract_corners
 
     rmax = float(ls.max_range) if max_range is None else min(float(ls.max_range), max_range)
     raw = np.asarray(ls.ranges, dtype=np.float64)
     angles = np.asarray(ls.angles, dtype=np.float64) - turn
     ranges = np.where(raw >= rmax, np.inf, raw)
-    return ScanInput(float(ls.t), odometry, extract_corners(ranges, angles, rmax, extract), true_pose, points)
+    return ScanInput(float(ls.t), odometry, extract_corners(ranges, angles, rmax, extract), true_pose, points,
+                     warp)
 
 
 class LiveInputs:
@@ -791,8 +791,7 @@ class LiveInputs:
         elif self.frontend.scan_odometry and self._prev_points is not None:
             odo = scan_increment(self._prev_points, points, odo, self.frontend)[0]
         self._prev_points = points
-        got = _scan_input(ls, self.max_range, self.calibration.turn, self.extract, odo, points, None)
-        return got if warp is None else replace(got, warp=warp)
+        return _scan_input(ls, self.max_range, self.calibration.turn, self.extract, odo, points, None, warp)
 
 
 def scan_fov(angles: Any) -> float:

@@ -32,7 +32,7 @@ Choices
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -56,7 +56,6 @@ __all__ = [
     "laser_yaw",
     "odometry_noise",
     "odometry_overrides",
-    "online_increments",
     "run_slam",
     "scan_increment",
     "scan_points",
@@ -403,7 +402,7 @@ def slam_increments(
     return increments([Pose(*map(float, p)) for p in slam.scan_poses()]), slam
 
 
-#: :func:`online_increments` measures the wheels' heading noise again every this many scans while
+#: :class:`OnlineSlam` measures the wheels' heading noise again every this many scans while
 #: the first ``calibration_scans`` gave too few scan pairs for it.
 ONLINE_RECALIBRATE = 25
 #: ... and gives up after this many scans (the scans it measures on are kept until then).
@@ -473,17 +472,6 @@ class OnlineSlam:
         self._last = now
         self.scans += 1
         return step
-
-
-def online_increments(
-    points: list[FloatArray], odometry: list[Pose], config: FrontendConfig,
-    noise: OdometryNoise | None = None, on_noise: Callable[[OdometryNoise], None] | None = None,
-) -> Iterator[Pose]:
-    """:class:`OnlineSlam` over a log's scans: scan ``k``'s increment uses ``points[:k + 1]`` and
-    ``odometry[:k + 1]`` only."""
-    slam = OnlineSlam(config, noise, on_noise)
-    for pts, odo in zip(points, odometry, strict=True):
-        yield slam.add(pts, odo)
 
 
 class LidarFrontend:

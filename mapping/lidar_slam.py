@@ -767,15 +767,14 @@ class _Sweep:
     edges: dict[int, list[Edge]] = field(default_factory=dict)  # each node's edges of its last turn
     # each node's visits and their nodes' poses in its frame at its last match
     seen: dict[int, tuple[tuple[tuple[int, ...], ...], FloatArray]] = field(default_factory=dict)
-    unsolved: int = 0  # nodes matched, or whose edges were dropped, since the last optimisation
-    fresh: set[int] = field(default_factory=set)  # nodes matched since the last optimisation
+    # nodes matched, or whose edges were dropped, since the last optimisation
+    fresh: set[int] = field(default_factory=set)
     refused: int = 0  # optimisations refused for straining the chain
     matched: int = 0  # nodes matched in all (a count for benches and tests)
     submaps: dict[tuple[int, ...], Submap] = field(default_factory=dict)  # valid while poses stay
     at: int = -1  # ``reshaped`` the submaps were built at
     optimised: int = 0  # the sweep's optimisations (a count for benches and tests)
-    changes: int = 0  # nodes whose visits were looked at anew, in all
-    changes_at: int = 0  # ``changes`` when this sweep began
+    changed: bool = False  # a node's visits were looked at anew in this sweep
     idle: tuple[int, int] | None = None  # (nodes, ``reshaped``) after a sweep that changed nothing
 
     def all_edges(self) -> list[Edge]:
@@ -1046,10 +1045,8 @@ class LidarSlam:
                              kernel=cfg.loop_kernel)
             # Verification by the graph: a loop the chain of matches can only meet by straining
             # some of its links far beyond their noise is an alias (a corridor's other door), not
-            # a loop. The chain's links are the edges that are not loops' (each from the node
-            # before, or from the node the scan before was redundant with).
-            strain = float(_chi2(poses, [e for e in self.edges if not e.robust]).max(initial=0.0))
-            if strain > cfg.loop_max_chi2 or float(_chi2(poses, [edge])[0]) > cfg.loop_max_chi2:
+            # a loop.
+            if self._strain(poses) > cfg.loop_max_chi2 or float(_chi2(poses, [edge])[0]) > cfg.loop_max_chi2:
                 self.rejected.append((j, k))
                 return
             self.poses = poses
@@ -1058,6 +1055,12 @@ class LidarSlam:
         self.loops.append((j, k))
         self.settled += settled
         self._last_loop = (here, j)
+
+    def _strain(self, poses: FloatArray) -> float:
+        """The largest chi-square of a chain link at ``poses``: the chain's links are the edges
+        that are not loops' or the refinement's (each from the node before, or from the node the
+        scan before was redundant with)."""
+        return float(_chi2(poses, [e for e in self.edges if not e.robust]).max(initial=0.0))
 
     def refine(self) -> None:
         """One offline pass over the whole trajectory (the log in hand): every node is matched
@@ -1128,22 +1131,21 @@ class LidarSlam:
                 if key:
                     sw.edges[k] = self._revisit_edges(k, sw.submaps, visits, _SWEEP_SUBMAPS)
                     sw.matched += 1
-                    sw.unsolved += 1
                     sw.fresh.add(k)
                 elif sw.edges.pop(k, None):  # its visits are gone (the graph moved): so are its edges
-                    sw.unsolved += 1
-                sw.changes += 1
+                    sw.fresh.add(k)
+                sw.changed = True
             sw.next += 1
             if sw.next >= n:  # the sweep is round
                 sw.next = 0
                 break
-        if sw.unsolved and (sw.next == 0 or sw.unsolved >= cfg.refine_online_batch):
+        if sw.fresh and (sw.next == 0 or len(sw.fresh) >= cfg.refine_online_batch):
             self._solve_sweep()
         if sw.next == 0:  # a sweep that changed nothing: none until a node comes or a loop moves them
-            if sw.changes == sw.changes_at:
+            if not sw.changed:
                 sw.idle = (n, self.reshaped)
                 sw.submaps.clear()
-            sw.changes_at = sw.changes
+            sw.changed = False
 
     def _relative(self, k: int, ids: NDArray[np.int64]) -> FloatArray:
         """Nodes ``ids``' poses in node ``k``'s frame, ``(len(ids), 3)``."""
@@ -1160,13 +1162,12 @@ class LidarSlam:
         chain's matches are the graph's backbone, and a loop's own check
         (:meth:`_close_loop`) would then blame every later loop for that strain."""
         cfg, sw = self.config, self._sweep
-        sw.unsolved = 0
         fresh, sw.fresh = sw.fresh, set()
         edges = sw.all_edges()
         if not edges:
             return
         moved, kept = self._optimise_with(edges)
-        if float(_chi2(moved, [e for e in self.edges if not e.robust]).max(initial=0.0)) > cfg.loop_max_chi2:
+        if self._strain(moved) > cfg.loop_max_chi2:
             for k in fresh:
                 sw.edges.pop(k, None)
             sw.refused += 1
@@ -1176,9 +1177,7 @@ class LidarSlam:
             for k, es in sw.edges.items():
                 sw.edges[k] = [e for e in es if id(e) in ids]
         self.poses = moved
-        self.reshaped += 1
-        sw.at = self.reshaped
-        sw.submaps.clear()
+        self.reshaped += 1  # (the next turn of the sweep builds its submaps anew)
         sw.optimised += 1
 
     def _revisit_visits(self, k: int) -> list[tuple[int, tuple[int, ...]]]:
@@ -1201,11 +1200,11 @@ class LidarSlam:
 
     def _revisit_edges(self, k: int, submaps: dict[tuple[int, ...], Submap],
                        visits: list[tuple[int, tuple[int, ...]]] | None = None,
-                       cache: int = 0) -> list[Edge]:
+                       cache: int = _REFINE_SUBMAPS) -> list[Edge]:
         """Node ``k`` matched, from its current pose, against each other visit of its place
         (``visits``, by default :meth:`_revisit_visits`): a robust edge from each visit's nearest
         node that the match lands on. ``submaps`` is an LRU cache of the visits' submaps, valid
-        while the poses stay put, of at most ``cache`` (by default :data:`_REFINE_SUBMAPS`)."""
+        while the poses stay put, of at most ``cache`` submaps."""
         cfg = self.config
         x = self.poses
         edges: list[Edge] = []
@@ -1213,7 +1212,7 @@ class LidarSlam:
             sub = submaps.pop(ids, None)
             if sub is None:
                 sub = Submap.build([self._cloud(i) for i in ids], cfg.voxel)
-                if len(submaps) >= (cache or _REFINE_SUBMAPS):
+                if len(submaps) >= cache:
                     del submaps[next(iter(submaps))]  # the least recently used
             submaps[ids] = sub
             m = match_scan(self._nodes[k].points, sub, x[k], cfg, inlier_distance=cfg.loop_inlier_distance)

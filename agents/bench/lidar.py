@@ -244,7 +244,7 @@ def run_log(
     t0 = time.perf_counter()
     filter_overrides, extract_cfg, frontend_cfg = mr.split_profile(dict(settings or {}))
     cal = mr.calibrate_log(scans, frontend_cfg)
-    noise = [cal.noise]  # the online SLAM's last measure of the wheels (online_increments)
+    noise = [cal.noise]  # the online SLAM's last measure of the wheels (mapping.lidar_frontend.OnlineSlam)
     inputs = list(mr.carmen_inputs(scans, max_range=cap, truth=truth, extract=extract_cfg,
                                    frontend=frontend_cfg, calibration=cal, on_noise=noise.append))
     extract_s = time.perf_counter() - t0
