@@ -570,6 +570,23 @@ def wheel_increments(scans: Sequence[Any]) -> list[Pose]:
     return increments([s.odom for s in scans])
 
 
+def motion_filtered(
+    scans: Sequence[Any], truth: Sequence[Pose] | None, frontend: Any
+) -> tuple[list[Any], list[Pose] | None, int]:
+    """A real log's scans as the offline paths map them: a dense log's thinned by the motion
+    filter, any other's all (``frontend``'s ``min_travel``, ``min_turn`` and ``dense_share``:
+    :class:`mapping.lidar_frontend.FrontendConfig`), with their true poses when ``truth`` gives
+    them. Returns ``(scans, truth, left out)``."""
+    from mapping.lidar_frontend import dense_share, motion_filter
+
+    odometry = [s.odom for s in scans]
+    if dense_share(odometry, frontend.min_travel, frontend.min_turn) <= frontend.dense_share:
+        return list(scans), None if truth is None else list(truth), 0
+    kept = motion_filter(odometry, frontend.min_travel, frontend.min_turn)
+    kept_truth = None if truth is None else [truth[k] for k in kept]
+    return [scans[k] for k in kept], kept_truth, len(scans) - len(kept)
+
+
 def carmen_inputs(
     log: str | Sequence[Any],
     max_range: float | None = None,
@@ -693,11 +710,10 @@ class LiveInputs:
     calibrates on what came when the stream ends before that.
 
     **Motion filter** (``min_travel`` metres, ``min_turn`` radians; 0 and 0 take every scan): a
-    scan whose wheels' pose is less than ``min_travel`` from, and turned less than ``min_turn``
-    from, the last scan taken is dropped before anything (``skipped`` counts them), as
-    Cartographer's motion filter and GMapping's ``linearUpdate`` / ``angularUpdate`` do. A live
-    lidar sends 10-40 scans a second, a scan every few centimetres; the logs the SLAM is tuned
-    on have one every 0.5-1 m, and every scan kept grows its pose graph.
+    scan whose wheels are within those limits of the last scan taken
+    (:func:`mapping.lidar_frontend.within_motion_limits`) is dropped before anything
+    (``skipped`` counts them); a live lidar's stream is always dense
+    (:class:`mapping.lidar_frontend.FrontendConfig`'s ``min_travel`` says why).
 
     Raises ``ValueError`` for a front end that needs the whole log first: a SLAM that is not
     ``online`` (``lidar-slam`` smooths over every scan before its first increment), or
@@ -743,12 +759,12 @@ class LiveInputs:
         return None if self._slam is None else self._slam.slam
 
     def add(self, ls: Any) -> list[ScanInput]:
-        if self._taken is not None and (self.min_travel > 0.0 or self.min_turn > 0.0):
-            step = self._taken.between(ls.odom)
-            turn = abs(math.remainder(step.theta, 2.0 * math.pi))
-            if math.hypot(step.x, step.y) < self.min_travel and turn < self.min_turn:
-                self.skipped += 1
-                return []
+        from mapping.lidar_frontend import within_motion_limits
+
+        if self._taken is not None and within_motion_limits(self._taken.between(ls.odom), self.min_travel,
+                                                            self.min_turn):
+            self.skipped += 1
+            return []
         self._taken = ls.odom
         if self.calibration is None:
             self._held.append(ls)

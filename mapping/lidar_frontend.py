@@ -31,8 +31,9 @@ Choices
 
 from __future__ import annotations
 
+import itertools
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -53,7 +54,9 @@ __all__ = [
     "YawEstimate",
     "calibrated_slam",
     "calibration_pairs",
+    "dense_share",
     "laser_yaw",
+    "motion_filter",
     "odometry_noise",
     "odometry_overrides",
     "run_slam",
@@ -61,6 +64,7 @@ __all__ = [
     "scan_points",
     "scan_polyline",
     "slam_increments",
+    "within_motion_limits",
 ]
 
 
@@ -126,6 +130,20 @@ class FrontendConfig:
         moves with it before the next scan is mapped
         (:func:`mapping.lidar_slam.graph_warp`, each vertex under its 8 nearest nodes' moves;
         :func:`agents.mapping_run.feed`) (default False; on in ``lidar-slam-online``).
+    min_travel, min_turn : float
+        The **motion filter**'s limits (metres, radians; 0.5 m and 10 degrees): a scan whose
+        wheels have moved less than ``min_travel`` and turned less than ``min_turn`` since the
+        last scan kept is left out (:func:`motion_filter`), as Cartographer's motion filter and
+        GMapping's ``linearUpdate`` / ``angularUpdate`` do. The SLAM's settings were tuned on
+        logs with a scan every 0.5-1 m; a lidar sends 10-40 scans a second, one every few
+        centimetres, and every scan mapped grows the pose graph and costs its time.
+    dense_share : float
+        A log is *dense* when more than this share of its consecutive scans lie within the
+        motion filter's limits of each other (:func:`dense_share`; default 0.5): the offline
+        paths (``wiremap map``, ``bench lidar``, ``run --carmen``) thin a dense log by the
+        motion filter and map every scan of any other (the shared CARMEN logs: 0-4 % of pairs
+        within the limits; a 10 Hz lidar at walking pace: over 90 %). 0 thins every log, 1
+        none. A live robot filters always (its ``--min-travel``, ``--min-turn``).
     """
 
     point_range: float = 20.0
@@ -149,6 +167,9 @@ class FrontendConfig:
     yaw_min_inliers: float = 0.5
     calibration_scans: int = 0
     laser_yaw: float = math.nan
+    min_travel: float = 0.5
+    min_turn: float = math.radians(10.0)
+    dense_share: float = 0.5
 
     def __post_init__(self) -> None:
         if not (self.point_range > self.min_range >= 0):
@@ -163,6 +184,8 @@ class FrontendConfig:
                 and self.yaw_sigmas >= 0 and 0 < self.yaw_min_inliers <= 1):
             raise ValueError("need yaw_min_step > 0, yaw_max_pairs >= yaw_min_pairs >= 2, "
                              "yaw_sigmas >= 0 and 0 < yaw_min_inliers <= 1")
+        if not (self.min_travel >= 0 and self.min_turn >= 0 and 0 <= self.dense_share <= 1):
+            raise ValueError("need min_travel >= 0, min_turn >= 0 and 0 <= dense_share <= 1")
 
 
 def odometry_overrides(trans_per_m: float = 0.05, rot_per_m: float = math.radians(2.0)) -> dict[str, float]:
@@ -188,6 +211,36 @@ SCAN_ODOMETRY_MATCH = PointMatchConfig(
     enabled=True, max_iterations=15, anneal_iterations=5, gate_end=0.3, kernel=0.05, sigma=0.03,
     information_scale=0.05, end_margin=0.3, max_rmse=0.08, min_inliers=30, min_inlier_fraction=0.3,
 )
+
+
+def within_motion_limits(step: Pose, min_travel: float, min_turn: float) -> bool:
+    """Whether the wheels' ``step`` since the last scan kept is too small for the motion filter
+    to keep this one: moved less than ``min_travel`` and turned less than ``min_turn``."""
+    turn = abs(math.remainder(step.theta, 2.0 * math.pi))
+    return math.hypot(step.x, step.y) < min_travel and turn < min_turn
+
+
+def motion_filter(odometry: Sequence[Pose], min_travel: float, min_turn: float) -> list[int]:
+    """Indices of the scans the motion filter keeps, given the wheels' pose at each: the first,
+    then each scan not :func:`within_motion_limits` of the last one kept."""
+    kept: list[int] = []
+    last: Pose | None = None
+    for k, pose in enumerate(odometry):
+        if last is not None and within_motion_limits(last.between(pose), min_travel, min_turn):
+            continue
+        kept.append(k)
+        last = pose
+    return kept
+
+
+def dense_share(odometry: Sequence[Pose], min_travel: float, min_turn: float) -> float:
+    """The share of consecutive scans (the wheels' pose at each) within the motion filter's
+    limits of each other; 0 for fewer than two scans."""
+    if len(odometry) < 2:
+        return 0.0
+    pairs = itertools.pairwise(odometry)
+    close = sum(within_motion_limits(a.between(b), min_travel, min_turn) for a, b in pairs)
+    return close / (len(odometry) - 1)
 
 
 def scan_polyline(points: FloatArray, link_gap: float = 0.3) -> FloatArray:

@@ -13,7 +13,7 @@ import time
 from agents import mapping_run as mr
 from agents.bench.lidar import pose_array
 from agents.bench.live import shift
-from agents.fleet.live_lidar import CALIBRATION_SCANS, MIN_TRAVEL, MIN_TURN, live_filter
+from agents.fleet.live_lidar import CALIBRATION_SCANS, live_filter
 from mapping.lidar_metrics import map_precision, scan_endpoints
 from mapping.se2 import Pose
 from tests.live_ate import live_log
@@ -23,8 +23,8 @@ def main() -> None:
     path, passes = sys.argv[1], int(sys.argv[2])
     scans, truth, fo, extract, frontend = live_log(path, CALIBRATION_SCANS)
     filt, cap = live_filter(scans[0], 5, 0.2, 1, fo)  # the live robot's, at its defaults
-    live = mr.LiveInputs(max_range=cap, extract=extract, frontend=frontend, min_travel=MIN_TRAVEL,
-                         min_turn=MIN_TURN)
+    live = mr.LiveInputs(max_range=cap, extract=extract, frontend=frontend, min_travel=frontend.min_travel,
+                         min_turn=frontend.min_turn)
     endpoints = scan_endpoints(pose_array(truth), [s.ranges for s in scans], [s.angles for s in scans],
                                max_range=cap)
     kept: list[mr.ScanInput] = []

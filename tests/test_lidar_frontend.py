@@ -115,3 +115,37 @@ def test_scan_increment_recovers_the_turn_the_wheels_got_wrong() -> None:
     assert math.hypot(err.x, err.y) < 0.01 and abs(err.theta) < math.radians(0.2)
     # Nothing to match: the wheels' increment as it was.
     assert scan_increment(p0[:2], p1, wheels, cfg) == (wheels, False)
+
+
+# ---------------------------------------------------------------- the motion filter
+def test_the_motion_filter_keeps_a_scan_once_the_wheels_moved_or_turned_enough() -> None:
+    from mapping.lidar_frontend import motion_filter, within_motion_limits
+
+    # 0.1 m steps straight on, then a turn on the spot in 4-degree steps, then a step back
+    poses = [Pose(0.1 * k, 0.0, 0.0) for k in range(12)]
+    poses += [Pose(1.1, 0.0, math.radians(4.0 * k)) for k in range(1, 6)]
+    poses += [Pose(1.0, 0.0, math.radians(20.0))]
+    kept = motion_filter(poses, 0.5, math.radians(10.0))
+    # the first; 0.5 m on (index 5; 0.1 m steps reach 0.5 m at the fifth); again (10); turned 12
+    # degrees since index 10 (index 14: 8 degrees at 13); 20 degrees at 16 is only 8 since 14
+    assert kept == [0, 5, 10, 14]
+    assert within_motion_limits(Pose(0.3, 0.3, 0.0), 0.5, 0.2)  # 0.42 m
+    assert not within_motion_limits(Pose(0.4, 0.4, 0.0), 0.5, 0.2)  # 0.57 m
+    assert not within_motion_limits(Pose(0.0, 0.0, -0.25), 0.5, 0.2)  # turned the other way
+    assert within_motion_limits(Pose(0.0, 0.0, 2 * math.pi - 0.1), 0.5, 0.2)  # a turn of -0.1
+    assert motion_filter(poses, 0.0, 0.0) == list(range(len(poses)))  # 0 and 0: every scan
+    assert motion_filter([], 0.5, 0.2) == []
+
+
+def test_a_log_is_dense_when_most_of_its_scans_lie_within_the_limits_of_the_last() -> None:
+    from mapping.lidar_frontend import dense_share
+
+    lidar = [Pose(0.05 * k, 0.0, 0.0) for k in range(101)]  # 10 Hz at 0.5 m/s
+    carmen = [Pose(0.8 * k, 0.0, 0.3 * (k % 2)) for k in range(101)]  # a scan every 0.8 m
+    assert dense_share(lidar, 0.5, math.radians(10.0)) == 1.0
+    assert dense_share(carmen, 0.5, math.radians(10.0)) == 0.0
+    assert dense_share(lidar[:1], 0.5, 0.2) == 0.0
+    with pytest.raises(ValueError, match="dense_share"):
+        FrontendConfig(dense_share=1.5)
+    with pytest.raises(ValueError, match="min_travel"):
+        FrontendConfig(min_travel=-0.1)

@@ -56,8 +56,9 @@ def test_map_world_file_with_lidar(tmp_path):
     assert report["metrics"]["wall_precision"] > 0.8
 
 
-def _write_log(path: Path, steps: int, clutter: bool) -> list:
-    """A CARMEN log of a lidar driving through the hall world, with people-like clutter."""
+def _write_log(path: Path, steps: int, clutter: bool, dt: float = 0.5) -> list:
+    """A CARMEN log of a lidar driving through the hall world at 0.5 m/s, a scan every ``dt``
+    seconds, with people-like clutter."""
     from agents.files.carmen import LaserScan, write_carmen
     from agents.mapping_run import seeds_for
     from agents.sim.lidar import LidarConfig, raycast
@@ -71,7 +72,7 @@ def _write_log(path: Path, steps: int, clutter: bool) -> list:
     cfg = LidarConfig(beams=181, fov=math.pi, max_range=10.0, sigma=0.01)
     scans, odom = [], None
     rng = np.random.default_rng(9)
-    for st in drive(route, rng=rngs["drive"])[:steps]:
+    for st in drive(route, dt=dt, rng=rngs["drive"])[:steps]:
         odom = st.true_pose if odom is None else odom.compose(st.odometry)
         r = raycast(world.truth.segments(), st.true_pose, cfg, rngs["sensor"])
         if clutter:  # a few legs and glass dropouts: short returns and missing returns
@@ -90,18 +91,49 @@ def test_map_carmen_log_with_clutter(tmp_path):
     out = tmp_path / "carmen"
     assert main(["map", "--carmen", str(log), "--out", str(out), "--quiet"]) == 0
     wf, rows, report, _ = read_outputs(out)
-    assert len(rows) == 30
-    # t is the log's timestamp of each scan
-    assert [float(r[0]) for r in rows] == pytest.approx([s.t for s in scans], abs=1e-6)
+    # a scan every 0.25 m: a dense log, thinned by the motion filter to one every 0.5 m
+    assert report["scans_in_log"] == 30 and len(rows) == 30 - report["scans_left_out"] >= 12
+    # t is the log's timestamp of each scan mapped
+    kept = [s.t for s in scans if any(abs(s.t - float(r[0])) < 1e-6 for r in rows)]
+    assert len(kept) == len(rows) and [float(r[0]) for r in rows] == pytest.approx(kept, abs=1e-6)
     assert report["metrics"] is None and report["sensor"] == "lidar"
     assert 0 < wf.n_vertices <= 5000  # the particle's vertex budget
     assert all(np.isfinite(float(v)) for r in rows for v in r)
+
+
+def test_map_thins_a_dense_log_by_the_motion_filter(tmp_path, capsys):
+    from agents.files.carmen import read_carmen
+    from mapping.lidar_frontend import FrontendConfig, motion_filter
+
+    log = tmp_path / "dense.log"
+    _write_log(log, 80, clutter=False, dt=0.1)  # a scan every 5 cm: a 10 Hz lidar at walking pace
+    kept = motion_filter([s.odom for s in read_carmen(log)], FrontendConfig().min_travel, FrontendConfig().min_turn)
+    assert 5 < len(kept) < 40
+    assert main(["map", "--carmen", str(log), "--out", str(tmp_path / "a")]) == 0
+    assert "a dense log (80 scans): %d mapped" % len(kept) in capsys.readouterr().err
+    _, rows, report, _ = read_outputs(tmp_path / "a")
+    assert len(rows) == len(kept) and report["scans_in_log"] == 80 and report["scans_left_out"] == 80 - len(kept)
+    # every scan, when asked; the motion filter's limits are settings too
+    assert main(["map", "--carmen", str(log), "--out", str(tmp_path / "b"), "--quiet",
+                 "--set", "frontend.dense_share=1"]) == 0
+    _, rows, report, _ = read_outputs(tmp_path / "b")
+    assert len(rows) == 80 and report["scans_left_out"] == 0
+    assert report["lidar_settings"] == {"frontend.dense_share": "1"}
+    assert main(["map", "--carmen", str(log), "--out", str(tmp_path / "c"), "--quiet",
+                 "--set", "frontend.min_travel=0.25", "--steps", "40"]) == 0
+    _, rows, report, _ = read_outputs(tmp_path / "c")  # the log's first 40 scans, then the filter
+    assert report["scans_in_log"] == 40 and len(rows) == 40 - report["scans_left_out"] > len(kept) // 2
 
 
 @pytest.mark.parametrize(
     "args, needle",
     [
         (["--world", "no-such-world"], "no-such-world"),
+        (["--world", "paper-small", "--set", "slam.enabled=false"], "a real lidar's setting"),
+        (["--carmen", str(Path(__file__).parent / "data" / "freiburg-101-head.log.gz"), "--set",
+          "frontend.dense_share=2"], "dense_share"),
+        (["--carmen", str(Path(__file__).parent / "data" / "freiburg-101-head.log.gz"), "--set",
+          "frontend.no_such_key=2"], "no_such_key"),
         (["--carmen", "/nonexistent/log.txt"], "no such file"),
         (["--world", "paper-small", "--particles", "0"], "particles"),
         (["--world", "paper-small", "--steps", "0"], "steps"),

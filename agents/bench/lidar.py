@@ -2,7 +2,9 @@
 
 For each log (``LOG ...``, or every ``*.log`` / ``*.log.gz`` in ``--data DIR``) the laser scans
 are read as they are (:func:`agents.files.carmen.read_carmen_log`, unreadable lines skipped and
-counted), turned into corner scans once (split-and-merge, :func:`agents.mapping_run.carmen_inputs`)
+counted), a dense log's thinned by the motion filter (:func:`agents.mapping_run.motion_filtered`,
+``scans_left_out``; none of the shared logs is dense; ``scans`` counts the scans mapped and
+scored), turned into corner scans once (split-and-merge, :func:`agents.mapping_run.carmen_inputs`)
 and fed to the particle filter (and with ``--baseline`` to the one-particle mapper on the same
 scans). The filter starts at the true first pose. The truth is the log's ``NAME.truth.tsv`` or
 its ``TRUEPOS`` track (:func:`agents.files.carmen.scan_truth`); a log without either is an error.
@@ -241,8 +243,11 @@ def run_log(
     scans = log.scans[:steps] if steps is not None else log.scans
     truth = truth[: len(scans)]
     cap = min(float(scans[0].max_range), max_range)
-    t0 = time.perf_counter()
     filter_overrides, extract_cfg, frontend_cfg = mr.split_profile(dict(settings or {}))
+    scans, kept_truth, left_out = mr.motion_filtered(scans, truth, frontend_cfg)  # a dense log thinned
+    assert kept_truth is not None
+    truth = kept_truth
+    t0 = time.perf_counter()
     cal = mr.calibrate_log(scans, frontend_cfg)
     noise = [cal.noise]  # the online SLAM's last measure of the wheels (mapping.lidar_frontend.OnlineSlam)
     inputs = list(mr.carmen_inputs(scans, max_range=cap, truth=truth, extract=extract_cfg,
@@ -288,6 +293,7 @@ def run_log(
         "odometry_ate_max_m": o_max,
         "odometry_rpe_1m_m": rpe(odom_xyt, true_xyt, RPE_DISTANCE),
         "skipped_lines": len(log.issues),
+        "scans_left_out": left_out,
         "particles": particles,
         "seed": seed,
         "max_range_m": cap,

@@ -88,7 +88,9 @@ def slam_over_log(path: str, settings: dict[str, Any],
     truth = scan_truth(log)
     if truth is None:
         raise UserError(f"{path}: no truth (NAME.truth.tsv or TRUEPOS lines)")
-    scans = log.scans
+    scans, kept_truth, _ = mr.motion_filtered(log.scans, truth, fcfg)  # a dense log thinned
+    assert kept_truth is not None
+    truth = kept_truth
     cal = mr.calibrate_log(scans, fcfg)
     st = truth[0] if start is None else Pose(*start)
     t0 = time.process_time()

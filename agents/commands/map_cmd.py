@@ -275,7 +275,7 @@ def _world_source(args: argparse.Namespace, cargs: ConfigArgs) -> _Source:
                    free=world.free_space, route_steps=whole)
 
 
-def _log_source(args: argparse.Namespace, cargs: ConfigArgs) -> _Source:
+def _log_source(args: argparse.Namespace, cargs: ConfigArgs, lidar: dict[str, Any]) -> _Source:
     """A CARMEN log (:func:`_real_source`)."""
     from agents.files.carmen import read_carmen_log, scan_truth
 
@@ -285,11 +285,11 @@ def _log_source(args: argparse.Namespace, cargs: ConfigArgs) -> _Source:
     if not log.scans:
         raise UserError(f"{args.carmen}: no laser scans in the log")
     source = {"input": "carmen", "carmen": str(args.carmen), "sensor": "lidar", "laser": log.laser}
-    return _real_source(args, cargs, log.scans, scan_truth(log), source, Path(args.carmen).name,
+    return _real_source(args, cargs, lidar, log.scans, scan_truth(log), source, Path(args.carmen).name,
                         {"skipped_lines": len(log.issues)})
 
 
-def _bag_source(args: argparse.Namespace, cargs: ConfigArgs) -> _Source:
+def _bag_source(args: argparse.Namespace, cargs: ConfigArgs, lidar: dict[str, Any]) -> _Source:
     """A ROS bag (:func:`_real_source`): its LaserScan topic, posed by its odometry."""
     from agents.files.rosbag import read_rosbag
 
@@ -329,7 +329,44 @@ def _bag_source(args: argparse.Namespace, cargs: ConfigArgs) -> _Source:
         "skipped_by_topic": bag.skipped,
         "unposed_scans": bag.unposed,
     }
-    return _real_source(args, cargs, bag.scans, bag.truth, source, Path(args.rosbag).name, extra)
+    return _real_source(args, cargs, lidar, bag.scans, bag.truth, source, Path(args.rosbag).name, extra)
+
+
+#: Setting groups of the real-lidar front end (``--params`` and ``--set`` with ``--carmen`` or
+#: ``--rosbag``): split-and-merge (:class:`mapping.extract.ExtractConfig`), the raw points
+#: (:class:`mapping.lidar_frontend.FrontendConfig`) and the lidar SLAM
+#: (:class:`mapping.lidar_slam.SlamConfig`), on top of ``--lidar-profile``'s.
+LIDAR_GROUPS = ("extract", "frontend", "slam")
+
+
+def _split_lidar(args: argparse.Namespace, cargs: ConfigArgs) -> tuple[ConfigArgs, dict[str, Any]]:
+    """``(the filter's --params and --set, the real-lidar front end's)``: the keys of
+    :data:`LIDAR_GROUPS` taken out (the file's, then ``--set``'s over them) and checked against
+    the profile; a bad one, or one for a simulated world, is a one-line :class:`UserError`."""
+    def ours(key: str) -> bool:
+        return key.partition(".")[0] in LIDAR_GROUPS
+
+    lidar = {k: v for k, v in cargs.file_values.items() if ours(k)}
+    lidar.update({k: v for k, v in cargs.set_values.items() if ours(k)})
+    rest = ConfigArgs(cargs.params, {k: v for k, v in cargs.file_values.items() if not ours(k)},
+                      {k: v for k, v in cargs.set_values.items() if not ours(k)})
+    if lidar and args.world is not None:
+        raise UserError(f"{next(iter(lidar))}: a real lidar's setting (--carmen, --rosbag), not a "
+                        f"simulated world's")
+    if lidar:
+        _lidar_configs(args, lidar)
+    return rest, lidar
+
+
+def _lidar_configs(args: argparse.Namespace, lidar: dict[str, Any]) -> tuple[dict[str, Any], Any, Any]:
+    """``--lidar-profile`` with ``lidar`` over it (:func:`agents.mapping_run.split_profile`)."""
+    from agents import mapping_run as mr
+    from mapping.config import ConfigError
+
+    try:
+        return mr.split_profile({**mr.lidar_profile(args.lidar_profile), **lidar})
+    except (ConfigError, ValueError) as exc:
+        raise UserError(f"--set: {exc}") from None
 
 
 def _show_issues(issues: list[str], what: str) -> None:
@@ -341,32 +378,45 @@ def _show_issues(issues: list[str], what: str) -> None:
 
 
 def _real_source(
-    args: argparse.Namespace, cargs: ConfigArgs, scans: list[Any], true_scans: list[Any] | None,
-    source: dict[str, Any], name: str, extra: dict[str, Any],
+    args: argparse.Namespace, cargs: ConfigArgs, lidar: dict[str, Any], scans: list[Any],
+    true_scans: list[Any] | None, source: dict[str, Any], name: str, extra: dict[str, Any],
 ) -> _Source:
     """Real scans (:class:`agents.files.carmen.LaserScan`) through the real-lidar profile
-    (odometry noise, point match, extractor) under the user's ``--params`` and ``--set``; the
-    filter starts at the true first pose when the scans have a truth."""
+    (odometry noise, point match, extractor) under the user's ``--params`` and ``--set`` (the
+    front end's own, ``lidar``, on the profile's); the filter starts at the true first pose when
+    the scans have a truth. A dense log is thinned by the motion filter first
+    (:func:`agents.mapping_run.motion_filtered`)."""
     from agents import mapping_run as mr
     from mapping.filter import WireframeFilter
 
     log_range = float(scans[0].max_range)
-    filter_overrides, extract_cfg, frontend_cfg = mr.split_profile(mr.lidar_profile(args.lidar_profile))
+    filter_overrides, extract_cfg, frontend_cfg = _lidar_configs(args, lidar)
     resolved = _filter_config(args, cargs, 0.2, min(log_range, 20.0), mr.scan_fov(scans[0].angles),
                               log_range, base=filter_overrides)
     cfg = resolved.config
-    cal = mr.calibrate_log(scans if args.steps is None else scans[: args.steps], frontend_cfg)
-    extra = {**extra, "lidar_profile": args.lidar_profile, **mr.yaw_report(cal),
+    if args.steps is not None:  # the log's first N scans, then the motion filter
+        scans = scans[: args.steps]
+        true_scans = None if true_scans is None else true_scans[: args.steps]
+    in_log = len(scans)
+    scans, true_scans, left_out = mr.motion_filtered(scans, true_scans, frontend_cfg)
+    if left_out and not args.quiet:
+        print(f"wiremap: a dense log ({in_log} scans): {len(scans)} mapped, one every "
+              f"{frontend_cfg.min_travel:g} m or {math.degrees(frontend_cfg.min_turn):g} degrees of the "
+              f"wheels (frontend.min_travel, min_turn; frontend.dense_share=1 maps every scan)",
+              file=sys.stderr)
+    cal = mr.calibrate_log(scans, frontend_cfg)
+    extra = {**extra, "scans_in_log": in_log, "scans_left_out": left_out,
+             "lidar_profile": args.lidar_profile, "lidar_settings": dict(lidar), **mr.yaw_report(cal),
              **mr.odometry_report(cal.noise, frontend_cfg.slam)}
 
     def measured(noise: Any) -> None:  # the online SLAM measured the wheels again: report that
         extra.update(mr.odometry_report(noise, frontend_cfg.slam))
 
-    inputs = mr.carmen_inputs(scans, max_range=cfg.max_range, steps=args.steps, truth=true_scans,
+    inputs = mr.carmen_inputs(scans, max_range=cfg.max_range, truth=true_scans,
                               extract=extract_cfg, frontend=frontend_cfg, calibration=cal, on_noise=measured)
     start = true_scans[0] if true_scans is not None else scans[0].odom
     filt = WireframeFilter(cfg, mr.seeds_for(args.seed)["filter"], initial_pose=start)
-    total = len(scans) if args.steps is None else min(len(scans), args.steps)
+    total = len(scans)
     return _Source(filt, inputs, total, source, resolved, name, scans=scans, true_scans=true_scans,
                    max_range=cfg.max_range, extra=extra)
 
@@ -468,15 +518,15 @@ def _rate(run: _Drive) -> float:
 
 def run(args: argparse.Namespace) -> int:
     _check(args)
-    cargs = ConfigArgs.from_args(args)
+    cargs, lidar = _split_lidar(args, ConfigArgs.from_args(args))
     _filter_config(args, cargs, 0.2, 8.0)  # the keys and values, before any work
     out = Path(args.out)
     if args.world is not None:
         src = _world_source(args, cargs)
     elif args.carmen is not None:
-        src = _log_source(args, cargs)
+        src = _log_source(args, cargs, lidar)
     else:
-        src = _bag_source(args, cargs)
+        src = _bag_source(args, cargs, lidar)
     with _CtrlC() as ctrl_c:  # from the first scan until everything is written
         done = _drive(src, args.quiet, ctrl_c)
         _write_results(args, src, done, out)

@@ -38,20 +38,35 @@ ENDPOINT_TOL = 0.2
 SAMPLE_STEP = 0.05
 
 
-def read_log(path: str | os.PathLike[str], bag: dict[str, Any] | None = None) -> list[Any]:
+def read_log(
+    path: str | os.PathLike[str], bag: dict[str, Any] | None = None, profile: str | None = None
+) -> list[Any]:
     """The log's laser scans (:func:`agents.files.carmen.read_carmen_log`; unreadable lines
     skipped); with ``bag`` (its topics: ``scan_topic``, ``odom_topic``, ``truth_topic``) the ROS
     bag's (:func:`agents.files.rosbag.read_rosbag`; unreadable messages skipped; with a truth
-    topic, the scans without a true pose left out, as ``wiremap run`` reads the bag)."""
+    topic, the scans without a true pose left out, as ``wiremap run`` reads the bag). With a
+    real-lidar ``profile``, a dense log's thinned by its motion filter, as ``wiremap run``'s
+    service thins it (:func:`thinned`)."""
     if bag is not None:
         from agents.files.rosbag import read_rosbag
 
         rb = read_rosbag(path, scan_topic=bag.get("scan_topic"), odom_topic=bag.get("odom_topic"),
                          truth_topic=bag.get("truth_topic"))
-        return list(rb.scans)
-    from agents.files.carmen import read_carmen_log
+        scans = list(rb.scans)
+    else:
+        from agents.files.carmen import read_carmen_log
 
-    return list(read_carmen_log(path).scans)
+        scans = list(read_carmen_log(path).scans)
+    return scans if profile is None else thinned(scans, None, profile)[0]
+
+
+def thinned(scans: list[Any], truth: list[Pose] | None, profile: str) -> tuple[list[Any], list[Pose] | None]:
+    """A fleet's log as its robots map it: a dense log's scans (and true poses) thinned by the
+    motion filter of the real-lidar ``profile`` (:func:`agents.mapping_run.motion_filtered`)."""
+    from agents import mapping_run as mr
+
+    kept, kept_truth, _ = mr.motion_filtered(scans, truth, mr.split_profile(mr.lidar_profile(profile))[2])
+    return kept, kept_truth
 
 
 def split(n_scans: int, robots: int, overlap: float = 0.3) -> list[tuple[int, int]]:
@@ -75,7 +90,7 @@ def robot_steps(opts: Any) -> Iterator[Any]:
     from agents import mapping_run as mr
     from mapping.filter import WireframeFilter
 
-    scans = read_log(opts.carmen, opts.extra.get("rosbag"))
+    scans = read_log(opts.carmen, opts.extra.get("rosbag"), opts.lidar_profile)
     i0, i1 = opts.scans if opts.scans is not None else (0, len(scans))
     part = scans[i0:i1]
     if not part:

@@ -39,8 +39,11 @@ What is made of them (choices)
   not listened for on ``/tf_static``; default the identity (the laser at the base's origin).
 * **Time**: a scan's time is seconds since the first scan that was posed (the robot's ``t``).
 * **Motion filter**: the mapper takes a posed scan only once the wheels have moved
-  ``MIN_TRAVEL`` or turned ``MIN_TURN`` since the last scan it took (``still`` counts the
-  others; :class:`agents.mapping_run.LiveInputs`).
+  ``--min-travel`` or turned ``--min-turn`` since the last scan it took (default the profile's
+  ``frontend.min_travel`` and ``min_turn``, 0.5 m and 10 degrees; ``still`` counts the others;
+  :class:`agents.mapping_run.LiveInputs`). The lidar SLAM's settings were tuned on logs with a
+  scan every 0.5-1 m; a live lidar sends one every few centimetres, and every scan mapped grows
+  the SLAM's pose graph.
 * **Backlog**: at most ``max_backlog`` posed scans wait for the mapper; beyond, the oldest is
   dropped (``behind``): a mapper that cannot keep up maps the newest scans rather than falling
   further behind.
@@ -87,12 +90,6 @@ RESET_AFTER = 20
 """Messages of one stream refused in a row for their stamp (before the newest) after which that
 stream starts again from the next one: a robot whose clock went back, or one message stamped in
 the future, costs at most this many messages instead of stopping the mapping for good."""
-MIN_TRAVEL = 0.5
-MIN_TURN = math.radians(10.0)
-"""The live mapper's motion filter (``--min-travel``, ``--min-turn``): a scan is mapped once the
-wheels have moved 0.5 m or turned 10 degrees since the last one mapped. The lidar SLAM's settings
-were tuned on logs with a scan every 0.5-1 m (median step 0.45-1.05 m); a live lidar sends one
-every few centimetres, and every scan mapped grows the SLAM's pose graph."""
 
 
 @dataclass
@@ -381,8 +378,8 @@ def live_steps(opts: Any, source: LiveLidar, stop: threading.Event) -> Iterator[
 
     settings, extract, frontend = live_profile(opts)
     inputs = mr.LiveInputs(max_range=MAX_RANGE, extract=extract, frontend=frontend,
-                           min_travel=float(opts.extra.get("min_travel", MIN_TRAVEL)),
-                           min_turn=float(opts.extra.get("min_turn", MIN_TURN)))
+                           min_travel=float(opts.extra.get("min_travel", frontend.min_travel)),
+                           min_turn=float(opts.extra.get("min_turn", frontend.min_turn)))
     filt: WireframeFilter | None = None
     k = 0
     while not stop.is_set():

@@ -95,7 +95,10 @@ class CarmenWorld:
 
 def carmen_world(args: argparse.Namespace) -> CarmenWorld:
     """The log of ``args.carmen``, or the ROS bag there when ``args.bag`` gives its topics (the
-    topics chosen are written back into ``args.bag``)."""
+    topics chosen are written back into ``args.bag``); a dense one thinned as its robots thin it
+    (:func:`agents.fleet.carmen_fleet.thinned`)."""
+    from agents.fleet.carmen_fleet import thinned
+
     if getattr(args, "bag", None) is not None:
         from agents.files.rosbag import read_rosbag
 
@@ -107,7 +110,8 @@ def carmen_world(args: argparse.Namespace) -> CarmenWorld:
         # Odometry topics, and a robot would not know which is its odometry)
         args.bag.update(scan_topic=bag.scan_topic, odom_topic=bag.odometry)
         name = Path(str(args.carmen).rstrip("/")).name.split(".")[0]
-        return CarmenWorld(name, str(args.carmen), list(bag.scans), bag.truth, "rosbag")
+        return CarmenWorld(name, str(args.carmen), *thinned(list(bag.scans), bag.truth, args.lidar_profile),
+                           "rosbag")
     from agents.files.carmen import read_carmen_log, scan_truth
 
     log = read_carmen_log(args.carmen)
@@ -118,7 +122,7 @@ def carmen_world(args: argparse.Namespace) -> CarmenWorld:
     if truth is not None and len(truth) != len(scans):
         truth = truth[: len(scans)] if len(truth) > len(scans) else None
     name = Path(args.carmen).name.split(".")[0]
-    return CarmenWorld(name, str(args.carmen), scans, truth)
+    return CarmenWorld(name, str(args.carmen), *thinned(scans, truth, args.lidar_profile))
 
 
 def prepare_carmen(
