@@ -107,12 +107,14 @@ def test_map_thins_a_dense_log_by_the_motion_filter(tmp_path, capsys):
 
     log = tmp_path / "dense.log"
     _write_log(log, 80, clutter=False, dt=0.1)  # a scan every 5 cm: a 10 Hz lidar at walking pace
-    kept = motion_filter([s.odom for s in read_carmen(log)], FrontendConfig().min_travel, FrontendConfig().min_turn)
+    limits = FrontendConfig()
+    kept = motion_filter([s.odom for s in read_carmen(log)], limits.min_travel, limits.min_turn)
     assert 5 < len(kept) < 40
     assert main(["map", "--carmen", str(log), "--out", str(tmp_path / "a")]) == 0
-    assert "a dense log (80 scans): %d mapped" % len(kept) in capsys.readouterr().err
+    assert f"a dense log (80 scans): {len(kept)} mapped" in capsys.readouterr().err
     _, rows, report, _ = read_outputs(tmp_path / "a")
-    assert len(rows) == len(kept) and report["scans_in_log"] == 80 and report["scans_left_out"] == 80 - len(kept)
+    assert len(rows) == len(kept) and report["scans_in_log"] == 80
+    assert report["scans_left_out"] == 80 - len(kept)
     # every scan, when asked; the motion filter's limits are settings too
     assert main(["map", "--carmen", str(log), "--out", str(tmp_path / "b"), "--quiet",
                  "--set", "frontend.dense_share=1"]) == 0

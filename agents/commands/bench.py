@@ -19,6 +19,8 @@ BENCHES: dict[str, tuple[str, str]] = {
     "register": ("agents.bench.register", "global registration of map pairs in unrelated frames"),
     "lidar": ("agents.bench.lidar", "the mapper on real CARMEN lidar logs against their truth"),
     "slam": ("agents.bench.slam", "the lidar SLAM alone on real CARMEN logs, median over start frames"),
+    "scanners": ("agents.bench.scanners",
+                 "the real-lidar path on common scanners (SICK, Hokuyo, RPLIDAR, LDS-01), simulated"),
     "live": ("agents.bench.live", "a live robot's mapper over a long shift: real logs driven back and forth"),
     "fingerprint": ("agents.bench.fingerprint",
                     "hash the filter's poses and particle sets (bit-identity check)"),

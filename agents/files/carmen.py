@@ -711,7 +711,8 @@ def write_carmen(
 
     Ranges are written with 4 decimals (0.1 mm), poses with 6; no return (``inf``, ``nan``,
     ``>= max_range``) is written as ``max_range``, and a return that would print as
-    ``max_range`` is written just below it, so that reading gives back the same returns.
+    ``max_range`` is written just below it, so that reading gives back the same returns. A
+    ``path`` ending in ``.gz`` is written gzip-compressed (as the reader takes it).
 
     Parameters
     ----------
@@ -761,7 +762,9 @@ def write_carmen(
         pose = f"{o.x:.6f} {o.y:.6f} {o.theta:.6f}"
         out.write(f"FLASER {n} {text} {pose} {pose} {s.t:.6f} {HOSTNAME} {s.t:.6f}\n")
         count += 1
-    write_atomic(path, out.getvalue())
+    text = out.getvalue()
+    write_atomic(path, gzip.compress(text.encode(), compresslevel=6, mtime=0) if str(path).endswith(".gz")
+                 else text)
     return count
 
 
