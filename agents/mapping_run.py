@@ -246,6 +246,7 @@ LIDAR_PROFILE: dict[str, Any] = {
     # (mapping.lidar_frontend.laser_yaw): fhw +0.28 degrees (4.5 standard errors), the other
     # logs none. fhw's ATE 0.323 -> 0.26 m (docs/experiments.md, "The laser's yaw").
     "frontend.yaw_calibration": True,
+    "frontend.scale_calibration": True,
 }
 
 #: The ``lidar-slam`` profile: the real-lidar profile with lidar SLAM under the filter
@@ -489,14 +490,18 @@ def carmen_points(scans: Sequence[Any], frontend: Any) -> list[NDArray[np.float6
 class LogCalibration:
     """What :func:`calibrate_log` made of a log's scans: the ``points`` to match (turned by
     ``turn``, the laser's yaw taken off every bearing, radians), the yaw ``estimate``
-    (:class:`mapping.lidar_frontend.YawEstimate`; None when none was made) and the wheels'
+    (:class:`mapping.lidar_frontend.YawEstimate`; None when none was made), the wheels'
     heading ``noise`` (:class:`mapping.lidar_frontend.OdometryNoise`; None unless the SLAM
-    runs with ``odo_calibration``)."""
+    runs with ``odo_calibration``) and their distance ``scale`` (every wheel increment's
+    translation is divided by it: :func:`scaled`) with its estimate (``scale_estimate``,
+    :class:`mapping.lidar_frontend.ScaleEstimate`; None unless ``frontend.scale_calibration``)."""
 
     points: list[NDArray[np.float64]]
     turn: float
     estimate: Any
     noise: Any
+    scale: float = 1.0
+    scale_estimate: Any = None
 
 
 def calibrate_log(scans: Sequence[Any], frontend: Any, yaw: float | None = None) -> LogCalibration:
@@ -504,10 +509,12 @@ def calibrate_log(scans: Sequence[Any], frontend: Any, yaw: float | None = None)
     else ``frontend.laser_yaw`` degrees when known, else the front end's estimate,
     :func:`mapping.lidar_frontend.laser_yaw`, when ``frontend.yaw_calibration`` is on) and,
     for a SLAM with ``odo_calibration``, the wheels'
-    heading noise (:func:`mapping.lidar_frontend.odometry_noise`) on the points the SLAM gets.
-    Both rest on the same scan pairs (:func:`mapping.lidar_frontend.calibration_pairs`); they
-    are matched again for the noise only when the yaw turned the points."""
-    from mapping.lidar_frontend import calibration_pairs, laser_yaw, odometry_noise
+    heading noise (:func:`mapping.lidar_frontend.odometry_noise`) on the points the SLAM gets,
+    and with ``frontend.scale_calibration`` the wheels' distance scale
+    (:func:`mapping.lidar_frontend.wheel_scale`). All rest on the same scan pairs
+    (:func:`mapping.lidar_frontend.calibration_pairs`); they are matched again after the yaw
+    turned the points."""
+    from mapping.lidar_frontend import calibration_pairs, laser_yaw, odometry_noise, wheel_scale
 
     raw = carmen_points(scans, frontend)
     odometry = wheel_increments(scans)
@@ -526,16 +533,24 @@ def calibrate_log(scans: Sequence[Any], frontend: Any, yaw: float | None = None)
         c, s = math.cos(yaw), math.sin(yaw)
         turn = np.array([[c, -s], [s, c]])  # row vectors times this: turned by -yaw
         pts = [p @ turn for p in raw]
+        pairs = None  # matched before the turn: the turned points are matched again when needed
     noise = None
     if frontend.slam.enabled and frontend.slam.odo_calibration:
-        noise = odometry_noise(pts[:n], odometry[:n], frontend, None if yaw else pairs)
-    return LogCalibration(pts, float(yaw), estimate, noise)
+        pairs = pairs if pairs is not None else calibration_pairs(pts[:n], odometry[:n], frontend)
+        noise = odometry_noise(pts[:n], odometry[:n], frontend, pairs)
+    scale = None
+    if frontend.scale_calibration:
+        pairs = pairs if pairs is not None else calibration_pairs(pts[:n], odometry[:n], frontend)
+        scale = wheel_scale(pairs, frontend)
+    return LogCalibration(pts, float(yaw), estimate, noise, 1.0 if scale is None else scale.correction, scale)
 
 
 def odometry_report(noise: Any, slam: Any) -> dict[str, Any]:
     """The SLAM's odometry calibration (``noise``, a :class:`LogCalibration`'s, and the SLAM's
     settings ``slam`` before it) as report keys: ``odometry_heading_noise_deg_per_m`` (the
     wheels' measured heading error per metre; None with fewer than two pairs),
+    ``odometry_heading_correlation`` (that error's lag-1 autocorrelation from one scan pair to
+    the next: a smooth drift near 1; None with fewer than three pairs),
     ``odometry_noise_pairs``, ``slam_odo_rot_per_m_deg`` (the heading prior per metre the SLAM
     runs with, degrees: :func:`mapping.lidar_frontend.calibrated_slam`, as the SLAM applies it)
     and ``slam_odo_prior_widened`` (whether the calibration changed it). Empty without one."""
@@ -546,21 +561,28 @@ def odometry_report(noise: Any, slam: Any) -> dict[str, Any]:
     prior = calibrated_slam(slam, noise).odo_rot_per_m
     measured = math.degrees(noise.rot_per_m) if math.isfinite(noise.rot_per_m) else None
     return {"odometry_heading_noise_deg_per_m": measured,
+            "odometry_heading_correlation": noise.correlation if math.isfinite(noise.correlation) else None,
             "odometry_noise_pairs": noise.pairs,
             "slam_odo_rot_per_m_deg": math.degrees(prior),
             "slam_odo_prior_widened": prior != slam.odo_rot_per_m}
 
 
 def yaw_report(cal: LogCalibration) -> dict[str, Any]:
-    """A log's laser-yaw calibration as report keys: ``laser_yaw_deg`` (the turn taken off every
-    bearing: estimated, given or 0), and with an estimate ``laser_yaw_estimate_deg`` and
-    ``laser_yaw_se_deg`` (None when too few pairs gave it one: ``report.json`` stays strict
-    JSON)."""
+    """A log's laser-yaw and wheel-scale calibrations as report keys: ``laser_yaw_deg`` (the turn
+    taken off every bearing: estimated, given or 0), and with an estimate ``laser_yaw_estimate_deg``
+    and ``laser_yaw_se_deg`` (None when too few pairs gave it one: ``report.json`` stays strict
+    JSON); with a scale estimate ``wheel_scale`` (what every wheel increment was divided by: 1
+    when not applied), ``wheel_scale_estimate`` and ``wheel_scale_se``."""
     out: dict[str, Any] = {"laser_yaw_deg": math.degrees(cal.turn)}
     est = cal.estimate
     if est is not None:
         out["laser_yaw_estimate_deg"] = math.degrees(est.yaw)
         out["laser_yaw_se_deg"] = math.degrees(est.se) if math.isfinite(est.se) else None
+    sc = cal.scale_estimate
+    if sc is not None:
+        out["wheel_scale"] = cal.scale
+        out["wheel_scale_estimate"] = sc.scale
+        out["wheel_scale_se"] = sc.se if math.isfinite(sc.se) else None
     return out
 
 
@@ -568,6 +590,12 @@ def wheel_increments(scans: Sequence[Any]) -> list[Pose]:
     """The wheel odometry's motion into each CARMEN scan from the previous one (the identity for
     the first)."""
     return increments([s.odom for s in scans])
+
+
+def scaled(increment: Pose, scale: float) -> Pose:
+    """A wheel increment with its translation divided by the wheels' distance ``scale``
+    (:attr:`LogCalibration.scale`)."""
+    return increment if scale == 1.0 else Pose(increment.x / scale, increment.y / scale, increment.theta)
 
 
 def motion_filtered(
@@ -647,7 +675,7 @@ def carmen_inputs(
     if len(cal.points) != len(scans):
         raise ValueError(f"calibration of {len(cal.points)} scans for {len(scans)} scans")
     pts, turn = cal.points, cal.turn
-    wheels = wheel_increments(scans)
+    wheels = [scaled(o, cal.scale) for o in wheel_increments(scans)]
     slam_odo: Iterator[Pose] | None = None  # the increments the filter gets from the lidar SLAM
     online = None
     if fcfg.slam.enabled and fcfg.slam.online:
@@ -799,6 +827,7 @@ class LiveInputs:
 
         assert self.calibration is not None
         odo = Pose.identity() if self._prev_odom is None else self._prev_odom.between(ls.odom)
+        odo = scaled(odo, self.calibration.scale)
         self._prev_odom = ls.odom
         warp = None
         if self._slam is not None:

@@ -51,10 +51,12 @@ __all__ = [
     "FrontendConfig",
     "LidarFrontend",
     "OdometryNoise",
+    "ScaleEstimate",
     "YawEstimate",
     "calibrated_slam",
     "calibration_pairs",
     "dense_share",
+    "lag_correlation",
     "laser_yaw",
     "motion_filter",
     "odometry_noise",
@@ -64,6 +66,7 @@ __all__ = [
     "scan_points",
     "scan_polyline",
     "slam_increments",
+    "wheel_scale",
     "within_motion_limits",
 ]
 
@@ -130,6 +133,18 @@ class FrontendConfig:
         moves with it before the next scan is mapped
         (:func:`mapping.lidar_slam.graph_warp`, each vertex under its 8 nearest nodes' moves;
         :func:`agents.mapping_run.feed`) (default False; on in ``lidar-slam-online``).
+    scale_calibration : bool
+        Estimate the wheels' distance scale against the scans (:func:`wheel_scale`) and take it
+        off every wheel increment when it is pinned down (default False; on in the real-lidar
+        profiles). A worn tyre or a wrong wheel radius makes every metre of the wheels 1-3 %
+        long or short; along a corridor the scans cannot see it (its walls look alike all
+        along), and the map is stretched or shrunk by it.
+    scale_min_pairs : int
+        Fewer matched pairs than this estimate nothing (20).
+    scale_sigmas, scale_min : float
+        The scale is applied when it is at least ``scale_sigmas`` standard errors and
+        ``scale_min`` away from 1 (3; 0.01: the shared logs' wheels, without a scale error,
+        measure 0.986-1.006 with standard errors of 0.002-0.006, and are left as they are).
     min_travel, min_turn : float
         The **motion filter**'s limits (metres, radians; 0.5 m and 10 degrees): a scan whose
         wheels have moved less than ``min_travel`` and turned less than ``min_turn`` since the
@@ -167,6 +182,10 @@ class FrontendConfig:
     yaw_min_inliers: float = 0.5
     calibration_scans: int = 0
     laser_yaw: float = math.nan
+    scale_calibration: bool = False
+    scale_min_pairs: int = 20
+    scale_sigmas: float = 3.0
+    scale_min: float = 0.01
     min_travel: float = 0.5
     min_turn: float = math.radians(10.0)
     dense_share: float = 0.5
@@ -184,6 +203,8 @@ class FrontendConfig:
                 and self.yaw_sigmas >= 0 and 0 < self.yaw_min_inliers <= 1):
             raise ValueError("need yaw_min_step > 0, yaw_max_pairs >= yaw_min_pairs >= 2, "
                              "yaw_sigmas >= 0 and 0 < yaw_min_inliers <= 1")
+        if not (self.scale_min_pairs >= 3 and self.scale_sigmas >= 0 and self.scale_min >= 0):
+            raise ValueError("need scale_min_pairs >= 3, scale_sigmas >= 0 and scale_min >= 0")
         if not (self.min_travel >= 0 and self.min_turn >= 0 and 0 <= self.dense_share <= 1):
             raise ValueError("need min_travel >= 0, min_turn >= 0 and 0 <= dense_share <= 1")
 
@@ -348,6 +369,46 @@ def laser_yaw(
     return YawEstimate(yaw, se, len(a), applied)
 
 
+@dataclass(frozen=True)
+class ScaleEstimate:
+    """What :func:`wheel_scale` found: ``scale``, the wheels' distance over the scans' (median
+    over the pairs), ``se`` its standard error, the ``pairs`` it rests on and whether it passed
+    the test of ``scale_min_pairs``, ``scale_sigmas`` and ``scale_min`` (``correction`` is then
+    ``scale``, else 1)."""
+
+    scale: float
+    se: float
+    pairs: int
+    applied: bool
+
+    @property
+    def correction(self) -> float:
+        """What every wheel increment's translation is divided by (1 when not applied)."""
+        return self.scale if self.applied else 1.0
+
+
+def wheel_scale(pairs: list[tuple[Pose, FloatArray]], config: FrontendConfig) -> ScaleEstimate:
+    """The wheels' distance scale from matched consecutive scans (:func:`calibration_pairs`):
+    per pair, the wheels' distance over the matched motion along the wheels' direction
+    (``|o|^2 / (o . m)``: a pair in a corridor, whose match slides along it, errs along the
+    motion as much as it errs at all, but a sideways error does not count), their median and its
+    standard error (1.2533 times the MAD over the root of their number)."""
+    ratios = []
+    for o, m in pairs:
+        along = o.x * float(m[0]) + o.y * float(m[1])
+        if along > 0.01:
+            ratios.append((o.x * o.x + o.y * o.y) / along)
+    if len(ratios) < 3:
+        return ScaleEstimate(1.0, math.inf, len(ratios), False)
+    r = np.asarray(ratios)
+    scale = float(np.median(r))
+    se = 1.2533 * 1.4826 * float(np.median(np.abs(r - scale))) / math.sqrt(len(r))
+    off = abs(scale - 1.0)
+    applied = (len(r) >= config.scale_min_pairs and off >= config.scale_sigmas * se
+               and off >= config.scale_min and off > 0.0)
+    return ScaleEstimate(scale, se, len(r), applied)
+
+
 def calibration_pairs(
     points: list[FloatArray], odometry: list[Pose], config: FrontendConfig
 ) -> list[tuple[Pose, FloatArray]]:
@@ -380,10 +441,13 @@ def calibration_pairs(
 @dataclass(frozen=True)
 class OdometryNoise:
     """What :func:`odometry_noise` found: ``rot_per_m``, the wheel odometry's heading error per
-    metre driven (radians; a robust standard deviation), and the matched ``pairs`` it rests on."""
+    metre driven (radians; a robust standard deviation), the matched ``pairs`` it rests on, and
+    ``correlation``, the lag-1 autocorrelation of those errors from one pair to the next (NaN
+    with fewer than 3 pairs): near 0 for independent noise, near 1 for a smooth drift."""
 
     rot_per_m: float
     pairs: int
+    correlation: float = math.nan
 
 
 def odometry_noise(
@@ -405,18 +469,40 @@ def odometry_noise(
         return OdometryNoise(math.nan, len(pairs))
     per_m = np.array([math.remainder(o.theta - float(m[2]), math.tau) / math.hypot(o.x, o.y)
                       for o, m in pairs])
-    return OdometryNoise(1.4826 * float(np.median(np.abs(per_m))), len(pairs))
+    spread = 1.4826 * float(np.median(np.abs(per_m)))
+    return OdometryNoise(spread, len(pairs), lag_correlation(per_m, 3.0 * spread))
+
+
+def lag_correlation(values: FloatArray, clip: float) -> float:
+    """The lag-1 autocorrelation of ``values`` (in order), each clipped to ``[-clip, clip]`` first
+    (a pair matched to the wrong wall is one wild value, not a trend); NaN with fewer than 3
+    values or without spread."""
+    v = np.asarray(values, dtype=np.float64)
+    if clip > 0:
+        v = np.clip(v, -clip, clip)
+    if len(v) < 3:
+        return math.nan
+    a, b = v[:-1] - v[:-1].mean(), v[1:] - v[1:].mean()
+    den = math.sqrt(float(a @ a) * float(b @ b))
+    return float(a @ b) / den if den > 0 else math.nan
 
 
 def calibrated_slam(config: SlamConfig, noise: OdometryNoise) -> SlamConfig:
     """``config`` with the local match's heading prior per metre (``odo_rot_per_m``) widened to
     ``odo_calibration_scale`` times the measured noise when that is wider, up to
-    ``odo_calibration_max``; unchanged with fewer than ``odo_calibration_min_pairs`` pairs. The
-    configured value stays the floor: a log whose wheels are better than it keeps it."""
-    if noise.pairs < config.odo_calibration_min_pairs or not math.isfinite(noise.rot_per_m):
-        return config
-    wide = min(config.odo_calibration_scale * noise.rot_per_m, config.odo_calibration_max)
-    return replace(config, odo_rot_per_m=max(config.odo_rot_per_m, wide))
+    ``odo_calibration_max`` (with fewer than ``odo_calibration_min_pairs`` pairs, not), then
+    by the errors' correlation when it is significant (``odo_correlation_sigmas``: the prior
+    times ``sqrt((1 + r) / (1 - r))``, the spread of a sum of errors correlated as an AR(1)
+    series over that of independent ones, up to ``odo_calibration_max``). The configured value
+    stays the floor: a log whose wheels are better than it keeps it."""
+    prior = config.odo_rot_per_m
+    if noise.pairs >= config.odo_calibration_min_pairs and math.isfinite(noise.rot_per_m):
+        prior = max(prior, min(config.odo_calibration_scale * noise.rot_per_m, config.odo_calibration_max))
+    r = noise.correlation
+    if math.isfinite(r) and noise.pairs >= 3 and r > config.odo_correlation_sigmas / math.sqrt(noise.pairs):
+        r = min(r, 0.95)
+        prior = max(prior, min(prior * math.sqrt((1.0 + r) / (1.0 - r)), config.odo_calibration_max))
+    return config if prior == config.odo_rot_per_m else replace(config, odo_rot_per_m=prior)
 
 
 def run_slam(points: list[FloatArray], odometry: list[Pose], config: SlamConfig,

@@ -105,3 +105,69 @@ def test_the_report_says_what_the_slam_will_run_with() -> None:
     short = report(_scans(0.0)[:2], slam)
     assert short["odometry_heading_noise_deg_per_m"] is None and short["odometry_noise_pairs"] < 2
     assert short["slam_odo_prior_widened"] is False
+
+
+# ---------------------------------------------------------------- drift that persists, and the wheels' scale
+def _smooth_wheels(route: list[Pose], drift_deg_per_m: float, scale: float = 1.0) -> list[Pose]:
+    """Increments along ``route`` whose heading drifts at a rate that changes slowly (a sine
+    over 40 m of driving) and whose distance is ``scale`` times the true one."""
+    out, s = [Pose.identity()], 0.0
+    for a, b in itertools.pairwise(route):
+        inc = a.between(b)
+        d = math.hypot(inc.x, inc.y)
+        s += d
+        rate = math.radians(drift_deg_per_m) * math.sin(2.0 * math.pi * s / 40.0)
+        out.append(Pose(scale * inc.x, scale * inc.y, inc.theta + rate * d))
+    return out
+
+
+def test_a_smooth_drift_is_measured_as_correlated_and_independent_noise_is_not() -> None:
+    route, _, scans = _hall_drive()
+    smooth = odometry_noise(scans, _smooth_wheels(route, 2.0), FrontendConfig())
+    independent = odometry_noise(scans, _wheels(route, 2.0), FrontendConfig())
+    assert smooth.correlation > 0.7, smooth
+    assert abs(independent.correlation) < 3.0 / math.sqrt(independent.pairs), independent
+
+
+def test_a_correlated_drift_widens_the_prior_by_its_correlation() -> None:
+    cfg = SlamConfig(odo_rot_per_m=0.035, odo_calibration_scale=3.0, odo_calibration_max=0.15)
+    # r = 0.8 over 100 pairs (8 standard errors): sqrt(1.8 / 0.2) = 3 times the prior
+    assert calibrated_slam(cfg, OdometryNoise(0.005, 100, 0.8)).odo_rot_per_m == pytest.approx(0.105)
+    assert calibrated_slam(cfg, OdometryNoise(0.02, 100, 0.8)).odo_rot_per_m == 0.15  # 0.06 x 3, capped
+    assert calibrated_slam(cfg, OdometryNoise(0.005, 100, 0.25)) == cfg  # 2.5 standard errors: chance
+    assert calibrated_slam(cfg, OdometryNoise(0.005, 100, -0.6)) == cfg  # alternating: not a drift
+    # fewer pairs than the noise needs: the correlation still counts (it has its own test)
+    assert calibrated_slam(cfg, OdometryNoise(0.02, 30, 0.8)).odo_rot_per_m == pytest.approx(0.105)
+    off = SlamConfig(odo_rot_per_m=0.035, odo_correlation_sigmas=math.inf)
+    assert calibrated_slam(off, OdometryNoise(0.005, 100, 0.8)) == off
+
+
+@pytest.mark.parametrize("scale, applied", [(1.03, True), (0.975, True), (1.004, False), (1.0, False)])
+def test_the_wheels_scale_is_measured_from_the_scans_and_taken_off(scale: float, applied: bool) -> None:
+    from mapping.lidar_frontend import ScaleEstimate, calibration_pairs, wheel_scale
+
+    route, _, scans = _hall_drive()
+    fc = FrontendConfig(scale_calibration=True)
+    est = wheel_scale(calibration_pairs(scans, _smooth_wheels(route, 0.0, scale), fc), fc)
+    assert est.pairs >= 20 and est.scale == pytest.approx(scale, abs=0.003)
+    assert est.applied is applied and est.correction == (est.scale if applied else 1.0)
+    assert wheel_scale([], fc) == ScaleEstimate(1.0, math.inf, 0, False)
+
+
+def test_calibrate_log_divides_the_wheels_by_their_scale() -> None:
+    from agents.files.carmen import LaserScan
+
+    scans = _scans(0.0)
+    long = [LaserScan(s.t, s.ranges, s.angles, s.max_range, Pose(1.03 * s.odom.x, 1.03 * s.odom.y, s.odom.theta))
+            for s in scans]  # every metre of the wheels 3 % long
+    fc = FrontendConfig(scale_calibration=True, slam=SlamConfig(enabled=False))
+    cal = mr.calibrate_log(long, fc)
+    assert cal.scale == pytest.approx(1.03, abs=0.006) and cal.scale_estimate.applied
+    report = mr.yaw_report(cal)
+    assert report["wheel_scale"] == cal.scale and report["wheel_scale_se"] > 0
+    inputs = list(mr.carmen_inputs(long, frontend=fc, calibration=cal))
+    true = mr.wheel_increments(scans)
+    got = [math.hypot(i.odometry.x, i.odometry.y) for i in inputs[1:]]
+    want = [math.hypot(o.x, o.y) for o in true[1:]]
+    assert sum(got) == pytest.approx(sum(want), rel=0.006)  # the wheels' 3 % taken off
+    assert "wheel_scale" not in mr.yaw_report(mr.calibrate_log(long, FrontendConfig(slam=SlamConfig(enabled=False))))

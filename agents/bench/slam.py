@@ -94,7 +94,8 @@ def slam_over_log(path: str, settings: dict[str, Any],
     cal = mr.calibrate_log(scans, fcfg)
     st = truth[0] if start is None else Pose(*start)
     t0 = time.process_time()
-    slam = run_slam(cal.points, mr.wheel_increments(scans), fcfg.slam, start=np.array(st.as_tuple()),
+    wheels = [mr.scaled(o, cal.scale) for o in mr.wheel_increments(scans)]
+    slam = run_slam(cal.points, wheels, fcfg.slam, start=np.array(st.as_tuple()),
                     noise=cal.noise)
     return SlamRun(scans, truth, cal, slam, st, time.process_time() - t0)
 
