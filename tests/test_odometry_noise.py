@@ -158,7 +158,8 @@ def test_calibrate_log_divides_the_wheels_by_their_scale() -> None:
     from agents.files.carmen import LaserScan
 
     scans = _scans(0.0)
-    long = [LaserScan(s.t, s.ranges, s.angles, s.max_range, Pose(1.03 * s.odom.x, 1.03 * s.odom.y, s.odom.theta))
+    long = [LaserScan(s.t, s.ranges, s.angles, s.max_range, Pose(1.03 * s.odom.x, 1.03 * s.odom.y,
+                                                                 s.odom.theta))
             for s in scans]  # every metre of the wheels 3 % long
     fc = FrontendConfig(scale_calibration=True, slam=SlamConfig(enabled=False))
     cal = mr.calibrate_log(long, fc)
@@ -170,4 +171,5 @@ def test_calibrate_log_divides_the_wheels_by_their_scale() -> None:
     got = [math.hypot(i.odometry.x, i.odometry.y) for i in inputs[1:]]
     want = [math.hypot(o.x, o.y) for o in true[1:]]
     assert sum(got) == pytest.approx(sum(want), rel=0.006)  # the wheels' 3 % taken off
-    assert "wheel_scale" not in mr.yaw_report(mr.calibrate_log(long, FrontendConfig(slam=SlamConfig(enabled=False))))
+    off = FrontendConfig(slam=SlamConfig(enabled=False))
+    assert "wheel_scale" not in mr.yaw_report(mr.calibrate_log(long, off))
