@@ -406,7 +406,7 @@ def test_figure_has_title_legend_truth_and_shading() -> None:
     [
         (["bench", "--help"], ["sensor"], []),
         # every benchmark is named (hostile, slam and fingerprint were missing)
-        (["--help"], ["soak, hostile, sensor", "slam, live, fingerprint"], []),
+        (["--help"], ["soak, hostile, sensor", "slam, scanners, live, fingerprint"], []),
         (["config", "show", "--help"], ["FilterConfig"], ["``", ":class:"]),
         (["world", "show", "--help"], ["examples:"], ["``"]),
         (["replay", "--help"], ["core", "recording.rrd"], ["--record"]),
