@@ -601,18 +601,49 @@ def scaled(increment: Pose, scale: float) -> Pose:
 def motion_filtered(
     scans: Sequence[Any], truth: Sequence[Pose] | None, frontend: Any
 ) -> tuple[list[Any], list[Pose] | None, int]:
-    """A real log's scans as the offline paths map them: a dense log's thinned by the motion
-    filter, any other's all (``frontend``'s ``min_travel``, ``min_turn`` and ``dense_share``:
-    :class:`mapping.lidar_frontend.FrontendConfig`), with their true poses when ``truth`` gives
-    them. Returns ``(scans, truth, left out)``."""
+    """A real log's scans as the offline paths map them: de-skewed (:func:`deskewed`), then a
+    dense log's thinned by the motion filter, any other's all (``frontend``'s ``min_travel``,
+    ``min_turn`` and ``dense_share``: :class:`mapping.lidar_frontend.FrontendConfig`), with
+    their true poses when ``truth`` gives them. Returns ``(scans, truth, left out)``."""
     from mapping.lidar_frontend import dense_share, motion_filter
 
+    scans = deskewed(scans, frontend)
     odometry = [s.odom for s in scans]
     if dense_share(odometry, frontend.min_travel, frontend.min_turn) <= frontend.dense_share:
         return list(scans), None if truth is None else list(truth), 0
     kept = motion_filter(odometry, frontend.min_travel, frontend.min_turn)
     kept_truth = None if truth is None else [truth[k] for k in kept]
     return [scans[k] for k in kept], kept_truth, len(scans) - len(kept)
+
+
+def turn_rate(before: Any, after: Any) -> float:
+    """The wheels' turn rate (rad/s) from one scan to another (their ``odom`` headings and
+    times); 0 when their times do not increase."""
+    dt = float(after.t) - float(before.t)
+    if not dt > 0.0:
+        return 0.0
+    return math.remainder(after.odom.theta - before.odom.theta, 2.0 * math.pi) / dt
+
+
+def deskewed(scans: Sequence[Any], frontend: Any) -> list[Any]:
+    """``scans`` with the bearings of each whose beams were not simultaneous (its
+    ``time_increment``) turned back by the wheels' turn rate across it, from the scan before it
+    to the scan after it (:func:`mapping.lidar_frontend.deskew`); all as they are when
+    ``frontend.deskew`` is off."""
+    import dataclasses
+
+    from mapping.lidar_frontend import deskew
+
+    out = list(scans)
+    if not frontend.deskew:
+        return out
+    n = len(out)
+    for k, s in enumerate(scans):
+        if s.time_increment:
+            rate = turn_rate(scans[max(k - 1, 0)], scans[min(k + 1, n - 1)])
+            ranges, angles = deskew(s.ranges, s.angles, s.time_increment, rate)
+            out[k] = dataclasses.replace(s, ranges=ranges, angles=angles)
+    return out
 
 
 def carmen_inputs(
@@ -775,6 +806,7 @@ class LiveInputs:
             raise ValueError(f"the motion filter's thresholds must be >= 0, got {min_travel}, {min_turn}")
         self.min_travel, self.min_turn = float(min_travel), float(min_turn)
         self._taken: Pose | None = None  # the wheels' pose of the last scan taken
+        self._seen: Any = None  # the last scan that came (its time and wheels: the turn rate)
         self.skipped = 0
 
     @property
@@ -787,8 +819,15 @@ class LiveInputs:
         return None if self._slam is None else self._slam.slam
 
     def add(self, ls: Any) -> list[ScanInput]:
-        from mapping.lidar_frontend import within_motion_limits
+        import dataclasses
 
+        from mapping.lidar_frontend import deskew, within_motion_limits
+
+        seen, self._seen = self._seen, ls
+        if ls.time_increment and self.frontend.deskew:  # at the turn rate since the scan before
+            rate = 0.0 if seen is None else turn_rate(seen, ls)
+            ranges, angles = deskew(ls.ranges, ls.angles, ls.time_increment, rate)
+            ls = dataclasses.replace(ls, ranges=ranges, angles=angles)
         if self._taken is not None and within_motion_limits(self._taken.between(ls.odom), self.min_travel,
                                                             self.min_turn):
             self.skipped += 1

@@ -56,6 +56,7 @@ __all__ = [
     "calibrated_slam",
     "calibration_pairs",
     "dense_share",
+    "deskew",
     "lag_correlation",
     "laser_yaw",
     "motion_filter",
@@ -145,6 +146,11 @@ class FrontendConfig:
         The scale is applied when it is at least ``scale_sigmas`` standard errors and
         ``scale_min`` away from 1 (3; 0.01: the shared logs' wheels, without a scale error,
         measure 0.986-1.006 with standard errors of 0.002-0.006, and are left as they are).
+    deskew : bool
+        A scan whose beams were not simultaneous (its ``time_increment``: a spinning lidar takes
+        0.1-0.2 s a turn) while the robot turned is bent by the turn; its bearings are turned
+        back by the wheels' turn rate (:func:`deskew`; default True: a scan without a
+        ``time_increment``, every CARMEN log's, is left as it is).
     min_travel, min_turn : float
         The **motion filter**'s limits (metres, radians; 0.5 m and 10 degrees): a scan whose
         wheels have moved less than ``min_travel`` and turned less than ``min_turn`` since the
@@ -182,6 +188,7 @@ class FrontendConfig:
     yaw_min_inliers: float = 0.5
     calibration_scans: int = 0
     laser_yaw: float = math.nan
+    deskew: bool = True
     scale_calibration: bool = False
     scale_min_pairs: int = 20
     scale_sigmas: float = 3.0
@@ -232,6 +239,35 @@ SCAN_ODOMETRY_MATCH = PointMatchConfig(
     enabled=True, max_iterations=15, anneal_iterations=5, gate_end=0.3, kernel=0.05, sigma=0.03,
     information_scale=0.05, end_margin=0.3, max_rmse=0.08, min_inliers=30, min_inlier_fraction=0.3,
 )
+
+
+def deskew(
+    ranges: FloatArray, angles: FloatArray, time_increment: float, turn_rate: float
+) -> tuple[FloatArray, FloatArray]:
+    """A scan's ``(ranges, bearings)`` as seen from where the laser stood at the scan's time (its
+    first beam's) when its beams came ``time_increment`` seconds apart (in the order of
+    ``angles``; negative: the last beam first) while it turned at ``turn_rate`` rad/s: a beam
+    fired ``t`` seconds later is turned by ``turn_rate * t``. A full turn's scan whose bearings
+    then span more than a turn loses its last beams past it (they saw again, a sweep later,
+    what its first beams saw), so that it stays one turn.
+
+    Only the turn is taken back, not the translation: turning on the spot at 1 rad/s a 10 Hz
+    scan spans 5.7 degrees, a metre away from a wall 10 cm at its far end; driving at 0.5 m/s
+    it moves 5 cm, the same at any distance. The bearings stay in order for any turn slower than
+    the scanner spins."""
+    r = np.asarray(ranges, dtype=np.float64)
+    a = np.asarray(angles, dtype=np.float64)
+    n = a.size
+    if n < 2 or time_increment == 0.0 or turn_rate == 0.0:
+        return r, a
+    k = np.arange(n, dtype=np.float64)
+    t = k * time_increment if time_increment > 0.0 else (k - (n - 1)) * time_increment
+    a = a + turn_rate * t
+    step = (a[-1] - a[0]) / (n - 1)
+    keep = a - a[0] < 2.0 * math.pi - 0.5 * step
+    if not keep.all():
+        r, a = r[keep], a[keep]
+    return r, a
 
 
 def within_motion_limits(step: Pose, min_travel: float, min_turn: float) -> bool:

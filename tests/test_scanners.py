@@ -34,8 +34,11 @@ def test_a_scanner_log_has_every_scan_at_the_scanners_rate_and_its_truth(tmp_pat
     assert [s.ranges.tolist() for s in again] == [s.ranges.tolist() for s in scans]
     with pytest.raises(ValueError):
         write_scanner_log("paper-small", model, 4, tmp_path / "c.log", duration=0.0)
+    assert [s.time_increment for s in scans] == pytest.approx([model.sweep / 399] * n)  # a spinning lidar's
     with pytest.raises(ValueError):
-        ScannerModel("bad", 400.0, 10, 5.0, 10.0, "a field of view over a full turn")
+        ScannerModel("bad", 400.0, 10, 5.0, 10.0, 0.1, "a field of view over a full turn")
+    with pytest.raises(ValueError):
+        ScannerModel("bad", 360.0, 10, 5.0, 10.0, 0.2, "a sweep longer than a scan's period")
 
 
 @pytest.mark.parametrize("steps", [20, 400])  # 1 m in 5 cm steps or in 2.5 mm steps

@@ -76,6 +76,10 @@ For the front laser (``FLASER``; ``RLASER`` reads the same names with ``rear`` f
 * mounting offset on the robot: ``robot_frontlaser_offset`` (forwards, m),
   ``robot_frontlaser_side_offset`` (to the left, m), ``robot_frontlaser_angular_offset``
   (rad); default 0. The rear laser faces backwards (angular offset ``pi`` added).
+* seconds from one beam to the next, ``wiremap_front_laser_time_increment`` (wiremap's own, as
+  ROS's ``LaserScan.time_increment``; :func:`write_carmen` writes it for a scanner whose beams
+  are not simultaneous, a spinning lidar's; CARMEN has none, and without it the beams are taken
+  as simultaneous): the line's timestamp is its first beam's.
 
 The first name found in the list wins; ``fov=`` and ``max_range=`` arguments override them. A
 parameter honoured here whose value is not a number is an issue (see above) and is ignored.
@@ -124,6 +128,7 @@ MAX_RANGE_PARAMS = (
     "robot_front_laser_maxrange",
 )
 OFFSET_PARAMS = ("robot_frontlaser_offset", "robot_frontlaser_side_offset", "robot_frontlaser_angular_offset")
+TIME_INCREMENT_PARAMS = ("wiremap_front_laser_time_increment",)
 DEFAULT_FOV = math.pi
 HOSTNAME = "wiremap"
 _MESSAGE_TYPE = re.compile(r"[A-Z][A-Z0-9_]*\Z")
@@ -171,6 +176,10 @@ class LaserScan:
         The message type (``"FLASER"``, ...).
     index : int
         0-based number of the line among the log's lines of ``kind``, unreadable ones included.
+    time_increment : float
+        Seconds from one beam to the next in the order of ``angles`` (negative: the last beam
+        first), ROS's ``LaserScan.time_increment``; ``t`` is the first beam's time. 0: the beams
+        are taken as simultaneous.
     """
 
     t: float
@@ -181,6 +190,7 @@ class LaserScan:
     mount: Pose = field(default_factory=Pose)
     kind: str = "FLASER"
     index: int = 0
+    time_increment: float = 0.0
 
     def __post_init__(self) -> None:
         r = np.array(self.ranges, dtype=np.float64, copy=True).reshape(-1)
@@ -537,6 +547,7 @@ class _Geometry:
     res_deg: float | None  # angular resolution, degrees (only without a field of view)
     log_max: float  # maximum range, metres
     mount: Pose  # mounting offset on the robot
+    time_increment: float = 0.0  # seconds from one beam to the next
 
 
 def _stream_geometry(
@@ -559,7 +570,8 @@ def _stream_geometry(
         raise CarmenError(f"{where}: maximum laser range {log_max:g} m is not positive")
     fwd, side, ang = (_param(log, (name,)) or 0.0 for name in _names(OFFSET_PARAMS, kind))
     stream_mount = Pose(fwd, side, ang + (math.pi if kind == "RLASER" else 0.0))
-    return _Geometry(fov_deg, res_deg, log_max, stream_mount)
+    dt = _param(log, _names(TIME_INCREMENT_PARAMS, kind)) or 0.0
+    return _Geometry(fov_deg, res_deg, log_max, stream_mount, dt)
 
 
 def _to_scan(raw: _Raw, geometry: _Geometry, max_range: float | None) -> LaserScan:
@@ -579,7 +591,8 @@ def _to_scan(raw: _Raw, geometry: _Geometry, max_range: float | None) -> LaserSc
     with np.errstate(invalid="ignore"):
         ranges[~(ranges > 0.0) | (ranges >= rmax)] = np.inf
     mount = raw.mount if raw.mount is not None else geometry.mount
-    return LaserScan(raw.t, ranges, angles, float(rmax), raw.odom.compose(mount), mount, raw.kind, raw.index)
+    return LaserScan(raw.t, ranges, angles, float(rmax), raw.odom.compose(mount), mount, raw.kind, raw.index,
+                     geometry.time_increment)
 
 
 def _summary(log: _Collected, scans: list[LaserScan], laser: str | None) -> CarmenLog:
@@ -703,6 +716,7 @@ def write_carmen(
     fov: float,
     max_range: float,
     comment: str | None = None,
+    time_increment: float = 0.0,
 ) -> int:
     """Write scans as a CARMEN log, atomically: ``PARAM`` lines for the field of view
     (``laser_front_laser_fov``, degrees) and the maximum range (``robot_front_laser_max``),
@@ -725,6 +739,9 @@ def write_carmen(
         Maximum range in metres (positive, finite).
     comment : str, optional
         Written as ``#`` lines at the top.
+    time_increment : float
+        Seconds from one beam to the next, written as ``wiremap_front_laser_time_increment``
+        when not 0 (a spinning lidar's scans; the timestamps are the first beams').
 
     Returns
     -------
@@ -746,6 +763,10 @@ def write_carmen(
     out.write("# written by wiremap: FLASER odometry poses in both pose slots\n")
     out.write(f"PARAM laser_front_laser_fov {math.degrees(fov):.6f}\n")
     out.write(f"PARAM robot_front_laser_max {max_range:.6f}\n")
+    if time_increment:
+        if not math.isfinite(time_increment):
+            raise ValueError(f"time_increment must be a finite number of seconds, got {time_increment}")
+        out.write(f"PARAM {TIME_INCREMENT_PARAMS[0]} {time_increment:.9g}\n")
     below = max_range - 1e-4  # the largest value that prints below max_range at 4 decimals
     count = 0
     for k, s in enumerate(scans):

@@ -371,6 +371,13 @@ class _RawScan:
     angles: FloatArray
     max_range: float
     frame: str
+    time_increment: float = 0.0  # seconds from one beam to the next, in the message's order
+
+
+#: A scan whose beams would take longer than this (seconds) by its ``time_increment`` is taken
+#: as simultaneous (0): no planar lidar takes a second for a scan, and a driver that fills the
+#: field wrongly should not bend the scan.
+MAX_SWEEP = 1.0
 
 
 def _raw_scan(msg: Any, index: int, bag_ns: int) -> _RawScan:
@@ -399,7 +406,10 @@ def _raw_scan(msg: Any, index: int, bag_ns: int) -> _RawScan:
     ranges = raw.copy()
     with np.errstate(invalid="ignore"):
         ranges[~(ranges > 0.0) | (ranges < rmin) | (ranges >= rmax)] = np.inf  # nan fails every test
-    return _RawScan(index, _stamp(msg.header, bag_ns), ranges, angles, rmax, _frame(msg.header.frame_id))
+    dt = float(getattr(msg, "time_increment", 0.0))
+    if not (math.isfinite(dt) and abs(dt) * (n - 1) <= MAX_SWEEP):
+        dt = 0.0
+    return _RawScan(index, _stamp(msg.header, bag_ns), ranges, angles, rmax, _frame(msg.header.frame_id), dt)
 
 
 @dataclass
@@ -547,12 +557,13 @@ def _mount(log: _Collected, base: str, laser: str) -> _Mount:
     return _Mount(rigid.planar(), bool(rigid.r[2, 2] < 0.0), " -> ".join(reversed(path)))
 
 
-def _beams(raw: _RawScan, upside_down: bool) -> tuple[FloatArray, FloatArray]:
-    """``(ranges, angles)`` in increasing bearing order, mirrored for an upside-down laser."""
+def _beams(raw: _RawScan, upside_down: bool) -> tuple[FloatArray, FloatArray, float]:
+    """``(ranges, angles, time_increment)`` in increasing bearing order, mirrored for an
+    upside-down laser (the time from one beam to the next negated when the order is turned)."""
     ranges, angles = raw.ranges, -raw.angles if upside_down else raw.angles
     if angles.size > 1 and angles[-1] < angles[0]:
-        return ranges[::-1], angles[::-1]
-    return ranges, angles
+        return ranges[::-1], angles[::-1], -raw.time_increment
+    return ranges, angles, raw.time_increment
 
 
 # ---------------------------------------------------------------------------- reading
@@ -666,9 +677,9 @@ def posed_scan(
 ) -> LaserScan:
     """The scan of ``raw`` taken with the robot's base at ``robot`` (its odometry at the scan's
     time) and the laser mounted at ``mount`` on it; ``t`` replaces the scan's time."""
-    ranges, angles = _beams(raw, upside_down)
+    ranges, angles, dt = _beams(raw, upside_down)
     return LaserScan(raw.t if t is None else t, ranges, angles, raw.max_range, robot.compose(mount), mount,
-                     SCAN_KIND, raw.index)
+                     SCAN_KIND, raw.index, dt)
 
 
 def _assemble(log: _Collected, where: str, fmt: str, topics: dict[str, str], base_frame: str) -> RosBag:

@@ -25,12 +25,19 @@ Choices
   (``ODOMETRY_SCALE``), each step has a small jitter (``ODOMETRY_JITTER`` of its length) and a
   turn ``ODOMETRY_ROT_PER_RAD`` of itself. Noise drawn independently per step instead would
   shake a 40 Hz scanner's wheels far more than a 5 Hz one's.
+* **A scan takes time** (``sweep``: a spinning lidar's turn, 0.1 s at 10 Hz; a Hokuyo's mirror
+  sweeps 270 degrees in 19 ms): its beams are cast sector by sector (``SECTOR_S``, 10 ms a
+  sector), each from the pose the robot had at that sector's time (moving from this scan's pose
+  towards the next one's at the step's own speed), and the log says how far apart the beams
+  came (``time_increment``, ROS's field; :func:`agents.files.carmen.write_carmen`). Turning on
+  the spot at 1 rad/s, a 10 Hz scan's last beam is 5.7 degrees on from its first.
 * **The laser sits at the robot's centre** (both FLASER poses are the wheels' pose); the truth
   file has the true pose of each scan, the log's own timestamps.
 """
 
 from __future__ import annotations
 
+import itertools
 import math
 import os
 from dataclasses import dataclass
@@ -38,11 +45,13 @@ from pathlib import Path
 
 import numpy as np
 
+from agents.sim.lidar import LidarConfig
 from mapping.se2 import Pose
 
 __all__ = ["SCANNERS", "ScannerModel", "write_scanner_log"]
 
 TURN_RATE = 1.0  # rad/s, turning in place at the route's corners
+SECTOR_S = 0.01  # seconds of a scan's sweep cast from one pose
 ODOMETRY_ROT = math.radians(1.0)  # rad/m, the heading's drift rate (stationary standard deviation)
 ODOMETRY_CORRELATION = 2.0  # m driven over which the drift rate changes
 ODOMETRY_SCALE = 0.03  # the distance's scale error (standard deviation, once per log)
@@ -53,33 +62,41 @@ ODOMETRY_ROT_PER_RAD = 0.01  # rad per rad turned
 @dataclass(frozen=True)
 class ScannerModel:
     """A planar lidar as its data sheet gives it: ``fov`` degrees, ``beams`` per scan, ``max_range``
-    metres, ``rate`` scans per second."""
+    metres, ``rate`` scans per second, ``sweep`` seconds from its first beam to its last."""
 
     name: str
     fov: float
     beams: int
     max_range: float
     rate: float
+    sweep: float
     about: str
 
     def __post_init__(self) -> None:
-        if not (0.0 < self.fov <= 360.0 and self.beams >= 2 and self.max_range > 0.0 and self.rate > 0.0):
-            raise ValueError(f"scanner {self.name}: need 0 < fov <= 360, beams >= 2, max_range > 0 "
-                             f"and rate > 0")
+        if not (0.0 < self.fov <= 360.0 and self.beams >= 2 and self.max_range > 0.0 and self.rate > 0.0
+                and 0.0 <= self.sweep <= 1.0 / self.rate):
+            raise ValueError(f"scanner {self.name}: need 0 < fov <= 360, beams >= 2, max_range > 0, "
+                             f"rate > 0 and 0 <= sweep <= 1 / rate")
+
+    @property
+    def time_increment(self) -> float:
+        """Seconds from one beam to the next."""
+        return self.sweep / (self.beams - 1)
 
 
 #: The scanners :func:`write_scanner_log` models (``wiremap bench scanners --scanners``).
 SCANNERS: dict[str, ScannerModel] = {m.name: m for m in (
-    ScannerModel("sick-lms", 180.0, 181, 20.0, 5.0,
-                 "SICK LMS 200/291 as in the shared CARMEN logs: 180 deg, 1 deg beams, capped at 20 m"),
-    ScannerModel("hokuyo-utm30", 270.0, 1081, 30.0, 40.0,
+    ScannerModel("sick-lms", 180.0, 181, 20.0, 5.0, 180.0 / 360.0 / 75.0,
+                 "SICK LMS 200/291 as in the shared CARMEN logs: 180 deg, 1 deg beams, capped at 20 m, "
+                 "a 75 Hz mirror logged at 5 Hz"),
+    ScannerModel("hokuyo-utm30", 270.0, 1081, 30.0, 40.0, 270.0 / 360.0 / 40.0,
                  "Hokuyo UTM-30LX: 270 deg, 0.25 deg beams, 30 m, 40 Hz"),
-    ScannerModel("hokuyo-urg04", 240.0, 683, 5.6, 10.0,
+    ScannerModel("hokuyo-urg04", 240.0, 683, 5.6, 10.0, 240.0 / 360.0 / 10.0,
                  "Hokuyo URG-04LX: 240 deg, 0.35 deg beams, 5.6 m, 10 Hz"),
-    ScannerModel("rplidar-a2", 360.0, 400, 12.0, 10.0,
-                 "Slamtec RPLIDAR A2: 360 deg, 0.9 deg beams, 12 m, 10 Hz"),
-    ScannerModel("lds-01", 360.0, 360, 3.5, 5.0,
-                 "TurtleBot3's LDS-01: 360 deg, 1 deg beams, 3.5 m, 5 Hz"),
+    ScannerModel("rplidar-a2", 360.0, 400, 12.0, 10.0, 0.1 * 399 / 400,
+                 "Slamtec RPLIDAR A2: 360 deg, 0.9 deg beams, 12 m, spinning at 10 Hz"),
+    ScannerModel("lds-01", 360.0, 360, 3.5, 5.0, 0.2 * 359 / 360,
+                 "TurtleBot3's LDS-01: 360 deg, 1 deg beams, 3.5 m, spinning at 5 Hz"),
 )}
 
 
@@ -101,7 +118,6 @@ def write_scanner_log(
     from agents.files.carmen import LaserScan, flaser_angles, truth_path_for, write_carmen
     from agents.files.io import write_atomic
     from agents.mapping_run import seeds_for
-    from agents.sim.lidar import LidarConfig
     from agents.sim.motion import OdometryNoise, drive
     from agents.sim.real_lidar import RealLidarConfig, build_scene, realistic_scan
     from agents.sim.route import plan_route
@@ -124,17 +140,40 @@ def write_scanner_log(
     wheels = Wheels(rngs["drive"])
     pose = steps[0].true_pose
     previous = steps[0].true_pose
-    for s in steps:
+    sectors = _sectors(lidar, model)
+    for k, s in enumerate(steps):
         pose = pose.compose(wheels.step(previous.between(s.true_pose)))
         previous = s.true_pose
-        ranges = realistic_scan(scene, s.true_pose, s.t, lidar, real.noise, rngs["sensor"])
-        scans.append(LaserScan(s.t, ranges, angles, model.max_range, pose))
-    write_carmen(path, scans, fov=fov, max_range=model.max_range,
+        motion = s.true_pose.between(steps[min(k + 1, len(steps) - 1)].true_pose)  # over 1 / rate seconds
+        ranges = np.empty(model.beams)
+        for lo, hi, cfg, bearing, delay in sectors:
+            f = delay * model.rate  # the share of the step's motion done when the sector is cast
+            at = s.true_pose.compose(Pose(f * motion.x, f * motion.y, f * motion.theta + bearing))
+            ranges[lo:hi] = realistic_scan(scene, at, s.t, cfg, real.noise, rngs["sensor"])
+        scans.append(LaserScan(s.t, ranges, angles, model.max_range, pose,
+                               time_increment=model.time_increment))
+    write_carmen(path, scans, fov=fov, max_range=model.max_range, time_increment=model.time_increment,
                  comment=f"wiremap simulated {model.name} ({model.about}) in {w.name}, seed {seed}")
     rows = "".join(f"{s.t:.6f} {p.x:.6f} {p.y:.6f} {p.theta:.6f}\n"
                    for s, p in zip(steps, (st.true_pose for st in steps), strict=True))
     write_atomic(truth_path_for(path), "# t x y theta (true pose of each FLASER line)\n" + rows)
     return len(scans)
+
+
+def _sectors(lidar: LidarConfig, model: ScannerModel) -> list[tuple[int, int, LidarConfig, float, float]]:
+    """A scan's beams cut into sectors of about ``SECTOR_S`` seconds of its sweep: per sector its
+    beams ``[lo, hi)``, a lidar of just those beams centred on the robot's heading, the bearing
+    of their centre and the seconds from the scan's first beam to the sector's middle."""
+    count = min(max(1, math.ceil(model.sweep / SECTOR_S)), model.beams // 2)
+    bounds = np.linspace(0, model.beams, count + 1).round().astype(int)
+    angles = lidar.angles()
+    step = float(angles[1] - angles[0])
+    out = []
+    for lo, hi in itertools.pairwise(bounds.tolist()):
+        cfg = LidarConfig(beams=hi - lo, fov=(hi - lo - 1) * step, max_range=lidar.max_range)
+        centre = 0.5 * float(angles[lo] + angles[hi - 1])
+        out.append((lo, hi, cfg, centre, 0.5 * (lo + hi - 1) * model.time_increment))
+    return out
 
 
 class Wheels:
