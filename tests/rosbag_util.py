@@ -65,7 +65,7 @@ class MessageMaker:
     def scan(
         self, t: float, ranges: Any, angle_min: float, angle_increment: float, *,
         angle_max: float | None = None, range_min: float = 0.0, range_max: float = 30.0,
-        frame: str = LASER_FRAME,
+        frame: str = LASER_FRAME, time_increment: float = 0.0,
     ) -> Any:
         """A ``sensor_msgs/LaserScan`` (``angle_max`` from the beams when not given)."""
         r = np.asarray(ranges, dtype=np.float32)
@@ -73,7 +73,8 @@ class MessageMaker:
             angle_max = angle_min + angle_increment * (r.size - 1)
         return self.store.types["sensor_msgs/msg/LaserScan"](
             header=self.header(t, frame), angle_min=angle_min, angle_max=angle_max,
-            angle_increment=angle_increment, time_increment=0.0, scan_time=0.0, range_min=range_min,
+            angle_increment=angle_increment, time_increment=time_increment,
+            scan_time=abs(time_increment) * max(r.size - 1, 0), range_min=range_min,
             range_max=range_max, ranges=r, intensities=np.zeros(0, dtype=np.float32),
         )  # fmt: skip
 

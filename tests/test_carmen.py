@@ -55,6 +55,18 @@ def test_write_then_read_gives_the_same_scans(tmp_path: Path, fov: float) -> Non
     assert not list(tmp_path.glob(".*tmp"))  # the atomic write left no temporary file
 
 
+
+def test_the_time_between_beams_round_trips(tmp_path: Path) -> None:
+    cfg = LidarConfig(beams=181, fov=math.pi, max_range=6.0, sigma=0.01)
+    scans = simulated_scans(cfg, n=3)
+    write_carmen(tmp_path / "spin.log", scans, fov=math.pi, max_range=6.0, time_increment=1.25e-4)
+    assert {s.time_increment for s in read_carmen(tmp_path / "spin.log")} == {1.25e-4}
+    write_carmen(tmp_path / "still.log", scans, fov=math.pi, max_range=6.0)
+    assert {s.time_increment for s in read_carmen(tmp_path / "still.log")} == {0.0}
+    assert "time_increment" not in (tmp_path / "still.log").read_text()
+    with pytest.raises(ValueError, match="time_increment"):
+        write_carmen(tmp_path / "bad.log", scans, fov=math.pi, max_range=6.0, time_increment=math.inf)
+
 def test_returns_just_below_max_range_survive(tmp_path: Path) -> None:
     a = flaser_angles(3, math.pi)
     scan = LaserScan(1.0, np.array([4.99999, 5.0, np.nan]), a, 5.0, Pose())

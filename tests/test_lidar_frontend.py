@@ -149,3 +149,33 @@ def test_a_log_is_dense_when_most_of_its_scans_lie_within_the_limits_of_the_last
         FrontendConfig(dense_share=1.5)
     with pytest.raises(ValueError, match="min_travel"):
         FrontendConfig(min_travel=-0.1)
+
+
+# ---------------------------------------------------------------- scans that take time
+def test_deskew_turns_each_beam_back_by_the_turn_since_the_first() -> None:
+    from mapping.lidar_frontend import deskew
+
+    angles = np.linspace(-1.0, 1.0, 5)
+    ranges = np.arange(5.0)
+    r, a = deskew(ranges, angles, 0.01, 2.0)  # beams 10 ms apart, turning at 2 rad/s
+    assert np.allclose(a, angles + 2.0 * 0.01 * np.arange(5)) and np.array_equal(r, ranges)
+    _, a = deskew(ranges, angles, -0.01, 2.0)  # the last beam first: it is the one not turned
+    assert np.allclose(a, angles - 0.02 * (np.arange(5) - 4))
+    for dt, rate in ((0.0, 2.0), (0.01, 0.0)):  # simultaneous beams, or no turn: as they are
+        r, a = deskew(ranges, angles, dt, rate)
+        assert np.array_equal(a, angles) and np.array_equal(r, ranges)
+
+
+def test_deskew_keeps_a_full_turn_one_turn() -> None:
+    from mapping.extract import extract_corners
+    from mapping.lidar_frontend import deskew
+
+    n = 360
+    angles = -math.pi + 2 * math.pi * np.arange(n) / n
+    ranges = np.full(n, 3.0)
+    r, a = deskew(ranges, angles, 0.1 / n, 1.0)  # 10 Hz spin, 1 rad/s the same way: 5.7 degrees more
+    assert len(r) == len(a) < n and a[-1] - a[0] < 2 * math.pi
+    assert n - len(a) == pytest.approx(math.degrees(0.1), abs=1.5)  # the beams that came round again
+    extract_corners(r, a, 10.0)  # a valid scan (strictly increasing, at most a turn)
+    r, a = deskew(ranges, angles, 0.1 / n, -1.0)  # turning against the spin: a gap at the seam, all kept
+    assert len(a) == n and a[-1] - a[0] < 2 * math.pi

@@ -303,3 +303,31 @@ def test_filter_maps_a_small_world_from_realistic_scans() -> None:
     m = evaluate(world.truth, filt.best, 0.2, 0.2)
     assert m["wall_precision"] >= 0.95 and m["wall_recall"] >= 0.95, m
     assert m["mean_dist_m"] <= 0.03, m
+
+
+# ---------------------------------------------------------------- scans that take time
+def _turning_scans(time_increment: float) -> list:
+    """Three scans of a 360-degree lidar at 10 Hz on a robot turning on the spot at 1 rad/s."""
+    from agents.files.carmen import LaserScan
+    from mapping.se2 import Pose
+
+    n = 100
+    angles = -math.pi + 2 * math.pi * np.arange(n) / n
+    return [LaserScan(0.1 * k, np.full(n, 2.0), angles, 10.0, Pose(0.0, 0.0, 0.1 * k),
+                      time_increment=time_increment) for k in range(3)]
+
+
+def test_deskewed_turns_a_scans_beams_back_by_the_wheels_turn_rate() -> None:
+    from mapping.lidar_frontend import FrontendConfig
+
+    scans = _turning_scans(0.1 / 100)
+    out = mr.deskewed(scans, FrontendConfig())
+    mid = out[1]  # 1 rad/s from the scan before to the one after
+    assert mid.angles[10] - scans[1].angles[10] == pytest.approx(1.0 * 10 * 0.001)
+    assert len(mid.angles) < 100 and mid.angles[-1] - mid.angles[0] < 2 * math.pi
+    assert mr.turn_rate(scans[0], scans[2]) == pytest.approx(1.0)
+    off = mr.deskewed(scans, FrontendConfig(deskew=False))
+    assert all(np.array_equal(a.angles, b.angles) for a, b in zip(off, scans, strict=True))
+    still = _turning_scans(0.0)  # simultaneous beams: as they are
+    kept = mr.deskewed(still, FrontendConfig())
+    assert all(np.array_equal(a.angles, b.angles) for a, b in zip(kept, still, strict=True))

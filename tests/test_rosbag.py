@@ -163,6 +163,21 @@ def test_beams_no_returns_and_a_negative_increment(tmp_path: Path) -> None:
     assert b.index == 1
 
 
+def test_the_time_between_beams_is_read_in_the_order_the_beams_are_kept(tmp_path: Path) -> None:
+    p = tmp_path / "spin.bag"
+    with BagWriter(p, "ros1") as bag:
+        bag.write("/odom", 1.0, bag.odometry(1.0, Pose()))
+        bag.write("/scan", 1.0, bag.scan(1.0, [1.0, 2.0, 3.0], -1.0, 1.0, time_increment=0.01))
+        # clockwise: kept in increasing bearing order, so the last beam kept came first
+        bag.write("/scan", 1.0, bag.scan(1.0, [1.0, 2.0, 3.0], 1.0, -1.0, time_increment=0.01))
+        # a driver's nonsense (a 20 s scan; not a number): taken as simultaneous
+        bag.write("/scan", 1.0, bag.scan(1.0, [1.0, 2.0, 3.0], -1.0, 1.0, time_increment=10.0))
+        bag.write("/scan", 1.0, bag.scan(1.0, [1.0, 2.0, 3.0], -1.0, 1.0, time_increment=math.nan))
+    a, b, c, d = read_rosbag(p, strict=True).scans
+    assert a.time_increment == pytest.approx(0.01) and b.time_increment == pytest.approx(-0.01)
+    assert c.time_increment == 0.0 and d.time_increment == 0.0
+
+
 def test_odometry_is_interpolated_at_each_scan_and_scans_outside_it_are_skipped(tmp_path: Path) -> None:
     p = tmp_path / "interp"
     with BagWriter(p, "sqlite3") as bag:
