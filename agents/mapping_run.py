@@ -616,19 +616,23 @@ def motion_filtered(
     return [scans[k] for k in kept], kept_truth, len(scans) - len(kept)
 
 
-def turn_rate(before: Any, after: Any) -> float:
-    """The wheels' turn rate (rad/s) from one scan to another (their ``odom`` headings and
-    times); 0 when their times do not increase."""
+def wheel_velocity(before: Any, at: Any, after: Any) -> tuple[float, float, float]:
+    """The wheels' velocity at scan ``at`` (``vx, vy`` m/s in its laser's frame, turn rad/s) from
+    the scan ``before`` it to the scan ``after`` it (either may be ``at`` itself: a one-sided
+    difference); zero when their times do not increase."""
     dt = float(after.t) - float(before.t)
     if not dt > 0.0:
-        return 0.0
-    return math.remainder(after.odom.theta - before.odom.theta, 2.0 * math.pi) / dt
+        return 0.0, 0.0, 0.0
+    back, on = at.odom.between(before.odom), at.odom.between(after.odom)
+    turn = math.remainder(on.theta - back.theta, 2.0 * math.pi)
+    return (on.x - back.x) / dt, (on.y - back.y) / dt, turn / dt
 
 
 def deskewed(scans: Sequence[Any], frontend: Any) -> list[Any]:
     """``scans`` with the bearings of each whose beams were not simultaneous (its
-    ``time_increment``) turned back by the wheels' turn rate across it, from the scan before it
-    to the scan after it (:func:`mapping.lidar_frontend.deskew`); all as they are when
+    ``time_increment``) placed where the laser stood when each return came, at the wheels'
+    velocity from the scan before it to the scan after it (:func:`wheel_velocity`,
+    :func:`mapping.lidar_frontend.deskew`); all as they are when
     ``frontend.deskew`` is off."""
     import dataclasses
 
@@ -640,8 +644,8 @@ def deskewed(scans: Sequence[Any], frontend: Any) -> list[Any]:
     n = len(out)
     for k, s in enumerate(scans):
         if s.time_increment:
-            rate = turn_rate(scans[max(k - 1, 0)], scans[min(k + 1, n - 1)])
-            ranges, angles = deskew(s.ranges, s.angles, s.time_increment, rate)
+            velocity = wheel_velocity(scans[max(k - 1, 0)], s, scans[min(k + 1, n - 1)])
+            ranges, angles = deskew(s.ranges, s.angles, s.time_increment, velocity)
             out[k] = dataclasses.replace(s, ranges=ranges, angles=angles)
     return out
 
@@ -806,7 +810,7 @@ class LiveInputs:
             raise ValueError(f"the motion filter's thresholds must be >= 0, got {min_travel}, {min_turn}")
         self.min_travel, self.min_turn = float(min_travel), float(min_turn)
         self._taken: Pose | None = None  # the wheels' pose of the last scan taken
-        self._seen: Any = None  # the last scan that came (its time and wheels: the turn rate)
+        self._seen: Any = None  # the last scan that came (its time and wheels: the velocity)
         self.skipped = 0
 
     @property
@@ -824,9 +828,9 @@ class LiveInputs:
         from mapping.lidar_frontend import deskew, within_motion_limits
 
         seen, self._seen = self._seen, ls
-        if ls.time_increment and self.frontend.deskew:  # at the turn rate since the scan before
-            rate = 0.0 if seen is None else turn_rate(seen, ls)
-            ranges, angles = deskew(ls.ranges, ls.angles, ls.time_increment, rate)
+        if ls.time_increment and self.frontend.deskew:  # at the velocity since the scan before
+            velocity = (0.0, 0.0, 0.0) if seen is None else wheel_velocity(seen, ls, ls)
+            ranges, angles = deskew(ls.ranges, ls.angles, ls.time_increment, velocity)
             ls = dataclasses.replace(ls, ranges=ranges, angles=angles)
         if self._taken is not None and within_motion_limits(self._taken.between(ls.odom), self.min_travel,
                                                             self.min_turn):

@@ -148,9 +148,9 @@ class FrontendConfig:
         measure 0.986-1.006 with standard errors of 0.002-0.006, and are left as they are).
     deskew : bool
         A scan whose beams were not simultaneous (its ``time_increment``: a spinning lidar takes
-        0.1-0.2 s a turn) while the robot turned is bent by the turn; its bearings are turned
-        back by the wheels' turn rate (:func:`deskew`; default True: a scan without a
-        ``time_increment``, every CARMEN log's, is left as it is).
+        0.1-0.2 s a turn) while the robot moved is bent by the motion; each return is placed
+        where the laser stood when it came, at the wheels' velocity (:func:`deskew`; default
+        True: a scan without a ``time_increment``, every CARMEN log's, is left as it is).
     min_travel, min_turn : float
         The **motion filter**'s limits (metres, radians; 0.5 m and 10 degrees): a scan whose
         wheels have moved less than ``min_travel`` and turned less than ``min_turn`` since the
@@ -242,32 +242,49 @@ SCAN_ODOMETRY_MATCH = PointMatchConfig(
 
 
 def deskew(
-    ranges: FloatArray, angles: FloatArray, time_increment: float, turn_rate: float
+    ranges: FloatArray, angles: FloatArray, time_increment: float, velocity: tuple[float, float, float]
 ) -> tuple[FloatArray, FloatArray]:
     """A scan's ``(ranges, bearings)`` as seen from where the laser stood at the scan's time (its
     first beam's) when its beams came ``time_increment`` seconds apart (in the order of
-    ``angles``; negative: the last beam first) while it turned at ``turn_rate`` rad/s: a beam
-    fired ``t`` seconds later is turned by ``turn_rate * t``. A full turn's scan whose bearings
-    then span more than a turn loses its last beams past it (they saw again, a sweep later,
-    what its first beams saw), so that it stays one turn.
+    ``angles``; negative: the last beam first) while it moved at ``velocity`` (``vx, vy`` m/s in
+    its own frame, ``turn`` rad/s): a return fired ``t`` seconds later is placed where the laser
+    then stood, ``t`` times the velocity on (a straight line: over a sweep of 0.1-0.2 s the arc
+    is a millimetre off it), a no-return beam turned with the laser. Turning on the spot at
+    1 rad/s a 10 Hz scan spans 5.7 degrees, 10 cm at the far end of a wall a metre away; driving
+    at 0.5 m/s the laser moves 5 cm.
 
-    Only the turn is taken back, not the translation: turning on the spot at 1 rad/s a 10 Hz
-    scan spans 5.7 degrees, a metre away from a wall 10 cm at its far end; driving at 0.5 m/s
-    it moves 5 cm, the same at any distance. The bearings stay in order for any turn slower than
-    the scanner spins."""
+    The bearings stay in the beams' order (the laser moves a fraction of a millimetre from one
+    beam to the next; a return that would come out of order is dropped). A full turn's scan
+    whose bearings then span more than a turn loses its last beams past it (they saw again, a
+    sweep later, what its first beams saw), so that it stays one turn."""
     r = np.asarray(ranges, dtype=np.float64)
     a = np.asarray(angles, dtype=np.float64)
     n = a.size
-    if n < 2 or time_increment == 0.0 or turn_rate == 0.0:
+    vx, vy, turn = velocity
+    if n < 2 or time_increment == 0.0 or (vx == 0.0 and vy == 0.0 and turn == 0.0):
         return r, a
     k = np.arange(n, dtype=np.float64)
     t = k * time_increment if time_increment > 0.0 else (k - (n - 1)) * time_increment
-    a = a + turn_rate * t
-    step = (a[-1] - a[0]) / (n - 1)
-    keep = a - a[0] < 2.0 * math.pi - 0.5 * step
+    turned = a + turn * t
+    out_r, out_a = r.copy(), turned
+    hit = np.isfinite(r)
+    if hit.any() and (vx or vy):
+        x = r[hit] * np.cos(turned[hit]) + vx * t[hit]
+        y = r[hit] * np.sin(turned[hit]) + vy * t[hit]
+        out_r = r.copy()
+        out_r[hit] = np.hypot(x, y)
+        out_a = turned.copy()  # the bearing's change, added to the turned beam's: no wrap at +-pi
+        change = np.remainder(np.arctan2(y, x) - turned[hit] + math.pi, 2.0 * math.pi) - math.pi
+        out_a[hit] = turned[hit] + change
+        ordered = np.concatenate(([True], np.diff(out_a) > 0.0))
+        while not ordered.all():  # a near return overtaken by its neighbour: dropped
+            out_r, out_a = out_r[ordered], out_a[ordered]
+            ordered = np.concatenate(([True], np.diff(out_a) > 0.0))
+    step = (out_a[-1] - out_a[0]) / max(out_a.size - 1, 1)
+    keep = out_a - out_a[0] < 2.0 * math.pi - 0.5 * step
     if not keep.all():
-        r, a = r[keep], a[keep]
-    return r, a
+        out_r, out_a = out_r[keep], out_a[keep]
+    return out_r, out_a
 
 
 def within_motion_limits(step: Pose, min_travel: float, min_turn: float) -> bool:

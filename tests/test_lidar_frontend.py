@@ -156,14 +156,29 @@ def test_deskew_turns_each_beam_back_by_the_turn_since_the_first() -> None:
     from mapping.lidar_frontend import deskew
 
     angles = np.linspace(-1.0, 1.0, 5)
-    ranges = np.arange(5.0)
-    r, a = deskew(ranges, angles, 0.01, 2.0)  # beams 10 ms apart, turning at 2 rad/s
-    assert np.allclose(a, angles + 2.0 * 0.01 * np.arange(5)) and np.array_equal(r, ranges)
-    _, a = deskew(ranges, angles, -0.01, 2.0)  # the last beam first: it is the one not turned
+    ranges = np.arange(1.0, 6.0)
+    r, a = deskew(ranges, angles, 0.01, (0.0, 0.0, 2.0))  # beams 10 ms apart, turning at 2 rad/s
+    assert np.allclose(a, angles + 2.0 * 0.01 * np.arange(5)) and np.allclose(r, ranges)
+    _, a = deskew(ranges, angles, -0.01, (0.0, 0.0, 2.0))  # the last beam first: it is the one not turned
     assert np.allclose(a, angles - 0.02 * (np.arange(5) - 4))
-    for dt, rate in ((0.0, 2.0), (0.01, 0.0)):  # simultaneous beams, or no turn: as they are
-        r, a = deskew(ranges, angles, dt, rate)
+    for dt, v in ((0.0, (1.0, 0.0, 2.0)), (0.01, (0.0, 0.0, 0.0))):  # simultaneous, or standing: as they are
+        r, a = deskew(ranges, angles, dt, v)
         assert np.array_equal(a, angles) and np.array_equal(r, ranges)
+
+
+def test_deskew_places_each_return_where_the_laser_stood_when_it_came() -> None:
+    """Driving at 1 m/s past a wall 2 m to the left, beams 10 ms apart: every return lands on the
+    wall, seen from the first beam's pose, and a no-return beam keeps its bearing."""
+    from mapping.lidar_frontend import deskew
+
+    angles = np.radians([60.0, 75.0, 90.0, 105.0, 120.0, 0.0 + 130.0])
+    t = 0.01 * np.arange(6)
+    ranges = 2.0 / np.sin(angles)  # from the laser where it stood at each beam
+    ranges[5] = np.inf
+    r, a = deskew(ranges, angles, 0.01, (1.0, 0.0, 0.0))
+    x, y = r[:5] * np.cos(a[:5]), r[:5] * np.sin(a[:5])
+    assert np.allclose(y, 2.0) and np.allclose(x, 2.0 / np.tan(angles[:5]) + t[:5])
+    assert a[5] == angles[5] and np.isinf(r[5])
 
 
 def test_deskew_keeps_a_full_turn_one_turn() -> None:
@@ -173,9 +188,9 @@ def test_deskew_keeps_a_full_turn_one_turn() -> None:
     n = 360
     angles = -math.pi + 2 * math.pi * np.arange(n) / n
     ranges = np.full(n, 3.0)
-    r, a = deskew(ranges, angles, 0.1 / n, 1.0)  # 10 Hz spin, 1 rad/s the same way: 5.7 degrees more
+    r, a = deskew(ranges, angles, 0.1 / n, (0.0, 0.0, 1.0))  # a 10 Hz spin turning 1 rad/s its way
     assert len(r) == len(a) < n and a[-1] - a[0] < 2 * math.pi
     assert n - len(a) == pytest.approx(math.degrees(0.1), abs=1.5)  # the beams that came round again
     extract_corners(r, a, 10.0)  # a valid scan (strictly increasing, at most a turn)
-    r, a = deskew(ranges, angles, 0.1 / n, -1.0)  # turning against the spin: a gap at the seam, all kept
+    r, a = deskew(ranges, angles, 0.1 / n, (0.0, 0.0, -1.0))  # against the spin: a gap at the seam
     assert len(a) == n and a[-1] - a[0] < 2 * math.pi

@@ -130,18 +130,18 @@ def test_the_motion_filter_takes_a_scan_per_distance_or_turn(scans: list[Any]) -
 
 
 def test_a_live_scan_that_took_time_is_turned_back_by_the_turn_since_the_one_before(scans: list[Any]) -> None:
-    """The live robot de-skews at the wheels' turn rate from the scan before (it has no scan after
-    yet): turning at 1 rad/s, each beam 1 ms after the one before it is turned 1 mrad more."""
+    """The live robot de-skews at the wheels' velocity from the scan before (it has no scan after
+    yet): turning on the spot at 2 rad/s, each beam 1 ms after the one before it is turned 2
+    mrad more."""
     _, extract, frontend = profile(5)  # both scans held for the calibration
     base = replace(scans[0], time_increment=0.001)
-    turning = [replace(base, t=0.1 * k, odom=base.odom.compose(Pose(0.6 * k, 0.0, 0.1 * k)))
-               for k in range(2)]
+    turning = [replace(base, t=0.1 * k, odom=base.odom.compose(Pose(0.0, 0.0, 0.2 * k))) for k in range(2)]
     live = mr.LiveInputs(max_range=20.0, extract=extract, frontend=frontend)
     for ls in turning:
         live.add(ls)
     held = live._held  # the calibration's scans, as the mapper will get them
     assert np.array_equal(held[0].angles, base.angles)  # no scan before it: no turn known
-    assert held[1].angles[7] - base.angles[7] == pytest.approx(7 * 0.001 * 1.0)
+    assert held[1].angles[7] - base.angles[7] == pytest.approx(7 * 0.001 * 2.0)
     plain = mr.LiveInputs(max_range=20.0, extract=extract, frontend=replace(frontend, deskew=False))
     for ls in turning:
         plain.add(ls)

@@ -317,7 +317,7 @@ def _turning_scans(time_increment: float) -> list:
                       time_increment=time_increment) for k in range(3)]
 
 
-def test_deskewed_turns_a_scans_beams_back_by_the_wheels_turn_rate() -> None:
+def test_deskewed_turns_a_scans_beams_back_at_the_wheels_velocity() -> None:
     from mapping.lidar_frontend import FrontendConfig
 
     scans = _turning_scans(0.1 / 100)
@@ -325,7 +325,8 @@ def test_deskewed_turns_a_scans_beams_back_by_the_wheels_turn_rate() -> None:
     mid = out[1]  # 1 rad/s from the scan before to the one after
     assert mid.angles[10] - scans[1].angles[10] == pytest.approx(1.0 * 10 * 0.001)
     assert len(mid.angles) < 100 and mid.angles[-1] - mid.angles[0] < 2 * math.pi
-    assert mr.turn_rate(scans[0], scans[2]) == pytest.approx(1.0)
+    assert mr.wheel_velocity(scans[0], scans[1], scans[2]) == pytest.approx((0.0, 0.0, 1.0))
+    assert mr.wheel_velocity(scans[1], scans[1], scans[1]) == (0.0, 0.0, 0.0)
     off = mr.deskewed(scans, FrontendConfig(deskew=False))
     assert all(np.array_equal(a.angles, b.angles) for a, b in zip(off, scans, strict=True))
     still = _turning_scans(0.0)  # simultaneous beams: as they are
