@@ -772,6 +772,10 @@ class LiveInputs:
     meanwhile) and then come out together; every later scan comes out at once. :meth:`finish`
     calibrates on what came when the stream ends before that.
 
+    **De-skew**: a scan whose beams took time (``time_increment``) is de-skewed first at the
+    wheels' velocity since the scan that came before it (:func:`wheel_velocity` one-sided, as
+    a live robot has no scan after it yet; ``frontend.deskew``).
+
     **Motion filter** (``min_travel`` metres, ``min_turn`` radians; 0 and 0 take every scan): a
     scan whose wheels are within those limits of the last scan taken
     (:func:`mapping.lidar_frontend.within_motion_limits`) is dropped before anything

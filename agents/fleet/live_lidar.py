@@ -38,6 +38,9 @@ What is made of them (choices)
 * **The laser's mount** on the robot's base (``mount``, ``--laser-mount X,Y,THETA``) is given,
   not listened for on ``/tf_static``; default the identity (the laser at the base's origin).
 * **Time**: a scan's time is seconds since the first scan that was posed (the robot's ``t``).
+  A scan whose ``time_increment`` says its beams came over time (a spinning lidar) is
+  de-skewed at the wheels' velocity since the scan before (``frontend.deskew``;
+  :class:`agents.mapping_run.LiveInputs`).
 * **Motion filter**: the mapper takes a posed scan only once the wheels have moved
   ``--min-travel`` or turned ``--min-turn`` since the last scan it took (default the profile's
   ``frontend.min_travel`` and ``min_turn``, 0.5 m and 10 degrees; ``still`` counts the others;
