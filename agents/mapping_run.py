@@ -616,16 +616,26 @@ def motion_filtered(
     return [scans[k] for k in kept], kept_truth, len(scans) - len(kept)
 
 
+#: Above these (m/s, rad/s) two scans' wheels are not a robot's motion (an odometry reset, a
+#: clock jump): :func:`wheel_velocity` gives zero and the scan is not de-skewed.
+MAX_SPEED, MAX_TURN_RATE = 10.0, 4.0 * math.pi
+MIN_SCAN_GAP = 1e-3  # seconds: scans closer in time give no velocity
+
+
 def wheel_velocity(before: Any, at: Any, after: Any) -> tuple[float, float, float]:
     """The wheels' velocity at scan ``at`` (``vx, vy`` m/s in its laser's frame, turn rad/s) from
     the scan ``before`` it to the scan ``after`` it (either may be ``at`` itself: a one-sided
-    difference); zero when their times do not increase."""
+    difference); zero when their times are less than ``MIN_SCAN_GAP`` apart or the velocity is
+    beyond ``MAX_SPEED`` or ``MAX_TURN_RATE``."""
     dt = float(after.t) - float(before.t)
-    if not dt > 0.0:
+    if not dt >= MIN_SCAN_GAP:
         return 0.0, 0.0, 0.0
     back, on = at.odom.between(before.odom), at.odom.between(after.odom)
-    turn = math.remainder(on.theta - back.theta, 2.0 * math.pi)
-    return (on.x - back.x) / dt, (on.y - back.y) / dt, turn / dt
+    turn = math.remainder(on.theta - back.theta, 2.0 * math.pi) / dt
+    vx, vy = (on.x - back.x) / dt, (on.y - back.y) / dt
+    if not (math.hypot(vx, vy) <= MAX_SPEED and abs(turn) <= MAX_TURN_RATE):
+        return 0.0, 0.0, 0.0
+    return vx, vy, turn
 
 
 def deskewed(scans: Sequence[Any], frontend: Any) -> list[Any]:
@@ -762,7 +772,9 @@ def _scan_input(
 class LiveInputs:
     """Real scans that come one at a time (a robot's own lidar, live) as filter inputs, through a
     profile whose SLAM runs scan by scan (``lidar-slam-online``): what :func:`carmen_inputs`
-    gives for the same scans, input for input (and, with ``frontend.follow_graph``, each input
+    gives for the same scans, input for input (for scans whose beams are simultaneous: one
+    whose beams took time is de-skewed here from the scan before it, offline from the scans on
+    both sides, :func:`motion_filtered`) (and, with ``frontend.follow_graph``, each input
     after a loop moved the SLAM's graph carries the move: ``ScanInput.warp``).
 
     :meth:`add` takes a scan (:class:`agents.files.carmen.LaserScan`: ranges, bearings, time,

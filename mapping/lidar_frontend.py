@@ -35,6 +35,7 @@ import itertools
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
+from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -48,6 +49,7 @@ from mapping.wireframe import Wireframe
 FloatArray = NDArray[np.float64]
 
 __all__ = [
+    "CalibrationPair",
     "FrontendConfig",
     "LidarFrontend",
     "OdometryNoise",
@@ -150,7 +152,7 @@ class FrontendConfig:
         A scan whose beams were not simultaneous (its ``time_increment``: a spinning lidar takes
         0.1-0.2 s a turn) while the robot moved is bent by the motion; each return is placed
         where the laser stood when it came, at the wheels' velocity (:func:`deskew`; default
-        True: a scan without a ``time_increment``, every CARMEN log's, is left as it is).
+        True: a scan without a ``time_increment``, every shared CARMEN log's, is left as it is).
     min_travel, min_turn : float
         The **motion filter**'s limits (metres, radians; 0.5 m and 10 degrees): a scan whose
         wheels have moved less than ``min_travel`` and turned less than ``min_turn`` since the
@@ -248,41 +250,50 @@ def deskew(
     first beam's) when its beams came ``time_increment`` seconds apart (in the order of
     ``angles``; negative: the last beam first) while it moved at ``velocity`` (``vx, vy`` m/s in
     its own frame, ``turn`` rad/s): a return fired ``t`` seconds later is placed where the laser
-    then stood, ``t`` times the velocity on (a straight line: over a sweep of 0.1-0.2 s the arc
-    is a millimetre off it), a no-return beam turned with the laser. Turning on the spot at
-    1 rad/s a 10 Hz scan spans 5.7 degrees, 10 cm at the far end of a wall a metre away; driving
-    at 0.5 m/s the laser moves 5 cm.
+    then stood, ``t`` times the velocity on (a straight line: at 0.5 m/s turning 1 rad/s, over a
+    0.2 s sweep the arc is a centimetre off it), a no-return beam turned with the laser. Turning
+    on the spot at 1 rad/s a 10 Hz scan spans 5.7 degrees, 10 cm at the far end of a wall a
+    metre away; driving at 0.5 m/s the laser moves 5 cm.
 
-    The bearings stay in the beams' order (the laser moves a fraction of a millimetre from one
-    beam to the next; a return that would come out of order is dropped). A full turn's scan
-    whose bearings then span more than a turn loses its last beams past it (they saw again, a
-    sweep later, what its first beams saw), so that it stays one turn."""
+    The result's bearings strictly increase: they are sorted (a near return that moved past its
+    neighbours' bearings lands among them, where it is; an exact repeat is dropped). A turn
+    against the sweep at least as fast as the beams come (``|turn * time_increment|`` half a beam
+    step or more: no scanner spins that slowly) is not a scan's motion, and the scan is left as
+    it is. A full turn's scan whose bearings then span more than a turn loses its beams past it,
+    the later ones (they saw again, a sweep later, what the first beams saw)."""
     r = np.asarray(ranges, dtype=np.float64)
     a = np.asarray(angles, dtype=np.float64)
     n = a.size
     vx, vy, turn = velocity
     if n < 2 or time_increment == 0.0 or (vx == 0.0 and vy == 0.0 and turn == 0.0):
         return r, a
+    step = (a[-1] - a[0]) / (n - 1)
+    if not (math.isfinite(vx) and math.isfinite(vy) and math.isfinite(turn)) \
+            or abs(turn * time_increment) >= 0.5 * abs(step):
+        return r, a
     k = np.arange(n, dtype=np.float64)
     t = k * time_increment if time_increment > 0.0 else (k - (n - 1)) * time_increment
-    turned = a + turn * t
-    out_r, out_a = r.copy(), turned
+    out_a = a + turn * t
     hit = np.isfinite(r)
+    out_r = r
     if hit.any() and (vx or vy):
-        x = r[hit] * np.cos(turned[hit]) + vx * t[hit]
-        y = r[hit] * np.sin(turned[hit]) + vy * t[hit]
+        x = r[hit] * np.cos(out_a[hit]) + vx * t[hit]
+        y = r[hit] * np.sin(out_a[hit]) + vy * t[hit]
         out_r = r.copy()
         out_r[hit] = np.hypot(x, y)
-        out_a = turned.copy()  # the bearing's change, added to the turned beam's: no wrap at +-pi
-        change = np.remainder(np.arctan2(y, x) - turned[hit] + math.pi, 2.0 * math.pi) - math.pi
-        out_a[hit] = turned[hit] + change
-        ordered = np.concatenate(([True], np.diff(out_a) > 0.0))
-        while not ordered.all():  # a near return overtaken by its neighbour: dropped
-            out_r, out_a = out_r[ordered], out_a[ordered]
-            ordered = np.concatenate(([True], np.diff(out_a) > 0.0))
-    step = (out_a[-1] - out_a[0]) / max(out_a.size - 1, 1)
-    keep = out_a - out_a[0] < 2.0 * math.pi - 0.5 * step
-    if not keep.all():
+        change = np.remainder(np.arctan2(y, x) - out_a[hit] + math.pi, 2.0 * math.pi) - math.pi
+        out_a = out_a.copy()  # the bearing's change, added to the turned beam's: no wrap at +-pi
+        out_a[hit] += change
+    order = np.argsort(out_a, kind="stable")
+    out_r, out_a = out_r[order], out_a[order]
+    fresh = np.concatenate(([True], np.diff(out_a) > 0.0))
+    out_r, out_a = out_r[fresh], out_a[fresh]
+    turn_span = 2.0 * math.pi - 0.5 * abs(step)
+    if out_a.size > 1 and out_a[-1] - out_a[0] >= turn_span:  # past a full turn
+        if time_increment > 0.0:  # the later beams are at the end
+            keep = out_a - out_a[0] < turn_span
+        else:  # the last beam first: the later beams are at the start
+            keep = out_a[-1] - out_a < turn_span
         out_r, out_a = out_r[keep], out_a[keep]
     return out_r, out_a
 
@@ -392,7 +403,7 @@ class YawEstimate:
 
 def laser_yaw(
     points: list[FloatArray], odometry: list[Pose], config: FrontendConfig,
-    pairs: list[tuple[Pose, FloatArray]] | None = None,
+    pairs: list[CalibrationPair] | None = None,
 ) -> YawEstimate:
     """The laser's yaw against the wheel odometry's direction of travel (module notes).
 
@@ -406,7 +417,7 @@ def laser_yaw(
     :func:`calibration_pairs` when already made."""
     if pairs is None:
         pairs = calibration_pairs(points, odometry, config)
-    angles = [math.atan2(o.x * m[1] - o.y * m[0], o.x * m[0] + o.y * m[1]) for o, m in pairs]
+    angles = [math.atan2(o.x * m[1] - o.y * m[0], o.x * m[0] + o.y * m[1]) for o, m, _ in pairs]
     if len(angles) < 2:
         return YawEstimate(0.0, math.inf, len(angles), False)
     # A 10 % trimmed mean and its standard error from the winsorized variance (Tukey-McLaughlin):
@@ -440,14 +451,15 @@ class ScaleEstimate:
         return self.scale if self.applied else 1.0
 
 
-def wheel_scale(pairs: list[tuple[Pose, FloatArray]], config: FrontendConfig) -> ScaleEstimate:
+def wheel_scale(pairs: list[CalibrationPair], config: FrontendConfig) -> ScaleEstimate:
     """The wheels' distance scale from matched consecutive scans (:func:`calibration_pairs`):
     per pair, the wheels' distance over the matched motion along the wheels' direction
     (``|o|^2 / (o . m)``: a pair in a corridor, whose match slides along it, errs along the
     motion as much as it errs at all, but a sideways error does not count), their median and its
-    standard error (1.2533 times the MAD over the root of their number)."""
+    standard error (1.2533 times the robust sigma, 1.4826 times the median absolute deviation,
+    over the root of their number)."""
     ratios = []
-    for o, m in pairs:
+    for o, m, _ in pairs:
         along = o.x * float(m[0]) + o.y * float(m[1])
         if along > 0.01:
             ratios.append((o.x * o.x + o.y * o.y) / along)
@@ -462,15 +474,25 @@ def wheel_scale(pairs: list[tuple[Pose, FloatArray]], config: FrontendConfig) ->
     return ScaleEstimate(scale, se, len(r), applied)
 
 
+class CalibrationPair(NamedTuple):
+    """Two consecutive scans matched (:func:`calibration_pairs`): the wheels' increment from scan
+    ``scan - 1`` to scan ``scan`` and the matched one (``x, y, theta``)."""
+
+    odometry: Pose
+    matched: FloatArray
+    scan: int
+
+
 def calibration_pairs(
     points: list[FloatArray], odometry: list[Pose], config: FrontendConfig
-) -> list[tuple[Pose, FloatArray]]:
-    """The scan pairs both calibrations rest on (:func:`laser_yaw`, :func:`odometry_noise`):
-    ``(odometry increment, matched increment)`` of up to ``yaw_max_pairs`` consecutive scans
-    ``k - 1, k`` (evenly spread) whose odometry moved at least ``yaw_min_step`` metres: scan
-    ``k``'s points matched against scan ``k - 1``'s alone (:func:`mapping.lidar_slam.match_scan`
-    with ``config.slam``'s settings, from the odometry's increment, no prior), kept when at
-    least ``yaw_min_inliers`` of them lie on the other scan's lines."""
+) -> list[CalibrationPair]:
+    """The scan pairs the calibrations rest on (:func:`laser_yaw`, :func:`odometry_noise`,
+    :func:`wheel_scale`): ``(odometry increment, matched increment, k)`` of up to
+    ``yaw_max_pairs`` consecutive scans ``k - 1, k`` (evenly spread) whose odometry moved at
+    least ``yaw_min_step`` metres: scan ``k``'s points matched against scan ``k - 1``'s alone
+    (:func:`mapping.lidar_slam.match_scan` with ``config.slam``'s settings, from the odometry's
+    increment, no prior), kept when at least ``yaw_min_inliers`` of them lie on the other scan's
+    lines."""
     from mapping.lidar_slam import Submap, match_scan, scan_normals
 
     slam = config.slam
@@ -487,7 +509,7 @@ def calibration_pairs(
         o = odometry[k]
         m = match_scan(here, sub, np.array(o.as_tuple()), slam)
         if m.inliers >= config.yaw_min_inliers:
-            out.append((o, m.pose))
+            out.append(CalibrationPair(o, m.pose, k))
     return out
 
 
@@ -495,17 +517,19 @@ def calibration_pairs(
 class OdometryNoise:
     """What :func:`odometry_noise` found: ``rot_per_m``, the wheel odometry's heading error per
     metre driven (radians; a robust standard deviation), the matched ``pairs`` it rests on, and
-    ``correlation``, the lag-1 autocorrelation of those errors from one pair to the next (NaN
-    with fewer than 3 pairs): near 0 for independent noise, near 1 for a smooth drift."""
+    ``correlation``, the lag-1 autocorrelation of those errors from one pair to the next, over
+    the ``neighbours`` pairs of pairs that are consecutive scans (NaN with fewer than 2): near 0
+    for independent noise, near 1 for a smooth drift."""
 
     rot_per_m: float
     pairs: int
     correlation: float = math.nan
+    neighbours: int = 0
 
 
 def odometry_noise(
     points: list[FloatArray], odometry: list[Pose], config: FrontendConfig,
-    pairs: list[tuple[Pose, FloatArray]] | None = None,
+    pairs: list[CalibrationPair] | None = None,
 ) -> OdometryNoise:
     """The wheel odometry's heading noise per metre, from the log itself: for consecutive scans
     matched against each other alone (:func:`calibration_pairs`), the odometry's turn minus the
@@ -521,21 +545,31 @@ def odometry_noise(
     if len(pairs) < 2:
         return OdometryNoise(math.nan, len(pairs))
     per_m = np.array([math.remainder(o.theta - float(m[2]), math.tau) / math.hypot(o.x, o.y)
-                      for o, m in pairs])
+                      for o, m, _ in pairs])
     spread = 1.4826 * float(np.median(np.abs(per_m)))
-    return OdometryNoise(spread, len(pairs), lag_correlation(per_m, 3.0 * spread))
+    scans = np.array([p.scan for p in pairs])
+    neighbours = int(np.count_nonzero(np.diff(scans) == 1))
+    return OdometryNoise(spread, len(pairs), lag_correlation(per_m, 3.0 * spread, scans), neighbours)
 
 
-def lag_correlation(values: FloatArray, clip: float) -> float:
+def lag_correlation(values: FloatArray, clip: float, index: NDArray[np.int_] | None = None) -> float:
     """The lag-1 autocorrelation of ``values`` (in order), each clipped to ``[-clip, clip]`` first
-    (a pair matched to the wrong wall is one wild value, not a trend); NaN with fewer than 3
-    values or without spread."""
+    (a pair matched to the wrong wall is one wild value, not a trend), over the neighbours whose
+    ``index`` differs by one when given (the calibration's pairs are spread over a long log: at a
+    stride of ``s`` an AR(1) series' correlation is ``r**s``); NaN with fewer than 2 such
+    neighbours or without spread."""
     v = np.asarray(values, dtype=np.float64)
     if clip > 0:
         v = np.clip(v, -clip, clip)
     if len(v) < 3:
         return math.nan
-    a, b = v[:-1] - v[:-1].mean(), v[1:] - v[1:].mean()
+    a, b = v[:-1], v[1:]
+    if index is not None:
+        next_to = np.diff(np.asarray(index)) == 1
+        a, b = a[next_to], b[next_to]
+    if len(a) < 2:
+        return math.nan
+    a, b = a - a.mean(), b - b.mean()
     den = math.sqrt(float(a @ a) * float(b @ b))
     return float(a @ b) / den if den > 0 else math.nan
 
@@ -552,7 +586,8 @@ def calibrated_slam(config: SlamConfig, noise: OdometryNoise) -> SlamConfig:
     if noise.pairs >= config.odo_calibration_min_pairs and math.isfinite(noise.rot_per_m):
         prior = max(prior, min(config.odo_calibration_scale * noise.rot_per_m, config.odo_calibration_max))
     r = noise.correlation
-    if math.isfinite(r) and noise.pairs >= 3 and r > config.odo_correlation_sigmas / math.sqrt(noise.pairs):
+    if math.isfinite(r) and noise.neighbours >= 2 \
+            and r > config.odo_correlation_sigmas / math.sqrt(noise.neighbours):
         r = min(r, 0.95)
         prior = max(prior, min(prior * math.sqrt((1.0 + r) / (1.0 - r)), config.odo_calibration_max))
     return config if prior == config.odo_rot_per_m else replace(config, odo_rot_per_m=prior)

@@ -93,14 +93,15 @@ class SlamConfig:
         50.
     odo_correlation_sigmas : float
         With ``odo_calibration``: when the wheels' heading errors of successive scan pairs are
-        correlated (their lag-1 autocorrelation at least this many standard errors,
-        ``1 / sqrt(pairs)``, above zero; :class:`mapping.lidar_frontend.OdometryNoise`), the
-        prior per metre is widened by ``sqrt((1 + r) / (1 - r))`` (r at most 0.95), up to
-        ``odo_calibration_max`` (3; ``inf``: never). Real wheels drift smoothly (a wheel's radius,
-        a slipping tyre): an error that persists over many scans adds up along the chain as
-        independent errors of that size would not, and a prior sized for independent errors
-        holds the drift against the scans (simulated smooth drift, ``wiremap bench scanners``:
-        r 0.7-0.85; the shared logs' independent noise: -0.16 to -0.02).
+        correlated (their lag-1 autocorrelation over consecutive pairs at least this many
+        standard errors, ``1 / sqrt(n)``, above zero;
+        :class:`mapping.lidar_frontend.OdometryNoise`), the prior per metre is widened by
+        ``sqrt((1 + r) / (1 - r))`` (r at most 0.95), up to ``odo_calibration_max`` (3;
+        ``inf``: never). Real wheels drift smoothly (a wheel's radius, a slipping tyre): an
+        error that persists over many scans adds up along the chain as independent errors of
+        that size would not, and a prior sized for independent errors holds the drift against
+        the scans (simulated smooth drift, ``wiremap bench scanners``: r 0.6-0.85; the shared
+        logs' independent noise: -0.19 to -0.06).
     normal_gap : float
         Neighbours farther than this (metres) give a point no normal (0.6: real scanners' beams
         are 1 degree apart, 0.35 m at 20 m on a wall square to the beam; at 0.3 the far walls,

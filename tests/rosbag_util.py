@@ -74,7 +74,7 @@ class MessageMaker:
         return self.store.types["sensor_msgs/msg/LaserScan"](
             header=self.header(t, frame), angle_min=angle_min, angle_max=angle_max,
             angle_increment=angle_increment, time_increment=time_increment,
-            scan_time=abs(time_increment) * max(r.size - 1, 0), range_min=range_min,
+            scan_time=0.0, range_min=range_min,
             range_max=range_max, ranges=r, intensities=np.zeros(0, dtype=np.float32),
         )  # fmt: skip
 

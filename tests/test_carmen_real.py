@@ -435,13 +435,14 @@ def test_online_slam_feeds_each_scan_at_the_pose_the_slam_gave_it_then() -> None
     got = [inp.odometry for inp in mr.carmen_inputs(scans, extract=extract, frontend=frontend,
                                                     calibration=cal)]
     slam_cfg = dataclasses.replace(frontend.slam, refine_passes=0)
-    slam = run_slam(cal.points, mr.wheel_increments(scans), slam_cfg, noise=cal.noise)
+    slam = run_slam(cal.points, [mr.scaled(o, cal.scale) for o in mr.wheel_increments(scans)], slam_cfg,
+                    noise=cal.noise)
     want = increments([Pose(*map(float, p)) for p in slam.online])
     assert len(got) == len(want) == 40
     for a, b in zip(got, want, strict=True):
         assert a.distance(b) < 1e-9 and abs(a.theta - b.theta) < 1e-12
     # causal: the first 20 scans alone (same calibration) give the first 20 increments exactly
-    head_cal = mr.LogCalibration(cal.points[:20], cal.turn, cal.estimate, cal.noise)
+    head_cal = dataclasses.replace(cal, points=cal.points[:20])
     head = [inp.odometry for inp in mr.carmen_inputs(scans[:20], extract=extract, frontend=frontend,
                                                      calibration=head_cal)]
     assert [p.as_tuple() for p in head] == [p.as_tuple() for p in got[:20]]

@@ -194,3 +194,29 @@ def test_deskew_keeps_a_full_turn_one_turn() -> None:
     extract_corners(r, a, 10.0)  # a valid scan (strictly increasing, at most a turn)
     r, a = deskew(ranges, angles, 0.1 / n, (0.0, 0.0, -1.0))  # against the spin: a gap at the seam
     assert len(a) == n and a[-1] - a[0] < 2 * math.pi
+
+
+def test_deskew_never_gives_bearings_out_of_order() -> None:
+    """Whatever the velocity (a reset odometry, a hostile robot's clock), the result is a valid
+    scan: strictly increasing bearings, ranges alike in number; a turn against the sweep faster
+    than its beams leaves the scan as it is; a near return carried past its neighbours is put
+    where it is, among them."""
+    from mapping.extract import extract_corners
+    from mapping.lidar_frontend import deskew
+
+    n = 360
+    angles = -math.pi + 2 * math.pi * np.arange(n) / n
+    empty = np.full(n, np.inf)
+    r, a = deskew(empty, angles, 1.0 / 359, (0.0, 0.0, -7.0))  # against the sweep, faster than it
+    assert np.array_equal(a, angles) and len(r) == n
+    near = np.full(n, 5.0)
+    near[100] = 0.02  # 2 cm away, driving 2 m/s sideways: carried past its neighbours
+    for v in ((0.0, 2.0, 0.0), (0.0, -2.0, 0.0), (1.0, 1.0, 3.0), (0.0, 0.0, -3.0)):
+        r, a = deskew(near, angles, 0.1 / n, v)
+        assert len(r) == len(a) >= n - 20 and np.all(np.diff(a) > 0) and a[-1] - a[0] < 2 * math.pi
+        extract_corners(r, a, 10.0)
+    many = np.full(16000, 3.0)
+    many[1] = 1e-5
+    wide = np.linspace(-2.0, 2.0, 16000)
+    r, a = deskew(many, wide, 1e-6, (0.5, 0.0, 1.0))  # one pass, not one per dropped beam
+    assert np.all(np.diff(a) > 0) and len(r) == len(a)

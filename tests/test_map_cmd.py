@@ -113,6 +113,8 @@ def test_map_thins_a_dense_log_by_the_motion_filter(tmp_path, capsys):
     assert main(["map", "--carmen", str(log), "--out", str(tmp_path / "a")]) == 0
     assert f"a dense log (80 scans): {len(kept)} mapped" in capsys.readouterr().err
     _, rows, report, _ = read_outputs(tmp_path / "a")
+    times = [s.t for s in read_carmen(log)]
+    assert [float(r[0]) for r in rows] == pytest.approx([times[k] for k in kept], abs=1e-6)  # those scans
     assert len(rows) == len(kept) and report["scans_in_log"] == 80
     assert report["scans_left_out"] == 80 - len(kept)
     # every scan, when asked; the motion filter's limits are settings too

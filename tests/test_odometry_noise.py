@@ -126,20 +126,22 @@ def test_a_smooth_drift_is_measured_as_correlated_and_independent_noise_is_not()
     smooth = odometry_noise(scans, _smooth_wheels(route, 2.0), FrontendConfig())
     independent = odometry_noise(scans, _wheels(route, 2.0), FrontendConfig())
     assert smooth.correlation > 0.7, smooth
-    assert abs(independent.correlation) < 3.0 / math.sqrt(independent.pairs), independent
+    assert abs(independent.correlation) < 3.0 / math.sqrt(independent.neighbours), independent
+    assert smooth.neighbours >= 30 and smooth.neighbours <= smooth.pairs - 1
 
 
 def test_a_correlated_drift_widens_the_prior_by_its_correlation() -> None:
     cfg = SlamConfig(odo_rot_per_m=0.035, odo_calibration_scale=3.0, odo_calibration_max=0.15)
     # r = 0.8 over 100 pairs (8 standard errors): sqrt(1.8 / 0.2) = 3 times the prior
-    assert calibrated_slam(cfg, OdometryNoise(0.005, 100, 0.8)).odo_rot_per_m == pytest.approx(0.105)
-    assert calibrated_slam(cfg, OdometryNoise(0.02, 100, 0.8)).odo_rot_per_m == 0.15  # 0.06 x 3, capped
-    assert calibrated_slam(cfg, OdometryNoise(0.005, 100, 0.25)) == cfg  # 2.5 standard errors: chance
-    assert calibrated_slam(cfg, OdometryNoise(0.005, 100, -0.6)) == cfg  # alternating: not a drift
+    assert calibrated_slam(cfg, OdometryNoise(0.005, 100, 0.8, 100)).odo_rot_per_m == pytest.approx(0.105)
+    assert calibrated_slam(cfg, OdometryNoise(0.02, 100, 0.8, 100)).odo_rot_per_m == 0.15  # 0.06 x 3, capped
+    assert calibrated_slam(cfg, OdometryNoise(0.005, 100, 0.25, 100)) == cfg  # 2.5 standard errors: chance
+    assert calibrated_slam(cfg, OdometryNoise(0.005, 100, -0.6, 100)) == cfg  # alternating: not a drift
+    assert calibrated_slam(cfg, OdometryNoise(0.005, 100, 0.8, 1)) == cfg  # one pair of neighbours: no test
     # fewer pairs than the noise needs: the correlation still counts (it has its own test)
-    assert calibrated_slam(cfg, OdometryNoise(0.02, 30, 0.8)).odo_rot_per_m == pytest.approx(0.105)
+    assert calibrated_slam(cfg, OdometryNoise(0.02, 30, 0.8, 30)).odo_rot_per_m == pytest.approx(0.105)
     off = SlamConfig(odo_rot_per_m=0.035, odo_correlation_sigmas=math.inf)
-    assert calibrated_slam(off, OdometryNoise(0.005, 100, 0.8)) == off
+    assert calibrated_slam(off, OdometryNoise(0.005, 100, 0.8, 100)) == off
 
 
 @pytest.mark.parametrize("scale, applied", [(1.03, True), (0.975, True), (1.004, False), (1.0, False)])

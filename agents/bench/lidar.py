@@ -83,7 +83,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="random seed of the filter (default 1)")
     parser.add_argument("--particles", type=int, default=10, help="particles (default 10)")
     parser.add_argument("--steps", type=positive_int, default=None, metavar="N",
-                        help="only the first N scans of each log")
+                        help="only the first N scans of each log (before a dense log is thinned)")
     parser.add_argument("--max-range", type=float, default=20.0, metavar="M",
                         help="range cap given to the mapper, metres (default 20, as wiremap map)")
     parser.add_argument("--merge-threshold", type=float, default=0.2, metavar="M",
@@ -243,11 +243,12 @@ def run_log(
     scans = log.scans[:steps] if steps is not None else log.scans
     truth = truth[: len(scans)]
     cap = min(float(scans[0].max_range), max_range)
+    fov = mr.scan_fov(scans[0].angles)  # the scanner's, before a de-skew bends the first scan
     filter_overrides, extract_cfg, frontend_cfg = mr.split_profile(dict(settings or {}))
-    scans, kept_truth, left_out = mr.motion_filtered(scans, truth, frontend_cfg)  # a dense log thinned
+    t0 = time.perf_counter()
+    scans, kept_truth, left_out = mr.motion_filtered(scans, truth, frontend_cfg)  # de-skewed, thinned
     assert kept_truth is not None
     truth = kept_truth
-    t0 = time.perf_counter()
     cal = mr.calibrate_log(scans, frontend_cfg)
     noise = [cal.noise]  # the online SLAM's last measure of the wheels (mapping.lidar_frontend.OnlineSlam)
     inputs = list(mr.carmen_inputs(scans, max_range=cap, truth=truth, extract=extract_cfg,
@@ -256,7 +257,6 @@ def run_log(
     true_xyt = pose_array(truth)
     odom_xyt = pose_array([s.odom for s in scans])
     endpoints = scan_endpoints(true_xyt, [s.ranges for s in scans], [s.angles for s in scans], max_range=cap)
-    fov = mr.scan_fov(scans[0].angles)
 
     def one(method: str, p: int, feed: list[Any] = inputs) -> tuple[dict[str, Any], Any, np.ndarray]:
         cfg = with_overrides(mr.filter_config_for(p, thr, cap, fov=fov), filter_overrides)

@@ -92,12 +92,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def shift(scans: list[Any], passes: int) -> list[tuple[int, Any]]:
     """The log's scans forward, back, forward ... ``passes`` times, as ``(index in the log,
-    scan)``; the scans' times made to increase by 0.1 s a scan (the live stage does not read
-    them)."""
+    scan)``; the scans' times made to increase by 0.1 s a scan, and their beams simultaneous
+    (``time_increment`` 0: driven backwards, a scan's beams would come in the wrong order for
+    the live de-skew; :func:`run_log` de-skews the log once, forwards, before)."""
     order: list[int] = []
     for p in range(passes):
         order += list(range(len(scans))) if p % 2 == 0 else list(range(len(scans) - 1, -1, -1))
-    return [(k, replace(scans[k], t=0.1 * i)) for i, k in enumerate(order)]
+    return [(k, replace(scans[k], t=0.1 * i, time_increment=0.0)) for i, k in enumerate(order)]
 
 
 def _rss_mb() -> float:
@@ -130,6 +131,7 @@ def run_log(path: str, *, passes: int, seed: int, particles: int, threshold: flo
     if not scans:
         raise UserError(f"{path}: no laser scans in the log")
     filter_overrides, extract, frontend = mr.split_profile(settings)
+    scans = mr.deskewed(scans, frontend)  # forwards, once (shift's times are not the log's)
     filt, cap = live_filter(scans[0], particles, threshold, seed, filter_overrides)  # as the robot's
     live = mr.LiveInputs(max_range=cap, extract=extract, frontend=frontend, min_travel=min_travel,
                          min_turn=math.radians(min_turn_deg))

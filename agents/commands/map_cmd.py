@@ -82,7 +82,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--max-range", type=float, default=None, metavar="M",
                         help="sensing range in metres (default 8 in simulation; "
                              "CARMEN log or ROS bag: the scanner's, at most 20)")
-    parser.add_argument("--steps", type=int, default=None, metavar="N", help="stop after N scans")
+    parser.add_argument("--steps", type=int, default=None, metavar="N",
+                        help="stop after N scans (a log or bag: its first N scans, before the motion filter "
+                             "thins a dense one)")
     parser.add_argument("--duration", type=float, default=None, metavar="S",
                         help="stop after S simulated seconds (the simulation does not wait for the clock)")
     parser.add_argument("--strict", action="store_true",

@@ -78,8 +78,9 @@ For the front laser (``FLASER``; ``RLASER`` reads the same names with ``rear`` f
   (rad); default 0. The rear laser faces backwards (angular offset ``pi`` added).
 * seconds from one beam to the next, ``wiremap_front_laser_time_increment`` (wiremap's own, as
   ROS's ``LaserScan.time_increment``; :func:`write_carmen` writes it for a scanner whose beams
-  are not simultaneous, a spinning lidar's; CARMEN has none, and without it the beams are taken
-  as simultaneous): the line's timestamp is its first beam's.
+  are not simultaneous, a spinning lidar's; CARMEN has none, and without it, or when a scan's
+  beams would take over ``MAX_SWEEP`` (1 s) by it, the beams are taken as simultaneous): the
+  line's timestamp is its first beam's.
 
 The first name found in the list wins; ``fov=`` and ``max_range=`` arguments override them. A
 parameter honoured here whose value is not a number is an issue (see above) and is ignored.
@@ -129,12 +130,17 @@ MAX_RANGE_PARAMS = (
 )
 OFFSET_PARAMS = ("robot_frontlaser_offset", "robot_frontlaser_side_offset", "robot_frontlaser_angular_offset")
 TIME_INCREMENT_PARAMS = ("wiremap_front_laser_time_increment",)
+#: A scan whose beams would take longer than this (seconds) by its time increment is taken as
+#: simultaneous (0): no planar lidar takes a second for a scan, and a wrong value should not
+#: bend the scan (the ROS bag reader and the live robot apply the same limit).
+MAX_SWEEP = 1.0
 DEFAULT_FOV = math.pi
 HOSTNAME = "wiremap"
 _MESSAGE_TYPE = re.compile(r"[A-Z][A-Z0-9_]*\Z")
 
 __all__ = [
     "LASERS",
+    "MAX_SWEEP",
     "CarmenError",
     "CarmenLog",
     "LaserScan",
@@ -591,8 +597,11 @@ def _to_scan(raw: _Raw, geometry: _Geometry, max_range: float | None) -> LaserSc
     with np.errstate(invalid="ignore"):
         ranges[~(ranges > 0.0) | (ranges >= rmax)] = np.inf
     mount = raw.mount if raw.mount is not None else geometry.mount
+    dt = geometry.time_increment
+    if abs(dt) * (ranges.size - 1) > MAX_SWEEP:  # not a scanner's sweep: simultaneous beams
+        dt = 0.0
     return LaserScan(raw.t, ranges, angles, float(rmax), raw.odom.compose(mount), mount, raw.kind, raw.index,
-                     geometry.time_increment)
+                     dt)
 
 
 def _summary(log: _Collected, scans: list[LaserScan], laser: str | None) -> CarmenLog:

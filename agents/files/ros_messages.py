@@ -47,14 +47,14 @@ class Ros2Messages:
         self, t: float, ranges: Any, angles: Any, max_range: float, time_increment: float = 0.0
     ) -> bytes:
         """A ``LaserScan`` of beams at ``angles`` (increasing, evenly spaced) with ``ranges``,
-        ``time_increment`` seconds apart (``scan_time`` their span)."""
+        ``time_increment`` seconds apart (``scan_time``, the time between scans, 0: not known)."""
         a = np.asarray(angles, dtype=np.float64)
         r = np.asarray(ranges, dtype=np.float32)
         inc = float(a[-1] - a[0]) / (a.size - 1) if a.size > 1 else 0.0
         msg = self.types[SCAN_TYPE](
             header=self._header(t, self.laser_frame), angle_min=float(a[0]), angle_max=float(a[-1]),
             angle_increment=inc, time_increment=float(time_increment),
-            scan_time=abs(float(time_increment)) * max(a.size - 1, 0), range_min=0.0,
+            scan_time=0.0, range_min=0.0,
             range_max=float(max_range), ranges=r, intensities=np.zeros(0, dtype=np.float32),
         )
         return bytes(self.store.serialize_cdr(msg, SCAN_TYPE))

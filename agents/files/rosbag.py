@@ -73,7 +73,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from agents.errors import UserError
-from agents.files.carmen import LaserScan
+from agents.files.carmen import MAX_SWEEP, LaserScan
 from mapping.se2 import Pose, wrap_angle
 
 FloatArray = NDArray[np.float64]
@@ -372,12 +372,6 @@ class _RawScan:
     max_range: float
     frame: str
     time_increment: float = 0.0  # seconds from one beam to the next, in the message's order
-
-
-#: A scan whose beams would take longer than this (seconds) by its ``time_increment`` is taken
-#: as simultaneous (0): no planar lidar takes a second for a scan, and a driver that fills the
-#: field wrongly should not bend the scan.
-MAX_SWEEP = 1.0
 
 
 def _raw_scan(msg: Any, index: int, bag_ns: int) -> _RawScan:

@@ -149,7 +149,7 @@ def write_scanner_log(
         for lo, hi, cfg, bearing, delay in sectors:
             f = delay * model.rate  # the share of the step's motion done when the sector is cast
             at = s.true_pose.compose(Pose(f * motion.x, f * motion.y, f * motion.theta + bearing))
-            ranges[lo:hi] = realistic_scan(scene, at, s.t, cfg, real.noise, rngs["sensor"])
+            ranges[lo:hi] = realistic_scan(scene, at, s.t + delay, cfg, real.noise, rngs["sensor"])
         scans.append(LaserScan(s.t, ranges, angles, model.max_range, pose,
                                time_increment=model.time_increment))
     write_carmen(path, scans, fov=fov, max_range=model.max_range, time_increment=model.time_increment,
