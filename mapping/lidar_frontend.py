@@ -493,24 +493,32 @@ def calibration_pairs(
     (:func:`mapping.lidar_slam.match_scan` with ``config.slam``'s settings, from the odometry's
     increment, no prior), kept when at least ``yaw_min_inliers`` of them lie on the other scan's
     lines."""
+    moved = _moved(points, odometry, config)
+    if len(moved) > config.yaw_max_pairs:
+        moved = [moved[i] for i in np.linspace(0, len(moved) - 1, config.yaw_max_pairs).round().astype(int)]
+    return [p for p in (_matched_pair(points, odometry, k, config) for k in moved) if p is not None]
+
+
+def _moved(points: list[FloatArray], odometry: list[Pose], config: FrontendConfig) -> list[int]:
+    """The scans ``k`` whose odometry moved at least ``yaw_min_step`` from scan ``k - 1``."""
+    return [k for k in range(1, min(len(points), len(odometry)))
+            if math.hypot(odometry[k].x, odometry[k].y) >= config.yaw_min_step]
+
+
+def _matched_pair(
+    points: list[FloatArray], odometry: list[Pose], k: int, config: FrontendConfig
+) -> CalibrationPair | None:
+    """Scan ``k`` matched against scan ``k - 1`` alone (:func:`calibration_pairs`), or None."""
     from mapping.lidar_slam import Submap, match_scan, scan_normals
 
     slam = config.slam
-    moved = [k for k in range(1, min(len(points), len(odometry)))
-             if math.hypot(odometry[k].x, odometry[k].y) >= config.yaw_min_step]
-    if len(moved) > config.yaw_max_pairs:
-        moved = [moved[i] for i in np.linspace(0, len(moved) - 1, config.yaw_max_pairs).round().astype(int)]
-    out = []
-    for k in moved:
-        prev, here = points[k - 1], points[k]
-        if len(prev) < 3 or len(here) < 3:
-            continue
-        sub = Submap.build([(prev, scan_normals(prev, slam.normal_gap))], slam.voxel)
-        o = odometry[k]
-        m = match_scan(here, sub, np.array(o.as_tuple()), slam)
-        if m.inliers >= config.yaw_min_inliers:
-            out.append(CalibrationPair(o, m.pose, k))
-    return out
+    prev, here = points[k - 1], points[k]
+    if len(prev) < 3 or len(here) < 3:
+        return None
+    sub = Submap.build([(prev, scan_normals(prev, slam.normal_gap))], slam.voxel)
+    o = odometry[k]
+    m = match_scan(here, sub, np.array(o.as_tuple()), slam)
+    return CalibrationPair(o, m.pose, k) if m.inliers >= config.yaw_min_inliers else None
 
 
 @dataclass(frozen=True)
@@ -539,17 +547,30 @@ def odometry_noise(
     is good to about 0.1-0.2 degrees; the wheels err by 0.4-2 degrees per metre on the
     shared logs, so the estimate is the wheels'. ``points``: each scan's points (robot frame);
     ``odometry``: the wheel increment into each scan (``odometry[0]`` unused); ``pairs``: their
-    :func:`calibration_pairs` when already made."""
+    :func:`calibration_pairs` when already made. The errors' correlation
+    (:attr:`OdometryNoise.correlation`) is taken between consecutive scan pairs: on a long log,
+    whose calibration pairs are spread out, each pair is joined by the one after it, matched
+    for this alone."""
     if pairs is None:
         pairs = calibration_pairs(points, odometry, config)
     if len(pairs) < 2:
         return OdometryNoise(math.nan, len(pairs))
-    per_m = np.array([math.remainder(o.theta - float(m[2]), math.tau) / math.hypot(o.x, o.y)
-                      for o, m, _ in pairs])
-    spread = 1.4826 * float(np.median(np.abs(per_m)))
-    scans = np.array([p.scan for p in pairs])
+    def per_metre(ps: list[CalibrationPair]) -> FloatArray:
+        return np.array([math.remainder(o.theta - float(m[2]), math.tau) / math.hypot(o.x, o.y)
+                         for o, m, _ in ps])
+
+    spread = 1.4826 * float(np.median(np.abs(per_metre(pairs))))
+    # The correlation needs pairs of consecutive scans; on a long log the calibration's pairs are
+    # spread out, so each is given the pair after it (matched for this alone).
+    have = {p.scan for p in pairs}
+    moved = set(_moved(points, odometry, config))
+    extra = [_matched_pair(points, odometry, p.scan + 1, config) for p in pairs
+             if p.scan + 1 not in have and p.scan + 1 in moved]
+    both = sorted([*pairs, *(p for p in extra if p is not None)], key=lambda p: p.scan)
+    scans = np.array([p.scan for p in both])
     neighbours = int(np.count_nonzero(np.diff(scans) == 1))
-    return OdometryNoise(spread, len(pairs), lag_correlation(per_m, 3.0 * spread, scans), neighbours)
+    correlation = lag_correlation(per_metre(both), 3.0 * spread, scans)
+    return OdometryNoise(spread, len(pairs), correlation, neighbours)
 
 
 def lag_correlation(values: FloatArray, clip: float, index: NDArray[np.int_] | None = None) -> float:

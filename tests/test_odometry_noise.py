@@ -130,6 +130,15 @@ def test_a_smooth_drift_is_measured_as_correlated_and_independent_noise_is_not()
     assert smooth.neighbours >= 30 and smooth.neighbours <= smooth.pairs - 1
 
 
+def test_the_correlation_is_measured_between_consecutive_scans_on_a_long_log() -> None:
+    """With the calibration's pairs spread out (at most 12 over the drive), each is joined by the
+    pair after it: the drift is still seen as correlated."""
+    route, _, scans = _hall_drive()
+    fc = FrontendConfig(yaw_max_pairs=12, yaw_min_pairs=2)
+    spread = odometry_noise(scans, _smooth_wheels(route, 2.0), fc)
+    assert spread.pairs <= 12 and spread.neighbours >= 8 and spread.correlation > 0.6, spread
+
+
 def test_a_correlated_drift_widens_the_prior_by_its_correlation() -> None:
     cfg = SlamConfig(odo_rot_per_m=0.035, odo_calibration_scale=3.0, odo_calibration_max=0.15)
     # r = 0.8 over 100 pairs (8 standard errors): sqrt(1.8 / 0.2) = 3 times the prior
