@@ -66,7 +66,7 @@ def messages(scans: list[Any], mount: Pose | None = None) -> list[tuple[str, byt
         a = np.asarray(s.angles)
         inc = float(a[-1] - a[0]) / (a.size - 1)
         out.append(("scan", mk.serialize(mk.scan(s.t, s.ranges, float(a[0]), inc, angle_max=float(a[-1]),
-                                                  range_max=s.max_range))))
+                                                  range_max=s.max_range, time_increment=s.time_increment))))
     return out
 
 
