@@ -407,6 +407,11 @@ def test_a_live_robot_maps_what_its_lidar_sends(scans: list[Any], tmp_path: Path
     (["--scan-key", "scan", "--odom-key", "odom", "--rate", "10"], "--rate is for"),
     (["--scan-key", "robot/**", "--odom-key", "robot/odom"], "overlap"),
     (["--scan-key", "scan", "--odom-key", "odom", "--laser-mount", "1e308,0"], "from the robot's base"),
+    (["--scan-key", "scan", "--odom-key", "odom", "--laser-mount", "0,0", "--tf-key", "tf_static"],
+     "not both"),
+    (["--scan-key", "scan", "--odom-key", "odom", "--base-frame", "base"], "for --tf-key"),
+    (["--scan-key", "scan", "--odom-key", "odom", "--tf-key", "**"], "overlap"),
+    (["--world", "tiny", "--start", "1,1", "--tf-key", "tf_static"], "for a live lidar"),
 ])
 def test_live_flags_errors_are_one_line(
     argv: list[str], needle: str, capsys: pytest.CaptureFixture[str]
@@ -460,22 +465,25 @@ def test_play_times_scans_a_live_robot_can_pair(scans: list[Any]) -> None:
 @pytest.mark.fleet
 def test_wiremap_play_feeds_a_live_robot(tmp_path: Path) -> None:
     """`wiremap play --carmen LOG` over a real router into `wiremap robot --scan-key --odom-key`:
-    the robot poses and maps every scan of the excerpt (motion filter off), and play says what
-    it sent and exits 0."""
+    the robot finds the laser's mount on the latched transforms play sends (`--tf-key`), poses
+    and maps every scan of the excerpt (motion filter off), and play says what it sent and exits
+    0."""
     from tests.fleet_util import in_process_router, log_text, spawn, stop_process, wait_until
 
     status_file = tmp_path / "status.json"
     robot_log, play_log = tmp_path / "robot.log", tmp_path / "play.log"
     with in_process_router() as ep:
         robot = spawn(["robot", "--id", "p1", "--scan-key", "pl/scan", "--odom-key", "pl/odom",
-                       "--calibration-scans", "20", "--min-travel", "0", "--min-turn", "0",
+                       "--tf-key", "pl/tf_static", "--calibration-scans", "20", "--min-travel", "0",
+                       "--min-turn", "0",
                        "--particles", "2", "--connect", ep, "--fleet", "t",
                        "--status-file", str(status_file)], robot_log)
         play = None
         try:
             wait_until(lambda: "on the bus" in robot_log.read_text(), 60, "the robot on the bus")
             play = spawn(["play", "--carmen", str(EXCERPT), "--speed", "200", "--scan-key", "pl/scan",
-                          "--odom-key", "pl/odom", "--connect", ep, "--fleet", "t"], play_log)
+                          "--odom-key", "pl/odom", "--tf-key", "pl/tf_static", "--connect", ep,
+                          "--fleet", "t"], play_log)
             wait_until(lambda: play.poll() is not None, 60, "play to finish")
             assert play.returncode == 0, log_text(play, play_log)
             assert "sent 60 scans in 1 full pass" in play_log.read_text()
@@ -487,6 +495,7 @@ def test_wiremap_play_feeds_a_live_robot(tmp_path: Path) -> None:
                     stop_process(p, timeout=5)
     status = json.loads(status_file.read_text())
     assert status["live"]["posed"] == 60 and status["step"] == 60, status
+    assert status["live"]["mount"] == "base_link -> laser" and status["live"]["transforms"] == 1, status
 
 
 @pytest.mark.parametrize(("argv", "needle"), [
@@ -496,6 +505,7 @@ def test_wiremap_play_feeds_a_live_robot(tmp_path: Path) -> None:
     (["--carmen", "{log}", "--scan-key", "scan", "--odom-key", "odom", "--speed", "0"], "--speed"),
     (["--carmen", "{log}", "--scan-key", "scan", "--odom-key", "odom", "--scan-topic", "/s"], "for --rosbag"),
     (["--carmen", "{log}", "--scan-key", "scan"], "--odom-key"),
+    (["--carmen", "{log}", "--scan-key", "scan", "--odom-key", "odom", "--tf-key", "scan"], "overlap"),
 ])
 def test_play_errors_are_one_line(argv: list[str], needle: str, tmp_path: Path,
                                   capsys: pytest.CaptureFixture[str]) -> None:
@@ -695,3 +705,36 @@ def test_the_warps_carry_every_node_to_where_the_graph_has_it(scans: list[Any]) 
         carried = np.vstack([carried, nodes[len(carried):, :2]])
     assert warps > 0 and len(carried) == len(online.slam.poses)
     assert np.allclose(carried, online.slam.poses[:, :2], atol=1e-9)
+
+
+# ---------------------------------------------------------------- the mount from /tf_static
+def test_the_mount_is_found_from_the_transforms_and_scans_wait_for_them(scans: list[Any]) -> None:
+    """With a base frame, the laser's mount comes from the TFMessages (base_link -> mast ->
+    laser): scans before they come are dropped as unposed with the reason, then every scan is
+    posed through the chain, as through --laser-mount; a transform that is not one is counted and
+    dropped; the chain is in the counts."""
+    mk = MessageMaker()
+    src = LiveLidar(base_frame="/base_link")
+    msgs = messages(scans[:6], MOUNT)
+    for kind, data in msgs[:5]:  # two scans and their odometry, before any transform
+        (src.on_scan if kind == "scan" else src.on_odometry)(data)
+    assert src.take(0.0) is None and src.counts.unposed == 2
+    assert "no transforms from base_link to its frame 'laser'" in src.counts.last_issue
+    mast = Pose(0.1, -0.03, 0.02)
+    bad = mk.transforms(0.0, [("base_link", "base_link", Pose())])  # a frame onto itself
+    src.on_transforms(mk.serialize(bad))
+    src.on_transforms(b"\x00\x01 not a TFMessage")
+    assert src.counts.bad_transforms == 2 and src.counts.transforms == 2
+    src.on_transforms(mk.serialize(mk.transforms(0.0, [("base_link", "mast", mast)])))
+    src.on_transforms(mk.serialize(mk.transforms(0.0, [("mast", "laser", mast.inverse().compose(MOUNT))])))
+    for kind, data in msgs[5:]:
+        (src.on_scan if kind == "scan" else src.on_odometry)(data)
+    got = []
+    while (ls := src.take(0.0)) is not None:
+        got.append(ls)
+    given = LiveLidar(mount=MOUNT)
+    want = posed_scans(given, scans[:6], MOUNT)[-len(got):]
+    assert len(got) >= 3 and src.counts.mount == "base_link -> mast -> laser"
+    for a, b in zip(got, want, strict=True):
+        assert a.odom.almost_equal(b.odom, tol=1e-9, angle_tol=1e-9) and a.mount.almost_equal(MOUNT, tol=1e-9)
+        assert np.array_equal(a.ranges, b.ranges)

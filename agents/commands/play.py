@@ -36,6 +36,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="play the log's scans I0 to I1-1 (default all)")
     parser.add_argument("--rate", type=positive_float, default=10.0, metavar="HZ",
                         help="scans per second for a log whose scan times do not increase (default 10)")
+    parser.add_argument("--tf-key", metavar="KEY", default=None,
+                        help="also send the laser's mount as a latched tf2_msgs/TFMessage (base_link -> "
+                        "laser) on KEY, as a robot's /tf_static (a live robot's --tf-key)")
     parser.add_argument("--loop", action="store_true",
                         help="start again at the end, until stopped (each pass stamped after the last; "
                         "the odometry jumps back to the start: a kidnapped robot)")
@@ -85,7 +88,7 @@ def run(args: argparse.Namespace) -> int:
     from agents.files.ros_messages import Ros2Messages
     from agents.fleet.live_lidar import check_keys
 
-    check_keys(args.scan_key, args.odom_key)
+    check_keys(args.scan_key, args.odom_key, args.tf_key)
     scans = _scans(args)
     mount = scans[0].mount
     make = Ros2Messages()
@@ -106,10 +109,20 @@ def run(args: argparse.Namespace) -> int:
                                on_wait=lambda t: say(f"waiting for a router ({t})"))
         if session is None:
             return 0
+        latched = None
         try:
+            if args.tf_key:  # latched, as /tf_static: a cache answers a robot that comes later
+                from zenoh.ext import CacheConfig, MissDetectionConfig, declare_advanced_publisher
+
+                latched = declare_advanced_publisher(
+                    session, args.tf_key, cache=CacheConfig(max_samples=1),
+                    sample_miss_detection=MissDetectionConfig(heartbeat=0.5, sporadic_heartbeat=None),
+                    publisher_detection=True)
+                latched.put(make.laser_mount(float(scans[0].t), mount))
+            where = (f"on {args.tf_key} (base_link -> laser)" if args.tf_key else
+                     f"--laser-mount {mount.x:.6g},{mount.y:.6g},{mount.theta:.6g}")
             say(f"{len(scans)} scans ({span:.0f} s of log) on {args.scan_key}, odometry on {args.odom_key}, "
-                f"at {args.speed:g}x; the laser on the robot: --laser-mount "
-                f"{mount.x:.6g},{mount.y:.6g},{mount.theta:.6g}")
+                f"at {args.speed:g}x; the laser on the robot: {where}")
             t0, last_say = time.monotonic(), time.monotonic()
             while not stop.is_set():
                 for k, ls in enumerate(scans):
@@ -132,6 +145,8 @@ def run(args: argparse.Namespace) -> int:
                         continue
                 break
         finally:
+            if latched is not None:
+                latched.undeclare()
             session.close()
     say(f"sent {sent} scans in {passes} full pass{'es' if passes != 1 else ''}"
         + (" (stopped)" if stop.is_set() else ""))

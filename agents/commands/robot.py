@@ -72,6 +72,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="with --scan-key: the laser's pose on the robot's base (metres, radians; default 0,0,0)",
     )
     parser.add_argument(
+        "--tf-key", metavar="KEY", default=None,
+        help="with --scan-key: find the laser's mount from the tf2_msgs/TFMessage on KEY (the robot's "
+        "/tf_static: 'tf_static' through zenoh-bridge-ros2dds) instead of --laser-mount",
+    )
+    parser.add_argument(
+        "--base-frame", metavar="FRAME", default=None,
+        help="with --tf-key: the robot's base frame, the mount's parent (default base_link)",
+    )
+    parser.add_argument(
         "--min-travel", type=non_negative_float, default=None, metavar="M",
         help="with --scan-key: map a scan once the wheels have moved M metres since the last one "
         "mapped (default 0.5; 0 with --min-turn 0: every scan)",
@@ -166,9 +175,9 @@ def options_from_args(args: argparse.Namespace) -> RobotOptions:
                             "--scan-key maps the robot's own lidar")
         return _live_options(args, rid)
     if args.laser_mount or args.calibration_scans is not None or args.min_travel is not None \
-            or args.min_turn is not None:
-        raise UserError("--laser-mount, --calibration-scans, --min-travel and --min-turn are for a live "
-                        "lidar (--scan-key)")
+            or args.min_turn is not None or args.tf_key or args.base_frame:
+        raise UserError("--laser-mount, --tf-key, --base-frame, --calibration-scans, --min-travel and "
+                        "--min-turn are for a live lidar (--scan-key)")
     if args.carmen and args.rosbag:
         raise UserError("give --carmen LOG or --rosbag FILE, not both")
     if args.carmen or args.rosbag:
@@ -312,10 +321,20 @@ def _live_options(args: argparse.Namespace, rid: str) -> RobotOptions:
         extra["min_turn"] = math.radians(float(args.min_turn))
     mount = Pose.identity()
     if args.laser_mount:
+        if args.tf_key:
+            raise UserError("give the laser's mount as --laser-mount or find it with --tf-key, not both")
         try:
             mount = parse_mount(args.laser_mount)
         except ValueError as exc:
             raise UserError(str(exc)) from None
+    if args.base_frame is not None and not args.tf_key:
+        raise UserError("--base-frame is the mount's parent frame for --tf-key")
+    if args.tf_key:
+        check_keys(args.scan_key, args.odom_key, args.tf_key)
+        extra["tf_key"] = args.tf_key
+        extra["base_frame"] = (args.base_frame or "base_link").lstrip("/")
+        if not extra["base_frame"]:
+            raise UserError("--base-frame must name a frame")
     start, unknown = Pose.identity(), True
     if args.start:
         text = args.start if args.start.count(",") == 2 else args.start + ",0"
@@ -345,15 +364,28 @@ def _calibration_scans(opts: RobotOptions) -> int:
     return int(live_profile(opts)[2].calibration_scans)
 
 
+TF_HISTORY = 16  # latched transform messages asked of each publisher's cache (one per static publisher)
+
+
 def _live_steps(session: Any, opts: RobotOptions, stop: Any, subs: list[Any]) -> tuple[Any, Any]:
     """Subscribe to the live scans and odometry (``subs`` gets the subscribers); the robot's
     steps over them (:func:`agents.fleet.live_lidar.live_steps`) and the source's counters."""
     from agents.fleet.live_lidar import LiveLidar, live_steps
 
     assert opts.live is not None
-    source = LiveLidar(mount=opts.mount)
+    tf_key = opts.extra.get("tf_key")
+    source = LiveLidar(mount=opts.mount, base_frame=opts.extra.get("base_frame") if tf_key else None)
     subs.append(session.declare_subscriber(opts.live[0], lambda s: source.on_scan(s.payload)))
     subs.append(session.declare_subscriber(opts.live[1], lambda s: source.on_odometry(s.payload)))
+    if tf_key:
+        # /tf_static is latched (transient local): sent once, before this robot may have come. An
+        # advanced subscriber with history gets it from a publisher's cache (zenoh-bridge-ros2dds
+        # keeps one with Advanced Pub/Sub; `wiremap play --tf-key` too), and later ones as they come.
+        from zenoh.ext import HistoryConfig, declare_advanced_subscriber
+
+        subs.append(declare_advanced_subscriber(
+            session, tf_key, lambda s: source.on_transforms(s.payload),
+            history=HistoryConfig(detect_late_publishers=True, max_samples=TF_HISTORY)))
     return live_steps(opts, source, stop), source.snapshot
 
 

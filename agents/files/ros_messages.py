@@ -24,6 +24,7 @@ from mapping.se2 import Pose
 
 SCAN_TYPE = "sensor_msgs/msg/LaserScan"
 ODOM_TYPE = "nav_msgs/msg/Odometry"
+TF_TYPE = "tf2_msgs/msg/TFMessage"
 
 
 class Ros2Messages:
@@ -78,6 +79,19 @@ class Ros2Messages:
                 covariance=np.zeros(36, dtype=np.float64)),
         )  # fmt: skip
         return bytes(self.store.serialize_cdr(msg, ODOM_TYPE))
+
+    def laser_mount(self, t: float, mount: Pose) -> bytes:
+        """A ``tf2_msgs/TFMessage`` (``/tf_static``) with the laser's ``mount`` on the robot's base:
+        ``base_link -> laser``."""
+        ty = self.types
+        h = 0.5 * mount.theta
+        msg = ty[TF_TYPE](transforms=[ty["geometry_msgs/msg/TransformStamped"](
+            header=self._header(t, self.base_frame), child_frame_id=self.laser_frame,
+            transform=ty["geometry_msgs/msg/Transform"](
+                translation=ty["geometry_msgs/msg/Vector3"](x=mount.x, y=mount.y, z=0.0),
+                rotation=ty["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=math.sin(h), w=math.cos(h))),
+        )])  # fmt: skip
+        return bytes(self.store.serialize_cdr(msg, TF_TYPE))
 
     def of_scan(self, ls: Any) -> tuple[bytes, bytes]:
         """``(odometry, scan)`` of one scan of a log (:class:`agents.files.carmen.LaserScan`): the

@@ -535,13 +535,20 @@ class _Mount:
 def _mount(log: _Collected, base: str, laser: str) -> _Mount:
     """The laser's pose on the robot: the transforms from ``base`` to ``laser``, each frame's
     parent from ``/tf_static`` first, then from ``/tf``; the identity when none leads there."""
+    return mount_chain({**log.fixed, **log.static}, base, laser)
+
+
+def mount_chain(links: dict[str, tuple[str, _Rigid]], base: str, laser: str) -> _Mount:
+    """The laser's pose on the robot: the transforms from ``base`` to ``laser`` through
+    ``links`` (each frame's ``(parent, transform)``); the identity, with no ``chain``, when none
+    leads there (or the frames go round in a cycle)."""
     if not laser or laser == base:
         return _Mount(Pose(), False, None)
     path = [laser]
     rigid = _Rigid(np.eye(3), np.zeros(3))
     frame = laser
     while frame != base:
-        link = log.static.get(frame) or log.fixed.get(frame)
+        link = links.get(frame)
         if link is None or len(path) > MAX_CHAIN:
             return _Mount(Pose(), False, None)
         parent, step = link
@@ -637,6 +644,22 @@ def _live_stamp(header: Any, what: str) -> None:
         raise MessageError(f"{what} has a zero stamp")
     if not 0 <= nsec < 1_000_000_000:
         raise MessageError(f"{what} stamp has {nsec} nanoseconds (0 to 999999999)")
+
+
+def transform_links(msg: Any) -> list[tuple[str, str, Any]]:
+    """A deserialised ``tf2_msgs/TFMessage``'s transforms as ``(parent, child, transform)`` (for
+    :func:`mount_chain`); :class:`MessageError` when one is not finite, not a rotation, or has no
+    frame names (none of the message is then taken)."""
+    out = []
+    for tf in msg.transforms:
+        parent, child = _frame(tf.header.frame_id), _frame(tf.child_frame_id)
+        if not parent or not child or parent == child:
+            raise MessageError(f"TFMessage transform {parent!r} -> {child!r} does not join two frames")
+        try:
+            out.append((parent, child, _Rigid.of(tf.transform.translation, tf.transform.rotation)))
+        except (_Bad, ValueError) as exc:
+            raise MessageError(f"TFMessage transform {parent} -> {child}: {exc}") from None
+    return out
 
 
 def scan_beams(msg: Any, index: int) -> _RawScan:

@@ -35,8 +35,15 @@ What is made of them (choices)
 * **Bounds**: an odometry pose farther than ``MAX_COORD`` (10 km) from its frame's origin, or a
   stamp whose nanoseconds are not below 1e9, is refused (``bad_odometry``, ``bad_scans``): the
   SLAM's arithmetic stays finite whatever a publisher sends.
-* **The laser's mount** on the robot's base (``mount``, ``--laser-mount X,Y,THETA``) is given,
-  not listened for on ``/tf_static``; default the identity (the laser at the base's origin).
+* **The laser's mount** on the robot's base is given (``mount``, ``--laser-mount X,Y,THETA``;
+  default the identity, the laser at the base's origin), or found from ``/tf_static``
+  (``--tf-key KEY``, ``base_frame``, ``--base-frame``, default ``base_link``): the transforms
+  from the base frame to each scan's ``frame_id``, through any chain of frames (an upside-down
+  laser mirrored), as the bag reader finds them (:func:`agents.files.rosbag.mount_chain`). The
+  robot subscribes with history (a latched message sent before it came, from the publisher's
+  cache: zenoh-bridge-ros2dds's Advanced Pub/Sub, ``wiremap play --tf-key``); until the
+  transforms reach a scan's frame, its scans are dropped (``unposed``), and ``mount`` in the
+  status names the chain found.
 * **Time**: a scan's time is seconds since the first scan that was posed (the robot's ``t``).
   A scan whose ``time_increment`` says its beams came over time (a spinning lidar) is
   de-skewed at the wheels' velocity since the scan before (``frontend.deskew``;
@@ -74,6 +81,8 @@ from mapping.se2 import Pose
 
 SCAN_TYPE = "sensor_msgs/msg/LaserScan"
 ODOM_TYPE = "nav_msgs/msg/Odometry"
+TF_TYPE = "tf2_msgs/msg/TFMessage"
+MAX_FRAMES = 256  # frames kept from the transforms (a robot's tree has tens)
 ODOM_KEEP_S = 10.0
 ODOM_KEEP_N = 1000
 """Odometry kept for pairing: the last ``ODOM_KEEP_N`` messages, and more while they span less
@@ -109,6 +118,9 @@ class LiveCounts:
     resets: int = 0  # a stream that started again after RESET_AFTER messages in a row out of order
     behind: int = 0
     still: int = 0  # posed scans the mapper's motion filter dropped (agents.mapping_run.LiveInputs)
+    transforms: int = 0  # TFMessages read (the laser's mount from the base frame: LiveLidar.base_frame)
+    bad_transforms: int = 0
+    mount: str = ""  # the chain of frames the laser's mount was found through ("base_link -> laser")
     last_issue: str = ""
     # the online SLAM's pose graph: its nodes (scans kept for loop closure), the loops it closed,
     # how many of them were settled (mapping.lidar_slam.SlamConfig.loop_settled_xy), the
@@ -134,9 +146,12 @@ class _Waiting:
 class LiveLidar:
     """Live scans paired with live odometry (module notes). Feed it the payloads
     (:meth:`on_scan`, :meth:`on_odometry`: bytes, or Zenoh samples), take the posed scans
-    (:meth:`take`)."""
+    (:meth:`take`). With ``base_frame``, the laser's mount is not ``mount`` but the transforms
+    from that frame to each scan's ``frame_id`` (:meth:`on_transforms`: ``/tf_static``); a scan
+    whose frame they do not reach yet is dropped (``unposed``)."""
 
     mount: Pose = field(default_factory=Pose)
+    base_frame: str | None = None
     max_wait: float = 1.0
     max_backlog: int = 200
     clock: Callable[[], float] = time.monotonic
@@ -144,6 +159,9 @@ class LiveLidar:
 
     def __post_init__(self) -> None:
         from rosbags.typesys import Stores, get_typestore
+
+        if self.base_frame is not None:
+            self.base_frame = self.base_frame.lstrip("/")  # as the messages' frames are read
 
         self._store = get_typestore(Stores.ROS2_HUMBLE)
         self._cond = threading.Condition()
@@ -156,6 +174,8 @@ class LiveLidar:
         self._scan_refused = 0  # scans refused in a row for their stamp
         self._odom_arrived = -math.inf  # when the last odometry was taken (clock)
         self._odom_refused = 0
+        self._links: dict[str, tuple[str, Any]] = {}  # child frame -> (parent, transform)
+        self._mounts: dict[str, Any] = {}  # a scan frame's mount, once the transforms reach it
 
     # ------------------------------------------------------------------ the callbacks
     def on_scan(self, payload: Any) -> None:
@@ -227,6 +247,48 @@ class LiveLidar:
                 del self._odom_t[0], self._odom[0]
             self._pair()
 
+    def on_transforms(self, payload: Any) -> None:
+        """A ``tf2_msgs/TFMessage`` (``/tf_static``): its transforms kept (the latest of each
+        child frame; at most ``MAX_FRAMES`` frames), for the laser's mount from ``base_frame``."""
+        from agents.files.rosbag import MessageError, transform_links
+
+        data = _bytes_of(payload)
+        with self._cond:
+            self.counts.transforms += 1
+            number = self.counts.transforms
+        try:
+            links = transform_links(self._store.deserialize_cdr(data, TF_TYPE))
+        except MessageError as exc:
+            self._issue("bad_transforms", f"transforms {number}: {exc}")
+            return
+        except Exception as exc:
+            self._issue("bad_transforms",
+                        f"transforms {number}: cannot be deserialised as {TF_TYPE} ({_one_line(exc)})")
+            return
+        with self._cond:
+            for parent, child, rigid in links:
+                if child in self._links or len(self._links) < MAX_FRAMES:
+                    self._links[child] = (parent, rigid)
+            self._mounts.clear()  # found again from the transforms as they are now
+            self._pair()
+
+    def _mount_of(self, frame: str) -> Any:
+        """The scan frame's mount (an ``agents.files.rosbag`` mount: pose, upside-down, chain):
+        ``mount`` without ``base_frame``; else through the transforms, None while they do not
+        reach ``frame`` (lock held)."""
+        from agents.files.rosbag import mount_chain
+
+        if self.base_frame is None:
+            return None
+        found = self._mounts.get(frame)
+        if found is None:
+            found = mount_chain(self._links, self.base_frame, frame)
+            if found.chain is None and frame and frame != self.base_frame:
+                return None
+            self._mounts[frame] = found
+            self.counts.mount = found.chain or self.base_frame
+        return found
+
     def _issue(self, counter: str, text: str) -> None:
         with self._cond:
             setattr(self.counts, counter, getattr(self.counts, counter) + 1)
@@ -263,10 +325,19 @@ class LiveLidar:
                                        f"{stamps[-1] if stamps.size else float('nan'):.6f})")
                     continue
                 break
+            mount = self._mount_of(w.raw.frame)
+            if self.base_frame is not None and mount is None:
+                self._drop_unposed(f"scan stamped {w.raw.t:.6f}: no transforms from {self.base_frame} to "
+                                   f"its frame {w.raw.frame!r} yet")
+                continue
             self._waiting.popleft()
             if self._t0 is None:
                 self._t0 = w.raw.t
-            self._ready.append(posed_scan(w.raw, robot, self.mount, t=w.raw.t - self._t0))
+            if mount is None:
+                scan = posed_scan(w.raw, robot, self.mount, t=w.raw.t - self._t0)
+            else:
+                scan = posed_scan(w.raw, robot, mount.pose, mount.upside_down, t=w.raw.t - self._t0)
+            self._ready.append(scan)
             self.counts.posed += 1
             while len(self._ready) > self.max_backlog:
                 self._ready.popleft()
@@ -305,23 +376,29 @@ def _one_line(exc: BaseException) -> str:
     return text if len(text) <= 120 else text[:117] + "..."
 
 
-def check_keys(scan_key: str, odom_key: str) -> None:
-    """``--scan-key`` and ``--odom-key`` as Zenoh key expressions that do not overlap (a message
-    on both would be read as a scan and as odometry); :class:`agents.errors.UserError` with the
+def check_keys(scan_key: str, odom_key: str, tf_key: str | None = None) -> None:
+    """``--scan-key``, ``--odom-key`` (and ``--tf-key``) as Zenoh key expressions that do not
+    overlap (a message on two would be read as both); :class:`agents.errors.UserError` with the
     reason."""
+    import itertools
+
     import zenoh
 
     from agents.errors import UserError
 
+    named = [("--scan-key", scan_key, "a scan"), ("--odom-key", odom_key, "odometry")]
+    if tf_key is not None:
+        named.append(("--tf-key", tf_key, "transforms"))
     kes = []
-    for flag, key in (("--scan-key", scan_key), ("--odom-key", odom_key)):
+    for flag, key, _ in named:
         try:
             kes.append(zenoh.KeyExpr(key))
         except Exception as exc:  # zenoh's own error type for a malformed key expression
             raise UserError(f"{flag} {key!r} is not a Zenoh key expression ({exc})") from None
-    if kes[0].intersects(kes[1]):
-        raise UserError(f"--scan-key {scan_key} and --odom-key {odom_key} overlap: a message on both "
-                        "would be read as a scan and as odometry; give keys that do not")
+    for (a, ka), (b, kb) in itertools.combinations(zip(named, kes, strict=True), 2):
+        if ka.intersects(kb):
+            raise UserError(f"{a[0]} {a[1]} and {b[0]} {b[1]} overlap: a message on both would be read as "
+                            f"{a[2]} and as {b[2]}; give keys that do not")
 
 
 def parse_mount(text: str) -> Pose:
