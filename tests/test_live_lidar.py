@@ -494,7 +494,7 @@ def test_wiremap_play_feeds_a_live_robot(tmp_path: Path) -> None:
                 if p is not None:
                     stop_process(p, timeout=5)
     status = json.loads(status_file.read_text())
-    assert status["live"]["posed"] == 60 and status["step"] == 60, status
+    assert status["live"]["posed"] == 60 and status["step"] == 60, status["live"]
     assert status["live"]["mount"] == "base_link -> laser" and status["live"]["transforms"] == 1, status
 
 
@@ -714,12 +714,15 @@ def test_the_mount_is_found_from_the_transforms_and_scans_wait_for_them(scans: l
     posed through the chain, as through --laser-mount; a transform that is not one is counted and
     dropped; the chain is in the counts."""
     mk = MessageMaker()
-    src = LiveLidar(base_frame="/base_link")
+    now = [0.0]
+    src = LiveLidar(use_transforms=True, base_frame="/base_link", clock=lambda: now[0])
     msgs = messages(scans[:6], MOUNT)
     for kind, data in msgs[:5]:  # two scans and their odometry, before any transform
         (src.on_scan if kind == "scan" else src.on_odometry)(data)
+    assert src.take(0.0) is None and src.counts.unposed == 0  # waiting for the transforms
+    now[0] = 1.5  # longer than max_wait: dropped
     assert src.take(0.0) is None and src.counts.unposed == 2
-    assert "no transforms from base_link to its frame 'laser'" in src.counts.last_issue
+    assert "no transforms from base_link to the scans' frame 'laser' yet" in src.counts.last_issue
     mast = Pose(0.1, -0.03, 0.02)
     bad = mk.transforms(0.0, [("base_link", "base_link", Pose())])  # a frame onto itself
     src.on_transforms(mk.serialize(bad))
@@ -738,3 +741,37 @@ def test_the_mount_is_found_from_the_transforms_and_scans_wait_for_them(scans: l
     for a, b in zip(got, want, strict=True):
         assert a.odom.almost_equal(b.odom, tol=1e-9, angle_tol=1e-9) and a.mount.almost_equal(MOUNT, tol=1e-9)
         assert np.array_equal(a.ranges, b.ranges)
+
+
+def test_transforms_that_are_no_mount_leave_the_scans_unposed_and_the_robot_running(scans: list[Any]) -> None:
+    """A publisher on the transforms' key cannot crash the robot: a chain that puts the laser
+    1e308 m away (or overflows) is refused, counted, and its scans dropped as unposed until good
+    transforms come; a bad transform among good ones is left out alone; a message of too many
+    transforms is refused whole. Without --base-frame the base is the odometry's child frame."""
+    from agents.fleet.live_lidar import MAX_FRAMES
+
+    mk = MessageMaker()
+    now = [0.0]
+    src = LiveLidar(use_transforms=True, clock=lambda: now[0])  # the base: the odometry's child frame
+    far = Pose(1.5e308, 1.5e308, 0.0)
+    src.on_transforms(mk.serialize(mk.transforms(0.0, [("base_link", "mast", far), ("mast", "laser", far)])))
+    msgs = messages(scans[:4], MOUNT)
+    for kind, data in msgs:
+        (src.on_scan if kind == "scan" else src.on_odometry)(data)
+    now[0] = 1.5
+    assert src.take(0.0) is None and src.counts.unposed == 4 and src.counts.bad_transforms >= 1
+    assert "not a mount" in src.counts.last_issue
+    mixed = mk.transforms(0.0, [("base_link", "laser", MOUNT), ("x", "x", Pose())])
+    src.on_transforms(mk.serialize(mixed))  # the good one kept, the bad one counted
+    assert src.counts.bad_transforms >= 2
+    for kind, data in messages(scans[4:8], MOUNT):
+        (src.on_scan if kind == "scan" else src.on_odometry)(data)
+    got = []
+    while (ls := src.take(0.0)) is not None:
+        got.append(ls)
+    assert got and src.counts.mount == "base_link -> laser"
+    assert all(ls.mount.almost_equal(MOUNT, tol=1e-9) for ls in got)
+    many = mk.transforms(0.0, [("base_link", f"f{k}", Pose()) for k in range(MAX_FRAMES + 1)])
+    before = src.counts.bad_transforms
+    src.on_transforms(mk.serialize(many))
+    assert src.counts.bad_transforms == before + 1 and "transforms (at most" in src.counts.last_issue

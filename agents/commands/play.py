@@ -119,6 +119,7 @@ def run(args: argparse.Namespace) -> int:
                     sample_miss_detection=MissDetectionConfig(heartbeat=0.5, sporadic_heartbeat=None),
                     publisher_detection=True)
                 latched.put(make.laser_mount(float(scans[0].t), mount))
+                stop.wait(0.2)  # a robot listening has the mount before the first scan
             where = (f"on {args.tf_key} (base_link -> laser)" if args.tf_key else
                      f"--laser-mount {mount.x:.6g},{mount.y:.6g},{mount.theta:.6g}")
             say(f"{len(scans)} scans ({span:.0f} s of log) on {args.scan_key}, odometry on {args.odom_key}, "

@@ -78,7 +78,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--base-frame", metavar="FRAME", default=None,
-        help="with --tf-key: the robot's base frame, the mount's parent (default base_link)",
+        help="with --tf-key: the robot's base frame, the mount's parent (default the odometry's "
+        "child_frame_id, else base_link)",
     )
     parser.add_argument(
         "--min-travel", type=non_negative_float, default=None, metavar="M",
@@ -332,9 +333,10 @@ def _live_options(args: argparse.Namespace, rid: str) -> RobotOptions:
     if args.tf_key:
         check_keys(args.scan_key, args.odom_key, args.tf_key)
         extra["tf_key"] = args.tf_key
-        extra["base_frame"] = (args.base_frame or "base_link").lstrip("/")
-        if not extra["base_frame"]:
-            raise UserError("--base-frame must name a frame")
+        if args.base_frame is not None:
+            extra["base_frame"] = args.base_frame.lstrip("/")
+            if not extra["base_frame"]:
+                raise UserError("--base-frame must name a frame")
     start, unknown = Pose.identity(), True
     if args.start:
         text = args.start if args.start.count(",") == 2 else args.start + ",0"
@@ -364,7 +366,7 @@ def _calibration_scans(opts: RobotOptions) -> int:
     return int(live_profile(opts)[2].calibration_scans)
 
 
-TF_HISTORY = 16  # latched transform messages asked of each publisher's cache (one per static publisher)
+TF_HISTORY = 16  # latched transform messages asked of each publisher's cache
 
 
 def _live_steps(session: Any, opts: RobotOptions, stop: Any, subs: list[Any]) -> tuple[Any, Any]:
@@ -374,7 +376,7 @@ def _live_steps(session: Any, opts: RobotOptions, stop: Any, subs: list[Any]) ->
 
     assert opts.live is not None
     tf_key = opts.extra.get("tf_key")
-    source = LiveLidar(mount=opts.mount, base_frame=opts.extra.get("base_frame") if tf_key else None)
+    source = LiveLidar(mount=opts.mount, use_transforms=bool(tf_key), base_frame=opts.extra.get("base_frame"))
     subs.append(session.declare_subscriber(opts.live[0], lambda s: source.on_scan(s.payload)))
     subs.append(session.declare_subscriber(opts.live[1], lambda s: source.on_odometry(s.payload)))
     if tf_key:
@@ -458,7 +460,8 @@ def run(args: argparse.Namespace) -> int:
             session.close()
     say(f"stopped after {st.step} steps (t={st.t:.1f} s): {st.maps_sent} maps, {st.bytes_sent} bytes")
     if st.live is not None:
-        say("live lidar: " + ", ".join(f"{k} {v}" for k, v in st.live.items() if k != "last_issue")
+        say("live lidar: " + ", ".join(f"{k} {v}" for k, v in st.live.items()
+                                       if k != "last_issue" and (k != "mount" or v))
             + (f"; last issue: {st.live['last_issue']}" if st.live.get("last_issue") else ""))
     if args.status_file:
         from agents.files.io import write_json

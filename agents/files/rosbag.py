@@ -646,20 +646,23 @@ def _live_stamp(header: Any, what: str) -> None:
         raise MessageError(f"{what} stamp has {nsec} nanoseconds (0 to 999999999)")
 
 
-def transform_links(msg: Any) -> list[tuple[str, str, Any]]:
+def transform_links(msg: Any, max_count: int) -> tuple[list[tuple[str, str, Any]], list[str]]:
     """A deserialised ``tf2_msgs/TFMessage``'s transforms as ``(parent, child, transform)`` (for
-    :func:`mount_chain`); :class:`MessageError` when one is not finite, not a rotation, or has no
-    frame names (none of the message is then taken)."""
-    out = []
+    :func:`mount_chain`), and why each one left out was (no two frames, not finite, not a
+    rotation); :class:`MessageError` for a message of more than ``max_count`` transforms."""
+    if len(msg.transforms) > max_count:
+        raise MessageError(f"TFMessage has {len(msg.transforms)} transforms (at most {max_count} are read)")
+    out, bad = [], []
     for tf in msg.transforms:
         parent, child = _frame(tf.header.frame_id), _frame(tf.child_frame_id)
         if not parent or not child or parent == child:
-            raise MessageError(f"TFMessage transform {parent!r} -> {child!r} does not join two frames")
+            bad.append(f"transform {parent!r} -> {child!r} does not join two frames")
+            continue
         try:
             out.append((parent, child, _Rigid.of(tf.transform.translation, tf.transform.rotation)))
         except (_Bad, ValueError) as exc:
-            raise MessageError(f"TFMessage transform {parent} -> {child}: {exc}") from None
-    return out
+            bad.append(f"transform {parent} -> {child}: {exc}")
+    return out, bad
 
 
 def scan_beams(msg: Any, index: int) -> _RawScan:

@@ -41,9 +41,10 @@ What is made of them (choices)
   from the base frame to each scan's ``frame_id``, through any chain of frames (an upside-down
   laser mirrored), as the bag reader finds them (:func:`agents.files.rosbag.mount_chain`). The
   robot subscribes with history (a latched message sent before it came, from the publisher's
-  cache: zenoh-bridge-ros2dds's Advanced Pub/Sub, ``wiremap play --tf-key``); until the
-  transforms reach a scan's frame, its scans are dropped (``unposed``), and ``mount`` in the
-  status names the chain found.
+  cache: zenoh-bridge-ros2dds's Advanced Pub/Sub, ``wiremap play --tf-key``); a scan waits up to
+  ``max_wait`` (1 s) for transforms that reach its frame, then is dropped (``unposed``); a chain
+  that puts the laser more than ``MAX_MOUNT_M`` from the base is no mount (``bad_transforms``);
+  ``mount`` in the status names the chain found.
 * **Time**: a scan's time is seconds since the first scan that was posed (the robot's ``t``).
   A scan whose ``time_increment`` says its beams came over time (a spinning lidar) is
   de-skewed at the wheels' velocity since the scan before (``frontend.deskew``;
@@ -83,6 +84,7 @@ SCAN_TYPE = "sensor_msgs/msg/LaserScan"
 ODOM_TYPE = "nav_msgs/msg/Odometry"
 TF_TYPE = "tf2_msgs/msg/TFMessage"
 MAX_FRAMES = 256  # frames kept from the transforms (a robot's tree has tens)
+MAX_FRAME_NAME = 256  # characters of a frame name kept
 ODOM_KEEP_S = 10.0
 ODOM_KEEP_N = 1000
 """Odometry kept for pairing: the last ``ODOM_KEEP_N`` messages, and more while they span less
@@ -146,11 +148,14 @@ class _Waiting:
 class LiveLidar:
     """Live scans paired with live odometry (module notes). Feed it the payloads
     (:meth:`on_scan`, :meth:`on_odometry`: bytes, or Zenoh samples), take the posed scans
-    (:meth:`take`). With ``base_frame``, the laser's mount is not ``mount`` but the transforms
-    from that frame to each scan's ``frame_id`` (:meth:`on_transforms`: ``/tf_static``); a scan
-    whose frame they do not reach yet is dropped (``unposed``)."""
+    (:meth:`take`). With ``use_transforms``, the laser's mount is not ``mount`` but the
+    transforms (:meth:`on_transforms`: ``/tf_static``) from the base frame (``base_frame``, else
+    the odometry's ``child_frame_id``, else ``base_link``) to each scan's ``frame_id``; a scan
+    whose frame they do not reach within ``max_wait`` seconds of its coming is dropped
+    (``unposed``)."""
 
     mount: Pose = field(default_factory=Pose)
+    use_transforms: bool = False
     base_frame: str | None = None
     max_wait: float = 1.0
     max_backlog: int = 200
@@ -162,7 +167,9 @@ class LiveLidar:
 
         if self.base_frame is not None:
             self.base_frame = self.base_frame.lstrip("/")  # as the messages' frames are read
-
+            if not self.base_frame:
+                raise ValueError("base_frame must name a frame")
+        self._odom_frame = ""  # the odometry's child frame, the robot's base by default
         self._store = get_typestore(Stores.ROS2_HUMBLE)
         self._cond = threading.Condition()
         self._odom_t: list[float] = []
@@ -220,7 +227,9 @@ class LiveLidar:
             self.counts.odometry += 1
             number = self.counts.odometry
         try:
-            t, pose = odometry_pose(self._store.deserialize_cdr(data, ODOM_TYPE))
+            msg: Any = self._store.deserialize_cdr(data, ODOM_TYPE)
+            t, pose = odometry_pose(msg)
+            child = str(msg.child_frame_id).lstrip("/")[:MAX_FRAME_NAME]
         except MessageError as exc:
             self._issue("bad_odometry", f"odometry {number}: {exc}")
             return
@@ -241,6 +250,9 @@ class LiveLidar:
                 self._odom_t, self._odom = [], []
             self._odom_refused = 0
             self._odom_arrived = self.clock()
+            if child and child != self._odom_frame and self.use_transforms and self.base_frame is None:
+                self._odom_frame = child  # the base the mount is found from
+                self._mounts.clear()
             self._odom_t.append(t)
             self._odom.append(pose)
             if len(self._odom_t) > ODOM_KEEP_N and self._odom_t[1] < t - ODOM_KEEP_S:
@@ -249,7 +261,9 @@ class LiveLidar:
 
     def on_transforms(self, payload: Any) -> None:
         """A ``tf2_msgs/TFMessage`` (``/tf_static``): its transforms kept (the latest of each
-        child frame; at most ``MAX_FRAMES`` frames), for the laser's mount from ``base_frame``."""
+        child frame, as tf2 keeps them; at most ``MAX_FRAMES`` frames, a message of more refused
+        before it is read), for the laser's mount from the base frame; a transform that is not
+        one is counted (``bad_transforms``) and left out, the others kept."""
         from agents.files.rosbag import MessageError, transform_links
 
         data = _bytes_of(payload)
@@ -257,7 +271,7 @@ class LiveLidar:
             self.counts.transforms += 1
             number = self.counts.transforms
         try:
-            links = transform_links(self._store.deserialize_cdr(data, TF_TYPE))
+            links, bad = transform_links(self._store.deserialize_cdr(data, TF_TYPE), MAX_FRAMES)
         except MessageError as exc:
             self._issue("bad_transforms", f"transforms {number}: {exc}")
             return
@@ -265,28 +279,49 @@ class LiveLidar:
             self._issue("bad_transforms",
                         f"transforms {number}: cannot be deserialised as {TF_TYPE} ({_one_line(exc)})")
             return
+        for why in bad:
+            self._issue("bad_transforms", f"transforms {number}: {why}")
         with self._cond:
             for parent, child, rigid in links:
                 if child in self._links or len(self._links) < MAX_FRAMES:
                     self._links[child] = (parent, rigid)
+                else:
+                    self.counts.bad_transforms += 1
+                    self.counts.last_issue = (f"transforms {number}: more than {MAX_FRAMES} frames; "
+                                              f"{child} left out")
             self._mounts.clear()  # found again from the transforms as they are now
             self._pair()
 
     def _mount_of(self, frame: str) -> Any:
         """The scan frame's mount (an ``agents.files.rosbag`` mount: pose, upside-down, chain):
-        ``mount`` without ``base_frame``; else through the transforms, None while they do not
-        reach ``frame`` (lock held)."""
+        None without transforms to find it from (``mount`` is used); else through the transforms
+        from the base frame (``base_frame``, or the odometry's child frame, or ``base_link``),
+        ``False`` while they do not reach ``frame`` or put the laser more than ``MAX_MOUNT_M``
+        from the base (a refusal kept until the next transforms; lock held)."""
         from agents.files.rosbag import mount_chain
 
-        if self.base_frame is None:
+        if not self.use_transforms:
             return None
-        found = self._mounts.get(frame)
+        found: Any = self._mounts.get(frame)
         if found is None:
-            found = mount_chain(self._links, self.base_frame, frame)
-            if found.chain is None and frame and frame != self.base_frame:
-                return None
+            base = self.base_frame or self._odom_frame or "base_link"
+            try:
+                with np.errstate(over="ignore", invalid="ignore"):
+                    found = mount_chain(self._links, base, frame)
+                far = max(abs(found.pose.x), abs(found.pose.y)) > MAX_MOUNT_M
+            except (ValueError, ArithmeticError):  # a chain that overflows: not a mount either
+                found, far = None, True
+            if far:
+                found = False
+                self.counts.bad_transforms += 1
+                self.counts.last_issue = (f"the transforms put the laser's frame {frame!r} more than "
+                                          f"{MAX_MOUNT_M:g} m from {base}: not a mount")
+            elif found.chain is None and frame and frame != base:
+                found = False
+                self.counts.last_issue = (f"no transforms from {base} to the scans' frame {frame!r}"
+                                          + (" (they do not join it)" if self._links else " yet"))
             self._mounts[frame] = found
-            self.counts.mount = found.chain or self.base_frame
+            self.counts.mount = found.chain or base if found else ""
         return found
 
     def _issue(self, counter: str, text: str) -> None:
@@ -326,9 +361,10 @@ class LiveLidar:
                     continue
                 break
             mount = self._mount_of(w.raw.frame)
-            if self.base_frame is not None and mount is None:
-                self._drop_unposed(f"scan stamped {w.raw.t:.6f}: no transforms from {self.base_frame} to "
-                                   f"its frame {w.raw.frame!r} yet")
+            if mount is False:  # the transforms do not reach the scan's frame: wait for them a while
+                if now - w.arrived <= self.max_wait and len(self._waiting) <= MAX_WAITING:
+                    break
+                self._drop_unposed(f"scan stamped {w.raw.t:.6f}: {self.counts.last_issue}")
                 continue
             self._waiting.popleft()
             if self._t0 is None:

@@ -410,10 +410,11 @@ class RobotAgent:
                 live = ""
                 if st.live is not None:
                     kept = ("scans", "odometry", "posed", "last_issue", "graph", "loops", "settled",
-                            "revisits", "refined")
+                            "revisits", "refined", "transforms", "mount")
                     dropped = ", ".join(f"{k} {v}" for k, v in st.live.items() if k not in kept and v)
                     live = (f"; live lidar: {st.live['posed']} scans posed, {st.live['scans']} received"
                             + (f" ({dropped})" if dropped else "")
+                            + (f"; the laser's mount {st.live['mount']}" if st.live.get("mount") else "")
                             + (" (calibrating: the first scans are mapped together)" if st.step == 0 else "")
                             + (f"; SLAM: {st.live['graph']} scans in its graph, {st.live['loops']} loops "
                                f"({st.live['settled']} settled), {st.live.get('revisits', 0)} scans on old "
