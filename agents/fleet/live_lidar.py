@@ -185,22 +185,35 @@ class LiveLidar:
         self._mounts: dict[str, Any] = {}  # a scan frame's mount, once the transforms reach it
 
     # ------------------------------------------------------------------ the callbacks
-    def on_scan(self, payload: Any) -> None:
-        from agents.files.rosbag import MessageError, scan_beams
+    def _read(
+        self, payload: Any, msgtype: str, stream: str, label: str, read: Callable[[Any, int], Any]
+    ) -> tuple[Any, int] | None:
+        """``(read(message, number), number)`` of a payload of the stream ``stream`` (its count in
+        ``counts``, the message's number); None when it does not deserialise as ``msgtype`` or
+        ``read`` refuses it (:class:`agents.files.rosbag.MessageError`): counted in
+        ``bad_<stream>``, the reason kept, ``label`` naming the message."""
+        from agents.files.rosbag import MessageError
 
         data = _bytes_of(payload)
         with self._cond:
-            self.counts.scans += 1
-            number = self.counts.scans
+            number = getattr(self.counts, stream) + 1
+            setattr(self.counts, stream, number)
         try:
-            raw = scan_beams(self._store.deserialize_cdr(data, SCAN_TYPE), number - 1)
+            return read(self._store.deserialize_cdr(data, msgtype), number), number
         except MessageError as exc:
-            self._issue("bad_scans", f"scan {number}: {exc}")
-            return
+            self._issue(f"bad_{stream}", f"{label} {number}: {exc}")
         except Exception as exc:  # what a bad buffer makes the deserialiser raise
-            self._issue("bad_scans",
-                        f"scan {number}: cannot be deserialised as {SCAN_TYPE} ({_one_line(exc)})")
+            self._issue(f"bad_{stream}",
+                        f"{label} {number}: cannot be deserialised as {msgtype} ({_one_line(exc)})")
+        return None
+
+    def on_scan(self, payload: Any) -> None:
+        from agents.files.rosbag import scan_beams
+
+        got = self._read(payload, SCAN_TYPE, "scans", "scan", lambda msg, k: scan_beams(msg, k - 1))
+        if got is None:
             return
+        raw, number = got
         with self._cond:
             if raw.t <= self._last_scan_t:
                 self._scan_refused += 1
@@ -220,23 +233,16 @@ class LiveLidar:
             self._pair()
 
     def on_odometry(self, payload: Any) -> None:
-        from agents.files.rosbag import MessageError, odometry_pose
+        from agents.files.rosbag import odometry_pose
 
-        data = _bytes_of(payload)
-        with self._cond:
-            self.counts.odometry += 1
-            number = self.counts.odometry
-        try:
-            msg: Any = self._store.deserialize_cdr(data, ODOM_TYPE)
+        def read(msg: Any, _number: int) -> tuple[float, Pose, str]:
             t, pose = odometry_pose(msg)
-            child = str(msg.child_frame_id).lstrip("/")[:MAX_FRAME_NAME]
-        except MessageError as exc:
-            self._issue("bad_odometry", f"odometry {number}: {exc}")
+            return t, pose, str(msg.child_frame_id).lstrip("/")[:MAX_FRAME_NAME]
+
+        got = self._read(payload, ODOM_TYPE, "odometry", "odometry", read)
+        if got is None:
             return
-        except Exception as exc:
-            self._issue("bad_odometry",
-                        f"odometry {number}: cannot be deserialised as {ODOM_TYPE} ({_one_line(exc)})")
-            return
+        (t, pose, child), number = got
         with self._cond:
             if self._odom_t and t < self._odom_t[-1]:
                 self._odom_refused += 1
@@ -264,21 +270,13 @@ class LiveLidar:
         child frame, as tf2 keeps them; at most ``MAX_FRAMES`` frames, a message of more refused
         before it is read), for the laser's mount from the base frame; a transform that is not
         one is counted (``bad_transforms``) and left out, the others kept."""
-        from agents.files.rosbag import MessageError, transform_links
+        from agents.files.rosbag import transform_links
 
-        data = _bytes_of(payload)
-        with self._cond:
-            self.counts.transforms += 1
-            number = self.counts.transforms
-        try:
-            links, bad = transform_links(self._store.deserialize_cdr(data, TF_TYPE), MAX_FRAMES)
-        except MessageError as exc:
-            self._issue("bad_transforms", f"transforms {number}: {exc}")
+        got = self._read(payload, TF_TYPE, "transforms", "transforms",
+                         lambda msg, _number: transform_links(msg, MAX_FRAMES))
+        if got is None:
             return
-        except Exception as exc:
-            self._issue("bad_transforms",
-                        f"transforms {number}: cannot be deserialised as {TF_TYPE} ({_one_line(exc)})")
-            return
+        (links, bad), number = got
         for why in bad:
             self._issue("bad_transforms", f"transforms {number}: {why}")
         with self._cond:
