@@ -644,20 +644,22 @@ def deskewed(scans: Sequence[Any], frontend: Any) -> list[Any]:
     velocity from the scan before it to the scan after it (:func:`wheel_velocity`,
     :func:`mapping.lidar_frontend.deskew`); all as they are when
     ``frontend.deskew`` is off."""
-    import dataclasses
+    if not frontend.deskew:
+        return list(scans)
+    n = len(scans)
+    return [deskewed_scan(s, scans[max(k - 1, 0)], scans[min(k + 1, n - 1)]) for k, s in enumerate(scans)]
 
+
+def deskewed_scan(ls: Any, before: Any, after: Any) -> Any:
+    """``ls`` de-skewed at the wheels' velocity from ``before`` to ``after``
+    (:func:`wheel_velocity`, :func:`mapping.lidar_frontend.deskew`); itself when its beams are
+    simultaneous."""
     from mapping.lidar_frontend import deskew
 
-    out = list(scans)
-    if not frontend.deskew:
-        return out
-    n = len(out)
-    for k, s in enumerate(scans):
-        if s.time_increment:
-            velocity = wheel_velocity(scans[max(k - 1, 0)], s, scans[min(k + 1, n - 1)])
-            ranges, angles = deskew(s.ranges, s.angles, s.time_increment, velocity)
-            out[k] = dataclasses.replace(s, ranges=ranges, angles=angles)
-    return out
+    if not ls.time_increment:
+        return ls
+    ranges, angles = deskew(ls.ranges, ls.angles, ls.time_increment, wheel_velocity(before, ls, after))
+    return replace(ls, ranges=ranges, angles=angles)
 
 
 def carmen_inputs(
@@ -839,15 +841,11 @@ class LiveInputs:
         return None if self._slam is None else self._slam.slam
 
     def add(self, ls: Any) -> list[ScanInput]:
-        import dataclasses
-
-        from mapping.lidar_frontend import deskew, within_motion_limits
+        from mapping.lidar_frontend import within_motion_limits
 
         seen, self._seen = self._seen, ls
-        if ls.time_increment and self.frontend.deskew:  # at the velocity since the scan before
-            velocity = (0.0, 0.0, 0.0) if seen is None else wheel_velocity(seen, ls, ls)
-            ranges, angles = deskew(ls.ranges, ls.angles, ls.time_increment, velocity)
-            ls = dataclasses.replace(ls, ranges=ranges, angles=angles)
+        if self.frontend.deskew:  # at the velocity since the scan before (none: not known)
+            ls = deskewed_scan(ls, seen or ls, ls)
         if self._taken is not None and within_motion_limits(self._taken.between(ls.odom), self.min_travel,
                                                             self.min_turn):
             self.skipped += 1

@@ -567,32 +567,31 @@ def odometry_noise(
     extra = [_matched_pair(points, odometry, p.scan + 1, config) for p in pairs
              if p.scan + 1 not in have and p.scan + 1 in moved]
     both = sorted([*pairs, *(p for p in extra if p is not None)], key=lambda p: p.scan)
-    scans = np.array([p.scan for p in both])
-    neighbours = int(np.count_nonzero(np.diff(scans) == 1))
-    correlation = lag_correlation(per_metre(both), 3.0 * spread, scans)
+    correlation, neighbours = lag_correlation(per_metre(both), 3.0 * spread, np.array([p.scan for p in both]))
     return OdometryNoise(spread, len(pairs), correlation, neighbours)
 
 
-def lag_correlation(values: FloatArray, clip: float, index: NDArray[np.int_] | None = None) -> float:
-    """The lag-1 autocorrelation of ``values`` (in order), each clipped to ``[-clip, clip]`` first
-    (a pair matched to the wrong wall is one wild value, not a trend), over the neighbours whose
-    ``index`` differs by one when given (the calibration's pairs are spread over a long log: at a
-    stride of ``s`` an AR(1) series' correlation is ``r**s``); NaN with fewer than 2 such
-    neighbours or without spread."""
+def lag_correlation(
+    values: FloatArray, clip: float, index: NDArray[np.int_] | None = None
+) -> tuple[float, int]:
+    """``(r, n)``: the lag-1 autocorrelation of ``values`` (in order), each clipped to ``[-clip,
+    clip]`` first (a pair matched to the wrong wall is one wild value, not a trend), over the
+    ``n`` neighbours whose ``index`` differs by one when given (the calibration's pairs are
+    spread over a long log: at a stride of ``s`` an AR(1) series' correlation is ``r**s``); r is
+    NaN with fewer than 2 such neighbours or without spread."""
     v = np.asarray(values, dtype=np.float64)
     if clip > 0:
         v = np.clip(v, -clip, clip)
-    if len(v) < 3:
-        return math.nan
     a, b = v[:-1], v[1:]
     if index is not None:
         next_to = np.diff(np.asarray(index)) == 1
         a, b = a[next_to], b[next_to]
-    if len(a) < 2:
-        return math.nan
+    n = len(a)
+    if n < 2:
+        return math.nan, n
     a, b = a - a.mean(), b - b.mean()
     den = math.sqrt(float(a @ a) * float(b @ b))
-    return float(a @ b) / den if den > 0 else math.nan
+    return (float(a @ b) / den if den > 0 else math.nan), n
 
 
 def calibrated_slam(config: SlamConfig, noise: OdometryNoise) -> SlamConfig:

@@ -134,6 +134,12 @@ TIME_INCREMENT_PARAMS = ("wiremap_front_laser_time_increment",)
 #: simultaneous (0): no planar lidar takes a second for a scan, and a wrong value should not
 #: bend the scan (the ROS bag reader and the live robot apply the same limit).
 MAX_SWEEP = 1.0
+
+
+def beam_time_increment(dt: float, beams: int) -> float:
+    """A scan's time from one beam to the next as read: ``dt``, or 0 (simultaneous beams) when it
+    is not a number or its ``beams`` would take longer than ``MAX_SWEEP``."""
+    return dt if math.isfinite(dt) and abs(dt) * max(beams - 1, 0) <= MAX_SWEEP else 0.0
 DEFAULT_FOV = math.pi
 HOSTNAME = "wiremap"
 _MESSAGE_TYPE = re.compile(r"[A-Z][A-Z0-9_]*\Z")
@@ -144,6 +150,7 @@ __all__ = [
     "CarmenError",
     "CarmenLog",
     "LaserScan",
+    "beam_time_increment",
     "carmen_bearings",
     "flaser_angles",
     "read_carmen",
@@ -597,11 +604,8 @@ def _to_scan(raw: _Raw, geometry: _Geometry, max_range: float | None) -> LaserSc
     with np.errstate(invalid="ignore"):
         ranges[~(ranges > 0.0) | (ranges >= rmax)] = np.inf
     mount = raw.mount if raw.mount is not None else geometry.mount
-    dt = geometry.time_increment
-    if abs(dt) * (ranges.size - 1) > MAX_SWEEP:  # not a scanner's sweep: simultaneous beams
-        dt = 0.0
     return LaserScan(raw.t, ranges, angles, float(rmax), raw.odom.compose(mount), mount, raw.kind, raw.index,
-                     dt)
+                     beam_time_increment(geometry.time_increment, ranges.size))
 
 
 def _summary(log: _Collected, scans: list[LaserScan], laser: str | None) -> CarmenLog:

@@ -73,7 +73,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from agents.errors import UserError
-from agents.files.carmen import MAX_SWEEP, LaserScan
+from agents.files.carmen import LaserScan, beam_time_increment
 from mapping.se2 import Pose, wrap_angle
 
 FloatArray = NDArray[np.float64]
@@ -400,9 +400,7 @@ def _raw_scan(msg: Any, index: int, bag_ns: int) -> _RawScan:
     ranges = raw.copy()
     with np.errstate(invalid="ignore"):
         ranges[~(ranges > 0.0) | (ranges < rmin) | (ranges >= rmax)] = np.inf  # nan fails every test
-    dt = float(getattr(msg, "time_increment", 0.0))
-    if not (math.isfinite(dt) and abs(dt) * (n - 1) <= MAX_SWEEP):
-        dt = 0.0
+    dt = beam_time_increment(float(getattr(msg, "time_increment", 0.0)), n)
     return _RawScan(index, _stamp(msg.header, bag_ns), ranges, angles, rmax, _frame(msg.header.frame_id), dt)
 
 
