@@ -641,13 +641,20 @@ def wheel_velocity(before: Any, at: Any, after: Any) -> tuple[float, float, floa
 def deskewed(scans: Sequence[Any], frontend: Any) -> list[Any]:
     """``scans`` with the bearings of each whose beams were not simultaneous (its
     ``time_increment``) placed where the laser stood when each return came, at the wheels'
-    velocity from the scan before it to the scan after it (:func:`wheel_velocity`,
-    :func:`mapping.lidar_frontend.deskew`); all as they are when
-    ``frontend.deskew`` is off."""
+    velocity from it to the scan after it (the last scan: from the scan before it;
+    :func:`wheel_velocity`, :func:`mapping.lidar_frontend.deskew`); all as they are when
+    ``frontend.deskew`` is off.
+
+    Forwards, not centred on the scan: a scan's time is its first beam's (ROS's
+    ``LaserScan`` convention), so its beams come during the motion that follows it, and a
+    spinning lidar's sweep is the whole gap to the next scan. A velocity centred on the
+    scan's time lags the sweep by half a scan: a 5 Hz lidar starting or ending a turn in
+    place was de-skewed by half its turn or twice it (``docs/experiments.md``, session 30)."""
     if not frontend.deskew:
         return list(scans)
     n = len(scans)
-    return [deskewed_scan(s, scans[max(k - 1, 0)], scans[min(k + 1, n - 1)]) for k, s in enumerate(scans)]
+    return [deskewed_scan(s, s, scans[k + 1]) if k + 1 < n else deskewed_scan(s, scans[max(k - 1, 0)], s)
+            for k, s in enumerate(scans)]
 
 
 def deskewed_scan(ls: Any, before: Any, after: Any) -> Any:

@@ -332,3 +332,20 @@ def test_deskewed_turns_a_scans_beams_back_at_the_wheels_velocity() -> None:
     still = _turning_scans(0.0)  # simultaneous beams: as they are
     kept = mr.deskewed(still, FrontendConfig())
     assert all(np.array_equal(a.angles, b.angles) for a, b in zip(kept, still, strict=True))
+
+
+def test_deskewed_takes_the_motion_after_the_scans_time() -> None:
+    """A scan's time is its first beam's: its sweep is the motion to the next scan. A robot that
+    stands, then turns: the scan it turns during is de-skewed by the whole turn (a velocity
+    centred on the scan's time would give half), the one before by none."""
+    from dataclasses import replace
+
+    from mapping.lidar_frontend import FrontendConfig
+    from mapping.se2 import Pose
+
+    scans = _turning_scans(0.1 / 100)
+    scans = [replace(s, odom=Pose(0.0, 0.0, turn)) for s, turn in zip(scans, (0.0, 0.0, 0.1), strict=True)]
+    stood, turned, last = mr.deskewed(scans, FrontendConfig())
+    assert np.array_equal(stood.angles, scans[0].angles)
+    assert turned.angles[10] - scans[1].angles[10] == pytest.approx(1.0 * 10 * 0.001)
+    assert last.angles[10] - scans[2].angles[10] == pytest.approx(1.0 * 10 * 0.001)  # from the one before
