@@ -628,9 +628,24 @@ def wheel_velocity(before: Any, at: Any, after: Any) -> tuple[float, float, floa
     difference); zero when their times are less than ``MIN_SCAN_GAP`` apart or the velocity is
     beyond ``MAX_SPEED`` or ``MAX_TURN_RATE``."""
     dt = float(after.t) - float(before.t)
+    return _velocity(at.odom.between(before.odom), at.odom.between(after.odom), dt)
+
+
+def sweep_velocity(ls: Any) -> tuple[float, float, float] | None:
+    """The wheels' velocity over scan ``ls``'s sweep (in its laser's frame, as
+    :func:`wheel_velocity`) from the odometry at its first and last beam (``ls.odom``,
+    ``ls.odom_end``); None when the reader had no odometry at the last beam."""
+    if ls.odom_end is None:
+        return None
+    return _velocity(Pose(), ls.odom.between(ls.odom_end), ls.sweep)
+
+
+def _velocity(back: Pose, on: Pose, dt: float) -> tuple[float, float, float]:
+    """The velocity from pose ``back`` to pose ``on`` (both in the scan's laser frame) ``dt``
+    seconds later; zero when ``dt`` is under ``MIN_SCAN_GAP`` or the velocity beyond
+    ``MAX_SPEED`` or ``MAX_TURN_RATE``."""
     if not dt >= MIN_SCAN_GAP:
         return 0.0, 0.0, 0.0
-    back, on = at.odom.between(before.odom), at.odom.between(after.odom)
     turn = math.remainder(on.theta - back.theta, 2.0 * math.pi) / dt
     vx, vy = (on.x - back.x) / dt, (on.y - back.y) / dt
     if not (math.hypot(vx, vy) <= MAX_SPEED and abs(turn) <= MAX_TURN_RATE):
@@ -658,14 +673,16 @@ def deskewed(scans: Sequence[Any], frontend: Any) -> list[Any]:
 
 
 def deskewed_scan(ls: Any, before: Any, after: Any) -> Any:
-    """``ls`` de-skewed at the wheels' velocity from ``before`` to ``after``
-    (:func:`wheel_velocity`, :func:`mapping.lidar_frontend.deskew`); itself when its beams are
+    """``ls`` de-skewed at the wheels' velocity over its sweep when its reader had the odometry
+    at its last beam (:func:`sweep_velocity`), else from ``before`` to ``after``
+    (:func:`wheel_velocity`; :func:`mapping.lidar_frontend.deskew`); itself when its beams are
     simultaneous."""
     from mapping.lidar_frontend import deskew
 
     if not ls.time_increment:
         return ls
-    ranges, angles = deskew(ls.ranges, ls.angles, ls.time_increment, wheel_velocity(before, ls, after))
+    velocity = sweep_velocity(ls) or wheel_velocity(before, ls, after)
+    ranges, angles = deskew(ls.ranges, ls.angles, ls.time_increment, velocity)
     return replace(ls, ranges=ranges, angles=angles)
 
 
@@ -794,8 +811,10 @@ class LiveInputs:
     calibrates on what came when the stream ends before that.
 
     **De-skew**: a scan whose beams took time (``time_increment``) is de-skewed first at the
-    wheels' velocity since the scan that came before it (:func:`wheel_velocity` one-sided, as
-    a live robot has no scan after it yet; ``frontend.deskew``).
+    wheels' velocity over its sweep (``odom_end``: the live robot waits for the odometry past
+    its last beam, :class:`agents.fleet.live_lidar.LiveLidar`), else since the scan that came
+    before it (:func:`wheel_velocity` one-sided: a live robot has no scan after it yet, and
+    that velocity lags the sweep by a scan; ``frontend.deskew``).
 
     **Motion filter** (``min_travel`` metres, ``min_turn`` radians; 0 and 0 take every scan): a
     scan whose wheels are within those limits of the last scan taken
@@ -851,7 +870,7 @@ class LiveInputs:
         from mapping.lidar_frontend import within_motion_limits
 
         seen, self._seen = self._seen, ls
-        if self.frontend.deskew:  # at the velocity since the scan before (none: not known)
+        if self.frontend.deskew:  # over its sweep, else at the velocity since the scan before
             ls = deskewed_scan(ls, seen or ls, ls)
         if self._taken is not None and within_motion_limits(self._taken.between(ls.odom), self.min_travel,
                                                             self.min_turn):

@@ -148,6 +148,55 @@ def test_a_live_scan_that_took_time_is_turned_back_by_the_turn_since_the_one_bef
     assert np.array_equal(plain._held[1].angles, base.angles)
 
 
+def test_a_live_scan_waits_for_the_odometry_past_its_last_beam_and_is_de_skewed_over_its_sweep() -> None:
+    """A 5 Hz spinning lidar (beams 1 ms apart, a 0.1 s sweep) on a robot that stands, then turns
+    at 1 rad/s: the scan waits until the odometry passes its last beam, carries the laser's pose
+    there (``odom_end``), and is turned back by the turn over its own sweep, which the velocity
+    since the scan before (none: it stood) would miss. With the odometry silent for ``max_wait``
+    the scan goes on without it."""
+    from mapping.lidar_frontend import deskew
+
+    mk = MessageMaker()
+    now = [0.0]
+    src = LiveLidar(mount=MOUNT, max_wait=0.5, clock=lambda: now[0])
+    unmount = MOUNT.inverse()
+
+    def scan(t: float) -> bytes:
+        return mk.serialize(mk.scan(t, np.full(101, 2.0), -0.5, 0.01, time_increment=0.001))
+
+    src.on_odometry(mk.serialize(mk.odometry(10.0, Pose())))
+    src.on_scan(scan(10.0))
+    assert src.take(0.0) is None  # its last beam is at 10.1 s: no odometry there yet
+    src.on_odometry(mk.serialize(mk.odometry(10.05, Pose())))
+    assert src.take(0.0) is None
+    # stood until 10.05 s, then turned at 1.2 rad/s: 0.06 rad over the sweep (10.0-10.1 s),
+    # all of it in its second half (the beams are float32: 1e-6 tolerances)
+    src.on_odometry(mk.serialize(mk.odometry(10.35, Pose(0.0, 0.0, 0.36))))
+    first = src.take(0.0)
+    assert first is not None and first.odom_end is not None
+    assert first.odom_end.almost_equal(Pose(0.0, 0.0, 0.06).compose(MOUNT), tol=1e-6, angle_tol=1e-6)
+    assert mr.sweep_velocity(first)[2] == pytest.approx(0.6, rel=1e-6)
+    _, extract, frontend = profile(5)
+    live = mr.LiveInputs(max_range=20.0, extract=extract, frontend=frontend)
+    live.add(first)
+    held = live._held[0]  # no scan before it: only its sweep's odometry knew of the turn
+    want = deskew(first.ranges, first.angles, first.time_increment, mr.sweep_velocity(first))
+    assert np.array_equal(held.angles, want[1]) and np.array_equal(held.ranges, want[0])
+    assert held.angles[-1] - first.angles[-1] > 0.9 * 0.1 * 0.6
+    src.on_scan(scan(10.2))  # its last beam at 10.3 s: the odometry is there
+    second = src.take(0.0)
+    assert second is not None and second.odom_end is not None
+    assert second.odom_end.compose(unmount).theta == pytest.approx(0.3, abs=1e-6)
+    src.on_scan(scan(10.4))  # past the odometry: waits, then goes on without it
+    assert src.take(0.0) is None
+    src.on_odometry(mk.serialize(mk.odometry(10.45, Pose(0.0, 0.0, 0.48))))
+    assert src.take(0.0) is None
+    now[0] = 0.6
+    late = src.take(0.0)
+    assert late is not None and late.odom_end is None and src.counts.unposed == 0
+    assert (src.counts.posed, src.counts.swept) == (3, 2)
+
+
 def test_live_inputs_refuse_a_front_end_that_needs_the_whole_log() -> None:
     _, extract, frontend = mr.split_profile(mr.lidar_profile("lidar-slam"))
     with pytest.raises(ValueError, match="scan by scan"):
@@ -463,13 +512,18 @@ def test_play_times_scans_a_live_robot_can_pair(scans: list[Any]) -> None:
 
 
 @pytest.mark.fleet
-def test_wiremap_play_feeds_a_live_robot(tmp_path: Path) -> None:
+def test_wiremap_play_feeds_a_live_robot(scans: list[Any], tmp_path: Path) -> None:
     """`wiremap play --carmen LOG` over a real router into `wiremap robot --scan-key --odom-key`:
     the robot finds the laser's mount on the latched transforms play sends (`--tf-key`), poses
     and maps every scan of the excerpt (motion filter off), and play says what it sent and exits
-    0."""
+    0. The excerpt is played as a scanner whose beams take 0.1 s: every scan but the last (no
+    odometry after it) is posed with the odometry at its last beam, for its de-skew."""
+    from agents.files.carmen import flaser_angles, write_carmen
     from tests.fleet_util import in_process_router, log_text, spawn, stop_process, wait_until
 
+    swept = tmp_path / "swept.log"  # (the writer's bearings: -90 to 90 degrees, the excerpt's to 89.5)
+    write_carmen(swept, [replace(ls, angles=flaser_angles(ls.angles.size, math.pi)) for ls in scans],
+                 fov=math.pi, max_range=scans[0].max_range, time_increment=0.1 / 359)
     status_file = tmp_path / "status.json"
     robot_log, play_log = tmp_path / "robot.log", tmp_path / "play.log"
     with in_process_router() as ep:
@@ -481,7 +535,7 @@ def test_wiremap_play_feeds_a_live_robot(tmp_path: Path) -> None:
         play = None
         try:
             wait_until(lambda: "on the bus" in robot_log.read_text(), 60, "the robot on the bus")
-            play = spawn(["play", "--carmen", str(EXCERPT), "--speed", "200", "--scan-key", "pl/scan",
+            play = spawn(["play", "--carmen", str(swept), "--speed", "200", "--scan-key", "pl/scan",
                           "--odom-key", "pl/odom", "--tf-key", "pl/tf_static", "--connect", ep,
                           "--fleet", "t"], play_log)
             wait_until(lambda: play.poll() is not None, 60, "play to finish")
@@ -495,6 +549,7 @@ def test_wiremap_play_feeds_a_live_robot(tmp_path: Path) -> None:
                     stop_process(p, timeout=5)
     status = json.loads(status_file.read_text())
     assert status["live"]["posed"] == 60 and status["step"] == 60, status["live"]
+    assert status["live"]["swept"] == 59, status["live"]
     assert status["live"]["mount"] == "base_link -> laser" and status["live"]["transforms"] == 1, status
 
 

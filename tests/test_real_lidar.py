@@ -349,3 +349,9 @@ def test_deskewed_takes_the_motion_after_the_scans_time() -> None:
     assert np.array_equal(stood.angles, scans[0].angles)
     assert turned.angles[10] - scans[1].angles[10] == pytest.approx(1.0 * 10 * 0.001)
     assert last.angles[10] - scans[2].angles[10] == pytest.approx(1.0 * 10 * 0.001)  # from the one before
+
+    # the odometry over its own sweep, when the reader had it, before its neighbours'
+    swept = replace(scans[0], odom_end=Pose(0.0, 0.0, 0.5 * 0.099))
+    assert mr.sweep_velocity(swept) == pytest.approx((0.0, 0.0, 0.5))
+    first = mr.deskewed([swept, *scans[1:]], FrontendConfig())[0]
+    assert first.angles[10] - scans[0].angles[10] == pytest.approx(0.5 * 10 * 0.001)

@@ -178,6 +178,23 @@ def test_the_time_between_beams_is_read_in_the_order_the_beams_are_kept(tmp_path
     assert c.time_increment == 0.0 and d.time_increment == 0.0
 
 
+def test_a_scan_that_took_time_has_the_odometry_at_its_last_beam(tmp_path: Path) -> None:
+    """The odometry at the last beam's stamp (the scan's plus its sweep) is the de-skew's
+    (``odom_end``, through the mount); past the odometry, or with simultaneous beams, none."""
+    p = tmp_path / "sweep.bag"
+    with BagWriter(p, "ros1") as bag:
+        bag.write("/odom", 1.0, bag.odometry(1.0, Pose()))
+        bag.write("/odom", 1.2, bag.odometry(1.2, Pose(0.2, 0.0, 0.4)))
+        bag.write("/scan", 1.0, bag.scan(1.0, [1.0] * 11, -1.0, 0.2, time_increment=0.01))
+        bag.write("/scan", 1.0, bag.scan(1.15, [1.0] * 11, -1.0, 0.2, time_increment=0.01))  # ends at 1.25
+        bag.write("/scan", 1.0, bag.scan(1.1, [1.0] * 11, -1.0, 0.2))
+    a, b, c = read_rosbag(p, strict=True).scans
+    assert a.sweep == pytest.approx(0.1) and a.odom_end is not None
+    assert a.odom_end.almost_equal(Pose(0.1, 0.0, 0.2), tol=1e-6, angle_tol=1e-6)
+    assert b.odom_end is None and b.odom.almost_equal(Pose(0.15, 0.0, 0.3), tol=1e-6, angle_tol=1e-6)
+    assert c.sweep == 0.0 and c.odom_end is None
+
+
 def test_odometry_is_interpolated_at_each_scan_and_scans_outside_it_are_skipped(tmp_path: Path) -> None:
     p = tmp_path / "interp"
     with BagWriter(p, "sqlite3") as bag:

@@ -193,6 +193,11 @@ class LaserScan:
         Seconds from one beam to the next in the order of ``angles`` (negative: the last beam
         first), ROS's ``LaserScan.time_increment``; ``t`` is the first beam's time. 0: the beams
         are taken as simultaneous.
+    odom_end : Pose or None
+        The laser's pose in the odometry frame at the last beam's time (``t`` plus
+        :attr:`sweep`), when the reader had odometry then (a bag's or a live robot's odometry
+        stream); None otherwise (a CARMEN log: the de-skew takes the wheels' motion to the next
+        scan, :func:`agents.mapping_run.deskewed`).
     """
 
     t: float
@@ -204,6 +209,12 @@ class LaserScan:
     kind: str = "FLASER"
     index: int = 0
     time_increment: float = 0.0
+    odom_end: Pose | None = None
+
+    @property
+    def sweep(self) -> float:
+        """Seconds from the first beam to the last (0: simultaneous beams)."""
+        return abs(self.time_increment) * max(0, self.angles.size - 1)
 
     def __post_init__(self) -> None:
         r = np.array(self.ranges, dtype=np.float64, copy=True).reshape(-1)

@@ -691,13 +691,23 @@ def odometry_pose(msg: Any) -> tuple[float, Pose]:
 
 
 def posed_scan(
-    raw: _RawScan, robot: Pose, mount: Pose, upside_down: bool = False, t: float | None = None
+    raw: _RawScan, robot: Pose, mount: Pose, upside_down: bool = False, t: float | None = None,
+    robot_end: Pose | None = None,
 ) -> LaserScan:
     """The scan of ``raw`` taken with the robot's base at ``robot`` (its odometry at the scan's
-    time) and the laser mounted at ``mount`` on it; ``t`` replaces the scan's time."""
+    time) and the laser mounted at ``mount`` on it; ``t`` replaces the scan's time.
+    ``robot_end``: the base's odometry at the last beam's time (:func:`sweep_end`), when known."""
     ranges, angles, dt = _beams(raw, upside_down)
     return LaserScan(raw.t if t is None else t, ranges, angles, raw.max_range, robot.compose(mount), mount,
-                     SCAN_KIND, raw.index, dt)
+                     SCAN_KIND, raw.index, dt, None if robot_end is None else robot_end.compose(mount))
+
+
+def sweep_end(raw: _RawScan) -> float | None:
+    """The stamp of ``raw``'s last beam (its stamp plus the sweep), or None when its beams are
+    simultaneous: the odometry there gives the de-skew its velocity (``LaserScan.odom_end``)."""
+    if not raw.time_increment or raw.ranges.size < 2:
+        return None
+    return raw.t + abs(raw.time_increment) * (raw.ranges.size - 1)
 
 
 def _assemble(log: _Collected, where: str, fmt: str, topics: dict[str, str], base_frame: str) -> RosBag:
@@ -719,7 +729,9 @@ def _assemble(log: _Collected, where: str, fmt: str, topics: dict[str, str], bas
         if robot is None or (choice.truth is not None and true_robot is None):
             unposed += 1
             continue
-        scans.append(posed_scan(raw, robot, mount.pose, mount.upside_down))
+        end = sweep_end(raw)
+        robot_end = None if end is None else interpolate(odom_t, odom_poses, end)
+        scans.append(posed_scan(raw, robot, mount.pose, mount.upside_down, robot_end=robot_end))
         if true_robot is not None:
             truth.append(true_robot.compose(mount.pose))
     first = mounts.get(laser) or _Mount(Pose(), False, None)

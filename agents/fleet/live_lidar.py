@@ -46,9 +46,12 @@ What is made of them (choices)
   that puts the laser more than ``MAX_MOUNT_M`` from the base is no mount (``bad_transforms``);
   ``mount`` in the status names the chain found.
 * **Time**: a scan's time is seconds since the first scan that was posed (the robot's ``t``).
-  A scan whose ``time_increment`` says its beams came over time (a spinning lidar) is
-  de-skewed at the wheels' velocity since the scan before (``frontend.deskew``;
-  :class:`agents.mapping_run.LiveInputs`).
+  A scan whose ``time_increment`` says its beams came over time (a spinning lidar) also waits
+  for the odometry past its last beam (its stamp plus the sweep, 0.2 s at most for a 5 Hz
+  lidar): it is de-skewed at the wheels' velocity over its own sweep (``odom_end``;
+  ``frontend.deskew``, :class:`agents.mapping_run.LiveInputs`). When that odometry does not
+  come (silent for ``max_wait``), the scan goes on without it and is de-skewed at the velocity
+  since the scan before, which lags the sweep by a scan.
 * **Motion filter**: the mapper takes a posed scan only once the wheels have moved
   ``--min-travel`` or turned ``--min-turn`` since the last scan it took (default the profile's
   ``frontend.min_travel`` and ``min_turn``, 0.5 m and 10 degrees; ``still`` counts the others;
@@ -113,6 +116,7 @@ class LiveCounts:
     scans: int = 0
     odometry: int = 0
     posed: int = 0
+    swept: int = 0  # posed scans whose beams took time, with the odometry at their last beam (de-skew)
     bad_scans: int = 0
     bad_odometry: int = 0
     unposed: int = 0
@@ -329,7 +333,7 @@ class LiveLidar:
 
     # ------------------------------------------------------------------ pairing (lock held)
     def _pair(self) -> None:
-        from agents.files.rosbag import interpolate, posed_scan
+        from agents.files.rosbag import interpolate, posed_scan, sweep_end
 
         if not self._waiting:
             return
@@ -350,14 +354,15 @@ class LiveLidar:
                 # the odometry has not passed the scan yet: wait while it keeps coming (a busy
                 # process may run the two streams' callbacks late and in any order); drop the scan
                 # once the odometry has been silent for max_wait, or when too many scans wait
-                silent = now - w.arrived > self.max_wait and now - self._odom_arrived > self.max_wait
-                if silent or len(self._waiting) > MAX_WAITING:
-                    why = (f"no odometry for {self.max_wait:g} s" if silent
-                           else f"{MAX_WAITING} scans waiting for odometry")
+                if why := self._stalled(w, now):
                     self._drop_unposed(f"scan stamped {w.raw.t:.6f}: {why} (odometry up to "
                                        f"{stamps[-1] if stamps.size else float('nan'):.6f})")
                     continue
                 break
+            end = sweep_end(w.raw)
+            robot_end = None if end is None else interpolate(stamps, self._odom, end)
+            if end is not None and robot_end is None and not self._stalled(w, now):
+                break  # a scan that took time waits for the odometry past its last beam: the de-skew's
             mount = self._mount_of(w.raw.frame)
             if mount is False:  # the transforms do not reach the scan's frame: wait for them a while
                 if now - w.arrived <= self.max_wait and len(self._waiting) <= MAX_WAITING:
@@ -368,15 +373,24 @@ class LiveLidar:
             if self._t0 is None:
                 self._t0 = w.raw.t
             if mount is None:
-                scan = posed_scan(w.raw, robot, self.mount, t=w.raw.t - self._t0)
+                scan = posed_scan(w.raw, robot, self.mount, t=w.raw.t - self._t0, robot_end=robot_end)
             else:
-                scan = posed_scan(w.raw, robot, mount.pose, mount.upside_down, t=w.raw.t - self._t0)
+                scan = posed_scan(w.raw, robot, mount.pose, mount.upside_down, t=w.raw.t - self._t0,
+                                  robot_end=robot_end)
             self._ready.append(scan)
             self.counts.posed += 1
+            self.counts.swept += robot_end is not None
             while len(self._ready) > self.max_backlog:
                 self._ready.popleft()
                 self.counts.behind += 1
             self._cond.notify_all()
+
+    def _stalled(self, w: _Waiting, now: float) -> str:
+        """Why waiting scan ``w`` waits no longer for odometry ('' while it may): the odometry
+        silent for ``max_wait``, or too many scans waiting."""
+        if now - w.arrived > self.max_wait and now - self._odom_arrived > self.max_wait:
+            return f"no odometry for {self.max_wait:g} s"
+        return f"{MAX_WAITING} scans waiting for odometry" if len(self._waiting) > MAX_WAITING else ""
 
     def _drop_unposed(self, why: str) -> None:
         self._waiting.popleft()

@@ -409,10 +409,12 @@ class RobotAgent:
                 st = self.status
                 live = ""
                 if st.live is not None:
-                    kept = ("scans", "odometry", "posed", "last_issue", "graph", "loops", "settled",
+                    kept = ("scans", "odometry", "posed", "swept", "last_issue", "graph", "loops", "settled",
                             "revisits", "refined", "transforms", "mount")
                     dropped = ", ".join(f"{k} {v}" for k, v in st.live.items() if k not in kept and v)
                     live = (f"; live lidar: {st.live['posed']} scans posed, {st.live['scans']} received"
+                            + (f", {st.live['swept']} with the odometry over their sweep"
+                               if st.live.get("swept") else "")
                             + (f" ({dropped})" if dropped else "")
                             + (f"; the laser's mount {st.live['mount']}" if st.live.get("mount") else "")
                             + (" (calibrating: the first scans are mapped together)" if st.step == 0 else "")
