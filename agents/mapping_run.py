@@ -46,6 +46,7 @@ __all__ = [
     "carmen_inputs",
     "default_merge_threshold",
     "filter_config_for",
+    "for_scanner",
     "lidar_profile",
     "odometry_report",
     "robot_steps",
@@ -502,6 +503,20 @@ class LogCalibration:
     noise: Any
     scale: float = 1.0
     scale_estimate: Any = None
+    scanner_range: float = math.inf
+
+
+def for_scanner(frontend: Any, scans: Sequence[Any]) -> Any:
+    """``frontend`` with its SLAM given the scanner's own range (``slam.scanner_range``: the
+    median of the scans' ``max_range``) when its settings do not give one (inf), which turns
+    the SLAM's check on the side of a wall a point was seen from on for a short-range scanner
+    (``slam.facing_range``, :class:`mapping.lidar_slam.SlamConfig`). The same scans give the
+    same front end."""
+    ranges = [float(s.max_range) for s in scans]
+    r = float(np.median(ranges)) if ranges else math.inf
+    if not 0.0 < r < math.inf or math.isfinite(frontend.slam.scanner_range):
+        return frontend
+    return replace(frontend, slam=replace(frontend.slam, scanner_range=r))
 
 
 def calibrate_log(scans: Sequence[Any], frontend: Any, yaw: float | None = None) -> LogCalibration:
@@ -513,9 +528,10 @@ def calibrate_log(scans: Sequence[Any], frontend: Any, yaw: float | None = None)
     and with ``frontend.scale_calibration`` the wheels' distance scale
     (:func:`mapping.lidar_frontend.wheel_scale`). All rest on the same scan pairs
     (:func:`mapping.lidar_frontend.calibration_pairs`); they are matched again after the yaw
-    turned the points."""
+    turned the points, with the SLAM's settings for the scanner's range (:func:`for_scanner`)."""
     from mapping.lidar_frontend import calibration_pairs, laser_yaw, odometry_noise, wheel_scale
 
+    frontend = for_scanner(frontend, scans)
     raw = carmen_points(scans, frontend)
     odometry = wheel_increments(scans)
     n = frontend.calibration_scans or len(raw)  # what the calibrations may look at
@@ -542,7 +558,8 @@ def calibrate_log(scans: Sequence[Any], frontend: Any, yaw: float | None = None)
     if frontend.scale_calibration:
         pairs = pairs if pairs is not None else calibration_pairs(pts[:n], odometry[:n], frontend)
         scale = wheel_scale(pairs, frontend)
-    return LogCalibration(pts, float(yaw), estimate, noise, 1.0 if scale is None else scale.correction, scale)
+    return LogCalibration(pts, float(yaw), estimate, noise, 1.0 if scale is None else scale.correction, scale,
+                          frontend.slam.scanner_range)
 
 
 def odometry_report(noise: Any, slam: Any) -> dict[str, Any]:
@@ -572,8 +589,11 @@ def yaw_report(cal: LogCalibration) -> dict[str, Any]:
     taken off every bearing: estimated, given or 0), and with an estimate ``laser_yaw_estimate_deg``
     and ``laser_yaw_se_deg`` (None when too few pairs gave it one: ``report.json`` stays strict
     JSON); with a scale estimate ``wheel_scale`` (what every wheel increment was divided by: 1
-    when not applied), ``wheel_scale_estimate`` and ``wheel_scale_se``."""
+    when not applied), ``wheel_scale_estimate`` and ``wheel_scale_se``; ``scanner_range_m``, the
+    scanner's own range (:func:`for_scanner`)."""
     out: dict[str, Any] = {"laser_yaw_deg": math.degrees(cal.turn)}
+    if math.isfinite(cal.scanner_range):
+        out["scanner_range_m"] = cal.scanner_range
     est = cal.estimate
     if est is not None:
         out["laser_yaw_estimate_deg"] = math.degrees(est.yaw)
@@ -742,6 +762,7 @@ def carmen_inputs(
         scans = log
     if steps is not None:
         scans = scans[:steps]
+    fcfg = for_scanner(fcfg, scans)
     cal = calibration if calibration is not None else calibrate_log(scans, fcfg, yaw)
     if len(cal.points) != len(scans):
         raise ValueError(f"calibration of {len(cal.points)} scans for {len(scans)} scans")
@@ -892,6 +913,7 @@ class LiveInputs:
         from mapping.lidar_frontend import OnlineSlam
 
         held, self._held = self._held, []
+        self.frontend = for_scanner(self.frontend, held)
         cal = calibrate_log(held, self.frontend, self.yaw)
         self.calibration = cal
         if cal.turn:

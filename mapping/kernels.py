@@ -141,20 +141,31 @@ def gauss_newton(
     kernel: float,
     effective_points: float,
     inlier_distance: float,
+    point_sides: FloatArray | None = None,
+    facing_cos: float = -2.0,
 ) -> tuple[FloatArray, FloatArray, float, int]:
     """Point-to-line Gauss-Newton of robot-frame ``points`` against the grid's points with unit
-    ``normals`` from ``guess`` (see :func:`mapping.lidar_slam.match_scan`). Returns the pose,
+    ``normals`` from ``guess`` (see :func:`mapping.lidar_slam.match_scan`). With
+    ``point_sides`` (robot frame, one unit vector per point: the side of a wall it was seen
+    from, :func:`mapping.lidar_slam.scan_sides`; NaN: unknown) a point is paired with the
+    nearest of its three nearest grid points whose normal has a dot product of at least
+    ``facing_cos`` with its side turned by the pose (none: unpaired). Returns the pose,
     the data term's Hessian, the inlier share and the points matched in the last iteration.
     Raises ValueError for a non-finite point, guess or prior."""
     if not (np.isfinite(points).all() and np.isfinite(guess).all() and np.isfinite(prior).all()):
         raise ValueError("gauss_newton: points, guess and prior must be finite")
+    pts = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 2)
+    qn = (np.zeros((0, 2)) if point_sides is None
+          else np.ascontiguousarray(point_sides, dtype=np.float64).reshape(-1, 2))
+    if len(qn) and len(qn) != len(pts):
+        raise ValueError(f"gauss_newton: {len(qn)} point sides for {len(pts)} points")
     pose, hess, inliers, matched = _gauss_newton(
-        np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 2), *grid.arrays,
+        pts, *grid.arrays,
         np.ascontiguousarray(normals[:, 0], dtype=np.float64),
         np.ascontiguousarray(normals[:, 1], dtype=np.float64),
         np.ascontiguousarray(guess, dtype=np.float64), np.ascontiguousarray(prior, dtype=np.float64),
         int(iterations), float(gate_start), float(gate_end), float(sigma), float(kernel),
-        float(effective_points), float(inlier_distance))
+        float(effective_points), float(inlier_distance), qn, float(facing_cos))
     return pose, hess, float(inliers), int(matched)
 
 
@@ -418,7 +429,8 @@ def _wrap(a):  # type: ignore[no-untyped-def]
 
 @_compiled
 def _gauss_newton(points, xs, ys, ox, oy, cell, gnx, gny, start, order, nxs, nys, guess, prior,  # type: ignore[no-untyped-def]
-                  n_it, gate_start, gate_end, sigma, kernel, effective_points, inlier_distance):
+                  n_it, gate_start, gate_end, sigma, kernel, effective_points, inlier_distance, qn,
+                  facing_cos):
     pose = guess.copy()
     w_sigma = 1.0 / sigma**2
     hess = np.zeros((3, 3))
@@ -435,7 +447,7 @@ def _gauss_newton(points, xs, ys, ox, oy, cell, gnx, gny, start, order, nxs, nys
         f = min(1.0, it / half)
         gate = gate_start * (gate_end / gate_start) ** f
         matched = _place_and_pair(points, pose, xs, ys, ox, oy, cell, gnx, gny, start, order, gate,
-                                  wx, wy, idx)
+                                  wx, wy, idx, qn, nxs, nys, facing_cos)
         d0 = pose[0] - guess[0]
         d1 = pose[1] - guess[1]
         d2 = _wrap(pose[2] - guess[2])
@@ -472,7 +484,7 @@ def _gauss_newton(points, xs, ys, ox, oy, cell, gnx, gny, start, order, nxs, nys
         if it >= half and abs(step[0]) + abs(step[1]) < 1e-4 and abs(step[2]) < 1e-5:
             break
     _place_and_pair(points, pose, xs, ys, ox, oy, cell, gnx, gny, start, order,
-                    max(gate_end, inlier_distance), wx, wy, idx)
+                    max(gate_end, inlier_distance), wx, wy, idx, qn, nxs, nys, facing_cos)
     inl = 0
     for q in range(n):
         k = idx[q]
@@ -482,24 +494,40 @@ def _gauss_newton(points, xs, ys, ox, oy, cell, gnx, gny, start, order, nxs, nys
 
 
 @_compiled
-def _place_and_pair(points, pose, xs, ys, ox, oy, cell, nx, ny, start, order, gate, wx, wy, idx):  # type: ignore[no-untyped-def]
+def _place_and_pair(points, pose, xs, ys, ox, oy, cell, nx, ny, start, order, gate, wx, wy, idx,  # type: ignore[no-untyped-def]
+                    qn, gnx, gny, facing_cos):
     """Robot-frame ``points`` placed at ``pose`` into ``wx``, ``wy``, each one's nearest grid
-    point strictly within ``gate`` into ``idx`` (-1: none); returns how many have one."""
+    point strictly within ``gate`` into ``idx`` (-1: none); returns how many have one. With
+    point sides ``qn`` (one row per point; an empty array: none), a point with a side takes the
+    nearest of its three nearest whose normal (``gnx``, ``gny``) faces its side turned by the
+    pose to at least ``facing_cos``."""
     c = math.cos(pose[2])
     s = math.sin(pose[2])
     one = np.empty(1, np.int64)
     one_d = np.empty(1)
+    three = np.empty(3, np.int64)
+    three_d = np.empty(3)
+    facing = qn.shape[0] == points.shape[0]
     matched = 0
     for q in range(points.shape[0]):
         x = c * points[q, 0] - s * points[q, 1] + pose[0]
         y = s * points[q, 0] + c * points[q, 1] + pose[1]
         wx[q] = x
         wy[q] = y
-        if _nearest_k(x, y, xs, ys, ox, oy, cell, nx, ny, start, order, gate, one, one_d):
+        idx[q] = -1
+        if facing and math.isfinite(qn[q, 0]):
+            rx = c * qn[q, 0] - s * qn[q, 1]
+            ry = s * qn[q, 0] + c * qn[q, 1]
+            found = _nearest_k(x, y, xs, ys, ox, oy, cell, nx, ny, start, order, gate, three, three_d)
+            for t in range(found):
+                o = three[t]
+                if gnx[o] * rx + gny[o] * ry >= facing_cos:
+                    idx[q] = o
+                    matched += 1
+                    break
+        elif _nearest_k(x, y, xs, ys, ox, oy, cell, nx, ny, start, order, gate, one, one_d):
             idx[q] = one[0]
             matched += 1
-        else:
-            idx[q] = -1
     return matched
 
 

@@ -509,7 +509,7 @@ def _matched_pair(
     points: list[FloatArray], odometry: list[Pose], k: int, config: FrontendConfig
 ) -> CalibrationPair | None:
     """Scan ``k`` matched against scan ``k - 1`` alone (:func:`calibration_pairs`), or None."""
-    from mapping.lidar_slam import Submap, match_scan, scan_normals
+    from mapping.lidar_slam import Submap, match_scan, scan_normals, scan_sides
 
     slam = config.slam
     prev, here = points[k - 1], points[k]
@@ -517,7 +517,8 @@ def _matched_pair(
         return None
     sub = Submap.build([(prev, scan_normals(prev, slam.normal_gap))], slam.voxel)
     o = odometry[k]
-    m = match_scan(here, sub, np.array(o.as_tuple()), slam)
+    sides = scan_sides(here, scan_normals(here, slam.normal_gap))
+    m = match_scan(here, sub, np.array(o.as_tuple()), slam, sides=sides)
     return CalibrationPair(o, m.pose, k) if m.inliers >= config.yaw_min_inliers else None
 
 

@@ -20,6 +20,7 @@ from mapping.lidar_slam import (
     match_scan,
     optimize,
     scan_normals,
+    scan_sides,
     search_loop,
 )
 from mapping.se2 import Pose
@@ -60,8 +61,32 @@ def test_normals_are_perpendicular_to_a_wall_and_missing_at_a_gap() -> None:
     pts = np.stack([x, np.full_like(x, 3.0)], axis=1)
     pts = np.vstack([pts, [[5.0, 3.0], [5.1, 3.0]]])  # a jump of 2.9 m: no neighbour there
     n = scan_normals(pts, gap=0.3)
-    assert np.allclose(np.abs(n[1:20, 1]), 1.0) and np.allclose(n[1:20, 0], 0.0)
+    assert np.allclose(n[1:20, 1], -1.0) and np.allclose(n[1:20, 0], 0.0)  # towards the scanner
     assert np.isnan(n[0]).all() and np.isnan(n[20]).all() and np.isnan(n[21]).all()
+    assert np.allclose(scan_normals(pts[20::-1], gap=0.3)[1:20], n[19:0:-1])  # whatever the order
+
+
+def test_a_short_range_scanner_is_not_paired_with_the_far_face_of_a_wall() -> None:
+    """A wall 0.2 m thick, both faces in the submap, each seen from its own side (normals
+    towards it). A scan of the near face, guessed 0.15 m towards the far one: the plain match
+    slides onto the far face (the nearer points); with a short-range scanner
+    (``scanner_range`` under ``facing_range``) a point pairs only with a face that looks the
+    way it does, and the match lands on the near face."""
+    y = np.linspace(-3.0, 3.0, 121)
+    near = np.stack([np.full_like(y, 1.0), y], axis=1)
+    far = np.stack([np.full_like(y, 1.2), y], axis=1)
+    corner = np.stack([np.linspace(0.0, 0.95, 20), np.full(20, 3.0)], axis=1)  # a cross wall fixes y
+    sub = Submap.build([(near, np.tile([-1.0, 0.0], (len(y), 1))), (far, np.tile([1.0, 0.0], (len(y), 1))),
+                        (corner, np.tile([0.0, -1.0], (20, 1)))], 0.02)
+    pts = np.vstack([near[10:111:2], corner])
+    nrm = scan_sides(pts, np.vstack([scan_normals(near[10:111:2], gap=0.3), scan_normals(corner, gap=0.3)]))
+    guess = np.array([0.15, 0.0, 0.0])
+    plain = match_scan(pts, sub, guess, SlamConfig(), sides=nrm)  # a long-range scanner: no check
+    assert plain.pose[0] == pytest.approx(0.2, abs=0.02)
+    short = match_scan(pts, sub, guess, SlamConfig(scanner_range=3.5), sides=nrm)
+    assert abs(short.pose[0]) < 0.01 and abs(short.pose[1]) < 0.01
+    assert match_scan(pts, sub, guess, SlamConfig(scanner_range=3.5, facing_range=3.0),
+                      sides=nrm).pose[0] == pytest.approx(plain.pose[0])
 
 
 def test_match_recovers_a_pose_from_a_wrong_guess() -> None:
@@ -429,7 +454,8 @@ def test_slam_on_the_real_excerpt_beats_its_odometry() -> None:
                                  {"loop_settled_theta": -0.01}, {"revisit_xy": -0.1},
                                  {"revisit_lock": -1.0}, {"revisit_visits": 0},
                                  {"refine_online_nodes": -1}, {"refine_online_batch": 0},
-                                 {"refine_online_facing": -0.1}])
+                                 {"refine_online_facing": -0.1}, {"facing_cos": 1.5},
+                                 {"facing_range": -1.0}, {"scanner_range": 0.0}])
 def test_bad_settings_are_refused(bad: dict[str, float]) -> None:
     with pytest.raises(ValueError):
         SlamConfig(**bad)  # type: ignore[arg-type]

@@ -355,3 +355,26 @@ def test_deskewed_takes_the_motion_after_the_scans_time() -> None:
     assert mr.sweep_velocity(swept) == pytest.approx((0.0, 0.0, 0.5))
     first = mr.deskewed([swept, *scans[1:]], FrontendConfig())[0]
     assert first.angles[10] - scans[0].angles[10] == pytest.approx(0.5 * 10 * 0.001)
+
+
+# ---------------------------------------------------------------- the scanner's range
+def test_a_short_range_scanner_turns_the_slams_facing_check_on() -> None:
+    """The front end gives the SLAM the scanner's own range (the scans' median ``max_range``):
+    under ``slam.facing_range`` (8 m) the match checks the side of a wall a point was seen from;
+    a long-range scanner's SLAM is the profile's, unchanged; the report says the range."""
+    from dataclasses import replace
+
+    from mapping.lidar_frontend import FrontendConfig
+
+    fc = FrontendConfig()
+    short = [replace(s, max_range=3.5) for s in _turning_scans(0.0)]
+    got = mr.for_scanner(fc, short)
+    assert got.slam.scanner_range == 3.5 and got.slam.scanner_range < got.slam.facing_range
+    assert mr.for_scanner(got, short) is got  # the same scans: the same front end
+    far = mr.for_scanner(fc, _turning_scans(0.0))
+    assert far.slam.scanner_range == 10.0 and far.slam.scanner_range >= far.slam.facing_range
+    assert mr.for_scanner(fc, []) is fc
+    given = replace(fc, slam=replace(fc.slam, scanner_range=30.0))  # the settings' own range stays
+    assert mr.for_scanner(given, short) is given
+    cal = mr.calibrate_log(short, fc)
+    assert cal.scanner_range == 3.5 and mr.yaw_report(cal)["scanner_range_m"] == 3.5

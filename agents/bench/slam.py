@@ -91,6 +91,7 @@ def slam_over_log(path: str, settings: dict[str, Any],
     scans, kept_truth, _ = mr.motion_filtered(log.scans, truth, fcfg)  # a dense log thinned
     assert kept_truth is not None
     truth = kept_truth
+    fcfg = mr.for_scanner(fcfg, scans)
     cal = mr.calibrate_log(scans, fcfg)
     st = truth[0] if start is None else Pose(*start)
     t0 = time.process_time()
