@@ -684,7 +684,7 @@ def deskewed(scans: Sequence[Any], frontend: Any) -> list[Any]:
     ``LaserScan`` convention), so its beams come during the motion that follows it, and a
     spinning lidar's sweep is the whole gap to the next scan. A velocity centred on the
     scan's time lags the sweep by half a scan: a 5 Hz lidar starting or ending a turn in
-    place was de-skewed by half its turn or twice it (``docs/experiments.md``, session 30)."""
+    place would be de-skewed by half its turn or twice it."""
     if not frontend.deskew:
         return list(scans)
     n = len(scans)

@@ -147,7 +147,7 @@ def gauss_newton(
     """Point-to-line Gauss-Newton of robot-frame ``points`` against the grid's points with unit
     ``normals`` from ``guess`` (see :func:`mapping.lidar_slam.match_scan`). With
     ``point_sides`` (robot frame, one unit vector per point: the side of a wall it was seen
-    from, :func:`mapping.lidar_slam.scan_sides`; NaN: unknown) a point is paired with the
+    from, :func:`mapping.lidar_slam.scan_sides`; NaN: paired unchecked) a point is paired with the
     nearest of its three nearest grid points whose normal has a dot product of at least
     ``facing_cos`` with its side turned by the pose (none: unpaired). Returns the pose,
     the data term's Hessian, the inlier share and the points matched in the last iteration.

@@ -144,11 +144,10 @@ class SlamConfig:
         end replaces by the scans' declared range, :func:`agents.mapping_run.for_scanner`). A scanner that
         sees 3.5-6 m sees a room's nearest walls and, through a door, the other face of the
         same wall 0.1-0.4 m away: a loop or a refinement that pairs the two slides the map by a
-        wall's thickness (a simulated 3.5 m LDS-01: median ATE 0.341 -> 0.070 m, a 5.6 m
-        Hokuyo URG 0.065 -> 0.027, ``wiremap bench scanners``). Long-range scanners are held
-        by far walls; on the real 10-80 m logs the check cost more than it saved (four start
-        frames: acapulco 0.157 -> 0.213 m, edmonton 0.319 -> 0.416; docs/experiments.md,
-        session 30): a partition seen from both sides is one line.
+        wall's thickness. Long-range scanners are held by far walls, and on the real 10-80 m
+        logs the check cost more than it saved (a partition seen from both sides is one line);
+        the measurements are in docs/experiments.md ("A short-range scanner's SLAM paired the
+        two faces of a wall").
     loop_settled_xy, loop_settled_theta : float
         A loop whose match puts the scan within this many metres and radians of where the
         estimate already has it is *settled*: its edge joins the graph, but the graph is not

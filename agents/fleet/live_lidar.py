@@ -360,7 +360,10 @@ class LiveLidar:
                     continue
                 break
             end = sweep_end(w.raw)
-            robot_end = None if end is None else interpolate(stamps, self._odom, end)
+            try:
+                robot_end = None if end is None else interpolate(stamps, self._odom, end)
+            except (ValueError, ArithmeticError):  # as above: de-skewed as if none came
+                robot_end = None
             if end is not None and robot_end is None and not self._stalled(w, now):
                 break  # a scan that took time waits for the odometry past its last beam: the de-skew's
             mount = self._mount_of(w.raw.frame)
