@@ -54,6 +54,7 @@ __all__ = [
     "scan_fov",
     "simulate",
     "split_profile",
+    "sweep_check",
     "world_defaults",
     "yaw_report",
 ]
@@ -688,21 +689,88 @@ def deskewed(scans: Sequence[Any], frontend: Any) -> list[Any]:
     if not frontend.deskew:
         return list(scans)
     n = len(scans)
-    return [deskewed_scan(s, s, scans[k + 1]) if k + 1 < n else deskewed_scan(s, scans[max(k - 1, 0)], s)
-            for k, s in enumerate(scans)]
+    rev = sweep_check(scans, frontend).reversed if frontend.sweep_check else frontend.sweep_reversed
+    return [deskewed_scan(s, s, scans[k + 1], rev) if k + 1 < n
+            else deskewed_scan(s, scans[max(k - 1, 0)], s, rev) for k, s in enumerate(scans)]
 
 
-def deskewed_scan(ls: Any, before: Any, after: Any) -> Any:
+#: The order of a log's beams is judged on scans turning at least this fast (rad/s), at most
+#: this many, and not with fewer than this many (``frontend.sweep_check``).
+SWEEP_CHECK_TURN, SWEEP_CHECK_SCANS, SWEEP_CHECK_MIN = 0.3, 60, 10
+
+
+@dataclass(frozen=True)
+class SweepCheck:
+    """:func:`sweep_check`'s finding: the order the de-skew takes the beams in (``reversed``:
+    opposite to ``time_increment``'s sign), the turning scans it was judged on, and the inlier
+    share per scan the order opposite to ``frontend.sweep_reversed`` gained over it (NaN:
+    not judged)."""
+
+    reversed: bool
+    scans: int
+    gain: float
+
+
+def sweep_check(scans: Sequence[Any], frontend: Any) -> SweepCheck:
+    """Which way a log's beams came (``frontend.sweep_check``): each turning scan (the wheels'
+    velocity to the next scan at least ``SWEEP_CHECK_TURN``; the first ``SWEEP_CHECK_SCANS``)
+    de-skewed as ``frontend.sweep_reversed`` says and the other way, each matched from the
+    wheels' step against the scan before it de-skewed the same way; the other way is taken when
+    it holds more of the points (its mean gain in inlier share at least 0.01 and three standard
+    errors). ``frontend.sweep_reversed`` with fewer than ``SWEEP_CHECK_MIN`` turning scans."""
+    from mapping.lidar_slam import Submap, match_scan, scan_normals, scan_sides
+
+    base = bool(frontend.sweep_reversed)
+    n = len(scans)
+    turning = [k for k in range(1, n - 1) if scans[k].time_increment and scans[k - 1].time_increment
+               and abs(wheel_velocity(scans[k], scans[k], scans[k + 1])[2]) >= SWEEP_CHECK_TURN]
+    turning = turning[:SWEEP_CHECK_SCANS]
+    if len(turning) < SWEEP_CHECK_MIN:
+        return SweepCheck(base, len(turning), math.nan)
+    slam = frontend.slam
+
+    def held(k: int, rev: bool) -> float:
+        a, b = (deskewed_scan(scans[j], scans[j], scans[j + 1], rev) for j in (k - 1, k))
+        pa, pb = carmen_points([a, b], frontend)
+        if len(pa) < 3 or len(pb) < 3:
+            return 0.0
+        sub = Submap.build([(pa, scan_normals(pa, slam.normal_gap))], slam.voxel)
+        step = a.odom.between(b.odom)
+        sides = scan_sides(pb, scan_normals(pb, slam.normal_gap))
+        return match_scan(pb, sub, np.array(step.as_tuple()), slam, sides=sides).inliers
+
+    gain = np.array([held(k, not base) - held(k, base) for k in turning])
+    mean, se = float(gain.mean()), float(gain.std(ddof=1) / math.sqrt(len(gain)))
+    flip = mean >= 0.01 and mean > 3.0 * se
+    return SweepCheck(base != flip, len(turning), mean)
+
+
+def sweep_report(scans: Sequence[Any], frontend: Any) -> dict[str, Any]:
+    """The order a log's beams are de-skewed in as report keys (none for a log whose beams are
+    simultaneous, or with the de-skew off): ``sweep_reversed``, and when judged on the log
+    (``frontend.sweep_check``) ``sweep_check_scans`` and ``sweep_check_gain``."""
+    if not frontend.deskew or not any(s.time_increment for s in scans):
+        return {}
+    if not frontend.sweep_check:
+        return {"sweep_reversed": bool(frontend.sweep_reversed)}
+    check = sweep_check(scans, frontend)
+    return {"sweep_reversed": check.reversed, "sweep_check_scans": check.scans,
+            "sweep_check_gain": check.gain if math.isfinite(check.gain) else None}
+
+
+def deskewed_scan(ls: Any, before: Any, after: Any, reversed_sweep: bool = False) -> Any:
     """``ls`` de-skewed at the wheels' velocity over its sweep when its reader had the odometry
     at its last beam (:func:`sweep_velocity`), else from ``before`` to ``after``
-    (:func:`wheel_velocity`; :func:`mapping.lidar_frontend.deskew`); itself when its beams are
-    simultaneous."""
+    (:func:`wheel_velocity`; :func:`mapping.lidar_frontend.deskew`), its beams taken in the
+    order opposite to its ``time_increment``'s with ``reversed_sweep``
+    (``frontend.sweep_reversed``); itself when its beams are simultaneous."""
     from mapping.lidar_frontend import deskew
 
     if not ls.time_increment:
         return ls
     velocity = sweep_velocity(ls) or wheel_velocity(before, ls, after)
-    ranges, angles = deskew(ls.ranges, ls.angles, ls.time_increment, velocity)
+    ranges, angles = deskew(ls.ranges, ls.angles, -ls.time_increment if reversed_sweep else ls.time_increment,
+                            velocity)
     return replace(ls, ranges=ranges, angles=angles)
 
 
@@ -892,7 +960,7 @@ class LiveInputs:
 
         seen, self._seen = self._seen, ls
         if self.frontend.deskew:  # over its sweep, else at the velocity since the scan before
-            ls = deskewed_scan(ls, seen or ls, ls)
+            ls = deskewed_scan(ls, seen or ls, ls, self.frontend.sweep_reversed)
         if self._taken is not None and within_motion_limits(self._taken.between(ls.odom), self.min_travel,
                                                             self.min_turn):
             self.skipped += 1

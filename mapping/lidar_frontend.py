@@ -153,6 +153,20 @@ class FrontendConfig:
         0.1-0.2 s a turn) while the robot moved is bent by the motion; each return is placed
         where the laser stood when it came, at the wheels' velocity (:func:`deskew`; default
         True: a scan without a ``time_increment``, every shared CARMEN log's, is left as it is).
+    sweep_reversed : bool
+        The beams came in the order opposite to the one ``time_increment``'s sign says; the
+        de-skew takes them the other way round (False). The TurtleBot3 LDS-01's ROS driver
+        does this by default (``hls_lfcd_lds_driver``, ``chronological_order: false``): it lists
+        the returns by increasing bearing with a positive time increment while the lidar sweeps
+        the bearings downwards, so a turn would be added to the scan rather than taken off.
+        Its ``chronological_order: true`` says it right (decreasing bearings) and needs nothing.
+    sweep_check : bool
+        Offline, judge the order on the log itself (True): the log's turning scans (the wheels
+        turning ``SWEEP_CHECK_TURN`` or faster, up to ``SWEEP_CHECK_SCANS``), each de-skewed both
+        ways and matched against the scan before it de-skewed the same way; the order opposite
+        to ``sweep_reversed`` is taken when its matches hold more of the points, by at least 1 %
+        and three standard errors (:func:`agents.mapping_run.sweep_check`). Fewer than
+        ``SWEEP_CHECK_MIN`` turning scans: ``sweep_reversed`` as set.
     min_travel, min_turn : float
         The **motion filter**'s limits (metres, radians; 0.5 m and 10 degrees): a scan whose
         wheels have moved less than ``min_travel`` and turned less than ``min_turn`` since the
@@ -191,6 +205,8 @@ class FrontendConfig:
     calibration_scans: int = 0
     laser_yaw: float = math.nan
     deskew: bool = True
+    sweep_reversed: bool = False
+    sweep_check: bool = True
     scale_calibration: bool = False
     scale_min_pairs: int = 20
     scale_sigmas: float = 3.0

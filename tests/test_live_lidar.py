@@ -830,3 +830,19 @@ def test_transforms_that_are_no_mount_leave_the_scans_unposed_and_the_robot_runn
     before = src.counts.bad_transforms
     src.on_transforms(mk.serialize(many))
     assert src.counts.bad_transforms == before + 1 and "transforms (at most" in src.counts.last_issue
+
+
+def test_reversed_sweep_reaches_the_live_robots_front_end() -> None:
+    """`wiremap robot --scan-key --odom-key --reversed-sweep`: the live mapper's front end de-skews
+    the beams the other way round; without the flag as the profile says."""
+    import argparse
+
+    from agents.commands.robot import add_arguments, options_from_args
+    from agents.fleet.live_lidar import live_profile
+
+    ap = argparse.ArgumentParser()
+    add_arguments(ap)
+    base = ["--id", "r1", "--scan-key", "l/scan", "--odom-key", "l/odom"]
+    for extra, want in (([], False), (["--reversed-sweep"], True)):
+        frontend = live_profile(options_from_args(ap.parse_args(base + extra)))[2]
+        assert frontend.sweep_reversed is want and frontend.deskew

@@ -355,6 +355,9 @@ def test_deskewed_takes_the_motion_after_the_scans_time() -> None:
     assert mr.sweep_velocity(swept) == pytest.approx((0.0, 0.0, 0.5))
     first = mr.deskewed([swept, *scans[1:]], FrontendConfig())[0]
     assert first.angles[10] - scans[0].angles[10] == pytest.approx(0.5 * 10 * 0.001)
+    # beams that came the other way round (the LDS-01 driver's default order): turned back the other way
+    against = mr.deskewed(scans, FrontendConfig(sweep_reversed=True))[1]
+    assert against.angles[10] - scans[1].angles[10] == pytest.approx(1.0 * (99 - 10) * 0.001)
 
 
 # ---------------------------------------------------------------- the scanner's range

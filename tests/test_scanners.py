@@ -86,3 +86,32 @@ def test_bench_scanners_bad_flags_exit_2(tmp_path: Path, capsys: pytest.CaptureF
     assert main(["bench", "scanners", *args, "--out", str(tmp_path / "o"), "--quiet"]) == 2
     err = capsys.readouterr().err
     assert needle in err and len(err.strip().splitlines()) == 1
+
+
+def test_the_order_a_scanners_beams_came_in_is_judged_on_its_turning_scans(tmp_path: Path) -> None:
+    """A 5 Hz LDS-01 whose beams swept last bearing first while the log says first bearing first
+    (its ROS driver's default order): its turning scans fit each other better de-skewed the other
+    way round, and the de-skew takes that order; a log that says its order right keeps it, as
+    does one whose order was set by hand; a log without beam times is not judged."""
+    from dataclasses import replace
+
+    from agents import mapping_run as mr
+    from mapping.lidar_frontend import FrontendConfig
+
+    model = SCANNERS["lds-01"]
+    logs = {}
+    for rev in (False, True):
+        path = tmp_path / f"{rev}.log.gz"
+        write_scanner_log("paper-small", model, 4, path, duration=15.0, reversed_sweep=rev)
+        logs[rev] = read_carmen(path)
+    right, wrong = mr.sweep_check(logs[False], FrontendConfig()), mr.sweep_check(logs[True], FrontendConfig())
+    assert not right.reversed and right.scans >= mr.SWEEP_CHECK_MIN and right.gain < -0.01
+    assert wrong.reversed and wrong.gain > 0.01
+    assert mr.sweep_check(logs[True], FrontendConfig(sweep_reversed=True)).reversed  # set by hand, kept
+    taken = mr.deskewed(logs[True], FrontendConfig())
+    by_hand = mr.deskewed(logs[True], FrontendConfig(sweep_reversed=True, sweep_check=False))
+    assert all(np.array_equal(a.angles, b.angles) for a, b in zip(taken, by_hand, strict=True))
+    assert mr.sweep_report(logs[True], FrontendConfig())["sweep_reversed"] is True
+    still = [replace(s, time_increment=0.0) for s in logs[True]]
+    assert mr.sweep_check(still, FrontendConfig()).scans == 0
+    assert mr.sweep_report(still, FrontendConfig()) == {}

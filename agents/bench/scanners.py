@@ -15,7 +15,8 @@ in ``--out``, and with ``--json`` one last line::
     {"runs": {"office/lds-01/s1": {"world", "scanner", "seed", "scans_in_log", "scans", "ate_rmse_m",
               ..., "odometry_ate_rmse_m"}},
      "scanners": {NAME: {median of each number over its runs}}, "median": {...},
-     "worlds": [...], "seeds": [...], "duration_s": S, "profile": "lidar-slam", "settings": {...}}
+     "worlds": [...], "seeds": [...], "duration_s": S, "reversed_sweep": false, "profile": "lidar-slam",
+     "settings": {...}}
 """
 
 from __future__ import annotations
@@ -50,6 +51,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              f"{DEFAULT_SEEDS})")
     parser.add_argument("--duration", type=float, default=150.0, metavar="S",
                         help="seconds of driving at 0.5 m/s per log (default 150)")
+    parser.add_argument("--reversed-sweep", action="store_true",
+                        help="the scanners sweep their beams last bearing first while the logs say first "
+                        "bearing first (the TurtleBot3 LDS-01 driver's default order)")
     parser.add_argument("--profile", choices=tuple(LIDAR_PROFILES), default="lidar-slam",
                         help="real-lidar settings, as wiremap bench lidar (default lidar-slam)")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", dest="sets",
@@ -97,7 +101,7 @@ def _check(args: argparse.Namespace) -> tuple[list[str], list[str], list[int]]:
 
 
 def run_one(world: str, scanner: str, seed: int, *, duration: float, out: str,
-            settings: dict[str, Any]) -> dict[str, Any]:
+            settings: dict[str, Any], reversed_sweep: bool = False) -> dict[str, Any]:
     """Write one world's log for one scanner and seed, then map and score it as
     ``wiremap bench lidar`` does. Runs in a worker process too."""
     from agents.bench.lidar import run_log
@@ -106,7 +110,7 @@ def run_one(world: str, scanner: str, seed: int, *, duration: float, out: str,
     model = SCANNERS[scanner]
     path = Path(out) / "logs" / f"{log_name(world, model, seed)}.log.gz"
     path.parent.mkdir(parents=True, exist_ok=True)
-    n = write_scanner_log(world, model, seed, path, duration=duration)
+    n = write_scanner_log(world, model, seed, path, duration=duration, reversed_sweep=reversed_sweep)
     row = run_log(str(path), seed=seed, particles=10, steps=None, max_range=20.0, thr=0.2, baseline=False,
                   out=out, settings=settings)
     return {"world": world, "scanner": scanner, "seed": seed, "scans_in_log": n, **row}
@@ -149,7 +153,8 @@ def run(args: argparse.Namespace) -> int:
 
     scanners, worlds, seeds = _check(args)
     settings = settings_for(args.profile, list(args.sets))
-    job = functools.partial(run_one, duration=float(args.duration), out=str(args.out), settings=settings)
+    job = functools.partial(run_one, duration=float(args.duration), out=str(args.out), settings=settings,
+                            reversed_sweep=bool(args.reversed_sweep))
     todo = [(w, s, seed) for s in scanners for w in worlds for seed in seeds]
     say = Progress(not args.quiet, live=False)
     t0 = time.perf_counter()
@@ -176,5 +181,6 @@ def run(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps({"runs": runs, "scanners": by_scanner, "median": medians(list(runs.values())),
                           "worlds": worlds, "seeds": seeds, "duration_s": float(args.duration),
+                          "reversed_sweep": bool(args.reversed_sweep),
                           "profile": args.profile, "settings": settings}))
     return 0

@@ -91,6 +91,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="with --scan-key: ... or turned DEG degrees (default 10)",
     )
     parser.add_argument(
+        "--reversed-sweep", action="store_true",
+        help="with --scan-key: the lidar's beams come in the order opposite to the one its "
+        "time_increment says (the TurtleBot3 LDS-01 driver's default, chronological_order false); "
+        "de-skew them the other way round",
+    )
+    parser.add_argument(
         "--calibration-scans", type=int, default=None, metavar="N",
         help="with --scan-key: scans held at the start to calibrate the laser's yaw and the wheels' "
         "noise before the first is mapped (default 30)",
@@ -320,6 +326,8 @@ def _live_options(args: argparse.Namespace, rid: str) -> RobotOptions:
         extra["min_travel"] = float(args.min_travel)
     if args.min_turn is not None:
         extra["min_turn"] = math.radians(float(args.min_turn))
+    if args.reversed_sweep:
+        extra["sweep_reversed"] = True
     mount = Pose.identity()
     if args.laser_mount:
         if args.tf_key:

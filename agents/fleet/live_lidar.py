@@ -468,11 +468,13 @@ def parse_mount(text: str) -> Pose:
 def live_profile(opts: Any) -> tuple[dict[str, Any], Any, Any]:
     """``(filter overrides, ExtractConfig, FrontendConfig)`` of the robot's lidar profile, its
     scans held for the calibrations ``opts.extra["calibration_scans"]`` when given, else
-    :data:`CALIBRATION_SCANS` (:func:`agents.mapping_run.split_profile`)."""
+    :data:`CALIBRATION_SCANS`, its beams de-skewed the other way round with
+    ``opts.extra["sweep_reversed"]`` (``--reversed-sweep``; :func:`agents.mapping_run.split_profile`)."""
     from agents import mapping_run as mr
 
     prof = mr.lidar_profile(opts.lidar_profile)
     prof["frontend.calibration_scans"] = int(opts.extra.get("calibration_scans", CALIBRATION_SCANS))
+    prof["frontend.sweep_reversed"] = bool(opts.extra.get("sweep_reversed", False))
     return mr.split_profile(prof)
 
 

@@ -102,13 +102,15 @@ SCANNERS: dict[str, ScannerModel] = {m.name: m for m in (
 
 def write_scanner_log(
     world: str, model: ScannerModel, seed: int, path: str | os.PathLike[str], *, duration: float,
-    speed: float = 0.5,
+    speed: float = 0.5, reversed_sweep: bool = False,
 ) -> int:
     """Drive ``world`` (a built-in name or a world file) for ``duration`` seconds along its
     coverage route (drawn from ``seed``) at ``speed`` m/s with ``model``'s scanner; write every
     scan as the CARMEN log ``path`` (``NAME.log``, or ``NAME.log.gz`` compressed) and the true poses beside it
     (``NAME.truth.tsv``, :func:`agents.files.carmen.truth_path_for`). The same arguments give
-    the same files. Returns the number of scans.
+    the same files. ``reversed_sweep``: the beams are cast last bearing first while the log
+    says first bearing first (a positive ``time_increment``), as the TurtleBot3 LDS-01's ROS
+    driver writes them by default. Returns the number of scans.
 
     Raises
     ------
@@ -141,6 +143,8 @@ def write_scanner_log(
     pose = steps[0].true_pose
     previous = steps[0].true_pose
     sectors = _sectors(lidar, model)
+    if reversed_sweep:
+        sectors = [(lo, hi, cfg, bearing, model.sweep - delay) for lo, hi, cfg, bearing, delay in sectors]
     for k, s in enumerate(steps):
         pose = pose.compose(wheels.step(previous.between(s.true_pose)))
         previous = s.true_pose
