@@ -47,6 +47,7 @@ __all__ = [
     "default_merge_threshold",
     "filter_config_for",
     "for_scanner",
+    "judged_sweep",
     "lidar_profile",
     "odometry_report",
     "robot_steps",
@@ -620,15 +621,16 @@ def scaled(increment: Pose, scale: float) -> Pose:
 
 
 def motion_filtered(
-    scans: Sequence[Any], truth: Sequence[Pose] | None, frontend: Any
+    scans: Sequence[Any], truth: Sequence[Pose] | None, frontend: Any, check: SweepCheck | None = None
 ) -> tuple[list[Any], list[Pose] | None, int]:
-    """A real log's scans as the offline paths map them: de-skewed (:func:`deskewed`), then a
+    """A real log's scans as the offline paths map them: de-skewed (:func:`deskewed`; ``check``:
+    the order of their beams already judged, :func:`judged_sweep`), then a
     dense log's thinned by the motion filter, any other's all (``frontend``'s ``min_travel``,
     ``min_turn`` and ``dense_share``: :class:`mapping.lidar_frontend.FrontendConfig`), with
     their true poses when ``truth`` gives them. Returns ``(scans, truth, left out)``."""
     from mapping.lidar_frontend import dense_share, motion_filter
 
-    scans = deskewed(scans, frontend)
+    scans = deskewed(scans, frontend, check)
     odometry = [s.odom for s in scans]
     if dense_share(odometry, frontend.min_travel, frontend.min_turn) <= frontend.dense_share:
         return list(scans), None if truth is None else list(truth), 0
@@ -674,12 +676,13 @@ def _velocity(back: Pose, on: Pose, dt: float) -> tuple[float, float, float]:
     return vx, vy, turn
 
 
-def deskewed(scans: Sequence[Any], frontend: Any) -> list[Any]:
+def deskewed(scans: Sequence[Any], frontend: Any, check: SweepCheck | None = None) -> list[Any]:
     """``scans`` with the bearings of each whose beams were not simultaneous (its
     ``time_increment``) placed where the laser stood when each return came, at the wheels'
     velocity from it to the scan after it (the last scan: from the scan before it;
     :func:`wheel_velocity`, :func:`mapping.lidar_frontend.deskew`); all as they are when
-    ``frontend.deskew`` is off.
+    ``frontend.deskew`` is off; the beams in the order ``check`` says (by default
+    :func:`judged_sweep`'s).
 
     Forwards, not centred on the scan: a scan's time is its first beam's (ROS's
     ``LaserScan`` convention), so its beams come during the motion that follows it, and a
@@ -689,7 +692,8 @@ def deskewed(scans: Sequence[Any], frontend: Any) -> list[Any]:
     if not frontend.deskew:
         return list(scans)
     n = len(scans)
-    rev = sweep_check(scans, frontend).reversed if frontend.sweep_check else frontend.sweep_reversed
+    check = check if check is not None else judged_sweep(scans, frontend)
+    rev = check.reversed if check is not None else bool(frontend.sweep_reversed)
     return [deskewed_scan(s, s, scans[k + 1], rev) if k + 1 < n
             else deskewed_scan(s, scans[max(k - 1, 0)], s, rev) for k, s in enumerate(scans)]
 
@@ -727,7 +731,7 @@ def sweep_check(scans: Sequence[Any], frontend: Any) -> SweepCheck:
     turning = turning[:SWEEP_CHECK_SCANS]
     if len(turning) < SWEEP_CHECK_MIN:
         return SweepCheck(base, len(turning), math.nan)
-    slam = frontend.slam
+    slam = for_scanner(frontend, scans).slam  # matched as the SLAM will match them
 
     def held(k: int, rev: bool) -> float:
         a, b = (deskewed_scan(scans[j], scans[j], scans[j + 1], rev) for j in (k - 1, k))
@@ -745,15 +749,22 @@ def sweep_check(scans: Sequence[Any], frontend: Any) -> SweepCheck:
     return SweepCheck(base != flip, len(turning), mean)
 
 
-def sweep_report(scans: Sequence[Any], frontend: Any) -> dict[str, Any]:
-    """The order a log's beams are de-skewed in as report keys (none for a log whose beams are
-    simultaneous, or with the de-skew off): ``sweep_reversed``, and when judged on the log
-    (``frontend.sweep_check``) ``sweep_check_scans`` and ``sweep_check_gain``."""
+def judged_sweep(scans: Sequence[Any], frontend: Any) -> SweepCheck | None:
+    """The order the de-skew takes a log's beams in: None when nothing is de-skewed (the de-skew
+    off, or no scan whose beams took time); judged on the log with ``frontend.sweep_check``
+    (:func:`sweep_check`), else ``frontend.sweep_reversed`` (no scans judged)."""
     if not frontend.deskew or not any(s.time_increment for s in scans):
-        return {}
+        return None
     if not frontend.sweep_check:
-        return {"sweep_reversed": bool(frontend.sweep_reversed)}
-    check = sweep_check(scans, frontend)
+        return SweepCheck(bool(frontend.sweep_reversed), 0, math.nan)
+    return sweep_check(scans, frontend)
+
+
+def sweep_report(check: SweepCheck | None) -> dict[str, Any]:
+    """:func:`judged_sweep`'s finding as report keys (none when nothing was de-skewed):
+    ``sweep_reversed``, ``sweep_check_scans``, ``sweep_check_gain`` (None: not judged)."""
+    if check is None:
+        return {}
     return {"sweep_reversed": check.reversed, "sweep_check_scans": check.scans,
             "sweep_check_gain": check.gain if math.isfinite(check.gain) else None}
 
@@ -771,7 +782,7 @@ def deskewed_scan(ls: Any, before: Any, after: Any, reversed_sweep: bool = False
     velocity = sweep_velocity(ls) or wheel_velocity(before, ls, after)
     ranges, angles = deskew(ls.ranges, ls.angles, -ls.time_increment if reversed_sweep else ls.time_increment,
                             velocity)
-    return replace(ls, ranges=ranges, angles=angles)
+    return replace(ls, ranges=ranges, angles=angles, time_increment=0.0, odom_end=None)  # (de-skewed once)
 
 
 def carmen_inputs(
@@ -888,8 +899,8 @@ class LiveInputs:
     """Real scans that come one at a time (a robot's own lidar, live) as filter inputs, through a
     profile whose SLAM runs scan by scan (``lidar-slam-online``): what :func:`carmen_inputs`
     gives for the same scans, input for input (for scans whose beams are simultaneous: one
-    whose beams took time is de-skewed here from the scan before it, offline from the scans on
-    both sides, :func:`motion_filtered`) (and, with ``frontend.follow_graph``, each input
+    whose beams took time is de-skewed here over its sweep or from the scan before it, offline
+    from it to the scan after it, :func:`motion_filtered`) (and, with ``frontend.follow_graph``, each input
     after a loop moved the SLAM's graph carries the move: ``ScanInput.warp``).
 
     :meth:`add` takes a scan (:class:`agents.files.carmen.LaserScan`: ranges, bearings, time,

@@ -157,7 +157,7 @@ def gauss_newton(
     pts = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 2)
     qn = (np.zeros((0, 2)) if point_sides is None
           else np.ascontiguousarray(point_sides, dtype=np.float64).reshape(-1, 2))
-    if len(qn) and len(qn) != len(pts):
+    if point_sides is not None and len(qn) != len(pts):
         raise ValueError(f"gauss_newton: {len(qn)} point sides for {len(pts)} points")
     pose, hess, inliers, matched = _gauss_newton(
         pts, *grid.arrays,

@@ -277,6 +277,12 @@ class SlamConfig:
     enabled: bool = False
     online: bool = False
 
+    @property
+    def facing(self) -> bool:
+        """Whether the matches check the side of a wall a point was seen from (a short-range
+        scanner: ``scanner_range`` below ``facing_range``)."""
+        return self.scanner_range < self.facing_range
+
     def __post_init__(self) -> None:
         if self.local_scans < 1 or self.iterations < 1 or self.loop_every < 1:
             raise ValueError("local_scans, iterations and loop_every must be >= 1")
@@ -501,7 +507,7 @@ def match_scan(
     short-range scanner a point pairs only with a wall face that looks its way
     (``SlamConfig.facing_cos``). Compiled: :func:`mapping.kernels.gauss_newton`."""
     prior = np.zeros((3, 3)) if prior_information is None else prior_information
-    facing = sides if config.scanner_range < config.facing_range else None
+    facing = sides if config.facing else None
     pose, hess, inliers, matched = gauss_newton(
         points, submap.grid, submap.normals, guess, prior, config.iterations, config.gate_start,
         config.gate_end, config.sigma, config.kernel, config.effective_points, inlier_distance,
@@ -581,8 +587,8 @@ def search_loop(
     """Where robot-frame ``points`` (the recent scans, in the newest scan's frame) lie in an old
     ``submap``: a correlative search within ``radius`` metres and ``angle`` radians of
     ``guess``, coarse (``coarse_factor`` cells) then fine, the best few refined by
-    :func:`match_scan`. Returns the best refined match, or None when none has
-    ``loop_min_inliers``."""
+    :func:`match_scan` (with ``sides``, the points' :func:`scan_sides` turned into the same
+    frame). Returns the best refined match, or None when none has ``loop_min_inliers``."""
     if len(points) < 10 or len(submap.points) < 10:
         return None
     sub = points if len(points) <= 200 else points[np.linspace(0, len(points) - 1, 200).astype(int)]
@@ -950,11 +956,12 @@ class LidarSlam:
             old = old[np.argsort(d[old], kind="stable")[: cfg.map_scans]]
             ids = sorted(old.tolist()) + ids
         sub = Submap.build([self._cloud(i) for i in ids], cfg.voxel)
-        m = match_scan(pts, sub, guess, cfg, prior_information=prior, sides=scan_sides(pts, nrm))
+        sides = scan_sides(pts, nrm) if cfg.facing else None
+        m = match_scan(pts, sub, guess, cfg, prior_information=prior, sides=sides)
         pose = m.pose if m.matched >= 10 else guess
         self._driven = here
         twin = self._redundant_with(pose, here) if m.matched >= 10 else None
-        located = None if twin is None else self._locate(pts, scan_sides(pts, nrm), pose, twin, here)
+        located = None if twin is None else self._locate(pts, sides, pose, twin, here)
         if twin is not None and located is not None:
             self._scans.append((twin, _between(self.poses[twin], located)))
             self.skipped += 1
@@ -1022,7 +1029,7 @@ class LidarSlam:
             return None
         return int(near[np.argmin(dist[ok])])
 
-    def _locate(self, pts: FloatArray, sides: FloatArray, pose: FloatArray, twin: int,
+    def _locate(self, pts: FloatArray, sides: FloatArray | None, pose: FloatArray, twin: int,
                 here: float) -> FloatArray | None:
         """A redundant scan's pose on the old map: matched, from ``pose``, against the visit of
         node ``twin`` (its ``loop_submap_scans`` either side, as a loop's old submap), with no
@@ -1087,7 +1094,8 @@ class LidarSlam:
         rel = [(_between(self.poses[k], self.poses[i]), self._nodes[i])
                for i in range(max(0, k - cfg.loop_query_scans + 1), k + 1)]
         query = np.concatenate([_apply(z, nd.points) for z, nd in rel])
-        query_sides = np.concatenate([scan_sides(nd.points, nd.normals) @ _rot(z[2]).T for z, nd in rel])
+        query_sides = (np.concatenate([scan_sides(nd.points, nd.normals) @ _rot(z[2]).T for z, nd in rel])
+                       if cfg.facing else None)
         m = search_loop(query, sub, self.poses[k], r, ang, cfg, sides=query_sides)
         if m is None:
             return
@@ -1268,6 +1276,8 @@ class LidarSlam:
         while the poses stay put, of at most ``cache`` submaps."""
         cfg = self.config
         x = self.poses
+        nd = self._nodes[k]
+        sides = scan_sides(nd.points, nd.normals) if cfg.facing else None
         edges: list[Edge] = []
         for j, ids in self._revisit_visits(k) if visits is None else visits:
             sub = submaps.pop(ids, None)
@@ -1276,8 +1286,7 @@ class LidarSlam:
                 if len(submaps) >= cache:
                     del submaps[next(iter(submaps))]  # the least recently used
             submaps[ids] = sub
-            m = match_scan(self._nodes[k].points, sub, x[k], cfg, inlier_distance=cfg.loop_inlier_distance,
-                           sides=scan_sides(self._nodes[k].points, self._nodes[k].normals))
+            m = match_scan(nd.points, sub, x[k], cfg, inlier_distance=cfg.loop_inlier_distance, sides=sides)
             if m.inliers < cfg.loop_min_inliers or m.matched < 10:
                 continue
             edges.append(Edge(j, k, _between(x[j], m.pose), self._edge_information(m.hessian, m.pose[2]),

@@ -111,7 +111,10 @@ def test_the_order_a_scanners_beams_came_in_is_judged_on_its_turning_scans(tmp_p
     taken = mr.deskewed(logs[True], FrontendConfig())
     by_hand = mr.deskewed(logs[True], FrontendConfig(sweep_reversed=True, sweep_check=False))
     assert all(np.array_equal(a.angles, b.angles) for a, b in zip(taken, by_hand, strict=True))
-    assert mr.sweep_report(logs[True], FrontendConfig())["sweep_reversed"] is True
+    assert mr.sweep_report(mr.judged_sweep(logs[True], FrontendConfig()))["sweep_reversed"] is True
+    unjudged = mr.judged_sweep(logs[True], FrontendConfig(sweep_check=False))  # as set, not judged
+    assert unjudged is not None and not unjudged.reversed and unjudged.scans == 0
+    assert all(ls.time_increment == 0.0 and ls.odom_end is None for ls in taken)  # de-skewed once
     still = [replace(s, time_increment=0.0) for s in logs[True]]
     assert mr.sweep_check(still, FrontendConfig()).scans == 0
-    assert mr.sweep_report(still, FrontendConfig()) == {}
+    assert mr.judged_sweep(still, FrontendConfig()) is None and mr.sweep_report(None) == {}

@@ -246,8 +246,8 @@ def run_log(
     fov = mr.scan_fov(scans[0].angles)  # the scanner's, before a de-skew bends the first scan
     filter_overrides, extract_cfg, frontend_cfg = mr.split_profile(dict(settings or {}))
     t0 = time.perf_counter()
-    sweep = mr.sweep_report(scans, frontend_cfg)  # (the de-skew below judges the order the same way)
-    scans, kept_truth, left_out = mr.motion_filtered(scans, truth, frontend_cfg)  # de-skewed, thinned
+    sweep = mr.judged_sweep(scans, frontend_cfg)  # the order of the beams, for the de-skew and the report
+    scans, kept_truth, left_out = mr.motion_filtered(scans, truth, frontend_cfg, sweep)  # de-skewed, thinned
     assert kept_truth is not None
     truth = kept_truth
     cal = mr.calibrate_log(scans, frontend_cfg)
@@ -300,7 +300,7 @@ def run_log(
         "max_range_m": cap,
         **mr.yaw_report(cal),
         **mr.odometry_report(noise[-1], frontend_cfg.slam),
-        **sweep,
+        **mr.sweep_report(sweep),
     })
     title = f"{name}: ate {result['ate_rmse_m']:.2f} m, precision {result['map_precision']:.2f}, seed {seed}"
     write_atomic(Path(out) / f"{name}.png",

@@ -400,8 +400,8 @@ def _real_source(
         scans = scans[: args.steps]
         true_scans = None if true_scans is None else true_scans[: args.steps]
     in_log = len(scans)
-    sweep = mr.sweep_report(scans, frontend_cfg)  # (the de-skew below judges the order the same way)
-    scans, true_scans, left_out = mr.motion_filtered(scans, true_scans, frontend_cfg)
+    sweep = mr.judged_sweep(scans, frontend_cfg)  # the order of the beams, for the de-skew and the report
+    scans, true_scans, left_out = mr.motion_filtered(scans, true_scans, frontend_cfg, sweep)
     if left_out and not args.quiet:
         print(f"wiremap: a dense log ({in_log} scans): {len(scans)} mapped, one every "
               f"{frontend_cfg.min_travel:g} m or {math.degrees(frontend_cfg.min_turn):g} degrees of the "
@@ -410,7 +410,7 @@ def _real_source(
     cal = mr.calibrate_log(scans, frontend_cfg)
     extra = {**extra, "scans_in_log": in_log, "scans_left_out": left_out,
              "lidar_profile": args.lidar_profile, "lidar_settings": dict(lidar), **mr.yaw_report(cal),
-             **mr.odometry_report(cal.noise, frontend_cfg.slam), **sweep}
+             **mr.odometry_report(cal.noise, frontend_cfg.slam), **mr.sweep_report(sweep)}
 
     def measured(noise: Any) -> None:  # the online SLAM measured the wheels again: report that
         extra.update(mr.odometry_report(noise, frontend_cfg.slam))

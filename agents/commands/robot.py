@@ -182,9 +182,9 @@ def options_from_args(args: argparse.Namespace) -> RobotOptions:
                             "--scan-key maps the robot's own lidar")
         return _live_options(args, rid)
     if args.laser_mount or args.calibration_scans is not None or args.min_travel is not None \
-            or args.min_turn is not None or args.tf_key or args.base_frame:
-        raise UserError("--laser-mount, --tf-key, --base-frame, --calibration-scans, --min-travel and "
-                        "--min-turn are for a live lidar (--scan-key)")
+            or args.min_turn is not None or args.tf_key or args.base_frame or args.reversed_sweep:
+        raise UserError("--laser-mount, --tf-key, --base-frame, --calibration-scans, --min-travel, "
+                        "--min-turn and --reversed-sweep are for a live lidar (--scan-key)")
     if args.carmen and args.rosbag:
         raise UserError("give --carmen LOG or --rosbag FILE, not both")
     if args.carmen or args.rosbag:

@@ -474,7 +474,8 @@ def live_profile(opts: Any) -> tuple[dict[str, Any], Any, Any]:
 
     prof = mr.lidar_profile(opts.lidar_profile)
     prof["frontend.calibration_scans"] = int(opts.extra.get("calibration_scans", CALIBRATION_SCANS))
-    prof["frontend.sweep_reversed"] = bool(opts.extra.get("sweep_reversed", False))
+    if opts.extra.get("sweep_reversed"):
+        prof["frontend.sweep_reversed"] = True
     return mr.split_profile(prof)
 
 
