@@ -701,6 +701,8 @@ def deskewed(scans: Sequence[Any], frontend: Any, check: SweepCheck | None = Non
 #: The order of a log's beams is judged on scans turning at least this fast (rad/s), at most
 #: this many, and not with fewer than this many (``frontend.sweep_check``).
 SWEEP_CHECK_TURN, SWEEP_CHECK_SCANS, SWEEP_CHECK_MIN = 0.3, 60, 10
+#: A live robot judges it on at most this many scans as they came while it calibrates.
+SWEEP_CHECK_KEEP = 400
 
 
 @dataclass(frozen=True)
@@ -914,7 +916,11 @@ class LiveInputs:
     wheels' velocity over its sweep (``odom_end``: the live robot waits for the odometry past
     its last beam, :class:`agents.fleet.live_lidar.LiveLidar`), else since the scan that came
     before it (:func:`wheel_velocity` one-sided: a live robot has no scan after it yet, and
-    that velocity lags the sweep by a scan; ``frontend.deskew``).
+    that velocity lags the sweep by a scan; ``frontend.deskew``). The order of the beams is
+    judged once, when the calibrations are made, on the scans that came meanwhile (consecutive,
+    ``SWEEP_CHECK_KEEP`` at most; :func:`judged_sweep`, ``sweep``; the held scans are de-skewed
+    again when it turns out the other way round); too few of them turning leaves
+    ``frontend.sweep_reversed`` as set for the whole run.
 
     **Motion filter** (``min_travel`` metres, ``min_turn`` radians; 0 and 0 take every scan): a
     scan whose wheels are within those limits of the last scan taken
@@ -946,6 +952,9 @@ class LiveInputs:
         self.on_noise = on_noise
         self.calibration: LogCalibration | None = None
         self._held: list[Any] = []
+        self._held_raw: list[tuple[Any, Any]] = []  # the held scans as they came, with the scan before each
+        self._came: list[Any] = []  # every scan as it came while calibrating (SWEEP_CHECK_KEEP at most)
+        self.sweep: SweepCheck | None = None  # the beams' order, judged at the calibration
         self._turn_matrix: NDArray[np.float64] | None = None
         self._slam: Any = None
         self._prev_odom: Pose | None = None
@@ -970,6 +979,9 @@ class LiveInputs:
         from mapping.lidar_frontend import within_motion_limits
 
         seen, self._seen = self._seen, ls
+        raw = ls
+        if self.calibration is None and len(self._came) < SWEEP_CHECK_KEEP:
+            self._came.append(raw)  # the beams' order is judged on consecutive scans
         if self.frontend.deskew:  # over its sweep, else at the velocity since the scan before
             ls = deskewed_scan(ls, seen or ls, ls, self.frontend.sweep_reversed)
         if self._taken is not None and within_motion_limits(self._taken.between(ls.odom), self.min_travel,
@@ -979,6 +991,7 @@ class LiveInputs:
         self._taken = ls.odom
         if self.calibration is None:
             self._held.append(ls)
+            self._held_raw.append((raw, seen))
             if len(self._held) < self.frontend.calibration_scans:
                 return []
             return self._calibrate()
@@ -992,6 +1005,13 @@ class LiveInputs:
         from mapping.lidar_frontend import OnlineSlam
 
         held, self._held = self._held, []
+        raw, self._held_raw = self._held_raw, []
+        came, self._came = self._came, []
+        self.sweep = judged_sweep(came, self.frontend)
+        if self.sweep is not None and self.sweep.reversed != self.frontend.sweep_reversed:
+            # the held scans' turning ones fit each other better the other way round: from now on
+            self.frontend = replace(self.frontend, sweep_reversed=self.sweep.reversed)
+            held = [deskewed_scan(r, before or r, r, self.sweep.reversed) for r, before in raw]
         self.frontend = for_scanner(self.frontend, held)
         cal = calibrate_log(held, self.frontend, self.yaw)
         self.calibration = cal

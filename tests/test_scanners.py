@@ -118,3 +118,30 @@ def test_the_order_a_scanners_beams_came_in_is_judged_on_its_turning_scans(tmp_p
     still = [replace(s, time_increment=0.0) for s in logs[True]]
     assert mr.sweep_check(still, FrontendConfig()).scans == 0
     assert mr.judged_sweep(still, FrontendConfig()) is None and mr.sweep_report(None) == {}
+
+
+def test_a_live_robot_judges_the_beams_order_while_it_calibrates(tmp_path: Path) -> None:
+    """The live mapper (``LiveInputs``) judges the order once, at its calibrations, on the
+    consecutive scans that came meanwhile (each with the odometry at its last beam, as the live
+    robot pairs it): a reversed LDS-01 log turns it, its held scans are de-skewed again; a right
+    log keeps it."""
+    from dataclasses import replace
+
+    from agents import mapping_run as mr
+    from agents.files.rosbag import interpolate
+
+    for rev in (False, True):
+        path = tmp_path / f"{rev}.log.gz"
+        write_scanner_log("paper-small", SCANNERS["lds-01"], 4, path, duration=30.0, reversed_sweep=rev)
+        scans = read_carmen(path)
+        stamps, odom = np.array([s.t for s in scans]), [s.odom for s in scans]
+        scans = [replace(s, odom_end=interpolate(stamps, odom, s.t + s.sweep)) for s in scans]
+        _, extract, frontend = mr.split_profile({**mr.lidar_profile("lidar-slam-online"),
+                                                 "frontend.calibration_scans": 30})
+        live = mr.LiveInputs(max_range=20.0, extract=extract, frontend=frontend, min_travel=0.5,
+                             min_turn=math.radians(10.0))
+        for ls in scans:
+            live.add(ls)
+        live.finish()
+        assert live.sweep is not None and live.sweep.scans >= mr.SWEEP_CHECK_MIN
+        assert live.sweep.reversed is rev and live.frontend.sweep_reversed is rev

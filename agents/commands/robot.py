@@ -94,7 +94,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--reversed-sweep", action="store_true",
         help="with --scan-key: the lidar's beams come in the order opposite to the one its "
         "time_increment says (the TurtleBot3 LDS-01 driver's default, chronological_order false); "
-        "de-skew them the other way round",
+        "de-skew them the other way round until the order is judged on the scans that came while "
+        "calibrating (enough of them turning: the order they fit best)",
     )
     parser.add_argument(
         "--calibration-scans", type=int, default=None, metavar="N",
