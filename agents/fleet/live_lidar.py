@@ -127,6 +127,9 @@ class LiveCounts:
     transforms: int = 0  # TFMessages read (the laser's mount from the base frame: LiveLidar.base_frame)
     bad_transforms: int = 0
     mount: str = ""  # the chain of frames the laser's mount was found through ("base_link -> laser")
+    # the order the beams are de-skewed in from the calibrations on ("as declared" or
+    # "reversed", judged or not, on how many turning scans): agents.mapping_run.LiveInputs.sweep
+    sweep: str = ""
     last_issue: str = ""
     # the online SLAM's pose graph: its nodes (scans kept for loop closure), the loops it closed,
     # how many of them were settled (mapping.lidar_slam.SlamConfig.loop_settled_xy), the
@@ -527,6 +530,11 @@ def live_steps(opts: Any, source: LiveLidar, stop: threading.Event) -> Iterator[
                                                  int(opts.seed), overrides)
         ready = inputs.add(ls)
         source.counts.still = inputs.skipped
+        if inputs.sweep is not None and not source.counts.sweep:
+            judged = inputs.sweep
+            order = "reversed" if judged.reversed else "as declared"
+            how = "not judged" if math.isnan(judged.gain) else "judged"
+            source.counts.sweep = f"{order}, {how} ({judged.scans} turning scans)"
         slam = inputs.slam
         if slam is not None:
             source.counts.graph, source.counts.loops = len(slam.poses), len(slam.loops)

@@ -410,11 +410,12 @@ class RobotAgent:
                 live = ""
                 if st.live is not None:
                     kept = ("scans", "odometry", "posed", "swept", "last_issue", "graph", "loops", "settled",
-                            "revisits", "refined", "transforms", "mount")
+                            "revisits", "refined", "transforms", "mount", "sweep")
                     dropped = ", ".join(f"{k} {v}" for k, v in st.live.items() if k not in kept and v)
                     live = (f"; live lidar: {st.live['posed']} scans posed, {st.live['scans']} received"
                             + (f", {st.live['swept']} with the odometry over their sweep"
                                if st.live.get("swept") else "")
+                            + (f"; beams' order {st.live['sweep']}" if st.live.get("sweep") else "")
                             + (f" ({dropped})" if dropped else "")
                             + (f"; the laser's mount {st.live['mount']}" if st.live.get("mount") else "")
                             + (" (calibrating: the first scans are mapped together)" if st.step == 0 else "")
