@@ -691,11 +691,18 @@ def deskewed(scans: Sequence[Any], frontend: Any, check: SweepCheck | None = Non
     place would be de-skewed by half its turn or twice it."""
     if not frontend.deskew:
         return list(scans)
-    n = len(scans)
     check = check if check is not None else judged_sweep(scans, frontend)
     rev = check.reversed if check is not None else bool(frontend.sweep_reversed)
-    return [deskewed_scan(s, s, scans[k + 1], rev) if k + 1 < n
-            else deskewed_scan(s, scans[max(k - 1, 0)], s, rev) for k, s in enumerate(scans)]
+    return [_deskewed_in(scans, k, rev) for k in range(len(scans))]
+
+
+def _deskewed_in(scans: Sequence[Any], k: int, reversed_sweep: bool) -> Any:
+    """Scan ``k`` of a log de-skewed at the wheels' velocity to the scan after it (the last
+    scan: from the scan before it; :func:`deskewed`)."""
+    ls = scans[k]
+    if k + 1 < len(scans):
+        return deskewed_scan(ls, ls, scans[k + 1], reversed_sweep)
+    return deskewed_scan(ls, scans[max(k - 1, 0)], ls, reversed_sweep)
 
 
 #: The order of a log's beams is judged on scans turning at least this fast (rad/s), at most
@@ -724,7 +731,7 @@ def sweep_check(scans: Sequence[Any], frontend: Any) -> SweepCheck:
     wheels' step against the scan before it de-skewed the same way; the other way is taken when
     it holds more of the points (its mean gain in inlier share at least 0.01 and three standard
     errors). ``frontend.sweep_reversed`` with fewer than ``SWEEP_CHECK_MIN`` turning scans."""
-    from mapping.lidar_slam import Submap, match_scan, scan_normals, scan_sides
+    from mapping.lidar_frontend import match_to_previous
 
     base = bool(frontend.sweep_reversed)
     n = len(scans)
@@ -736,14 +743,10 @@ def sweep_check(scans: Sequence[Any], frontend: Any) -> SweepCheck:
     slam = for_scanner(frontend, scans).slam  # matched as the SLAM will match them
 
     def held(k: int, rev: bool) -> float:
-        a, b = (deskewed_scan(scans[j], scans[j], scans[j + 1], rev) for j in (k - 1, k))
+        a, b = (_deskewed_in(scans, j, rev) for j in (k - 1, k))
         pa, pb = carmen_points([a, b], frontend)
-        if len(pa) < 3 or len(pb) < 3:
-            return 0.0
-        sub = Submap.build([(pa, scan_normals(pa, slam.normal_gap))], slam.voxel)
-        step = a.odom.between(b.odom)
-        sides = scan_sides(pb, scan_normals(pb, slam.normal_gap))
-        return match_scan(pb, sub, np.array(step.as_tuple()), slam, sides=sides).inliers
+        m = match_to_previous(pa, pb, a.odom.between(b.odom), slam)
+        return 0.0 if m is None else m.inliers
 
     gain = np.array([held(k, not base) - held(k, base) for k in turning])
     mean, se = float(gain.mean()), float(gain.std(ddof=1) / math.sqrt(len(gain)))
@@ -951,8 +954,7 @@ class LiveInputs:
         self.yaw = yaw
         self.on_noise = on_noise
         self.calibration: LogCalibration | None = None
-        self._held: list[Any] = []
-        self._held_raw: list[tuple[Any, Any]] = []  # the held scans as they came, with the scan before each
+        self._holding: list[tuple[Any, Any]] = []  # the held scans as they came, with the scan before each
         self._came: list[Any] = []  # every scan as it came while calibrating (SWEEP_CHECK_KEEP at most)
         self.sweep: SweepCheck | None = None  # the beams' order, judged at the calibration
         self._turn_matrix: NDArray[np.float64] | None = None
@@ -979,39 +981,47 @@ class LiveInputs:
         from mapping.lidar_frontend import within_motion_limits
 
         seen, self._seen = self._seen, ls
-        raw = ls
         if self.calibration is None and len(self._came) < SWEEP_CHECK_KEEP:
-            self._came.append(raw)  # the beams' order is judged on consecutive scans
-        if self.frontend.deskew:  # over its sweep, else at the velocity since the scan before
-            ls = deskewed_scan(ls, seen or ls, ls, self.frontend.sweep_reversed)
+            self._came.append(ls)  # the beams' order is judged on consecutive scans
+        # (the motion filter reads the wheels' pose, which the de-skew leaves as it is)
         if self._taken is not None and within_motion_limits(self._taken.between(ls.odom), self.min_travel,
                                                             self.min_turn):
             self.skipped += 1
             return []
         self._taken = ls.odom
-        if self.calibration is None:
-            self._held.append(ls)
-            self._held_raw.append((raw, seen))
-            if len(self._held) < self.frontend.calibration_scans:
+        if self.calibration is None:  # held as it came: de-skewed once its beams' order is judged
+            self._holding.append((ls, seen))
+            if len(self._holding) < self.frontend.calibration_scans:
                 return []
             return self._calibrate()
+        ls = self._deskewed(ls, seen)
         return [self._next(ls, self._points_of(ls))]
 
     def finish(self) -> list[ScanInput]:
         """The held scans' inputs when the stream ended while calibrating (else none)."""
-        return self._calibrate() if self.calibration is None and self._held else []
+        return self._calibrate() if self.calibration is None and self._holding else []
+
+    def _deskewed(self, ls: Any, seen: Any) -> Any:
+        """A scan de-skewed as the front end says: over its sweep, else at the velocity since
+        the scan ``seen`` before it (:func:`deskewed_scan`)."""
+        if not self.frontend.deskew:
+            return ls
+        return deskewed_scan(ls, seen or ls, ls, self.frontend.sweep_reversed)
+
+    @property
+    def _held(self) -> list[Any]:
+        """The scans held for the calibrations, de-skewed in the beams' order taken now."""
+        return [self._deskewed(ls, seen) for ls, seen in self._holding]
 
     def _calibrate(self) -> list[ScanInput]:
         from mapping.lidar_frontend import OnlineSlam
 
-        held, self._held = self._held, []
-        raw, self._held_raw = self._held_raw, []
         came, self._came = self._came, []
         self.sweep = judged_sweep(came, self.frontend)
         if self.sweep is not None and self.sweep.reversed != self.frontend.sweep_reversed:
-            # the held scans' turning ones fit each other better the other way round: from now on
+            # the turning scans fit each other better the other way round: from now on
             self.frontend = replace(self.frontend, sweep_reversed=self.sweep.reversed)
-            held = [deskewed_scan(r, before or r, r, self.sweep.reversed) for r, before in raw]
+        held, self._holding = self._held, []
         self.frontend = for_scanner(self.frontend, held)
         cal = calibrate_log(held, self.frontend, self.yaw)
         self.calibration = cal

@@ -361,14 +361,25 @@ def _directed_matches(q, qd, d, xs, ys, ox, oy, cell, nx, ny, start, order, gate
     out = np.full(q.shape[0], -1, np.int64)
     near = np.empty(kk, np.int64)
     near_d = np.empty(kk)
+    dx, dy = d[:, 0], d[:, 1]
     for k in range(q.shape[0]):
-        n = _nearest_k(q[k, 0], q[k, 1], xs, ys, ox, oy, cell, nx, ny, start, order, gate, near, near_d)
-        for m in range(n):
-            o = near[m]
-            if d[o, 0] * qd[k, 0] + d[o, 1] * qd[k, 1] >= cos_min:
-                out[k] = o
-                break
+        out[k] = _nearest_directed(q[k, 0], q[k, 1], qd[k, 0], qd[k, 1], xs, ys, ox, oy, cell, nx, ny, start,
+                                   order, gate, dx, dy, cos_min, near, near_d)
     return out
+
+
+@_compiled
+def _nearest_directed(x, y, ux, uy, xs, ys, ox, oy, cell, nx, ny, start, order, gate, dx, dy, cos_min,  # type: ignore[no-untyped-def]
+                      near, near_d):
+    """Among the ``len(near)`` nearest grid points strictly within ``gate`` of ``(x, y)``
+    (nearest first), the first whose direction ``(dx, dy)`` has a dot product of at least
+    ``cos_min`` with ``(ux, uy)``; -1 when none has."""
+    n = _nearest_k(x, y, xs, ys, ox, oy, cell, nx, ny, start, order, gate, near, near_d)
+    for m in range(n):
+        o = near[m]
+        if dx[o] * ux + dy[o] * uy >= cos_min:
+            return o
+    return -1
 
 
 @_compiled
@@ -516,15 +527,12 @@ def _place_and_pair(points, pose, xs, ys, ox, oy, cell, nx, ny, start, order, ga
         wy[q] = y
         idx[q] = -1
         if facing and math.isfinite(qn[q, 0]):
-            rx = c * qn[q, 0] - s * qn[q, 1]
-            ry = s * qn[q, 0] + c * qn[q, 1]
-            found = _nearest_k(x, y, xs, ys, ox, oy, cell, nx, ny, start, order, gate, three, three_d)
-            for t in range(found):
-                o = three[t]
-                if gnx[o] * rx + gny[o] * ry >= facing_cos:
-                    idx[q] = o
-                    matched += 1
-                    break
+            ux, uy = c * qn[q, 0] - s * qn[q, 1], s * qn[q, 0] + c * qn[q, 1]  # its side, turned by the pose
+            o = _nearest_directed(x, y, ux, uy, xs, ys, ox, oy, cell, nx, ny, start, order, gate, gnx, gny,
+                                  facing_cos, three, three_d)
+            if o >= 0:
+                idx[q] = o
+                matched += 1
         elif _nearest_k(x, y, xs, ys, ox, oy, cell, nx, ny, start, order, gate, one, one_d):
             idx[q] = one[0]
             matched += 1

@@ -41,7 +41,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from mapping.extract import ExtractConfig, extract_corners
-from mapping.lidar_slam import LidarSlam, SlamConfig
+from mapping.lidar_slam import LidarSlam, Match, SlamConfig, Submap, match_scan, scan_normals, scan_sides
 from mapping.scan_match import PointMatchConfig, match_points
 from mapping.se2 import Pose, increments
 from mapping.wireframe import Wireframe
@@ -61,6 +61,7 @@ __all__ = [
     "deskew",
     "lag_correlation",
     "laser_yaw",
+    "match_to_previous",
     "motion_filter",
     "odometry_noise",
     "odometry_overrides",
@@ -525,17 +526,21 @@ def _matched_pair(
     points: list[FloatArray], odometry: list[Pose], k: int, config: FrontendConfig
 ) -> CalibrationPair | None:
     """Scan ``k`` matched against scan ``k - 1`` alone (:func:`calibration_pairs`), or None."""
-    from mapping.lidar_slam import Submap, match_scan, scan_normals, scan_sides
+    o = odometry[k]
+    m = match_to_previous(points[k - 1], points[k], o, config.slam)
+    return CalibrationPair(o, m.pose, k) if m is not None and m.inliers >= config.yaw_min_inliers else None
 
-    slam = config.slam
-    prev, here = points[k - 1], points[k]
+
+def match_to_previous(prev: FloatArray, here: FloatArray, step: Pose, slam: SlamConfig) -> Match | None:
+    """A scan's points ``here`` matched against the scan before it alone (``prev``; both robot
+    frame) from the wheels' ``step`` between them, no prior (:func:`mapping.lidar_slam.match_scan`
+    with ``slam``'s settings, the facing check as they say): the :class:`mapping.lidar_slam.Match`,
+    or None when either scan has fewer than 3 points."""
     if len(prev) < 3 or len(here) < 3:
         return None
     sub = Submap.build([(prev, scan_normals(prev, slam.normal_gap))], slam.voxel)
-    o = odometry[k]
     sides = scan_sides(here, scan_normals(here, slam.normal_gap))
-    m = match_scan(here, sub, np.array(o.as_tuple()), slam, sides=sides)
-    return CalibrationPair(o, m.pose, k) if m.inliers >= config.yaw_min_inliers else None
+    return match_scan(here, sub, np.array(step.as_tuple()), slam, sides=sides)
 
 
 @dataclass(frozen=True)

@@ -35,6 +35,7 @@ Choices (where the papers leave it open)
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, field
 
@@ -849,6 +850,12 @@ class _Node:
     points: FloatArray  # robot frame
     normals: FloatArray  # robot frame, NaN where none
 
+    @functools.cached_property
+    def sides(self) -> FloatArray:
+        """The side of a wall each point was seen from (:func:`scan_sides`; robot frame), made
+        once, when the facing check first asks."""
+        return scan_sides(self.points, self.normals)
+
 
 @dataclass
 class LidarSlam:
@@ -932,9 +939,9 @@ class LidarSlam:
         k = len(self._nodes)
         d = math.hypot(odo[0], odo[1])
         here = 0.0 if k == 0 else self._driven + d
-        nrm = scan_normals(pts, cfg.normal_gap)
+        node = _Node(pts, scan_normals(pts, cfg.normal_gap))
         if k == 0:
-            self._add_node(pts, here, nrm)
+            self._add_node(node, here)
             self.poses = np.array([self.start], dtype=np.float64)
             self._scans.append((0, None))
             self.online.append(self.poses[0].copy())
@@ -956,19 +963,19 @@ class LidarSlam:
             old = old[np.argsort(d[old], kind="stable")[: cfg.map_scans]]
             ids = sorted(old.tolist()) + ids
         sub = Submap.build([self._cloud(i) for i in ids], cfg.voxel)
-        sides = scan_sides(pts, nrm) if cfg.facing else None
-        m = match_scan(pts, sub, guess, cfg, prior_information=prior, sides=sides)
+        m = match_scan(pts, sub, guess, cfg, prior_information=prior,
+                       sides=node.sides if cfg.facing else None)
         pose = m.pose if m.matched >= 10 else guess
         self._driven = here
         twin = self._redundant_with(pose, here) if m.matched >= 10 else None
-        located = None if twin is None else self._locate(pts, sides, pose, twin, here)
+        located = None if twin is None else self._locate(node, pose, twin, here)
         if twin is not None and located is not None:
             self._scans.append((twin, _between(self.poses[twin], located)))
             self.skipped += 1
             self._last_loop = (here, twin)  # tied to the old nodes as a loop ties it
             self.online.append(located.copy())
             return np.array(located)
-        self._add_node(pts, here, nrm)
+        self._add_node(node, here)
         self.poses = np.vstack([self.poses, pose])
         self._scans.append((k, None))
         # The edge from the node the previous scan is, or was posed on (the robot is then back
@@ -985,9 +992,9 @@ class LidarSlam:
         self.online.append(self.poses[k].copy())
         return np.array(self.poses[k])
 
-    def _add_node(self, pts: FloatArray, travel: float, normals: FloatArray) -> None:
+    def _add_node(self, node: _Node, travel: float) -> None:
         k = len(self._nodes)
-        self._nodes.append(_Node(pts, normals))
+        self._nodes.append(node)
         if k == len(self._travel):
             self._travel = np.concatenate([self._travel, np.zeros(len(self._travel))])
             self._gap = np.concatenate([self._gap, np.zeros(len(self._gap), dtype=bool)])
@@ -1029,8 +1036,7 @@ class LidarSlam:
             return None
         return int(near[np.argmin(dist[ok])])
 
-    def _locate(self, pts: FloatArray, sides: FloatArray | None, pose: FloatArray, twin: int,
-                here: float) -> FloatArray | None:
+    def _locate(self, node: _Node, pose: FloatArray, twin: int, here: float) -> FloatArray | None:
         """A redundant scan's pose on the old map: matched, from ``pose``, against the visit of
         node ``twin`` (its ``loop_submap_scans`` either side, as a loop's old submap), with no
         odometry prior -- the local match leans on the wheels, and the loops that would have
@@ -1042,8 +1048,8 @@ class LidarSlam:
         n = len(self._nodes)
         ids = self._visit(twin, cfg.loop_submap_scans, n)
         old = [self._cloud(i) for i in ids if here - float(self._travel[i]) >= cfg.loop_min_travel]
-        m = match_scan(pts, Submap.build(old, cfg.voxel), pose, cfg, inlier_distance=cfg.loop_inlier_distance,
-                       sides=sides)
+        m = match_scan(node.points, Submap.build(old, cfg.voxel), pose, cfg,
+                       inlier_distance=cfg.loop_inlier_distance, sides=node.sides if cfg.facing else None)
         move = m.pose - pose
         if (m.matched < 10 or m.inliers < cfg.loop_min_inliers
                 or math.hypot(move[0], move[1]) > cfg.revisit_xy
@@ -1094,8 +1100,7 @@ class LidarSlam:
         rel = [(_between(self.poses[k], self.poses[i]), self._nodes[i])
                for i in range(max(0, k - cfg.loop_query_scans + 1), k + 1)]
         query = np.concatenate([_apply(z, nd.points) for z, nd in rel])
-        query_sides = (np.concatenate([scan_sides(nd.points, nd.normals) @ _rot(z[2]).T for z, nd in rel])
-                       if cfg.facing else None)
+        query_sides = np.concatenate([nd.sides @ _rot(z[2]).T for z, nd in rel]) if cfg.facing else None
         m = search_loop(query, sub, self.poses[k], r, ang, cfg, sides=query_sides)
         if m is None:
             return
@@ -1277,7 +1282,7 @@ class LidarSlam:
         cfg = self.config
         x = self.poses
         nd = self._nodes[k]
-        sides = scan_sides(nd.points, nd.normals) if cfg.facing else None
+        sides = nd.sides if cfg.facing else None
         edges: list[Edge] = []
         for j, ids in self._revisit_visits(k) if visits is None else visits:
             sub = submaps.pop(ids, None)

@@ -470,7 +470,7 @@ def run(args: argparse.Namespace) -> int:
     say(f"stopped after {st.step} steps (t={st.t:.1f} s): {st.maps_sent} maps, {st.bytes_sent} bytes")
     if st.live is not None:
         say("live lidar: " + ", ".join(f"{k} {v}" for k, v in st.live.items()
-                                       if k != "last_issue" and (k != "mount" or v))
+                                       if k != "last_issue" and v != "")  # (no mount, no order yet)
             + (f"; last issue: {st.live['last_issue']}" if st.live.get("last_issue") else ""))
     if args.status_file:
         from agents.files.io import write_json

@@ -139,7 +139,12 @@ MAX_SWEEP = 1.0
 def beam_time_increment(dt: float, beams: int) -> float:
     """A scan's time from one beam to the next as read: ``dt``, or 0 (simultaneous beams) when it
     is not a number or its ``beams`` would take longer than ``MAX_SWEEP``."""
-    return dt if math.isfinite(dt) and abs(dt) * max(beams - 1, 0) <= MAX_SWEEP else 0.0
+    return dt if math.isfinite(dt) and sweep_seconds(dt, beams) <= MAX_SWEEP else 0.0
+
+
+def sweep_seconds(dt: float, beams: int) -> float:
+    """Seconds from a scan's first beam to its last, its ``beams`` ``dt`` apart."""
+    return abs(dt) * max(beams - 1, 0)
 DEFAULT_FOV = math.pi
 HOSTNAME = "wiremap"
 _MESSAGE_TYPE = re.compile(r"[A-Z][A-Z0-9_]*\Z")
@@ -157,6 +162,7 @@ __all__ = [
     "read_carmen_log",
     "read_truth_tsv",
     "scan_truth",
+    "sweep_seconds",
     "truth_path_for",
     "write_carmen",
 ]
@@ -214,7 +220,7 @@ class LaserScan:
     @property
     def sweep(self) -> float:
         """Seconds from the first beam to the last (0: simultaneous beams)."""
-        return abs(self.time_increment) * max(0, self.angles.size - 1)
+        return sweep_seconds(self.time_increment, self.angles.size)
 
     def __post_init__(self) -> None:
         r = np.array(self.ranges, dtype=np.float64, copy=True).reshape(-1)

@@ -63,14 +63,12 @@ class Ros2Messages:
     def odometry(self, t: float, pose: Pose) -> bytes:
         """An ``Odometry`` with the robot's base at ``pose`` in the odometry frame."""
         ty = self.types
-        h = 0.5 * pose.theta
         msg = ty[ODOM_TYPE](
             header=self._header(t, self.odom_frame), child_frame_id=self.base_frame,
             pose=ty["geometry_msgs/msg/PoseWithCovariance"](
                 pose=ty["geometry_msgs/msg/Pose"](
                     position=ty["geometry_msgs/msg/Point"](x=pose.x, y=pose.y, z=0.0),
-                    orientation=ty["geometry_msgs/msg/Quaternion"](
-                        x=0.0, y=0.0, z=math.sin(h), w=math.cos(h))),
+                    orientation=self._yaw(pose.theta)),
                 covariance=np.zeros(36, dtype=np.float64)),
             twist=ty["geometry_msgs/msg/TwistWithCovariance"](
                 twist=ty["geometry_msgs/msg/Twist"](
@@ -84,14 +82,18 @@ class Ros2Messages:
         """A ``tf2_msgs/TFMessage`` (``/tf_static``) with the laser's ``mount`` on the robot's base:
         ``base_link -> laser``."""
         ty = self.types
-        h = 0.5 * mount.theta
         msg = ty[TF_TYPE](transforms=[ty["geometry_msgs/msg/TransformStamped"](
             header=self._header(t, self.base_frame), child_frame_id=self.laser_frame,
             transform=ty["geometry_msgs/msg/Transform"](
                 translation=ty["geometry_msgs/msg/Vector3"](x=mount.x, y=mount.y, z=0.0),
-                rotation=ty["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=math.sin(h), w=math.cos(h))),
+                rotation=self._yaw(mount.theta)),
         )])  # fmt: skip
         return bytes(self.store.serialize_cdr(msg, TF_TYPE))
+
+    def _yaw(self, theta: float) -> Any:
+        """A ``geometry_msgs/Quaternion`` turning ``theta`` radians about z."""
+        h = 0.5 * theta
+        return self.types["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=math.sin(h), w=math.cos(h))
 
     def of_scan(self, ls: Any) -> tuple[bytes, bytes]:
         """``(odometry, scan)`` of one scan of a log (:class:`agents.files.carmen.LaserScan`): the

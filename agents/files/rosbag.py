@@ -73,7 +73,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from agents.errors import UserError
-from agents.files.carmen import LaserScan, beam_time_increment
+from agents.files.carmen import LaserScan, beam_time_increment, sweep_seconds
 from mapping.se2 import Pose, wrap_angle
 
 FloatArray = NDArray[np.float64]
@@ -707,7 +707,7 @@ def sweep_end(raw: _RawScan) -> float | None:
     simultaneous: the odometry there gives the de-skew its velocity (``LaserScan.odom_end``)."""
     if not raw.time_increment or raw.ranges.size < 2:
         return None
-    return raw.t + abs(raw.time_increment) * (raw.ranges.size - 1)
+    return raw.t + sweep_seconds(raw.time_increment, raw.ranges.size)
 
 
 def _assemble(log: _Collected, where: str, fmt: str, topics: dict[str, str], base_frame: str) -> RosBag:

@@ -378,12 +378,9 @@ class LiveLidar:
             self._waiting.popleft()
             if self._t0 is None:
                 self._t0 = w.raw.t
-            if mount is None:
-                scan = posed_scan(w.raw, robot, self.mount, t=w.raw.t - self._t0, robot_end=robot_end)
-            else:
-                scan = posed_scan(w.raw, robot, mount.pose, mount.upside_down, t=w.raw.t - self._t0,
-                                  robot_end=robot_end)
-            self._ready.append(scan)
+            pose, upside_down = (self.mount, False) if mount is None else (mount.pose, mount.upside_down)
+            self._ready.append(posed_scan(w.raw, robot, pose, upside_down, t=w.raw.t - self._t0,
+                                          robot_end=robot_end))
             self.counts.posed += 1
             self.counts.swept += robot_end is not None
             while len(self._ready) > self.max_backlog:
